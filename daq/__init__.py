@@ -1,0 +1,1 @@
+"""The imperative shell: configuration, CANopen master, reader, runtime, telemetry, CLI."""

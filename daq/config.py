@@ -1,0 +1,722 @@
+"""The one typed loader of the rig TOML.
+
+Every error names the key, the bad value and the fix, e.g.::
+
+    rig.toml: mass.effective_mass_kg[1] = -5.0: must be > 0; fix: give the effective mass in kg
+
+The loader builds the numerical core's parameter objects (estimator.params) from it.
+"""
+from __future__ import annotations
+
+import difflib
+import math
+import tomllib
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from estimator.params import (
+    Accelerometers,
+    ExternalLoads,
+    Geometry,
+    MassProperties,
+    RigModel,
+)
+
+G0 = 9.80665  # standard gravity, m/s^2
+ROLES = ("load_cell", "accelerometer", "rotor_speed", "balance", "drive_load")
+CONTENTS = ("static", "harmonics", "broadband")
+
+
+class ConfigError(ValueError):
+    """A configuration mistake: which key, what value, what to do."""
+
+    def __init__(self, key: str, value: Any, problem: str, fix: str, source: str = ""):
+        self.key, self.value, self.problem, self.fix, self.source = key, value, problem, fix, source
+        where = f"{source}: " if source else ""
+        super().__init__(f"{where}{key} = {value!r}: {problem}; fix: {fix}")
+
+
+_MISSING = object()
+
+
+class _Section:
+    """Typed access to one TOML table, tracking the dotted key path and unknown keys."""
+
+    def __init__(self, data: dict, path: str, source: str):
+        if not isinstance(data, dict):
+            raise ConfigError(path, data, "must be a table", f"write [{path}] as a TOML table", source)
+        self.data, self.path, self.source = data, path, source
+        self.used: set[str] = set()
+
+    def key(self, name: str) -> str:
+        return f"{self.path}.{name}" if self.path else name
+
+    def error(self, name: str, value: Any, problem: str, fix: str) -> ConfigError:
+        return ConfigError(self.key(name), value, problem, fix, self.source)
+
+    def get(self, name: str, default: Any = _MISSING) -> Any:
+        self.used.add(name)
+        if name in self.data:
+            return self.data[name]
+        if default is _MISSING:
+            raise ConfigError(self.key(name), None, "is missing", f"add {name} = … to [{self.path}]",
+                              self.source)
+        return default
+
+    def number(self, name: str, default: Any = _MISSING, *, positive: bool = False,
+               nonneg: bool = False, integer: bool = False, fix: str = "") -> float:
+        v = self.get(name, default)
+        ok = isinstance(v, (int, float)) and not isinstance(v, bool)
+        if integer:
+            ok = ok and float(v).is_integer()
+        if not ok or not math.isfinite(float(v)):
+            kind = "a whole number" if integer else "a finite number"
+            raise self.error(name, v, f"must be {kind}", fix or f"set {name} to {kind}")
+        if positive and v <= 0:
+            raise self.error(name, v, "must be > 0", fix or f"set {name} to a positive value")
+        if nonneg and v < 0:
+            raise self.error(name, v, "must be >= 0", fix or f"set {name} to zero or more")
+        return int(v) if integer else float(v)
+
+    def string(self, name: str, default: Any = _MISSING, choices: tuple[str, ...] | None = None) -> str:
+        v = self.get(name, default)
+        if not isinstance(v, str):
+            raise self.error(name, v, "must be a string", f'write {name} = "…"')
+        if choices is not None and v not in choices:
+            near = difflib.get_close_matches(v, choices, n=1)
+            hint = f' (did you mean "{near[0]}"?)' if near else ""
+            raise self.error(name, v, f"unknown value{hint}",
+                             "use one of " + ", ".join(f'"{c}"' for c in choices))
+        return v
+
+    def boolean(self, name: str, default: Any = _MISSING) -> bool:
+        v = self.get(name, default)
+        if not isinstance(v, bool):
+            raise self.error(name, v, "must be true or false", f"write {name} = true or false")
+        return v
+
+    def vector(self, name: str, length: int | None = None, default: Any = _MISSING, *,
+               positive: bool = False, unit: str = "") -> np.ndarray:
+        v = self.get(name, default)
+        if not isinstance(v, list) or not all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) for x in v
+        ):
+            raise self.error(name, v, "must be a list of numbers", f"write {name} = [x, y, …]{unit}")
+        if length is not None and len(v) != length:
+            raise self.error(name, v, f"must have {length} values, has {len(v)}",
+                             f"give {length} numbers{unit}")
+        a = np.asarray(v, dtype=float)
+        for i, x in enumerate(a):
+            if not math.isfinite(x):
+                raise ConfigError(f"{self.key(name)}[{i}]", x, "must be finite",
+                                  "replace it with a finite number", self.source)
+            if positive and x <= 0:
+                raise ConfigError(f"{self.key(name)}[{i}]", float(x), "must be > 0",
+                                  f"give a positive value{unit}", self.source)
+        return a
+
+    def table(self, name: str, default: Any = _MISSING) -> "_Section":
+        return _Section(self.get(name, default), self.key(name), self.source)
+
+    def tables(self, name: str, default: Any = _MISSING) -> list["_Section"]:
+        v = self.get(name, default)
+        if not isinstance(v, list):
+            raise self.error(name, v, "must be an array of tables", f"write [[{self.key(name)}]] blocks")
+        return [_Section(t, f"{self.key(name)}[{i}]", self.source) for i, t in enumerate(v)]
+
+    def finish(self) -> None:
+        """Refuse keys nobody read: almost always a typo."""
+        for k in self.data:
+            if k not in self.used:
+                near = difflib.get_close_matches(k, sorted(self.used), n=1)
+                hint = f'rename it to "{near[0]}"' if near else "remove it"
+                raise ConfigError(self.key(k), self.data[k], "unknown key", hint, self.source)
+
+
+@dataclass(frozen=True)
+class CellConfig:
+    name: str
+    node: str
+    position_m: np.ndarray
+    nominal_axis: np.ndarray
+    full_scale_N: float
+    accuracy_fs: float
+    stiffness_N_per_m: float
+
+    @property
+    def sigma_N(self) -> float:
+        return self.full_scale_N * self.accuracy_fs
+
+
+@dataclass(frozen=True)
+class AccelerometerConfig:
+    name: str
+    node: str
+    position_m: np.ndarray
+    full_scale_g: float
+    accuracy_fs: float
+
+    @property
+    def sigma_m_s2(self) -> float:
+        return self.full_scale_g * G0 * self.accuracy_fs
+
+
+@dataclass(frozen=True)
+class NodeConfig:
+    name: str
+    role: str
+    node_id: int
+    eds: Path
+    required: bool
+
+
+@dataclass(frozen=True)
+class RotorConfig:
+    blades: int
+    omega_nominal_rad_s: float
+    node: str
+    omega_min_fraction: float
+    redesign_band: float
+    cache_resolution: float
+    stopped: bool
+
+
+@dataclass(frozen=True)
+class BalanceConfig:
+    node: str
+    full_scale_force_N: float
+    full_scale_moment_Nm: float
+    accuracy_fs: float
+
+    @property
+    def sigma(self) -> np.ndarray:
+        f = self.full_scale_force_N * self.accuracy_fs
+        m = self.full_scale_moment_Nm * self.accuracy_fs
+        return np.array([f, f, f, m, m, m])
+
+
+@dataclass(frozen=True)
+class ExternalLoadConfig:
+    name: str
+    node: str
+    wrench_per_unit: np.ndarray
+    sigma: float
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    harmonics: tuple[int, ...]
+    low_frequency_states: bool
+    tuning: str
+    time_constant_s: float
+    process_noise_psd: str | np.ndarray
+    invalid_after_s: float
+
+
+@dataclass(frozen=True)
+class IdentificationConfig:
+    parameters: str | tuple[str, ...]
+    initial_angles_rad: np.ndarray
+    prior_sigma_rad: float
+    period_s: float
+    window_s: float
+    drift_rate_rad2_s: float
+    min_information: float
+    sigma_max_rad: float
+    apply_delay_s: float
+    content_known_loads: str
+    content_filter_error: str
+    moment_floor_Nm: float
+    max_iterations: int
+    reset_after: int
+    stale_fraction: float
+    settle_time_constants: float
+    gap_s: float
+    state_file: str
+
+
+@dataclass(frozen=True)
+class SyncConfig:
+    producer: str
+    cob_id: int
+    counter_overflow: int
+
+
+@dataclass(frozen=True)
+class HeartbeatConfig:
+    producer_ms: int
+    timeout_factor: float
+    boot_timeout_s: float
+
+
+@dataclass(frozen=True)
+class TelemetryConfig:
+    prefix: str
+    mode: str
+    listen: tuple[str, ...]
+    connect: tuple[str, ...]
+    multicast_scouting: bool
+    innovations_hz: float
+    zenoh_config: str
+
+
+@dataclass(frozen=True)
+class RecordingConfig:
+    dir: str
+    format: str
+    rotate_mb: float
+    cap_mb: float
+    flush_s: float
+
+
+@dataclass(frozen=True)
+class SimulatorConfig:
+    damping_ratio: float
+    damping_reference_hz: float
+    substeps: int
+
+
+@dataclass(frozen=True)
+class RigConfig:
+    source: str
+    rig_name: str
+    sample_rate_hz: float
+    hub_centre_m: np.ndarray
+    shaft_tilt_rad: float
+    hub_frame: str
+    effective_mass_kg: np.ndarray
+    inertia_kg_m2: np.ndarray
+    cells: tuple[CellConfig, ...]
+    angular: str
+    accelerometers: tuple[AccelerometerConfig, ...]
+    rotor: RotorConfig
+    balance: BalanceConfig
+    external_loads: tuple[ExternalLoadConfig, ...]
+    filter: FilterConfig
+    identification: IdentificationConfig
+    sync: SyncConfig
+    heartbeat: HeartbeatConfig
+    nodes: tuple[NodeConfig, ...]
+    calibration: dict[str, tuple[float, float]]
+    telemetry: TelemetryConfig
+    recording: RecordingConfig
+    simulator: SimulatorConfig
+    raw: dict = field(repr=False, default_factory=dict)
+
+    @property
+    def sample_period_s(self) -> float:
+        return 1.0 / self.sample_rate_hz
+
+    def node(self, name: str) -> NodeConfig | None:
+        for n in self.nodes:
+            if n.name == name:
+                return n
+        return None
+
+    def rig_model(self) -> RigModel:
+        return build_rig_model(self)
+
+    def effective(self) -> dict:
+        """The configuration as loaded, with secrets (Zenoh config paths) removed."""
+        d = {k: v for k, v in self.raw.items()}
+        tel = dict(d.get("telemetry", {}))
+        if tel.get("zenoh_config"):
+            tel["zenoh_config"] = "<removed>"
+        d["telemetry"] = tel
+        return d
+
+
+def default_config_path() -> Path:
+    return Path(str(resources.files("rsra_config").joinpath("rig.toml")))
+
+
+def config_dir() -> Path:
+    return Path(str(resources.files("rsra_config")))
+
+
+def build_rig_model(cfg: RigConfig) -> RigModel:
+    geometry = Geometry(
+        cell_names=tuple(c.name for c in cfg.cells),
+        cell_positions=np.array([c.position_m for c in cfg.cells]),
+        cell_axes=np.array([c.nominal_axis for c in cfg.cells]),
+        hub_position=np.asarray(cfg.hub_centre_m, float),
+        shaft_tilt_rad=cfg.shaft_tilt_rad,
+        hub_frame=cfg.hub_frame,
+    )
+    acc = Accelerometers(
+        positions=np.array([a.position_m for a in cfg.accelerometers]),
+        sigma=np.array([a.sigma_m_s2 for a in cfg.accelerometers]),
+        angular=cfg.angular,
+    )
+    ext = ExternalLoads(
+        names=tuple(e.name for e in cfg.external_loads),
+        wrenches=(np.array([e.wrench_per_unit for e in cfg.external_loads]).T
+                  if cfg.external_loads else np.zeros((6, 0))),
+        sigma=np.array([e.sigma for e in cfg.external_loads]),
+    )
+    return RigModel(
+        geometry=geometry,
+        mass=MassProperties(mass=cfg.effective_mass_kg, inertia=cfg.inertia_kg_m2),
+        accelerometers=acc,
+        cell_sigma=np.array([c.sigma_N for c in cfg.cells]),
+        balance_sigma=cfg.balance.sigma,
+        external=ext,
+    )
+
+
+def load_config(path: str | Path | None = None, overrides: dict | None = None) -> RigConfig:
+    """Load and check a rig TOML (default: the packaged rig). Raises ConfigError."""
+    p = Path(path) if path is not None else default_config_path()
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError("--config", str(p), "file not found",
+                          "give the path of a rig TOML, or omit --config for the default rig") from None
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError("<file>", str(p), f"not valid TOML ({e})", "fix the TOML syntax") from None
+    if overrides:
+        raw = _merge(raw, overrides)
+    return parse_config(raw, source=p.name, base_dir=p.parent)
+
+
+def _merge(a: dict, b: dict) -> dict:
+    out = dict(a)
+    for k, v in b.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = None) -> RigConfig:
+    base_dir = base_dir or config_dir()
+    top = _Section(raw, "", source)
+
+    rig = top.table("rig", {})
+    rig_name = rig.string("name", "bench")
+    if not rig_name or "/" in rig_name or any(c in rig_name for c in "*?$#"):
+        raise rig.error("name", rig_name, "must be a plain name", "use letters, digits, - or _")
+    rate = rig.number("sample_rate_hz", 200.0, positive=True)
+    rig.finish()
+
+    geo = top.table("geometry")
+    hub = geo.vector("hub_centre_m", 3, unit=" in m")
+    tilt = math.radians(geo.number("shaft_tilt_deg", 0.0))
+    frame = geo.string("hub_frame", "body", ("body", "shaft"))
+    geo.finish()
+
+    mass = top.table("mass")
+    m = mass.vector("effective_mass_kg", 3, positive=True, unit=" in kg")
+    inertia = mass.vector("inertia_kg_m2", 3, positive=True, unit=" in kg m^2")
+    mass.finish()
+
+    cells = []
+    seen: dict[str, str] = {}
+    for c in top.tables("cells"):
+        name = c.string("name")
+        if name in seen:
+            raise c.error("name", name, f"cell listed twice (also at {seen[name]})",
+                          "give every cell its own name")
+        seen[name] = c.path
+        axis = c.vector("nominal_axis", 3)
+        nrm = float(np.linalg.norm(axis))
+        if nrm == 0:
+            raise c.error("nominal_axis", axis.tolist(), "is zero", "give the cell's direction")
+        cells.append(CellConfig(
+            name=name, node=c.string("node"), position_m=c.vector("position_m", 3, unit=" in m"),
+            nominal_axis=axis / nrm,
+            full_scale_N=c.number("full_scale_N", positive=True),
+            accuracy_fs=c.number("accuracy_fs", positive=True),
+            stiffness_N_per_m=c.number("stiffness_N_per_m", 1.0e8, positive=True),
+        ))
+        c.finish()
+    if len(cells) != 7:
+        raise ConfigError("cells", len(cells), "the model has exactly seven load cells (14 angles)",
+                          "list seven [[cells]] blocks", source)
+    kinds = sorted(int(np.argmax(np.abs(c.nominal_axis))) for c in cells)
+    if kinds != [0, 1, 1, 2, 2, 2, 2]:
+        raise ConfigError("cells[*].nominal_axis", [c.nominal_axis.round(3).tolist() for c in cells],
+                          "need four vertical, two lateral and one longitudinal cell",
+                          "check the nominal axes (vertical along z, lateral along y, longitudinal along x)",
+                          source)
+
+    inertial = top.table("inertial", {})
+    angular = inertial.string("angular", "neglect", ("neglect", "least_squares"))
+    inertial.finish()
+
+    accs = []
+    for a in top.tables("accelerometers"):
+        accs.append(AccelerometerConfig(
+            name=a.string("name"), node=a.string("node"),
+            position_m=a.vector("position_m", 3, unit=" in m"),
+            full_scale_g=a.number("full_scale_g", positive=True),
+            accuracy_fs=a.number("accuracy_fs", positive=True),
+        ))
+        a.finish()
+    if not accs:
+        raise ConfigError("accelerometers", [], "at least one triaxial accelerometer is needed",
+                          "add an [[accelerometers]] block", source)
+
+    rot = top.table("rotor")
+    rotor = RotorConfig(
+        blades=rot.number("blades", integer=True, positive=True),
+        omega_nominal_rad_s=rot.number("omega_nominal_rad_s", positive=True),
+        node=rot.string("node", ""),
+        omega_min_fraction=rot.number("omega_min_fraction", 0.1, positive=True),
+        redesign_band=rot.number("redesign_band", 0.005, positive=True),
+        cache_resolution=rot.number("cache_resolution", 0.001, positive=True),
+        stopped=rot.boolean("stopped", False),
+    )
+    rot.finish()
+
+    bal = top.table("balance", {})
+    balance = BalanceConfig(
+        node=bal.string("node", ""),
+        full_scale_force_N=bal.number("full_scale_force_N", 200000.0, positive=True),
+        full_scale_moment_Nm=bal.number("full_scale_moment_Nm", 50000.0, positive=True),
+        accuracy_fs=bal.number("accuracy_fs", 0.0002, positive=True),
+    )
+    bal.finish()
+
+    ext = []
+    for e in top.tables("external_loads", []):
+        ext.append(ExternalLoadConfig(
+            name=e.string("name"), node=e.string("node"),
+            wrench_per_unit=e.vector("wrench_per_unit", 6),
+            sigma=e.number("sigma", positive=True),
+        ))
+        e.finish()
+
+    flt = top.table("filter", {})
+    harm_raw = flt.get("harmonics", [1, rotor.blades])
+    if (not isinstance(harm_raw, list) or not harm_raw
+            or not all(isinstance(h, int) and not isinstance(h, bool) and h > 0 for h in harm_raw)
+            or len(set(harm_raw)) != len(harm_raw)):
+        raise flt.error("harmonics", harm_raw, "must be a list of distinct positive whole numbers",
+                        f"e.g. harmonics = [1, {rotor.blades}] for 1/rev and N_b/rev")
+    psd_raw = flt.get("process_noise_psd", "auto")
+    if isinstance(psd_raw, str):
+        if psd_raw != "auto":
+            raise flt.error("process_noise_psd", psd_raw, "unknown value",
+                            'use "auto" or a list of six positive PSDs')
+        psd: str | np.ndarray = "auto"
+    else:
+        psd = flt.vector("process_noise_psd", 6, positive=True)
+    filt = FilterConfig(
+        harmonics=tuple(sorted(harm_raw)),
+        low_frequency_states=flt.boolean("low_frequency_states", True),
+        tuning=flt.string("tuning", "time_constant", ("time_constant", "noise")),
+        time_constant_s=flt.number("time_constant_s", 0.1, positive=True),
+        process_noise_psd=psd,
+        invalid_after_s=flt.number("invalid_after_s", 0.5, positive=True),
+    )
+    flt.finish()
+
+    idt = top.table("identification", {})
+    params = idt.get("parameters", "angles")
+    if isinstance(params, list):
+        if not params or not all(isinstance(x, str) for x in params) or len(set(params)) != len(params):
+            raise idt.error("parameters", params, "must be distinct parameter names",
+                            'use "angles" or a list such as ["delta_A", "theta_A"]')
+        params = tuple(params)
+    elif params != "angles":
+        raise idt.error("parameters", params, "unknown value", 'use "angles" or a list of names')
+    ia = idt.get("initial_angles_deg", 0.0)
+    if isinstance(ia, (int, float)) and not isinstance(ia, bool):
+        init = np.full(14, math.radians(float(ia)))
+    else:
+        init = np.radians(idt.vector("initial_angles_deg", 14, unit=" in degrees"))
+    window = idt.number("window_s", 5.0, positive=True)
+    period = idt.number("period_s", 5.0, positive=True)
+    if window > period:
+        raise idt.error("window_s", window, f"exceeds period_s = {period} (samples would count twice)",
+                        "make window_s <= period_s")
+    ident = IdentificationConfig(
+        parameters=params,
+        initial_angles_rad=init,
+        prior_sigma_rad=math.radians(idt.number("prior_sigma_deg", 5.0, positive=True)),
+        period_s=period,
+        window_s=window,
+        drift_rate_rad2_s=idt.number("drift_rate_rad2_s", 1e-9, nonneg=True),
+        min_information=idt.number("min_information", 1.0, positive=True),
+        sigma_max_rad=math.radians(idt.number("sigma_max_deg", 0.2, positive=True)),
+        apply_delay_s=idt.number("apply_delay_s", 1.0, nonneg=True),
+        content_known_loads=idt.string("content_known_loads", "static", CONTENTS),
+        content_filter_error=idt.string("content_filter_error", "harmonics", CONTENTS),
+        moment_floor_Nm=idt.number("moment_floor_Nm", 100.0, nonneg=True),
+        max_iterations=idt.number("max_iterations", 10, integer=True, positive=True),
+        reset_after=idt.number("reset_after", 3, integer=True, positive=True),
+        stale_fraction=idt.number("stale_fraction", 0.05, nonneg=True),
+        settle_time_constants=idt.number("settle_time_constants", 5.0, nonneg=True),
+        gap_s=idt.number("gap_s", 0.5, positive=True),
+        state_file=idt.string("state_file", ""),
+    )
+    idt.finish()
+
+    sy = top.table("sync", {})
+    sync = SyncConfig(
+        producer=sy.string("producer", "service", ("service", "external")),
+        cob_id=sy.number("cob_id", 0x80, integer=True, positive=True),
+        counter_overflow=sy.number("counter_overflow", 240, integer=True, nonneg=True),
+    )
+    if not (sync.counter_overflow == 0 or 2 <= sync.counter_overflow <= 240):
+        raise sy.error("counter_overflow", sync.counter_overflow, "CiA 301 allows 0 or 2…240",
+                       "use 240 (the default)")
+    sy.finish()
+
+    hb = top.table("heartbeat", {})
+    heartbeat = HeartbeatConfig(
+        producer_ms=hb.number("producer_ms", 100, integer=True, positive=True),
+        timeout_factor=hb.number("timeout_factor", 2.5, positive=True),
+        boot_timeout_s=hb.number("boot_timeout_s", 2.0, positive=True),
+    )
+    hb.finish()
+
+    nodes = []
+    names: dict[str, str] = {}
+    ids: dict[int, str] = {}
+    for n in top.tables("nodes"):
+        name = n.string("name")
+        if name in names:
+            raise n.error("name", name, f"node listed twice (also at {names[name]})",
+                          "give every node its own name")
+        names[name] = n.path
+        nid = n.number("node_id", integer=True)
+        if not 1 <= nid <= 127:
+            raise n.error("node_id", nid, "CANopen node ids are 1…127", "choose an id in 1…127")
+        if nid in ids:
+            raise n.error("node_id", nid, f"id already used by node {ids[nid]!r}",
+                          "give every node its own id")
+        ids[nid] = name
+        eds = Path(n.string("eds"))
+        eds_path = eds if eds.is_absolute() else base_dir / eds
+        if not eds_path.is_file():
+            # fall back to the packaged EDS folder
+            alt = config_dir() / eds
+            if alt.is_file():
+                eds_path = alt
+            else:
+                raise n.error("eds", str(eds), f"file not found (looked in {base_dir})",
+                              "give the EDS path relative to the config file")
+        nodes.append(NodeConfig(name=name, role=n.string("role", choices=ROLES), node_id=nid,
+                                eds=eds_path, required=n.boolean("required", True)))
+        n.finish()
+
+    def need_node(key: str, node: str, role: str, optional: bool = False) -> None:
+        if optional and not node:
+            return
+        nc = next((x for x in nodes if x.name == node), None)
+        if nc is None:
+            raise ConfigError(key, node, "no [[nodes]] entry with that name",
+                              f'add a [[nodes]] block with name = "{node}" and role = "{role}"', source)
+        if nc.role != role:
+            raise ConfigError(key, node, f"node has role {nc.role!r}, expected {role!r}",
+                              "point it at the right node", source)
+
+    used_nodes: dict[str, str] = {}
+    for i, c in enumerate(cells):
+        need_node(f"cells[{i}].node", c.node, "load_cell")
+        if c.node in used_nodes:
+            raise ConfigError(f"cells[{i}].node", c.node, f"node already used by {used_nodes[c.node]}",
+                              "give each cell its own node", source)
+        used_nodes[c.node] = f"cells[{i}]"
+    for i, a in enumerate(accs):
+        need_node(f"accelerometers[{i}].node", a.node, "accelerometer")
+    need_node("rotor.node", rotor.node, "rotor_speed", optional=True)
+    need_node("balance.node", balance.node, "balance", optional=True)
+    for i, e in enumerate(ext):
+        need_node(f"external_loads[{i}].node", e.node, "drive_load")
+
+    cal_sec = top.table("calibration", {})
+    calibration: dict[str, tuple[float, float]] = {}
+    for k in list(cal_sec.data):
+        entry = cal_sec.table(k)
+        node_name = k.split(".")[0]
+        if node_name not in names:
+            raise cal_sec.error(k, cal_sec.data[k], f"no node named {node_name!r}",
+                                'use keys "<node>.<channel>", e.g. "cell_A.force"')
+        calibration[k] = (entry.number("gain", 1.0), entry.number("offset", 0.0))
+        entry.finish()
+    cal_sec.finish()
+
+    tel = top.table("telemetry", {})
+    prefix = tel.string("prefix", "") or f"rsra/{rig_name}"
+    if prefix.startswith("/") or prefix.endswith("/") or any(c in prefix for c in "*$?#"):
+        raise tel.error("prefix", prefix, "not a valid Zenoh key prefix",
+                        'use e.g. "rsra/bench" (no wildcards, no leading or trailing /)')
+    listen = tel.get("listen", ["tcp/127.0.0.1:7447"])
+    connect = tel.get("connect", [])
+    for key, eps in (("listen", listen), ("connect", connect)):
+        if not isinstance(eps, list) or not all(isinstance(x, str) for x in eps):
+            raise tel.error(key, eps, "must be a list of Zenoh endpoints",
+                            f'e.g. {key} = ["tcp/127.0.0.1:7447"]')
+    telemetry = TelemetryConfig(
+        prefix=prefix,
+        mode=tel.string("mode", "peer", ("peer", "client", "router")),
+        listen=tuple(listen), connect=tuple(connect),
+        multicast_scouting=tel.boolean("multicast_scouting", False),
+        innovations_hz=tel.number("innovations_hz", 20.0, positive=True),
+        zenoh_config=tel.string("zenoh_config", ""),
+    )
+    tel.finish()
+
+    rec = top.table("recording", {})
+    recording = RecordingConfig(
+        dir=rec.string("dir", ""),
+        format=rec.string("format", "log", ("log", "blf", "asc", "mf4")),
+        rotate_mb=rec.number("rotate_mb", 64.0, positive=True),
+        cap_mb=rec.number("cap_mb", 4096.0, positive=True),
+        flush_s=rec.number("flush_s", 1.0, positive=True),
+    )
+    if recording.flush_s > 1.0:
+        raise rec.error("flush_s", recording.flush_s, "recordings flush at least once a second",
+                        "set flush_s <= 1")
+    rec.finish()
+
+    sim = top.table("simulator", {})
+    simulator = SimulatorConfig(
+        damping_ratio=sim.number("damping_ratio", 0.02, nonneg=True),
+        damping_reference_hz=sim.number("damping_reference_hz", 50.0, positive=True),
+        substeps=sim.number("substeps", 10, integer=True, positive=True),
+    )
+    sim.finish()
+    top.finish()
+
+    cfg = RigConfig(
+        source=source, rig_name=rig_name, sample_rate_hz=rate, hub_centre_m=hub,
+        shaft_tilt_rad=tilt, hub_frame=frame, effective_mass_kg=m, inertia_kg_m2=inertia,
+        cells=tuple(cells), angular=angular, accelerometers=tuple(accs), rotor=rotor,
+        balance=balance, external_loads=tuple(ext), filter=filt, identification=ident,
+        sync=sync, heartbeat=heartbeat, nodes=tuple(nodes), calibration=calibration,
+        telemetry=telemetry, recording=recording, simulator=simulator, raw=raw,
+    )
+    _check_model(cfg)
+    return cfg
+
+
+def _check_model(cfg: RigConfig) -> None:
+    """Refuse a rig whose balance cannot be solved: singular S at the starting angles, or R."""
+    from estimator.balance import accel_solution_matrix
+    from estimator.geometry import hub_transfer_matrix, wrench_matrix
+
+    model = build_rig_model(cfg)
+    S = wrench_matrix(model.geometry, cfg.identification.initial_angles_rad)
+    sv = np.linalg.svd(S, compute_uv=False)
+    if sv[-1] < 1e-9 * sv[0]:
+        raise ConfigError("cells", "positions/nominal_axis",
+                          f"S is singular at the starting angles (condition {sv[0] / max(sv[-1], 1e-300):.3g}): "
+                          "the seven cells do not resist all six loads",
+                          "check the cell positions and nominal axes", cfg.source)
+    R = hub_transfer_matrix(model.geometry)
+    if abs(np.linalg.det(R)) < 1e-12:
+        raise ConfigError("geometry", "hub_centre_m/shaft_tilt_deg", "R is not invertible",
+                          "check the hub centre and shaft tilt", cfg.source)
+    try:
+        accel_solution_matrix(model.accelerometers)
+    except ValueError as e:
+        raise ConfigError("inertial.angular", cfg.angular, str(e).split(";")[0],
+                          'use angular = "neglect" or add accelerometers', cfg.source) from None
