@@ -83,3 +83,28 @@ def accelerometer_covariance(model: RigModel) -> np.ndarray:
     Qa = np.diag(np.repeat(np.asarray(acc.sigma, float) ** 2, 3))
     Mf = inertial_load_matrix(model)
     return Mf @ Qa @ Mf.T
+
+
+def measurement_covariance(
+    model: RigModel,
+    alpha: np.ndarray,
+    moment_floor: float = 100.0,
+    known_loads: bool = False,
+) -> np.ndarray:
+    """W(alpha) of model.md §7 (effective variance, errors in variables), 6x6:
+
+    W = Sigma_z + S(alpha) Sigma_T S(alpha)^T (+ R0 Sigma_H R0^T with known loads), where
+    Sigma_z is the inertial-load covariance from the accelerometer specs plus a floor on the
+    moment rows for what the model neglects (the angular inertial loads). R0 is R with
+    C_s = I: the reference balance measures in body axes. Always the unfiltered covariance.
+    """
+    S = wrench_matrix(model.geometry, alpha)
+    W = accelerometer_covariance(model) + np.diag([0, 0, 0, 1.0, 1.0, 1.0]) * moment_floor**2
+    W = W + S @ np.diag(np.asarray(model.cell_sigma, float) ** 2) @ S.T
+    if model.external.wrenches.shape[1]:
+        E = model.external.wrenches
+        W = W + E @ np.diag(np.asarray(model.external.sigma, float) ** 2) @ E.T
+    if known_loads:
+        R0 = hub_transfer_matrix(model.geometry, "body")
+        W = W + R0 @ np.diag(np.asarray(model.balance_sigma, float) ** 2) @ R0.T
+    return W
