@@ -1,0 +1,19 @@
+import numpy as np
+import pytest
+
+from daq.config import load_config
+
+
+@pytest.fixture(scope="session")
+def cfg():
+    return load_config()
+
+
+@pytest.fixture(scope="session")
+def model(cfg):
+    return cfg.rig_model()
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(12345)
