@@ -13,6 +13,7 @@ from daq.config import ConfigError
 # name -> module under daq.commands; each module has add_parser(sub) and run(args).
 COMMANDS = {
     "noise-budget": "noise_budget",
+    "listen": "listen",
 }
 
 

@@ -1,0 +1,139 @@
+"""Zenoh telemetry (telemetry.md): keys, strict-JSON payloads, queryables, liveliness.
+
+Telemetry is read-only: the service declares no subscriber, and no queryable but
+`state/*`. High-rate keys use congestion control DROP (a slow viewer never stalls
+acquisition; loss shows through `seq`). No blocking work runs inside a Zenoh callback:
+queries go to a channel that a small thread answers from cached bytes.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import threading
+from collections.abc import Iterable
+
+import zenoh
+
+from daq.config import TelemetryConfig
+from daq.jsonout import dumps
+
+log = logging.getLogger("rsra.telemetry")
+
+HIGH_RATE_KEYS = ("hub_loads", "channels", "innovations")
+LOW_RATE_KEYS = ("angles", "health")
+STATE_KEYS = ("angles", "config", "health")
+
+
+def zenoh_config(
+    tel: TelemetryConfig,
+    *,
+    listen: Iterable[str] | None = None,
+    connect: Iterable[str] | None = None,
+    config_file: str | None = None,
+) -> zenoh.Config:
+    """The session config: a Zenoh config file if given (TLS, auth, ACL), else the rig's
+    telemetry table. Multicast scouting stays off unless the file or config says otherwise."""
+    path = config_file or tel.zenoh_config
+    if path:
+        try:
+            conf = zenoh.Config.from_file(path)
+        except Exception as e:  # zenoh raises ZError with the parser's message
+            from daq.config import ConfigError
+
+            raise ConfigError("telemetry.zenoh_config", str(path), f"cannot load ({e})",
+                              "give a valid Zenoh JSON5 config file") from None
+        return conf
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(tel.mode))
+    lst = list(tel.listen if listen is None else listen)
+    con = list(tel.connect if connect is None else connect)
+    conf.insert_json5("listen/endpoints", json.dumps(lst))
+    conf.insert_json5("connect/endpoints", json.dumps(con))
+    conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(tel.multicast_scouting)))
+    return conf
+
+
+def viewer_config(connect: Iterable[str], listen: Iterable[str] = ()) -> zenoh.Config:
+    """A subscriber's config: peer, connect to the given endpoints, listen nowhere by
+    default, multicast scouting off."""
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    return conf
+
+
+class TelemetryPublisher:
+    """Publishes the service's records under `<prefix>/…` and answers `state/*` queries."""
+
+    def __init__(self, session: zenoh.Session, prefix: str, effective_config: dict | None = None):
+        self.session = session
+        self.prefix = prefix
+        self.published = dict.fromkeys(HIGH_RATE_KEYS + LOW_RATE_KEYS, 0)
+        self.errors = 0
+        self._pubs: dict[str, zenoh.Publisher] = {}
+        for key in HIGH_RATE_KEYS:
+            self._pubs[key] = session.declare_publisher(
+                f"{prefix}/{key}", encoding=zenoh.Encoding.APPLICATION_JSON,
+                congestion_control=zenoh.CongestionControl.DROP,
+                priority=zenoh.Priority.REAL_TIME, express=True)
+        for key in LOW_RATE_KEYS:
+            self._pubs[key] = session.declare_publisher(
+                f"{prefix}/{key}", encoding=zenoh.Encoding.APPLICATION_JSON,
+                congestion_control=zenoh.CongestionControl.BLOCK)
+        self._state: dict[str, bytes] = {}
+        self._state_lock = threading.Lock()
+        if effective_config is not None:
+            self._state["config"] = dumps(effective_config).encode()
+        self._token = session.liveliness().declare_token(f"{prefix}/alive")
+        self._queryable = session.declare_queryable(f"{prefix}/state/*")  # FIFO channel
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._answer_queries, name="rsra-state-queries",
+                                        daemon=True)
+        self._thread.start()
+
+    def publish(self, key: str, payload: dict) -> str:
+        """Publish one record; returns the JSON text (for recording or replay output)."""
+        text = dumps(payload)
+        try:
+            self._pubs[key].put(text)
+            self.published[key] += 1
+        except Exception as e:  # a closed session at shutdown, a transport error
+            self.errors += 1
+            log.debug("publish %s failed: %s", key, e)
+        if key in STATE_KEYS:
+            with self._state_lock:
+                self._state[key] = text.encode()
+        return text
+
+    def _answer_queries(self) -> None:
+        handler = self._queryable.handler
+        while not self._stop.is_set():
+            q = handler.try_recv()
+            if q is None:
+                self._stop.wait(0.01)
+                continue
+            try:
+                name = str(q.key_expr).rsplit("/", 1)[-1]
+                names = STATE_KEYS if name == "*" else (name,)
+                for n in names:
+                    with self._state_lock:
+                        data = self._state.get(n)
+                    if data is not None:
+                        q.reply(f"{self.prefix}/state/{n}", data,
+                                encoding=zenoh.Encoding.APPLICATION_JSON)
+            except Exception as e:
+                log.debug("query failed: %s", e)
+            finally:
+                q.drop()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        for obj in [self._queryable, self._token, *self._pubs.values()]:
+            try:
+                obj.undeclare()
+            except Exception:
+                pass
+        self._pubs.clear()
