@@ -1,0 +1,138 @@
+"""Content filters of the identification (model.md §7, "What content to identify from").
+
+One causal filter, applied alike to the load cells T, the inertial loads z and any known
+loads, so that the balance I = S T + R H (+ D q) still holds exactly in the filtered data.
+
+* ``static``: 4th-order Butterworth low-pass at half the 1/rev frequency (24 dB down at
+  1/rev): the angular inertial loads the default rig neglects vanish at low frequency.
+* ``harmonics``: the parallel sum of second-order peaking filters (``scipy.signal.iirpeak``,
+  Q = 5) at the modelled harmonics (the report's Phase II band-pass). The plain sum is off
+  at each harmonic because the other peaks' skirts add to it; each peak therefore gets a
+  complex weight — realised as two real numerator coefficients, p·(1 − z⁻²) + q·(z⁻¹ − z⁻²),
+  which keep the zero at DC so the static load stays out — solved so that the sum is
+  exactly 1∠0° at every modelled harmonic.
+* ``broadband``: identity.
+
+Filters are returned as second-order sections (the parallel sum converted to a cascade with
+its poles and zeros). ``ContentFilter`` keeps the filter state between calls.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.signal import butter, iirpeak, sosfilt, sosfilt_zi, zpk2sos
+
+KINDS = ("static", "harmonics", "broadband")
+PEAK_Q = 5.0  # report Phase II band-pass (model.md §7)
+STATIC_ORDER = 4
+STATIC_CUTOFF_FRACTION = 0.5  # of the 1/rev frequency
+
+
+def _one_per_rev_hz(omega: float) -> float:
+    if not omega > 0:
+        raise ValueError(f"the content filters need a positive rotor speed, got omega={omega!r}")
+    return omega / (2.0 * np.pi)
+
+
+def _harmonics_sos(fs: float, omega: float, harmonics: tuple[int, ...]) -> np.ndarray:
+    f1 = _one_per_rev_hz(omega)
+    freqs = np.array([k * f1 for k in harmonics], float)
+    if np.any(freqs >= fs / 2):
+        raise ValueError(f"harmonics {harmonics} at omega={omega} reach the Nyquist frequency {fs / 2} Hz")
+    dens = [iirpeak(f, PEAK_Q, fs=fs)[1] for f in freqs]
+    basis = (np.array([1.0, 0.0, -1.0]), np.array([0.0, 1.0, -1.0]))
+    zm = np.exp(-1j * 2 * np.pi * freqs / fs)  # z⁻¹ at each harmonic
+    M = len(freqs)
+    # Response of branch k's two numerator terms at harmonic m: b(z)/a_k(z).
+    G = np.zeros((M, 2 * M), complex)
+    for k, a in enumerate(dens):
+        ak = np.polyval(a[::-1], zm)  # a0 + a1 z⁻¹ + a2 z⁻²
+        for j, b in enumerate(basis):
+            G[:, 2 * k + j] = np.polyval(b[::-1], zm) / ak
+    # Real weights: Re and Im of Σ w G = 1 at every harmonic (2M equations, 2M unknowns).
+    w = np.linalg.solve(np.vstack([G.real, G.imag]), np.concatenate([np.ones(M), np.zeros(M)]))
+    # Parallel sum Σ_k b_k / a_k = (Σ_k b_k Π_{j≠k} a_j) / Π_k a_k.
+    num = np.zeros(2 * M + 1)
+    for k in range(M):
+        bk = w[2 * k] * basis[0] + w[2 * k + 1] * basis[1]
+        others = np.array([1.0])
+        for j in range(M):
+            if j != k:
+                others = np.convolve(others, dens[j])
+        num += np.convolve(bk, others)
+    poles = np.concatenate([np.roots(a) for a in dens])  # each a quadratic: accurate
+    # num holds powers of z⁻¹, so its roots as a polynomial in z are the zeros (roots()
+    # keeps trailing zero coefficients as zeros at the origin). Σ p_k ≠ 0 is the lead.
+    if num[0] == 0:
+        raise ValueError(f"degenerate harmonic weights for harmonics {harmonics}")
+    # Every branch has b(1) = 0, so (1 − z⁻¹) divides num: keep that DC zero exact and find
+    # the others from the deflated polynomial.
+    rest, rem = np.polydiv(num, np.array([1.0, -1.0]))
+    assert np.max(np.abs(rem)) <= 1e-9 * np.max(np.abs(num))
+    zeros = np.concatenate([[1.0], np.roots(rest)])
+    lead = num[0]
+    return zpk2sos(zeros, poles, lead)
+
+
+def design_content_filter(kind: str, fs: float, omega: float,
+                          harmonics: tuple[int, ...] | list[int]) -> np.ndarray:
+    """Second-order sections of the content filter ``kind`` at sample rate ``fs`` (Hz) and
+    rotor speed ``omega`` (rad/s); ``harmonics`` the modelled multiples of 1/rev."""
+    if kind == "broadband":
+        return np.array([[1.0, 0.0, 0.0, 1.0, 0.0, 0.0]])
+    if kind == "static":
+        f1 = _one_per_rev_hz(omega)
+        return butter(STATIC_ORDER, STATIC_CUTOFF_FRACTION * f1, btype="low", fs=fs, output="sos")
+    if kind == "harmonics":
+        harmonics = tuple(int(k) for k in harmonics)
+        if not harmonics:
+            raise ValueError("the harmonics content filter needs at least one harmonic")
+        return _harmonics_sos(fs, omega, harmonics)
+    raise ValueError(f"content filter kind must be one of {KINDS}, not {kind!r}")
+
+
+def slowest_time_constant_samples(sos: np.ndarray) -> float:
+    """−1 / ln|p| of the slowest pole, in samples (0 for an FIR / identity)."""
+    poles = np.concatenate([np.roots(s[3:]) for s in sos]) if len(sos) else np.array([])
+    r = np.max(np.abs(poles)) if poles.size else 0.0
+    return 0.0 if r == 0 else float(-1.0 / np.log(r))
+
+
+class ContentFilter:
+    """One content-filter design applied causally to ``n_channels`` independent columns,
+    with its state kept between ``process`` calls (so chunks equal one long call).
+
+    The state starts at the steady state of the first sample held constant — linear in
+    the data, so the balance still holds in the filtered channels, and a static load does
+    not ring through the start-up. ``settle_samples`` = ``settle_time_constants`` × the
+    slowest pole's time constant (model.md §7: the transient is part of the settling).
+    """
+
+    def __init__(self, kind: str, fs: float, omega: float, harmonics: tuple[int, ...] | list[int],
+                 n_channels: int, settle_time_constants: float = 5.0) -> None:
+        self.kind = kind
+        self.fs = float(fs)
+        self.omega = float(omega) if omega is not None else None
+        self.harmonics = tuple(int(k) for k in harmonics)
+        self.n_channels = int(n_channels)
+        self.sos = design_content_filter(kind, fs, omega, self.harmonics)
+        self._identity = kind == "broadband"
+        self._zi_unit = sosfilt_zi(self.sos)  # (sections, 2): steady state for a unit input
+        self._zi: np.ndarray | None = None
+        self.settle_samples = int(np.ceil(settle_time_constants
+                                          * slowest_time_constant_samples(self.sos)))
+
+    def reset(self) -> None:
+        """Forget the state: the next ``process`` starts again from its first sample."""
+        self._zi = None
+
+    def process(self, X: np.ndarray) -> np.ndarray:
+        """Filter a block (N, n_channels); returns a new array of the same shape."""
+        X = np.asarray(X, float)
+        if X.ndim != 2 or X.shape[1] != self.n_channels:
+            raise ValueError(f"expected (N, {self.n_channels}) samples, got {X.shape}")
+        if self._identity or X.shape[0] == 0:
+            return X.copy()
+        if self._zi is None:
+            self._zi = self._zi_unit[:, :, None] * X[0][None, None, :]
+        Y, self._zi = sosfilt(self.sos, X, axis=0, zi=self._zi)
+        return Y

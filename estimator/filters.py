@@ -1,0 +1,683 @@
+"""The fixed-gain Kalman filter of the hub loads (model.md §5–§6; report Eq 2.10–2.16).
+
+    x⁻(n) = Φ x⁺(n−1)
+    e(n)  = z(n) − S(α) T_m(n) − J x⁻(n)        J = R C (does not depend on α)
+    x⁺(n) = x⁻(n) + K e(n)
+    Ĥ(n)  = C x⁺(n)
+
+The gain is designed once per Ω and tuning (report: "the algorithms can be greatly
+simplified by using the steady state value of the Kalman gains"); no covariance is updated
+per sample. Three layers:
+
+* ``design_filter`` — one design (Φ, K, B, …) for one Ω;
+* ``DesignCache`` — redesign when Ω leaves a band around the design point, designs cached by
+  Ω rounded (relatively) to ``cache_resolution``; the stopped-rotor design below ``omega_min``;
+* ``LoadFilter`` (the per-sample path of the live service and of a bit-exact replay) and
+  ``filter_batch`` (the same recursion for whole arrays, off-line).
+"""
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+from scipy.linalg import cholesky, solve_discrete_are, solve_discrete_lyapunov
+from scipy.optimize import brentq
+from scipy.signal import lfilter, place_poles, sosfilt, zpk2sos
+
+from .balance import measurement_covariance
+from .dynamics import (
+    N_COMPONENTS,
+    component_states,
+    hub_load_dynamics,
+    low_frequency_states,
+    state_labels,
+)
+from .geometry import hub_transfer_matrix, wrench_matrix
+from .params import Geometry, RigModel
+
+TUNINGS = ("time_constant", "noise")
+
+# Flags of the published hub loads (telemetry.md vocabulary).
+PREDICT_ONLY = "predict_only"
+INVALID = "invalid"
+LOST_BEFORE = "lost_before"
+ROTOR_STOPPED = "rotor_stopped"
+
+
+@dataclass(frozen=True, eq=False)
+class FilterDesign:
+    """One fixed-gain design. State layout: ``estimator.dynamics`` (``labels``).
+
+    ``harmonics`` are the harmonics that have states in this design (empty when the rotor
+    is stopped); ``omega`` the Ω it was designed for (0 when stopped); ``blocks`` groups of
+    states that the closed loop (I − K J) Φ leaves uncoupled (one per component for the
+    time-constant tuning), which the batch path uses.
+    """
+
+    Phi: np.ndarray  # (n, n)
+    C: np.ndarray  # (6, n)
+    J: np.ndarray  # (6, n) = R C
+    K: np.ndarray  # (n, 6)
+    B: np.ndarray  # (6, 6) innovation covariance J P⁻ Jᵀ + W
+    P_minus: np.ndarray  # (n, n)
+    Qd: np.ndarray  # (n, n)
+    W: np.ndarray  # (6, 6) measurement covariance W(α_config)
+    omega: float
+    dt: float
+    harmonics: tuple[int, ...]
+    low_frequency: bool
+    rotor_stopped: bool
+    slowest_time_constant_s: float
+    tuning: str
+    time_constant_s: float = 0.1
+    psd: np.ndarray | None = None  # (6,) process-noise amplitude diffusion rates used
+    R: np.ndarray | None = None  # (6, 6) hub transfer matrix of the design's frame
+    geometry: Geometry | None = None  # for S(α) in the batch path
+    blocks: tuple[tuple[int, ...], ...] = ()
+    labels: tuple[tuple[int, int, int], ...] = ()
+    # Time-constant tuning: the one gain every component has in whitened coordinates
+    # (K = blockdiag(K_c) R⁻¹ with K_c = component_gain); None for the Riccati gain.
+    component_gain: np.ndarray | None = None
+
+    @property
+    def n_states(self) -> int:
+        return self.Phi.shape[0]
+
+    @property
+    def closed_loop(self) -> np.ndarray:
+        """(I − K J) Φ: x⁺(n) = (I − K J) Φ x⁺(n−1) + K (z − S T)."""
+        return self.Phi - self.K @ (self.J @ self.Phi)
+
+
+def _closed_loop_time_constants(A: np.ndarray, dt: float) -> np.ndarray:
+    """τ_i = −Δt / ln|λ_i| of every eigenvalue (0 for λ = 0, inf when not stable)."""
+    mags = np.abs(np.linalg.eigvals(A))
+    taus = np.full(mags.shape, np.inf)
+    taus[mags == 0] = 0.0
+    ok = (mags > 0) & (mags < 1)
+    taus[ok] = -dt / np.log(mags[ok])
+    return taus
+
+
+def _riccati_gain_1(Phi_c: np.ndarray, C_c: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """Steady-state (a posteriori) Kalman gain of a single-output system with r = 1."""
+    P = solve_discrete_are(Phi_c.T, C_c.T, Q, np.eye(1))
+    return P @ C_c.T / (C_c @ P @ C_c.T + 1.0)
+
+
+def auto_psd_ratio(Phi_c: np.ndarray, C_c: np.ndarray, Qd_unit: np.ndarray,
+                   time_constant_s: float, dt: float) -> float:
+    """q/r such that the Riccati gain of one component has τ as slowest time constant (§6).
+
+    The steady gain depends on q and r only through q/r, and the slowest time constant falls
+    monotonically as q/r grows, so a bracketed 1-D root search in log(q/r) is enough.
+    """
+    eye = np.eye(Phi_c.shape[0])
+
+    def slowest(log_rho: float) -> float:
+        K = _riccati_gain_1(Phi_c, C_c, np.exp(log_rho) * Qd_unit)
+        return float(np.max(_closed_loop_time_constants((eye - K @ C_c) @ Phi_c, dt)))
+
+    def f(log_rho: float) -> float:
+        return np.log(slowest(log_rho)) - np.log(time_constant_s)
+
+    # Continuous random-walk Kalman filter: τ = sqrt(r dt / q) → start from q/r = dt/τ².
+    return float(np.exp(_root_log(f, np.log(dt / time_constant_s**2), time_constant_s)))
+
+
+def _root_log(f, centre: float, time_constant_s: float) -> float:
+    """Root of a decreasing f(log ρ), bracketed outwards from ``centre``."""
+    lo, hi = centre - 4.0, centre + 4.0
+    for _ in range(20):
+        flo, fhi = f(lo), f(hi)
+        if flo > 0 > fhi:
+            break
+        if flo <= 0:
+            lo -= 4.0
+        if fhi >= 0:
+            hi += 4.0
+    else:
+        raise ValueError(f"no process-noise PSD gives a slowest time constant of {time_constant_s} s")
+    return float(brentq(f, lo, hi, xtol=1e-10, rtol=1e-12))
+
+
+def _placed_gain(Phi_c: np.ndarray, C_c: np.ndarray, harmonics: tuple[int, ...],
+                 omega: float, dt: float, low_frequency: bool, time_constant_s: float) -> np.ndarray:
+    """K_c placing eig((I − K_c C_c) Φ_c) at e^{−Δt/τ}·eig(Φ_c) (report: all τ = 0.1 s).
+
+    eig(Φ_c) are e^{±i kΩΔt} and 1 (random walk), written exactly so the requested poles
+    are exact conjugate pairs. On the dual system, eig(Φ_cᵀ − Φ_cᵀ C_cᵀ K_cᵀ) are the same
+    eigenvalues, so ``place_poles(Φ_cᵀ, Φ_cᵀ C_cᵀ)`` returns K_cᵀ; one output → unique gain.
+    """
+    r = np.exp(-dt / time_constant_s)
+    poles: list[complex] = []
+    for k in harmonics:
+        p = r * np.exp(1j * k * omega * dt)
+        poles += [p, np.conj(p)]
+    if low_frequency:
+        poles.append(r)
+    if len(poles) == 1:  # a single real state: K = 1 − r exactly
+        return np.array([[1.0 - r]])
+    res = place_poles(Phi_c.T, Phi_c.T @ C_c.T, np.array(poles))
+    return res.gain_matrix.T
+
+
+def design_filter(
+    model: RigModel,
+    *,
+    harmonics: tuple[int, ...] | list[int],
+    omega: float | None,
+    dt: float,
+    tuning: str = "time_constant",
+    time_constant_s: float = 0.1,
+    low_frequency: bool = True,
+    psd: str | np.ndarray | float = "auto",
+    alpha: np.ndarray | None = None,
+    moment_floor: float = 100.0,
+    frame: str | None = None,
+    omega_min: float = 0.0,
+) -> FilterDesign:
+    """The fixed gain K and innovation covariance B for one Ω (model.md §6).
+
+    ``omega`` None, ≤ 0 or below ``omega_min``: stopped rotor — the harmonic states are
+    dropped (pole placement at Ω = 0 is singular) and only the six random walks run,
+    whatever ``low_frequency`` says (a filter with no state could not absorb any load).
+    ``psd``: "auto" (per component, the Riccati gain has τ as slowest time constant) or
+    (6,) amplitude diffusion rates (``estimator.dynamics``). ``alpha``: α_config for W.
+    """
+    if tuning not in TUNINGS:
+        raise ValueError(f"tuning must be one of {TUNINGS}, not {tuning!r}")
+    if not time_constant_s > 0:
+        raise ValueError(f"time_constant_s must be positive, got {time_constant_s!r}")
+    geometry = model.geometry
+    alpha = np.zeros(2 * geometry.n_cells) if alpha is None else np.asarray(alpha, float)
+    stopped = omega is None or not omega > 0.0 or omega < omega_min
+    if stopped:
+        harmonics, low_frequency, omega_d = (), True, 0.0
+    else:
+        harmonics, omega_d = tuple(int(k) for k in harmonics), float(omega)
+
+    R = hub_transfer_matrix(geometry, frame)
+    Rinv = np.linalg.inv(R)
+    W = measurement_covariance(model, alpha, moment_floor=moment_floor)
+    W = 0.5 * (W + W.T)
+    # Whitened (decoupled) measurement z' = R⁻¹ (z − S T) = C x + R⁻¹ v: component c sees
+    # only its own states; r_c its noise variance.
+    r_w = np.diag(Rinv @ W @ Rinv.T)
+
+    unit = hub_load_dynamics(harmonics, omega_d, dt, low_frequency, psd=np.ones(N_COMPONENTS))
+    n = unit.n_states
+    idx0 = component_states(harmonics, low_frequency, 0)
+    Phi_c = unit.Phi[np.ix_(idx0, idx0)]  # identical for every component
+    C_c = unit.C[0:1, idx0]
+    Qd_unit_c = unit.Qd[np.ix_(idx0, idx0)]
+
+    if isinstance(psd, str):
+        if psd != "auto":
+            raise ValueError(f'psd must be "auto" or six PSDs, not {psd!r}')
+        rho = auto_psd_ratio(Phi_c, C_c, Qd_unit_c, time_constant_s, dt)
+        q = rho * r_w
+    else:
+        q = np.broadcast_to(np.asarray(psd, float), (N_COMPONENTS,)).copy()
+    dyn = hub_load_dynamics(harmonics, omega_d, dt, low_frequency, psd=q)
+    Phi, C, Qd = dyn.Phi, dyn.C, dyn.Qd
+    J = R @ C
+    blocks = tuple(tuple(int(i) for i in component_states(harmonics, low_frequency, c))
+                   for c in range(N_COMPONENTS))
+
+    if tuning == "time_constant":
+        Kc = _placed_gain(Phi_c, C_c, harmonics, omega_d, dt, low_frequency, time_constant_s)
+        Kw = np.zeros((n, N_COMPONENTS))
+        for c, blk in enumerate(blocks):
+            Kw[list(blk), c] = Kc[:, 0]
+        K = Kw @ Rinv  # whitened innovation R⁻¹ e → K = K_w R⁻¹
+        # Error loop of the fixed gain: P⁻ = A P⁻ Aᵀ + Φ K W Kᵀ Φᵀ + Qd, A = Φ (I − K J).
+        A = Phi @ (np.eye(n) - K @ J)
+        P = solve_discrete_lyapunov(A, Phi @ K @ W @ K.T @ Phi.T + Qd)
+    else:
+        if np.any(q <= 0):
+            raise ValueError("the noise tuning needs positive process-noise PSDs")
+
+        def riccati(scale: float) -> tuple[np.ndarray, np.ndarray]:
+            P = solve_discrete_are(Phi.T, J.T, scale * Qd, W)
+            return P, np.linalg.solve(J @ P @ J.T + W, J @ P).T
+
+        if isinstance(psd, str):
+            # W couples the whitened components, so the full Riccati design is slower than
+            # each component's alone: one common factor on the PSDs (a 1-D search again)
+            # makes its slowest time constant τ too — the two tunings then agree.
+            def f(log_s: float) -> float:
+                _, K = riccati(np.exp(log_s))
+                taus = _closed_loop_time_constants(Phi - K @ J @ Phi, dt)
+                return np.log(np.max(taus)) - np.log(time_constant_s)
+
+            scale = np.exp(_root_log(f, 0.0, time_constant_s))
+            q, Qd = q * scale, Qd * scale
+        P, K = riccati(1.0)
+        blocks = (tuple(range(n)),)
+        Kc = None
+    P = 0.5 * (P + P.T)
+    B = J @ P @ J.T + W
+    B = 0.5 * (B + B.T)
+    taus = _closed_loop_time_constants(Phi - K @ J @ Phi, dt)
+    return FilterDesign(
+        Phi=Phi, C=C, J=J, K=K, B=B, P_minus=P, Qd=Qd, W=W, omega=omega_d, dt=float(dt),
+        harmonics=harmonics, low_frequency=low_frequency, rotor_stopped=stopped,
+        slowest_time_constant_s=float(np.max(taus)), tuning=tuning,
+        time_constant_s=float(time_constant_s), psd=q, R=R, geometry=geometry,
+        blocks=blocks, labels=state_labels(harmonics, low_frequency),
+        component_gain=None if Kc is None else Kc[:, 0].copy(),
+    )
+
+
+class DesignCache:
+    """Designs by Ω (model.md §5): a band ±``redesign_band`` (relative) around the design
+    point, so Ω jitter does not make the gain chatter; new designs at Ω rounded on a
+    relative grid of ``cache_resolution`` and kept (at most ``max_designs``, LRU).
+
+    ``omega_min`` (rad/s): below it the rotor counts as stopped. ``design_for(None)`` means
+    no rotor-speed data: the design at ``omega_default`` when given (the configured Ω),
+    otherwise — a stopped rotor configured — the stopped design.
+    """
+
+    def __init__(
+        self,
+        model: RigModel,
+        *,
+        harmonics: tuple[int, ...] | list[int],
+        dt: float,
+        tuning: str = "time_constant",
+        time_constant_s: float = 0.1,
+        low_frequency: bool = True,
+        psd: str | np.ndarray = "auto",
+        alpha: np.ndarray | None = None,
+        moment_floor: float = 100.0,
+        frame: str | None = None,
+        redesign_band: float = 0.005,
+        cache_resolution: float = 0.001,
+        omega_min: float = 0.0,
+        omega_default: float | None = None,
+        max_designs: int = 64,
+    ) -> None:
+        if not redesign_band >= 0 or not cache_resolution > 0:
+            raise ValueError("redesign_band must be >= 0 and cache_resolution > 0")
+        self.model = model
+        self.harmonics = tuple(int(k) for k in harmonics)
+        self.dt = float(dt)
+        self.low_frequency = bool(low_frequency)
+        self.redesign_band = float(redesign_band)
+        self.cache_resolution = float(cache_resolution)
+        self.omega_min = float(omega_min)
+        self.omega_default = omega_default
+        self.max_designs = int(max_designs)
+        self._kw = {"harmonics": self.harmonics, "dt": self.dt, "tuning": tuning,
+                    "time_constant_s": time_constant_s, "low_frequency": self.low_frequency,
+                    "psd": psd, "alpha": alpha, "moment_floor": moment_floor, "frame": frame}
+        self._designs: OrderedDict[int, FilterDesign] = OrderedDict()
+        self._stopped: FilterDesign | None = None
+        self._last: FilterDesign | None = None
+        self.designs_made = 0
+
+    def is_stopped(self, omega: float | None) -> bool:
+        if omega is None:
+            omega = self.omega_default
+        return omega is None or not omega > 0.0 or omega < self.omega_min
+
+    def _grid(self, omega: float) -> tuple[int, float]:
+        step = np.log1p(self.cache_resolution)
+        key = round(float(np.log(omega) / step))
+        return key, float(np.exp(key * step))
+
+    def prefill(self, omega_lo: float, omega_hi: float) -> int:
+        """Design every grid point in [omega_lo, omega_hi] now (a design takes ~10–60 ms,
+        longer than a sample period: call this at start-up for the expected Ω range so that
+        a redesign in the real-time thread is a cache hit). Returns the number designed;
+        at most ``max_designs`` are kept."""
+        lo, hi = self._grid(max(omega_lo, self.omega_min, 1e-9))[0], self._grid(omega_hi)[0]
+        made = 0
+        for key in range(lo, hi + 1):
+            if key not in self._designs and len(self._designs) < self.max_designs:
+                omega_d = float(np.exp(key * np.log1p(self.cache_resolution)))
+                self._designs[key] = design_filter(self.model, omega=omega_d, **self._kw)
+                self.designs_made += 1
+                made += 1
+        return made
+
+    def design_for(self, omega: float | None, current: FilterDesign | None = None) -> FilterDesign:
+        """The design to use at rotor speed ``omega``.
+
+        ``current``: the design in use (default: the one this cache returned last); it is
+        kept while Ω stays within the band around its design point.
+        """
+        ref = self._last if current is None else current
+        if omega is None:
+            omega = self.omega_default
+        if self.is_stopped(omega):
+            if self._stopped is None:
+                self._stopped = design_filter(self.model, omega=None, **self._kw)
+                self.designs_made += 1
+            self._last = self._stopped
+            return self._stopped
+        if (ref is not None and not ref.rotor_stopped
+                and abs(omega / ref.omega - 1.0) <= self.redesign_band):
+            self._last = ref
+            return ref
+        key, omega_d = self._grid(omega)
+        d = self._designs.get(key)
+        if d is None:
+            d = design_filter(self.model, omega=omega_d, **self._kw)
+            self.designs_made += 1
+            self._designs[key] = d
+            while len(self._designs) > self.max_designs:
+                self._designs.popitem(last=False)
+        else:
+            self._designs.move_to_end(key)
+        self._last = d
+        return d
+
+
+class StepResult(NamedTuple):
+    H: np.ndarray | None  # (6,) Ĥ, None when invalid
+    x: np.ndarray  # (n,) x⁺ (x⁻ on a predict-only step); a fresh array, not the state
+    e: np.ndarray | None  # (6,) innovation, None on a predict-only step
+    nis: float | None  # eᵀ B⁻¹ e
+    flags: tuple[str, ...]
+
+
+def _wrench(geometry: Geometry | None, alpha: np.ndarray) -> np.ndarray:
+    """S from the 14 angles, or S itself when a (6, 7) matrix is passed."""
+    a = np.asarray(alpha, float)
+    if a.ndim == 2:
+        return a
+    if geometry is None:
+        raise ValueError("the design carries no geometry: pass S (6, 7) instead of angles")
+    return wrench_matrix(geometry, a)
+
+
+def map_state(old: FilterDesign, new: FilterDesign, x: np.ndarray) -> np.ndarray:
+    """Carry the state over a redesign (an Ω redesign is no discontinuity, §7).
+
+    States with the same label (harmonic, component, derivative) carry over unchanged —
+    they are physical loads and load rates, valid at any Ω. When the new design has the
+    random walks, whatever Ĥ the dropped states held is folded into H_0 so that Ĥ = C x is
+    continuous (e.g. the rotor stopping: the harmonics' instantaneous value goes to H_0).
+    """
+    if old.labels == new.labels:
+        return x.copy()
+    where = {lab: i for i, lab in enumerate(old.labels)}
+    xn = np.zeros(new.n_states)
+    for j, lab in enumerate(new.labels):
+        i = where.get(lab)
+        if i is not None:
+            xn[j] = x[i]
+    if new.low_frequency:
+        xn[low_frequency_states(new.harmonics)] += old.C @ x - new.C @ xn
+    return xn
+
+
+class LoadFilter:
+    """The per-sample fixed-gain filter (live service, bit-exact replay).
+
+    One fused product per measured step: [x⁺; Ĥ; e; L⁻¹e] = G [x⁺(n−1); z; T] with
+    G built from Φ, K, J, C, S(α) and the Cholesky factor L of B (nis = |L⁻¹e|²).
+    """
+
+    def __init__(self, cache: DesignCache, alpha: np.ndarray, invalid_after_samples: int,
+                 *, omega: float | None = None) -> None:
+        self._cache = cache
+        self._invalid_after = int(invalid_after_samples)
+        self._S = _wrench(cache.model.geometry, alpha)
+        self._design = cache.design_for(omega, current=None)
+        self._run = 0  # consecutive predict-only (and lost) samples
+        self._build(np.zeros(self._design.n_states))
+
+    # -- design-dependent precomputation -------------------------------------------------
+    def _build(self, x: np.ndarray) -> None:
+        """Precompute for the current design and S; ``x`` the state to continue from."""
+        d = self._design
+        n = d.n_states
+        # [x⁺(n−1); z; T]: the state lives in the first n entries between steps.
+        self._buf = np.zeros(n + N_COMPONENTS + self._S.shape[1])
+        self._buf[:n] = x
+        JPhi = d.J @ d.Phi
+        A = d.Phi - d.K @ JPhi
+        Linv = np.linalg.inv(cholesky(d.B, lower=True))
+        S = self._S
+        I6 = np.eye(N_COMPONENTS)
+        E = np.hstack([-JPhi, I6, -S])  # e = z − S T − J Φ x
+        Xp = np.hstack([A, d.K, -d.K @ S])  # x⁺ = Φ x + K e
+        G = np.vstack([Xp, d.C @ Xp, E, Linv @ E])
+        self._G = np.ascontiguousarray(G)
+        self._n = n
+        self._Phi = d.Phi
+        self._C = d.C
+        self._phi_pow: dict[int, np.ndarray] = {}
+        stopped = (ROTOR_STOPPED,) if d.rotor_stopped else ()
+        self._flags = stopped
+        self._flags_lost = (LOST_BEFORE,) + stopped
+        self._flags_pred = (PREDICT_ONLY,) + stopped
+        self._flags_pred_lost = (PREDICT_ONLY, LOST_BEFORE) + stopped
+        self._flags_inv = (PREDICT_ONLY, INVALID) + stopped
+        self._flags_inv_lost = (PREDICT_ONLY, INVALID, LOST_BEFORE) + stopped
+
+    def _phi_power(self, k: int) -> np.ndarray:
+        M = self._phi_pow.get(k)
+        if M is None:
+            M = np.linalg.matrix_power(self._Phi, k)
+            if len(self._phi_pow) < 64:  # bounded: gaps of the same length recur
+                self._phi_pow[k] = M
+        return M
+
+    # -- public API ----------------------------------------------------------------------
+    @property
+    def design(self) -> FilterDesign:
+        return self._design
+
+    @property
+    def state(self) -> np.ndarray:
+        return self._buf[:self._n].copy()
+
+    @property
+    def predict_only_run(self) -> int:
+        return self._run
+
+    def reset(self, x0: np.ndarray | None = None) -> None:
+        x = np.zeros(self._n) if x0 is None else np.array(x0, float)
+        if x.shape != (self._n,):
+            raise ValueError(f"x0 must have shape ({self._n},), got {x.shape}")
+        self._buf[:self._n] = x
+        self._run = 0
+
+    def set_alpha(self, alpha: np.ndarray) -> None:
+        self._S = _wrench(self._cache.model.geometry, alpha)
+        self._build(self.state)
+
+    def set_omega(self, omega: float | None) -> None:
+        new = self._cache.design_for(omega, current=self._design)
+        if new is self._design:
+            return
+        x = map_state(self._design, new, self.state)
+        self._design = new
+        self._build(x)
+
+    def step(self, T: np.ndarray, z: np.ndarray, measured: bool = True, lost: int = 0) -> StepResult:
+        """One sample. ``lost``: samples lost just before this one (predicted through with
+        Φ^lost); ``measured`` False: a predict-only step (a required channel missing,
+        over-range or faulted). Ĥ is None after ``invalid_after_samples`` such samples.
+        The arrays returned are fresh each step (not the filter's own state)."""
+        buf, n = self._buf, self._n
+        if lost:
+            buf[:n] = self._phi_power(lost).dot(buf[:n])
+            self._run += lost
+        if measured:
+            buf[n:n + 6] = z
+            buf[n + 6:] = T
+            y = self._G.dot(buf)
+            buf[:n] = y[:n]
+            self._run = 0
+            w = y[n + 12:]
+            return StepResult(y[n:n + 6], y[:n], y[n + 6:n + 12], w.dot(w),
+                              self._flags_lost if lost else self._flags)
+        x = self._Phi.dot(buf[:n])
+        buf[:n] = x
+        self._run += 1
+        if self._run >= self._invalid_after:
+            return StepResult(None, x, None, None,
+                              self._flags_inv_lost if lost else self._flags_inv)
+        return StepResult(self._C.dot(x), x, None, None,
+                          self._flags_pred_lost if lost else self._flags_pred)
+
+
+class BatchResult:
+    """The batch filter's output: ``x_plus`` (N, n), ``e`` (N, 6), ``H`` (N, 6), ``x_last`` (n,).
+
+    ``x_plus`` is computed on first access: replays and identification windows need Ĥ, e
+    and the final state, and the whole state history costs more than all of those together.
+    Unpacks like a tuple ``(x_plus, e, H, x_last)``.
+    """
+
+    __slots__ = ("H", "_make", "_x_plus", "e", "x_last")
+
+    def __init__(self, x_plus: np.ndarray | None, e: np.ndarray, H: np.ndarray,
+                 x_last: np.ndarray, make=None) -> None:
+        self.e, self.H, self.x_last = e, H, x_last
+        self._x_plus, self._make = x_plus, make
+
+    @property
+    def x_plus(self) -> np.ndarray:
+        if self._x_plus is None:
+            self._x_plus = self._make()
+            self._make = None
+        return self._x_plus
+
+    def __iter__(self):
+        return iter((self.x_plus, self.e, self.H, self.x_last))
+
+
+def _modes(A: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    lam, V = np.linalg.eig(A)
+    return lam.astype(complex), V.astype(complex), np.linalg.inv(V).astype(complex)
+
+
+def _modal_states(A: np.ndarray, K: np.ndarray, u: np.ndarray, x0: np.ndarray) -> np.ndarray:
+    """x(n) = A x(n−1) + K u(n), n = 0..N−1, x(−1) = x0, by modes: ξ = V⁻¹ x, each ξ_j a
+    first-order recursion run by ``lfilter``; one mode of each conjugate pair is filtered
+    (u is real, so its partner is the conjugate). Returns (N, m)."""
+    lam, V, Vi = _modes(A)
+    keep = np.flatnonzero(lam.imag >= 0)
+    G = Vi[keep] @ K  # (M, inputs)
+    xi0 = Vi[keep] @ x0
+    uT = u.T
+    drive = (G.real @ uT) + 1j * (G.imag @ uT)  # (M, N), rows contiguous
+    xi = np.empty_like(drive)
+    for j, i in enumerate(keep):
+        lj = lam[i]
+        if lj.imag == 0:
+            xi[j] = lfilter([1.0], [1.0, -lj.real], drive[j].real, zi=[lj.real * xi0[j].real])[0]
+        else:
+            xi[j] = lfilter([1.0], [1.0, -lj], drive[j], zi=[lj * xi0[j]])[0]
+    Vk = V[:, keep] * np.where(lam[keep].imag > 0, 2.0, 1.0)  # a pair adds 2 Re(v ξ)
+    return (xi.real.T @ Vk.real.T) - (xi.imag.T @ Vk.imag.T)
+
+
+def _x_plus_modal(design: FilterDesign, u: np.ndarray, x0: np.ndarray) -> np.ndarray:
+    A = design.closed_loop
+    xp = np.empty((u.shape[0], design.n_states))
+    for blk in design.blocks or (tuple(range(design.n_states)),):
+        ix = np.asarray(blk)
+        xp[:, ix] = _modal_states(A[np.ix_(ix, ix)], design.K[ix], u, x0[ix])
+    return xp
+
+
+def _siso_sos(A: np.ndarray, b: np.ndarray, c: np.ndarray, d: float) -> np.ndarray:
+    """Second-order sections of y = (c (qI − A)⁻¹ b + d) u, d ≠ 0: poles eig(A), zeros the
+    invariant zeros eig(A − b c / d) — eigenvalues, not polynomial roots, for accuracy."""
+    zeros = np.linalg.eigvals(A - np.outer(b, c) / d)
+    poles = np.linalg.eigvals(A)
+    return zpk2sos(zeros, poles, d)
+
+
+def _decay_samples(lam: np.ndarray, V: np.ndarray, N: int, tail: float = 1e-20) -> int:
+    """Samples after which every mode has decayed below ``tail`` (relative, with cond V)."""
+    rmax = float(np.max(np.abs(lam)))
+    if rmax >= 1.0:
+        return N
+    if rmax == 0.0:
+        return min(N, 1)
+    n = int(np.ceil(np.log(tail / np.linalg.cond(V)) / np.log(rmax))) + 1
+    return min(N, max(n, 1))
+
+
+def _batch_components(design: FilterDesign, S: np.ndarray, T: np.ndarray, z: np.ndarray,
+                      x0: np.ndarray) -> BatchResult:
+    """Time-constant designs: every component is the same single-input system in whitened
+    coordinates u' = R⁻¹ (z − S T), x_c(n) = A_c x_c(n−1) + k u'_c(n), A_c = (I − k c) Φ_c.
+    Ĥ_c and the whitened innovation e'_c = u'_c − c Φ_c x_c(n−1) are each one SISO filter
+    (second-order sections over all six components at once) plus the response to x0 by
+    modes; e = R e'."""
+    N, m = z.shape[0], design.n_states // N_COMPONENTS
+    Phi_c, c = design.Phi[:m, :m], design.C[0, :m]
+    k = design.component_gain
+    A = Phi_c - np.outer(k, c @ Phi_c)
+    Rinv = np.linalg.inv(design.R)
+    uw = Rinv @ z.T - (Rinv @ S) @ T.T  # (6, N), rows contiguous for sosfilt
+    X0 = x0.reshape(N_COMPONENTS, m)  # (6, m): row c = x0 of component c
+    # With s(n) = x(n−1): Ĥ'(n) = c A s(n) + c k u'(n);  e'(n) = −c Φ s(n) + u'(n).
+    lam, V, Vi = _modes(A)
+    nf = _decay_samples(lam, V, N)
+    powers = lam[None, :] ** np.arange(nf)[:, None]  # (nf, m)
+    z0 = X0 @ Vi.T  # (6, m) modal initial state per component
+    outs = []
+    for cy, d in ((c @ A, float(c @ k)), (-(c @ Phi_c), 1.0)):
+        y = sosfilt(_siso_sos(A, k, cy, d), uw, axis=-1)
+        y[:, :nf] += (z0 @ (powers * (cy @ V)[None, :]).T).real  # c_y A^n x0
+        outs.append(y)
+    H = outs[0].T
+    e = (design.R @ outs[1]).T
+    # Final state: A^N x0 + Σ_{j<nf} A^j k u'(N−1−j); older inputs have decayed below 1e-20.
+    Ak = ((powers * (Vi @ k)[None, :]) @ V.T).real  # (nf, m): row j = A^j k
+    X_last = uw[:, N - 1::-1][:, :nf] @ Ak + ((z0 * lam**N) @ V.T).real  # (6, m)
+
+    def make() -> np.ndarray:
+        # State j of every component: x_j(n) = A_j s(n) + k_j u'(n), one more SISO filter
+        # each when k_j ≠ 0 (sections need a direct term); otherwise mode by mode.
+        if np.any(np.abs(k) <= 1e-12 * np.max(np.abs(k))):
+            return _x_plus_modal(design, z - T @ S.T, x0)
+        xp = np.empty((N, N_COMPONENTS, m))
+        for j in range(m):
+            y = sosfilt(_siso_sos(A, k, A[j], float(k[j])), uw, axis=-1)
+            y[:, :nf] += (z0 @ (powers * (A[j] @ V)[None, :]).T).real
+            xp[:, :, j] = y.T
+        return xp.reshape(N, N_COMPONENTS * m)
+
+    return BatchResult(None, e, H, X_last.reshape(-1), make=make)
+
+
+def filter_batch(design: FilterDesign, alpha: np.ndarray, T: np.ndarray, z: np.ndarray,
+                 x0: np.ndarray | None = None) -> BatchResult:
+    """The recursion of ``LoadFilter.step`` (every sample measured) over whole arrays.
+
+    Linear time-invariant for one design: x⁺(n) = (I − KJ)Φ x⁺(n−1) + K u(n) with
+    u = z − S T; e(n) = u(n) − JΦ x⁺(n−1); Ĥ = C x⁺. Time-constant designs run as six
+    identical single-input filters (``_batch_components``); Riccati designs mode by mode.
+    ``alpha``: the 14 angles or S (6, 7).
+    """
+    S = _wrench(design.geometry, alpha)
+    T = np.asarray(T, float)
+    z = np.asarray(z, float)
+    N, n = z.shape[0], design.n_states
+    x0 = np.zeros(n) if x0 is None else np.asarray(x0, float)
+    if N == 0:
+        return BatchResult(np.zeros((0, n)), np.zeros((0, 6)), np.zeros((0, 6)), x0.copy())
+    kc = design.component_gain
+    if kc is not None and design.C[0, :n // N_COMPONENTS] @ kc != 0:
+        return _batch_components(design, S, T, z, x0)
+    u = z - T @ S.T
+    xp = _x_plus_modal(design, u, x0)
+    JPhi = design.J @ design.Phi
+    e = np.empty_like(u)
+    e[0] = u[0] - JPhi @ x0
+    e[1:] = u[1:] - xp[:-1] @ JPhi.T
+    return BatchResult(xp, e, xp @ design.C.T, xp[-1].copy())
