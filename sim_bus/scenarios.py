@@ -1,0 +1,422 @@
+"""Scenario files of the simulated aircraft (model.md §8): data in config/scenarios/*.toml.
+
+A scenario says what the aircraft does, not how the physics works: the static load schedule,
+the rotor harmonics, manoeuvres, the shaker sweep, rotor-speed variation, base vibration, the
+true deformation angles, the unmodelled external load, the drive loads, and the random seed.
+Every mistake names the key, the value and the fix (the rig loader's ConfigError), e.g.::
+
+    ground-test.toml: angles.mode = 'stepp': unknown value (did you mean "step"?); fix: ...
+
+``load_scenario(name, **variants)`` applies variants to the raw TOML before it is checked, so a
+variant is validated exactly like the file (``angles="step"``, ``noise=False``,
+``unmodelled=True``, ``base_vibration=False``, any ``[scenario]`` key such as ``seed=7``, or a
+dotted key ``**{"angles.step_at_s": [30.0]}``).
+"""
+from __future__ import annotations
+
+import copy
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from daq.config import ConfigError, _Section, config_dir
+from daq.units import LBF_N
+
+AXES = ("X", "Y", "Z", "L", "M", "N")
+ANGLE_MODES = ("constant", "step", "linear")
+LOAD_FRAMES = ("body", "shaft")
+OPTIONAL_NODE_ROLES = ("rotor_speed", "balance", "drive_load")
+SCENARIO_KEYS = ("noise", "seed", "gravity", "quasi_static", "duration_s", "run_s")
+# variant shortcuts: name -> (section, key)
+VARIANT_SHORTCUTS = {
+    "angles": ("angles", "mode"),
+    "unmodelled": ("unmodelled", "enabled"),
+    "base_vibration": ("base_vibration", "enabled"),
+}
+
+
+@dataclass(frozen=True)
+class LoadSchedule:
+    """Static hub-load conditions held in turn, with linear ramps between them (cycle time)."""
+
+    frame: str  # "body" or "shaft": the axes the scenario's hub loads are written in
+    hold_s: float  # time slot of each condition (its ramp to the next included)
+    ramp_s: float
+    conditions: np.ndarray  # (n, 6) [X, Y, Z, L, M, N] in N and N·m
+
+    @property
+    def cycle_s(self) -> float:
+        return self.hold_s * len(self.conditions)
+
+
+@dataclass(frozen=True)
+class Harmonic:
+    """A rotor harmonic of the hub loads: amplitudes drawn per component, random phases,
+    slowly varying amplitude and phase (model §8)."""
+
+    order: int | str  # multiple of the rotor frequency, or "blades" for N_b/rev
+    amplitude_min: np.ndarray  # (6,)
+    amplitude_max: np.ndarray  # (6,)
+    amplitude_variation: float  # fraction: amplitude * (1 + v * m(t)), |m| <= 1
+    phase_variation_rad: float
+    variation_period_s: float  # time scale of the slow variation
+
+    def resolve_order(self, blades: int) -> int:
+        return blades if self.order == "blades" else int(self.order)
+
+
+@dataclass(frozen=True)
+class Manoeuvre:
+    """A smooth (raised-cosine) excursion of the static hub loads, in cycle time."""
+
+    start_s: float
+    duration_s: float
+    peak: np.ndarray  # (6,)
+
+
+@dataclass(frozen=True)
+class Shaker:
+    """The report's shake test: a force swept f_start -> f_stop along each axis in turn at
+    each level; amplitude ramps at both ends, then a gap in which the frequency returns."""
+
+    f_start_hz: float
+    f_stop_hz: float
+    sweep_s: float
+    ramp_s: float
+    gap_s: float
+    axes: tuple[int, ...]  # indices into X, Y, Z, L, M, N
+    levels: tuple[float, ...]  # N (or N·m for moment axes)
+
+    @property
+    def segment_s(self) -> float:
+        return 2 * self.ramp_s + self.sweep_s + self.gap_s
+
+    @property
+    def cycle_s(self) -> float:
+        return self.segment_s * len(self.axes) * len(self.levels)
+
+
+@dataclass(frozen=True)
+class RotorMotion:
+    omega_variation: float  # fraction: Omega = Omega_nominal (1 + v m(t)), |m| <= 1
+    omega_period_s: float
+    follow_shaker: bool  # Omega = 2 pi f_shaker / N_b (the shaker is the N_b/rev harmonic)
+
+
+@dataclass(frozen=True)
+class AngleModel:
+    mode: str  # "constant", "step" or "linear"
+    base: str | np.ndarray  # "random" (uniform within +-range) or (14,) rad
+    range_rad: float
+    step_rad: float  # every angle steps by this, random sign, at each step time
+    step_at_s: tuple[float, ...]
+    linear_rad_per_unit: np.ndarray  # (6,) per N, N·m of static hub load; random sign per angle
+    resolution_rad: float  # the linear part is held on this grid (one discretisation per value)
+
+
+@dataclass(frozen=True)
+class BaseVibration:
+    enabled: bool
+    rms_g: float  # RMS of the fuselage-side acceleration per axis
+    band_hz: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class UnmodelledLoad:
+    """Report Phase I: a roll torque and an x-force proportional to the applied Y and X loads,
+    with a phase (180 deg: elastic), in no measured channel."""
+
+    enabled: bool
+    roll_Nm_per_N_Y: float
+    x_N_per_N_X: float
+    phase_rad: float
+
+
+@dataclass(frozen=True)
+class DriveLoads:
+    """Measured external loads D q (model §3): per configured channel, static + one harmonic."""
+
+    static: float
+    amplitude: float
+    order: int | str
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    description: str
+    source: str
+    duration_s: float  # one cycle of the load schedule; it repeats until stopped
+    run_s: float  # the default length of a run (simulate() without a length, 'half-way')
+    seed: int
+    quasi_static: bool  # no inertia: T is the minimum-strain-energy split (paper)
+    gravity: bool
+    noise: bool
+    nodes_present: tuple[str, ...]  # optional node roles the simulated aircraft has on its bus
+    loads: LoadSchedule
+    harmonics: tuple[Harmonic, ...]
+    manoeuvres: tuple[Manoeuvre, ...]
+    shaker: Shaker | None
+    rotor: RotorMotion
+    angles: AngleModel
+    base_vibration: BaseVibration
+    unmodelled: UnmodelledLoad
+    drive: DriveLoads
+    rig_overrides: dict = field(default_factory=dict)  # for load_config(overrides=...)
+    variants: dict = field(default_factory=dict)
+
+
+def scenario_dir() -> Path:
+    return config_dir() / "scenarios"
+
+
+def list_scenarios() -> list[str]:
+    """Names of the packaged scenarios."""
+    return sorted(p.stem for p in scenario_dir().glob("*.toml"))
+
+
+def load_scenario(name_or_path: str | Path, **variants: Any) -> Scenario:
+    """Load a packaged scenario by name, or a scenario file by path, with variants applied."""
+    p = Path(name_or_path)
+    if isinstance(name_or_path, Path) or p.suffix == ".toml" or len(p.parts) > 1:
+        path = p
+    else:
+        path = scenario_dir() / f"{name_or_path}.toml"
+        if not path.is_file():
+            raise ConfigError("scenario", str(name_or_path), "no such scenario",
+                              "use one of " + ", ".join(list_scenarios()) + " or a .toml path")
+    try:
+        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError("scenario", str(path), "file not found",
+                          "give the path of a scenario TOML") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError("<file>", str(path), f"not valid TOML ({e})",
+                          "fix the TOML syntax", path.name) from None
+    raw = _apply_variants(raw, variants, path.name)
+    return parse_scenario(raw, source=path.name, variants=variants)
+
+
+def _plain(v: Any) -> Any:
+    """numpy scalars and arrays to TOML-like Python values."""
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    return v
+
+
+def _apply_variants(raw: dict, variants: dict, source: str) -> dict:
+    raw = copy.deepcopy(raw)
+    for key, value in variants.items():
+        if "." in key or "__" in key:
+            section, _, sub = key.replace("__", ".").partition(".")
+        elif key in SCENARIO_KEYS:
+            section, sub = "scenario", key
+        elif key in VARIANT_SHORTCUTS:
+            section, sub = VARIANT_SHORTCUTS[key]
+        else:
+            raise ConfigError(f"variant {key}", value, "unknown variant",
+                              "use one of " + ", ".join(SCENARIO_KEYS + tuple(VARIANT_SHORTCUTS))
+                              + ' or a dotted key such as "angles.step_at_s"', source)
+        table = raw.setdefault(section, {})
+        if not isinstance(table, dict):
+            raise ConfigError(section, table, "must be a table to take a variant",
+                              f"write [{section}] as a table", source)
+        table[sub] = _plain(value)
+    return raw
+
+
+def _six(sec: _Section, name: str, default: Any = None) -> np.ndarray:
+    args = () if default is None else (default,)
+    return sec.vector(name, 6, *args, unit=" [X, Y, Z, L, M, N] in N and N·m")
+
+
+def _order(sec: _Section, name: str, default: Any) -> int | str:
+    v = sec.get(name, default)
+    if v == "blades" or (isinstance(v, int) and not isinstance(v, bool) and v > 0):
+        return v
+    raise sec.error(name, v, "must be a positive whole number or \"blades\"",
+                    f'write {name} = 1 for 1/rev or {name} = "blades" for N_b/rev')
+
+
+def parse_scenario(raw: dict, source: str = "<scenario>", variants: dict | None = None) -> Scenario:
+    top = _Section(raw, "", source)
+
+    sc = top.table("scenario")
+    name = sc.string("name")
+    duration = sc.number("duration_s", positive=True)
+    run_s = sc.number("run_s", duration, positive=True)
+    seed = sc.number("seed", integer=True, nonneg=True)
+    quasi = sc.boolean("quasi_static", False)
+    nodes = sc.get("nodes_present", [])
+    if not isinstance(nodes, list) or any(n not in OPTIONAL_NODE_ROLES for n in nodes):
+        raise sc.error("nodes_present", nodes, "must be a list of optional node roles",
+                       "use any of " + ", ".join(f'"{r}"' for r in OPTIONAL_NODE_ROLES))
+    scenario_head = {
+        "name": name, "description": sc.string("description", ""), "source": source,
+        "duration_s": duration,
+        "run_s": run_s, "seed": seed, "quasi_static": quasi, "gravity": sc.boolean("gravity", True),
+        "noise": sc.boolean("noise", True), "nodes_present": tuple(nodes),
+    }
+    sc.finish()
+
+    ld = top.table("loads", {})
+    frame = ld.string("frame", "body", LOAD_FRAMES)
+    conds_raw = ld.get("conditions", [[0.0] * 6])
+    if (not isinstance(conds_raw, list) or not conds_raw
+            or not all(isinstance(c, list) and len(c) == 6 for c in conds_raw)
+            or not all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                       for c in conds_raw for x in c)):
+        raise ld.error("conditions", conds_raw, "must be a list of [X, Y, Z, L, M, N] rows",
+                       "write conditions = [[0.0, 0.0, -80000.0, 0.0, 0.0, 0.0], ...] in N and N·m")
+    conditions = np.asarray(conds_raw, dtype=float)
+    hold = ld.number("hold_s", duration / len(conditions), positive=True)
+    ramp = ld.number("ramp_s", 0.5, nonneg=True)
+    if len(conditions) > 1 and ramp >= hold:
+        raise ld.error("ramp_s", ramp, f"must be shorter than hold_s = {hold}",
+                       "shorten the ramp or lengthen the hold")
+    loads = LoadSchedule(frame=frame, hold_s=hold, ramp_s=ramp, conditions=conditions)
+    if len(conditions) > 1 and abs(loads.cycle_s - duration) > 1e-9 * duration:
+        raise ld.error("hold_s", hold, f"{len(conditions)} conditions x hold_s = {loads.cycle_s} s "
+                       f"is not the cycle duration_s = {duration} s",
+                       "make len(conditions) * hold_s equal scenario.duration_s")
+    ld.finish()
+
+    harmonics = []
+    for h in top.tables("harmonics", []):
+        amin = h.vector("amplitude_min", 6, unit=" amplitudes in N and N·m")
+        amax = h.vector("amplitude_max", 6, amin.tolist(), unit=" amplitudes in N and N·m")
+        if np.any(amin < 0) or np.any(amax < amin):
+            raise h.error("amplitude_max", amax.tolist(),
+                          "needs 0 <= amplitude_min <= amplitude_max",
+                          "give non-negative ranges, min first")
+        av = h.number("amplitude_variation", 0.0, nonneg=True)
+        if av >= 1.0:
+            raise h.error("amplitude_variation", av, "must be < 1 (a fraction of the amplitude)",
+                          "e.g. amplitude_variation = 0.2")
+        harmonics.append(Harmonic(
+            order=_order(h, "order", 1), amplitude_min=amin, amplitude_max=amax,
+            amplitude_variation=av,
+            phase_variation_rad=math.radians(h.number("phase_variation_deg", 0.0, nonneg=True)),
+            variation_period_s=h.number("variation_period_s", 20.0, positive=True),
+        ))
+        h.finish()
+
+    manoeuvres = []
+    for m in top.tables("manoeuvres", []):
+        mv = Manoeuvre(start_s=m.number("start_s", nonneg=True),
+                       duration_s=m.number("duration_s", positive=True), peak=_six(m, "peak"))
+        if mv.start_s + mv.duration_s > duration:
+            raise m.error("duration_s", mv.duration_s,
+                          f"ends at {mv.start_s + mv.duration_s} s, after the cycle ({duration} s)",
+                          "keep each manoeuvre inside one cycle")
+        manoeuvres.append(mv)
+        m.finish()
+
+    shaker = None
+    if "shaker" in raw:
+        sh = top.table("shaker")
+        axes_raw = sh.get("axes", ["X", "Y", "Z"])
+        if not isinstance(axes_raw, list) or not axes_raw or any(a not in AXES for a in axes_raw):
+            raise sh.error("axes", axes_raw, "must be a list of hub-load axes",
+                           "use names from " + ", ".join(AXES))
+        lv = sh.vector("levels_lbf", None, positive=True, unit=" in lbf")
+        shaker = Shaker(
+            f_start_hz=sh.number("f_start_hz", positive=True),
+            f_stop_hz=sh.number("f_stop_hz", positive=True),
+            sweep_s=sh.number("sweep_s", positive=True),
+            ramp_s=sh.number("ramp_s", 0.5, positive=True),
+            gap_s=sh.number("gap_s", 1.0, positive=True),
+            axes=tuple(AXES.index(a) for a in axes_raw),
+            levels=tuple(float(x) * LBF_N for x in lv),
+        )
+        if shaker.cycle_s > duration + 1e-9:
+            raise sh.error("sweep_s", shaker.sweep_s,
+                           f"one pass takes {shaker.cycle_s} s, more than duration_s = {duration}",
+                           f"set scenario.duration_s >= {shaker.cycle_s}")
+        sh.finish()
+
+    ro = top.table("rotor", {})
+    rotor = RotorMotion(
+        omega_variation=ro.number("omega_variation", 0.0, nonneg=True),
+        omega_period_s=ro.number("omega_period_s", 30.0, positive=True),
+        follow_shaker=ro.boolean("follow_shaker", False),
+    )
+    if rotor.omega_variation >= 0.5:
+        raise ro.error("omega_variation", rotor.omega_variation, "must be < 0.5 (a fraction)",
+                       "e.g. omega_variation = 0.02 for +-2 %")
+    if rotor.follow_shaker and shaker is None:
+        raise ro.error("follow_shaker", True, "there is no [shaker]", "add [shaker] or set false")
+    ro.finish()
+
+    an = top.table("angles", {})
+    mode = an.string("mode", "constant", ANGLE_MODES)
+    base_raw = an.get("base", 0.0)
+    if base_raw == "random":
+        base: str | np.ndarray = "random"
+    elif isinstance(base_raw, (int, float)) and not isinstance(base_raw, bool):
+        base = np.full(14, math.radians(float(base_raw)))
+    elif isinstance(base_raw, list):
+        base = np.radians(an.vector("base", 14, unit=" in degrees"))
+    else:
+        raise an.error("base", base_raw, 'must be "random", a number or 14 numbers (degrees)',
+                       'write base = "random" or base = 0.0')
+    steps = an.vector("step_at_s", None, [], unit=" in s")
+    angles = AngleModel(
+        mode=mode, base=base,
+        range_rad=math.radians(an.number("range_deg", 4.0, nonneg=True)),
+        step_rad=math.radians(an.number("step_deg", 1.0)),
+        step_at_s=tuple(float(s) for s in steps),
+        linear_rad_per_unit=np.radians(_six(an, "linear_deg_per_unit", [0, 0, 1e-5, 0, 0, 0])),
+        resolution_rad=math.radians(an.number("resolution_deg", 0.01, positive=True)),
+    )
+    if mode == "step" and not angles.step_at_s:
+        raise an.error("step_at_s", [], 'mode = "step" needs at least one step time',
+                       f"e.g. step_at_s = [{run_s / 2}] (half-way through run_s)")
+    an.finish()
+
+    bv = top.table("base_vibration", {})
+    band = bv.vector("band_hz", 2, [5.0, 40.0], positive=True, unit=" in Hz")
+    base_vibration = BaseVibration(enabled=bv.boolean("enabled", False),
+                                   rms_g=bv.number("rms_g", 0.05, nonneg=True),
+                                   band_hz=(float(band[0]), float(band[1])))
+    if band[0] >= band[1]:
+        raise bv.error("band_hz", band.tolist(), "must be [low, high] with low < high",
+                       "e.g. band_hz = [5.0, 40.0]")
+    if base_vibration.enabled and quasi:
+        raise bv.error("enabled", True, "base vibration has no effect in the quasi-static limit",
+                       "set enabled = false or scenario.quasi_static = false")
+    bv.finish()
+
+    um = top.table("unmodelled", {})
+    unmodelled = UnmodelledLoad(
+        enabled=um.boolean("enabled", False),
+        roll_Nm_per_N_Y=um.number("roll_Nm_per_N_Y", 0.3),
+        x_N_per_N_X=um.number("x_N_per_N_X", 0.1),
+        phase_rad=math.radians(um.number("phase_deg", 180.0)),
+    )
+    um.finish()
+
+    dr = top.table("drive", {})
+    drive = DriveLoads(static=dr.number("static", 0.0),
+                       amplitude=dr.number("amplitude", 0.0, nonneg=True),
+                       order=_order(dr, "order", 1))
+    dr.finish()
+
+    overrides = top.get("rig_overrides", {})
+    if not isinstance(overrides, dict):
+        raise top.error("rig_overrides", overrides, "must be a table of rig-config overrides",
+                        "write [rig_overrides.identification] initial_angles_deg = 4.0")
+    top.finish()
+
+    return Scenario(**scenario_head, loads=loads, harmonics=tuple(harmonics),
+                    manoeuvres=tuple(manoeuvres), shaker=shaker, rotor=rotor, angles=angles,
+                    base_vibration=base_vibration, unmodelled=unmodelled, drive=drive,
+                    rig_overrides=overrides, variants=dict(variants or {}))
