@@ -14,6 +14,8 @@ from daq.config import ConfigError
 COMMANDS = {
     "noise-budget": "noise_budget",
     "listen": "listen",
+    "sim": "sim",
+    "replay": "replay",
 }
 
 

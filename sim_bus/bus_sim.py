@@ -1,0 +1,835 @@
+"""The simulated aircraft on a CAN bus: every configured CANopen node fed by the physics, one
+sample per SYNC (spec bus.md; model.md §8 "Time").
+
+Modes
+-----
+* **follow** (default): the nodes boot, send their boot-up frames and wait for an external
+  master's NMT start; every SYNC seen on the bus produces one physics sample and the TPDOs.
+* **autostart**: the nodes start themselves and the simulator is its own master, producing
+  SYNC (with the CiA 301 counter) at the sample rate: ``run()`` in real time, ``step()`` in
+  lock-step.
+* **lock-step** (``lockstep=True``): simulated time is the one acquisition clock. It advances
+  only with the SYNCs (``step()``, ``on_sync(counter, t)`` or SYNC frames' timestamps) and
+  drives the heartbeats and the fault timeline; nothing reads the wall clock. Frame timestamps
+  are simulated time, spaced by each frame's transmission time at the EDS bit rate, rounded to
+  1 µs. The same seed gives the same frames bit for bit, and the same sample values as real
+  time (one physics sample per SYNC in both).
+
+Threads: with ``threaded=True`` (the default live) a python-can Notifier (canopen's, one per
+bus) serves NMT, SDO and SYNC as they arrive, and a ticker thread sends the heartbeats on the
+wall clock. With ``threaded=False`` (the default in lock-step) nothing runs in the background:
+``pump()`` — called by ``step()``/``advance()``/``on_sync()`` too — handles the frames queued on
+the bus in the caller's thread, in order, so a master that sends NMT start then SYNC and calls
+``pump()`` gets a deterministic answer without any sleep. SDO needs a concurrent server: use
+``threaded=True`` when a blocking SDO client talks to the simulator.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any, Callable, Protocol
+
+import can
+import canopen
+import numpy as np
+from canopen.objectdictionary import datatypes as od_types
+
+from daq.config import RigConfig
+from sim_bus.faults import (
+    EMCY_OVER_RANGE,
+    EMCY_SENSOR_FAULT,
+    STATUS_OVER_RANGE,
+    STATUS_SENSOR_FAULT,
+    Fault,
+    FaultInjector,
+    parse_faults,
+    validate_faults,
+)
+from sim_bus.nodes import (
+    COB_EMCY_BASE,
+    COB_HEARTBEAT,
+    COB_NMT,
+    COB_SDO_RX,
+    COB_SDO_TX,
+    NMT_START,
+    OPERATIONAL,
+    PRE_OPERATIONAL,
+    ROLE_CHANNELS,
+    Frame,
+    SimNode,
+)
+from sim_bus.offline import ChannelCodec
+
+log = logging.getLogger(__name__)
+
+MAX_TRUTH_SAMPLES = 720_000  # one hour at 200 samples/s: the truth history is bounded
+FRAME_OVERHEAD_BITS = 47  # 11-bit identifier frame without data, before stuffing (bus.md)
+DEFAULT_BITRATE = 1_000_000  # bus.md: 1 Mbit/s on the aircraft, when no EDS says otherwise
+COB_TIME, COB_LSS_MASTER, COB_LSS_SLAVE = 0x100, 0x7E5, 0x7E4
+_ENCODED = ("force", "status", "accel_counts", "omega", "azimuth_counts", "balance", "drive")
+# (status bit, EMCY code) pairs the load-cell status drives
+_STATUS_EMCY = ((STATUS_OVER_RANGE, EMCY_OVER_RANGE), (STATUS_SENSOR_FAULT, EMCY_SENSOR_FAULT))
+
+
+class SampleSource(Protocol):
+    """What the simulator needs from the physics (sim_bus.physics.AircraftPhysics)."""
+
+    dt: float
+
+    def next_sample(self) -> Any: ...
+
+
+class TruthBuffer:
+    """The samples the bus carried, stored compactly: one growing array per sample field (in
+    chunks, so appending is cheap and memory is ~8 bytes per number, not a Python object per
+    sample). Bounded: past ``max_samples`` further samples are counted, not kept."""
+
+    def __init__(self, max_samples: int = MAX_TRUTH_SAMPLES, chunk: int = 4096):
+        self.max_samples, self.chunk = int(max_samples), int(chunk)
+        self._fields: list[str] | None = None
+        self._chunks: dict[str, list[np.ndarray]] = {}
+        self._n = 0
+        self.dropped = 0
+
+    def __len__(self) -> int:
+        return self._n
+
+    def append(self, sample: Any) -> None:
+        if self._n >= self.max_samples:
+            self.dropped += 1
+            return
+        if self._fields is None:
+            if dataclasses.is_dataclass(sample):
+                self._fields = [f.name for f in dataclasses.fields(sample)]
+            else:
+                self._fields = list(vars(sample))
+        row = self._n % self.chunk
+        for name in self._fields:
+            v = getattr(sample, name)
+            if row == 0:
+                a = np.asarray(v)
+                self._chunks.setdefault(name, []).append(np.zeros((self.chunk,) + a.shape, a.dtype))
+            self._chunks[name][-1][row] = v
+        self._n += 1
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Every field stacked over the kept samples (first axis = sample)."""
+        return {k: np.concatenate(v)[: self._n] for k, v in self._chunks.items()}
+
+    def __getitem__(self, k: int) -> SimpleNamespace:
+        """Sample k's fields (a view into the buffer)."""
+        if not -self._n <= k < self._n:
+            raise IndexError(k)
+        k %= self._n
+        c, r = divmod(k, self.chunk)
+        return SimpleNamespace(**{f: self._chunks[f][c][r] for f in (self._fields or [])})
+
+
+def _round_us(t: float) -> float:
+    return round(t * 1e6) / 1e6
+
+
+class _SimNetwork(canopen.Network):
+    """canopen's Network whose sends (LocalNode's SDO server, among others) go through the
+    simulator, so they are stamped, recorded and captured like every other frame."""
+
+    def __init__(self, bus: can.BusABC, sim: "Simulator"):
+        super().__init__(bus)
+        self._sim = sim
+
+    def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
+        self._sim._transmit("sdo" if COB_SDO_TX < can_id <= COB_SDO_TX + 0x7F else "other",
+                            can_id, bytes(data), None, remote=remote)
+
+
+class _Recorder(can.Listener):
+    """Frames received from the other bus users go to the simulator's log."""
+
+    def __init__(self, sim: "Simulator"):
+        self._sim = sim
+
+    def on_message_received(self, msg: can.Message) -> None:
+        self._sim._on_received(msg)
+
+    def stop(self) -> None:  # the logger itself is closed by the simulator
+        pass
+
+
+@dataclass
+class _NodeFeed:
+    node: SimNode
+    raws: Callable[[dict], Any]  # encoded sample (lists) -> raw values, ROLE_CHANNELS order
+    full_scale: float | None  # load cell: the force an over-range reads (config)
+
+
+# The data types sim_bus.offline.ChannelCodec encodes to (bus.md "Nodes"): the EDS must agree.
+_CODEC_TYPES = {
+    ("load_cell", "force"): od_types.REAL32, ("load_cell", "status"): od_types.UNSIGNED8,
+    ("accelerometer", "x"): od_types.INTEGER16, ("accelerometer", "y"): od_types.INTEGER16,
+    ("accelerometer", "z"): od_types.INTEGER16, ("rotor_speed", "omega"): od_types.REAL32,
+    ("rotor_speed", "azimuth"): od_types.UNSIGNED16, ("drive_load", "torque"): od_types.REAL32,
+    **{("balance", c): od_types.REAL32 for c in "XYZLMN"},
+}
+
+
+class Simulator:
+    """Every configured node on one python-can bus, fed by the physics one sample per SYNC.
+
+    Parameters: ``cfg`` the rig; ``scenario`` a scenario name/object for AircraftPhysics, or
+    ``physics`` any object with ``dt`` and ``next_sample()``; ``nodes_present`` the optional
+    node roles on the bus (default: the scenario's, else all); ``bus`` an open python-can bus
+    to use (not closed here), else one is opened with ``interface``/``channel`` (virtual:
+    ``preserve_timestamps=True``); ``faults`` a SPEC string or parsed faults; ``record`` a log
+    file (python-can Logger by suffix; candump ``.log`` when the suffix is not a log format).
+    """
+
+    def __init__(self, cfg: RigConfig, scenario: Any = None, *, physics: SampleSource | None = None,
+                 seed: int | None = None, faults: str | tuple[Fault, ...] | None = None,
+                 bus: can.BusABC | None = None, interface: str = "virtual",
+                 channel: str = "rsra", autostart: bool = False, lockstep: bool = False,
+                 threaded: bool | None = None, record: str | Path | None = None,
+                 keep_samples: bool = True, t0: float = 0.0,
+                 nodes_present: tuple[str, ...] | None = None):
+        self.cfg = cfg
+        self.autostart = autostart
+        self.lockstep = lockstep
+        self.threaded = (not lockstep) if threaded is None else threaded
+        self.keep_samples = keep_samples
+        self.t0 = float(t0)
+        if physics is None:
+            from sim_bus.physics import AircraftPhysics
+            if scenario is None or isinstance(scenario, str):
+                from sim_bus.scenarios import load_scenario
+                scenario = load_scenario(scenario or "ground-test")
+            physics = AircraftPhysics(cfg, scenario, seed=seed)
+        self.physics = physics
+        self.dt = float(getattr(physics, "dt", cfg.sample_period_s))
+        self.seed = seed if seed is not None else int(getattr(physics, "seed", 0) or 0)
+        self._lock = threading.RLock()
+        self._sim_t = self.t0  # lock-step acquisition clock
+        # ---- nodes from the config; the EDS gives every object and COB-ID ------------------
+        # required nodes always; optional ones when the scenario's aircraft has them
+        # (Scenario.nodes_present: optional roles), all of them without a scenario
+        if nodes_present is None:
+            nodes_present = getattr(getattr(physics, "scenario", None), "nodes_present", None)
+        self.nodes: list[SimNode] = [
+            SimNode(n.name, n.role, n.node_id, n.eds, clock=self.now, lock=self._lock)
+            for n in cfg.nodes if n.required or nodes_present is None or n.role in nodes_present]
+        self.by_name = {n.name: n for n in self.nodes}
+        self._codec = ChannelCodec(cfg)
+        self._feeds = self._build_feeds()
+        rates = [max(n.od.device_information.allowed_baudrates or {0}) for n in self.nodes]
+        self.bitrate = max(rates) if rates and max(rates) > 0 else DEFAULT_BITRATE
+        self._counter_overflow = cfg.sync.counter_overflow
+        self._sync_cob = cfg.sync.cob_id
+        # ---- faults --------------------------------------------------------------------------
+        parsed = parse_faults(faults) if isinstance(faults, (str, type(None))) else tuple(faults)
+        validate_faults(parsed, {n.name: n.role for n in self.nodes},
+                        {n.name: ROLE_CHANNELS[n.role] for n in self.nodes}, autostart)
+        self.faults = FaultInjector(parsed, seed=self.seed)
+        self._frozen: dict[tuple[int, str, str], int | float] = {}
+        self._unknown_cob = self._pick_unknown_cob()
+        self._logger: can.Listener | None = None
+        if record is not None:  # before the bus: a bad path must not leak an open bus
+            self._logger = _open_logger(Path(record))
+        # ---- bus ---------------------------------------------------------------------------------
+        self._own_bus = bus is None
+        if bus is None:
+            kw: dict[str, Any] = {"interface": interface, "channel": channel}
+            if interface == "virtual":
+                kw.update(preserve_timestamps=True, receive_own_messages=False)
+            try:
+                bus = can.Bus(**kw)
+            except BaseException:
+                if self._logger is not None:
+                    self._logger.stop()
+                raise
+        self.bus = bus
+        self.channel = str(getattr(bus, "channel_id", None) or getattr(bus, "channel", None) or channel)
+        self.network = _SimNetwork(bus, self)
+        self.network.listeners.append(_Recorder(self))
+        for n in self.nodes:
+            n.attach(self.network)
+        self.network.subscribe(COB_NMT, self._guard(self._on_nmt_frame))
+        self.network.subscribe(self._sync_cob, self._guard(self._on_sync_frame))
+        self._last_flush = self.t0
+        # ---- state ---------------------------------------------------------------------------------
+        self._bus_free = self.t0
+        self._capture: list[can.Message] | None = None
+        self._n_sync = 0  # SYNC cycles produced (autostart)
+        self._counter = 0
+        self.frames_sent = 0
+        self.frames_received = 0
+        self.error_frames_received = 0
+        self.samples = TruthBuffer()  # what every SYNC carried (keep_samples), bounded
+        self.sync_info: list[tuple[int, int, float, bool]] = []  # (sample, counter, t, lost)
+        self.truth_truncated = False
+        self._error: BaseException | None = None
+        self._stop = threading.Event()
+        self._ticker: threading.Thread | None = None
+        self._started = False
+        self._closed = False
+
+    # ------------------------------------------------------------------------------------------
+    # set-up
+    def _build_feeds(self) -> list[_NodeFeed]:
+        cfg = self.cfg
+        feeds: dict[str, _NodeFeed] = {}
+
+        def add(name: str, fn: Callable[[Any], Any], fs: float | None = None) -> None:
+            if name and name in self.by_name:
+                feeds[name] = _NodeFeed(self.by_name[name], fn, fs)
+
+        for i, c in enumerate(cfg.cells):
+            add(c.node, lambda e, i=i: (e["force"][i], e["status"][i]), c.full_scale_N)
+        for k, a in enumerate(cfg.accelerometers):
+            add(a.node, lambda e, k=k: e["accel_counts"][k])
+        add(cfg.rotor.node, lambda e: (e["omega"], e["azimuth_counts"]))
+        add(cfg.balance.node, lambda e: e["balance"])
+        for q, x in enumerate(cfg.external_loads):
+            add(x.node, lambda e, q=q: (e["drive"][q],))
+        for f in feeds.values():
+            for ch, var in f.node.channels:
+                want = _CODEC_TYPES[(f.node.role, ch)]
+                if var.data_type != want:
+                    raise ValueError(
+                        f"node {f.node.name!r} ({f.node.eds.name}): channel {ch!r} is mapped to "
+                        f"0x{var.index:04X}:{var.subindex} of data type 0x{var.data_type:04X}, "
+                        f"the bus contract (bus.md) says 0x{want:04X}; fix the EDS")
+        # bus order: feed in the config's node order
+        return [feeds[n.name] for n in self.nodes if n.name in feeds]
+
+    def _pick_unknown_cob(self) -> int:
+        """A TPDO1 COB-ID of a node id nobody configured (highest first)."""
+        ids = {n.node_id for n in self.cfg.nodes}
+        for nid in range(0x7F, 0, -1):
+            if nid not in ids:
+                return 0x180 + nid
+        return 0x7FF
+
+    def known_cob_ids(self) -> set[int]:
+        """Every COB-ID the configured nodes and the master use (CiA 301 pre-defined set)."""
+        known = {COB_NMT, self._sync_cob, COB_TIME, COB_LSS_MASTER, COB_LSS_SLAVE}
+        for nid in {n.node_id for n in self.cfg.nodes}:
+            for base in (COB_EMCY_BASE, 0x180, 0x200, 0x280, 0x300, 0x380, 0x400, 0x480,
+                         0x500, COB_SDO_TX, COB_SDO_RX, COB_HEARTBEAT):
+                known.add(base + nid)
+        for n in self.nodes:
+            known.update(c.cob_id for c in n.tpdo_configs())
+            known.add(n.emcy_cob_id)
+        return known
+
+    def start(self) -> "Simulator":
+        """Boot every node (boot-up frames); with autostart, start them; start the threads."""
+        with self._lock:
+            if self._started:
+                return self
+            self._started = True
+            if self.threaded:
+                self.network.notifier = can.Notifier(self.bus, self.network.listeners, 0.1)
+            t = self.now()
+            frames = []
+            for n in self.nodes:
+                frames.extend(n.boot(t))
+            for fr in sorted(frames, key=lambda f: f.cob_id):
+                self._send_frame(fr, t, None)
+            if self.autostart:  # CiA 301 self-starting nodes
+                for n in self.nodes:
+                    n.nmt(NMT_START, n.node_id, t)
+        if not self.lockstep:
+            self._ticker = threading.Thread(target=self._tick_loop, name="rsra-sim-heartbeat",
+                                            daemon=True)
+            self._ticker.start()
+        return self
+
+    def close(self) -> None:
+        """Stop the threads, close the recording and (if we opened it) the bus. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self._stop.set()
+        if self._ticker is not None:
+            self._ticker.join(timeout=5.0)
+        if self.network.notifier is not None:
+            self.network.notifier.stop(timeout=5.0)
+            self.network.notifier = None
+        with self._lock:
+            for n in self.nodes:
+                n.detach()
+            if self._logger is not None:
+                self._logger.stop()
+                self._logger = None
+            if self._own_bus:
+                self.bus.shutdown()
+
+    def __enter__(self) -> "Simulator":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------------------------------
+    # the acquisition clock
+    def now(self) -> float:
+        """Simulated time in lock-step, the wall clock live (model §8 "Time")."""
+        return self._sim_t if self.lockstep else time.time()
+
+    def _guard(self, fn: Callable) -> Callable:
+        """canopen only logs exceptions in callbacks (bus.md pitfalls): keep the first one and
+        re-raise it in the caller's thread at the next check()."""
+        def wrapped(*a, **kw):
+            try:
+                return fn(*a, **kw)
+            except Exception as e:  # noqa: BLE001 - re-raised by check()
+                log.exception("simulator callback failed")
+                if self._error is None:
+                    self._error = e
+        return wrapped
+
+    def check(self) -> None:
+        """Raise the first exception a background callback hit."""
+        if self._error is not None:
+            err, self._error = self._error, None
+            raise err
+        if self.network.notifier is not None and self.network.notifier.exception is not None:
+            raise self.network.notifier.exception
+
+    # ------------------------------------------------------------------------------------------
+    # transmission
+    def _frame_time(self, nbytes: int) -> float:
+        return (FRAME_OVERHEAD_BITS + 8 * nbytes) / self.bitrate
+
+    def _transmit(self, kind: str, cob_id: int, data: bytes, t: float | None, *,
+                  remote: bool = False, error: bool = False) -> can.Message:
+        with self._lock:
+            if self.lockstep:
+                # serialise on the bus: a frame starts when the previous one has finished
+                ts = _round_us(max(self._sim_t if t is None else t, self._bus_free))
+                self._bus_free = ts + self._frame_time(len(data))
+            else:
+                ts = time.time()
+            msg = can.Message(timestamp=ts, arbitration_id=cob_id, data=data,
+                              is_extended_id=False, is_remote_frame=remote,
+                              is_error_frame=error, channel=self.channel, is_rx=False,
+                              check=False)
+            self.bus.send(msg)
+            self.frames_sent += 1
+            if self._logger is not None:
+                self._logger.on_message_received(msg)
+            if self._capture is not None:
+                self._capture.append(msg)
+            return msg
+
+    def _send_frame(self, fr: Frame, t: float | None, node: SimNode | None) -> can.Message | None:
+        if node is not None and node.silent:
+            return None
+        return self._transmit(fr.kind, fr.cob_id, fr.data, t)
+
+    def _on_received(self, msg: can.Message) -> None:
+        with self._lock:
+            self.frames_received += 1
+            if msg.is_error_frame:
+                self.error_frames_received += 1
+            if self._logger is not None:
+                self._logger.on_message_received(msg)
+
+    def pump(self) -> int:
+        """Handle every frame already queued on the bus, in order, in this thread (only without
+        the background Notifier). Returns the number handled."""
+        if self.threaded:
+            return 0
+        n = 0
+        while True:
+            msg = self.bus.recv(0.0)
+            if msg is None:
+                return n
+            n += 1
+            for listener in self.network.listeners:
+                listener.on_message_received(msg)
+            self.check()
+
+    # ------------------------------------------------------------------------------------------
+    # NMT and SYNC from the bus
+    def _on_nmt_frame(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if len(data) < 2:
+            return  # malformed NMT: ignored, as a node would
+        with self._lock:
+            t = self.now()
+            frames = []
+            for n in self.nodes:
+                frames.extend((n, f) for f in n.nmt(data[0], data[1], t))
+            for n, f in sorted(frames, key=lambda p: p[1].cob_id):
+                self._send_frame(f, t, n)
+
+    def _on_sync_frame(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        counter = data[0] if len(data) >= 1 else None
+        with self._lock:
+            t = timestamp if self.lockstep else self.now()
+            self._cycle(counter, t, send_sync=False, received_sync=len(data))
+
+    # ------------------------------------------------------------------------------------------
+    # the public stepping API
+    def advance(self, t: float) -> list[can.Message]:
+        """Time passes to ``t`` without a SYNC: due heartbeats go out (each stamped with its due
+        time). In lock-step this is how simulated time moves between SYNCs."""
+        with self._lock:
+            self.pump()
+            self._capture = out = []
+            try:
+                self._advance(t)
+            finally:
+                self._capture = None
+            return out
+
+    def _advance(self, t: float) -> None:
+        if self.lockstep:
+            self._sim_t = max(self._sim_t, t)
+        due = []
+        for n in self.nodes:
+            due.extend((d, f.cob_id, n, f) for d, f in n.heartbeats(t))
+        for d, _, n, f in sorted(due, key=lambda x: (x[0], x[1])):
+            self._send_frame(f, d, n)
+        if self._logger is not None and self.lockstep and t - self._last_flush >= 1.0:
+            self._flush(t)
+
+    def on_sync(self, counter: int | None, t: float) -> list[can.Message]:
+        """A SYNC (counter byte or None) was put on the bus at time ``t`` by someone else: draw
+        one physics sample and answer it. Processes synchronously; returns the frames sent.
+        Use this *or* SYNC frames on the bus, not both, for the same SYNC."""
+        with self._lock:
+            self.pump()
+            self._capture = out = []
+            try:
+                self._cycle(counter, t, send_sync=False)
+            finally:
+                self._capture = None
+            self.check()
+            return out
+
+    def step(self) -> list[can.Message]:
+        """Lock-step as our own master (autostart): simulated time moves one sample period, the
+        SYNC (counter, jitter, loss per the faults) and every answer go out. Returns the frames."""
+        if not self.lockstep:
+            raise RuntimeError("step() is the lock-step API; use run() in real time")
+        with self._lock:
+            self.pump()
+            k = self._n_sync
+            self._capture = out = []
+            try:
+                jitter, _ = self._sync_plan(k)
+                self._cycle(self._next_counter(), self.t0 + k * self.dt + jitter, send_sync=True,
+                            jitter=jitter)
+            finally:
+                self._capture = None
+            self.check()
+            return out
+
+    def _next_counter(self) -> int | None:
+        if self._counter_overflow == 0:
+            return None
+        self._counter = self._counter % self._counter_overflow + 1  # CiA 301: 1…overflow
+        return self._counter
+
+    def _sync_plan(self, k: int) -> tuple[float, bool]:
+        """The SYNC jitter and loss of cycle k: a function of (seed, k) only, so real time and
+        lock-step agree."""
+        t = k * self.dt
+        jitter = self.faults.jitter(k, t, 0.45 * self.dt) if self.faults.of("jitter") else 0.0
+        lost = self.faults.chance("lostsync", k, t) is not None
+        return jitter, lost
+
+    # ------------------------------------------------------------------------------------------
+    # one SYNC cycle
+    def _next_sample(self) -> Any:
+        s = self.physics.next_sample()
+        if self.keep_samples:
+            self.samples.append(s)
+            if self.samples.dropped == 1 and not self.truth_truncated:
+                self.truth_truncated = True
+                log.warning("truth history full (%d samples): later samples are not kept",
+                            self.samples.max_samples)
+        return s
+
+    def _cycle(self, counter: int | None, t: float, send_sync: bool, jitter: float = 0.0,
+               received_sync: int | None = None) -> None:
+        """Everything one SYNC does: heartbeats due, the fault timeline at this sample, the
+        physics sample into the nodes, EMCY on status changes, TPDOs in COB-ID order (bus
+        arbitration), bus-level faults, the truth bookkeeping."""
+        self._advance(t)
+        if received_sync is not None and self.lockstep:  # the master's SYNC occupied the bus
+            self._bus_free = max(self._bus_free, t + self._frame_time(received_sync))
+        sample = self._next_sample()
+        k = int(getattr(sample, "index", len(self.sync_info)))
+        st = float(getattr(sample, "t", k * self.dt))
+        fi = self.faults
+        names = [n.name for n in self.nodes]
+        lost = False
+        if send_sync:
+            _, lost = self._sync_plan(self._n_sync)
+            self._n_sync += 1
+            if jitter:
+                fi.record(k, st, "jitter", None, offset_s=jitter)
+            if lost:
+                fi.record(k, st, "lostsync", None, counter=counter)
+            else:
+                self._transmit("sync", self._sync_cob,
+                               bytes([counter]) if counter is not None else b"", t)
+        if len(self.sync_info) < MAX_TRUTH_SAMPLES:
+            self.sync_info.append((k, -1 if counter is None else counter, t, lost))
+        if fi:
+            started = []
+            for f, name, on in fi.window_changes(k, st, names):
+                node = self.by_name[name]
+                if f.kind in ("overrange", "sensor") and "status" not in ROLE_CHANNELS[node.role]:
+                    continue
+                fi.record(k, st, f.kind, name, event="start" if on else "end",
+                          channel=f.channel, spec=f.token)
+                if f.kind == "silent":
+                    node.silent = on
+                if on:
+                    started.append((f, node))
+            pre = []
+            for f, name in fi.reboots(st, names):
+                node = self.by_name[name]
+                fi.record(k, st, "reboot", name, event="inject", spec=f.token)
+                pre.extend((node, fr) for fr in node.reset(False, t))
+            for node, fr in pre:
+                self._send_frame(fr, t, node)
+        else:
+            started = []
+        # process image: the sample encoded as the bus carries it (the one codec shared with
+        # the off-line API), then the node-level faults on top
+        enc = self._codec.encode(T=sample.T, cell_status=sample.cell_status, accel=sample.accel,
+                                 omega=sample.omega, azimuth=sample.azimuth,
+                                 H_balance=sample.H_balance, drive=sample.drive)
+        raw = {k: getattr(enc, k).tolist() for k in _ENCODED}  # exact python ints/floats
+        frames: list[tuple[SimNode, Frame]] = []
+        for feed in self._feeds:
+            node = feed.node
+            node.set_raws(feed.raws(raw))
+            if fi:
+                self._apply_node_faults(feed, started)
+            frames.extend((node, fr) for fr in self._status_emcy(feed))
+        if lost:
+            fi.end_sample(st)
+            return
+        for n in self.nodes:
+            frames.extend((n, fr) for fr in n.sync(counter))
+        frames.sort(key=lambda p: p[1].cob_id)  # arbitration: lowest identifier first
+        for node, fr in frames:
+            if node.silent:
+                continue
+            if fr.kind == "tpdo" and fi:
+                f = fi.chance("drop", k, st, node.name, slot=fr.cob_id)
+                if f is not None:
+                    fi.record(k, st, "drop", node.name, cob_id=fr.cob_id, tpdo=fr.tpdo)
+                    continue
+                f = fi.chance("malformed", k, st, node.name, slot=0x1000 | fr.cob_id)
+                if f is not None:
+                    bad = fr.data[:-1] if len(fr.data) > 1 else fr.data + b"\x00"
+                    fi.record(k, st, "malformed", node.name, cob_id=fr.cob_id, tpdo=fr.tpdo,
+                              length=len(bad), expected=len(fr.data))
+                    fr = fr._replace(data=bad)
+            self._send_frame(fr, t, node)
+        if fi:
+            f = fi.chance("unknown", k, st, slot=0x2000)
+            if f is not None:
+                cob = f.cob_id if f.cob_id is not None else self._unknown_cob
+                fi.record(k, st, "unknown", None, cob_id=cob)
+                self._transmit("unknown", cob, fi.payload(k, 0x2000), t)
+            f = fi.chance("errorframe", k, st, slot=0x3000)
+            if f is not None:
+                fi.record(k, st, "errorframe", None)
+                self._transmit("error", 0, b"", t, error=True)
+            fi.end_sample(st)
+
+    def _apply_node_faults(self, feed: _NodeFeed, started: list[tuple[Fault, SimNode]]) -> None:
+        fi, node = self.faults, feed.node
+        chans = [c for c in ROLE_CHANNELS[node.role] if c != "status"]
+        for f, n in started:  # a stuck channel holds the value it had when the fault began
+            if n is node and f.kind == "stuck":
+                for ch in ([f.channel] if f.channel else chans):
+                    self._frozen[(f.index, node.name, ch)] = node.raw(ch)
+        for f in fi.of("stuck"):
+            if (f.index, node.name) not in fi._active:
+                continue
+            for ch in ([f.channel] if f.channel else chans):
+                v = self._frozen.get((f.index, node.name, ch))
+                if v is not None:
+                    node.set_raw(ch, v)
+        if "status" in ROLE_CHANNELS[node.role]:
+            status = int(node.raw("status") or 0)
+            if fi.active("overrange", node.name) is not None:
+                status |= STATUS_OVER_RANGE
+                force = node.raw("force") or 0.0
+                node.set_raw("force", math.copysign(feed.full_scale or abs(force), force))
+            if fi.active("sensor", node.name) is not None:
+                status |= STATUS_SENSOR_FAULT
+            node.set_raw("status", status)
+
+    def _status_emcy(self, feed: _NodeFeed) -> list[Frame]:
+        """EMCY when a status bit appears or clears (CiA 301: only in pre-op or operational)."""
+        node = feed.node
+        if "status" not in ROLE_CHANNELS[node.role] or node.state not in (PRE_OPERATIONAL, OPERATIONAL):
+            return []
+        status = int(node.raw("status") or 0)
+        out = []
+        for bit, code in _STATUS_EMCY:
+            if status & bit and code not in node._active_errors:
+                out.append(node.raise_error(code, info=bytes([status])))
+            elif not status & bit and code in node._active_errors:
+                fr = node.clear_error(code)
+                if fr is not None:
+                    out.append(fr)
+        return out
+
+    # ------------------------------------------------------------------------------------------
+    # real time
+    def _tick_loop(self) -> None:
+        """Live heartbeats between SYNCs (wall clock): wake at the next due heartbeat."""
+        while not self._stop.is_set():
+            with self._lock:
+                nxt = [n.next_heartbeat for n in self.nodes if n.next_heartbeat is not None]
+            wait = min(nxt) - time.time() if nxt else 0.5
+            if self._stop.wait(min(max(wait, 0.0), 0.5)):
+                return
+            try:
+                with self._lock:
+                    self._advance(time.time())
+                    if self._logger is not None and time.time() - self._last_flush >= 1.0:
+                        self._flush(time.time())
+            except Exception as e:  # noqa: BLE001 - re-raised by check()
+                log.exception("heartbeat ticker failed")
+                self._error = self._error or e
+                return
+
+    def _flush(self, t: float) -> None:
+        self._last_flush = t
+        f = getattr(self._logger, "file", None)
+        if f is not None and hasattr(f, "flush"):
+            f.flush()
+
+    def run(self, duration: float | None = None, *, stop: threading.Event | None = None,
+            progress: Callable[[int, float], None] | None = None,
+            progress_every: float = 1.0) -> int:
+        """Run until ``duration`` seconds (None: until ``stop`` is set). Autostart: produce SYNC
+        at the sample rate — in real time, or as fast as possible in lock-step. Follow mode:
+        answer the master's SYNCs (threaded) while the time passes. Returns SYNC cycles."""
+        self.start()
+        stop = stop or threading.Event()
+        n_total = None if duration is None else int(round(duration / self.dt))
+        if self.lockstep:
+            if not self.autostart:
+                raise RuntimeError("lock-step follow mode is driven by the master: use on_sync()/pump()")
+            k = 0
+            while (n_total is None or k < n_total) and not stop.is_set():
+                self.step()
+                k += 1
+                if progress and k % max(1, int(progress_every / self.dt)) == 0:
+                    progress(k, k * self.dt)
+            return k
+        start = time.monotonic()
+        if not self.autostart:
+            next_report = progress_every
+            while not stop.is_set():
+                el = time.monotonic() - start
+                if duration is not None and el >= duration:
+                    break
+                stop.wait(min(0.1, progress_every, (duration - el) if duration else 0.1))
+                self.check()
+                if progress and time.monotonic() - start >= next_report:
+                    next_report += progress_every
+                    progress(self._n_sync_seen(), time.monotonic() - start)
+            return self._n_sync_seen()
+        k = 0
+        every = max(1, int(round(progress_every / self.dt)))
+        while (n_total is None or k < n_total) and not stop.is_set():
+            jitter, _ = self._sync_plan(self._n_sync)
+            deadline = start + k * self.dt + jitter
+            delay = deadline - time.monotonic()
+            if delay > 0 and stop.wait(delay):
+                break
+            with self._lock:
+                self._cycle(self._next_counter(), time.time(), send_sync=True, jitter=jitter)
+            self.check()
+            k += 1
+            if progress and k % every == 0:
+                progress(k, k * self.dt)
+        return k
+
+    def _n_sync_seen(self) -> int:
+        return len(self.sync_info)
+
+    # ------------------------------------------------------------------------------------------
+    # truth
+    @property
+    def fault_log(self) -> list[dict]:
+        return list(self.faults.log)
+
+    def sync_arrays(self) -> dict[str, np.ndarray]:
+        """Per sample: index, SYNC counter (0: the SYNC carried none), SYNC time, lost flag."""
+        a = np.array(self.sync_info, dtype=float).reshape(-1, 4)
+        return {"sample_index": a[:, 0].astype(np.int64),
+                "sync_counter": np.maximum(a[:, 1], 0).astype(np.uint8),
+                "sync_time": a[:, 2], "sync_lost": a[:, 3].astype(bool)}
+
+    def truth_arrays(self) -> dict[str, np.ndarray]:
+        """The kept samples as sim_bus.truth arrays: the physics truth, the channels as the bus
+        carried them before faults (quantised by the shared codec, with the raw counts), and per
+        sample the SYNC counter, time and loss. Needs keep_samples=True."""
+        arrs = self.samples.arrays()
+        if not arrs:
+            raise ValueError("no samples kept: run with keep_samples=True and at least one SYNC")
+        enc = self._codec.encode(**{k: arrs[k] for k in
+                                    ("T", "cell_status", "accel", "omega", "azimuth",
+                                     "H_balance", "drive")})
+        arrs.update(self._codec.decode(enc))
+        arrs["accel_counts"], arrs["azimuth_counts"] = enc.accel_counts, enc.azimuth_counts
+        n = len(arrs["index"])
+        sync = self.sync_arrays()
+        arrs["sync_counter"] = sync["sync_counter"][:n]
+        arrs["sync_time"] = sync["sync_time"][:n]
+        arrs["sync_lost"] = sync["sync_lost"][:n]
+        return arrs
+
+    def write_truth(self, path: str | Path, meta: dict | None = None) -> Path:
+        """Write the truth file (sim_bus.truth format) with the injected faults."""
+        from sim_bus.offline import run_meta
+        from sim_bus.truth import write_truth
+
+        full = {}
+        if hasattr(self.physics, "scenario"):
+            full.update(run_meta(self.cfg, self.physics))
+        full.update(faults_spec=[f.token for f in self.faults.faults],
+                    fault_entries_not_kept=self.faults.dropped_log_entries,
+                    samples_not_kept=self.samples.dropped,
+                    nodes=[n.name for n in self.nodes], lockstep=self.lockstep,
+                    autostart=self.autostart, **(meta or {}))
+        arrs = self.truth_arrays()
+        return write_truth(path, arrs, faults=self.fault_log, meta=full,
+                           sync_counter=arrs["sync_counter"])
+
+
+class RecordError(OSError):
+    """The recording file cannot be written."""
+
+
+def _open_logger(path: Path) -> can.Listener:
+    """python-can's writer for the file's suffix; candump .log when the suffix names none."""
+    from can.io.logger import MESSAGE_WRITERS
+
+    suffixes = [s.lower() for s in path.suffixes]
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if suffixes and (suffixes[-1] in MESSAGE_WRITERS or (
+                suffixes[-1] == ".gz" and len(suffixes) > 1 and suffixes[-2] in MESSAGE_WRITERS)):
+            return can.Logger(str(path))
+        return can.CanutilsLogWriter(str(path))
+    except (OSError, ValueError, ImportError) as e:
+        raise RecordError(f"cannot record to {path}: {e}") from e

@@ -1,0 +1,300 @@
+"""Fault injection for the simulated aircraft bus (task: bus faults; docs/simulator.md "Faults").
+
+A fault SPEC is a ``;``-separated list of items ``KIND[:ARG…][@WHEN]``::
+
+    drop:cell_A:0.1;reboot:cell_C@12.5;silent:accel_1@20-22;jitter:0.5ms
+
+WHEN is simulated (sample) time in seconds: ``@T`` (an instant for ``reboot``; "from T on"
+for the window kinds), ``@T1-T2`` (the window [T1, T2)); without it a fault lasts the whole
+run. Probabilities are per opportunity (``0.1`` or ``10%``); durations take ``s``, ``ms`` or
+``us``. NODE is a configured node name, or ``*`` for every node where that makes sense.
+
+=============================  ===============================================================
+``drop:NODE:P``                each TPDO of NODE is lost with probability P
+``malformed:NODE:P``           a TPDO of NODE goes out one byte short (wrong length), prob. P
+``stuck:NODE[.CHANNEL]``       the channel(s) hold the value they had when the fault began
+``overrange:NODE``             load cell: status bit 0 set, force at ±full scale, EMCY
+``sensor:NODE``                load cell: status bit 1 (sensor fault), EMCY
+``silent:NODE``                the node sends nothing and hears nothing (unplugged)
+``reboot:NODE@T``              power cycle at T: boot-up, pre-operational, waits for NMT start
+``unknown[:COBID]:P``          per SYNC, a frame on a COB-ID no configured node uses, prob. P
+``lostsync:P``                 (--autostart) the SYNC of a cycle is lost, prob. P
+``jitter:SIGMA``               (--autostart) SYNC time jitter, Gaussian σ (clipped to ±3σ)
+``errorframe:P``               per SYNC, a CAN error frame (python-can is_error_frame), prob. P
+=============================  ===============================================================
+
+Random decisions are a pure function of (seed, fault item, sample index, slot) — a counter-
+based hash, not a shared generator — so they do not depend on the order in which they are
+asked, and lock-step and real-time runs inject exactly the same faults. Every injected fault
+is logged (``FaultInjector.log``: dicts with sample index, time, kind, node, …) for the truth.
+"""
+from __future__ import annotations
+
+import difflib
+import math
+import re
+from collections import deque
+from dataclasses import dataclass, field
+
+# EMCY error codes (CiA 301 table 21 classes) the simulated nodes raise.
+EMCY_OVER_RANGE = 0xFF01  # device specific: input over range (status bit 0)
+EMCY_SENSOR_FAULT = 0x5000  # device hardware: sensor fault (status bit 1)
+STATUS_OVER_RANGE = 0x01  # load-cell status bits (bus.md: 0x6150:1)
+STATUS_SENSOR_FAULT = 0x02
+
+NODE_KINDS = ("drop", "malformed", "stuck", "overrange", "sensor", "silent", "reboot")
+BUS_KINDS = ("unknown", "lostsync", "jitter", "errorframe")
+KINDS = NODE_KINDS + BUS_KINDS
+WINDOW_KINDS = ("stuck", "overrange", "sensor", "silent")
+PROBABILITY_KINDS = ("drop", "malformed", "unknown", "lostsync", "errorframe")
+AUTOSTART_KINDS = ("lostsync", "jitter")
+STATUS_KINDS = ("overrange", "sensor")
+MAX_LOG = 1_000_000  # bounded truth log; further entries are only counted
+
+_NUM = r"(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?"
+
+
+class FaultSpecError(ValueError):
+    """A bad fault SPEC: names the item and what is wrong with it."""
+
+    def __init__(self, token: str, problem: str, fix: str = ""):
+        self.token, self.problem = token, problem
+        msg = f"fault {token!r}: {problem}"
+        super().__init__(msg + (f"; {fix}" if fix else ""))
+
+
+@dataclass(frozen=True)
+class Fault:
+    kind: str
+    token: str  # the item as written, for messages and the truth
+    node: str | None = None  # None: bus-level; "*": every node
+    channel: str | None = None
+    value: float | None = None  # probability, or jitter sigma (s)
+    cob_id: int | None = None
+    start: float = 0.0
+    end: float = math.inf
+    index: int = 0  # position in the SPEC (part of the random key)
+
+    def active(self, t: float) -> bool:
+        return self.start <= t < self.end
+
+    def applies_to(self, node: str) -> bool:
+        return self.node == "*" or self.node == node
+
+
+def _duration(tok: str, text: str, what: str) -> float:
+    m = re.fullmatch(rf"({_NUM})\s*(s|ms|us)?", text.strip())
+    if not m:
+        raise FaultSpecError(tok, f"{what} {text!r} is not a time",
+                             "write seconds, e.g. 12.5, 0.5ms or 200us")
+    scale = {"s": 1.0, None: 1.0, "ms": 1e-3, "us": 1e-6}[m.group(2)]
+    return float(m.group(1)) * scale
+
+
+def _probability(tok: str, text: str) -> float:
+    m = re.fullmatch(rf"({_NUM})\s*(%)?", text.strip())
+    if not m:
+        raise FaultSpecError(tok, f"probability {text!r} is not a number", "write e.g. 0.1 or 10%")
+    p = float(m.group(1)) / (100.0 if m.group(2) else 1.0)
+    if not 0.0 <= p <= 1.0:
+        raise FaultSpecError(tok, f"probability {text!r} is outside 0…1", "write e.g. 0.1 or 10%")
+    return p
+
+
+def parse_faults(spec: str | None) -> tuple[Fault, ...]:
+    """Parse a SPEC (syntax in the module docstring). Raises FaultSpecError naming the item."""
+    if not spec or not spec.strip():
+        return ()
+    out = []
+    for i, raw in enumerate(s for s in spec.split(";")):
+        tok = raw.strip()
+        if not tok:
+            continue
+        body, _, when = tok.partition("@")
+        parts = [p.strip() for p in body.split(":")]
+        kind = parts[0].lower()
+        if kind not in KINDS:
+            near = difflib.get_close_matches(kind, KINDS, n=1)
+            raise FaultSpecError(tok, f"unknown fault kind {parts[0]!r}"
+                                 + (f" (did you mean {near[0]!r}?)" if near else ""),
+                                 "use one of " + ", ".join(KINDS))
+        start, end = 0.0, math.inf
+        if when:
+            if "-" in when:
+                a, _, b = when.partition("-")
+                start = _duration(tok, a, "start time")
+                end = _duration(tok, b, "end time") if b.strip() else math.inf
+                if end <= start:
+                    raise FaultSpecError(tok, f"window {when!r} ends before it starts",
+                                         "write @T1-T2 with T1 < T2")
+            else:
+                start = _duration(tok, when, "time")
+        elif kind == "reboot":
+            raise FaultSpecError(tok, "a reboot needs a time", "write e.g. reboot:cell_C@12.5")
+        if kind == "reboot" and when and "-" in when:
+            raise FaultSpecError(tok, "a reboot happens at an instant", "write reboot:NODE@T")
+        args = parts[1:]
+        node = channel = None
+        value = None
+        cob = None
+        if kind in NODE_KINDS:
+            if not args or not args[0]:
+                raise FaultSpecError(tok, "needs a node", f"write e.g. {kind}:cell_A…")
+            node = args.pop(0)
+            if "." in node:
+                node, channel = node.split(".", 1)
+                if kind != "stuck":
+                    raise FaultSpecError(tok, "only stuck takes a channel",
+                                         f"write {kind}:{node}")
+        elif kind == "unknown" and len(args) == 2:
+            try:
+                cob = int(args.pop(0), 0)
+            except ValueError:
+                raise FaultSpecError(tok, "COB-ID is not a number", "write e.g. unknown:0x1FF:0.05") from None
+            if not 0 < cob <= 0x7FF:
+                raise FaultSpecError(tok, f"COB-ID 0x{cob:X} is not an 11-bit identifier",
+                                     "use 0x001…0x7FF")
+        if kind in PROBABILITY_KINDS or kind == "jitter":
+            if len(args) != 1:
+                what = "a standard deviation" if kind == "jitter" else "a probability"
+                ex = {"jitter": "jitter:0.5ms", "drop": "drop:cell_A:0.1",
+                      "malformed": "malformed:cell_A:0.01", "unknown": "unknown:0.05"}.get(kind, f"{kind}:0.01")
+                raise FaultSpecError(tok, f"needs {what}", f"write e.g. {ex}")
+            value = (_duration(tok, args[0], "standard deviation") if kind == "jitter"
+                     else _probability(tok, args[0]))
+        elif args:
+            raise FaultSpecError(tok, f"unexpected argument(s) {':'.join(args)!r}",
+                                 f"write {kind}:NODE[@WHEN]")
+        out.append(Fault(kind=kind, token=tok, node=node, channel=channel, value=value,
+                         cob_id=cob, start=start, end=end, index=i))
+    return tuple(out)
+
+
+def validate_faults(faults: tuple[Fault, ...], node_roles: dict[str, str],
+                    channels: dict[str, tuple[str, ...]], autostart: bool) -> None:
+    """Check node and channel names against the configured nodes and the mode."""
+    for f in faults:
+        if f.node is not None and f.node != "*" and f.node not in node_roles:
+            near = difflib.get_close_matches(f.node, list(node_roles), n=1)
+            raise FaultSpecError(f.token, f"no node {f.node!r} on the simulated bus"
+                                 + (f" (did you mean {near[0]!r}?)" if near else ""),
+                                 "nodes: " + ", ".join(node_roles))
+        if f.channel is not None:
+            if f.node == "*":
+                raise FaultSpecError(f.token, "a channel needs a named node",
+                                     "write e.g. stuck:accel_1.z")
+            if f.channel not in channels[f.node]:
+                raise FaultSpecError(f.token, f"node {f.node!r} has no channel {f.channel!r}",
+                                     "channels: " + ", ".join(channels[f.node]))
+        # "*" applies a status fault to the nodes that have a status channel only
+        if f.kind in STATUS_KINDS and f.node != "*" and "status" not in channels[f.node]:
+            raise FaultSpecError(f.token, f"node {f.node!r} ({node_roles[f.node]}) has no "
+                                 "status channel", "use it on a load cell")
+        if f.kind in AUTOSTART_KINDS and not autostart:
+            raise FaultSpecError(f.token, "the simulator produces SYNC only with --autostart",
+                                 "add --autostart or drop this fault")
+
+
+def _mix(x: int) -> int:
+    """splitmix64 finaliser: a fast, well-mixed 64-bit hash."""
+    x = (x + 0x9E3779B97F4A7C15) & 0xFFFFFFFFFFFFFFFF
+    x = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & 0xFFFFFFFFFFFFFFFF
+    x = ((x ^ (x >> 27)) * 0x94D049BB133111EB) & 0xFFFFFFFFFFFFFFFF
+    return x ^ (x >> 31)
+
+
+@dataclass
+class FaultInjector:
+    """Runtime side of a fault plan: windows, instants and random draws by sample, and the log."""
+
+    faults: tuple[Fault, ...]
+    seed: int = 0
+    log: deque = field(default_factory=lambda: deque(maxlen=MAX_LOG))
+    dropped_log_entries: int = 0
+    _prev_t: float = -math.inf
+    _active: set = field(default_factory=set)
+
+    def __post_init__(self) -> None:
+        self._seed = _mix(int(self.seed) & 0xFFFFFFFFFFFFFFFF)
+        self.by_kind: dict[str, list[Fault]] = {}
+        for f in self.faults:
+            self.by_kind.setdefault(f.kind, []).append(f)
+
+    def __bool__(self) -> bool:
+        return bool(self.faults)
+
+    def uniform(self, fault: Fault, sample: int, slot: int = 0) -> float:
+        """A uniform in [0, 1) that depends only on (seed, fault, sample, slot)."""
+        h = _mix(self._seed ^ _mix((fault.index << 40) ^ (sample << 8) ^ slot))
+        return (h >> 11) * (1.0 / (1 << 53))
+
+    def record(self, sample: int, t: float, kind: str, node: str | None, **extra) -> None:
+        if len(self.log) == self.log.maxlen:
+            self.dropped_log_entries += 1
+            return
+        self.log.append({"sample": int(sample), "t": float(t), "kind": kind, "node": node, **extra})
+
+    def of(self, kind: str) -> list[Fault]:
+        return self.by_kind.get(kind, [])
+
+    def window_changes(self, sample: int, t: float, nodes: list[str]) -> list[tuple[Fault, str, bool]]:
+        """Window faults that begin or end at this sample: (fault, node, started)."""
+        out = []
+        for kind in WINDOW_KINDS:
+            for f in self.of(kind):
+                now = f.active(t)
+                for n in nodes:
+                    if not f.applies_to(n):
+                        continue
+                    key = (f.index, n)
+                    was = key in self._active
+                    if now and not was:
+                        self._active.add(key)
+                        out.append((f, n, True))
+                    elif was and not now:
+                        self._active.discard(key)
+                        out.append((f, n, False))
+        return out
+
+    def active(self, kind: str, node: str, channel: str | None = None) -> Fault | None:
+        for f in self.of(kind):
+            if (f.index, node) in self._active and (channel is None or f.channel in (None, channel)):
+                return f
+        return None
+
+    def reboots(self, t: float, nodes: list[str]) -> list[tuple[Fault, str]]:
+        """Reboot instants crossed since the previous sample (prev < T <= t)."""
+        out = []
+        for f in self.of("reboot"):
+            if self._prev_t < f.start <= t:
+                out.extend((f, n) for n in nodes if f.applies_to(n))
+        return out
+
+    def end_sample(self, t: float) -> None:
+        self._prev_t = t
+
+    def chance(self, kind: str, sample: int, t: float, node: str | None = None,
+               slot: int = 0) -> Fault | None:
+        """The first fault of ``kind`` (for ``node``) whose draw fires at this opportunity."""
+        for f in self.of(kind):
+            if not f.active(t) or (node is not None and not f.applies_to(node)):
+                continue
+            if self.uniform(f, sample, slot) < f.value:
+                return f
+        return None
+
+    def jitter(self, sample: int, t: float, limit: float) -> float:
+        """Sum of the active jitter faults' Gaussian offsets (Box–Muller), clipped to ±3σ and
+        to ±limit (so SYNCs never swap order)."""
+        total = 0.0
+        for f in self.of("jitter"):
+            if not f.active(t) or not f.value:
+                continue
+            u1 = 1.0 - self.uniform(f, sample, 1)  # (0, 1]
+            u2 = self.uniform(f, sample, 2)
+            z = math.sqrt(-2.0 * math.log(u1)) * math.cos(2 * math.pi * u2)
+            total += max(-3.0, min(3.0, z)) * f.value
+        return max(-limit, min(limit, total))
+
+    def payload(self, sample: int, slot: int, n: int = 8) -> bytes:
+        return _mix(self._seed ^ (sample << 16) ^ slot).to_bytes(8, "little")[:n]
