@@ -1,0 +1,338 @@
+"""PDO decode tables built from the EDS mapping (spec bus.md "Nodes", "SYNC and samples").
+
+Nothing here is hard-coded per rig: every COB-ID, frame layout and data type comes from the
+EDS default of each node's TPDO communication (0x1800+n) and mapping (0x1A00+n) parameters,
+evaluated for the node id of the rig config, and every gain/offset from
+``cfg.calibration["<node>.<channel>"]``. What *is* fixed is the device profile of each role
+(which mapped object is which physical channel and its unit), the same way a CiA 404/410
+profile fixes it for every vendor.
+
+One precompiled little-endian :class:`struct.Struct` per COB-ID (CANopen is little-endian),
+so the hot path is ``len`` check + ``unpack`` + a slice store (see daq.assembler).
+"""
+from __future__ import annotations
+
+import math
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+
+import canopen
+import numpy as np
+from canopen.objectdictionary import ODVariable, datatypes
+
+from daq.config import G0, ConfigError, RigConfig
+
+# CANopen basic data types -> struct codes (CiA 301 §7.1.4); the bit length in the mapping
+# entry must agree with the type.
+_STRUCT_CODE = {
+    datatypes.BOOLEAN: "?", datatypes.INTEGER8: "b", datatypes.INTEGER16: "h",
+    datatypes.INTEGER32: "i", datatypes.INTEGER64: "q", datatypes.UNSIGNED8: "B",
+    datatypes.UNSIGNED16: "H", datatypes.UNSIGNED32: "I", datatypes.UNSIGNED64: "Q",
+    datatypes.REAL32: "f", datatypes.REAL64: "d",
+}
+_UNSIGNED = (datatypes.UNSIGNED8, datatypes.UNSIGNED16, datatypes.UNSIGNED32, datatypes.UNSIGNED64)
+
+# Unit conversions of the device profiles (bus.md "Nodes").
+MILLI_G = 1.0e-3 * G0  # accelerometers: 1 count = 1 mg of specific force, in m/s^2
+TURN = "turn"  # marker: an unsigned angle that spans one turn (0 … 2^bits ↔ 0 … 2π)
+
+# Device profile per role: (object index, sub-index) -> (channel name, unit scale).
+# scale None marks a status byte (bit field, never calibrated).
+PROFILES: dict[str, dict[tuple[int, int], tuple[str, float | str | None]]] = {
+    "load_cell": {(0x6130, 1): ("force", 1.0), (0x6150, 1): ("status", None)},
+    "accelerometer": {(0x6401, 1): ("x", MILLI_G), (0x6401, 2): ("y", MILLI_G),
+                      (0x6401, 3): ("z", MILLI_G)},
+    "rotor_speed": {(0x2100, 1): ("omega", 1.0), (0x2100, 2): ("azimuth", TURN)},
+    "balance": {(0x2200, k): (n, 1.0) for k, n in enumerate("XYZLMN", start=1)},
+    "drive_load": {(0x2300, 1): ("torque", 1.0)},
+}
+# Channels the reader needs from each role (a rig whose EDS lacks one is refused).
+REQUIRED_CHANNELS = {
+    "load_cell": ("force", "status"), "accelerometer": ("x", "y", "z"),
+    "rotor_speed": ("omega", "azimuth"), "balance": tuple("XYZLMN"), "drive_load": (),
+}
+# Status bits of a load cell (bus.md: 0x6150:1 bit 0 over-range, bit 1 sensor fault).
+STATUS_OVERRANGE = 0x01
+STATUS_FAULT = 0x02
+
+TPDO_COMM = 0x1800
+TPDO_MAP = 0x1A00
+MAX_TPDOS = 512  # CiA 301: 0x1800…0x19FF
+COB_INVALID = 1 << 31  # PDO does not exist / is not valid
+COB_EXTENDED = 1 << 29
+COB_MASK_11BIT = 0x7FF
+
+
+@dataclass(frozen=True)
+class Channel:
+    """One decoded value: ``value = gain * (scale * raw) + offset`` (engineering units)."""
+
+    key: str  # "<node>.<channel>"
+    node: str
+    name: str
+    index: int
+    subindex: int
+    scale: float
+    gain: float  # calibration gain (config), 1 when absent
+    offset: float  # calibration offset (config), engineering units
+    is_status: bool
+    wrap: float | None  # 2π for angles that span one turn
+
+
+@dataclass(frozen=True)
+class TpdoLayout:
+    """One TPDO of one node as the EDS describes it."""
+
+    node: str
+    node_index: int  # position in DecodeTable.nodes
+    number: int  # 1-based TPDO number
+    cob_id: int
+    transmission_type: int
+    mapping: tuple[int, ...]  # raw 0x1A00+n entries (index<<16 | sub<<8 | bits)
+    struct: struct.Struct
+    codes: str  # struct code of each mapped value (no padding)
+    length: int  # bytes the frame must carry
+    start: int  # first channel of this TPDO in the raw vector
+    stop: int
+    bit: int  # this TPDO's bit in the per-sample "reported" mask
+
+
+@dataclass(frozen=True)
+class NodeLayout:
+    name: str
+    role: str
+    node_id: int
+    required: bool
+    eds: Path
+    od: canopen.ObjectDictionary
+    tpdos: tuple[TpdoLayout, ...]
+    start: int  # channel slice of this node
+    stop: int
+    mask: int  # OR of its TPDO bits
+    device_type: int  # EDS default of 0x1000
+    identity: dict[int, int]  # EDS defaults of 0x1018:1…4 (vendor, product, revision, serial)
+
+
+def _default(od: canopen.ObjectDictionary, index: int, sub: int | None = None) -> int | None:
+    try:
+        obj = od[index]
+        var = obj if sub is None else obj[sub]
+    except KeyError:
+        return None
+    if not isinstance(var, ODVariable):
+        return None
+    return var.default
+
+
+def _mapping_struct(node: str, role: str, od: canopen.ObjectDictionary, n: int,
+                    entries: list[int]) -> tuple[str, list[tuple[int, int, int]]]:
+    """Struct format and the (index, sub, data_type) of each mapped value, in frame order."""
+    fmt = "<"
+    values = []
+    for e in entries:
+        index, sub, bits = e >> 16, (e >> 8) & 0xFF, e & 0xFF
+        if 0x0001 <= index <= 0x0007:  # dummy mapping: padding of the type's size
+            if bits % 8:
+                raise ConfigError(f"eds[{node}] 0x{TPDO_MAP + n - 1:04X}", hex(e),
+                                  "dummy entry not a whole number of bytes",
+                                  "map whole bytes (Granularity=8)")
+            fmt += f"{bits // 8}x"
+            continue
+        try:
+            var = od[index][sub] if sub or not isinstance(od[index], ODVariable) else od[index]
+        except KeyError:
+            raise ConfigError(f"eds[{node}] 0x{TPDO_MAP + n - 1:04X}", f"0x{e:08X}",
+                              f"maps object 0x{index:04X}:{sub} that the EDS does not define",
+                              "fix the mapping or add the object to the EDS") from None
+        code = _STRUCT_CODE.get(var.data_type)
+        if code is None or struct.calcsize("<" + code) * 8 != bits:
+            raise ConfigError(f"eds[{node}] 0x{TPDO_MAP + n - 1:04X}", f"0x{e:08X}",
+                              f"object 0x{index:04X}:{sub} of type 0x{var.data_type:04X} "
+                              f"cannot be mapped with {bits} bits",
+                              "map numeric objects with their full bit length")
+        fmt += code
+        values.append((index, sub, var.data_type))
+    return fmt, values
+
+
+class DecodeTable:
+    """Every TPDO of every configured node: layouts, channel list and calibration vectors.
+
+    The raw vector of one sample holds every channel of every node, node after node, TPDO
+    after TPDO, in mapping order; ``gain``/``offset`` calibrate it in one vector operation.
+    """
+
+    def __init__(self, cfg: RigConfig):
+        self.cfg = cfg
+        nodes: list[NodeLayout] = []
+        channels: list[Channel] = []
+        tpdos: dict[int, TpdoLayout] = {}
+        bit = 1
+        used_cal: set[str] = set()
+        for ni, nc in enumerate(cfg.nodes):
+            try:
+                od = canopen.import_od(str(nc.eds), nc.node_id)
+            except Exception as e:  # canopen raises assorted errors on a bad EDS
+                raise ConfigError(f"nodes[{ni}].eds", str(nc.eds), f"cannot be read ({e})",
+                                  "give a valid CiA 306 EDS file") from None
+            profile = PROFILES[nc.role]
+            node_start = len(channels)
+            node_tpdos = []
+            node_mask = 0
+            for n in range(1, MAX_TPDOS + 1):
+                if TPDO_COMM + n - 1 not in od:
+                    continue
+                cob = _default(od, TPDO_COMM + n - 1, 1)
+                if cob is None:
+                    continue
+                if cob & COB_INVALID:
+                    continue  # PDO disabled by default: not part of the samples
+                if cob & COB_EXTENDED:
+                    raise ConfigError(f"eds[{nc.name}] 0x{TPDO_COMM + n - 1:04X}:1", hex(cob),
+                                      "29-bit COB-IDs are not used on this bus",
+                                      "use an 11-bit COB-ID")
+                ttype = _default(od, TPDO_COMM + n - 1, 2)
+                if ttype != 1:
+                    raise ConfigError(f"eds[{nc.name}] 0x{TPDO_COMM + n - 1:04X}:2", ttype,
+                                      "samples are assembled per SYNC (bus.md): every TPDO must "
+                                      "have transmission type 1", "set the default to 1")
+                count = _default(od, TPDO_MAP + n - 1, 0) or 0
+                entries = [_default(od, TPDO_MAP + n - 1, s) or 0 for s in range(1, count + 1)]
+                fmt, values = _mapping_struct(nc.name, nc.role, od, n, entries)
+                st = struct.Struct(fmt)
+                if st.size > 8:
+                    raise ConfigError(f"eds[{nc.name}] 0x{TPDO_MAP + n - 1:04X}", fmt,
+                                      f"maps {st.size} bytes, a classic CAN frame carries 8",
+                                      "split the mapping over two TPDOs")
+                start = len(channels)
+                for index, sub, dtype in values:
+                    name, scale = profile.get((index, sub), (f"0x{index:04X}_{sub}", 1.0))
+                    key = f"{nc.name}.{name}"
+                    gain, offset = cfg.calibration.get(key, (1.0, 0.0))
+                    wrap = None
+                    if scale is None:
+                        if key in cfg.calibration:
+                            raise ConfigError(f"calibration.{key}", cfg.calibration[key],
+                                              "a status byte is a bit field, not a measurement",
+                                              "remove the entry")
+                        scale_f = 1.0
+                    elif scale == TURN:
+                        if dtype not in _UNSIGNED:
+                            raise ConfigError(f"eds[{nc.name}] 0x{index:04X}:{sub}", hex(dtype),
+                                              "an angle spanning one turn must be unsigned",
+                                              "map an UNSIGNED8/16/32 object")
+                        bits = 8 * struct.calcsize("<" + _STRUCT_CODE[dtype])
+                        scale_f = 2.0 * math.pi / 2.0**bits
+                        wrap = 2.0 * math.pi
+                    else:
+                        scale_f = float(scale)
+                    used_cal.add(key)
+                    channels.append(Channel(key=key, node=nc.name, name=name, index=index,
+                                            subindex=sub, scale=scale_f, gain=float(gain),
+                                            offset=float(offset), is_status=scale is None,
+                                            wrap=wrap))
+                cob11 = cob & COB_MASK_11BIT
+                if cob11 in tpdos:
+                    other = tpdos[cob11]
+                    raise ConfigError(f"nodes[{ni}]", nc.name,
+                                      f"TPDO{n} COB-ID 0x{cob11:03X} already used by "
+                                      f"{other.node} TPDO{other.number}",
+                                      "give every node its own node id / COB-IDs")
+                lay = TpdoLayout(node=nc.name, node_index=ni, number=n, cob_id=cob11,
+                                 transmission_type=ttype, mapping=tuple(entries), struct=st,
+                                 codes="".join(_STRUCT_CODE[d] for _, _, d in values),
+                                 length=st.size, start=start, stop=len(channels), bit=bit)
+                tpdos[cob11] = lay
+                node_tpdos.append(lay)
+                node_mask |= bit
+                bit <<= 1
+            names = {c.name for c in channels[node_start:]}
+            for need in REQUIRED_CHANNELS[nc.role]:
+                if need not in names:
+                    raise ConfigError(f"nodes[{ni}].eds", str(nc.eds),
+                                      f"no TPDO maps the {nc.role} channel {need!r}",
+                                      "use the EDS of the role's device profile (bus.md)")
+            identity = {s: _default(od, 0x1018, s) for s in (1, 2, 3, 4)}
+            nodes.append(NodeLayout(
+                name=nc.name, role=nc.role, node_id=nc.node_id, required=nc.required,
+                eds=Path(nc.eds), od=od, tpdos=tuple(node_tpdos), start=node_start,
+                stop=len(channels), mask=node_mask, device_type=_default(od, 0x1000) or 0,
+                identity={k: v for k, v in identity.items() if v is not None}))
+        for key in cfg.calibration:
+            if key not in used_cal:
+                raise ConfigError(f"calibration.{key}", cfg.calibration[key],
+                                  "no such channel", "use one of: " + ", ".join(
+                                      c.key for c in channels if not c.is_status))
+        self.nodes: tuple[NodeLayout, ...] = tuple(nodes)
+        self.channels: tuple[Channel, ...] = tuple(channels)
+        self.tpdos: dict[int, TpdoLayout] = tpdos
+        self.all_bits = bit - 1
+        # value = gain*scale*raw + offset, one multiply-add per sample (status: identity)
+        self.gain = np.array([c.gain * c.scale for c in channels])
+        self.offset = np.array([c.offset for c in channels])
+        self._index = {c.key: i for i, c in enumerate(channels)}
+        self._node = {n.name: n for n in nodes}
+
+    # -- lookups ---------------------------------------------------------------------------
+    def index(self, key: str) -> int:
+        """Position of channel "<node>.<channel>" in the raw vector."""
+        return self._index[key]
+
+    def node(self, name: str) -> NodeLayout:
+        return self._node[name]
+
+    def has_channel(self, key: str) -> bool:
+        return key in self._index
+
+    @property
+    def n_channels(self) -> int:
+        return len(self.channels)
+
+    # -- decoding (tests, tools; the hot path inlines the same steps) ----------------------
+    def decode(self, cob_id: int, data: bytes) -> dict[str, float]:
+        """Calibrated values of one TPDO frame by channel key (raises on unknown/malformed)."""
+        lay = self.tpdos[cob_id]
+        if len(data) != lay.length:
+            raise ValueError(f"COB-ID 0x{cob_id:03X}: {len(data)} bytes, expected {lay.length}")
+        raw = lay.struct.unpack(data)
+        out = {}
+        for i, v in zip(range(lay.start, lay.stop), raw):
+            c = self.channels[i]
+            x = float(v) if c.is_status else self.gain[i] * float(v) + self.offset[i]
+            out[c.key] = x
+        return out
+
+    def encode(self, values: dict[str, float], cob_id: int) -> bytes:
+        """Inverse of :meth:`decode` for one TPDO (tests, tools): engineering values -> frame."""
+        lay = self.tpdos[cob_id]
+        raw = []
+        for i in range(lay.start, lay.stop):
+            c = self.channels[i]
+            v = values[c.key]
+            if c.is_status:
+                raw.append(int(v))
+                continue
+            r = (v - self.offset[i]) / self.gain[i]
+            code = lay.codes[i - lay.start]
+            if code in "fd":
+                raw.append(r)
+            else:
+                lo, hi = _int_range(code)
+                r = round(r)
+                if c.wrap is not None:
+                    r %= hi + 1
+                raw.append(min(max(r, lo), hi))
+        return lay.struct.pack(*raw)
+
+
+def _int_range(code: str) -> tuple[int, int]:
+    bits = 8 * struct.calcsize("<" + code)
+    if code.islower() and code != "?":
+        return -(2 ** (bits - 1)), 2 ** (bits - 1) - 1
+    return 0, 2**bits - 1
+
+
+def build_decode_table(cfg: RigConfig) -> DecodeTable:
+    """The decode table of a rig (raises ConfigError naming the EDS key on any problem)."""
+    return DecodeTable(cfg)

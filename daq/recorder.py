@@ -1,0 +1,274 @@
+"""Recording of every frame seen on the bus (spec bus.md "Recording and replay").
+
+A recording folder holds:
+
+* ``frames.<fmt>`` (the file being written) and ``frames_NNNNNN.<fmt>`` (closed files, in
+  order), written by python-can's :class:`can.SizedRotatingLogger` (candump ``.log`` by
+  default, ``.blf`` or ``.asc`` on request), rotated by size;
+* ``angles.jsonl``: the starting posterior, then every published ``angles`` record verbatim
+  (written by the service through :meth:`Recorder.write_angles`);
+* ``config.json``: the effective configuration, with the EDS files copied beside it in
+  ``eds/`` so that the folder replays on its own.
+
+The recorder is a :class:`can.Listener` on the bus thread. It flushes at least every
+``flush_s`` of acquisition time (frame timestamps), so a crash loses at most that much. A
+total-size cap or a full disk stops the recording with a loud error in health while
+acquisition goes on. Nothing is ever deleted or overwritten.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import re
+import shutil
+import threading
+from pathlib import Path
+from typing import Any
+
+import can
+
+from daq.config import RigConfig
+
+log = logging.getLogger(__name__)
+
+FRAMES_STEM = "frames"
+ANGLES_FILE = "angles.jsonl"
+CONFIG_FILE = "config.json"
+EDS_DIR = "eds"
+FORMATS = ("log", "blf", "asc")
+_ROTATED = re.compile(rf"^{FRAMES_STEM}_(\d+)\.(log|blf|asc|mf4)$")
+MB = 1_000_000
+CAP_CHECK_MASK = 0xFF  # check the size cap every 256 frames
+
+
+class RecordingError(RuntimeError):
+    """The recording cannot start (folder already holds one, format not available, …)."""
+
+
+def frame_files(folder: Path) -> list[Path]:
+    """The frame files of a recording folder in time order (closed files, then the live one)."""
+    rotated = []
+    current = []
+    for p in folder.iterdir():
+        m = _ROTATED.match(p.name)
+        if m:
+            rotated.append((int(m.group(1)), p))
+        elif p.stem == FRAMES_STEM and p.suffix.lstrip(".") in FORMATS + ("mf4",):
+            current.append(p)
+    return [p for _, p in sorted(rotated)] + sorted(current)
+
+
+def _json_safe(x: Any) -> Any:
+    """Strict JSON: non-finite floats become null, numpy values plain Python."""
+    if isinstance(x, dict):
+        return {str(k): _json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_json_safe(v) for v in x]
+    if hasattr(x, "tolist"):
+        return _json_safe(x.tolist())
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+class Recorder(can.Listener):
+    """Writes every frame it is given to a rotating log in ``folder`` (see module docstring)."""
+
+    def __init__(self, folder: str | Path, cfg: RigConfig, fmt: str | None = None,
+                 rotate_mb: float | None = None, cap_mb: float | None = None,
+                 flush_s: float | None = None):
+        self.folder = Path(folder)
+        self.fmt = (fmt or cfg.recording.format).lstrip(".")
+        if self.fmt not in FORMATS:
+            raise RecordingError(f"recording format {self.fmt!r} is not available here; "
+                                 f"use one of {', '.join(FORMATS)}")
+        rec = cfg.recording
+        self.rotate_bytes = int((rotate_mb if rotate_mb is not None else rec.rotate_mb) * MB)
+        self.cap_bytes = int((cap_mb if cap_mb is not None else rec.cap_mb) * MB)
+        self.flush_s = flush_s if flush_s is not None else cfg.recording.flush_s
+        self.folder.mkdir(parents=True, exist_ok=True)
+        if frame_files(self.folder) or (self.folder / ANGLES_FILE).exists():
+            raise RecordingError(f"{self.folder} already holds a recording; nothing is ever "
+                                 "overwritten: give a new folder")
+        self._write_config(cfg)
+        self._lock = threading.Lock()  # angles.jsonl is written from the service thread
+        self._io_lock = threading.Lock()  # frames: bus thread, and the live idle tick
+        self._angles = open(self.folder / ANGLES_FILE, "w", encoding="utf-8")
+        self._rotated: list[Path] = []
+        self._closed_bytes = 0
+        self.frames = 0
+        self.dropped = 0  # frames seen after the recording stopped
+        self.error: str | None = None
+        self.active = True
+        self._last_flush: float | None = None
+        base = self.folder / f"{FRAMES_STEM}.{self.fmt}"
+        self._logger = can.SizedRotatingLogger(base_filename=base, max_bytes=self.rotate_bytes)
+        self._logger.namer = self._name_rotated
+
+    # -- files -------------------------------------------------------------------------------
+    def _write_config(self, cfg: RigConfig) -> None:
+        eff = cfg.effective()
+        eds_dir = self.folder / EDS_DIR
+        eds_dir.mkdir(exist_ok=True)
+        nodes = []
+        for raw_node, nc in zip(eff.get("nodes", []), cfg.nodes):
+            d = dict(raw_node)
+            target = eds_dir / nc.eds.name
+            if not target.exists():
+                shutil.copyfile(nc.eds, target)
+            d["eds"] = f"{EDS_DIR}/{nc.eds.name}"
+            nodes.append(d)
+        if nodes:
+            eff["nodes"] = nodes
+        with open(self.folder / CONFIG_FILE, "w", encoding="utf-8") as f:
+            json.dump(_json_safe(eff), f, indent=1, allow_nan=False)
+
+    def _name_rotated(self, default_name: str) -> str:
+        # deterministic, sortable names (python-can's default uses the wall-clock date)
+        p = self.folder / f"{FRAMES_STEM}_{self._logger.rollover_count:06d}.{self.fmt}"
+        self._rotated.append(p)
+        return str(p)
+
+    # -- can.Listener --------------------------------------------------------------------------
+    def on_message_received(self, msg: can.Message) -> None:
+        with self._io_lock:
+            self._record(msg)
+
+    def _record(self, msg: can.Message) -> None:
+        if not self.active:
+            self.dropped += 1
+            return
+        try:
+            n_rot = len(self._rotated)
+            self._logger.on_message_received(msg)
+            self.frames += 1
+            if len(self._rotated) != n_rot:
+                self._closed_bytes += sum(p.stat().st_size for p in self._rotated[n_rot:])
+            t = msg.timestamp
+            if self._last_flush is None:
+                self._last_flush = t
+            elif t - self._last_flush >= self.flush_s:
+                self._last_flush = t
+                self.flush()
+            elif not self.frames & CAP_CHECK_MASK and self.bytes_written >= self.cap_bytes:
+                self.flush()  # between flushes too: the cap is overshot by a few kB at most
+        except OSError as e:  # full disk, removed medium, …
+            self._fail(f"recording stopped: {e.strerror or e} ({self.folder}); "
+                       "acquisition goes on, frames are no longer recorded")
+        except Exception as e:  # never let the recorder stop the bus thread
+            self._fail(f"recording stopped: {type(e).__name__}: {e}")
+
+    def tick(self, now: float) -> None:
+        """Live idle tick (acquisition clock): flush frames still buffered when the bus went
+        quiet, so a crash loses at most ``flush_s`` of them."""
+        with self._io_lock:
+            if self.active and self._last_flush is not None and \
+                    now - self._last_flush >= self.flush_s:
+                self._last_flush = now
+                try:
+                    self.flush()
+                except OSError as e:
+                    self._fail(f"recording stopped: {e.strerror or e} ({self.folder})")
+
+    def flush(self) -> None:
+        """Push buffered frames to the OS; stop at the size cap."""
+        if not self.active:
+            return
+        w = self._logger.writer
+        if isinstance(w, can.BLFWriter):
+            w._flush()  # BLF buffers a whole container in memory otherwise
+        f = getattr(w, "file", None)
+        if f is not None:
+            f.flush()
+        total = self.bytes_written
+        if total >= self.cap_bytes:
+            self._fail(f"recording stopped at the size cap ({total / MB:.3g} MB >= "
+                       f"{self.cap_bytes / MB:.3g} MB, recording.cap_mb); acquisition goes on")
+
+    def _fail(self, message: str) -> None:
+        self.error = message
+        log.error("%s", message)
+        self._close_frames()
+
+    def _close_frames(self) -> None:
+        """Close the frame file (python-can writes the BLF header here); count its size."""
+        if not self.active:
+            return
+        self.active = False
+        try:
+            self._logger.stop()
+        except Exception as e:  # the file may be unwritable by now
+            self.error = self.error or f"closing the recording failed: {e}"
+            log.error("closing the recording failed: %s", e)
+        try:
+            self._closed_bytes += Path(self._logger.base_filename).stat().st_size
+        except OSError:
+            pass
+
+    def on_error(self, exc: Exception) -> None:  # bus errors are the reader's business
+        pass
+
+    @property
+    def bytes_written(self) -> int:
+        size = 0
+        if self.active:
+            try:
+                size = self._logger.writer.file_size()
+            except (OSError, ValueError):
+                size = 0
+        return self._closed_bytes + size
+
+    # -- the service's angle records -------------------------------------------------------
+    def write_angles(self, record: dict) -> None:
+        """Append one ``angles`` record verbatim (strict JSON line), flushed at once.
+
+        Written even after the frame recording hit its cap (a few hundred bytes per run),
+        so the angle schedule of the recorded frames is never lost."""
+        line = json.dumps(_json_safe(record), allow_nan=False, separators=(",", ":"))
+        with self._lock:
+            if self._angles.closed:
+                return
+            try:
+                self._angles.write(line + "\n")
+                self._angles.flush()
+            except OSError as e:
+                self.error = f"angles.jsonl not written: {e.strerror or e}"
+                log.error("%s", self.error)
+
+    def status(self) -> dict:
+        """The ``recording`` part of the health payload."""
+        return {"active": self.active, "dir": str(self.folder), "format": self.fmt,
+                "frames": self.frames, "bytes": self.bytes_written,
+                "files": len(self._rotated) + 1, "dropped": self.dropped, "error": self.error}
+
+    def stop(self) -> None:
+        with self._io_lock:
+            self._close_frames()
+        with self._lock:
+            if not self._angles.closed:
+                self._angles.close()
+
+
+def recorded_config_raw(folder: str | Path) -> dict | None:
+    """The effective configuration a recording folder holds (None if it has none)."""
+    p = Path(folder) / CONFIG_FILE
+    if not p.is_file():
+        return None
+    with open(p, encoding="utf-8") as f:
+        return json.load(f)
+
+
+def recorded_config(folder: str | Path) -> RigConfig | None:
+    """The recording's configuration as a RigConfig (EDS paths relative to the folder)."""
+    from daq.config import parse_config
+
+    raw = recorded_config_raw(folder)
+    if raw is None:
+        return None
+    return parse_config(raw, source=str(Path(folder) / CONFIG_FILE), base_dir=Path(folder))
+
+
+def folder_size(folder: str | Path) -> int:
+    return sum(p.stat().st_size for p in Path(folder).iterdir() if p.is_file())
+

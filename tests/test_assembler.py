@@ -1,0 +1,310 @@
+"""Sample assembly by frame order (daq.assembler) through the reader's frame tap (daq.reader):
+completeness, missing/lost/malformed/unknown accounting, flags, the acquisition clock."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from helpers_canopen import T0, accel, cell, heartbeat, msg, period_frames, rotor, sync
+
+from daq.config import G0, load_config
+from daq.master import EMCY_HISTORY
+from daq.reader import HealthReport, Reader
+
+DT = 0.005
+
+
+def feed(r: Reader, frames) -> list:
+    for m in frames:
+        r.feed(m)
+    return r.poll()
+
+
+def samples(items) -> list:
+    return [x for x in items if not isinstance(x, HealthReport)]
+
+
+def test_a_complete_sample_is_passed_on_at_its_last_tpdo(cfg):
+    r = Reader.offline(cfg)
+    frames = period_frames(cfg, 0, T0 + 0.00000025, status=[0, 0, 1, 0, 2, 0, 3],
+                           acc=(10, -20, -1000))
+    out = feed(r, frames[:-1])
+    assert out == []  # the accelerometer is still missing: nothing yet
+    (s,) = feed(r, frames[-1:])  # no next SYNC needed
+    assert (s.seq, s.sync, s.lost_before, s.missing, s.complete) == (0, 1, 0, (), True)
+    assert s.t == T0  # SYNC receive time rounded to 1 µs
+    np.testing.assert_array_equal(s.T, [1000.0 * (i + 1) for i in range(7)])
+    np.testing.assert_allclose(s.accel, [[0.010 * G0, -0.020 * G0, -G0]], rtol=1e-15)
+    assert s.cell_status == {"A": 0, "B": 0, "C": 1, "D": 0, "E": 2, "F": 0, "G": 3}
+    assert s.flags == ("overrange:C", "fault:E", "overrange:G", "fault:G")
+    assert s.omega is None and s.azimuth is None and s.known_H is None and s.drive is None
+    h = r.health()
+    assert h["samples"] == {"complete": 1, "incomplete": 0, "lost": 0}
+    assert h["bus"]["frames"] == len(frames)
+
+
+def test_an_incomplete_sample_is_passed_on_at_the_next_sync_with_missing_flagged(cfg):
+    r = Reader.offline(cfg)
+    assert feed(r, period_frames(cfg, 0, T0, skip=("cell_D",))) == []
+    out = feed(r, period_frames(cfg, 1, T0 + DT))
+    s0, s1 = samples(out)
+    assert s0.missing == ("cell_D",) and "missing:cell_D" in s0.flags and not s0.complete
+    assert math.isnan(s0.T[3]) and np.isfinite(np.delete(s0.T, 3)).all()
+    assert "D" not in s0.cell_status
+    assert s1.complete and s1.seq == 1
+    assert r.health()["samples"] == {"complete": 1, "incomplete": 1, "lost": 0}
+
+
+def test_skipped_sync_counters_count_as_lost_samples_and_keep_their_numbers(cfg):
+    r = Reader.offline(cfg)
+    ks = [0, 1, 4, 5, 236, 237, 238, 239, 240, 243]  # counter = k % 240 + 1: wraps 240 -> 1
+    out = []
+    for j, k in enumerate(ks):
+        out += feed(r, period_frames(cfg, k, T0 + j * DT))
+    got = [(s.seq, s.sync, s.lost_before) for s in samples(out)]
+    assert got == [(0, 1, 0), (1, 2, 0), (4, 5, 2), (5, 6, 0), (236, 237, 230), (237, 238, 0),
+                   (238, 239, 0), (239, 240, 0), (240, 1, 0), (243, 4, 2)]
+    assert [("lost_before" in s.flags) for s in samples(out)] == [g[2] > 0 for g in got]
+    assert r.health()["samples"]["lost"] == 2 + 230 + 2
+
+
+def test_without_a_counter_byte_nothing_is_counted_lost():
+    cfg0 = load_config(overrides={"sync": {"counter_overflow": 0}})
+    r = Reader.offline(cfg0)
+    out = []
+    for k in range(3):
+        out += feed(r, period_frames(cfg0, k, T0 + k * DT))
+    out += feed(r, [sync(7, T0 + 3 * DT)])  # a counter where none is configured: tolerated
+    r.feed(msg(0x80, b"\x01\x02", T0 + 4 * DT))  # two bytes: malformed, ignored
+    assert [(s.seq, s.sync, s.lost_before) for s in samples(out)] == [(0, 0, 0), (1, 0, 0),
+                                                                      (2, 0, 0)]
+    assert r.health()["bus"]["malformed"] == 1
+
+
+def test_malformed_duplicate_and_orphan_frames_are_counted_never_used(cfg):
+    r = Reader.offline(cfg)
+    r.feed(cell(0x11, 5.0, 0, T0 - 0.001))  # before any SYNC: orphan
+    frames = period_frames(cfg, 0, T0)
+    bad = msg(0x193, frames[3].data[:-1], T0 + 1e-6)  # cell_C one byte short
+    dup = cell(0x11, -1.0, 0, T0 + 2e-6)  # cell_A twice in one period
+    frames = [frames[0], frames[1], dup, bad] + [f for f in frames[2:] if f.arbitration_id != 0x193]
+    out = feed(r, frames + period_frames(cfg, 1, T0 + DT))
+    s0 = samples(out)[0]
+    assert s0.missing == ("cell_C",) and math.isnan(s0.T[2])
+    assert s0.T[0] == 1000.0  # the first cell_A value is kept
+    b = r.health()["bus"]
+    assert (b["malformed"], b["duplicate"], b["orphan"]) == (1, 1, 1)
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_non_finite_values_mark_the_channel_missing(cfg, bad):
+    r = Reader.offline(cfg)
+    forces = [1.0, 2.0, bad, 4.0, 5.0, 6.0, 7.0]
+    out = feed(r, period_frames(cfg, 0, T0, forces=forces) + period_frames(cfg, 1, T0 + DT))
+    s0 = samples(out)[0]
+    assert math.isnan(s0.T[2]) and s0.missing == ("cell_C",) and "missing:cell_C" in s0.flags
+    assert s0.cell_status["C"] == 0  # the status byte arrived and is kept
+    assert not s0.complete
+    json.dumps(s0.channels_payload(), allow_nan=False)  # strict JSON: null, never NaN
+
+
+def test_optional_nodes_are_waited_for_once_seen_alive(cfg):
+    r = Reader.offline(cfg)
+    H = (1.0, 2.0, 80000.0, 4.0, 5.0, 6.0)
+    # period 0: rotor and balance report, but were not known to be alive: the sample is
+    # complete at the accelerometer and passed on without them
+    out = feed(r, period_frames(cfg, 0, T0, omega=19.4, az=49152, H=H))
+    assert samples(out)[0].omega is None
+    # period 1: seen in the last period, so now expected; complete only with them
+    frames = period_frames(cfg, 1, T0 + DT, omega=19.4, az=49152, H=H)
+    assert samples(feed(r, frames[:-3])) == []
+    (s1,) = samples(feed(r, frames[-3:]))
+    assert s1.omega == pytest.approx(19.4, rel=1e-7)
+    assert s1.azimuth == pytest.approx(1.5 * math.pi, rel=1e-15)
+    np.testing.assert_array_equal(s1.known_H, H)
+    # period 2: the balance stops: passed on at the next SYNC, flagged once
+    feed(r, period_frames(cfg, 2, T0 + 2 * DT, omega=19.4, az=0))
+    s2, s3 = samples(feed(r, period_frames(cfg, 3, T0 + 3 * DT, omega=19.4)))
+    assert s2.missing == ("balance",) and s2.known_H is None and s2.omega is not None
+    # period 3 no longer waits for it (not seen, no operational heartbeat): passed on at
+    # its last expected frame
+    assert s3.complete and s3.known_H is None
+    assert r.health()["samples"]["incomplete"] == 1
+    # an operational heartbeat makes it expected again
+    r.feed(heartbeat(0x41, 0x05, T0 + 4 * DT - 1e-4))
+    feed(r, period_frames(cfg, 4, T0 + 4 * DT, omega=19.4))
+    s4, s5 = samples(feed(r, period_frames(cfg, 5, T0 + 5 * DT, omega=19.4, H=H)))
+    assert s4.missing == ("balance",)
+    assert s5.complete and s5.known_H is not None
+
+
+def test_assembly_is_by_frame_order_not_timestamps(cfg):
+    """TPDOs stamped before their SYNC (jittery stamps) still belong to the sample after it;
+    the same frames with other timestamps give the same samples (but for t)."""
+    frames = period_frames(cfg, 0, T0) + period_frames(cfg, 1, T0 + DT, skip=("cell_G",)) + \
+        period_frames(cfg, 2, T0 + 2 * DT)
+    a = samples(feed(Reader.offline(cfg), frames))
+    rng = np.random.default_rng(1)
+    jittered = []
+    for m in frames:
+        m2 = msg(m.arbitration_id, m.data, m.timestamp + rng.uniform(-0.004, 0.004))
+        jittered.append(m2)
+    b = samples(feed(Reader.offline(cfg), jittered))
+    assert len(a) == len(b) == 3
+    for x, y in zip(a, b):
+        y.t = x.t
+        assert x.same_as(y)
+    # monotone clock: a sample is never stamped before the previous one
+    assert all(p.t <= q.t for p, q in zip(b, b[1:]))
+
+
+def test_unknown_error_and_remote_frames_are_counted_and_not_passed_on(cfg):
+    r = Reader.offline(cfg)
+    frames = period_frames(cfg, 0, T0)
+    extra = [
+        msg(0x1FF, b"\x00" * 5, T0 + 1e-6),  # TPDO1 of a node nobody configured
+        msg(0x191, b"\x00" * 5, T0 + 1e-6, is_extended_id=False, is_remote_frame=True),
+        msg(0x80, b"", T0 + 1e-6, is_error_frame=True),  # error class 0x80 == SYNC id
+        msg(0x40, b"", T0 + 1e-6, is_error_frame=True),  # bus-off
+    ]
+    ext = msg(0x191, b"\x00" * 5, T0 + 1e-6)
+    ext.is_extended_id = True  # 29-bit frame with a known 11-bit value
+    out = feed(r, frames[:2] + extra + [ext] + frames[2:])
+    (s,) = samples(out)
+    assert s.complete and s.sync == 1 and s.T[0] == 1000.0
+    b = r.health()["bus"]
+    assert (b["unknown"], b["remote"], b["errors"], b["bus_off"]) == (2, 1, 2, 1)
+    assert b["malformed"] == b["duplicate"] == 0
+
+
+def test_heartbeat_watchdog_runs_on_the_acquisition_clock(cfg):
+    r = Reader.offline(cfg)
+    events = []
+    sup = r.supervisor
+    base = sup.on_event
+    sup.on_event = lambda kind, node: (events.append((kind, node, r.now)), base(kind, node))
+    period = cfg.heartbeat.producer_ms / 1000
+    t = T0
+    last_hb = None
+    for k in range(200):  # 1 s of samples; accel_1 beats until 0.5 s, then stops
+        t = T0 + k * DT
+        if k % 20 == 0 and t - T0 <= 0.5:
+            for nc in cfg.nodes:
+                r.feed(heartbeat(nc.node_id, 0x05, t))
+            last_hb = t
+        elif k % 20 == 0:
+            for nc in cfg.nodes:
+                if nc.name != "accel_1":
+                    r.feed(heartbeat(nc.node_id, 0x05, t))
+        feed(r, period_frames(cfg, k, t + 1e-6))
+    lost = [e for e in events if e[0] == "lost"]
+    assert [(k, n) for k, n, _ in lost] == [("lost", "accel_1")]
+    t_lost = lost[0][2]
+    timeout = cfg.heartbeat.timeout_factor * period
+    assert last_hb + timeout < t_lost <= last_hb + timeout + DT  # the first frame past it
+    h = r.health()["nodes"]["accel_1"]
+    assert h["state"] == "lost" and h["losses"] == 1
+    assert h["heartbeat_age"] == pytest.approx(r.now - last_hb, abs=1e-6)
+    assert r.health()["nodes"]["cell_A"]["state"] == "operational"
+
+
+def test_boot_up_and_emcy_are_decoded_with_a_bounded_history(cfg):
+    r = Reader.offline(cfg)
+    r.feed(heartbeat(0x12, 0x00, T0))  # boot-up
+    assert r.health()["nodes"]["cell_B"]["state"] == "booting"
+    assert r.health()["nodes"]["cell_B"]["boots"] == 1
+    r.feed(msg(0x92, bytes.fromhex("01ff8103000000aa"), T0 + 0.001))  # 8 bytes
+    r.feed(msg(0x92, bytes.fromhex("0050"), T0 + 0.002))  # 2 bytes: tolerated
+    e = r.health()["nodes"]["cell_B"]["emcy"]
+    assert e[0] == {"t": T0 + 0.001, "code": 0xFF01, "register": 0x81, "info": "03000000aa",
+                    "length": 8}
+    assert (e[1]["code"], e[1]["register"], e[1]["length"]) == (0x5000, 0, 2)
+    for i in range(3 * EMCY_HISTORY):
+        r.feed(msg(0x92, bytes([i, 0, 1]), T0 + 0.01 + i * 1e-3))
+    h = r.health()["nodes"]["cell_B"]
+    assert len(h["emcy"]) == EMCY_HISTORY and h["emcy_count"] == 2 + 3 * EMCY_HISTORY
+    assert h["emcy"][-1]["code"] == 3 * EMCY_HISTORY - 1
+
+
+def test_health_is_reported_once_a_second_of_acquisition_time(cfg):
+    r = Reader.offline(cfg)
+    out = []
+    for k in range(700):  # 3.5 s
+        out += feed(r, period_frames(cfg, k, T0 + k * DT))
+    reports = [x for x in out if isinstance(x, HealthReport)]
+    assert [rep.t for rep in reports] == [T0 + 1.0, T0 + 2.0, T0 + 3.0]
+    # in the stream at their place: the sample after a report is the first of that second
+    i = out.index(reports[0])
+    assert out[i - 1].t < T0 + 1.0 <= out[i + 1].t
+    p = reports[-1].payload
+    assert set(p) >= {"t", "nodes", "bus", "samples", "queues", "recording"}
+    assert set(p["bus"]) >= {"frames", "errors", "bus_off", "unknown", "malformed"}
+    assert set(p["samples"]) == {"complete", "incomplete", "lost"}
+    assert p["samples"]["complete"] == 600  # samples of t < T0 + 3 s, counted in frame order
+    json.dumps(p, allow_nan=False)
+
+
+def test_the_queue_is_bounded_and_back_pressure_is_counted(cfg):
+    r = Reader.offline(cfg, queue_size=4)
+    for k in range(10):
+        for m in period_frames(cfg, k, T0 + k * DT):
+            r.feed(m)
+    got = samples(r.poll())
+    assert [s.seq for s in got] == [0, 1, 2, 3]
+    q = r.health()["queues"]["samples"]
+    assert (q["dropped"], q["size"], q["max_depth"]) == (6, 4, 4)
+    out = samples(feed(r, period_frames(cfg, 10, T0 + 10 * DT)))
+    assert [s.seq for s in out] == [10]  # the gap is visible through seq
+
+
+def test_channels_payload_is_strict_json(cfg):
+    r = Reader.offline(cfg)
+    out = feed(r, period_frames(cfg, 0, T0, skip=("accel_1",)) + period_frames(cfg, 1, T0 + DT))
+    p = samples(out)[0].channels_payload()
+    text = json.dumps(p, allow_nan=False)
+    back = json.loads(text)
+    assert back["accel"] == [[None, None, None]] and back["T"][0] == 1000.0
+    assert set(back) == {"seq", "t", "T", "accel", "omega", "azimuth", "known_H", "drive",
+                         "status"}
+
+
+def test_rotor_without_balance_and_the_azimuth_wraps(cfg):
+    r = Reader.offline(cfg)
+    feed(r, period_frames(cfg, 0, T0, omega=10.0, az=65535))
+    (s,) = samples(feed(r, period_frames(cfg, 1, T0 + DT, omega=10.0, az=65535)))
+    assert 0.0 <= s.azimuth < 2 * math.pi
+    assert s.azimuth == pytest.approx(2 * math.pi * 65535 / 65536, rel=1e-15)
+    r2 = Reader.offline(load_config(overrides={"calibration": {
+        "rotor_speed.azimuth": {"offset": 0.5}}}))
+    feed(r2, period_frames(cfg, 0, T0, omega=10.0, az=65535))
+    (s,) = samples(feed(r2, period_frames(cfg, 1, T0 + DT, omega=10.0, az=65535)))
+    assert s.azimuth == pytest.approx(2 * math.pi * 65535 / 65536 + 0.5 - 2 * math.pi)
+
+
+def test_frames_of_one_tpdo_from_a_node_reader_does_not_know_are_unknown(cfg):
+    r = Reader.offline(cfg)
+    r.feed(rotor(0x32, 1.0, 0, T0))  # rotor TPDO layout, but node 0x32 is not configured
+    r.feed(accel(0x22, (0, 0, 0), T0))  # accelerometer 2 is not in the default rig
+    assert r.health()["bus"]["unknown"] == 2
+
+
+def test_live_the_idle_bus_still_advances_the_clock(cfg):
+    """The live wall-clock tick (driven here with explicit times): health and the watchdog
+    go on when no frame arrives."""
+    r = Reader.offline(cfg)
+    r.feed(heartbeat(0x21, 0x05, T0))
+    r.tap.tick(T0 + 0.1)
+    assert r.poll() == []
+    r.tap.tick(T0 + 1.3)  # bus silent for 1.3 s
+    (rep,) = r.poll()
+    assert isinstance(rep, HealthReport) and rep.t == T0 + 1.3
+    assert rep.payload["nodes"]["accel_1"]["state"] == "lost"
+    assert rep.payload["nodes"]["accel_1"]["heartbeat_age"] == pytest.approx(1.3)
+    r.tap.tick(T0 + 1.2)  # the clock never goes back
+    assert r.now == T0 + 1.3
+    # a frame stamped before the tick keeps its own (frame-monotone) time, as in a recording
+    r.feed(heartbeat(0x21, 0x05, T0 + 1.25))
+    assert r.health()["nodes"]["accel_1"]["state"] == "operational"
+    assert r.tap.frame_time == T0 + 1.25 and r.now == T0 + 1.3
