@@ -14,8 +14,14 @@ from daq.config import ConfigError
 COMMANDS = {
     "noise-budget": "noise_budget",
     "listen": "listen",
+    "run": "run",
     "sim": "sim",
     "replay": "replay",
+    "nodes": "nodes",
+    "zero": "zero",
+    "angles": "angles",
+    "report": "report",
+    "sweep": "sweep",
 }
 
 

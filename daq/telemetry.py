@@ -11,6 +11,7 @@ import json
 import logging
 import threading
 from collections.abc import Iterable
+from typing import Any
 
 import zenoh
 
@@ -23,6 +24,25 @@ HIGH_RATE_KEYS = ("hub_loads", "channels", "innovations")
 LOW_RATE_KEYS = ("angles", "health")
 STATE_KEYS = ("angles", "config", "health")
 
+# Zenoh's mode-dependent default listen endpoints (all interfaces), read from the library.
+_ZENOH_DEFAULT_LISTEN = json.loads(zenoh.Config().get_json("listen/endpoints"))
+# Names whose values are secrets or point at them: never published in state/config.
+_SECRET_NAMES = ("password", "private_key", "secret", "zenoh_config", "dictionary_file",
+                 "known_keys_file")
+REMOVED = "<removed>"
+
+
+def redact_secrets(obj: Any) -> Any:
+    """A copy of a config tree with every secret value (passwords, key paths, the Zenoh config
+    file path) replaced by "<removed>" — state/config is readable by every viewer."""
+    if isinstance(obj, dict):
+        return {k: (REMOVED if obj[k] not in (None, "", [], {}) and
+                    any(n in str(k).lower() for n in _SECRET_NAMES) else redact_secrets(obj[k]))
+                for k in obj}
+    if isinstance(obj, (list, tuple)):
+        return [redact_secrets(v) for v in obj]
+    return obj
+
 
 def zenoh_config(
     tel: TelemetryConfig,
@@ -32,7 +52,8 @@ def zenoh_config(
     config_file: str | None = None,
 ) -> zenoh.Config:
     """The session config: a Zenoh config file if given (TLS, auth, ACL), else the rig's
-    telemetry table. Multicast scouting stays off unless the file or config says otherwise."""
+    telemetry table. Multicast scouting stays off, and a file without listen endpoints listens
+    nowhere, unless the file or config says otherwise."""
     path = config_file or tel.zenoh_config
     if path:
         try:
@@ -42,6 +63,12 @@ def zenoh_config(
 
             raise ConfigError("telemetry.zenoh_config", str(path), f"cannot load ({e})",
                               "give a valid Zenoh JSON5 config file") from None
+        # Zenoh's own defaults are multicast scouting on and, for a peer, a listener on every
+        # interface (tcp/[::]:0): a file that says nothing about them gets ours instead.
+        if json.loads(conf.get_json("scouting/multicast/enabled")) is None:
+            conf.insert_json5("scouting/multicast/enabled", "false")
+        if json.loads(conf.get_json("listen/endpoints")) == _ZENOH_DEFAULT_LISTEN:
+            conf.insert_json5("listen/endpoints", "[]")
         return conf
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(tel.mode))
@@ -85,8 +112,9 @@ class TelemetryPublisher:
         self._state: dict[str, bytes] = {}
         self._state_lock = threading.Lock()
         if effective_config is not None:
-            self._state["config"] = dumps(effective_config).encode()
+            self._state["config"] = dumps(redact_secrets(effective_config)).encode()
         self._token = session.liveliness().declare_token(f"{prefix}/alive")
+        self._state_keys = {n: zenoh.KeyExpr(f"{prefix}/state/{n}") for n in STATE_KEYS}
         self._queryable = session.declare_queryable(f"{prefix}/state/*")  # FIFO channel
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._answer_queries, name="rsra-state-queries",
@@ -115,14 +143,15 @@ class TelemetryPublisher:
                 self._stop.wait(0.01)
                 continue
             try:
-                name = str(q.key_expr).rsplit("/", 1)[-1]
-                names = STATE_KEYS if name == "*" else (name,)
-                for n in names:
+                # answer every state key the query's key expression intersects
+                # (state/*, state/config, prefix/**, …); the payload is ignored
+                for n, key in self._state_keys.items():
+                    if not key.intersects(q.key_expr):
+                        continue
                     with self._state_lock:
                         data = self._state.get(n)
                     if data is not None:
-                        q.reply(f"{self.prefix}/state/{n}", data,
-                                encoding=zenoh.Encoding.APPLICATION_JSON)
+                        q.reply(key, data, encoding=zenoh.Encoding.APPLICATION_JSON)
             except Exception as e:
                 log.debug("query failed: %s", e)
             finally:

@@ -1,0 +1,953 @@
+"""Plots and a summary from published records (JSONL) and, where it exists, the simulator's
+truth (cli.md `rsra report`; telemetry.md payloads; model.md §4, §6, §7).
+
+* load: one JSON object per line, ``{"key": "<key>", …payload}`` (``rsra replay --out``, the
+  service's JSONL sink); keys ``hub_loads``, ``channels``, ``angles``, ``innovations``,
+  ``health``; others are counted and ignored;
+* align: truth samples to records by time (the truth's SYNC time, else its simulated time;
+  nearest within half a sample: in lock-step runs the records' ``t`` is simulated time), and
+  by sample number (``seq``, with the SYNC counter fixing an offset) when times do not match;
+* compute: hub-load errors against the static bound of model §4 (the noise budget σ), the
+  final angles against their Cramér–Rao σ (and jointly, χ² with the posterior covariance),
+  the normalised innovations against χ²₆, counts of flags;
+* plot (matplotlib, Agg): hub loads vs truth, their errors, angles with ±σ_CR bands and
+  accepted/rejected runs (the report's Figures 20–23, with honest bounds), NIS, spectra.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy import signal, stats
+
+from daq.config import RigConfig
+from daq.jsonout import dumps
+from daq.units import axis_units, to_units
+from estimator.geometry import shaft_rotation
+from estimator.noise_budget import AXES, noise_budget
+
+FALSE_ALARM = 1e-3  # two-sided bands and consistency thresholds (team standard)
+MIN_UNIFORM_FRACTION = 0.8  # spectra need at least this share of the samples present
+FIG_SIZE = (12, 8)  # inches at 100 dpi: 1200 x 800 px
+DPI = 100
+ZOOM_REVOLUTIONS = 8  # hub_loads.png shows the last few rotor revolutions, readable waveforms
+
+
+class ReportError(ValueError):
+    """An input that cannot be reported on (missing file, not JSON lines, bad truth)."""
+
+
+# ---------------------------------------------------------------------------------------------
+# records
+
+
+@dataclass
+class Records:
+    path: Path
+    counts: dict[str, int]
+    channels: dict[str, np.ndarray] | None = None  # seq, t, T (N,7), omega
+    hub: dict | None = None  # seq, sync, t, H (N,6), H_static (N,6), omega, flags, frame
+    angles: list[dict] = field(default_factory=list)
+    innovations: dict[str, np.ndarray] | None = None  # seq, t, e (N,6), nis
+    health: list[dict] = field(default_factory=list)
+
+
+def _vec(x, n: int) -> list[float]:
+    """A payload vector (null or with nulls) as n floats, nan for missing."""
+    if x is None:
+        return [math.nan] * n
+    return [math.nan if v is None else float(v) for v in x]
+
+
+def _num(x) -> float:
+    return math.nan if x is None else float(x)
+
+
+def load_records(path: str | Path) -> Records:
+    """Parse a JSONL of published records; ReportError names the line of a broken one."""
+    p = Path(path)
+    if not p.is_file():
+        raise ReportError(f"{p}: no such file; give the JSONL written by `rsra replay --out` "
+                          "or `rsra run`")
+    counts: dict[str, int] = {}
+    ch: dict[str, list] = {"seq": [], "t": [], "T": [], "omega": []}
+    hub: dict[str, list] = {"seq": [], "sync": [], "t": [], "H": [], "H_static": [],
+                            "omega": [], "flags": []}
+    inn: dict[str, list] = {"seq": [], "t": [], "e": [], "nis": []}
+    frames: set[str] = set()
+    angles: list[dict] = []
+    health: list[dict] = []
+    try:
+        f = open(p, encoding="utf-8")
+    except OSError as e:
+        raise ReportError(f"{p}: cannot read ({e.strerror})") from None
+    with f:
+        for n, line in enumerate(f, 1):
+            line = line.strip()
+            if not line:
+                continue
+            try:
+                rec = json.loads(line)
+                key = rec["key"]
+            except (ValueError, KeyError, TypeError):
+                raise ReportError(f"{p} line {n}: not a JSON record with a \"key\" field; give "
+                                  "the JSONL written by `rsra replay --out`") from None
+            counts[key] = counts.get(key, 0) + 1
+            try:
+                if key == "channels":
+                    ch["seq"].append(int(rec["seq"]))
+                    ch["t"].append(_num(rec["t"]))
+                    ch["T"].append(_vec(rec["T"], 7))
+                    ch["omega"].append(_num(rec.get("omega")))
+                elif key == "hub_loads":
+                    hub["seq"].append(int(rec["seq"]))
+                    hub["sync"].append(int(rec.get("sync") or 0))
+                    hub["t"].append(_num(rec["t"]))
+                    hub["H"].append(_vec(rec.get("H"), 6))
+                    hub["H_static"].append(_vec(rec.get("H_static"), 6))
+                    hub["omega"].append(_num(rec.get("omega")))
+                    hub["flags"].append(tuple(rec.get("flags") or ()))
+                    frames.add(rec.get("frame") or "body")
+                elif key == "innovations":
+                    inn["seq"].append(int(rec["seq"]))
+                    inn["t"].append(_num(rec["t"]))
+                    inn["e"].append(_vec(rec.get("e"), 6))
+                    inn["nis"].append(_num(rec.get("nis")))
+                elif key == "angles":
+                    if not rec.get("initial"):
+                        angles.append(rec)
+                elif key == "health":
+                    health.append(rec)
+            except (KeyError, TypeError, ValueError) as e:
+                raise ReportError(f"{p} line {n}: a {key!r} record without a valid {e} field "
+                                  "(telemetry.md payload)") from None
+    if not counts:
+        raise ReportError(f"{p}: no records (empty file)")
+    if len(frames) > 1:
+        raise ReportError(f"{p}: hub_loads records in more than one frame ({sorted(frames)})")
+    out = Records(path=p, counts=counts, angles=angles, health=health)
+    if ch["seq"]:
+        out.channels = {"seq": np.array(ch["seq"], np.int64), "t": np.array(ch["t"]),
+                        "T": np.array(ch["T"], float).reshape(-1, 7),
+                        "omega": np.array(ch["omega"])}
+    if hub["seq"]:
+        out.hub = {"seq": np.array(hub["seq"], np.int64), "sync": np.array(hub["sync"], np.int64),
+                   "t": np.array(hub["t"]), "H": np.array(hub["H"], float).reshape(-1, 6),
+                   "H_static": np.array(hub["H_static"], float).reshape(-1, 6),
+                   "omega": np.array(hub["omega"]), "flags": hub["flags"],
+                   "frame": frames.pop() if frames else "body"}
+    if inn["seq"]:
+        out.innovations = {"seq": np.array(inn["seq"], np.int64), "t": np.array(inn["t"]),
+                           "e": np.array(inn["e"], float).reshape(-1, 6),
+                           "nis": np.array(inn["nis"])}
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# truth and alignment
+
+
+def load_truth(path: str | Path) -> dict:
+    from sim_bus.truth import read_truth
+
+    p = Path(path)
+    if not p.is_file():
+        raise ReportError(f"--truth {p}: no such file; give the .npz written by `rsra sim "
+                          "--truth`")
+    try:
+        tr = read_truth(p)
+    except Exception as e:  # noqa: BLE001 - any unreadable file is the user's input problem
+        raise ReportError(f"--truth {p}: not a truth file ({e})") from None
+    for k in ("t", "H_true", "alpha_true"):
+        if k not in tr:
+            raise ReportError(f"--truth {p}: the truth file has no {k!r} array")
+    return tr
+
+
+@dataclass
+class Alignment:
+    """For every record of a set: the truth sample index (−1: none)."""
+
+    method: str  # "sync_time", "t", "seq" or "none"
+    idx: np.ndarray
+    matched: float  # fraction of records matched
+
+    def valid(self) -> np.ndarray:
+        return self.idx >= 0
+
+
+def _nearest(tt: np.ndarray, t: np.ndarray, tol: float) -> np.ndarray:
+    order = np.argsort(tt, kind="stable")
+    ts = tt[order]
+    j = np.clip(np.searchsorted(ts, t), 1, len(ts) - 1) if len(ts) > 1 else np.zeros(len(t), int)
+    if len(ts) > 1:
+        left = np.abs(t - ts[j - 1]) <= np.abs(ts[j] - t)
+        j = np.where(left, j - 1, j)
+    idx = order[j]
+    ok = np.abs(tt[idx] - t) <= tol
+    return np.where(ok & np.isfinite(t), idx, -1)
+
+
+def align_truth(truth: dict, t: np.ndarray, seq: np.ndarray, dt: float,
+                sync: np.ndarray | None = None, method: str | None = None) -> Alignment:
+    """Truth sample of each record: by time (the truth's SYNC time, else its simulated time;
+    nearest within half a sample) when at least 90 % of the records match; otherwise by
+    ``seq`` (lost samples keep their number), shifted so that the SYNC counters agree when the
+    records carry them. ``method`` forces one."""
+    t = np.asarray(t, float)
+    seq = np.asarray(seq, np.int64)
+    n = len(truth["t"])
+    if method in ("sync_time", "t"):
+        cands = [method]
+    elif method is None:
+        cands = [m for m in ("sync_time", "t") if m in truth]
+    else:
+        cands = []
+    for m in cands:
+        tt = np.asarray(truth[m], float)
+        if len(tt) == 0 or not np.isfinite(tt).any():
+            continue
+        idx = _nearest(tt, t, 0.5 * dt)
+        frac = float(np.mean(idx >= 0)) if len(idx) else 0.0
+        if frac >= 0.9 or method is not None:
+            return Alignment(m, idx, frac)
+    # by sample number
+    offset = 0
+    sc = truth.get("sync_counter")
+    if sync is not None and sc is not None and len(sc) and np.any(np.asarray(sync) > 0):
+        sync = np.asarray(sync, np.int64)
+        sc = np.asarray(sc, np.int64)
+        period = int(sc.max()) if sc.max() > 0 else 1
+        best = -1
+        for k in range(-int(seq.min()), -int(seq.min()) + period):
+            j = seq + k
+            ok = (j >= 0) & (j < n)
+            score = int(np.sum(sc[j[ok]] == sync[ok]))
+            if score > best:
+                best, offset = score, k
+    j = seq + offset
+    idx = np.where((j >= 0) & (j < n), j, -1)
+    return Alignment("seq", idx, float(np.mean(idx >= 0)) if len(idx) else 0.0)
+
+
+def truth_in_frame(H_body: np.ndarray, geometry, frame: str) -> np.ndarray:
+    """Truth hub loads (body axes) expressed in the records' frame: C_sᵀ on force and moment
+    (the hub centre is the same point in both)."""
+    C = shaft_rotation(geometry, frame)
+    H = np.asarray(H_body, float)
+    return np.hstack([H[:, :3] @ C, H[:, 3:] @ C])  # rows: (Cᵀ h)ᵀ = hᵀ C
+
+
+# ---------------------------------------------------------------------------------------------
+# computations
+
+
+def _uniform(seq: np.ndarray, values: np.ndarray) -> tuple[np.ndarray | None, float]:
+    """Values on the complete seq grid with gaps and non-finite entries interpolated, and the
+    fraction of grid samples that were present; None when a column has no finite value."""
+    seq = np.asarray(seq, np.int64)
+    order = np.argsort(seq, kind="stable")
+    seq, values = seq[order], np.asarray(values, float)[order]
+    keep = np.r_[True, np.diff(seq) > 0]
+    seq, values = seq[keep], values[keep]
+    n = int(seq[-1] - seq[0] + 1)
+    grid = np.full((n, values.shape[1]), np.nan)
+    grid[seq - seq[0]] = values
+    present = np.isfinite(grid).all(axis=1)
+    x = np.arange(n)
+    for j in range(grid.shape[1]):
+        ok = np.isfinite(grid[:, j])
+        if not ok.any():
+            return None, 0.0
+        grid[:, j] = np.interp(x, x[ok], grid[ok, j])
+    return grid, float(present.mean())
+
+
+def _chi2_band(dof: int) -> tuple[float, float]:
+    return (float(stats.chi2.ppf(FALSE_ALARM / 2, dof)),
+            float(stats.chi2.ppf(1 - FALSE_ALARM / 2, dof)))
+
+
+@dataclass
+class ReportData:
+    """Everything the plots and the summary need, computed once."""
+
+    cfg: RigConfig
+    rec: Records
+    truth: dict | None
+    units: str
+    t0: float
+    frame: str
+    sigma_static: np.ndarray  # (6,) SI, in the records' frame
+    angle_names: tuple[str, ...]
+    alpha_config: np.ndarray
+    hub_align: Alignment | None = None
+    H_truth: np.ndarray | None = None  # (N_hub, 6) truth at the hub records, frame, nan if none
+    ch_align: Alignment | None = None
+    alpha_truth_hub: np.ndarray | None = None  # (N_hub or N_ch, 14) truth angles at records
+    alpha_truth_t: np.ndarray | None = None  # their times (relative)
+    omega: float | None = None
+    settle_s: float = 0.0  # load-filter settling: not scored (model §7: 5 τ)
+    skipped: dict[str, str] = field(default_factory=dict)
+    summary: dict = field(default_factory=dict)
+
+
+def prepare(cfg: RigConfig, rec: Records, truth: dict | None, units: str = "si") -> ReportData:
+    model = cfg.rig_model()
+    frame = rec.hub["frame"] if rec.hub else cfg.hub_frame
+    alpha_cfg = np.asarray(cfg.identification.initial_angles_rad, float)
+    nb = noise_budget(model, alpha_cfg, frame)
+    starts = [s["t"][np.isfinite(s["t"])].min() for s in (rec.hub, rec.channels, rec.innovations)
+              if s is not None and np.isfinite(s["t"]).any()]
+    t0 = min(starts) if starts else 0.0
+    d = ReportData(cfg=cfg, rec=rec, truth=truth, units=units, t0=t0, frame=frame,
+                   sigma_static=nb.total, angle_names=tuple(model.geometry.angle_names),
+                   alpha_config=alpha_cfg,
+                   settle_s=cfg.identification.settle_time_constants * cfg.filter.time_constant_s)
+    dt = cfg.sample_period_s
+    om = []
+    for s in (rec.hub, rec.channels):
+        if s is not None and np.isfinite(s["omega"]).any():
+            om.append(float(np.nanmedian(s["omega"])))
+    d.omega = om[0] if om else (None if cfg.rotor.stopped else cfg.rotor.omega_nominal_rad_s)
+    if truth is not None:
+        if rec.hub is not None:
+            d.hub_align = align_truth(truth, rec.hub["t"], rec.hub["seq"], dt, rec.hub["sync"])
+            ok = d.hub_align.valid()
+            H = np.full((len(ok), 6), np.nan)
+            H[ok] = truth_in_frame(np.asarray(truth["H_true"])[d.hub_align.idx[ok]],
+                                   model.geometry, frame)
+            d.H_truth = H
+        base = rec.hub if rec.hub is not None else rec.channels
+        if base is not None:
+            al = d.hub_align if rec.hub is not None else align_truth(
+                truth, base["t"], base["seq"], dt)
+            d.ch_align = al
+            ok = al.valid()
+            A = np.full((len(ok), np.asarray(truth["alpha_true"]).shape[1]), np.nan)
+            A[ok] = np.asarray(truth["alpha_true"])[al.idx[ok]]
+            d.alpha_truth_hub = A
+            d.alpha_truth_t = base["t"] - t0
+    return d
+
+
+def _hub_summary(d: ReportData) -> dict:
+    rec, cfg = d.rec, d.cfg
+    if rec.hub is None:
+        return {"skipped": "no hub_loads records"}
+    H, Hs = rec.hub["H"], rec.hub["H_static"]
+    out: dict = {"frame": d.frame, "axes": list(AXES), "records": int(len(H)),
+                 "sigma_static": to_units(d.sigma_static, d.units).tolist(),
+                 "H_null": int(np.sum(~np.isfinite(H).all(axis=1))),
+                 "H_static_null": int(np.sum(~np.isfinite(Hs).all(axis=1)))}
+    if d.H_truth is None:
+        out["truth"] = None
+        return out
+    settle = d.settle_s
+    t = rec.hub["t"] - d.t0
+    scored = np.isfinite(d.H_truth).all(axis=1)
+    res = {}
+    for name, est, mask in (("H", H, scored & (t >= settle)), ("H_static", Hs, scored)):
+        good = mask & np.isfinite(est).all(axis=1)
+        if not good.any():
+            res[name] = None
+            continue
+        err = est[good] - d.H_truth[good]
+        rms = np.sqrt(np.mean(err**2, axis=0))
+        res[name] = {"samples": int(good.sum()),
+                     "rms_error": to_units(rms, d.units).tolist(),
+                     "bias": to_units(err.mean(axis=0), d.units).tolist(),
+                     "rms_over_sigma_static": (rms / d.sigma_static).tolist()}
+    out.update(truth={"alignment": d.hub_align.method, "matched": d.hub_align.matched},
+               settle_s=settle, errors=res)
+    return out
+
+
+def _angle_records(d: ReportData) -> list[dict]:
+    """Angle records as arrays over the 14 angles (nan for angles a record does not carry)."""
+    out = []
+    for r in d.rec.angles:
+        names = r.get("names") or list(d.angle_names)
+        alpha = np.full(len(d.angle_names), np.nan)
+        sig = np.full(len(d.angle_names), np.nan)
+        a = _vec(r.get("alpha"), len(names))
+        s = r.get("sigma_cr")
+        P = r.get("P")
+        Pm = None
+        if P is not None:
+            Pm = np.array([_vec(row, len(names)) for row in P], float)
+        if s is None and Pm is not None:
+            s = np.sqrt(np.clip(np.diag(Pm), 0, None)).tolist()
+        s = _vec(s, len(names)) if s is not None else [math.nan] * len(names)
+        for k, nm in enumerate(names):
+            if nm in d.angle_names:
+                i = d.angle_names.index(nm)
+                alpha[i], sig[i] = a[k], s[k]
+        out.append({"t": _num(r.get("t")), "accepted": bool(r.get("accepted")),
+                    "reason": r.get("reason"), "alpha": alpha, "sigma": sig, "names": names,
+                    "P": Pm, "alpha_sub": np.array(a), "determined": r.get("determined"),
+                    "window": r.get("window")})
+    return out
+
+
+def _truth_alpha_at(d: ReportData, t_abs: float) -> np.ndarray | None:
+    """Truth angles at an absolute record time (nearest record's truth)."""
+    if d.alpha_truth_hub is None or d.alpha_truth_t is None or not math.isfinite(t_abs):
+        return None
+    rel = d.alpha_truth_t
+    j = int(np.argmin(np.abs(rel - (t_abs - d.t0))))
+    if abs(rel[j] - (t_abs - d.t0)) > 1.0 or not np.isfinite(d.alpha_truth_hub[j]).all():
+        return None
+    return d.alpha_truth_hub[j]
+
+
+def _angles_summary(d: ReportData) -> dict:
+    runs = _angle_records(d)
+    if not runs:
+        return {"skipped": "no angles records"}
+    reasons: dict[str, int] = {}
+    for r in runs:
+        if not r["accepted"]:
+            k = str(r["reason"])
+            reasons[k] = reasons.get(k, 0) + 1
+    last = runs[-1]
+    out: dict = {"runs": len(runs), "accepted": sum(r["accepted"] for r in runs),
+                 "rejected": reasons,
+                 "final_t": last["t"] - d.t0 if math.isfinite(last["t"]) else None}
+    final = {"names": list(d.angle_names), "estimate_deg": np.degrees(last["alpha"]).tolist(),
+             "sigma_cr_deg": np.degrees(last["sigma"]).tolist(),
+             "determined": last["determined"]}
+    tr = _truth_alpha_at(d, last["t"])
+    if tr is not None:
+        err = last["alpha"] - tr
+        final.update(truth_deg=np.degrees(tr).tolist(), error_deg=np.degrees(err).tolist(),
+                     error_over_sigma=(err / last["sigma"]).tolist())
+        # joint consistency with the whole posterior covariance over the identified names
+        if last["P"] is not None:
+            sub = [d.angle_names.index(n) for n in last["names"] if n in d.angle_names]
+            if len(sub) == len(last["names"]):
+                e = last["alpha_sub"] - tr[sub]
+                try:
+                    chi2 = float(e @ np.linalg.solve(last["P"], e))
+                    dof = len(e)
+                    thr = float(stats.chi2.ppf(1 - FALSE_ALARM, dof))
+                    out["joint_chi2"] = {"value": chi2, "dof": dof, "threshold": thr,
+                                         "false_alarm": FALSE_ALARM, "consistent": chi2 <= thr}
+                except np.linalg.LinAlgError:
+                    out["joint_chi2"] = None
+    out["final"] = final
+    return out
+
+
+def _innovations_summary(d: ReportData) -> dict:
+    inn = d.rec.innovations
+    if inn is None:
+        return {"skipped": "no innovations records"}
+    ok = np.isfinite(inn["nis"])
+    if not ok.any():
+        return {"skipped": "innovations records carry no nis"}
+    nis = inn["nis"][ok & (inn["t"] - d.t0 >= d.settle_s)]
+    if not len(nis):
+        return {"skipped": f"no innovations after the {d.settle_s:g} s of filter settling"}
+    lo, hi = _chi2_band(6)
+    total = float(nis.sum())
+    dof = 6 * len(nis)
+    return {"records": int(len(nis)), "settle_s": d.settle_s,
+            "mean_nis": float(nis.mean()), "dof_per_record": 6,
+            "band": [lo, hi], "false_alarm": FALSE_ALARM,
+            "fraction_outside": float(np.mean((nis < lo) | (nis > hi))),
+            "joint_chi2": {"value": total, "dof": dof,
+                           "band": list(_chi2_band(dof)),
+                           "p_value_upper": float(stats.chi2.sf(total, dof))}}
+
+
+def _flags_summary(d: ReportData) -> dict:
+    out: dict = {}
+    if d.rec.hub is not None:
+        counts: dict[str, int] = {}
+        n_any = 0
+        for fl in d.rec.hub["flags"]:
+            if fl:
+                n_any += 1
+            for f in fl:
+                counts[f] = counts.get(f, 0) + 1
+        out["hub_loads"] = dict(sorted(counts.items()))
+        out["samples_flagged"] = n_any
+    if d.rec.health:
+        h = d.rec.health[-1]
+        out["health"] = {k: h.get(k) for k in ("samples", "bus") if k in h}
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# plots
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path: Path) -> Path:
+    fig.savefig(path, dpi=DPI)
+    _plt().close(fig)
+    return path
+
+
+def _fmt(v: float) -> str:
+    return f"{v:.0f}" if abs(v) >= 100 else f"{v:.3g}"
+
+
+def _axis_scale(units: str) -> np.ndarray:
+    return to_units(np.ones(6), units)
+
+
+def plot_hub_loads(d: ReportData, out: Path) -> Path:
+    """Estimates (filter H, static H_static) vs truth over the last rotor revolutions, with
+    the static bound band (truth ± noise-budget σ, model §4)."""
+    plt = _plt()
+    hub = d.rec.hub
+    t = hub["t"] - d.t0
+    span = ZOOM_REVOLUTIONS * 2 * math.pi / d.omega if d.omega else 2.0
+    win = t >= (np.nanmax(t) - span)
+    sc = _axis_scale(d.units)
+    u = axis_units(d.units)
+    fig, axs = plt.subplots(2, 3, figsize=FIG_SIZE, layout="constrained", sharex=True)
+    for i in range(6):
+        a = axs.flat[i]
+        tw = t[win]
+        ref = d.H_truth[win, i] if d.H_truth is not None else hub["H"][win, i]
+        band = d.sigma_static[i] * sc[i]
+        a.fill_between(tw, ref * sc[i] - band, ref * sc[i] + band, color="0.85",
+                       label=("truth" if d.H_truth is not None else "H") + " ± static σ")
+        if d.H_truth is not None:
+            a.plot(tw, d.H_truth[win, i] * sc[i], color="k", lw=1.6, label="truth")
+        a.plot(tw, hub["H_static"][win, i] * sc[i], color="tab:orange", lw=0.8, alpha=0.8,
+               label="H_static (per sample)")
+        a.plot(tw, hub["H"][win, i] * sc[i], color="tab:blue", lw=1.2, label="H (load filter)")
+        a.set_title(f"{AXES[i]}")
+        a.set_ylabel(f"{AXES[i]} [{u[i]}]")
+        a.grid(True, alpha=0.3)
+        if i >= 3:
+            a.set_xlabel("time since start [s]")
+    axs.flat[0].legend(fontsize=8, loc="best")
+    fig.suptitle(f"Hub loads ({d.frame} axes), last {span:.1f} s "
+                 f"({ZOOM_REVOLUTIONS} rotor revolutions): estimate vs truth, "
+                 "band = static noise-budget σ")
+    return _save(fig, out / "hub_loads.png")
+
+
+def plot_hub_errors(d: ReportData, out: Path, summ: dict) -> Path:
+    """Errors over the whole run with the ±σ (and ±3σ) static bound."""
+    plt = _plt()
+    hub = d.rec.hub
+    t = hub["t"] - d.t0
+    sc = _axis_scale(d.units)
+    u = axis_units(d.units)
+    errs = summ.get("errors", {})
+    fig, axs = plt.subplots(2, 3, figsize=FIG_SIZE, layout="constrained", sharex=True)
+    for i in range(6):
+        a = axs.flat[i]
+        s = d.sigma_static[i] * sc[i]
+        a.axhspan(-3 * s, 3 * s, color="0.93", label="±3σ static bound")
+        a.axhspan(-s, s, color="0.82", label="±σ static bound")
+        rs = errs.get("H_static")
+        rh = errs.get("H")
+        a.plot(t, (hub["H_static"][:, i] - d.H_truth[:, i]) * sc[i], color="tab:orange",
+               lw=0.5, alpha=0.7, label="H_static − truth (static estimate)")
+        a.plot(t, (hub["H"][:, i] - d.H_truth[:, i]) * sc[i], color="tab:blue", lw=0.8,
+               label="H − truth (load filter)")
+        rms = "".join(f", RMS {k} {_fmt(r['rms_error'][i])}"
+                      for k, r in (("H", rh), ("H_static", rs)) if r)
+        a.set_title(f"{AXES[i]} [{u[i]}]: σ {_fmt(s)}{rms}", fontsize=10)
+        settled = t >= d.settle_s
+        e_all = np.concatenate([(hub[k][settled, i] - d.H_truth[settled, i]) * sc[i]
+                                for k in ("H", "H_static")])
+        e_all = e_all[np.isfinite(e_all)]
+        lim = max(5 * s, 1.1 * float(np.percentile(np.abs(e_all), 99.9)) if len(e_all) else 0.0)
+        a.set_ylim(-lim, lim)  # the start-up transient may leave the frame
+        a.grid(True, alpha=0.3)
+        if i >= 3:
+            a.set_xlabel("time since start [s]")
+    fig.legend(*axs.flat[0].get_legend_handles_labels(), loc="outside lower center", ncol=4,
+               fontsize=9)
+    fig.suptitle(f"Hub-load errors against truth ({d.frame} axes): load filter and static "
+                 "estimate vs the static noise budget (model §4)")
+    return _save(fig, out / "hub_load_errors.png")
+
+
+def plot_angles(d: ReportData, out: Path) -> Path:
+    """Angles over time with ±σ_CR bands, truth, and the runs marked accepted/rejected."""
+    plt = _plt()
+    runs = _angle_records(d)
+    names = d.angle_names
+    # the starting prior (configured angles, configured σ) at the first sample, then each run
+    t_end = max([r["t"] for r in runs if math.isfinite(r["t"])] + [d.t0])
+    if d.rec.hub is not None:
+        t_end = max(t_end, float(np.nanmax(d.rec.hub["t"])))
+    tt = np.array([d.t0] + [r["t"] for r in runs] + [t_end]) - d.t0
+    s0 = d.cfg.identification.prior_sigma_rad
+    A = np.vstack([d.alpha_config] + [r["alpha"] for r in runs] + [runs[-1]["alpha"]])
+    S = np.vstack([np.full(len(names), s0)] + [r["sigma"] for r in runs] + [runs[-1]["sigma"]])
+    fig, axs = plt.subplots(4, 4, figsize=(14, 10), layout="constrained", sharex=True)
+    for i, nm in enumerate(names):
+        a = axs.flat[i]
+        a.fill_between(tt, np.degrees(A[:, i] - S[:, i]), np.degrees(A[:, i] + S[:, i]),
+                       step="post", color="tab:blue", alpha=0.2, label="±σ_CR")
+        a.step(tt, np.degrees(A[:, i]), where="post", color="tab:blue", lw=1.2,
+               label="estimate")
+        if d.alpha_truth_hub is not None:
+            a.plot(d.alpha_truth_t, np.degrees(d.alpha_truth_hub[:, i]), color="k", lw=1.0,
+                   ls="--", label="truth")
+        ta = np.array([r["t"] - d.t0 for r in runs if r["accepted"]])
+        va = np.array([r["alpha"][i] for r in runs if r["accepted"]])
+        tr_ = np.array([r["t"] - d.t0 for r in runs if not r["accepted"]])
+        vr = np.array([r["alpha"][i] for r in runs if not r["accepted"]])
+        if len(ta):
+            a.plot(ta, np.degrees(va), "o", color="tab:green", ms=4, label="accepted run")
+        if len(tr_):
+            a.plot(tr_, np.degrees(vr), "x", color="tab:red", ms=6, mew=1.5,
+                   label="rejected run")
+        # a readable range: every run's estimate ± σ_CR and the truth (the wide configured
+        # prior before the first run may leave the frame), at least 1° tall
+        vals = np.concatenate([A[1:, i] - S[1:, i], A[1:, i] + S[1:, i]])
+        if d.alpha_truth_hub is not None:
+            vals = np.concatenate([vals, d.alpha_truth_hub[:, i]])
+        vals = np.degrees(vals[np.isfinite(vals)])
+        if len(vals):
+            lo, hi = float(vals.min()), float(vals.max())
+            mid, half = (lo + hi) / 2, max(0.5, 0.55 * (hi - lo))
+            a.set_ylim(mid - half, mid + half)
+        a.set_title(nm, fontsize=10)
+        a.set_ylabel("angle [deg]")
+        a.grid(True, alpha=0.3)
+    for j in range(len(names), 16):
+        axs.flat[j].axis("off")
+    handles, labels = axs.flat[0].get_legend_handles_labels()
+    for r_ax in axs.flat[:len(names)]:  # collect marker kinds that only some panels have
+        for h, lab in zip(*r_ax.get_legend_handles_labels()):
+            if lab not in labels:
+                handles.append(h)
+                labels.append(lab)
+    axs.flat[len(names)].legend(handles, labels, loc="center", fontsize=10)
+    for j in range(len(names)):  # the lowest used panel of each column gets the time axis
+        if j + 4 >= len(names):
+            axs.flat[j].set_xlabel("time since start [s]")
+            axs.flat[j].xaxis.set_tick_params(labelbottom=True)
+    fig.suptitle("Load-cell deformation angles: estimate with Cramér-Rao ±σ band, truth, "
+                 "identification runs (band before the first run: the configured prior)")
+    return _save(fig, out / "angles.png")
+
+
+def plot_nis(d: ReportData, out: Path) -> Path:
+    """Normalised innovations squared against the χ²₆ band (two-sided 1e-3), and its running
+    mean against the band of a mean of M independent χ²₆."""
+    plt = _plt()
+    inn = d.rec.innovations
+    ok = np.isfinite(inn["nis"])
+    t = inn["t"][ok] - d.t0
+    nis = inn["nis"][ok]
+    lo, hi = _chi2_band(6)
+    M = max(1, int(round(d.cfg.telemetry.innovations_hz)))  # one second of records
+    settled = t >= d.settle_s
+    sn = nis[settled]
+    fig, axs = plt.subplots(2, 1, figsize=FIG_SIZE, layout="constrained", sharex=True)
+    a = axs[0]
+    a.plot(t, nis, ".", ms=2, color="tab:blue", label="NIS per record")
+    a.axhspan(lo, hi, color="tab:green", alpha=0.12,
+              label=f"χ²₆ band [{lo:.3g}, {hi:.3g}] (false alarm {FALSE_ALARM:g})")
+    a.axhline(6.0, color="tab:green", ls="--", lw=1, label="expected mean 6")
+    a.set_yscale("log")
+    a.set_ylabel("NIS = eᵀ B⁻¹ e")
+    if len(sn):
+        a.set_title(f"Normalised innovations after {d.settle_s:g} s of settling ({len(sn)} "
+                    f"records, mean {sn.mean():.2f}, "
+                    f"{np.mean((sn < lo) | (sn > hi)) * 100:.2f} % outside the band)")
+    a.grid(True, which="both", alpha=0.3)
+    b = axs[1]
+    top = 3.0 * 6.0  # default upper limit: well above the χ²₆ mean
+    if len(sn) >= M:  # windows entirely after the settling
+        run = np.convolve(sn, np.ones(M) / M, mode="valid")
+        lo_m, hi_m = (v / M for v in _chi2_band(6 * M))
+        b.plot(t[settled][M - 1:], run, color="tab:blue", lw=1.0,
+               label=f"running mean of {M} records")
+        b.axhspan(lo_m, hi_m, color="tab:green", alpha=0.12,
+                  label=f"band of a mean of {M} χ²₆ [{lo_m:.3g}, {hi_m:.3g}]")
+        top = max(2.0 * hi_m, 1.2 * float(run.max()))
+    b.set_ylim(0, top)
+    b.axhline(6.0, color="tab:green", ls="--", lw=1)
+    b.set_ylabel("running mean NIS")
+    b.set_xlabel("time since start [s]")
+    b.grid(True, alpha=0.3)
+    for ax in axs:
+        ax.axvspan(t.min(), d.settle_s, color="0.9", label="filter settling (not scored)")
+        ax.legend(fontsize=8, loc="upper right")
+    fig.suptitle("Load-filter innovations against χ²₆ (model §6: B normalises the NIS)")
+    return _save(fig, out / "innovations.png")
+
+
+def plot_spectra(d: ReportData, out: Path) -> tuple[Path | None, str | None]:
+    """Welch amplitude spectral densities of the load cells and the hub loads (filter H and
+    static H_static), with 1/rev and N_b/rev marked."""
+    plt = _plt()
+    fs = d.cfg.sample_rate_hz
+    series = []
+    if d.rec.channels is not None:
+        g, frac = _uniform(d.rec.channels["seq"], d.rec.channels["T"])
+        if g is not None and frac >= MIN_UNIFORM_FRACTION:
+            series.append(("cells", g))
+    if d.rec.hub is not None:
+        for name in ("H", "H_static"):
+            g, frac = _uniform(d.rec.hub["seq"], d.rec.hub[name])
+            if g is not None and frac >= MIN_UNIFORM_FRACTION:
+                series.append((name, g))
+    if not series:
+        return None, "no load-cell or hub-load series with enough samples"
+    n = min(len(g) for _, g in series)
+    if n < 64:
+        return None, f"too few samples for a spectrum ({n})"
+    nper = min(n, 2 ** int(math.log2(max(64, min(n // 4, int(8 * fs))))))
+    sc = _axis_scale(d.units)
+    u = axis_units(d.units)
+    has_cells = any(name == "cells" for name, _ in series)
+    has_hub = any(name != "cells" for name, _ in series)
+    kinds = (["cells"] if has_cells else []) + (["forces", "moments"] if has_hub else [])
+    fig, axs = plt.subplots(len(kinds), 1, figsize=FIG_SIZE, layout="constrained",
+                            sharex=True, squeeze=False)
+    ax_of = dict(zip(kinds, axs[:, 0]))
+    cells = [c.name for c in d.cfg.cells]
+    colors = plt.get_cmap("tab10")
+    for name, g in series:
+        f, P = signal.welch(g, fs=fs, nperseg=nper, axis=0, detrend="constant")
+        asd = np.sqrt(P)
+        if name == "cells":
+            for j in range(g.shape[1]):
+                ax_of["cells"].semilogy(f, asd[:, j] * sc[0], lw=0.9, color=colors(j),
+                                        label=f"cell {cells[j]}")
+        else:
+            style = dict(lw=1.0) if name == "H" else dict(lw=0.7, ls=":", alpha=0.8)
+            for j in range(6):
+                a = ax_of["forces"] if j < 3 else ax_of["moments"]
+                a.semilogy(f, asd[:, j] * sc[j], color=colors(j % 3), label=f"{AXES[j]} ({name})",
+                           **style)
+    titles = {"cells": f"Load cells [{u[0]}/√Hz]", "forces": f"Hub forces [{u[0]}/√Hz]",
+              "moments": f"Hub moments [{u[3]}/√Hz]"}
+    axs = axs[:, 0]
+    for kind, a in ax_of.items():
+        if d.omega:
+            f1 = d.omega / (2 * math.pi)
+            for k, lab in ((1, "1/rev"), (d.cfg.rotor.blades, f"{d.cfg.rotor.blades}/rev")):
+                a.axvline(k * f1, color="crimson", ls="--", lw=1)
+                a.text(k * f1, 0.97, f" {lab}", color="crimson", transform=a.get_xaxis_transform(),
+                       va="top", fontsize=9)
+        a.set_title(titles[kind])
+        a.set_ylabel("amplitude spectral density")
+        a.grid(True, which="both", alpha=0.3)
+        a.legend(fontsize=7, ncol=4, loc="upper right")
+    axs[-1].set_xlabel("frequency [Hz]")
+    fig.suptitle(f"Spectra (Welch, {nper} samples per segment"
+                 + ("; hub loads: solid = load filter, dotted = static estimate)" if has_hub
+                    else "; no hub-load records)"))
+    return _save(fig, out / "spectra.png"), None
+
+
+# ---------------------------------------------------------------------------------------------
+# the report
+
+
+@dataclass
+class Report:
+    out: Path
+    plots: list[Path]
+    skipped: dict[str, str]
+    summary: dict
+
+    def markdown_brief(self) -> str:
+        s = self.summary
+        lines = [f"report: {len(self.plots)} plots and summary.md/summary.json in {self.out}"]
+        hub = s.get("hub_loads", {})
+        errs = (hub.get("errors") or {}) if isinstance(hub, dict) else {}
+        for name in ("H", "H_static"):
+            e = errs.get(name)
+            if e:
+                r = ", ".join(f"{a} {v:.2f}" for a, v in zip(AXES, e["rms_over_sigma_static"]))
+                lines.append(f"  RMS error / static σ, {name}: {r}")
+        ang = s.get("angles", {})
+        if "joint_chi2" in ang and ang["joint_chi2"]:
+            j = ang["joint_chi2"]
+            lines.append(f"  final angles: joint χ² {j['value']:.1f} on {j['dof']} dof "
+                         f"(threshold {j['threshold']:.1f}): "
+                         + ("consistent" if j["consistent"] else "INCONSISTENT"))
+        inn = s.get("innovations", {})
+        if "mean_nis" in inn:
+            lines.append(f"  innovations: mean NIS {inn['mean_nis']:.2f} (expected 6), "
+                         f"{inn['fraction_outside'] * 100:.2f} % outside the χ²₆ band")
+        for k, v in self.skipped.items():
+            lines.append(f"  skipped {k}: {v}")
+        return "\n".join(lines)
+
+
+def _markdown(s: dict, units: str) -> str:
+    u = axis_units(units)
+    L = ["# rsra report", ""]
+    inp = s["inputs"]
+    recs = ", ".join(f"{k} {v}" for k, v in inp["records"].items())
+    L += [f"* results: `{inp['results']}` ({recs})",
+          f"* truth: `{inp['truth']}`" + (f", aligned by {inp['alignment']} "
+                                          f"({inp['matched'] * 100:.1f} % of records matched)"
+                                          if inp.get("alignment") else ""),
+          f"* span: {inp['span_s']:.2f} s; units: {units.upper()}", ""]
+    hub = s["hub_loads"]
+    L.append("## Hub loads")
+    if "skipped" in hub:
+        L.append(f"Skipped: {hub['skipped']}.")
+    else:
+        L.append(f"{hub['records']} records, {hub['frame']} axes; H null in {hub['H_null']}, "
+                 f"H_static null in {hub['H_static_null']}.")
+        errs = hub.get("errors")
+        if errs:
+            L += ["", f"RMS error against truth (H scored after {hub['settle_s']:.2f} s of "
+                  "filter settling) vs the static noise-budget σ (model §4):", "",
+                  "| axis | unit | static σ | RMS H | RMS H / σ | RMS H_static "
+                  "| RMS H_static / σ |",
+                  "|---|---|---|---|---|---|---|"]
+            for i, a in enumerate(AXES):
+                h, hs = errs.get("H"), errs.get("H_static")
+                L.append(f"| {a} | {u[i]} | {hub['sigma_static'][i]:.1f} | "
+                         + (f"{h['rms_error'][i]:.1f} | {h['rms_over_sigma_static'][i]:.3f}"
+                            if h else "– | –") + " | "
+                         + (f"{hs['rms_error'][i]:.1f} | {hs['rms_over_sigma_static'][i]:.3f}"
+                            if hs else "– | –") + " |")
+        else:
+            L.append("No truth: errors not computed.")
+    L += ["", "## Angles"]
+    ang = s["angles"]
+    if "skipped" in ang:
+        L.append(f"Skipped: {ang['skipped']}.")
+    else:
+        rej = ", ".join(f"{k} {v}" for k, v in ang["rejected"].items()) or "none"
+        L.append(f"{ang['runs']} identification runs: {ang['accepted']} accepted; rejected: {rej}.")
+        fin = ang["final"]
+        if "error_deg" in fin:
+            L += ["", "Final estimate against truth:", "",
+                  "| angle | estimate [deg] | truth [deg] | error [deg] | σ_CR [deg] | error / σ |",
+                  "|---|---|---|---|---|---|"]
+            for k, nm in enumerate(fin["names"]):
+                L.append(f"| {nm} | {fin['estimate_deg'][k]:.3f} | {fin['truth_deg'][k]:.3f} | "
+                         f"{fin['error_deg'][k]:+.3f} | {fin['sigma_cr_deg'][k]:.3f} | "
+                         f"{fin['error_over_sigma'][k]:+.2f} |")
+            j = ang.get("joint_chi2")
+            if j:
+                L += ["", f"Joint χ² with the posterior covariance: {j['value']:.2f} on {j['dof']} "
+                      f"dof, threshold {j['threshold']:.2f} (false alarm {j['false_alarm']:g}): "
+                      + ("consistent." if j["consistent"] else "**inconsistent**.")]
+        else:
+            L.append("No truth: final errors not computed.")
+    L += ["", "## Innovations"]
+    inn = s["innovations"]
+    if "skipped" in inn:
+        L.append(f"Skipped: {inn['skipped']}.")
+    else:
+        j = inn["joint_chi2"]
+        L.append(f"{inn['records']} records; mean NIS {inn['mean_nis']:.3f} (χ²₆: 6); "
+                 f"{inn['fraction_outside'] * 100:.2f} % outside [{inn['band'][0]:.3g}, "
+                 f"{inn['band'][1]:.3g}] (expected {FALSE_ALARM * 100:g} %); joint χ² "
+                 f"{j['value']:.1f} on {j['dof']} dof (band [{j['band'][0]:.1f}, "
+                 f"{j['band'][1]:.1f}]; records are correlated, so this is indicative).")
+    L += ["", "## Flags and health"]
+    fl = s["flags"]
+    if fl.get("hub_loads") is not None:
+        L.append(f"Samples with a flag: {fl['samples_flagged']}.")
+        for k, v in fl["hub_loads"].items():
+            L.append(f"* `{k}`: {v}")
+    if fl.get("health"):
+        L.append(f"Last health: `{json.dumps(fl['health'])}`")
+    if not fl:
+        L.append("No hub_loads or health records.")
+    L += ["", "## Plots", ""]
+    for p in s["plots"]:
+        L.append(f"* ![{p}]({p})")
+    for k, v in s["skipped"].items():
+        L.append(f"* {k}: skipped — {v}")
+    return "\n".join(L) + "\n"
+
+
+def summarise(cfg: RigConfig, rec: Records, truth: dict | None, units: str = "si",
+              truth_name: str | None = None) -> tuple[ReportData, dict]:
+    """The numbers of the report (no plots): inputs and alignment, hub-load errors against
+    the static bound, angles against σ_CR (and jointly), innovations against χ²₆, flags."""
+    d = prepare(cfg, rec, truth, units)
+    ts = [s["t"] for s in (rec.hub, rec.channels, rec.innovations) if s is not None]
+    tmax = max((float(np.nanmax(x)) for x in ts if np.isfinite(x).any()), default=d.t0)
+    al = d.hub_align or d.ch_align
+    summary: dict = {
+        "inputs": {"results": str(rec.path), "truth": truth_name, "records": rec.counts,
+                   "span_s": tmax - d.t0,
+                   "alignment": al.method if al else None,
+                   "matched": al.matched if al else None},
+        "units": axis_units(units),
+        "hub_loads": _hub_summary(d),
+        "angles": _angles_summary(d),
+        "innovations": _innovations_summary(d),
+        "flags": _flags_summary(d),
+    }
+    d.summary = summary
+    return d, summary
+
+
+def build_report(cfg: RigConfig, rec: Records, truth: dict | None, out: str | Path,
+                 units: str = "si", truth_name: str | None = None) -> Report:
+    """Summary and plots into ``out`` (summary.md, summary.json, PNGs)."""
+    out = Path(out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ReportError(f"--out {out}: cannot create the folder ({e.strerror})") from None
+    d, summary = summarise(cfg, rec, truth, units, truth_name)
+    hub_s = summary["hub_loads"]
+    plots: list[Path] = []
+    skipped: dict[str, str] = {}
+    if rec.hub is not None and (np.isfinite(rec.hub["H"]).any()
+                                or np.isfinite(rec.hub["H_static"]).any()):
+        plots.append(plot_hub_loads(d, out))
+        if d.H_truth is not None and np.isfinite(d.H_truth).any():
+            plots.append(plot_hub_errors(d, out, hub_s))
+        else:
+            skipped["hub_load_errors.png"] = "no truth (give --truth)" if truth is None else \
+                "no record matched a truth sample"
+    else:
+        skipped["hub_loads.png"] = "no hub_loads records with estimates"
+        skipped["hub_load_errors.png"] = "no hub_loads records with estimates"
+    if rec.angles:
+        plots.append(plot_angles(d, out))
+    else:
+        skipped["angles.png"] = "no angles records (no identification run)"
+    if "mean_nis" in summary["innovations"]:
+        plots.append(plot_nis(d, out))
+    else:
+        skipped["innovations.png"] = summary["innovations"].get("skipped", "no innovations")
+    p, why = plot_spectra(d, out)
+    if p is not None:
+        plots.append(p)
+    else:
+        skipped["spectra.png"] = why
+    summary["plots"] = [p.name for p in plots]
+    summary["skipped"] = skipped
+    (out / "summary.json").write_text(dumps(summary) + "\n", encoding="utf-8")
+    (out / "summary.md").write_text(_markdown(summary, units), encoding="utf-8")
+    return Report(out=out, plots=plots, skipped=skipped, summary=summary)
+
+
+def write_report(cfg: RigConfig, results: str | Path, truth: str | Path | None,
+                 out: str | Path, units: str = "si") -> Report:
+    """`rsra report`: load, align, compute, plot, summarise."""
+    rec = load_records(results)
+    tr = load_truth(truth) if truth else None
+    return build_report(cfg, rec, tr, out, units, truth_name=str(truth) if truth else None)

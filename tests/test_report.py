@@ -1,0 +1,303 @@
+"""`rsra report`: plots and a summary from published records (JSONL) and the simulator's truth.
+
+* end to end: a lock-step `ground-test` recording with truth → `rsra replay --recompute --out`
+  (the service's estimator writes hub_loads, innovations, angles) → `rsra report`: every plot
+  made, readable sizes, not blank; a JSONL with channels only skips the other plots and says so;
+* numbers: records synthesised from an off-line truth with known errors (H = truth + noise of
+  known σ, final angles = truth + a known error with a known covariance, NIS drawn from χ²₆)
+  give back those numbers — with records in simulated time (aligned by t), in UNIX time with
+  the service started later (aligned by seq, offset found from the SYNC counters), and one
+  sample off (which the summary must show as a large error);
+* usage errors exit 2 with one line; --help explains the options.
+"""
+from __future__ import annotations
+
+import itertools
+import json
+import os
+
+import numpy as np
+import pytest
+
+from daq.cli import main
+from daq.jsonout import dumps
+
+_chan = itertools.count()
+E2E_SECONDS = 6.0  # one identification window (5 s) plus its settling
+
+
+def _png_ok(path) -> tuple[int, int]:
+    from PIL import Image
+
+    with Image.open(path) as im:
+        size = im.size
+        px = np.asarray(im.convert("L"), float)
+    assert 1000 <= size[0] <= 1600 and 700 <= size[1] <= 1400, (path.name, size)
+    assert (px < 200).mean() > 0.02 and px.std() > 20, f"{path.name} looks blank"
+    return size
+
+
+@pytest.fixture(scope="module")
+def e2e(tmp_path_factory, cfg):
+    """A short lock-step ground-test recording, its truth, and the replay's records."""
+    from sim_bus.bus_sim import Simulator
+    from sim_bus.physics import AircraftPhysics
+    from sim_bus.scenarios import load_scenario
+
+    d = tmp_path_factory.mktemp("report")
+    sim = Simulator(cfg, physics=AircraftPhysics(cfg, load_scenario("ground-test"), seed=5),
+                    autostart=True, lockstep=True, record=str(d / "run.log"),
+                    channel=f"test-report-{os.getpid()}-{next(_chan)}")
+    try:
+        with sim:
+            sim.run(E2E_SECONDS)
+        sim.write_truth(d / "truth.npz")
+    finally:
+        sim.close()
+    assert main(["replay", str(d / "run.log"), "--recompute", "--out",
+                 str(d / "results.jsonl")]) == 0
+    return d
+
+
+def test_report_end_to_end(e2e, capsys):
+    keys = [json.loads(line)["key"] for line in open(e2e / "results.jsonl")]
+    counts = {k: keys.count(k) for k in set(keys)}
+    n = int(E2E_SECONDS * 200)
+    assert counts["channels"] == counts["hub_loads"] == n
+    assert counts["angles"] >= 1 and counts["innovations"] > 0
+    out = e2e / "rep"
+    assert main(["report", str(e2e / "results.jsonl"), "--truth", str(e2e / "truth.npz"),
+                 "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "RMS error / static σ" in printed
+    for name in ("hub_loads.png", "hub_load_errors.png", "angles.png", "innovations.png",
+                 "spectra.png"):
+        _png_ok(out / name)
+    s = json.loads((out / "summary.json").read_text())
+    assert s["inputs"]["records"] == counts
+    # lock-step: the records' t is simulated time, so truth aligns by time, all records
+    assert s["inputs"]["alignment"] in ("sync_time", "t") and s["inputs"]["matched"] == 1.0
+    errs = s["hub_loads"]["errors"]
+    for k in ("H", "H_static"):
+        assert len(errs[k]["rms_error"]) == 6 and all(np.isfinite(errs[k]["rms_error"]))
+    assert s["angles"]["runs"] == counts["angles"]
+    assert len(s["angles"]["final"]["error_deg"]) == 14
+    assert s["skipped"] == {}
+    md = (out / "summary.md").read_text()
+    assert "## Hub loads" in md and "## Angles" in md and "![angles.png](angles.png)" in md
+
+
+def test_absent_records_are_skipped_and_said(e2e, capsys):
+    lines = [ln for ln in open(e2e / "results.jsonl") if json.loads(ln)["key"] in
+             ("channels", "health")]
+    (e2e / "channels.jsonl").write_text("".join(lines))
+    out = e2e / "rep_channels"
+    assert main(["report", str(e2e / "channels.jsonl"), "--out", str(out)]) == 0
+    capsys.readouterr()
+    s = json.loads((out / "summary.json").read_text())
+    assert s["plots"] == ["spectra.png"]
+    assert set(s["skipped"]) == {"hub_loads.png", "hub_load_errors.png", "angles.png",
+                                 "innovations.png"}
+    assert s["hub_loads"] == {"skipped": "no hub_loads records"}
+    _png_ok(out / "spectra.png")
+    assert "Skipped: no angles records" in (out / "summary.md").read_text()
+
+
+# ---------------------------------------------------------------------------------------------
+# numbers from synthetic records with known errors
+
+N = 1200
+K_FILTER = 0.5  # the synthetic "filter" error is this fraction of the static σ
+
+
+@pytest.fixture(scope="module")
+def synth_truth(tmp_path_factory, cfg):
+    from sim_bus import simulate, write_truth
+
+    d = tmp_path_factory.mktemp("synth")
+    run = simulate(cfg, "ground-test", seed=11, n_samples=N)
+    return write_truth(d / "truth.npz", run)
+
+
+def _synthetic_records(cfg, truth, *, t_offset=0.0, shift=0, first=0):
+    """Records for truth samples first… (seq from 0), with times t + t_offset, and the truth
+    they claim shifted by ``shift`` samples. Returns (lines, expected dict)."""
+    from estimator.noise_budget import noise_budget
+
+    rng = np.random.default_rng(2024)
+    sig = noise_budget(cfg.rig_model(), cfg.identification.initial_angles_rad, "body").total
+    H = np.asarray(truth["H_true"])
+    alpha = np.asarray(truth["alpha_true"])
+    t = np.asarray(truth["t"])
+    sc = np.asarray(truth["sync_counter"])
+    lines = []
+    n_inn = 0
+    nis_all = []
+    for seq, i in enumerate(range(first, len(t) - abs(shift))):
+        j = i + shift  # the truth sample the estimate really belongs to
+        flags = ["missing:cell_A"] if seq % 100 == 7 else []
+        lines.append({"key": "hub_loads", "seq": seq, "sync": int(sc[i]),
+                      "t": float(t[i] + 4e-4 + t_offset), "frame": "body",
+                      "H": H[j] + K_FILTER * sig * rng.standard_normal(6),
+                      "H_static": H[j] + sig * rng.standard_normal(6), "omega": 19.4,
+                      "flags": flags})
+        if seq % 10 == 0:
+            nis = float(rng.chisquare(6))
+            nis_all.append((float(t[i] + 4e-4 + t_offset), nis))  # as written
+            lines.append({"key": "innovations", "seq": seq, "t": float(t[i] + 4e-4 + t_offset),
+                          "e": rng.standard_normal(6), "nis": nis})
+            n_inn += 1
+    # identification runs every second; the last one with a known error and covariance
+    names = list(cfg.rig_model().geometry.angle_names)
+    A = rng.standard_normal((14, 14))
+    P = (A @ A.T / 14 + np.eye(14)) * np.radians(0.2) ** 2
+    e_final = np.linalg.cholesky(P) @ rng.standard_normal(14)
+    run_idx = list(range(first + 199, len(t) - abs(shift), 200))
+    for k, i in enumerate(run_idx):
+        last = k == len(run_idx) - 1
+        err = e_final if last else np.radians(0.5) * rng.standard_normal(14)
+        lines.append({"key": "angles", "t": float(t[i] + 4e-4 + t_offset), "seq": i - first,
+                      "mode": "known_loads", "content": "static", "accepted": k != 2,
+                      "reason": None if k != 2 else "inconsistent", "names": names,
+                      "alpha": alpha[i + shift] + err, "P": P,
+                      "sigma_cr": np.sqrt(np.diag(P)), "determined": 14})
+    expected = {"sigma": sig, "P": P, "e_final": e_final, "flags": sum(
+        1 for ln in lines if ln["key"] == "hub_loads" and ln["flags"]), "runs": len(run_idx),
+        "nis": nis_all}
+    return [dumps(ln) for ln in lines], expected
+
+
+def _summary(cfg, tmp_path, truth_path, **kw):
+    from daq.report import load_records, load_truth, summarise
+
+    tr = load_truth(truth_path)
+    lines, exp = _synthetic_records(cfg, tr, **kw)
+    p = tmp_path / "synthetic.jsonl"
+    p.write_text("\n".join(lines) + "\n")
+    _, s = summarise(cfg, load_records(p), tr)
+    return s, exp
+
+
+def _check_numbers(s, exp, cfg):
+    errs = s["hub_loads"]["errors"]
+    n_h = errs["H"]["samples"]
+    n_s = errs["H_static"]["samples"]
+    # RMS of n Gaussian samples: relative standard error 1/sqrt(2n); 3.3 of them (1e-3)
+    tol_h, tol_s = 3.3 / np.sqrt(2 * n_h), 3.3 / np.sqrt(2 * n_s)
+    np.testing.assert_allclose(errs["H_static"]["rms_over_sigma_static"], 1.0, atol=tol_s)
+    np.testing.assert_allclose(errs["H"]["rms_over_sigma_static"], K_FILTER,
+                               atol=K_FILTER * tol_h)
+    np.testing.assert_allclose(s["hub_loads"]["sigma_static"], exp["sigma"], rtol=1e-12)
+    # angles: the joint chi-square with the posterior covariance, exactly
+    j = s["angles"]["joint_chi2"]
+    e = exp["e_final"]
+    assert j["value"] == pytest.approx(float(e @ np.linalg.solve(exp["P"], e)), rel=1e-9)
+    assert j["dof"] == 14
+    np.testing.assert_allclose(s["angles"]["final"]["error_over_sigma"],
+                               e / np.sqrt(np.diag(exp["P"])), rtol=1e-9)
+    assert s["angles"]["runs"] == exp["runs"]
+    assert s["angles"]["rejected"] == {"inconsistent": 1}
+    # innovations: the settled records' NIS, their mean
+    settle = s["innovations"]["settle_s"]
+    t0 = exp["nis"][0][0]
+    nis = np.array([v for t, v in exp["nis"] if t - t0 >= settle])
+    assert s["innovations"]["records"] == len(nis)
+    assert s["innovations"]["mean_nis"] == pytest.approx(nis.mean(), rel=1e-12)
+    assert s["flags"]["hub_loads"] == {"missing:cell_A": exp["flags"]}
+
+
+def test_numbers_aligned_by_time(synth_truth, cfg, tmp_path):
+    s, exp = _summary(cfg, tmp_path, synth_truth)
+    assert s["inputs"]["alignment"] == "t" and s["inputs"]["matched"] == 1.0
+    _check_numbers(s, exp, cfg)
+
+
+def test_numbers_aligned_by_seq_and_sync_counter(synth_truth, cfg, tmp_path):
+    """UNIX times that match no truth time, and the service started 37 samples after the
+    simulator: seq 0 is truth sample 37, found from the SYNC counters."""
+    s, exp = _summary(cfg, tmp_path, synth_truth, t_offset=1.7e9, first=37)
+    assert s["inputs"]["alignment"] == "seq" and s["inputs"]["matched"] == 1.0
+    _check_numbers(s, exp, cfg)
+
+
+def test_one_sample_misalignment_shows(synth_truth, cfg, tmp_path):
+    """Estimates that belong to the next truth sample: the summary must show errors well above
+    the bound on the moment axes, which carry the rotor harmonics (the test can fail)."""
+    s, _ = _summary(cfg, tmp_path, synth_truth, shift=1)
+    r = np.array(s["hub_loads"]["errors"]["H_static"]["rms_over_sigma_static"])
+    assert r[3:].max() > 1.5
+
+
+def test_us_units_and_shaft_frame(synth_truth, cfg, tmp_path):
+    """US units scale the numbers; records in shaft axes are compared with the truth turned
+    into shaft axes (C_sᵀ), so the errors stay at their σ."""
+    from daq.report import load_records, load_truth, summarise
+    from daq.units import FT_LBF_NM, LBF_N
+
+    tr = load_truth(synth_truth)
+    lines, exp = _synthetic_records(cfg, tr)
+    p = tmp_path / "a.jsonl"
+    p.write_text("\n".join(lines) + "\n")
+    _, si = summarise(cfg, load_records(p), tr, "si")
+    _, us = summarise(cfg, load_records(p), tr, "us")
+    scale = np.array([1 / LBF_N] * 3 + [1 / FT_LBF_NM] * 3)
+    np.testing.assert_allclose(us["hub_loads"]["errors"]["H"]["rms_error"],
+                               np.array(si["hub_loads"]["errors"]["H"]["rms_error"]) * scale)
+    assert us["units"] == ["lbf"] * 3 + ["ft·lbf"] * 3
+    # the same estimates re-expressed in shaft axes
+    from estimator.geometry import shaft_rotation
+
+    C = shaft_rotation(cfg.rig_model().geometry, "shaft")
+    shaft = []
+    for ln in lines:
+        r = json.loads(ln)
+        if r["key"] == "hub_loads":
+            r["frame"] = "shaft"
+            for k in ("H", "H_static"):
+                h = np.array(r[k])
+                r[k] = np.concatenate([C.T @ h[:3], C.T @ h[3:]])
+        shaft.append(dumps(r))
+    p2 = tmp_path / "shaft.jsonl"
+    p2.write_text("\n".join(shaft) + "\n")
+    _, sh = summarise(cfg, load_records(p2), tr, "si")
+    assert sh["hub_loads"]["frame"] == "shaft"
+    # the RMS per axis changes a little (σ mixes between x and z), the total does not
+    a = np.array(si["hub_loads"]["errors"]["H_static"]["rms_error"])
+    b = np.array(sh["hub_loads"]["errors"]["H_static"]["rms_error"])
+    assert np.sum(b[:3] ** 2) == pytest.approx(np.sum(a[:3] ** 2), rel=1e-9)
+    assert np.sum(b[3:] ** 2) == pytest.approx(np.sum(a[3:] ** 2), rel=1e-9)
+
+
+# ---------------------------------------------------------------------------------------------
+# usage
+
+
+@pytest.mark.parametrize("argv, text", [
+    (["report", "/nonexistent/results.jsonl"], "no such file"),
+    (["report", "{tmp}/bad.jsonl"], "line 2"),
+    (["report", "{tmp}/ok.jsonl", "--truth", "{tmp}/missing.npz"], "--truth"),
+    (["report", "{tmp}/ok.jsonl", "--truth", "{tmp}/bad.jsonl"], "not a truth file"),
+    (["report", "{tmp}/ok.jsonl", "--units", "furlongs"], "invalid choice"),
+    (["report"], "required"),
+])
+def test_bad_arguments_exit_2_with_one_line(argv, text, tmp_path, capsys):
+    ok = '{"key":"channels","seq":0,"t":0.0,"T":[1,2,3,4,5,6,7],"omega":null}\n'
+    (tmp_path / "ok.jsonl").write_text(ok)
+    (tmp_path / "bad.jsonl").write_text(ok + "{not json\n")
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    try:
+        rc = main(argv)
+    except SystemExit as e:  # argparse
+        rc = e.code
+    assert rc == 2
+    err = capsys.readouterr().err.strip()
+    assert text in err and "\n" not in err and "Traceback" not in err
+
+
+def test_help(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["report", "--help"])
+    assert e.value.code == 0
+    out = capsys.readouterr().out
+    for opt in ("--truth", "--out", "--units", "--config", "RESULTS.jsonl"):
+        assert opt in out
