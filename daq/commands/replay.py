@@ -18,7 +18,7 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
     from daq.cli import common_options
 
     p = sub.add_parser(
-        name, help="feed recordings through the reader (and write the published records)",
+        name, help="feed recordings through the reader and the estimator (and write every record)",
         description="Feeds recordings (candump .log, .blf, .asc, … files, or a recording "
         "folder written by `rsra run --record`) through the same reader as the live service: "
         "decoding by the EDS mapping (recordings that start mid-flight included), sample "
@@ -33,13 +33,27 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
                    help='write every published record as one JSON object per line, '
                    '{"key": "channels"|"health", …payload} (strict JSON, null for missing '
                    'values); "-" for standard output')
+    p.add_argument("--publish", action="store_true",
+                   help="also publish every record over Zenoh (as the live service does)")
+    p.add_argument("--recompute", action="store_true",
+                   help="run the identification again (deterministically) instead of using "
+                   "the recording's angle schedule")
+    p.add_argument("--angles", metavar="STATE", default=None,
+                   help="start from a saved posterior instead of the recording's")
+    p.add_argument("--zenoh-config", metavar="FILE", default=None, help="with --publish")
+    p.add_argument("--zenoh-listen", action="append", default=[], metavar="EP",
+                   help="with --publish (default tcp/127.0.0.1:7447)")
+    p.add_argument("--zenoh-connect", action="append", default=[], metavar="EP",
+                   help="with --publish")
+    p.add_argument("--log-level", default="warning",
+                   choices=("debug", "info", "warning", "error"), help="default warning")
     return p
 
 
 def replay_records(cfg: RigConfig, logs: list[str], realtime: bool = False,
                    reader: Reader | None = None) -> Iterator[tuple[str, dict]]:
-    """(key, payload) of every record a replay publishes, in order: ``channels`` per sample,
-    ``health`` once a second of recorded time."""
+    """(key, payload) of the reader's records only (channels per sample, health once a
+    second of recorded time) — without the estimator; see daq.service for the full replay."""
     from daq.reader import HealthReport
     from daq.replay import replay
 
@@ -52,9 +66,13 @@ def replay_records(cfg: RigConfig, logs: list[str], realtime: bool = False,
 
 def run(args: argparse.Namespace) -> int:
     from daq.cli import UsageError
+    from daq.commands.run import setup_logging
     from daq.jsonout import dumps
     from daq.replay import ReplayError, config_for, expand
+    from daq.service import Service, ServiceOptions
+    from estimator.posterior import PosteriorFileError
 
+    setup_logging(args.log_level, None)
     try:
         expand(args.logs)
     except ReplayError as e:
@@ -68,24 +86,37 @@ def run(args: argparse.Namespace) -> int:
             out = open(Path(args.out), "w", encoding="utf-8")
         except OSError as e:
             raise UsageError(f"--out {args.out}: cannot write ({e.strerror})") from None
-    counts = {"channels": 0, "health": 0}
-    reader = Reader.offline(cfg)
+    opts = ServiceOptions(replay=list(args.logs), recompute=args.recompute, realtime=args.realtime,
+                          angles=args.angles, zenoh=args.publish,
+                          zenoh_config=args.zenoh_config, zenoh_listen=args.zenoh_listen,
+                          zenoh_connect=args.zenoh_connect)
+    service = Service(cfg, opts)
+    service.install_signal_handlers()
     progress = _Progress(enabled=out is not sys.stdout and sys.stderr.isatty())
+
+    def sink(key: str, payload: dict) -> None:
+        if key == "health":
+            progress.update(payload)
+        if out is not None:
+            out.write(dumps({"key": key, **payload}) + "\n")
+
+    service.add_sink(sink)
     try:
-        for key, payload in replay_records(cfg, args.logs, args.realtime, reader):
-            counts[key] = counts.get(key, 0) + 1
-            if key == "health":
-                progress.update(payload)
-            if out is not None:
-                out.write(dumps({"key": key, **payload}) + "\n")
+        summary = service.run()
+    except PosteriorFileError as e:
+        raise UsageError(str(e)) from None
     except (ValueError, OSError) as e:  # a corrupt or truncated log file
         raise UsageError(f"cannot read the recording: {e}") from None
     finally:
         progress.close()
         if out is not None and out is not sys.stdout:
             out.close()
-    summary = _summary(counts, reader.health())
-    print(summary, file=sys.stderr if out is sys.stdout else sys.stdout)
+    counts = summary.get("published", {})
+    health = service.reader.health() if service.reader is not None else None
+    text = _summary(counts, health)
+    text += (f"; identification runs {summary.get('identification_runs', 0)} "
+             f"(accepted {summary.get('accepted', 0)})")
+    print(text, file=sys.stderr if out is sys.stdout else sys.stdout)
     return 0
 
 

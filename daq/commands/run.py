@@ -1,0 +1,149 @@
+"""`rsra run`: the service — on a real bus, or with the simulator attached in-process."""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import logging.handlers
+import sys
+
+LOG_FILE_BYTES = 10 * 1024 * 1024
+LOG_FILE_BACKUPS = 5
+
+
+def parse_speed(text: str) -> float | None:
+    if text == "max":
+        return None
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a number or 'max'") from None
+    if not v > 0:
+        raise argparse.ArgumentTypeError("the speed must be > 0 (or 'max')")
+    return v
+
+
+def positive_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a number") from None
+    if not v > 0:
+        raise argparse.ArgumentTypeError("must be > 0")
+    return v
+
+
+def add_sim_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--seed", type=int, default=None, help="simulator seed (default: the scenario's)")
+    p.add_argument("--faults", default=None, metavar="SPEC",
+                   help="simulator faults, e.g. 'drop:cell_A:0.1;reboot:cell_C@12.5' "
+                   "(see docs/simulator.md)")
+    p.add_argument("--speed", type=parse_speed, default=1.0, metavar="X|max",
+                   help="simulated time per wall-clock second: 1 (default) is real time; "
+                   "'max' runs simulator and service in lock-step as fast as possible (the "
+                   "same samples as real time)")
+    p.add_argument("--duration", type=positive_float, default=None, metavar="S",
+                   help="stop after S seconds of acquisition time (exit 0)")
+
+
+def add_service_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--record", metavar="DIR", default=None,
+                   help="record every frame, the angle schedule and the effective config here")
+    p.add_argument("--angles", metavar="STATE", default=None,
+                   help="start from a saved posterior (see identification.state_file)")
+    p.add_argument("--zenoh-config", metavar="FILE", default=None,
+                   help="a Zenoh config file (TLS, user/password, access control)")
+    p.add_argument("--zenoh-listen", action="append", default=[], metavar="EP",
+                   help="Zenoh endpoint to listen on (repeatable; default tcp/127.0.0.1:7447)")
+    p.add_argument("--zenoh-connect", action="append", default=[], metavar="EP",
+                   help="Zenoh endpoint (router) to connect to (repeatable)")
+    p.add_argument("--log-file", metavar="FILE", default=None,
+                   help="log to this size-rotated file instead of stderr")
+    p.add_argument("--log-level", default="info",
+                   choices=("debug", "info", "warning", "error"), help="default info")
+
+
+def add_parser(sub, name: str) -> argparse.ArgumentParser:
+    from daq.cli import common_options
+
+    p = sub.add_parser(name, help="run the service (real bus, or the simulator in-process)",
+                       description="The DAQ service: CANopen master, real-time hub-load "
+                       "estimation, periodic identification of the load-cell angles in its own "
+                       "process, Zenoh telemetry. On a real bus (--interface socketcan --channel "
+                       "vcan0) or with the simulated aircraft attached in-process (--sim).")
+    common_options(p, units=False)
+    p.add_argument("--interface", default=None, help="python-can interface, e.g. socketcan")
+    p.add_argument("--channel", default=None, help="python-can channel, e.g. vcan0 or can0")
+    p.add_argument("--sim", metavar="SCENARIO", default=None,
+                   help="attach the simulator in-process: ground-test, flight, paper, sweep "
+                   "(or a scenario file)")
+    add_sim_options(p)
+    add_service_options(p)
+    p.add_argument("--truth", metavar="FILE", default=None,
+                   help="with --sim: write the simulator's truth here (default: beside the "
+                   "recording)")
+    return p
+
+
+def setup_logging(level: str, log_file: str | None) -> None:
+    root = logging.getLogger()
+    for h in list(root.handlers):
+        root.removeHandler(h)
+    if log_file:
+        h: logging.Handler = logging.handlers.RotatingFileHandler(
+            log_file, maxBytes=LOG_FILE_BYTES, backupCount=LOG_FILE_BACKUPS)
+    else:
+        h = logging.StreamHandler(sys.stderr)
+    h.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    root.addHandler(h)
+    root.setLevel(level.upper())
+
+
+def options_from_args(args: argparse.Namespace):
+    from daq.cli import UsageError
+    from daq.service import ServiceOptions
+
+    if args.sim is None and args.interface is None:
+        raise UsageError("give --interface and --channel for a bus, or --sim SCENARIO")
+    if args.sim is not None and args.interface not in (None, "virtual"):
+        raise UsageError("--sim runs the simulator in-process on python-can's virtual bus; "
+                         "for a bench rig run `rsra sim` on that bus instead")
+    if args.sim is None and (args.faults or args.seed is not None):
+        raise UsageError("--faults and --seed need --sim")
+    if args.sim is None and args.speed != 1.0:
+        raise UsageError("--speed needs --sim (a real bus runs in real time)")
+    return ServiceOptions(
+        interface=args.interface, channel=args.channel, sim=args.sim, seed=args.seed,
+        faults=args.faults, speed=args.speed, record=args.record, duration=args.duration,
+        angles=args.angles, zenoh_config=args.zenoh_config, zenoh_listen=args.zenoh_listen,
+        zenoh_connect=args.zenoh_connect, truth=getattr(args, "truth", None))
+
+
+def run_service(cfg, opts, quiet: bool = False) -> int:
+    from daq.cli import UsageError
+    from daq.master import BootError
+    from daq.recorder import RecordingError
+    from daq.service import Service
+    from estimator.posterior import PosteriorFileError
+    from sim_bus.faults import FaultSpecError
+
+    service = Service(cfg, opts)
+    service.install_signal_handlers()
+    try:
+        summary = service.run()
+    except (PosteriorFileError, FaultSpecError, RecordingError) as e:
+        raise UsageError(str(e)) from None
+    except BootError as e:
+        print(f"rsra: the nodes could not be started: {e}", file=sys.stderr)
+        return 1
+    if not quiet:
+        print(json.dumps({"summary": summary}, allow_nan=False, default=str))
+    return 0
+
+
+def run(args: argparse.Namespace) -> int:
+    from daq.config import load_config
+
+    setup_logging(args.log_level, args.log_file)
+    cfg = load_config(args.config)
+    return run_service(cfg, options_from_args(args))

@@ -1,0 +1,552 @@
+"""The service runtime (`rsra run`, `rsra demo`, `rsra replay`): one code path for every source.
+
+    source (live bus │ simulator in lock-step │ recording) ─▶ reader ─▶ samples
+        ─▶ estimator loop (this thread): pipeline.process(sample) ─▶ publishers
+        └▶ identification windows ─▶ worker process ─▶ angles records ─▶ applied from a stated sample
+
+* Live (`--interface/--channel`, or `--sim` in real time): the reader's bus thread assembles
+  samples into a bounded queue; this thread estimates and publishes; identification results
+  apply from their planned sample, or from the first sample after they arrive (`late`).
+* Lock-step (`--sim … --speed max`, or a paced `--speed X`): the simulator is its own master
+  and SYNC producer; each step moves simulated time by one sample, so the samples are those of
+  real time and nothing reads the wall clock. The loop waits for identification results at
+  their planned sample, so a run is deterministic.
+* Replay: recorded frames through the same reader; the recorded `angles` schedule reproduces
+  the live run bit for bit, or `--recompute` runs the identification deterministically.
+
+High-rate records are published inline (Zenoh congestion control DROP never blocks); the
+low-rate ones (angles, health) go through a small bounded queue to a publisher thread, since a
+slow subscriber may block them.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import queue
+import signal
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from daq.config import RigConfig
+from daq.jsonout import dumps
+from daq.pipeline import EstimatorPipeline
+
+log = logging.getLogger("rsra.service")
+
+LOW_RATE_QUEUE = 64
+LATENCY_HISTORY = 2000
+
+
+@dataclass
+class ServiceOptions:
+    interface: str | None = None
+    channel: str | None = None
+    sim: str | None = None  # scenario name or path
+    seed: int | None = None
+    faults: str | None = None
+    speed: float | None = 1.0  # None = as fast as possible (lock-step)
+    record: str | None = None
+    duration: float | None = None  # seconds of acquisition time
+    angles: str | None = None  # a saved posterior to start from
+    zenoh: bool = True
+    zenoh_config: str | None = None
+    zenoh_listen: list[str] = field(default_factory=list)
+    zenoh_connect: list[str] = field(default_factory=list)
+    identification: bool = True
+    truth: str | None = None  # simulator truth file (default: beside the recording)
+    scenario_variants: dict = field(default_factory=dict)
+    # replay
+    replay: list[str] | None = None
+    recompute: bool = False
+    realtime: bool = False
+
+
+class _LowRatePublisher:
+    """A thread that publishes angles and health records (which may block on Zenoh)."""
+
+    def __init__(self, publish: Callable[[str, dict], Any]):
+        self._publish = publish
+        self.queue: queue.Queue = queue.Queue(LOW_RATE_QUEUE)
+        self.dropped = 0
+        self._thread = threading.Thread(target=self._run, name="rsra-low-rate", daemon=True)
+        self._thread.start()
+
+    def put(self, key: str, payload: dict) -> None:
+        try:
+            self.queue.put_nowait((key, payload))
+        except queue.Full:
+            self.dropped += 1
+
+    def _run(self) -> None:
+        while True:
+            item = self.queue.get()
+            if item is None:
+                return
+            try:
+                self._publish(*item)
+            except Exception as e:  # never let a publishing error kill the thread
+                log.debug("low-rate publish failed: %s", e)
+
+    def close(self) -> None:
+        try:
+            self.queue.put(None, timeout=2.0)
+        except queue.Full:
+            pass
+        self._thread.join(timeout=5.0)
+
+
+class Outputs:
+    """Where the records go: Zenoh, a JSONL file, in-process sinks (tests, the demo view)."""
+
+    def __init__(self, cfg: RigConfig, opts: ServiceOptions):
+        self.cfg = cfg
+        self.session = None
+        self.telemetry = None
+        self.low_rate: _LowRatePublisher | None = None
+        self.sinks: list[Callable[[str, dict], None]] = []
+        self.counts: dict[str, int] = {}
+        if opts.zenoh:
+            import zenoh
+
+            from daq.telemetry import TelemetryPublisher, zenoh_config
+
+            conf = zenoh_config(cfg.telemetry, listen=opts.zenoh_listen or None,
+                                connect=opts.zenoh_connect or None,
+                                config_file=opts.zenoh_config)
+            self.session = zenoh.open(conf)
+            self.telemetry = TelemetryPublisher(self.session, cfg.telemetry.prefix,
+                                                cfg.effective())
+            self.low_rate = _LowRatePublisher(self.telemetry.publish)
+
+    def publish(self, key: str, payload: dict) -> None:
+        self.counts[key] = self.counts.get(key, 0) + 1
+        for sink in self.sinks:
+            sink(key, payload)
+        if self.telemetry is None:
+            return
+        if key in ("angles", "health"):
+            self.low_rate.put(key, payload)
+        else:
+            self.telemetry.publish(key, payload)
+
+    def close(self) -> None:
+        if self.low_rate is not None:
+            self.low_rate.close()
+        if self.telemetry is not None:
+            self.telemetry.close()
+        if self.session is not None:
+            self.session.close()
+        self.telemetry = self.session = None
+
+
+def jsonl_sink(path: str | Path):
+    """A sink writing `{"key": …, …payload}` lines (strict JSON), and its closer."""
+    f = open(path, "w", encoding="utf-8")
+
+    def sink(key: str, payload: dict) -> None:
+        f.write(dumps({"key": key, **payload}) + "\n")
+
+    return sink, f.close
+
+
+def initial_angles(cfg: RigConfig, state_path: str | None):
+    """(alpha0, posterior state or None) from the config or a saved posterior."""
+    alpha0 = np.asarray(cfg.identification.initial_angles_rad, float).copy()
+    if not state_path:
+        return alpha0, None
+    from estimator.posterior import load_posterior
+
+    names = cfg.rig_model().geometry.angle_names
+    idc = cfg.identification
+    wanted = names if idc.parameters == "angles" else tuple(idc.parameters)
+    state = load_posterior(state_path, wanted)  # PosteriorFileError on a corrupt file
+    for n, v in zip(state.names, state.theta):
+        if n in names:
+            alpha0[names.index(n)] = v
+    return alpha0, state
+
+
+def read_angles_schedule(folder: Path) -> tuple[dict | None, list[dict]]:
+    """The starting posterior and the recorded angles records of a recording folder."""
+    p = folder / "angles.jsonl"
+    if not p.is_file():
+        return None, []
+    initial, records = None, []
+    with open(p, encoding="utf-8") as f:
+        for n, line in enumerate(f, 1):
+            line = line.strip()
+            if not line:
+                continue
+            try:
+                rec = json.loads(line)
+            except ValueError:
+                log.warning("%s:%d: unreadable angles record skipped (a crash mid-write?)", p, n)
+                continue
+            if rec.get("initial"):
+                initial = rec
+            else:
+                records.append(rec)
+    return initial, records
+
+
+class Service:
+    """Builds the sources, the pipeline, the worker and the outputs; `run()` until done."""
+
+    def __init__(self, cfg: RigConfig, opts: ServiceOptions):
+        self.cfg = cfg
+        self.opts = opts
+        self.stop_event = threading.Event()
+        self.fs = cfg.sample_rate_hz
+        self.dt = 1.0 / self.fs
+        self.latencies: deque[float] = deque(maxlen=LATENCY_HISTORY)
+        self.deadline_misses = 0
+        self.lockstep = opts.replay is None and opts.sim is not None and opts.speed != 1.0
+        self.synchronous_ident = self.lockstep or (opts.replay is not None)
+        self.worker = None
+        self.ident_errors = 0
+        self.reader = None
+        self.sim = None
+        self.outputs: Outputs | None = None
+        self.summary: dict[str, Any] = {}
+        self.last_seq: int | None = None
+        self.first_t: float | None = None
+        self.last_t: float | None = None
+        self.angles_log: list[dict] = []  # bounded by the run length / period (a few per minute)
+        self.lost = 0
+        self.samples = 0
+        self.last_health: dict | None = None
+        self._extra_sinks: list[Callable[[str, dict], None]] = []
+        self.pipeline: EstimatorPipeline | None = None
+        self.recorder = None
+
+    def add_sink(self, sink: Callable[[str, dict], None]) -> None:
+        self._extra_sinks.append(sink)
+
+    # -- set-up ----------------------------------------------------------------------------
+    def _setup_identification(self, alpha0, state) -> None:
+        from daq.ident_worker import IdentificationWorker
+
+        self.worker = IdentificationWorker(self.cfg, state)
+
+    def _initial_record(self, alpha0, state) -> dict:
+        names = self.cfg.rig_model().geometry.angle_names
+        if state is not None:
+            P = state.P.tolist()
+            rec_names = list(state.names)
+            theta = state.theta.tolist()
+        else:
+            s = self.cfg.identification.prior_sigma_rad
+            rec_names = list(names)
+            theta = alpha0.tolist()
+            P = (np.eye(len(names)) * s * s).tolist()
+        return {"initial": True, "names": rec_names, "alpha": theta, "P": P,
+                "alpha_all": alpha0.tolist(), "applies_from_seq": None}
+
+    def stop(self, *_: Any) -> None:
+        self.stop_event.set()
+
+    def install_signal_handlers(self) -> None:
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, self.stop)
+            signal.signal(signal.SIGTERM, self.stop)
+
+    # -- the run -----------------------------------------------------------------------------
+    def run(self) -> dict:
+        opts, cfg = self.opts, self.cfg
+        closers: list[Callable[[], None]] = []
+        try:
+            recorded_initial, recorded = (None, [])
+            if opts.replay is not None:
+                folder = next((Path(p) for p in opts.replay if Path(p).is_dir()), None)
+                if folder is not None and not opts.recompute:
+                    recorded_initial, recorded = read_angles_schedule(folder)
+            if recorded_initial is not None and not opts.angles:
+                alpha0 = np.asarray(recorded_initial.get("alpha_all", recorded_initial["alpha"]),
+                                    float)
+                state = None
+            else:
+                alpha0, state = initial_angles(cfg, opts.angles)
+            use_ident = opts.identification and (opts.replay is None or opts.recompute)
+            self.pipeline = EstimatorPipeline(cfg, alpha0, identification=use_ident)
+            for rec in recorded:
+                self.pipeline.deliver(rec)
+            self.outputs = Outputs(cfg, opts)
+            closers.append(self.outputs.close)
+            self.outputs.sinks.extend(self._extra_sinks)
+            if use_ident:
+                self._setup_identification(alpha0, state)
+                closers.append(self._close_worker)
+            source = self._make_source(closers)
+            if self.recorder is not None:
+                self.recorder.write_angles(self._initial_record(alpha0, state))
+            log.info("service started: %s", self._describe())
+            self._loop(source)
+        finally:
+            for close in reversed(closers):
+                try:
+                    close()
+                except Exception as e:  # keep closing the rest
+                    log.error("shutdown: %s", e)
+        self.summary = self._summary()
+        return self.summary
+
+    def _close_worker(self) -> None:
+        if self.worker is not None:
+            self.worker.close()
+
+    def _describe(self) -> str:
+        o = self.opts
+        if o.replay is not None:
+            return f"replay of {', '.join(o.replay)}"
+        if o.sim:
+            mode = "lock-step, as fast as possible" if o.speed is None else (
+                f"lock-step at {o.speed:g}x real time" if self.lockstep else "real time")
+            return f"simulator {o.sim!r} in process ({mode})"
+        return f"bus {o.interface}:{o.channel}"
+
+    def _make_source(self, closers) -> Iterator:
+        o, cfg = self.opts, self.cfg
+        from daq.reader import Reader
+
+        if o.replay is not None:
+            from daq.replay import replay
+
+            reader = Reader.offline(cfg)
+            self.reader = reader
+            return replay(cfg, o.replay, realtime=o.realtime, reader=reader, finish=True)
+        if o.sim is not None:
+            import can
+
+            from sim_bus.bus_sim import Simulator
+            from sim_bus.physics import AircraftPhysics
+            from sim_bus.scenarios import load_scenario
+
+            scenario = load_scenario(o.sim, **o.scenario_variants)
+            channel = o.channel or f"rsra-{id(self):x}"
+            if self.lockstep:
+                t0 = round(time.time(), 3)  # simulated time reads like UNIX time
+                sim = Simulator(cfg, physics=AircraftPhysics(cfg, scenario, seed=o.seed),
+                                seed=o.seed, faults=o.faults, channel=channel, autostart=True,
+                                lockstep=True, threaded=False, t0=t0)
+                bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=True,
+                              preserve_timestamps=True)
+                reader = Reader(cfg, bus=bus, master=False, wall_clock=False, record=o.record,
+                                overflow="block")
+                self.sim, self.reader = sim, reader
+                closers.append(bus.shutdown)
+                closers.append(reader.close)
+                closers.append(self._close_sim)
+                reader.start(notifier=False)
+                sim.start()
+                self.recorder = reader.recorder
+                return self._lockstep_items()
+            sim = Simulator(cfg, physics=AircraftPhysics(cfg, scenario, seed=o.seed),
+                            seed=o.seed, faults=o.faults, channel=channel, autostart=False,
+                            lockstep=False, threaded=True)
+            self.sim = sim
+            closers.append(self._close_sim)
+            sim.start()
+            reader = Reader(cfg, interface="virtual", channel=channel, master=True,
+                            record=o.record, overflow="drop")
+        else:
+            reader = Reader(cfg, interface=o.interface, channel=o.channel, master=True,
+                            record=o.record, overflow="drop")
+        self.reader = reader
+        closers.append(reader.close)
+        reader.start()  # boots the nodes; BootError names node, object and both values
+        self.recorder = reader.recorder
+        return self._live_items()
+
+    def _close_sim(self) -> None:
+        if self.sim is None:
+            return
+        truth = self.opts.truth
+        if truth is None and self.recorder is not None:
+            truth = str(Path(self.recorder.folder) / "truth.npz")
+        if truth:
+            try:
+                self.sim.write_truth(truth)
+            except Exception as e:
+                log.error("truth not written: %s", e)
+        self.sim.close()
+
+    def _lockstep_items(self) -> Iterator:
+        sim, reader = self.sim, self.reader
+        speed = self.opts.speed
+        wall0 = time.monotonic()
+        k = 0
+        while not self.stop_event.is_set():
+            sim.step()
+            reader.pump()
+            k += 1
+            yield from reader.poll()
+            if speed:  # paced lock-step: simulated time runs at `speed` x the wall clock
+                ahead = k * self.dt / speed - (time.monotonic() - wall0)
+                if ahead > 0:
+                    time.sleep(ahead)
+
+    def _live_items(self) -> Iterator:
+        reader = self.reader
+        while not self.stop_event.is_set():
+            item = reader.get(timeout=0.05)
+            yield item  # None when idle: results are still polled
+
+    # -- per item ------------------------------------------------------------------------------
+    def _loop(self, source: Iterator) -> None:
+        from daq.reader import HealthReport
+
+        # --duration counts samples of acquisition time (lost ones included: they keep seq)
+        n_max = None if self.opts.duration is None else max(1, round(self.opts.duration * self.fs))
+        first_seq = None
+        for item in source:
+            if item is None:
+                self._poll_results()
+            elif isinstance(item, HealthReport):
+                self._on_health(item)
+            else:
+                self._on_sample(item)
+                if first_seq is None:
+                    first_seq = item.seq
+                if n_max is not None and item.seq - first_seq + 1 >= n_max:
+                    break
+            if self.stop_event.is_set():
+                break
+
+    def _poll_results(self) -> None:
+        if self.worker is None or self.synchronous_ident:
+            return
+        arrival = self.last_seq if self.last_seq is not None else 0
+        for r in self.worker.poll():
+            self._deliver(r, arrival)
+
+    def _deliver(self, r: dict, arrival: int | None) -> None:
+        if "error" in r:
+            self.ident_errors += 1
+            log.error("identification: %s", r["error"])
+            job = r.get("job_id")
+            if job is not None:
+                self.pipeline.outstanding.pop(job, None)
+            return
+        self.pipeline.deliver(r, arrival_seq=arrival)
+
+    def _wait_results(self, seq: int) -> None:
+        """Lock-step and replay: the result of every window due at this sample first."""
+        while self.worker is not None and self.pipeline.waiting_for(seq):
+            r = self.worker.wait(timeout=120.0)
+            if r is None:
+                log.error("identification worker stopped; identification is off")
+                self.pipeline.outstanding.clear()
+                self._close_worker()
+                self.worker = None
+                return
+            self._deliver(r, None)
+
+    def _on_sample(self, s) -> None:
+        p = self.pipeline
+        if self.synchronous_ident:
+            self._wait_results(s.seq)
+        else:
+            self._poll_results()
+        out = p.process(s)
+        publish = self.outputs.publish
+        live = not self.lockstep and self.opts.replay is None
+        for key, payload in out.records:
+            publish(key, payload)
+            if key == "hub_loads" and live:
+                lat = time.time() - s.t
+                self.latencies.append(lat)
+                if lat > self.dt:
+                    self.deadline_misses += 1
+            elif key == "angles":
+                self._on_angles(payload)
+        if out.job is not None and self.worker is not None:
+            if self.synchronous_ident:
+                self.worker.jobs.put(out.job)  # deterministic: every window runs
+                self.worker.submitted += 1
+            elif not self.worker.submit(out.job):
+                p.outstanding.pop(out.job["job_id"], None)
+                log.warning("identification busy: window ending at sample %d dropped",
+                            int(out.job["seq"][-1]))
+        self.samples += 1
+        self.lost += int(s.lost_before)
+        self.last_seq = s.seq
+        if self.first_t is None:
+            self.first_t = s.t
+        self.last_t = s.t
+
+    def _on_angles(self, rec: dict) -> None:
+        if self.recorder is not None and self.opts.replay is None:
+            self.recorder.write_angles(rec)
+        self.angles_log.append(rec)
+        if len(self.angles_log) > 10_000:
+            del self.angles_log[:1000]
+        if rec.get("accepted"):
+            sig = rec.get("sigma_cr") or []
+            worst = max((x for x in sig if x is not None), default=float("nan"))
+            log.info("identification accepted (%s, %s): %d of %d directions determined, "
+                     "worst sigma_CR %.3f deg, applies from sample %s%s", rec.get("mode"),
+                     rec.get("content"), rec.get("determined", 0), len(rec.get("names") or []),
+                     math.degrees(worst), rec.get("applies_from_seq"),
+                     " (late)" if rec.get("late") else "")
+        else:
+            log.info("identification rejected (%s, %s): %s", rec.get("mode"), rec.get("content"),
+                     rec.get("reason"))
+
+    def _on_health(self, item) -> None:
+        payload = dict(item.payload)
+        if self.latencies:
+            a = np.fromiter(self.latencies, float) * 1e3
+            payload["latency_ms"] = {"p50": float(np.percentile(a, 50)),
+                                     "p99": float(np.percentile(a, 99)),
+                                     "max": float(a.max()),
+                                     "deadline_misses": self.deadline_misses}
+        else:
+            payload["latency_ms"] = {"p50": None, "p99": None}
+        queues = dict(payload.get("queues") or {})
+        if self.worker is not None:
+            queues["identification"] = {"submitted": self.worker.submitted,
+                                        "dropped": self.worker.dropped,
+                                        "errors": self.ident_errors}
+        if self.outputs is not None and self.outputs.low_rate is not None:
+            queues["publisher"] = {"depth": self.outputs.low_rate.queue.qsize(),
+                                   "dropped": self.outputs.low_rate.dropped}
+        payload["queues"] = queues
+        prev = (self.last_health or {}).get("recording") or {}
+        rec = payload.get("recording") or {}
+        if rec.get("error") and rec.get("error") != prev.get("error"):
+            log.error("recording stopped: %s", rec["error"])
+        self.last_health = payload
+        self.outputs.publish("health", payload)
+
+    def _summary(self) -> dict:
+        acc = [r for r in self.angles_log if r.get("accepted")]
+        rej: dict[str, int] = {}
+        for r in self.angles_log:
+            if not r.get("accepted"):
+                rej[str(r.get("reason"))] = rej.get(str(r.get("reason")), 0) + 1
+        out = {"samples": self.samples, "lost": self.lost,
+               "duration_s": None if self.first_t is None else self.last_t - self.first_t,
+               "identification_runs": len(self.angles_log), "accepted": len(acc),
+               "rejected": rej, "published": dict(self.outputs.counts) if self.outputs else {},
+               "deadline_misses": self.deadline_misses}
+        if self.latencies:
+            a = np.fromiter(self.latencies, float) * 1e3
+            out["latency_ms"] = {"p50": float(np.percentile(a, 50)),
+                                 "p99": float(np.percentile(a, 99)), "max": float(a.max())}
+        if self.angles_log:
+            last = self.angles_log[-1]
+            out["angles"] = {"names": last.get("names"), "alpha": last.get("alpha"),
+                             "sigma": [math.sqrt(max(last["P"][i][i], 0.0))
+                                       for i in range(len(last.get("names") or []))]
+                             if last.get("P") else None}
+        if self.pipeline is not None:
+            out["alpha_applied"] = self.pipeline.alpha.tolist()
+        return out
