@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml
 setup: $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/rsra noise-budget
+	$(BIN)/rsra demo
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

@@ -15,6 +15,7 @@ COMMANDS = {
     "noise-budget": "noise_budget",
     "listen": "listen",
     "run": "run",
+    "demo": "demo",
     "sim": "sim",
     "replay": "replay",
     "nodes": "nodes",

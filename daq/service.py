@@ -62,6 +62,7 @@ class ServiceOptions:
     zenoh_connect: list[str] = field(default_factory=list)
     identification: bool = True
     truth: str | None = None  # simulator truth file (default: beside the recording)
+    keep_truth: bool = False  # keep the simulator's truth history in memory (demo report)
     scenario_variants: dict = field(default_factory=dict)
     # replay
     replay: list[str] | None = None
@@ -331,11 +332,13 @@ class Service:
 
             scenario = load_scenario(o.sim, **o.scenario_variants)
             channel = o.channel or f"rsra-{id(self):x}"
+            # the truth history (bounded, ~0.5 kB a sample) only when a truth file is wanted
+            keep = bool(o.truth or o.record or o.keep_truth)
             if self.lockstep:
                 t0 = round(time.time(), 3)  # simulated time reads like UNIX time
                 sim = Simulator(cfg, physics=AircraftPhysics(cfg, scenario, seed=o.seed),
                                 seed=o.seed, faults=o.faults, channel=channel, autostart=True,
-                                lockstep=True, threaded=False, t0=t0)
+                                lockstep=True, threaded=False, t0=t0, keep_samples=keep)
                 bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=True,
                               preserve_timestamps=True)
                 reader = Reader(cfg, bus=bus, master=False, wall_clock=False, record=o.record,
@@ -350,7 +353,7 @@ class Service:
                 return self._lockstep_items()
             sim = Simulator(cfg, physics=AircraftPhysics(cfg, scenario, seed=o.seed),
                             seed=o.seed, faults=o.faults, channel=channel, autostart=False,
-                            lockstep=False, threaded=True)
+                            lockstep=False, threaded=True, keep_samples=keep)
             self.sim = sim
             closers.append(self._close_sim)
             sim.start()

@@ -26,6 +26,7 @@ the bus in the caller's thread, in order, so a master that sends NMT start then 
 from __future__ import annotations
 
 import dataclasses
+from collections import deque
 import logging
 import math
 import threading
@@ -68,6 +69,7 @@ from sim_bus.offline import ChannelCodec
 
 log = logging.getLogger(__name__)
 
+RECENT_SAMPLES = 512  # the last samples' truth, whatever keep_samples says (live views)
 MAX_TRUTH_SAMPLES = 720_000  # one hour at 200 samples/s: the truth history is bounded
 FRAME_OVERHEAD_BITS = 47  # 11-bit identifier frame without data, before stuffing (bus.md)
 DEFAULT_BITRATE = 1_000_000  # bus.md: 1 Mbit/s on the aircraft, when no EDS says otherwise
@@ -268,6 +270,8 @@ class Simulator:
         self.frames_received = 0
         self.error_frames_received = 0
         self.samples = TruthBuffer()  # what every SYNC carried (keep_samples), bounded
+        self.last_sample: Any = None
+        self.recent_samples: deque = deque(maxlen=RECENT_SAMPLES)  # bounded, for live views
         self.sync_info: list[tuple[int, int, float, bool]] = []  # (sample, counter, t, lost)
         self.truth_truncated = False
         self._error: BaseException | None = None
@@ -548,6 +552,8 @@ class Simulator:
     # one SYNC cycle
     def _next_sample(self) -> Any:
         s = self.physics.next_sample()
+        self.last_sample = s  # the latest truth, for live views (kept even without history)
+        self.recent_samples.append(s)
         if self.keep_samples:
             self.samples.append(s)
             if self.samples.dropped == 1 and not self.truth_truncated:

@@ -136,14 +136,40 @@ def run_service(cfg, opts, quiet: bool = False) -> int:
     except BootError as e:
         print(f"rsra: the nodes could not be started: {e}", file=sys.stderr)
         return 1
+    except Exception as e:
+        import zenoh
+
+        if isinstance(e, zenoh.ZError):  # refused by a router (TLS, password), bad endpoint
+            print(f"rsra: cannot open the Zenoh session: {e} (check --zenoh-config/"
+                  "--zenoh-listen/--zenoh-connect, certificates and credentials)", file=sys.stderr)
+            return 1
+        raise
     if not quiet:
         print(json.dumps({"summary": summary}, allow_nan=False, default=str))
     return 0
 
 
-def run(args: argparse.Namespace) -> int:
-    from daq.config import load_config
+def config_for_run(config: str | None, scenario: str | None):
+    """The rig config, with a simulated scenario's own overrides (e.g. `paper` starts the
+    service at 4°) when the simulator is attached."""
+    from daq.cli import UsageError
+    from daq.config import ConfigError, load_config
 
+    if scenario is None:
+        return load_config(config)
+    from sim_bus.scenarios import load_scenario
+
+    try:
+        sc = load_scenario(scenario)
+    except ConfigError:
+        raise
+    except (FileNotFoundError, ValueError) as e:
+        raise UsageError(str(e)) from None
+    return load_config(config, overrides=sc.rig_overrides or None)
+
+
+def run(args: argparse.Namespace) -> int:
     setup_logging(args.log_level, args.log_file)
-    cfg = load_config(args.config)
-    return run_service(cfg, options_from_args(args))
+    opts = options_from_args(args)
+    cfg = config_for_run(args.config, args.sim)
+    return run_service(cfg, opts)

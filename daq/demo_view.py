@@ -1,0 +1,173 @@
+"""The live terminal view of `rsra demo`: hub loads against the simulator's truth, the angles
+converging with their Cramér–Rao bounds, every identification run's verdict, bus and node
+health, sample rate, latency and lost samples. Fed by the service's in-process sink (the
+same records Zenoh subscribers get), so it costs the estimator nothing but a dict copy."""
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import deque
+
+import numpy as np
+
+from daq.units import axis_units, to_units
+
+AXES = ("X", "Y", "Z", "L", "M", "N")
+
+
+class DemoState:
+    """The latest records, updated from the service thread, read by the view thread."""
+
+    def __init__(self, cfg, static_bound: np.ndarray, angle_names: tuple[str, ...]):
+        self.cfg = cfg
+        self.lock = threading.Lock()
+        self.hub: dict | None = None
+        self.health: dict | None = None
+        self.angles: dict | None = None
+        self.runs: deque[dict] = deque(maxlen=6)
+        self.truth_H: np.ndarray | None = None
+        self.truth_alpha: np.ndarray | None = None
+        self.static_bound = static_bound
+        self.angle_names = angle_names
+        self.samples = 0
+        self.first_t: float | None = None
+        self.wall0 = time.monotonic()
+        self.err2 = np.zeros(6)
+        self.err_n = 0
+        self.accepted = 0
+        self.rejected: dict[str, int] = {}
+        self.flags: dict[str, int] = {}
+
+    def on_record(self, key: str, payload: dict, truth=None) -> None:
+        with self.lock:
+            if key == "hub_loads":
+                self.hub = payload
+                self.samples += 1
+                if self.first_t is None:
+                    self.first_t = payload["t"]
+                for f in payload.get("flags") or []:
+                    self.flags[f] = self.flags.get(f, 0) + 1
+                if truth is not None:
+                    self.truth_H = np.asarray(truth.H_true, float)
+                    self.truth_alpha = np.asarray(truth.alpha_true, float)
+                    H = payload.get("H")
+                    # score after the filter has settled (1 s)
+                    if H is not None and payload["t"] - self.first_t > 1.0:
+                        e = np.asarray(H, float) - self.truth_H
+                        self.err2 += e * e
+                        self.err_n += 1
+            elif key == "health":
+                self.health = payload
+            elif key == "angles":
+                self.angles = payload
+                self.runs.append(payload)
+                if payload.get("accepted"):
+                    self.accepted += 1
+                else:
+                    r = str(payload.get("reason"))
+                    self.rejected[r] = self.rejected.get(r, 0) + 1
+
+
+def _f(x, fmt="{:9.1f}") -> str:
+    return "—" if x is None or (isinstance(x, float) and not math.isfinite(x)) else fmt.format(x)
+
+
+def render(state: DemoState, title: str, units: str):
+    from rich.console import Group
+    from rich.panel import Panel
+    from rich.table import Table
+    from rich.text import Text
+
+    with state.lock:
+        hub, health, ang = state.hub, state.health, state.angles
+        runs = list(state.runs)
+        tH = None if state.truth_H is None else state.truth_H.copy()
+        ta = None if state.truth_alpha is None else state.truth_alpha.copy()
+        n, first_t = state.samples, state.first_t
+        rms = np.sqrt(state.err2 / state.err_n) if state.err_n else None
+        acc, rej = state.accepted, dict(state.rejected)
+    parts = []
+    wall = time.monotonic() - state.wall0
+    acq = 0.0 if hub is None or first_t is None else hub["t"] - first_t
+    rate = n / wall if wall > 0 else 0.0
+    lat = (health or {}).get("latency_ms") or {}
+    smp = (health or {}).get("samples") or {}
+    head = Text.assemble(
+        (f"{title}  ", "bold"),
+        f"acquisition {acq:7.1f} s   {rate:7.0f} samples/s   lost {smp.get('lost', 0)}   "
+        f"latency p50 {_f(lat.get('p50'), '{:.2f}')} ms  p99 {_f(lat.get('p99'), '{:.2f}')} ms")
+    parts.append(head)
+
+    u = axis_units(units)
+    t = Table(title="hub loads (" + (hub or {}).get("frame", "body") + " axes)", expand=False)
+    for c in ("axis", "unit", "truth", "filter Ĥ", "static", "error", "RMS error", "static σ"):
+        t.add_column(c, justify="left" if c in ("axis", "unit") else "right")
+
+    def conv(v):
+        return None if v is None else to_units(np.asarray(v, float), units)
+
+    H = conv(None if hub is None else hub.get("H"))
+    Hs = conv(None if hub is None else hub.get("H_static"))
+    T = conv(tH)
+    R = conv(rms)
+    B = conv(state.static_bound)
+    for i, ax in enumerate(AXES):
+        err = None if H is None or T is None else H[i] - T[i]
+        t.add_row(ax, u[i], _f(None if T is None else T[i]), _f(None if H is None else H[i]),
+                  _f(None if Hs is None else Hs[i]), _f(err),
+                  _f(None if R is None else R[i]), _f(B[i]))
+    flags = (hub or {}).get("flags") or []
+    parts.append(t)
+    parts.append(Text("flags: " + (", ".join(flags) if flags else "none")))
+
+    at = Table(title="load-cell angles (deg)", expand=False)
+    for c in ("angle", "truth", "estimate", "± σ", "error/σ", "determined"):
+        at.add_column(c, justify="left" if c == "angle" else "right")
+    if ang is not None and ang.get("alpha") is not None:
+        names = ang.get("names") or []
+        P = ang.get("P")
+        smax = math.degrees(state.cfg.identification.sigma_max_rad)
+        for i, name in enumerate(names):
+            a = math.degrees(ang["alpha"][i])
+            s = math.degrees(math.sqrt(max(P[i][i], 0.0))) if P else float("nan")
+            tru = None
+            if ta is not None and name in state.angle_names:
+                tru = math.degrees(ta[state.angle_names.index(name)])
+            z = None if tru is None or not s > 0 else (a - tru) / s
+            at.add_row(name, _f(tru, "{:7.3f}"), f"{a:7.3f}", f"{s:6.3f}", _f(z, "{:+5.1f}"),
+                       "yes" if s <= smax else "")
+    else:
+        at.add_row("(no identification run yet)", "", "", "", "", "")
+    parts.append(at)
+
+    rt = Table(title=f"identification runs: {acc} accepted, " + (
+        ", ".join(f"{v} {k}" for k, v in rej.items()) or "0 rejected"), expand=False)
+    for c in ("window end s", "mode", "content", "verdict", "determined", "information", "ν"):
+        rt.add_column(c, justify="right" if c not in ("mode", "content", "verdict") else "left")
+    for r in reversed(runs):
+        verdict = "accepted" + (" (late)" if r.get("late") else "") if r.get("accepted") else \
+            f"rejected: {r.get('reason')}"
+        rt.add_row(_f(None if first_t is None or r.get("t") is None else r["t"] - first_t,
+                      "{:.1f}"), str(r.get("mode")), str(r.get("content")), verdict,
+                   f"{r.get('determined')}/{len(r.get('names') or [])}",
+                   _f(r.get("information"), "{:.3g}"), _f(r.get("nu"), "{:.1f}"))
+    parts.append(rt)
+
+    if health:
+        nt = Table(title="bus and nodes", expand=False)
+        nt.add_column("node")
+        nt.add_column("state")
+        nt.add_column("heartbeat age s", justify="right")
+        nt.add_column("EMCY", justify="right")
+        for name, nd in (health.get("nodes") or {}).items():
+            nt.add_row(name, str(nd.get("state")), _f(nd.get("heartbeat_age"), "{:.2f}"),
+                       str(len(nd.get("emcy") or [])))
+        parts.append(nt)
+        b = health.get("bus") or {}
+        parts.append(Text(
+            f"bus: frames {b.get('frames')}  error frames {b.get('errors')}  bus-off "
+            f"{b.get('bus_off')}  unknown {b.get('unknown')}  malformed {b.get('malformed')} | "
+            f"samples complete {smp.get('complete')}  incomplete {smp.get('incomplete')}  "
+            f"lost {smp.get('lost')}"))
+    return Panel(Group(*parts), title="rsra demo — Ctrl-C to stop", expand=False)
