@@ -38,6 +38,7 @@ class DemoState:
         self.accepted = 0
         self.rejected: dict[str, int] = {}
         self.flags: dict[str, int] = {}
+        self.rate_marks: deque[tuple[float, int]] = deque(maxlen=40)  # (wall, samples)
 
     def on_record(self, key: str, payload: dict, truth=None) -> None:
         with self.lock:
@@ -88,21 +89,25 @@ def render(state: DemoState, title: str, units: str):
         rms = np.sqrt(state.err2 / state.err_n) if state.err_n else None
         acc, rej = state.accepted, dict(state.rejected)
     parts = []
-    wall = time.monotonic() - state.wall0
+    now = time.monotonic()
+    state.rate_marks.append((now, n))
+    w0, n0 = state.rate_marks[0]
+    rate = (n - n0) / (now - w0) if now > w0 else 0.0
     acq = 0.0 if hub is None or first_t is None else hub["t"] - first_t
-    rate = n / wall if wall > 0 else 0.0
     lat = (health or {}).get("latency_ms") or {}
     smp = (health or {}).get("samples") or {}
+    latency = ("latency n/a (lock-step)" if lat.get("p50") is None else
+               f"latency p50 {lat['p50']:.2f} ms  p99 {_f(lat.get('p99'), '{:.2f}')} ms")
     head = Text.assemble(
         (f"{title}  ", "bold"),
-        f"acquisition {acq:7.1f} s   {rate:7.0f} samples/s   lost {smp.get('lost', 0)}   "
-        f"latency p50 {_f(lat.get('p50'), '{:.2f}')} ms  p99 {_f(lat.get('p99'), '{:.2f}')} ms")
+        f"acquisition {acq:7.1f} s   {rate:6.0f} samples/s   lost {smp.get('lost', 0)}   "
+        f"{latency}")
     parts.append(head)
 
     u = axis_units(units)
     t = Table(title="hub loads (" + (hub or {}).get("frame", "body") + " axes)", expand=False)
-    for c in ("axis", "unit", "truth", "filter Ĥ", "static", "error", "RMS error", "static σ"):
-        t.add_column(c, justify="left" if c in ("axis", "unit") else "right")
+    for c in ("axis", "truth", "filter Ĥ", "static", "RMS error", "static σ"):
+        t.add_column(c, justify="left" if c == "axis" else "right")
 
     def conv(v):
         return None if v is None else to_units(np.asarray(v, float), units)
@@ -113,16 +118,14 @@ def render(state: DemoState, title: str, units: str):
     R = conv(rms)
     B = conv(state.static_bound)
     for i, ax in enumerate(AXES):
-        err = None if H is None or T is None else H[i] - T[i]
-        t.add_row(ax, u[i], _f(None if T is None else T[i]), _f(None if H is None else H[i]),
-                  _f(None if Hs is None else Hs[i]), _f(err),
+        t.add_row(f"{ax} [{u[i]}]", _f(None if T is None else T[i]),
+                  _f(None if H is None else H[i]), _f(None if Hs is None else Hs[i]),
                   _f(None if R is None else R[i]), _f(B[i]))
     flags = (hub or {}).get("flags") or []
-    parts.append(t)
-    parts.append(Text("flags: " + (", ".join(flags) if flags else "none")))
+    flag_text = Text("flags: " + (", ".join(flags) if flags else "none"))
 
     at = Table(title="load-cell angles (deg)", expand=False)
-    for c in ("angle", "truth", "estimate", "± σ", "error/σ", "determined"):
+    for c in ("angle", "truth", "estimate", "± σ", "err/σ"):
         at.add_column(c, justify="left" if c == "angle" else "right")
     if ang is not None and ang.get("alpha") is not None:
         names = ang.get("names") or []
@@ -135,35 +138,41 @@ def render(state: DemoState, title: str, units: str):
             if ta is not None and name in state.angle_names:
                 tru = math.degrees(ta[state.angle_names.index(name)])
             z = None if tru is None or not s > 0 else (a - tru) / s
-            at.add_row(name, _f(tru, "{:7.3f}"), f"{a:7.3f}", f"{s:6.3f}", _f(z, "{:+5.1f}"),
-                       "yes" if s <= smax else "")
+            at.add_row(name, _f(tru, "{:7.3f}"), f"{a:7.3f}",
+                       f"[green]{s:6.3f}[/]" if s <= smax else f"{s:6.3f}", _f(z, "{:+5.1f}"))
     else:
-        at.add_row("(no identification run yet)", "", "", "", "", "")
-    parts.append(at)
+        at.add_row("(no run yet)", "", "", "", "")
+    grid = Table.grid(padding=(0, 2))
+    grid.add_row(Group(t, flag_text), at)
+    parts.append(grid)
 
     rt = Table(title=f"identification runs: {acc} accepted, " + (
         ", ".join(f"{v} {k}" for k, v in rej.items()) or "0 rejected"), expand=False)
-    for c in ("window end s", "mode", "content", "verdict", "determined", "information", "ν"):
+    for c in ("end s", "mode", "content", "verdict", "det.", "info", "ν"):
         rt.add_column(c, justify="right" if c not in ("mode", "content", "verdict") else "left")
     for r in reversed(runs):
-        verdict = "accepted" + (" (late)" if r.get("late") else "") if r.get("accepted") else \
-            f"rejected: {r.get('reason')}"
+        verdict = ("[green]accepted[/]" + (" (late)" if r.get("late") else "")
+                   if r.get("accepted") else f"[yellow]{r.get('reason')}[/]")
         rt.add_row(_f(None if first_t is None or r.get("t") is None else r["t"] - first_t,
                       "{:.1f}"), str(r.get("mode")), str(r.get("content")), verdict,
                    f"{r.get('determined')}/{len(r.get('names') or [])}",
                    _f(r.get("information"), "{:.3g}"), _f(r.get("nu"), "{:.1f}"))
-    parts.append(rt)
-
     if health:
-        nt = Table(title="bus and nodes", expand=False)
+        nt = Table(title="nodes", expand=False)
         nt.add_column("node")
         nt.add_column("state")
-        nt.add_column("heartbeat age s", justify="right")
+        nt.add_column("hb age s", justify="right")
         nt.add_column("EMCY", justify="right")
         for name, nd in (health.get("nodes") or {}).items():
-            nt.add_row(name, str(nd.get("state")), _f(nd.get("heartbeat_age"), "{:.2f}"),
-                       str(len(nd.get("emcy") or [])))
-        parts.append(nt)
+            st = str(nd.get("state"))
+            nt.add_row(name, st if st == "operational" else f"[bold red]{st}[/]",
+                       _f(nd.get("heartbeat_age"), "{:.2f}"), str(len(nd.get("emcy") or [])))
+        g2 = Table.grid(padding=(0, 2))
+        g2.add_row(rt, nt)
+        parts.append(g2)
+    else:
+        parts.append(rt)
+    if health:
         b = health.get("bus") or {}
         parts.append(Text(
             f"bus: frames {b.get('frames')}  error frames {b.get('errors')}  bus-off "
@@ -171,3 +180,4 @@ def render(state: DemoState, title: str, units: str):
             f"samples complete {smp.get('complete')}  incomplete {smp.get('incomplete')}  "
             f"lost {smp.get('lost')}"))
     return Panel(Group(*parts), title="rsra demo — Ctrl-C to stop", expand=False)
+
