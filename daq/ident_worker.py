@@ -50,10 +50,23 @@ def build_identification(cfg, initial_state=None):
         redesign_band=cfg.rotor.redesign_band, cache_resolution=cfg.rotor.cache_resolution,
         omega_min=cfg.rotor.omega_min_fraction * cfg.rotor.omega_nominal_rad_s,
         omega_default=None if cfg.rotor.stopped else cfg.rotor.omega_nominal_rad_s)
-    known = PeriodicIdentification(mode="known_loads", content=idc.content_known_loads, **common)
-    design = cache.design_for(cfg.rotor.omega_nominal_rad_s)
+    from estimator.content import ContentFilter
+
+    w0, harm = cfg.rotor.omega_nominal_rad_s, tuple(f.harmonics)
+
+    def settle(kind: str) -> int:
+        # the content filter starts from its first sample held constant: that sample's noise
+        # rings in the output for a while, so those samples are not scored (after the start)
+        return ContentFilter(kind, fs, w0, harm, 1).settle_samples
+
+    known = PeriodicIdentification(mode="known_loads", content=idc.content_known_loads,
+                                   content_settle_samples=settle(idc.content_known_loads),
+                                   **common)
+    design = cache.design_for(w0)
     ferr = PeriodicIdentification(mode="filter_error", content=idc.content_filter_error,
-                                  design=design, **common)
+                                  design=design,
+                                  content_settle_samples=settle(idc.content_filter_error),
+                                  **common)
     return post, {"known_loads": known, "filter_error": ferr}, cache
 
 

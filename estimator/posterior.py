@@ -1,0 +1,517 @@
+"""The sequential posterior of the periodic identification runs (model.md §7).
+
+Every run takes the previous posterior as its prior, inflated by a random walk
+(``P_p = P + q·Δt``), minimises J from the prior mean, and is then judged in order:
+
+1. ``stale_input`` — too many samples of the window lack a required channel (no run);
+2. ``not_converged`` / ``diverged`` — the run is not sound;
+3. ``inconsistent`` — the consistency gate ``ν = Δθᵀ D⁺ Δθ > χ²_{d,0.999}`` with
+   ``D = P_p − P_post``; after ``reset_after`` of them in a row the covariance is reset to the
+   first prior's around the current mean (``reset``), so a real change is learned again
+   ("in a row" counts the runs that reached the gate: a run rejected before it carries no
+   evidence either way, so it neither extends nor breaks the streak; an accepted run does);
+4. ``not_identifiable`` — a consistent run whose data add no real information: the largest
+   eigenvalue of ``P_p^{1/2} M P_p^{1/2}`` is below ``min_information``;
+5. otherwise accepted: (θ_post, P_post) replace the prior, and apply from
+   ``window_end + apply_delay`` (later when the result arrives late).
+
+Model §7 puts the information test before the gate. Taken literally that freezes the
+tracker: once the posterior has converged no 5-s window can halve any variance (measured on
+the ground-test: information ratios 0.7–0.95 from the third sweep on), so no run ever reaches
+the gate and a 1° step is never detected (A4). The gate needs no minimum information — a
+window with ratio λ moves the mean by λ/(1+λ) of a change and ν grows with it — so here every
+sound run is gated and the information test only decides acceptance
+(``gate_low_information=False`` restores the literal order). On the report's Phase II set-up
+the gate passes (ν ≈ 2–6 on 14 directions) and the runs stay ``not_identifiable`` (A5).
+
+A rejected run leaves the posterior as it was. :class:`PeriodicIdentification` ties windows
+of (content-filtered) data, the identification of ``estimator.identification`` and this
+posterior together, carrying the filter-error state and its sensitivities from window to
+window. Pure numerics, plus the small atomic save/load of the posterior the spec asks for.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+from scipy.stats import chi2
+
+from .identification import (
+    FilterErrorProblem,
+    FilterErrorState,
+    IdentificationResult,
+    KnownLoadProblem,
+    Parameterisation,
+    levenberg_marquardt,
+    scored_mask,
+)
+from .params import RigModel
+
+ACCEPTED = None
+REASONS = ("not_converged", "diverged", "not_identifiable", "inconsistent", "reset",
+           "stale_input")
+MODES = ("known_loads", "filter_error")
+GATE_PROBABILITY = 0.999  # model §7: accepted when ν ≤ χ²_{d, 0.999}
+GATE_RELATIVE_EIGENVALUE = 1e-6  # directions of D kept by the gate, relative to the largest
+SIGMA_MAX_OTHER_FRACTION = 0.04  # non-angle parameters: determined at 0.04 × prior σ (§7)
+
+
+def _finite_or_none(x: Any) -> Any:
+    """JSON-safe: arrays to lists, non-finite numbers to None (telemetry: allow_nan=False)."""
+    if isinstance(x, np.ndarray):
+        return [_finite_or_none(v) for v in x.tolist()]
+    if isinstance(x, (list, tuple)):
+        return [_finite_or_none(v) for v in x]
+    if isinstance(x, (float, np.floating)):
+        return float(x) if math.isfinite(x) else None
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, np.bool_):
+        return bool(x)
+    return x
+
+
+@dataclass
+class AnglesRecord:
+    """Everything telemetry.md's ``angles`` record carries, plus the run's own estimate."""
+
+    t: float | None
+    seq: int | None
+    mode: str
+    content: str
+    accepted: bool
+    reason: str | None
+    names: tuple[str, ...]
+    alpha: np.ndarray  # posterior mean after this run (unchanged when rejected)
+    P: np.ndarray  # posterior covariance after this run
+    sigma_cr: np.ndarray | None  # this run's conventional Cramér–Rao bounds
+    sigma_cr_corrected: np.ndarray | None  # coloured-residual corrected (Morelli & Klein)
+    determined: int  # directions of P with σ ≤ sigma_max
+    information: float | None  # largest data-to-prior information ratio
+    nu: float | None  # gate statistic
+    cost: float | None
+    iterations: int
+    window: tuple[int, int]
+    applies_from_seq: int | None
+    late: bool = False
+    # beyond the telemetry record
+    gate_dof: int = 0
+    condition: float | None = None  # condition number of the posterior information
+    run_theta: np.ndarray | None = None  # the run's estimate θ_post
+    run_P: np.ndarray | None = None  # the run's (M + P_p⁻¹)⁻¹
+    status: str | None = None  # LM status
+    undetermined: np.ndarray | None = None  # (p, k) directions with σ > sigma_max
+
+    def to_dict(self) -> dict:
+        """The telemetry ``angles`` payload (SI: radians)."""
+        keys = ("t", "seq", "mode", "content", "accepted", "reason", "names", "alpha", "P",
+                "sigma_cr", "sigma_cr_corrected", "determined", "information", "nu", "cost",
+                "iterations", "window", "applies_from_seq", "late")
+        return {k: _finite_or_none(getattr(self, k)) for k in keys}
+
+
+@dataclass
+class PosteriorState:
+    """What is saved and loaded: the posterior and the sample it applies from."""
+
+    names: tuple[str, ...]
+    theta: np.ndarray
+    P: np.ndarray
+    applies_from_seq: int | None = None
+    t: float | None = None
+
+    def to_dict(self) -> dict:
+        return {"format": "rsra-posterior", "version": 1, "names": list(self.names),
+                "theta": self.theta.tolist(), "P": self.P.tolist(),
+                "applies_from_seq": self.applies_from_seq, "t": self.t}
+
+
+class PosteriorFileError(ValueError):
+    """A posterior file that cannot be used, with the reason and what to do."""
+
+    def __init__(self, path: str | Path, problem: str) -> None:
+        self.path, self.problem = str(path), problem
+        super().__init__(f"posterior file {path}: {problem} — delete it or pass a valid file "
+                         "(it is written by the service after an accepted identification run)")
+
+
+def save_posterior(path: str | Path, state: PosteriorState) -> None:
+    """Write atomically: a temporary file in the same directory, fsync, rename."""
+    path = Path(path)
+    text = json.dumps(_finite_or_none(state.to_dict()), allow_nan=False, indent=1)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    try:  # make the rename durable
+        dfd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+    except OSError:
+        pass
+
+
+def load_posterior(path: str | Path, names: Sequence[str] | None = None) -> PosteriorState:
+    """Read and check a saved posterior; a corrupt or mismatched file raises
+    :class:`PosteriorFileError`."""
+    path = Path(path)
+    try:
+        raw = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise PosteriorFileError(path, "no such file") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise PosteriorFileError(path, f"not readable JSON ({exc})") from None
+    if not isinstance(raw, dict) or raw.get("format") != "rsra-posterior":
+        raise PosteriorFileError(path, 'not a posterior (missing "format": "rsra-posterior")')
+    if raw.get("version") != 1:
+        raise PosteriorFileError(path, f"unsupported version {raw.get('version')!r}")
+    try:
+        fnames = tuple(str(n) for n in raw["names"])
+        theta = np.asarray(raw["theta"], dtype=float)
+        P = np.asarray(raw["P"], dtype=float)
+        afs = raw.get("applies_from_seq")
+        t = raw.get("t")
+    except (KeyError, TypeError, ValueError) as exc:
+        raise PosteriorFileError(path, f"missing or malformed field ({exc})") from None
+    p = len(fnames)
+    if theta.shape != (p,) or P.shape != (p, p):
+        raise PosteriorFileError(path, f"shapes {theta.shape} and {P.shape} do not match "
+                                 f"{p} names")
+    if not (np.all(np.isfinite(theta)) and np.all(np.isfinite(P))):
+        raise PosteriorFileError(path, "non-finite numbers")
+    if not np.allclose(P, P.T, rtol=1e-9, atol=0.0):
+        raise PosteriorFileError(path, "covariance not symmetric")
+    try:
+        np.linalg.cholesky(P)
+    except np.linalg.LinAlgError:
+        raise PosteriorFileError(path, "covariance not positive definite") from None
+    if names is not None and tuple(names) != fnames:
+        raise PosteriorFileError(path, f"parameters {list(fnames)} differ from the configured "
+                                 f"{list(names)}")
+    if afs is not None and not isinstance(afs, int):
+        raise PosteriorFileError(path, "applies_from_seq must be an integer or null")
+    if t is not None and not isinstance(t, (int, float)):
+        raise PosteriorFileError(path, "t must be a number or null")
+    return PosteriorState(fnames, theta, P, afs, None if t is None else float(t))
+
+
+def information_ratio(prior_cov: np.ndarray, M: np.ndarray) -> float:
+    """Largest eigenvalue of P_p^{1/2} M P_p^{1/2} (data information relative to the prior)."""
+    L = np.linalg.cholesky(prior_cov)
+    return float(np.linalg.eigvalsh(L.T @ M @ L)[-1])
+
+
+def consistency_gate(delta: np.ndarray, prior_cov: np.ndarray, post_cov: np.ndarray,
+                     probability: float = GATE_PROBABILITY) -> tuple[float, int, bool]:
+    """ν = Δθᵀ D⁺ Δθ over the eigen-directions of D = P_p − P_post whose eigenvalue exceeds
+    1e-6 of the largest; (ν, d, ν ≤ χ²_{d, probability})."""
+    D = prior_cov - post_cov
+    lam, V = np.linalg.eigh(0.5 * (D + D.T))
+    if lam[-1] <= 0:
+        return 0.0, 0, True
+    keep = lam > GATE_RELATIVE_EIGENVALUE * lam[-1]
+    proj = V[:, keep].T @ delta
+    nu = float(np.sum(proj**2 / lam[keep]))
+    d = int(keep.sum())
+    return nu, d, nu <= float(chi2.ppf(probability, d))
+
+
+def determined_directions(P: np.ndarray, sigma_max: np.ndarray) -> tuple[int, np.ndarray, float]:
+    """(number of eigen-directions of P, scaled by sigma_max, with σ ≤ sigma_max; the
+    undetermined directions (p, k) in parameter units; condition number of P⁻¹)."""
+    s = np.asarray(sigma_max, float)
+    lam, V = np.linalg.eigh((P / s[:, None]) / s[None, :])
+    det = lam <= 1.0
+    U = s[:, None] * V[:, ~det]
+    cond = float(lam[-1] / lam[0]) if lam[0] > 0 else math.inf
+    return int(det.sum()), U, cond
+
+
+class SequentialPosterior:
+    """The posterior (θ, P) of the periodic runs and the decisions of model §7."""
+
+    def __init__(
+        self,
+        names: Sequence[str],
+        theta0: np.ndarray,
+        sigma0: np.ndarray,
+        *,
+        drift_rate: np.ndarray | float,
+        min_information: float,
+        sigma_max: np.ndarray,
+        reset_after: int,
+        stale_fraction: float,
+        gate_probability: float = GATE_PROBABILITY,
+        gate_low_information: bool = True,
+    ) -> None:
+        self.names = tuple(names)
+        p = len(self.names)
+        self.theta = np.asarray(theta0, float).copy()
+        self.P0 = np.diag(np.broadcast_to(np.asarray(sigma0, float), (p,)) ** 2)
+        self.P = self.P0.copy()
+        self.drift = np.broadcast_to(np.asarray(drift_rate, float), (p,)).copy()
+        self.min_information = float(min_information)
+        self.sigma_max = np.broadcast_to(np.asarray(sigma_max, float), (p,)).copy()
+        self.reset_after = int(reset_after)
+        self.stale_fraction = float(stale_fraction)
+        self.gate_probability = float(gate_probability)
+        self.gate_low_information = bool(gate_low_information)
+        self.inconsistent_in_a_row = 0
+        self.applies_from_seq: int | None = None
+        self.t: float | None = None
+
+    @classmethod
+    def from_config(
+        cls,
+        ident: Any,
+        names: Sequence[str],
+        angle_names: Sequence[str],
+        *,
+        theta0: np.ndarray | None = None,
+        other_prior_sigma: Mapping[str, float] | None = None,
+    ) -> "SequentialPosterior":
+        """From ``RigConfig.identification``: angles get ``prior_sigma_rad``, drift
+        ``drift_rate_rad2_s`` and ``sigma_max_rad``; other parameters need their prior σ in
+        ``other_prior_sigma`` (no drift; determined at 0.04 × prior σ)."""
+        other_prior_sigma = dict(other_prior_sigma or {})
+        sig0, drift, smax = [], [], []
+        for n in names:
+            if n in angle_names:
+                sig0.append(ident.prior_sigma_rad)
+                drift.append(ident.drift_rate_rad2_s)
+                smax.append(ident.sigma_max_rad)
+            elif n in other_prior_sigma:
+                sig0.append(float(other_prior_sigma[n]))
+                drift.append(0.0)
+                smax.append(SIGMA_MAX_OTHER_FRACTION * float(other_prior_sigma[n]))
+            else:
+                raise ValueError(f"parameter {n!r} needs a prior sigma (other_prior_sigma)")
+        if theta0 is None:
+            theta0 = np.array([ident.initial_angles_rad[list(angle_names).index(n)]
+                               for n in names])
+        return cls(names, theta0, np.array(sig0), drift_rate=np.array(drift),
+                   min_information=ident.min_information, sigma_max=np.array(smax),
+                   reset_after=ident.reset_after, stale_fraction=ident.stale_fraction)
+
+    # ---------------------------------------------------------------------------------
+    def state(self) -> PosteriorState:
+        return PosteriorState(self.names, self.theta.copy(), self.P.copy(),
+                              self.applies_from_seq, self.t)
+
+    def restore(self, state: PosteriorState) -> None:
+        """Start from a saved posterior (``--angles``)."""
+        if tuple(state.names) != self.names:
+            raise ValueError(f"saved parameters {list(state.names)} differ from {list(self.names)}")
+        self.theta, self.P = state.theta.copy(), state.P.copy()
+        self.applies_from_seq, self.t = state.applies_from_seq, state.t
+        self.inconsistent_in_a_row = 0
+
+    def prior(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """The next run's prior: the posterior, its covariance inflated by q·Δt."""
+        return self.theta.copy(), self.P + np.diag(self.drift * max(float(dt), 0.0))
+
+    def _record(self, *, accepted: bool, reason: str | None, mode: str, content: str,
+                window: tuple[int, int], t: float | None, result: IdentificationResult | None,
+                information: float | None, nu: float | None, d: int, late: bool = False
+                ) -> AnglesRecord:
+        det, U, cond = determined_directions(self.P, self.sigma_max)
+        return AnglesRecord(
+            t=t, seq=int(window[1]), mode=mode, content=content, accepted=accepted,
+            reason=reason, names=self.names, alpha=self.theta.copy(), P=self.P.copy(),
+            sigma_cr=None if result is None else result.sigma_cr,
+            sigma_cr_corrected=None if result is None else result.sigma_cr_corrected,
+            determined=det, information=information, nu=nu,
+            cost=None if result is None else float(result.cost),
+            iterations=0 if result is None else int(result.iterations),
+            window=(int(window[0]), int(window[1])), applies_from_seq=self.applies_from_seq,
+            late=late, gate_dof=d, condition=cond,
+            run_theta=None if result is None else result.theta.copy(),
+            run_P=None if result is None else result.P.copy(),
+            status=None if result is None else result.status, undetermined=U,
+        )
+
+    def update(
+        self,
+        result: IdentificationResult | None,
+        *,
+        window: tuple[int, int],
+        mode: str,
+        content: str,
+        t: float | None = None,
+        missing_fraction: float = 0.0,
+        apply_delay_samples: int = 0,
+        arrived_seq: int | None = None,
+    ) -> AnglesRecord:
+        """Judge one run whose prior was :meth:`prior` (it is read from ``result``)."""
+        if mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}")
+        kw = dict(mode=mode, content=content, window=window, t=t)
+        if result is None or missing_fraction > self.stale_fraction:
+            return self._record(accepted=False, reason="stale_input", result=result,
+                                information=None, nu=None, d=0, **kw)
+        if tuple(result.names) != self.names:
+            raise ValueError("the run identified other parameters than this posterior holds")
+        if not result.sound:
+            reason = "not_converged" if result.status == "not_converged" else "diverged"
+            return self._record(accepted=False, reason=reason, result=result, information=None,
+                                nu=None, d=0, **kw)
+        P_p = result.prior_cov
+        info = information_ratio(P_p, result.information)
+        low = info < self.min_information
+        if low and not self.gate_low_information:
+            return self._record(accepted=False, reason="not_identifiable", result=result,
+                                information=info, nu=None, d=0, **kw)
+        nu, d, ok = consistency_gate(result.theta - result.prior_mean, P_p, result.P,
+                                     self.gate_probability)
+        if not ok:
+            self.inconsistent_in_a_row += 1
+            if self.inconsistent_in_a_row >= self.reset_after:
+                # a real change: reopen the covariance around the current mean
+                self.P = self.P0.copy()
+                self.inconsistent_in_a_row = 0
+                return self._record(accepted=False, reason="reset", result=result,
+                                    information=info, nu=nu, d=d, **kw)
+            return self._record(accepted=False, reason="inconsistent", result=result,
+                                information=info, nu=nu, d=d, **kw)
+        if low:
+            return self._record(accepted=False, reason="not_identifiable", result=result,
+                                information=info, nu=nu, d=d, **kw)
+        self.inconsistent_in_a_row = 0
+        self.theta, self.P = result.theta.copy(), result.P.copy()
+        planned = int(window[1]) + int(apply_delay_samples)
+        late = arrived_seq is not None and arrived_seq + 1 > planned
+        self.applies_from_seq = int(arrived_seq) + 1 if late else planned
+        self.t = t
+        return self._record(accepted=True, reason=ACCEPTED, result=result, information=info,
+                            nu=nu, d=d, late=late, **kw)
+
+
+@dataclass
+class PeriodicIdentification:
+    """Windows of content-filtered data → identification → posterior (model §7, periodic runs).
+
+    Known-load mode: ``run_window(z, T, H)``; filter-error mode: ``run_window(z, T)`` with the
+    calibration filter's ``Phi, K, J, Qd`` (``design``: any object with those attributes and
+    ``slowest_time_constant_s``). The filter-error state and its sensitivities continue from
+    window to window. After a discontinuity the first samples settle unscored: at the start
+    and after a gap (:meth:`mark_discontinuity`) the content filter's settling
+    (``content_settle_samples``, e.g. ``ContentFilter.settle_samples``) — in both modes: the
+    balance holds through the content filter's transient, but its start-up state carries one
+    sample's full (unfiltered) noise for a second or so, which the likelihood would count as
+    hundreds of independent samples (measured: χ² of 400 after one such window) — plus, in
+    filter-error mode, ``settle_time_constants × slowest τ`` of the calibration filter; after
+    new angles are applied (an accepted run) the calibration filter settles again.
+    """
+
+    model: RigModel
+    posterior: SequentialPosterior
+    mode: str
+    content: str
+    fs: float
+    moment_floor: float
+    max_iterations: int
+    apply_delay_samples: int
+    correlation_time_s: float  # τ: coloured-residual lags ≤ 5τ
+    settle_time_constants: float = 5.0
+    content_settle_samples: int = 0
+    gap_samples: int | None = None
+    design: Any = None
+    alpha_base: np.ndarray | None = None
+    filter_state: FilterErrorState | None = field(default=None, init=False)
+    _settle_pending: int = field(default=0, init=False)
+    _last_end: int | None = field(default=None, init=False)
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}")
+        if self.mode == "filter_error" and self.design is None:
+            raise ValueError("filter-error mode needs the calibration filter design")
+        self.par = Parameterisation(self.model, self.posterior.names, self.alpha_base,
+                                    moment_floor=self.moment_floor,
+                                    known_loads=self.mode == "known_loads")
+        self.mark_discontinuity()
+
+    @property
+    def filter_settle_samples(self) -> int:
+        if self.mode != "filter_error":
+            return 0
+        return int(math.ceil(self.settle_time_constants * self.design.slowest_time_constant_s
+                             * self.fs))
+
+    def mark_discontinuity(self) -> None:
+        """The start or a gap longer than the configured one: content filter and calibration
+        filter both settle at the start of the next window."""
+        self._settle_pending = int(self.content_settle_samples) + self.filter_settle_samples
+
+    def alpha(self) -> np.ndarray:
+        """The 14 angles of the current posterior."""
+        return self.par.alpha(self.posterior.theta)
+
+    def run_window(
+        self,
+        z: np.ndarray,
+        T: np.ndarray,
+        H: np.ndarray | None = None,
+        q: np.ndarray | None = None,
+        *,
+        seq0: int,
+        valid: np.ndarray | None = None,
+        t: float | None = None,
+        arrived_seq: int | None = None,
+    ) -> AnglesRecord:
+        N = len(T)
+        valid = np.ones(N, bool) if valid is None else np.asarray(valid, bool)
+        seq1 = seq0 + N - 1
+        dt = 0.0 if self._last_end is None else (seq1 - self._last_end) / self.fs
+        self._last_end = seq1
+        theta_p, P_p = self.posterior.prior(dt)
+        missing = 1.0 - float(valid.mean()) if N else 1.0
+        window = (seq0, seq1)
+        if missing > self.posterior.stale_fraction:
+            return self.posterior.update(None, window=window, mode=self.mode,
+                                         content=self.content, t=t, missing_fraction=missing)
+        max_lag = int(math.ceil(5.0 * self.correlation_time_s * self.fs))
+        gap = N + 1 if self.gap_samples is None else self.gap_samples
+        # a gap inside the window settles the content filter (and the calibration filter)
+        scored = valid & scored_mask(valid, int(self.content_settle_samples)
+                                     + self.filter_settle_samples, gap, False)
+        scored[: self._settle_pending] = False
+        if self.mode == "known_loads":
+            prob = KnownLoadProblem(self.par, z, T, H, q, scored=scored)
+        else:
+            prob = FilterErrorProblem(
+                self.par, self.design.Phi, self.design.K, self.design.J, self.design.Qd, z, T, q,
+                valid=valid, state=self.filter_state, discontinuity=False)
+            prob.scored &= scored
+            prob.n_scored = int(prob.scored.sum())
+        self._settle_pending = max(self._settle_pending - N, 0)
+        res = levenberg_marquardt(prob, theta_p, P_p, max_iterations=self.max_iterations,
+                                  max_lag=max_lag)
+        rec = self.posterior.update(res, window=window, mode=self.mode, content=self.content,
+                                    t=t, missing_fraction=missing,
+                                    apply_delay_samples=self.apply_delay_samples,
+                                    arrived_seq=arrived_seq)
+        if self.mode == "filter_error" and res.end_state is not None and res.status != "diverged":
+            self.filter_state = res.end_state
+        if rec.accepted:
+            # new angles applied: the calibration filter settles again
+            self._settle_pending = max(self._settle_pending, self.filter_settle_samples)
+        return rec
