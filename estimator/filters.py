@@ -491,8 +491,22 @@ class LoadFilter:
         self._run = 0
 
     def set_alpha(self, alpha: np.ndarray) -> None:
-        self._S = _wrench(self._cache.model.geometry, alpha)
-        self._build(self.state)
+        """New angles from the sample after this one on. The estimate moves at once to the
+        one the new angles give: with the last measured T, the static estimate changes by
+        R⁻¹ (S_old − S_new) T, and the random-walk states take that change. Left alone they
+        would see it as a step in the innovations and follow it with the filter's time
+        constant — a transient of several times the static bound under large loads."""
+        S_new = _wrench(self._cache.model.geometry, alpha)
+        x = self.state
+        d = self._design
+        lf = [i for i, (k, _c, _o) in enumerate(d.labels) if k == 0]
+        if lf:
+            T_last = self._buf[self._n + N_COMPONENTS:]
+            dH = np.linalg.solve(d.R, (self._S - S_new) @ T_last)
+            comps = [d.labels[i][1] for i in lf]
+            x[lf] += dH[comps]
+        self._S = S_new
+        self._build(x)
 
     def set_omega(self, omega: float | None) -> None:
         new = self._cache.design_for(omega, current=self._design)

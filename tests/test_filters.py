@@ -259,9 +259,8 @@ def test_set_alpha_rebuilds_the_wrench_matrix():
     lf = LoadFilter(_cache(), a1, INVALID_AFTER)
     for i in range(200):
         lf.step(T[i], z[i])
-    x = lf.state
     lf.set_alpha(a2)
-    np.testing.assert_array_equal(lf.state, x)
+    x = lf.state  # shifted on the random-walk states (see the test below), else unchanged
     got = np.array([lf.step(T[i], z[i]).H for i in range(200, 400)])
     ref = filter_batch(lf.design, wrench_matrix(MODEL.geometry, a2), T[200:], z[200:], x0=x).H
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9 * np.max(np.abs(ref)))
@@ -416,3 +415,34 @@ def test_stopped_configured_without_rotor_speed():
     assert r.flags == (ROTOR_STOPPED,)
     r = lf.step(np.zeros(7), np.zeros(6), measured=False)
     assert r.flags == (PREDICT_ONLY, ROTOR_STOPPED)
+
+
+def test_new_angles_move_the_estimate_at_once_without_a_transient(cfg, model):
+    """set_alpha: Ĥ jumps by exactly the static estimate's change, R⁻¹ (S_old − S_new) T, and
+    the innovations after it show no step (a filter left alone would ring for ~5 τ)."""
+    from estimator.balance import static_estimate
+    from estimator.filters import DesignCache, LoadFilter
+
+    cache = DesignCache(model, harmonics=(1, 5), dt=0.005, tuning="time_constant",
+                        time_constant_s=0.1, low_frequency=True, psd="auto",
+                        alpha=np.zeros(14), moment_floor=100.0, frame=None, omega_min=1.9,
+                        omega_default=19.4)
+    rng = np.random.default_rng(5)
+    T = rng.normal(0, 2e4, 7)
+    z = rng.normal(0, 1e3, 6)
+    a_new = np.radians(rng.uniform(-1, 1, 14))
+    f = LoadFilter(cache, np.zeros(14), 100)
+    for _ in range(400):
+        f.step(T, z)
+    H_before = f.design.C @ f.state
+    f.set_alpha(a_new)
+    H_after = f.design.C @ f.state
+    expected = (static_estimate(model, a_new, T[None], z[None])[0]
+                - static_estimate(model, np.zeros(14), T[None], z[None])[0])
+    assert np.abs(expected).max() > 100.0  # the change is large
+    np.testing.assert_allclose(H_after - H_before, expected, atol=1e-6 * np.abs(expected).max())
+    # the constant data are now explained by the new angles: no innovation step
+    r = f.step(T, z)
+    assert np.abs(r.e).max() < 1e-6 * np.abs(expected).max()
+    np.testing.assert_allclose(r.H, static_estimate(model, a_new, T[None], z[None])[0],
+                               rtol=1e-9, atol=1e-6)
