@@ -23,6 +23,7 @@ COMMANDS = {
     "angles": "angles",
     "report": "report",
     "sweep": "sweep",
+    "calibrate": "calibrate",
 }
 
 
