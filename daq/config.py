@@ -527,7 +527,8 @@ def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = No
         raise idt.error("parameters", params, "unknown value", 'use "angles" or a list of names')
     ia = idt.get("initial_angles_deg", 0.0)
     if isinstance(ia, (int, float)) and not isinstance(ia, bool):
-        init = np.full(14, math.radians(float(ia)))
+        # one value for all 14 (checked finite like every number: nan made S singular)
+        init = np.full(14, math.radians(idt.number("initial_angles_deg", 0.0)))
     else:
         init = np.radians(idt.vector("initial_angles_deg", 14, unit=" in degrees"))
     window = idt.number("window_s", 5.0, positive=True)
@@ -711,6 +712,17 @@ def _check_model(cfg: RigConfig) -> None:
                           f"S is singular at the starting angles (condition {sv[0] / max(sv[-1], 1e-300):.3g}): "
                           "the seven cells do not resist all six loads",
                           "check the cell positions and nominal axes", cfg.source)
+    names = model.geometry.angle_names
+    params = cfg.identification.parameters
+    if params != "angles":
+        bad = [n for n in params if n not in names]
+        if bad:
+            near = difflib.get_close_matches(bad[0], names, n=1)
+            hint = f' (did you mean "{near[0]}"?)' if near else ""
+            raise ConfigError("identification.parameters", bad[0],
+                              f"the service identifies load-cell angles only{hint}",
+                              "name angles such as delta_A, theta_A, …; calibrate geometry and "
+                              "masses off-line with `rsra calibrate --params`", cfg.source)
     R = hub_transfer_matrix(model.geometry)
     if abs(np.linalg.det(R)) < 1e-12:
         raise ConfigError("geometry", "hub_centre_m/shaft_tilt_deg", "R is not invertible",

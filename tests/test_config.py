@@ -57,6 +57,8 @@ def test_packaged_config_is_found_outside_the_repo(tmp_path):
     (lambda r: r["telemetry"].__setitem__("prefix", "rsra/*"), "telemetry.prefix", "Zenoh"),
     (lambda r: r["filter"].__setitem__("harmonics", [1, 1]), "filter.harmonics", "distinct"),
     (lambda r: r["inertial"].__setitem__("angular", "least_squares"), "inertial.angular", "non-collinear"),
+    (lambda r: r["identification"].__setitem__("parameters", ["delta_A", "hub_z"]),
+     "identification.parameters", "angles only"),
 ])
 def test_errors_name_key_value_and_fix(raw, mutate, key, words):
     e = bad(raw, mutate)

@@ -163,7 +163,7 @@ def run(args: argparse.Namespace) -> int:
         rep = write_report(cfg, report_jsonl, opts.truth if Path(opts.truth).exists() else None,
                            args.report, units=args.units)
         console.print(f"report written to {args.report}: "
-                      + ", ".join(p.name for p in getattr(rep, "files", [])))
+                      + ", ".join(p.name for p in rep.plots) + ", summary.md, summary.json")
     return 0
 
 

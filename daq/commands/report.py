@@ -20,7 +20,7 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
         "are skipped and the summary says so.")
     common_options(p)
     p.add_argument("results", metavar="RESULTS.jsonl",
-                   help="records written by `rsra replay --out` or `rsra run` (JSON lines)")
+                   help="records written by `rsra replay --out`, `rsra listen --json` or `rsra demo --report` (JSON lines)")
     p.add_argument("--truth", metavar="FILE.npz", default=None,
                    help="the simulator's truth file (rsra sim --truth): adds truth to the plots "
                    "and the errors to the summary; records are matched to truth samples by "

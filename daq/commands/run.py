@@ -97,6 +97,9 @@ def setup_logging(level: str, log_file: str | None) -> None:
     h.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
     root.addHandler(h)
     root.setLevel(level.upper())
+    # canopen logs every SDO step of a boot at INFO: keep that for --log-level debug
+    if level != "debug":
+        logging.getLogger("canopen").setLevel(logging.WARNING)
 
 
 def options_from_args(args: argparse.Namespace):
@@ -123,7 +126,7 @@ def run_service(cfg, opts, quiet: bool = False) -> int:
     from daq.cli import UsageError
     from daq.master import BootError
     from daq.recorder import RecordingError
-    from daq.service import Service
+    from daq.service import BusOpenError, Service
     from estimator.posterior import PosteriorFileError
     from sim_bus.faults import FaultSpecError
 
@@ -136,6 +139,8 @@ def run_service(cfg, opts, quiet: bool = False) -> int:
     except BootError as e:
         print(f"rsra: the nodes could not be started: {e}", file=sys.stderr)
         return 1
+    except BusOpenError as e:
+        raise UsageError(str(e)) from None
     except Exception as e:
         import zenoh
 

@@ -1,0 +1,450 @@
+"""The user documentation stays honest (docs/configuration.md, docs/cli.md, docs/telemetry.md).
+
+* every key of the packaged rig TOML, and every key the loader reads (traced through
+  `daq.config._Section.get` while loading configs that use every optional section, and every
+  literal key name in daq/config.py), is documented in its section of configuration.md;
+* every `rsra` command, and every option, positional argument and choice of its argparse
+  parser, appears in that command's section of cli.md;
+* every Zenoh key and every payload field the service publishes — found by running a short
+  lock-step service on the simulator, with a recording and an injected fault so that the
+  optional fields show — appears in that key's section of telemetry.md, and so does every
+  flag, rejection reason, mode, content and node state the code can produce;
+* the Python subscriber in telemetry.md is extracted and run, in another process, against a
+  live publisher; what it prints is checked against what was published.
+"""
+from __future__ import annotations
+
+import argparse
+import ast
+import copy
+import json
+import re
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+
+from daq.config import CONTENTS, ROLES, _Section, config_dir, load_config, parse_config
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = ROOT / "docs"
+
+
+def _read(name: str) -> str:
+    return (DOCS / name).read_text(encoding="utf-8")
+
+
+def section(text: str, heading: str) -> str:
+    """The body of the first Markdown heading whose title contains `heading`, up to the next
+    heading of the same or a higher level."""
+    lines = text.splitlines()
+    for i, line in enumerate(lines):
+        m = re.match(r"^(#+)\s+(.*)$", line)
+        if m and heading in m.group(2):
+            level = len(m.group(1))
+            body = []
+            for nxt in lines[i + 1:]:
+                m2 = re.match(r"^(#+)\s", nxt)
+                if m2 and len(m2.group(1)) <= level:
+                    break
+                body.append(nxt)
+            return "\n".join(body)
+    raise AssertionError(f"no heading containing {heading!r}")
+
+
+def code_names(text: str) -> set[str]:
+    """Everything written as `code` in a Markdown text."""
+    return set(re.findall(r"`([^`\n]+)`", text))
+
+
+# ------------------------------------------------------------------------------------------
+# configuration.md
+
+def _config_section(doc: str, table: str) -> str:
+    for h in (f"`[[{table}]]`", f"`[{table}]`"):
+        try:
+            return section(doc, h)
+        except AssertionError:
+            continue
+    raise AssertionError(f"configuration.md has no section for [{table}] or [[{table}]]")
+
+
+def _toml_keys(raw: dict) -> set[tuple[str, str]]:
+    """(table, key) of every key of a rig TOML; calibration entries as "<node>.<channel>"."""
+    out = set()
+    for table, value in raw.items():
+        items = value if isinstance(value, list) else [value]
+        for item in items:
+            assert isinstance(item, dict), table
+            for k, v in item.items():
+                if table == "calibration":
+                    out.add((table, '"<node>.<channel>"'))
+                    out.update((table, kk) for kk in v)
+                else:
+                    out.add((table, k))
+    return out
+
+
+def _full_raw() -> dict:
+    """The packaged rig with every optional section and every list form in use."""
+    raw = copy.deepcopy(load_config().raw)
+    raw["nodes"].append({"name": "drive", "role": "drive_load", "node_id": 0x51,
+                         "eds": "eds/drive_load.eds", "required": False})
+    raw["external_loads"] = [{"name": "drive_torque", "node": "drive", "sigma": 5.0,
+                              "wrench_per_unit": [0.0, 0.0, 0.0, 0.0, 0.0, 1.0]}]
+    raw["calibration"] = {"cell_A.force": {"gain": 1.001, "offset": 2.5}}
+    raw["filter"]["process_noise_psd"] = [1e6, 1e6, 1e6, 1e5, 1e5, 1e5]
+    raw["identification"]["initial_angles_deg"] = [0.5] * 14
+    raw["identification"]["parameters"] = ["delta_A", "theta_A"]
+    return raw
+
+
+def _traced_reads(raws: list[dict]) -> set[tuple[str, str]]:
+    """(table, key) of every key the loader reads — present in the file or defaulted."""
+    seen: list[tuple[str, str]] = []
+    original = _Section.get
+
+    def get(self, name, *a, **kw):
+        seen.append((self.path, name))
+        return original(self, name, *a, **kw)
+
+    _Section.get = get
+    try:
+        for raw in raws:
+            parse_config(copy.deepcopy(raw), base_dir=config_dir())
+    finally:
+        _Section.get = original
+    out = set()
+    for path, name in seen:
+        if path == "":
+            continue  # a top-level table name: checked as a section heading
+        table = re.sub(r"\[\d+\]$", "", path.split(".")[0])
+        if path == "calibration":
+            name = '"<node>.<channel>"'  # the entry itself
+        out.add((table, name))
+    return out
+
+
+def test_every_config_key_is_documented_in_its_section():
+    doc = _read("configuration.md")
+    packaged = load_config().raw
+    traced = _traced_reads([packaged, _full_raw()])
+    # the tracing sees every key the files hold (and the defaulted ones besides)
+    assert _toml_keys(packaged) | _toml_keys(_full_raw()) <= traced and len(traced) > 80
+    wanted = traced
+    missing = []
+    for table, key in sorted(wanted):
+        body = _config_section(doc, table)
+        if key not in code_names(body):
+            missing.append(f"[{table}] {key}")
+    assert not missing, "undocumented config keys: " + ", ".join(missing)
+
+
+def test_every_key_name_the_loader_knows_is_documented():
+    """Literal names passed to the typed readers in daq/config.py (also keys of code paths
+    the configs above do not take)."""
+    tree = ast.parse((ROOT / "daq" / "config.py").read_text(encoding="utf-8"))
+    readers = {"get", "number", "string", "boolean", "vector", "table", "tables"}
+    names = {node.args[0].value for node in ast.walk(tree)
+             if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+             and node.func.attr in readers and node.args
+             and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str)}
+    assert {"sample_rate_hz", "state_file", "zenoh_config"} <= names
+    documented = code_names(_read("configuration.md"))
+    tables = {n for n in names if f"[{n}]" in documented or f"[[{n}]]" in documented}
+    missing = sorted(n for n in names - tables if n not in documented)
+    assert not missing, f"config keys read in daq/config.py but not documented: {missing}"
+
+
+def test_config_doc_names_every_role_choice_and_channel():
+    doc = _read("configuration.md")
+    names = code_names(doc)
+    assert set(ROLES) <= {n.strip('"') for n in names}
+    assert {f'"{c}"' for c in CONTENTS} <= names
+    from daq.decoder import PROFILES
+
+    for role, profile in PROFILES.items():
+        for channel, scale in profile.values():
+            assert f"`{channel}`" in doc, (role, channel)
+    for eds in sorted((config_dir() / "eds").glob("*.eds")):
+        assert f"`{eds.name}`" in doc, eds.name
+
+
+# ------------------------------------------------------------------------------------------
+# cli.md
+
+def _subparsers(p: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    for a in p._actions:
+        if isinstance(a, argparse._SubParsersAction):
+            return dict(a.choices)
+    return {}
+
+
+def _mentions(text: str, word: str) -> bool:
+    return re.search(rf"(?<![\w-]){re.escape(word)}(?![\w-])", text) is not None
+
+
+def _check_parser(p: argparse.ArgumentParser, body: str, where: str, problems: list[str]) -> None:
+    for a in p._actions:
+        if isinstance(a, argparse._HelpAction):
+            continue
+        if isinstance(a, argparse._SubParsersAction):
+            for name, sub in a.choices.items():
+                if not _mentions(body, name):
+                    problems.append(f"{where} {name}")
+                _check_parser(sub, body, f"{where} {name}", problems)
+            continue
+        if a.option_strings:
+            for opt in a.option_strings:
+                if not _mentions(body, opt):
+                    problems.append(f"{where} {opt}")
+        else:
+            label = a.metavar or a.dest
+            if label not in body:
+                problems.append(f"{where} positional {label}")
+        for choice in a.choices or ():
+            if isinstance(a.choices, dict):
+                continue
+            if not _mentions(body, str(choice)):
+                problems.append(f"{where} {a.option_strings or a.dest} choice {choice}")
+
+
+def test_every_command_and_option_is_in_cli_md():
+    from daq.cli import COMMANDS, build_parser
+
+    doc = _read("cli.md")
+    commands = _subparsers(build_parser())
+    assert set(commands) == set(COMMANDS)
+    problems: list[str] = []
+    for name, sub in commands.items():
+        try:
+            body = section(doc, f"`rsra {name}")
+        except AssertionError:
+            problems.append(f"no section for rsra {name}")
+            continue
+        _check_parser(sub, body, f"rsra {name}", problems)
+    assert not problems, "missing from docs/cli.md: " + "; ".join(problems)
+
+
+def test_cli_md_exit_status_table_matches_the_code():
+    from daq.cli import main
+
+    body = section(_read("cli.md"), "Exit status")
+    rows = dict(re.findall(r"^\|\s*`(\d+)`\s*\|(.*)\|\s*$", body, re.MULTILINE))
+    assert {"0", "1", "2", "130"} <= set(rows)
+    assert "usage" in rows["2"] and "configuration" in rows["2"]
+    # a configuration error and a usage error are 2, as documented
+    assert main(["noise-budget", "--config", str(ROOT / "no-such-rig.toml")]) == 2
+    assert main(["run"]) == 2
+
+
+# ------------------------------------------------------------------------------------------
+# telemetry.md: what a short lock-step service really publishes
+
+@pytest.fixture(scope="module")
+def published(tmp_path_factory):
+    from daq.jsonout import dumps
+    from daq.service import Service, ServiceOptions
+
+    cfg = load_config()
+    rec = tmp_path_factory.mktemp("docs") / "rec"
+    # a recording (recording.* fields) and an over-range on cell A (EMCY, flags)
+    svc = Service(cfg, ServiceOptions(sim="ground-test", speed=None, duration=6, zenoh=False,
+                                      record=str(rec), faults="overrange:cell_A@2-2.2", seed=3))
+    records: list[tuple[str, dict]] = []
+    svc.add_sink(lambda k, p: records.append((k, json.loads(dumps(p)))))
+    svc.run()
+    return records
+
+
+MAPS = {("health", "nodes"): "<node>", ("channels", "status"): "<cell>"}
+
+
+def leaf_paths(key: str, obj: dict, prefix: str = "") -> set[str]:
+    """Dotted paths of every leaf field; name-keyed maps as <node>/<cell>, list items as []."""
+    out = set()
+    for k, v in obj.items():
+        p = f"{prefix}.{k}" if prefix else k
+        if (key, p) in MAPS:
+            for item in v.values():
+                q = f"{p}.{MAPS[(key, p)]}"
+                out |= leaf_paths(key, item, q) if isinstance(item, dict) and item else {q}
+        elif isinstance(v, dict) and v:
+            out |= leaf_paths(key, v, p)
+        elif isinstance(v, list) and v and all(isinstance(x, dict) for x in v):
+            for item in v:
+                out |= leaf_paths(key, item, f"{p}[]")
+        else:
+            out.add(p)
+    return out
+
+
+def test_the_run_published_every_key(published):
+    from daq.telemetry import HIGH_RATE_KEYS, LOW_RATE_KEYS
+
+    keys = {k for k, _ in published}
+    assert keys == set(HIGH_RATE_KEYS + LOW_RATE_KEYS)
+
+
+def test_every_key_and_payload_field_is_in_telemetry_md(published):
+    from daq.telemetry import STATE_KEYS
+
+    doc = _read("telemetry.md")
+    key_table = doc.split("\n## ")[0]  # the introduction, with its table of keys
+    problems = []
+    fields: dict[str, set[str]] = {}
+    for k, payload in published:
+        fields.setdefault(k, set()).update(leaf_paths(k, payload))
+    for k, paths in fields.items():
+        if f"`<prefix>/{k}`" not in key_table:
+            problems.append(f"key {k} not in the key table")
+        body = section(doc, f"`<prefix>/{k}`")
+        for p in sorted(paths):
+            if f"`{p}`" not in body:
+                problems.append(f"{k}: field {p}")
+    for k in [f"state/{s}" for s in STATE_KEYS] + ["alive"]:
+        if f"`<prefix>/{k}`" not in key_table:
+            problems.append(f"key {k} not in the key table")
+    state = section(doc, "`<prefix>/state/angles`")
+    assert all(f"`<prefix>/state/{s}`" in doc for s in STATE_KEYS)
+    assert "<removed>" in state
+    # the optional fields this run had: recording, EMCY history, the over-range flag
+    assert "recording.dir" in fields["health"] and "nodes.<node>.emcy[].code" in fields["health"]
+    flags = {f for _, p in published if _ == "hub_loads" for f in p["flags"]}
+    assert "overrange:A" in flags
+    assert not problems, "missing from docs/telemetry.md: " + "; ".join(problems)
+
+
+def test_every_flag_reason_mode_and_state_is_in_telemetry_md(published):
+    from daq.master import NMT_STATE_NAMES
+    from estimator.filters import INVALID, LOST_BEFORE, PREDICT_ONLY, ROTOR_STOPPED
+    from estimator.posterior import MODES, REASONS
+
+    doc = _read("telemetry.md")
+    hub = code_names(section(doc, "`<prefix>/hub_loads`"))
+    flags = {f for k, p in published if k == "hub_loads" for f in p["flags"]}
+    vocabulary = {PREDICT_ONLY, INVALID, LOST_BEFORE, ROTOR_STOPPED, "missing:<node>",
+                  "overrange:<cell>", "fault:<cell>"}
+    for f in flags:  # every flag seen belongs to the documented vocabulary
+        kind = f.split(":")[0]
+        assert f in vocabulary or any(v.startswith(kind + ":") for v in vocabulary), f
+    assert vocabulary <= hub
+    angles = section(doc, "`<prefix>/angles`")
+    for word in (*REASONS, *MODES, *CONTENTS):
+        assert _mentions(angles, word), word
+    health = section(doc, "`<prefix>/health`")
+    for state in (*NMT_STATE_NAMES.values(), "missing", "lost", "error"):
+        assert f"`{state}`" in health, state
+
+
+# ------------------------------------------------------------------------------------------
+# telemetry.md: the Python subscriber, run against a live publisher
+
+def _example() -> str:
+    body = section(_read("telemetry.md"), "A subscriber in Python")
+    m = re.search(r"```python\n(.*?)```", body, re.DOTALL)
+    assert m, "no python block"
+    return m.group(1)
+
+
+def test_the_python_subscriber_in_telemetry_md_runs_against_a_live_publisher(published):
+    import zenoh
+
+    from daq.telemetry import TelemetryPublisher, zenoh_config
+    from tests.helpers_net import free_tcp_port
+
+    cfg = load_config()
+    code = _example()
+    default_ep = "tcp/127.0.0.1:7447"
+    assert default_ep in code and cfg.telemetry.listen == (default_ep,)
+    assert f'"{cfg.telemetry.prefix}/hub_loads"' in code
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    code = code.replace(default_ep, ep)
+
+    hub = [p for k, p in published if k == "hub_loads"]
+    angles = next(p for k, p in published if k == "angles")
+    session = zenoh.open(zenoh_config(cfg.telemetry, listen=[ep]))
+    pub = TelemetryPublisher(session, cfg.telemetry.prefix, cfg.effective())
+    stop = threading.Event()
+    try:
+        pub.publish("angles", angles)  # state/angles has an answer for the late joiner
+        proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+
+        def feed() -> None:  # the recorded hub loads, seq counting on, until it is done
+            i = 0
+            while proc.poll() is None and not stop.is_set():
+                rec = dict(hub[i % len(hub)], seq=i)
+                pub.publish("hub_loads", rec)
+                i += 1
+                if i % 50 == 0:
+                    stop.wait(0.005)  # about 10k messages/s: a fast rig, not a flood
+
+        th = threading.Thread(target=feed, daemon=True)
+        th.start()
+        try:
+            out, err = proc.communicate(timeout=120)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+            stop.set()
+            th.join(timeout=10)
+    finally:
+        pub.close()
+        session.close()
+    assert proc.returncode == 0, err
+    lines = out.splitlines()
+    first = lines[0]
+    assert first.startswith("angles (rad): ")
+    shown = ast.literal_eval(first.split(": ", 1)[1])
+    assert shown == dict(zip(angles["names"], angles["alpha"]))
+    received, missed, seqs = 0, 0, []
+    for line in lines[1:]:
+        m = re.match(r"^missed (\d+) samples$", line)
+        if m:
+            missed += int(m.group(1))
+            continue
+        m = re.match(r"^(\d+) (\S+) Z = (-?\d+) N (\[.*\])$", line)
+        assert m, line
+        seq = int(m.group(1))
+        src = hub[seq % len(hub)]
+        assert float(m.group(2)) == src["t"]
+        assert int(m.group(3)) == round(src["H"][2])
+        assert ast.literal_eval(m.group(4)) == src["flags"]
+        seqs.append(seq)
+        received += 1
+    # every hub-load record of this run has H (no invalid stretch), so every message printed
+    assert all(h["H"] is not None for h in hub)
+    assert received == 2000
+    assert seqs == sorted(seqs) and received + missed == seqs[-1] - seqs[0] + 1
+
+
+# ------------------------------------------------------------------------------------------
+# links between the pages
+
+def _slug(heading: str) -> str:
+    """The anchor a Markdown renderer (GitHub) gives a heading."""
+    s = re.sub(r"[^\w\- ]", "", heading.strip().lower())
+    return s.replace(" ", "-")
+
+
+@pytest.mark.parametrize("page", ["user-guide.md", "configuration.md", "telemetry.md", "cli.md"])
+def test_relative_links_point_at_existing_pages_and_headings(page):
+    text = _read(page)
+    text = re.sub(r"```.*?```", "", text, flags=re.DOTALL)  # not inside code
+    broken = []
+    for target in re.findall(r"\]\(([^)\s]+)\)", text):
+        if re.match(r"^[a-z]+:", target):
+            continue  # an external address
+        file, _, anchor = target.partition("#")
+        path = DOCS / file if file else DOCS / page
+        if not path.is_file():
+            broken.append(target)
+            continue
+        if anchor:
+            headings = re.findall(r"^#+\s+(.*)$", path.read_text(encoding="utf-8"), re.MULTILINE)
+            if anchor not in {_slug(h) for h in headings}:
+                broken.append(target)
+    assert not broken, f"{page}: broken links {broken}"
