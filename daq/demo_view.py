@@ -106,8 +106,9 @@ def render(state: DemoState, title: str, units: str):
 
     u = axis_units(units)
     t = Table(title="hub loads (" + (hub or {}).get("frame", "body") + " axes)", expand=False)
-    for c in ("axis", "truth", "filter Ĥ", "static", "RMS error", "static σ"):
-        t.add_column(c, justify="left" if c == "axis" else "right")
+    for c in ("axis", "truth", "Ĥ", "static", "RMS err", "bound σ"):
+        t.add_column(c, justify="left" if c == "axis" else "right", no_wrap=True,
+                     min_width=7 if c == "axis" else 8)
 
     def conv(v):
         return None if v is None else to_units(np.asarray(v, float), units)
@@ -117,10 +118,11 @@ def render(state: DemoState, title: str, units: str):
     T = conv(tH)
     R = conv(rms)
     B = conv(state.static_bound)
+    g = "{:8.0f}"
     for i, ax in enumerate(AXES):
-        t.add_row(f"{ax} [{u[i]}]", _f(None if T is None else T[i]),
-                  _f(None if H is None else H[i]), _f(None if Hs is None else Hs[i]),
-                  _f(None if R is None else R[i]), _f(B[i]))
+        t.add_row(f"{ax} [{u[i]}]", _f(None if T is None else T[i], g),
+                  _f(None if H is None else H[i], g), _f(None if Hs is None else Hs[i], g),
+                  _f(None if R is None else R[i], g), _f(B[i], g))
     flags = (hub or {}).get("flags") or []
     flag_text = Text("flags: " + (", ".join(flags) if flags else "none"))
 

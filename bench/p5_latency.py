@@ -1,0 +1,222 @@
+"""P5 — end-to-end latency: SYNC → hub-load sample at a Zenoh subscriber in another process.
+
+The service runs as its own process exactly as a user starts it, in real time with the
+simulated aircraft on the virtual bus (``python -m daq run --sim ground-test --speed 1``:
+the service is the CANopen master and produces SYNC at 200 samples/s; the periodic
+identification runs in its own worker process). This benchmark process subscribes to
+``<prefix>/hub_loads`` over Zenoh (loopback TCP, scouting off) and takes, per sample,
+receive time − ``t`` (the service's acquisition time of the SYNC: the wall clock live, the
+same clock on one machine). The first ``WARMUP_S`` are not scored (start-up: boot, designs,
+worker); then 60 s are.
+
+Peer: the Zenoh hop itself — a publisher in another process sending a payload of the same
+size at the same rate with its send time — the floor of any such pipeline.
+
+Targets: p50 ≤ 1 ms, p99 ≤ 3 ms, zero deadline misses (a sample not received before the
+next SYNC, or not at all) in 60 s.
+"""
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+
+from bench.common import BLAS_ENV, arg_parser, ratio, writer_from_args
+
+BENCH = "p5_latency"
+WARMUP_S = 5.0
+SCORED_S = 60.0
+FLOOR_S = 10.0
+CONNECT_TIMEOUT_S = 60.0
+
+
+def free_tcp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_listening(port: int, proc: subprocess.Popen | None, timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc is not None and proc.poll() is not None:
+            raise RuntimeError(f"the process exited ({proc.returncode}) before listening")
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=0.2):
+                return
+        except OSError:
+            time.sleep(0.05)
+    raise RuntimeError(f"nothing listens on port {port} after {timeout} s")
+
+
+class Receiver:
+    """A Zenoh subscriber that stamps each message on arrival (parsing comes later)."""
+
+    def __init__(self, endpoint: str, key: str, capacity: int) -> None:
+        import zenoh
+
+        from daq.telemetry import viewer_config
+
+        self.stamps = np.zeros(capacity)
+        self.payloads: list[bytes] = []
+        self.capacity = capacity
+        self.n = 0
+        self.overflow = 0
+        self._lock = threading.Lock()
+        self.session = zenoh.open(viewer_config([endpoint]))
+        self.sub = self.session.declare_subscriber(key, self._on)
+
+    def _on(self, sample) -> None:
+        t = time.time()
+        with self._lock:
+            if self.n >= self.capacity:  # bounded: never grows past the expected count
+                self.overflow += 1
+                return
+            self.stamps[self.n] = t
+            self.payloads.append(sample.payload.to_bytes())
+            self.n += 1
+
+    def close(self) -> None:
+        self.sub.undeclare()
+        self.session.close()
+
+    def series(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(seq, t of the sample, latency s) of every message received."""
+        with self._lock:
+            recs = [json.loads(p) for p in self.payloads[: self.n]]
+            stamps = self.stamps[: self.n].copy()
+        seq = np.array([r["seq"] for r in recs], dtype=np.int64)
+        t = np.array([r["t"] for r in recs], float)
+        return seq, t, stamps - t
+
+
+def _floor_publisher(endpoint: str, key: str, n: int, period: float, size: int) -> None:
+    """Another process: publish n payloads of about ``size`` bytes, stamped at send time."""
+    import zenoh
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    with zenoh.open(conf) as s:
+        pub = s.declare_publisher(key)
+        time.sleep(1.0)  # the subscriber connects
+        pad = "x" * max(0, size - 60)
+        t_next = time.monotonic()
+        for k in range(n):
+            t_next += period
+            pub.put(json.dumps({"seq": k, "t": time.time(), "pad": pad}))
+            dt = t_next - time.monotonic()
+            if dt > 0:
+                time.sleep(dt)
+        time.sleep(0.5)
+        pub.undeclare()
+
+
+def measure_floor(n: int, period: float, size: int) -> np.ndarray:
+    import multiprocessing as mp
+
+    port = free_tcp_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    key = f"rsra-bench/floor/{os.getpid()}"
+    p = mp.get_context("spawn").Process(target=_floor_publisher, args=(ep, key, n, period, size))
+    p.start()
+    try:
+        wait_listening(port, None, CONNECT_TIMEOUT_S)
+        rx = Receiver(ep, key, n + 10)
+        try:
+            p.join(timeout=n * period + 60)
+        finally:
+            rx.close()
+    finally:
+        if p.is_alive():
+            p.terminate()
+            p.join(5)
+    _, _, lat = rx.series()
+    return lat
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = arg_parser(__doc__.splitlines()[0]).parse_args(argv)
+    w = writer_from_args(BENCH, args)
+    from daq.config import load_config
+    cfg = load_config()
+    warmup, scored = (1.0, 1.0) if args.tiny else (WARMUP_S, SCORED_S)
+    fs, dt = cfg.sample_rate_hz, cfg.sample_period_s
+    port = free_tcp_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    duration = warmup + scored + 1.0
+    cmd = [sys.executable, "-m", "daq", "run", "--sim", "ground-test", "--speed", "1",
+           "--seed", "1", "--duration", f"{duration:g}", "--zenoh-listen", ep,
+           "--log-level", "warning"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, **BLAS_ENV})
+    rx = None
+    try:
+        wait_listening(port, proc, CONNECT_TIMEOUT_S)
+        rx = Receiver(ep, f"{cfg.telemetry.prefix}/hub_loads", int((duration + 30) * fs))
+        out, err = proc.communicate(timeout=duration + 120)
+    finally:
+        if proc.poll() is None:
+            proc.terminate()
+            proc.communicate(timeout=30)
+        if rx is not None:
+            rx.close()
+    if proc.returncode != 0:
+        raise RuntimeError(f"the service failed ({proc.returncode}): {err[-2000:]}")
+    summary = {}
+    for line in out.splitlines():
+        if line.startswith('{"summary"'):
+            summary = json.loads(line)["summary"]
+    seq, t, lat = rx.series()
+    if len(seq) == 0:
+        raise RuntimeError("the subscriber received nothing")
+    # scored: from warm-up on, every sample of `scored` seconds of acquisition time
+    t0 = t.min()
+    order = np.argsort(seq)
+    seq, t, lat = seq[order], t[order], lat[order]
+    k0 = int(np.searchsorted(t, t0 + warmup))
+    if k0 >= len(seq):
+        raise RuntimeError(f"only {len(seq)} samples received, none after the warm-up")
+    s0 = int(seq[k0])
+    n_expected = round(scored * fs)
+    sel = (seq >= s0) & (seq < s0 + n_expected)
+    lat_s, got = lat[sel] * 1e3, int(sel.sum())
+    missing = n_expected - got
+    late = int((lat_s > dt * 1e3).sum())
+    p50, p99 = float(np.percentile(lat_s, 50)), float(np.percentile(lat_s, 99))
+    payload_bytes = int(np.median([len(p) for p in rx.payloads[:200]]))
+    floor = measure_floor(int((0.5 if args.tiny else FLOOR_S) * fs), dt, payload_bytes) * 1e3
+    f50 = float(np.percentile(floor, 50)) if len(floor) else None
+    f99 = float(np.percentile(floor, 99)) if len(floor) else None
+    common = {"scenario": "ground-test", "sample_rate_hz": fs, "warmup_s": warmup, "scored_s": scored,
+                  "scored_samples": got, "expected_samples": n_expected, "missing": missing,
+                  "late": late, "max_ms": float(lat_s.max()), "p90_ms": float(np.percentile(lat_s, 90)),
+                  "p999_ms": float(np.percentile(lat_s, 99.9)), "payload_bytes": payload_bytes,
+                  "floor_p50_ms": f50, "floor_p99_ms": f99, "floor_samples": len(floor),
+                  "service_summary": {k: summary.get(k) for k in (
+                      "samples", "lost", "deadline_misses", "latency_ms",
+                      "identification_runs", "accepted", "rejected")},
+                  "identification": "own worker process (the service's default)",
+                  "command": " ".join(cmd[1:])}
+    w.add("p50", p50, "ms", peer="Zenoh hop, another process, same payload size and rate (p50)",
+          peer_figure=f50, ratio_value=ratio(f50, p50), ratio_is="peer/figure",
+          target="p50 ≤ 1 ms", met=p50 <= 1.0, **common)
+    w.add("p99", p99, "ms", peer="Zenoh hop (p99)", peer_figure=f99,
+          ratio_value=ratio(f99, p99), ratio_is="peer/figure", target="p99 ≤ 3 ms",
+          met=p99 <= 3.0, **common)
+    misses = missing + late
+    w.add("deadline_misses", float(misses), f"samples in {scored:g} s (late or missing)",
+          target="0 deadline misses (received before the next SYNC) in 60 s",
+          met=misses == 0, **common)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
