@@ -118,7 +118,7 @@ def _default(od: canopen.ObjectDictionary, index: int, sub: int | None = None) -
     try:
         obj = od[index]
         var = obj if sub is None else obj[sub]
-    except KeyError:
+    except (KeyError, TypeError):  # TypeError: a sub-index of a plain variable (bad EDS)
         return None
     if not isinstance(var, ODVariable):
         return None
@@ -141,7 +141,7 @@ def _mapping_struct(node: str, role: str, od: canopen.ObjectDictionary, n: int,
             continue
         try:
             var = od[index][sub] if sub or not isinstance(od[index], ODVariable) else od[index]
-        except KeyError:
+        except (KeyError, TypeError):  # TypeError: a sub-index of a plain variable
             raise ConfigError(f"eds[{node}] 0x{TPDO_MAP + n - 1:04X}", f"0x{e:08X}",
                               f"maps object 0x{index:04X}:{sub} that the EDS does not define",
                               "fix the mapping or add the object to the EDS") from None
@@ -170,95 +170,105 @@ class DecodeTable:
         tpdos: dict[int, TpdoLayout] = {}
         bit = 1
         used_cal: set[str] = set()
-        for ni, nc in enumerate(cfg.nodes):
-            try:
-                od = canopen.import_od(str(nc.eds), nc.node_id)
-            except Exception as e:  # canopen raises assorted errors on a bad EDS
-                raise ConfigError(f"nodes[{ni}].eds", str(nc.eds), f"cannot be read ({e})",
-                                  "give a valid CiA 306 EDS file") from None
-            profile = PROFILES[nc.role]
-            node_start = len(channels)
-            node_tpdos = []
-            node_mask = 0
-            for n in range(1, MAX_TPDOS + 1):
-                if TPDO_COMM + n - 1 not in od:
-                    continue
-                cob = _default(od, TPDO_COMM + n - 1, 1)
-                if cob is None:
-                    continue
-                if cob & COB_INVALID:
-                    continue  # PDO disabled by default: not part of the samples
-                if cob & COB_EXTENDED:
-                    raise ConfigError(f"eds[{nc.name}] 0x{TPDO_COMM + n - 1:04X}:1", hex(cob),
-                                      "29-bit COB-IDs are not used on this bus",
-                                      "use an 11-bit COB-ID")
-                ttype = _default(od, TPDO_COMM + n - 1, 2)
-                if ttype != 1:
-                    raise ConfigError(f"eds[{nc.name}] 0x{TPDO_COMM + n - 1:04X}:2", ttype,
-                                      "samples are assembled per SYNC (bus.md): every TPDO must "
-                                      "have transmission type 1", "set the default to 1")
-                count = _default(od, TPDO_MAP + n - 1, 0) or 0
-                entries = [_default(od, TPDO_MAP + n - 1, s) or 0 for s in range(1, count + 1)]
-                fmt, values = _mapping_struct(nc.name, nc.role, od, n, entries)
-                st = struct.Struct(fmt)
-                if st.size > 8:
-                    raise ConfigError(f"eds[{nc.name}] 0x{TPDO_MAP + n - 1:04X}", fmt,
-                                      f"maps {st.size} bytes, a classic CAN frame carries 8",
-                                      "split the mapping over two TPDOs")
-                start = len(channels)
-                for index, sub, dtype in values:
-                    name, scale = profile.get((index, sub), (f"0x{index:04X}_{sub}", 1.0))
-                    key = f"{nc.name}.{name}"
-                    gain, offset = cfg.calibration.get(key, (1.0, 0.0))
-                    wrap = None
-                    if scale is None:
-                        if key in cfg.calibration:
-                            raise ConfigError(f"calibration.{key}", cfg.calibration[key],
-                                              "a status byte is a bit field, not a measurement",
-                                              "remove the entry")
-                        scale_f = 1.0
-                    elif scale == TURN:
-                        if dtype not in _UNSIGNED:
-                            raise ConfigError(f"eds[{nc.name}] 0x{index:04X}:{sub}", hex(dtype),
-                                              "an angle spanning one turn must be unsigned",
-                                              "map an UNSIGNED8/16/32 object")
-                        bits = 8 * struct.calcsize("<" + _STRUCT_CODE[dtype])
-                        scale_f = 2.0 * math.pi / 2.0**bits
-                        wrap = 2.0 * math.pi
-                    else:
-                        scale_f = float(scale)
-                    used_cal.add(key)
-                    channels.append(Channel(key=key, node=nc.name, name=name, index=index,
-                                            subindex=sub, scale=scale_f, gain=float(gain),
-                                            offset=float(offset), is_status=scale is None,
-                                            wrap=wrap))
-                cob11 = cob & COB_MASK_11BIT
-                if cob11 in tpdos:
-                    other = tpdos[cob11]
-                    raise ConfigError(f"nodes[{ni}]", nc.name,
-                                      f"TPDO{n} COB-ID 0x{cob11:03X} already used by "
-                                      f"{other.node} TPDO{other.number}",
-                                      "give every node its own node id / COB-IDs")
-                lay = TpdoLayout(node=nc.name, node_index=ni, number=n, cob_id=cob11,
-                                 transmission_type=ttype, mapping=tuple(entries), struct=st,
-                                 codes="".join(_STRUCT_CODE[d] for _, _, d in values),
-                                 length=st.size, start=start, stop=len(channels), bit=bit)
-                tpdos[cob11] = lay
-                node_tpdos.append(lay)
-                node_mask |= bit
-                bit <<= 1
-            names = {c.name for c in channels[node_start:]}
-            for need in REQUIRED_CHANNELS[nc.role]:
-                if need not in names:
-                    raise ConfigError(f"nodes[{ni}].eds", str(nc.eds),
-                                      f"no TPDO maps the {nc.role} channel {need!r}",
-                                      "use the EDS of the role's device profile (bus.md)")
-            identity = {s: _default(od, 0x1018, s) for s in (1, 2, 3, 4)}
-            nodes.append(NodeLayout(
-                name=nc.name, role=nc.role, node_id=nc.node_id, required=nc.required,
-                eds=Path(nc.eds), od=od, tpdos=tuple(node_tpdos), start=node_start,
-                stop=len(channels), mask=node_mask, device_type=_default(od, 0x1000) or 0,
-                identity={k: v for k, v in identity.items() if v is not None}))
+        ni = 0
+        try:
+            for ni, nc in enumerate(cfg.nodes):
+                try:
+                    od = canopen.import_od(str(nc.eds), nc.node_id)
+                except Exception as e:  # canopen raises assorted errors on a bad EDS
+                    why = " ".join(str(e).split())  # one line: configparser's text spans several
+                    raise ConfigError(f"nodes[{ni}].eds", str(nc.eds), f"cannot be read ({why})",
+                                      "give a valid CiA 306 EDS file") from None
+                profile = PROFILES[nc.role]
+                node_start = len(channels)
+                node_tpdos = []
+                node_mask = 0
+                for n in range(1, MAX_TPDOS + 1):
+                    if TPDO_COMM + n - 1 not in od:
+                        continue
+                    cob = _default(od, TPDO_COMM + n - 1, 1)
+                    if cob is None:
+                        continue
+                    if cob & COB_INVALID:
+                        continue  # PDO disabled by default: not part of the samples
+                    if cob & COB_EXTENDED:
+                        raise ConfigError(f"eds[{nc.name}] 0x{TPDO_COMM + n - 1:04X}:1", hex(cob),
+                                          "29-bit COB-IDs are not used on this bus",
+                                          "use an 11-bit COB-ID")
+                    ttype = _default(od, TPDO_COMM + n - 1, 2)
+                    if ttype != 1:
+                        raise ConfigError(f"eds[{nc.name}] 0x{TPDO_COMM + n - 1:04X}:2", ttype,
+                                          "samples are assembled per SYNC (bus.md): every TPDO must "
+                                          "have transmission type 1", "set the default to 1")
+                    count = _default(od, TPDO_MAP + n - 1, 0) or 0
+                    entries = [_default(od, TPDO_MAP + n - 1, s) or 0 for s in range(1, count + 1)]
+                    fmt, values = _mapping_struct(nc.name, nc.role, od, n, entries)
+                    st = struct.Struct(fmt)
+                    if st.size > 8:
+                        raise ConfigError(f"eds[{nc.name}] 0x{TPDO_MAP + n - 1:04X}", fmt,
+                                          f"maps {st.size} bytes, a classic CAN frame carries 8",
+                                          "split the mapping over two TPDOs")
+                    start = len(channels)
+                    for index, sub, dtype in values:
+                        name, scale = profile.get((index, sub), (f"0x{index:04X}_{sub}", 1.0))
+                        key = f"{nc.name}.{name}"
+                        gain, offset = cfg.calibration.get(key, (1.0, 0.0))
+                        wrap = None
+                        if scale is None:
+                            if key in cfg.calibration:
+                                raise ConfigError(f"calibration.{key}", cfg.calibration[key],
+                                                  "a status byte is a bit field, not a measurement",
+                                                  "remove the entry")
+                            scale_f = 1.0
+                        elif scale == TURN:
+                            if dtype not in _UNSIGNED:
+                                raise ConfigError(f"eds[{nc.name}] 0x{index:04X}:{sub}", hex(dtype),
+                                                  "an angle spanning one turn must be unsigned",
+                                                  "map an UNSIGNED8/16/32 object")
+                            bits = 8 * struct.calcsize("<" + _STRUCT_CODE[dtype])
+                            scale_f = 2.0 * math.pi / 2.0**bits
+                            wrap = 2.0 * math.pi
+                        else:
+                            scale_f = float(scale)
+                        used_cal.add(key)
+                        channels.append(Channel(key=key, node=nc.name, name=name, index=index,
+                                                subindex=sub, scale=scale_f, gain=float(gain),
+                                                offset=float(offset), is_status=scale is None,
+                                                wrap=wrap))
+                    cob11 = cob & COB_MASK_11BIT
+                    if cob11 in tpdos:
+                        other = tpdos[cob11]
+                        raise ConfigError(f"nodes[{ni}]", nc.name,
+                                          f"TPDO{n} COB-ID 0x{cob11:03X} already used by "
+                                          f"{other.node} TPDO{other.number}",
+                                          "give every node its own node id / COB-IDs")
+                    lay = TpdoLayout(node=nc.name, node_index=ni, number=n, cob_id=cob11,
+                                     transmission_type=ttype, mapping=tuple(entries), struct=st,
+                                     codes="".join(_STRUCT_CODE[d] for _, _, d in values),
+                                     length=st.size, start=start, stop=len(channels), bit=bit)
+                    tpdos[cob11] = lay
+                    node_tpdos.append(lay)
+                    node_mask |= bit
+                    bit <<= 1
+                names = {c.name for c in channels[node_start:]}
+                for need in REQUIRED_CHANNELS[nc.role]:
+                    if need not in names:
+                        raise ConfigError(f"nodes[{ni}].eds", str(nc.eds),
+                                          f"no TPDO maps the {nc.role} channel {need!r}",
+                                          "use the EDS of the role's device profile (bus.md)")
+                identity = {s: _default(od, 0x1018, s) for s in (1, 2, 3, 4)}
+                nodes.append(NodeLayout(
+                    name=nc.name, role=nc.role, node_id=nc.node_id, required=nc.required,
+                    eds=Path(nc.eds), od=od, tpdos=tuple(node_tpdos), start=node_start,
+                    stop=len(channels), mask=node_mask, device_type=_default(od, 0x1000) or 0,
+                    identity={k: v for k, v in identity.items() if v is not None}))
+        except ConfigError:
+            raise
+        except Exception as e:  # anything else a damaged EDS provokes: name the file
+            nc = cfg.nodes[ni]
+            why = " ".join(f"{type(e).__name__}: {e}".split())
+            raise ConfigError(f"nodes[{ni}].eds", str(nc.eds), f"cannot be used ({why})",
+                              "give a valid CiA 306 EDS file") from None
         for key in cfg.calibration:
             if key not in used_cal:
                 raise ConfigError(f"calibration.{key}", cfg.calibration[key],

@@ -8,8 +8,8 @@ that feeds the recorded `angles` records through `deliver()` reproduces a live r
 """
 from __future__ import annotations
 
+import logging
 import math
-from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -20,6 +20,7 @@ from estimator.content import ContentFilter
 from estimator.filters import DesignCache, LoadFilter
 from estimator.geometry import hub_transfer_matrix, wrench_matrix
 
+log = logging.getLogger("rsra.pipeline")
 
 PREFILL_BAND = 0.02  # the rotor-speed band designed at start-up (flight: +-2 %)
 
@@ -112,6 +113,13 @@ class EstimatorPipeline:
         self.next_job_id = 0
         self.last_angles: dict | None = None
         self.samples_processed = 0
+        # a rotor speed whose highest modelled harmonic is at or above Nyquist cannot be
+        # designed for (and no rotor gives one): such a reading is not used (model §5)
+        self.omega_max = math.pi * self.fs / max(cfg.filter.harmonics)
+        self.implausible_omega = 0  # readings refused (counted in health)
+        self._last_seq: int | None = None
+        self._omega: float | None = None  # this sample's usable rotor speed
+        self.design_errors = 0  # redesigns that failed: the current design was kept
 
     # --- identification results -------------------------------------------------------
     def deliver(self, record: dict, arrival_seq: int | None = None) -> None:
@@ -182,14 +190,38 @@ class EstimatorPipeline:
         if measured:
             H_static = self._Rinv @ (z - self._S @ T)
         omega = s.omega if s.omega is not None and math.isfinite(s.omega) else None
-        self.load_filter.set_omega(omega)
+        refused = omega is not None and not abs(omega) < self.omega_max
+        if refused:
+            # a corrupt or impossible reading (e.g. 1e12 rad/s): no redesign for it — the
+            # design would fail or take the estimator thread for tens of ms — and no value
+            self.implausible_omega += 1
+            omega = None
+            node = f"missing:{self.cfg.rotor.node}"
+            if node not in flags:
+                flags.append(node)
+        else:
+            try:
+                self.load_filter.set_omega(omega)
+            except (ValueError, np.linalg.LinAlgError) as e:  # keep the current design
+                self.design_errors += 1
+                if self.design_errors == 1:
+                    log.error("filter redesign at omega=%r failed (%s); the current design "
+                              "is kept", omega, e)
+        self._omega = omega
+        # samples lost before this one: SYNCs lost on the bus (lost_before), and samples
+        # dropped after assembly (a full queue live, counted in health) — both keep their seq,
+        # so the gap says how far to predict (model §6: Φ^k)
+        lost = int(s.lost_before)
+        if self._last_seq is not None and seq - self._last_seq - 1 > lost:
+            lost = seq - self._last_seq - 1
+        self._last_seq = seq
         res = self.load_filter.step(T if measured else np.zeros(7), z if measured else np.zeros(6),
-                                    measured=measured, lost=int(s.lost_before))
+                                    measured=measured, lost=lost)
         for fl in res.flags:
             if fl not in flags:
                 flags.append(fl)
         omega_pub = omega if omega is not None else (
-            None if self.cfg.rotor.stopped else self.cfg.rotor.omega_nominal_rad_s)
+            None if self.cfg.rotor.stopped or refused else self.cfg.rotor.omega_nominal_rad_s)
         out.records.append(("hub_loads", {
             "seq": seq, "sync": int(s.sync), "t": float(s.t), "frame": self.frame,
             "H": None if res.H is None else res.H, "H_static": H_static, "omega": omega_pub,
@@ -221,7 +253,7 @@ class EstimatorPipeline:
         fresh = self.last_known_seq is not None and seq - self.last_known_seq < self.fs * 0.5
         mode = "known_loads" if fresh else "filter_error"
         y = yk if mode == "known_loads" else yf
-        omega = s.omega if s.omega is not None else self.cfg.rotor.omega_nominal_rad_s
+        omega = self._omega if self._omega is not None else self.cfg.rotor.omega_nominal_rad_s
         self.buffer.add(seq, s.t, y[:7], y[7:13], y[13:], measured, known, omega)
         since = seq - self.first_seq + 1
         if since < self.period_n or since % self.period_n != 0:

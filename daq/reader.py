@@ -223,8 +223,11 @@ class Reader:
         self.health_period_s = 1.0
         self._next_health = math.inf
         self.last_health: dict | None = None
+        # --record DIR is taken as given (and must be new); recording.dir in the config is a
+        # parent folder: every run records into its own time-stamped subfolder
         self.record_dir = Path(record) if record else (
-            Path(cfg.recording.dir) if cfg.recording.dir and not offline else None)
+            Path(cfg.recording.dir) / time.strftime("%Y%m%d-%H%M%S")
+            if cfg.recording.dir and not offline else None)
         self.record_format = record_format
         self.recorder: Recorder | None = None
         self.master: CanopenMaster | None = None
@@ -285,7 +288,10 @@ class Reader:
             listeners: list[can.Listener] = [
                 _LockedTap(self.tap) if self.wall_clock else self.tap]
             if self.record_dir is not None:
-                self.recorder = Recorder(self.record_dir, self.cfg, fmt=self.record_format)
+                # live: a writer thread behind a bounded queue (a slow disk never stalls
+                # the bus thread); lock-step: inline (nothing runs in real time)
+                self.recorder = Recorder(self.record_dir, self.cfg, fmt=self.record_format,
+                                         threaded=self.wall_clock)
                 listeners.append(self.recorder)
             self.network.listeners = listeners
             if self.use_master:

@@ -14,12 +14,19 @@ The recorder is a :class:`can.Listener` on the bus thread. It flushes at least e
 ``flush_s`` of acquisition time (frame timestamps), so a crash loses at most that much. A
 total-size cap or a full disk stops the recording with a loud error in health while
 acquisition goes on. Nothing is ever deleted or overwritten.
+
+Live (``threaded=True``: the reader runs on the wall clock) the frames go through a bounded
+queue to a writer thread, so a slow or stalled disk never stalls the bus thread: when the
+queue is full a frame is not recorded, and counted (``dropped``, ``queue.overflow`` in
+health). In lock-step and replay (``threaded=False``) the frames are written inline: nothing
+runs in real time there, so a slow disk only slows the run and nothing is dropped.
 """
 from __future__ import annotations
 
 import json
 import logging
 import math
+import queue
 import re
 import shutil
 import threading
@@ -40,6 +47,8 @@ FORMATS = ("log", "blf", "asc")
 _ROTATED = re.compile(rf"^{FRAMES_STEM}_(\d+)\.(log|blf|asc|mf4)$")
 MB = 1_000_000
 CAP_CHECK_MASK = 0xFF  # check the size cap every 256 frames
+WRITER_QUEUE = 16384  # frames (≈ 6 s of the default bus at 200 samples/s; a few MB at most)
+WRITER_STOP_S = 10.0  # how long stop() waits for the writer thread to drain the queue
 
 
 class RecordingError(RuntimeError):
@@ -77,7 +86,8 @@ class Recorder(can.Listener):
 
     def __init__(self, folder: str | Path, cfg: RigConfig, fmt: str | None = None,
                  rotate_mb: float | None = None, cap_mb: float | None = None,
-                 flush_s: float | None = None):
+                 flush_s: float | None = None, threaded: bool = False,
+                 queue_size: int = WRITER_QUEUE):
         self.folder = Path(folder)
         self.fmt = (fmt or cfg.recording.format).lstrip(".")
         if self.fmt not in FORMATS:
@@ -105,6 +115,19 @@ class Recorder(can.Listener):
         base = self.folder / f"{FRAMES_STEM}.{self.fmt}"
         self._logger = can.SizedRotatingLogger(base_filename=base, max_bytes=self.rotate_bytes)
         self._logger.namer = self._name_rotated
+        self._size = 0  # bytes_written as of the writer's last check (health reads this live)
+        # live: a bounded queue to a writer thread (a slow disk must not stall the bus thread)
+        self.queue_size = int(queue_size)
+        self.overflow = 0  # frames not recorded because the writer queue was full
+        self.queued = 0  # frames handed to the writer thread
+        self.max_depth = 0
+        self._queue: queue.Queue | None = None
+        self._writer: threading.Thread | None = None
+        if threaded:
+            self._queue = queue.Queue(self.queue_size)
+            self._writer = threading.Thread(target=self._write_loop, name="rsra-recorder",
+                                            daemon=True)
+            self._writer.start()
 
     # -- files -------------------------------------------------------------------------------
     def _write_config(self, cfg: RigConfig) -> None:
@@ -132,17 +155,50 @@ class Recorder(can.Listener):
 
     # -- can.Listener --------------------------------------------------------------------------
     def on_message_received(self, msg: can.Message) -> None:
-        with self._io_lock:
-            self._record(msg)
+        q = self._queue
+        if q is None:
+            with self._io_lock:
+                self._record(msg)
+            return
+        if not self.active:
+            self.dropped += 1
+            return
+        try:
+            q.put_nowait(msg)
+        except queue.Full:  # the disk is behind: never wait on the bus thread
+            if not self.overflow:
+                log.error("recording: the disk is behind, writer queue full (%d frames); "
+                          "frames are being dropped (counted in health)", self.queue_size)
+            self.overflow += 1
+            self.dropped += 1
+            return
+        self.queued += 1
+        depth = q.qsize()
+        if depth > self.max_depth:
+            self.max_depth = depth
+
+    def _write_loop(self) -> None:
+        q = self._queue
+        while True:
+            item = q.get()
+            if item is None:
+                return
+            with self._io_lock:
+                if isinstance(item, float):  # an idle tick (acquisition time)
+                    self._tick(item)
+                else:
+                    self._record(item)
 
     def _record(self, msg: can.Message) -> None:
         if not self.active:
             self.dropped += 1
             return
+        written = False
         try:
             n_rot = len(self._rotated)
             self._logger.on_message_received(msg)
             self.frames += 1
+            written = True
             if len(self._rotated) != n_rot:
                 self._closed_bytes += sum(p.stat().st_size for p in self._rotated[n_rot:])
             t = msg.timestamp
@@ -151,25 +207,39 @@ class Recorder(can.Listener):
             elif t - self._last_flush >= self.flush_s:
                 self._last_flush = t
                 self.flush()
-            elif not self.frames & CAP_CHECK_MASK and self.bytes_written >= self.cap_bytes:
-                self.flush()  # between flushes too: the cap is overshot by a few kB at most
+            elif not self.frames & CAP_CHECK_MASK:
+                self._size = self.bytes_written
+                if self._size >= self.cap_bytes:
+                    self.flush()  # between flushes too: the cap is overshot by a few kB at most
         except OSError as e:  # full disk, removed medium, …
+            self.dropped += not written  # the frame in hand is not recorded either
             self._fail(f"recording stopped: {e.strerror or e} ({self.folder}); "
                        "acquisition goes on, frames are no longer recorded")
         except Exception as e:  # never let the recorder stop the bus thread
+            self.dropped += not written
             self._fail(f"recording stopped: {type(e).__name__}: {e}")
 
     def tick(self, now: float) -> None:
         """Live idle tick (acquisition clock): flush frames still buffered when the bus went
         quiet, so a crash loses at most ``flush_s`` of them."""
-        with self._io_lock:
-            if self.active and self._last_flush is not None and \
-                    now - self._last_flush >= self.flush_s:
-                self._last_flush = now
+        if self._queue is not None:  # the writer thread flushes (never wait on a slow disk)
+            if self._queue.empty():  # else it is busy: the tick after it drains will do
                 try:
-                    self.flush()
-                except OSError as e:
-                    self._fail(f"recording stopped: {e.strerror or e} ({self.folder})")
+                    self._queue.put_nowait(float(now))
+                except queue.Full:
+                    pass
+            return
+        with self._io_lock:
+            self._tick(now)
+
+    def _tick(self, now: float) -> None:
+        if self.active and self._last_flush is not None and \
+                now - self._last_flush >= self.flush_s:
+            self._last_flush = now
+            try:
+                self.flush()
+            except OSError as e:
+                self._fail(f"recording stopped: {e.strerror or e} ({self.folder})")
 
     def flush(self) -> None:
         """Push buffered frames to the OS; stop at the size cap."""
@@ -181,7 +251,7 @@ class Recorder(can.Listener):
         f = getattr(w, "file", None)
         if f is not None:
             f.flush()
-        total = self.bytes_written
+        total = self._size = self.bytes_written
         if total >= self.cap_bytes:
             self._fail(f"recording stopped at the size cap ({total / MB:.3g} MB >= "
                        f"{self.cap_bytes / MB:.3g} MB, recording.cap_mb); acquisition goes on")
@@ -205,6 +275,7 @@ class Recorder(can.Listener):
             self._closed_bytes += Path(self._logger.base_filename).stat().st_size
         except OSError:
             pass
+        self._size = self._closed_bytes
 
     def on_error(self, exc: Exception) -> None:  # bus errors are the reader's business
         pass
@@ -238,11 +309,33 @@ class Recorder(can.Listener):
 
     def status(self) -> dict:
         """The ``recording`` part of the health payload."""
-        return {"active": self.active, "dir": str(self.folder), "format": self.fmt,
-                "frames": self.frames, "bytes": self.bytes_written,
-                "files": len(self._rotated) + 1, "dropped": self.dropped, "error": self.error}
+        q = self._queue
+        # live: the size as of the writer's last check (the file belongs to the writer thread)
+        size = self._size if q is not None else self.bytes_written
+        out = {"active": self.active, "dir": str(self.folder), "format": self.fmt,
+               "frames": self.frames, "bytes": size, "files": len(self._rotated) + 1,
+               "dropped": self.dropped, "error": self.error}
+        if q is not None:
+            out["queue"] = {"depth": q.qsize(), "size": self.queue_size, "queued": self.queued,
+                            "max_depth": self.max_depth, "overflow": self.overflow}
+        return out
 
     def stop(self) -> None:
+        if self._writer is not None:
+            try:  # the frames still queued are written first
+                self._queue.put(None, timeout=WRITER_STOP_S)
+            except queue.Full:
+                pass
+            self._writer.join(WRITER_STOP_S)
+            if self._writer.is_alive():  # a stalled disk: leave it, do not hang the shutdown
+                self.error = self.error or (f"recording writer stalled at shutdown; "
+                                            f"{self._queue.qsize()} frames not written")
+                log.error("%s", self.error)
+                with self._lock:
+                    if not self._angles.closed:
+                        self._angles.close()
+                return
+            self._writer = None
         with self._io_lock:
             self._close_frames()
         with self._lock:

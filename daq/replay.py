@@ -15,6 +15,7 @@ decode tables never depend on having seen the boot.
 """
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
@@ -26,6 +27,7 @@ from daq.reader import HealthReport, Reader
 from daq.recorder import frame_files, recorded_config
 
 LOG_SUFFIXES = (".log", ".blf", ".asc", ".trc", ".csv", ".mf4")
+log = logging.getLogger(__name__)
 
 
 class ReplayError(ValueError):
@@ -53,9 +55,35 @@ def expand(paths: Sequence[str | Path]) -> list[Path]:
     return out
 
 
+class _CompleteLines:
+    """The lines of a text log that end with a newline: a crash (``kill -9``, power loss)
+    can leave the last line cut anywhere, and a cut candump line may even parse — as a
+    shorter, wrong frame. Only the final line can be cut (the writer appends whole lines)."""
+
+    def __init__(self, path: Path):
+        self.file = open(path, encoding="utf-8", errors="replace")
+        self.partial = 0  # cut lines dropped (0 or 1)
+
+    def __iter__(self) -> Iterator[str]:
+        for line in self.file:
+            if line.endswith("\n"):
+                yield line
+            else:
+                self.partial += 1
+                log.warning("%s: last line cut (a crash while recording?): dropped: %r",
+                            self.file.name, line[:80])
+
+    def close(self) -> None:
+        self.file.close()
+
+
 def read_frames(paths: Sequence[str | Path]) -> Iterator[can.Message]:
     """Every frame of the recordings, in order (python-can LogReader per file)."""
     for f in expand(paths):
+        if f.suffix.lower() == ".log":
+            with can.CanutilsLogReader(_CompleteLines(f)) as reader:
+                yield from reader
+            continue
         with can.LogReader(f) as reader:
             yield from reader
 

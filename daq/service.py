@@ -42,7 +42,17 @@ from daq.pipeline import EstimatorPipeline
 log = logging.getLogger("rsra.service")
 
 LOW_RATE_QUEUE = 64
+# the in-process simulator computes its physics in blocks of samples; a block of 1000 takes
+# 7-14 ms, longer than a 5 ms sample period, which in real time made the simulated nodes miss
+# a SYNC every 5 s. 100-sample blocks take ~1 ms. Lock-step uses the same size, so a seed gives
+# the same samples in both modes.
+SIM_BLOCK = 100
+
+
+class BusOpenError(RuntimeError):
+    """The CAN interface could not be opened (no such interface or channel, no driver)."""
 LATENCY_HISTORY = 2000
+ANGLES_HISTORY = 16  # recent angles records kept in memory (~15 kB each with P)
 
 
 @dataclass
@@ -175,6 +185,35 @@ def initial_angles(cfg: RigConfig, state_path: str | None):
     return alpha0, state
 
 
+def check_state_file(cfg: RigConfig) -> str | None:
+    """The configured ``identification.state_file`` is where accepted runs are saved; the
+    service starts from it only when asked (``--angles``, model §7). If it exists but is
+    unreadable, say so loudly at start (the service starts from the configured angles) and
+    move it aside to ``<name>.corrupt`` — kept, not overwritten by the next accepted run.
+    Returns the warning, or None."""
+    path = cfg.identification.state_file
+    if not path or not Path(path).exists():
+        return None
+    from estimator.posterior import PosteriorFileError, load_posterior
+
+    try:
+        load_posterior(path)
+        return None
+    except PosteriorFileError as e:
+        aside = Path(f"{path}.corrupt")
+        n = 1
+        while aside.exists():
+            aside = Path(f"{path}.corrupt.{n}")
+            n += 1
+        try:
+            Path(path).rename(aside)
+            where = f"moved to {aside}"
+        except OSError as err:
+            where = f"could not be moved aside ({err.strerror})"
+        return (f"identification.state_file: {e.problem}; {where}; the service starts from "
+                "the configured initial angles (identification.initial_angles_deg)")
+
+
 def read_angles_schedule(folder: Path) -> tuple[dict | None, list[dict]]:
     """The starting posterior and the recorded angles records of a recording folder."""
     p = folder / "angles.jsonl"
@@ -220,13 +259,18 @@ class Service:
         self.last_seq: int | None = None
         self.first_t: float | None = None
         self.last_t: float | None = None
-        self.angles_log: list[dict] = []  # bounded by the run length / period (a few per minute)
+        # the latest angles records (bounded: a record with its P is ~10 kB, one per period
+        # for as long as the service runs) and running counts for the summary
+        self.angles_log: deque[dict] = deque(maxlen=ANGLES_HISTORY)
+        self.ident_runs = 0
+        self.ident_rejected: dict[str, int] = {}
         self.lost = 0
         self.samples = 0
         self.last_health: dict | None = None
         self._extra_sinks: list[Callable[[str, dict], None]] = []
         self.pipeline: EstimatorPipeline | None = None
         self.recorder = None
+        self.warnings: list[str] = []  # start-up problems the service went on with
 
     def add_sink(self, sink: Callable[[str, dict], None]) -> None:
         self._extra_sinks.append(sink)
@@ -275,6 +319,11 @@ class Service:
                 state = None
             else:
                 alpha0, state = initial_angles(cfg, opts.angles)
+                if not opts.angles and opts.replay is None:
+                    warning = check_state_file(cfg)
+                    if warning:
+                        log.error("%s", warning)
+                        self.warnings.append(warning)
             use_ident = opts.identification and (opts.replay is None or opts.recompute)
             self.pipeline = EstimatorPipeline(cfg, alpha0, identification=use_ident)
             for rec in recorded:
@@ -314,18 +363,22 @@ class Service:
         return f"bus {o.interface}:{o.channel}"
 
     def _make_source(self, closers) -> Iterator:
+        import can
+
         o, cfg = self.opts, self.cfg
+        from daq.decoder import DecodeTable
         from daq.reader import Reader
 
+        # the EDS files first: one the simulator cannot read either is a ConfigError naming
+        # the key (exit 2), not a traceback from inside the simulator's nodes
+        table = DecodeTable(cfg)
         if o.replay is not None:
             from daq.replay import replay
 
-            reader = Reader.offline(cfg)
+            reader = Reader.offline(cfg, table=table)
             self.reader = reader
             return replay(cfg, o.replay, realtime=o.realtime, reader=reader, finish=True)
         if o.sim is not None:
-            import can
-
             from sim_bus.bus_sim import Simulator
             from sim_bus.physics import AircraftPhysics
             from sim_bus.scenarios import load_scenario
@@ -336,13 +389,14 @@ class Service:
             keep = bool(o.truth or o.record or o.keep_truth)
             if self.lockstep:
                 t0 = round(time.time(), 3)  # simulated time reads like UNIX time
-                sim = Simulator(cfg, physics=AircraftPhysics(cfg, scenario, seed=o.seed),
+                sim = Simulator(cfg, physics=AircraftPhysics(cfg, scenario, seed=o.seed,
+                                                              block_size=SIM_BLOCK),
                                 seed=o.seed, faults=o.faults, channel=channel, autostart=True,
                                 lockstep=True, threaded=False, t0=t0, keep_samples=keep)
                 bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=True,
                               preserve_timestamps=True)
                 reader = Reader(cfg, bus=bus, master=False, wall_clock=False, record=o.record,
-                                overflow="block")
+                                overflow="block", table=table)
                 self.sim, self.reader = sim, reader
                 closers.append(bus.shutdown)
                 closers.append(reader.close)
@@ -351,20 +405,31 @@ class Service:
                 sim.start()
                 self.recorder = reader.recorder
                 return self._lockstep_items()
-            sim = Simulator(cfg, physics=AircraftPhysics(cfg, scenario, seed=o.seed),
+            sim = Simulator(cfg, physics=AircraftPhysics(cfg, scenario, seed=o.seed,
+                                                              block_size=SIM_BLOCK),
                             seed=o.seed, faults=o.faults, channel=channel, autostart=False,
                             lockstep=False, threaded=True, keep_samples=keep)
             self.sim = sim
             closers.append(self._close_sim)
             sim.start()
             reader = Reader(cfg, interface="virtual", channel=channel, master=True,
-                            record=o.record, overflow="drop")
+                            record=o.record, overflow="drop", table=table)
         else:
             reader = Reader(cfg, interface=o.interface, channel=o.channel, master=True,
-                            record=o.record, overflow="drop")
+                            record=o.record, overflow="drop", table=table)
         self.reader = reader
         closers.append(reader.close)
-        reader.start()  # boots the nodes; BootError names node, object and both values
+        from daq.master import BootError
+
+        try:
+            reader.start()  # boots the nodes; BootError names node, object and both values
+        except BootError:
+            raise
+        except (OSError, ImportError, ValueError, can.CanError) as e:
+            raise BusOpenError(
+                f"cannot open the bus {o.interface or 'virtual'}:{o.channel} ({e}); check "
+                f"--interface/--channel (python-can interfaces: "
+                f"{', '.join(sorted(set(can.VALID_INTERFACES) - {'udp_multicast'}))})") from None
         self.recorder = reader.recorder
         return self._live_items()
 
@@ -489,8 +554,10 @@ class Service:
         if self.recorder is not None and self.opts.replay is None:
             self.recorder.write_angles(rec)
         self.angles_log.append(rec)
-        if len(self.angles_log) > 10_000:
-            del self.angles_log[:1000]
+        self.ident_runs += 1
+        if not rec.get("accepted"):
+            reason = str(rec.get("reason"))
+            self.ident_rejected[reason] = self.ident_rejected.get(reason, 0) + 1
         if rec.get("accepted"):
             sig = rec.get("sigma_cr") or []
             worst = max((x for x in sig if x is not None), default=float("nan"))
@@ -522,6 +589,11 @@ class Service:
             queues["publisher"] = {"depth": self.outputs.low_rate.queue.qsize(),
                                    "dropped": self.outputs.low_rate.dropped}
         payload["queues"] = queues
+        if self.pipeline is not None:  # readings the estimator refused (bad input, counted)
+            payload["estimator"] = {"implausible_omega": self.pipeline.implausible_omega,
+                                    "design_errors": self.pipeline.design_errors}
+        if self.warnings:
+            payload["warnings"] = list(self.warnings)
         prev = (self.last_health or {}).get("recording") or {}
         rec = payload.get("recording") or {}
         if rec.get("error") and rec.get("error") != prev.get("error"):
@@ -530,16 +602,19 @@ class Service:
         self.outputs.publish("health", payload)
 
     def _summary(self) -> dict:
-        acc = [r for r in self.angles_log if r.get("accepted")]
-        rej: dict[str, int] = {}
-        for r in self.angles_log:
-            if not r.get("accepted"):
-                rej[str(r.get("reason"))] = rej.get(str(r.get("reason")), 0) + 1
+        rej = dict(self.ident_rejected)
         out = {"samples": self.samples, "lost": self.lost,
                "duration_s": None if self.first_t is None else self.last_t - self.first_t,
-               "identification_runs": len(self.angles_log), "accepted": len(acc),
+               "identification_runs": self.ident_runs,
+               "accepted": self.ident_runs - sum(rej.values()),
                "rejected": rej, "published": dict(self.outputs.counts) if self.outputs else {},
                "deadline_misses": self.deadline_misses}
+        if self.warnings:
+            out["warnings"] = list(self.warnings)
+        if self.pipeline is not None and (self.pipeline.implausible_omega
+                                          or self.pipeline.design_errors):
+            out["implausible_omega"] = self.pipeline.implausible_omega
+            out["design_errors"] = self.pipeline.design_errors
         if self.latencies:
             a = np.fromiter(self.latencies, float) * 1e3
             out["latency_ms"] = {"p50": float(np.percentile(a, 50)),

@@ -103,8 +103,8 @@ def test_subscriber_in_another_process_and_queryables(cfg, tmp_path):
         # the subscriber is up when it has a session (its first line comes with the data)
         with zenoh.open(viewer_config([ep])) as v:
             while time.monotonic() < deadline:
-                peers = v.info.peers_zid()
-                if len(peers) >= 2:  # the service and the listener
+                peers = svc.outputs.session.info.peers_zid()
+                if len(peers) >= 2:  # the service sees this viewer and the listener
                     break
                 time.sleep(0.05)
             listener_ready.set()

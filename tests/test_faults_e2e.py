@@ -1,0 +1,501 @@
+"""Every fault the simulator injects, through the whole service, in lock-step (`--speed max`).
+
+One faulted run (every fault kind in its own window, recorded) and one fault-free run of the
+same seed (the physics' random streams do not depend on the faults, docs/simulator.md), both
+with the service started at the simulator's true angles so that the estimate can be scored
+against truth. What is checked, sample by sample against the simulator's fault log:
+
+* the flags (`missing:<node>`, `overrange:<cell>`, `fault:<cell>`, `lost_before`,
+  `predict_only`, `invalid`) are on exactly the affected samples, and H is null exactly
+  when `invalid` (model.md §6: after `invalid_after_s` of predict-only steps);
+* health counts every fault (unknown COB-IDs, malformed frames, error frames, lost samples,
+  incomplete samples, heartbeat losses, EMCY);
+* the estimate stays within the static bound (model §4) on measured samples and within
+  twice that on predict-only ones, and is back on the fault-free run's estimate 15 filter
+  time constants after the last affected sample;
+* the recording of the faulted run replays bit for bit.
+
+Reboot: in lock-step the simulator is its own master and the reader only listens
+(`master=False`); a rebooted simulated node waits for an NMT start (docs/simulator.md), so
+nobody restarts it: the lock-step service keeps running with the node flagged missing to
+the end. The restart path (boot-up seen → reconfigure over SDO → NMT start) is the master's,
+so the recovery test drives the reader as CANopen master with the simulator following its
+SYNC (tests/helpers_canopen.MasterRig) and feeds its samples to the same EstimatorPipeline
+the service uses. docs/reliability.md records this decision.
+"""
+from __future__ import annotations
+
+import json
+import math
+from collections import Counter, defaultdict
+
+import numpy as np
+import pytest
+
+from daq.config import load_config
+from daq.jsonout import dumps
+from daq.pipeline import EstimatorPipeline
+from daq.service import Service, ServiceOptions
+from estimator.noise_budget import noise_budget
+from sim_bus.faults import EMCY_OVER_RANGE, EMCY_SENSOR_FAULT
+from sim_bus.physics import AircraftPhysics
+from sim_bus.scenarios import load_scenario
+
+SEED = 7
+DURATION_S = 39.0
+SETTLE_S = 1.0  # the filter starts from a zero state: its start-up transient is not scored
+REBOOT_AT_S = 37.0
+# one window per fault kind; (item, start, end) in seconds of simulated time
+WINDOWS = [
+    ("drop:cell_B:0.05", 2.0, 6.0),
+    ("stuck:cell_E", 7.0, 9.0),
+    ("overrange:cell_A", 10.0, 11.0),
+    ("sensor:cell_F", 12.0, 12.3),
+    ("silent:accel_1", 14.0, 15.0),
+    ("malformed:cell_D:0.05", 16.0, 19.0),
+    ("unknown:0.1", 20.0, 23.0),
+    ("lostsync:0.05", 24.0, 27.0),
+    ("jitter:0.5ms", 28.0, 31.0),
+    ("errorframe:0.1", 32.0, 35.0),
+]
+SPEC = ";".join(f"{item}@{a:g}-{b:g}" for item, a, b in WINDOWS) + f";reboot:cell_G@{REBOOT_AT_S:g}"
+HIGH_RATE = ("hub_loads", "channels", "innovations")
+
+
+class Run:
+    """What one lock-step service run published, and the simulator's truth."""
+
+    def __init__(self, cfg, faults: str, record=None):
+        opts = ServiceOptions(sim="ground-test", seed=SEED, speed=None, duration=DURATION_S,
+                              zenoh=False, identification=False, faults=faults,
+                              keep_truth=True, record=None if record is None else str(record))
+        self.service = svc = Service(cfg, opts)
+        self.text: dict[str, list[str]] = defaultdict(list)
+        self.health: list[dict] = []
+        self.hub: dict[int, dict] = {}
+
+        def sink(key, payload):
+            if key in HIGH_RATE:
+                self.text[key].append(dumps(payload))
+            if key == "hub_loads":
+                self.hub[payload["seq"]] = json.loads(self.text[key][-1])
+            elif key == "health":
+                self.health.append(payload)
+
+        svc.add_sink(sink)
+        self.summary = svc.run()
+        self.final_health = svc.reader.health()
+        self.log = svc.sim.fault_log
+        self.truth = svc.sim.truth_arrays()
+        # the samples the run covered (the simulator ran one SYNC more: an incomplete
+        # sample is passed on at the next SYNC)
+        self.n = round(DURATION_S * cfg.sample_rate_hz)
+        self.sync_time = {k: t for k, _, t, _ in svc.sim.sync_info}
+
+
+@pytest.fixture(scope="module")
+def true_cfg():
+    """The rig config with the service starting at the simulator's true angles (no
+    identification in these runs: the estimate is scored against truth)."""
+    base = load_config()
+    alpha = AircraftPhysics(base, load_scenario("ground-test"), seed=SEED).alpha_base
+    return load_config(overrides={"identification": {
+        "initial_angles_deg": np.degrees(alpha).tolist()}}), alpha
+
+
+@pytest.fixture(scope="module")
+def runs(true_cfg, tmp_path_factory):
+    cfg, _ = true_cfg
+    rec = tmp_path_factory.mktemp("faults") / "rec"
+    faulted = Run(cfg, SPEC, record=rec)
+    clean = Run(cfg, "")
+    return faulted, clean, rec
+
+
+def _windows(log, kind):
+    """{node: [(start_sample, end_sample)]} of a window fault, from the fault log."""
+    out = defaultdict(list)
+    open_ = {}
+    for e in log:
+        if e["kind"] != kind:
+            continue
+        if e["event"] == "start":
+            open_[e["node"]] = e["sample"]
+        else:
+            out[e["node"]].append((open_.pop(e["node"]), e["sample"]))
+    for node, s in open_.items():
+        out[node].append((s, math.inf))
+    return out
+
+
+def expected_flags(cfg, run) -> dict[int, set[str]]:
+    """Per sample, the node/cell flags the fault log implies (telemetry.md vocabulary)."""
+    cell_of = {c.node: c.name for c in cfg.cells}
+    exp: dict[int, set[str]] = defaultdict(set)
+    for e in run.log:
+        if e["kind"] in ("drop", "malformed"):
+            exp[e["sample"]].add(f"missing:{e['node']}")
+        elif e["kind"] == "reboot":  # lock-step: nobody sends the NMT start (module doc)
+            for k in range(e["sample"], run.n):
+                exp[k].add(f"missing:{e['node']}")
+    for kind, flag in (("silent", "missing:{node}"), ("overrange", "overrange:{cell}"),
+                       ("sensor", "fault:{cell}")):
+        for node, spans in _windows(run.log, kind).items():
+            for a, b in spans:
+                for k in range(a, min(b, run.n)):
+                    exp[k].add(flag.format(node=node, cell=cell_of.get(node)))
+    return exp
+
+
+def test_every_fault_window_was_injected(runs):
+    faulted, _, _ = runs
+    kinds = Counter(e["kind"] for e in faulted.log)
+    for item, a, b in WINDOWS:
+        assert kinds[item.split(":")[0]] > 0, item
+    assert kinds["reboot"] == 1
+    assert faulted.summary["samples"] + faulted.summary["lost"] == faulted.n \
+        == round(DURATION_S * 200)
+
+
+def test_flags_are_on_exactly_the_affected_samples(true_cfg, runs):
+    cfg, _ = true_cfg
+    faulted, _, _ = runs
+    exp = expected_flags(cfg, faulted)
+    lost = {e["sample"] for e in faulted.log if e["kind"] == "lostsync"}
+    assert set(range(faulted.n)) - set(faulted.hub) == lost  # lost samples keep their seq
+    invalid_n = round(cfg.filter.invalid_after_s * cfg.sample_rate_hz)
+    last_measured = None
+    n_invalid = 0
+    for seq in sorted(faulted.hub):
+        h = faulted.hub[seq]
+        flags = set(h["flags"])
+        node_flags = {f for f in flags if f.split(":")[0] in ("missing", "overrange", "fault")}
+        assert node_flags == exp.get(seq, set()), (seq, flags)
+        assert ("lost_before" in flags) == (seq - 1 in lost), seq
+        predict = bool(node_flags)  # every node here is required (or a cell's status)
+        assert ("predict_only" in flags) == predict, (seq, flags)
+        if not predict:
+            last_measured = seq
+        # model §6: predict-only (and lost) samples since the last measured one; after
+        # invalid_after_s of them H is null, flagged invalid, until measurements return
+        invalid = predict and last_measured is not None and seq - last_measured >= invalid_n
+        assert ("invalid" in flags) == invalid, (seq, flags)
+        assert (h["H"] is None) == invalid, seq
+        assert (h["H_static"] is None) == predict, seq
+        n_invalid += invalid
+    assert n_invalid > 0
+
+
+def test_health_counts_every_fault(runs):
+    faulted, _, _ = runs
+    kinds = Counter(e["kind"] for e in faulted.log)
+    h = faulted.final_health
+    bus, smp = h["bus"], h["samples"]
+    assert bus["unknown"] == kinds["unknown"]
+    assert bus["errors"] == kinds["errorframe"]
+    assert bus["malformed"] == kinds["malformed"]
+    assert bus["callback_errors"] == 0 and bus["duplicate"] == 0
+    assert smp["lost"] == kinds["lostsync"] == faulted.summary["lost"]
+    incomplete = sum(1 for p in faulted.hub.values()
+                     if any(f.startswith("missing:") for f in p["flags"]))
+    assert smp["incomplete"] == incomplete
+    assert smp["complete"] + smp["incomplete"] == len(faulted.hub) == faulted.summary["samples"]
+    nodes = h["nodes"]
+    assert nodes["accel_1"]["losses"] == 1 and nodes["accel_1"]["state"] == "operational"
+    assert [e["code"] for e in nodes["cell_A"]["emcy"]] == [EMCY_OVER_RANGE, 0]
+    assert [e["code"] for e in nodes["cell_F"]["emcy"]] == [EMCY_SENSOR_FAULT, 0]
+    # lock-step: the rebooted node is seen booting and stays pre-operational (no master)
+    assert nodes["cell_G"]["boots"] == 2 and nodes["cell_G"]["state"] == "pre-operational"
+    assert h["queues"]["samples"]["dropped"] == 0
+    # the service kept publishing health once a second of acquisition time throughout
+    assert len(faulted.health) >= DURATION_S - 1
+
+
+def test_sync_jitter_moves_the_stamps_not_the_estimates(runs):
+    faulted, clean, _ = runs
+    jit = {e["sample"]: e["offset_s"] for e in faulted.log if e["kind"] == "jitter"}
+    assert len(jit) > 100 and max(abs(v) for v in jit.values()) > 1e-4
+    for k, off in jit.items():
+        if k not in faulted.hub:
+            continue
+        # the sample is stamped with its SYNC's (jittered) time: when it went out, which is
+        # later if earlier frames still occupied the bus (bus time, < 1 ms here)
+        assert -1e-6 <= faulted.hub[k]["t"] - faulted.sync_time[k] < 1e-3  # 1 µs stamps
+        # against the fault-free run (whose clock starts elsewhere): the offset drawn
+        rel_f, rel_c = faulted.hub[k]["t"] - faulted.hub[0]["t"], clean.hub[k]["t"] - clean.hub[0]["t"]
+        assert rel_f - rel_c == pytest.approx(off, abs=1e-3)
+        assert not {"lost_before", "predict_only"} & set(faulted.hub[k]["flags"])
+
+
+def _H(run, seqs):
+    return np.array([run.hub[k]["H"] for k in seqs], float)
+
+
+def _affected(cfg, faulted) -> np.ndarray:
+    """Samples whose data a fault changed: flagged, lost, or inside the stuck window."""
+    bad = np.zeros(faulted.n, bool)
+    for k in range(faulted.n):
+        h = faulted.hub.get(k)
+        if h is None or set(h["flags"]) & {"predict_only", "lost_before"}:
+            bad[k] = True
+    for spans in _windows(faulted.log, "stuck").values():
+        for a, b in spans:
+            bad[a:b] = True
+    return bad
+
+
+def test_the_estimate_stays_within_bounds_and_recovers(true_cfg, runs):
+    cfg, alpha = true_cfg
+    faulted, clean, _ = runs
+    fs = cfg.sample_rate_hz
+    sigma = noise_budget(cfg.rig_model(), alpha).total  # model §4 static bound, per axis
+    H_true = faulted.truth["H_true"]
+    settle = round(SETTLE_S * fs)
+    bad = _affected(cfg, faulted)
+    stuck = np.zeros(faulted.n, bool)
+    for spans in _windows(faulted.log, "stuck").values():
+        for a, b in spans:
+            stuck[a:b] = True
+    # recovery: 15 closed-loop time constants after the last affected sample (e^-15 ~ 3e-7)
+    recover = round(15 * cfg.filter.time_constant_s * fs)
+    last_bad = -10**9
+    recovered = []
+    for k in range(faulted.n):
+        if bad[k]:
+            last_bad = k
+        elif k >= settle and k - last_bad > recover and k < faulted.n:
+            recovered.append(k)
+    assert len(recovered) > 10 * fs
+    d = np.abs(_H(faulted, recovered) - _H(clean, recovered))
+    assert d.max() < 1e-3 * sigma.min(), d.max(0)  # back on the fault-free estimate
+
+    # measured samples (no flag) outside the stuck window: the filter's error on truth stays
+    # inside the static estimate's bound (A2 asks 0.8x of it at the modelled harmonics)
+    meas = [k for k in range(settle, faulted.n) if k in faulted.hub and not stuck[k]
+            and "predict_only" not in faulted.hub[k]["flags"]]
+    err = _H(faulted, meas) - H_true[meas]
+    rms = np.sqrt((err ** 2).mean(0))
+    assert np.all(rms <= sigma), (rms, sigma)
+    # predict-only samples still published (before invalid): Φ-propagated estimate within
+    # twice the static bound (measured: at most 1.4x, on X during the over-range second)
+    pred = [k for k in range(settle, faulted.n) if k in faulted.hub
+            and faulted.hub[k]["H"] is not None and "predict_only" in faulted.hub[k]["flags"]]
+    assert len(pred) > 100
+    err_p = _H(faulted, pred) - H_true[pred]
+    rms_p = np.sqrt((err_p ** 2).mean(0))
+    assert np.all(rms_p <= 2 * sigma), (rms_p, sigma)
+
+
+def test_a_stuck_channel_is_not_flagged_but_biases_and_recovers(true_cfg, runs):
+    """The simulated sensor does not know it is stuck (status unchanged), so nothing flags
+    it: documented limitation (docs/reliability.md). What it costs is bounded by the
+    stuck cell's own departure from truth mapped through the balance."""
+    cfg, alpha = true_cfg
+    faulted, clean, _ = runs
+    (a, b), = _windows(faulted.log, "stuck")["cell_E"]
+    ks = [k for k in range(a, b) if k in faulted.hub]
+    assert all(not faulted.hub[k]["flags"] for k in ks)
+    err_f = _H(faulted, ks) - faulted.truth["H_true"][ks]
+    err_c = _H(clean, ks) - clean.truth["H_true"][ks]
+    rms_f, rms_c = np.sqrt((err_f ** 2).mean(0)), np.sqrt((err_c ** 2).mean(0))
+    assert rms_f.max() > 2 * rms_c.max()  # the stuck channel shows in the estimate ...
+    i = [c.node for c in cfg.cells].index("cell_E")
+    T = faulted.truth["T"][ks, i]
+    from estimator.geometry import hub_transfer_matrix, wrench_matrix
+
+    geo = cfg.rig_model().geometry
+    col = np.linalg.inv(hub_transfer_matrix(geo)) @ wrench_matrix(geo, alpha)[:, i]
+    dev = np.abs(T - T[0]).max()  # how far the true cell force moved while frozen
+    # ... by no more than the frozen cell's departure through R⁻¹ S (plus the clean error)
+    assert np.all(np.abs(err_f).max(0) <= np.abs(col) * dev + 5 * rms_c + 1.0)
+
+
+def test_the_faulted_recording_replays_bit_for_bit(true_cfg, runs):
+    cfg, _ = true_cfg
+    faulted, _, rec = runs
+    rsvc = Service(cfg, ServiceOptions(replay=[str(rec)], zenoh=False))
+    replayed: dict[str, list[str]] = defaultdict(list)
+    rsvc.add_sink(lambda k, p: replayed[k].append(dumps(p)) if k in HIGH_RATE else None)
+    rsvc.run()
+    # the live run stopped at its duration with the last SYNC's sample still open (cell_G
+    # missing: an incomplete sample is passed on at the next SYNC); the replay passes that
+    # one on at the end of the recording: one sample more, everything before it identical
+    extra = len(replayed["hub_loads"]) - len(faulted.text["hub_loads"])
+    assert extra == 1
+    for key in HIGH_RATE:
+        n = len(faulted.text[key])
+        assert replayed[key][:n] == faulted.text[key], key
+        assert len(replayed[key]) - n <= extra
+    live, rep = faulted.final_health, rsvc.reader.health()
+    for k in ("unknown", "errors", "malformed", "duplicate"):
+        assert rep["bus"][k] == live["bus"][k], k
+    assert rep["samples"]["lost"] == live["samples"]["lost"]
+    assert rep["samples"]["complete"] == live["samples"]["complete"]
+    assert rep["samples"]["incomplete"] == live["samples"]["incomplete"] + extra
+
+
+# --------------------------------------------------------------------------------------
+# reboot with the reader as CANopen master (the live path)
+
+def test_a_rebooted_node_is_restarted_and_the_estimate_returns(cfg):
+    from helpers_canopen import MasterRig
+
+    rig = MasterRig(cfg, faults="reboot:cell_C@0.5", seed=SEED)
+    pipe = EstimatorPipeline(cfg, cfg.identification.initial_angles_rad, identification=False)
+    out = []
+    try:
+        rig.start()
+        for item in rig.sync(800):  # 4 s of acquisition time
+            if hasattr(item, "seq"):
+                out.append((item, pipe.process(item).records[0][1]))
+        health = rig.reader.health()["nodes"]["cell_C"]
+        reconfigured = rig.reader.master.reconfigured
+        truth = rig.sim.truth_arrays()
+    finally:
+        rig.close()
+    gone = [s.seq for s, _ in out if "cell_C" in s.missing]
+    assert gone and gone == list(range(gone[0], gone[-1] + 1))  # one contiguous outage
+    assert reconfigured == 1 and health["state"] == "operational" and health["boots"] == 3
+    after = [(s, h) for s, h in out if s.seq > gone[-1]]
+    assert len(after) > 200 and all(s.complete and not h["flags"] for s, h in after)
+    during = [h for s, h in out if gone[0] <= s.seq <= gone[-1]]
+    assert all("predict_only" in h["flags"] and "missing:cell_C" in h["flags"] for h in during)
+    invalid_n = round(cfg.filter.invalid_after_s * cfg.sample_rate_hz)
+    assert sum(h["H"] is None for h in during) == max(0, len(during) - invalid_n + 1)
+    # the estimate is back: 15 time constants after the restart, on truth within the bound
+    k0 = gone[-1] + 1 + round(15 * cfg.filter.time_constant_s * cfg.sample_rate_hz)
+    ks = [s.seq for s, _ in after if s.seq >= k0]
+    H = np.array([h["H"] for s, h in after if s.seq >= k0])
+    alpha_true = truth["alpha_true"][0]
+    err = H - truth["H_true"][ks]
+    sigma = noise_budget(cfg.rig_model(), alpha_true).total
+    # started at the configured (0°) angles, not the true ones: the angle error adds a bias
+    # of |R⁻¹ (S(α) − S(α_true)) T|, bounded here by the same expression on truth
+    from estimator.geometry import hub_transfer_matrix, wrench_matrix
+
+    geo = cfg.rig_model().geometry
+    Rinv = np.linalg.inv(hub_transfer_matrix(geo))
+    dS = wrench_matrix(geo, cfg.identification.initial_angles_rad) - wrench_matrix(geo, alpha_true)
+    bias = np.abs((Rinv @ dS @ truth["T_true"][ks].T).T).max(0)
+    assert np.all(np.sqrt((err ** 2).mean(0)) <= sigma + bias)
+
+
+# --------------------------------------------------------------------------------------
+# identification under bad input: never replaces the angles unless the run is sound
+
+@pytest.fixture(scope="module")
+def window_job(cfg):
+    """A real identification window (known-load mode, ground-test) from the lock-step
+    simulator through the reader and the pipeline's calibration branch, and the pipeline."""
+    from helpers_canopen import LockstepRig
+
+    from daq.reader import HealthReport
+
+    rig = LockstepRig(cfg, seed=SEED)
+    pipe = EstimatorPipeline(cfg, cfg.identification.initial_angles_rad)
+    job = None
+    try:
+        while job is None:
+            for s in rig.step(1):
+                if not isinstance(s, HealthReport):
+                    job = pipe.process(s).job or job
+    finally:
+        rig.close()
+    assert job["mode"] == "known_loads"
+    return job, pipe
+
+
+def _copy(job):
+    return {k: v.copy() if isinstance(v, np.ndarray) else v for k, v in job.items()}
+
+
+@pytest.mark.parametrize("corrupt,reasons", [
+    (lambda j: j["T"].__setitem__((slice(600, 610), 0), np.nan), {"diverged"}),
+    (lambda j: j["z"].__setitem__((slice(600, 610), 2), np.inf), {"diverged"}),
+    (lambda j: j["T"].__setitem__((slice(600, 900), 0), 3.4e38), {"diverged", "not_converged",
+                                                                 "inconsistent"}),
+    (lambda j: j["known_H"].__setitem__(slice(None), j["known_H"] * 50.0),
+     {"diverged", "not_converged", "inconsistent"}),
+    (lambda j: j["ok"].__setitem__(slice(0, 100), False), {"stale_input"}),  # 10 % > 5 %
+    (lambda j: j["known"].__setitem__(slice(500, 600), False), {"stale_input"}),
+], ids=["nan", "inf", "huge", "wrong-known-loads", "stale-channels", "stale-balance"])
+def test_a_bad_window_never_replaces_the_angles(cfg, window_job, corrupt, reasons):
+    from daq.ident_worker import build_identification, run_job
+
+    job, _ = window_job
+    post, runs, cache = build_identification(cfg)
+    clean = run_job(cfg, runs, cache, _copy(job))
+    assert clean["accepted"]  # the same window, uncorrupted, is accepted
+    post, runs, cache = build_identification(cfg)
+    theta0, P0 = post.theta.copy(), post.P.copy()
+    bad = _copy(job)
+    corrupt(bad)
+    rec = run_job(cfg, runs, cache, bad)
+    assert not rec["accepted"] and rec["reason"] in reasons, rec["reason"]
+    np.testing.assert_array_equal(post.theta, theta0)
+    np.testing.assert_array_equal(post.P, P0)
+    assert json.loads(dumps(rec))["reason"] == rec["reason"]  # strict JSON, publishable
+    # delivered to the estimator: published at its sample, angles in force unchanged
+    from daq.pipeline import PipelineOutput
+
+    pipe = window_job[1]
+    alpha = pipe.alpha.copy()
+    pipe.deliver(rec)
+    out = PipelineOutput()
+    pipe._apply_due(rec["applies_from_seq"], out)
+    assert [k for k, _ in out.records] == ["angles"]
+    np.testing.assert_array_equal(pipe.alpha, alpha)
+
+
+def test_stale_input_through_the_service(cfg):
+    """accel_1 silent for 20 % of the first window: the run is refused as stale_input, the
+    record is published at its sample, and the angles in force stay the configured ones."""
+    svc = Service(cfg, ServiceOptions(sim="ground-test", seed=SEED, speed=None, duration=6.5,
+                                      zenoh=False, faults="silent:accel_1@1-2"))
+    angles = []
+    svc.add_sink(lambda k, p: angles.append(json.loads(dumps(p))) if k == "angles" else None)
+    summary = svc.run()
+    assert [a["reason"] for a in angles] == ["stale_input"] and not angles[0]["accepted"]
+    assert angles[0]["applies_from_seq"] == angles[0]["window"][1] + round(
+        cfg.identification.apply_delay_s * cfg.sample_rate_hz)
+    np.testing.assert_array_equal(summary["alpha_applied"], cfg.identification.initial_angles_rad)
+    assert summary["rejected"] == {"stale_input": 1}
+
+
+def test_a_corrupt_saved_posterior_is_refused_by_rsra_run(tmp_path):
+    import subprocess
+    import sys
+
+    bad = tmp_path / "state.json"
+    bad.write_text('{"format": "rsra-posterior", "version": 1, "names": ["x"], "theta": [1')
+    r = subprocess.run([sys.executable, "-m", "daq", "run", "--sim", "ground-test", "--speed",
+                        "max", "--duration", "1", "--angles", str(bad)],
+                       capture_output=True, text=True, timeout=120, check=False,
+                       env={**__import__("os").environ, "OPENBLAS_NUM_THREADS": "1"})
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.count("\n") == 1 and "Traceback" not in r.stderr
+    assert str(bad) in r.stderr and "not readable JSON" in r.stderr
+
+
+def test_a_corrupt_configured_state_file_warns_and_the_service_starts_from_the_config(
+        tmp_path, caplog):
+    import logging
+
+    state = tmp_path / "posterior.json"
+    state.write_text("\x00\x00 half-written by a dying disk")
+    cfg = load_config(overrides={"identification": {"state_file": str(state)}})
+    with caplog.at_level(logging.ERROR):
+        svc = Service(cfg, ServiceOptions(sim="ground-test", seed=SEED, speed=None,
+                                          duration=1.5, zenoh=False, identification=False))
+        health = []
+        svc.add_sink(lambda k, p: health.append(p) if k == "health" else None)
+        summary = svc.run()
+    assert summary["samples"] == 300
+    (warning,) = summary["warnings"]
+    assert "identification.state_file" in warning and "starts from the configured" in warning
+    assert health and health[-1]["warnings"] == [warning]
+    assert any(warning in r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR)
+    # kept for inspection, not overwritten by the next accepted run
+    assert not state.exists() and (tmp_path / "posterior.json.corrupt").read_bytes().startswith(
+        b"\x00\x00")
+    np.testing.assert_array_equal(summary["alpha_applied"], cfg.identification.initial_angles_rad)
