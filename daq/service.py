@@ -439,12 +439,12 @@ class Service:
         truth = self.opts.truth
         if truth is None and self.recorder is not None:
             truth = str(Path(self.recorder.folder) / "truth.npz")
+        self.sim.close()  # first: in real time its threads would still be appending
         if truth:
             try:
                 self.sim.write_truth(truth)
             except Exception as e:
                 log.error("truth not written: %s", e)
-        self.sim.close()
 
     def _lockstep_items(self) -> Iterator:
         sim, reader = self.sim, self.reader
