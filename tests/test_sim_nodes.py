@@ -439,7 +439,13 @@ def test_live_follow_mode_heartbeats_on_the_wall_clock_and_answers_sync(cfg):
         sim.start()
         net.nmt.send_command(NMT_START)
         # the heartbeat thread reports the new state within one producer period
-        assert remotes["accel_1"].nmt.wait_for_heartbeat(timeout=5.0) == "OPERATIONAL"
+        # a heartbeat already on its way may still say PRE-OPERATIONAL: wait for the next ones
+        state = None
+        for _ in range(20):
+            state = remotes["accel_1"].nmt.wait_for_heartbeat(timeout=5.0)
+            if state == "OPERATIONAL":
+                break
+        assert state == "OPERATIONAL"
         for c in range(1, 11):
             net.sync.transmit(c)
         remotes["cell_A"].sdo.upload(0x1000, 0)  # barrier: everything before it is answered
