@@ -78,6 +78,9 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"--truth {args.truth}: folder {parent} is not writable; "
                              "give a writable file")
     cfg = load_config(args.config)
+    from daq.decoder import DecodeTable
+
+    DecodeTable(cfg)  # an EDS canopen cannot read: a ConfigError naming the node (exit 2)
     scenario = load_scenario(args.scenario)
     physics = AircraftPhysics(cfg, scenario, seed=args.seed)
     try:
