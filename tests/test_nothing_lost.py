@@ -118,6 +118,12 @@ def test_a_recording_survives_kill_9_and_replays_to_what_was_published(cfg, tmp_
         if d.pop("key") == "hub_loads":
             replayed[d["seq"]] = dumps(d)
     assert set(replayed) == set(range(len(replayed)))  # seq 0… with no hole
+    # the last recorded sample may have been cut by the kill part-way through its TPDOs: the
+    # replay passes it on flagged with what is missing (never made up); every whole one matches
+    last = max(replayed)
+    if replayed[last] != published.get(last, replayed[last]):
+        assert any(f.startswith("missing:") for f in json.loads(replayed[last])["flags"])
+        del replayed[last]
     common = sorted(set(replayed) & set(published))
     assert len(common) > 0.5 * len(replayed)
     assert [replayed[k] for k in common] == [published[k] for k in common]
