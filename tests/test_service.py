@@ -145,7 +145,7 @@ def test_service_exits_cleanly_with_a_subscriber_attached(cfg, tmp_path):
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     with zenoh.open(viewer_config([ep])) as v:
         sub = v.declare_subscriber("rsra/bench/**", zenoh.handlers.RingChannel(16))
-        t0 = time.monotonic()
+        # (a hang shows as the subprocess timeout, not as a timing assertion)
         r = subprocess.run([sys.executable, "-m", "daq", "run", "--sim", "ground-test",
                             "--speed", "max", "--duration", "3", "--zenoh-listen", ep,
                             "--log-level", "warning"], capture_output=True, text=True,
@@ -153,5 +153,4 @@ def test_service_exits_cleanly_with_a_subscriber_attached(cfg, tmp_path):
         assert r.returncode == 0, r.stderr
         summary = json.loads(r.stdout)["summary"]
         assert summary["samples"] == 600
-        assert time.monotonic() - t0 < 120
         sub.undeclare()
