@@ -317,6 +317,44 @@ class KnownLoadProblem:
         t = self.par.terms(theta)
         return self._x @ t.A.T, _sensitivities(self._x, t.dA), t.W
 
+    def with_moments(self, G: np.ndarray, n_scored: int) -> "AccumulatedKnownLoadProblem":
+        """This window together with earlier windows given by their moments ``G = Σ x xᵀ``
+        (and scored sample count): W(θ) is the same for every sample and there is no log-det
+        term, so V of the union is exactly V of the summed moments."""
+        return AccumulatedKnownLoadProblem(self, G, n_scored)
+
+
+class AccumulatedKnownLoadProblem:
+    """The exact known-load likelihood of earlier windows (summed moments) plus one window.
+
+    Used by the sequential posterior to re-linearise: every run re-solves the batch problem of
+    all windows since the last fold instead of trusting Gaussian summaries made far from the
+    answer. The residual series (for the coloured-residual bound) is the new window's; the
+    earlier windows enter that bound with their conventional information
+    (:meth:`uncorrelated_information`)."""
+
+    mode = "known_loads"
+
+    def __init__(self, window: KnownLoadProblem, G_extra: np.ndarray, n_extra: int) -> None:
+        self.window, self.par = window, window.par
+        self.G_extra = np.asarray(G_extra, float)
+        self.G = window.G + self.G_extra
+        self.n_scored = int(window.n_scored) + int(n_extra)
+        self.n_series = int(window.n_scored)
+
+    evaluate = KnownLoadProblem.evaluate
+
+    def residual_series(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self.window.residual_series(theta)
+
+    def uncorrelated_information(self, theta: np.ndarray) -> np.ndarray:
+        """Gauss–Newton information of the earlier windows at θ."""
+        t = self.par.terms(theta)
+        Winv = np.linalg.inv(t.W)
+        WdAG = np.einsum("ac,jcd->jad", Winv, t.dA) @ self.G_extra
+        M = np.einsum("iab,jab->ij", t.dA, WdAG)
+        return 0.5 * (M + M.T)
+
 
 # ------------------------------------------------------------------------------------------
 # Filter-error mode
@@ -676,6 +714,7 @@ def levenberg_marquardt(
     max_lag: int | None = None,
     max_retries: int = 12,
     warm_start: bool = True,
+    start: np.ndarray | None = None,
 ) -> IdentificationResult:
     """Minimise J from the prior mean exactly as model §7 says:
     Δθ = −(M + P_p⁻¹ + λ diag(M + P_p⁻¹))⁻¹ g, λ from 1e-3, ×10 after a step that raises J
@@ -689,16 +728,21 @@ def levenberg_marquardt(
     lower V by inflating W(θ), and LM then crawls for tens of iterations; the frozen-weight
     stage goes straight to the neighbourhood of the optimum, which the full stage then refines
     to the same minimum. ``iterations`` counts both stages; each has at most
-    ``max_iterations``."""
+    ``max_iterations``.
+
+    ``start``: where the iterations begin (default the prior mean); the sequential posterior
+    starts a re-linearised run (prior = the anchor) from the previous posterior mean. J must
+    not increase from there."""
     theta_p = np.asarray(prior_mean, float).copy()
     p = theta_p.size
     Pinv = _prior_inverse(prior_cov, p)
+    theta_s = theta_p if start is None else np.asarray(start, float).copy()
 
     def total(ev: Evaluation, th: np.ndarray) -> float:
         d = th - theta_p
         return ev.cost + 0.5 * float(d @ Pinv @ d)
 
-    theta = theta_p.copy()
+    theta = theta_s.copy()
     try:
         ev = problem.evaluate(theta)
     except (np.linalg.LinAlgError, ValueError, FloatingPointError):
@@ -714,7 +758,7 @@ def levenberg_marquardt(
         stage = levenberg_marquardt(
             _FrozenWeight(problem, ev.weight), theta_p, prior_cov,
             max_iterations=max_iterations, lambda0=lambda0, rel_tol=rel_tol, step_tol=step_tol,
-            max_retries=max_retries, warm_start=False)
+            max_retries=max_retries, warm_start=False, start=theta_s)
         warm_iterations = stage.iterations
         if stage.status != "diverged" and np.all(np.isfinite(stage.theta)):
             try:
@@ -780,7 +824,7 @@ def levenberg_marquardt(
     ang = problem.par.angle_pos
     if ang and np.all(np.isfinite(theta)):
         theta = theta.copy()
-        theta[ang] = theta_p[ang] + np.angle(np.exp(1j * (theta[ang] - theta_p[ang])))
+        theta[ang] = theta_s[ang] + np.angle(np.exp(1j * (theta[ang] - theta_s[ang])))
         if ev.end_state is not None:  # the filter state is periodic in θ too
             ev.end_state.theta = theta.copy()
     Hm = ev.information + Pinv
@@ -794,7 +838,11 @@ def levenberg_marquardt(
     P_corr, lags = None, 0
     if max_lag is not None and status != "diverged" and np.all(np.isfinite(P)):
         e, de, Wt = problem.residual_series(theta)
-        Q, lags = coloured_residual_information(e, de, Wt, max_lag, problem_n(problem))
+        Q, lags = coloured_residual_information(e, de, Wt, max_lag,
+                                                getattr(problem, "n_series", problem_n(problem)))
+        extra = getattr(problem, "uncorrelated_information", None)
+        if extra is not None:
+            Q = Q + extra(theta)
         P_corr = P @ (Q + Pinv) @ P
         P_corr = 0.5 * (P_corr + P_corr.T)
     return IdentificationResult(

@@ -296,40 +296,108 @@ def _windows(cfg, n):
     return [(k * W, (k + 1) * W) for k in range(n // W)]
 
 
-@pytest.mark.parametrize("seed", [700, 701, 702])
+@pytest.mark.parametrize("seed", [700, 701, 702, 703])
 def test_periodic_windows_converge_to_the_batch_result(cfg, model, seed):
     """Two sweeps of the six static conditions as 5-s windows against one batch run on the
-    same data and prior (prior mean within 0.5° of the truth, σ 5°: docs/identification.md
-    explains why a 4° cold start needs more than the 10 iterations on one-condition windows).
+    same data and prior, from the cold start of the issue (true angles up to 4° from the
+    starting 0, σ 5°).
 
-    With every informative window accepted the sequential posterior is the batch one: the
-    joint χ² of the difference against the batch covariance ≤ 36.1. With the default
-    ``min_information`` = 1 the posterior stops learning once no window can halve a variance
-    (about the second sweep), so it keeps less than the batch but stays consistent with the
-    truth."""
-    run, X, settle, start = _ground(cfg, model, seed, sweeps=2)
+    Known-load runs re-solve the exact likelihood of every window since the last fold
+    (docs/identification.md, "Re-linearisation"), and windows not identifiable on their own
+    are held for the next run, so with the default ``min_information`` the sequential
+    posterior is the batch one too: the joint χ² of the difference against the batch
+    covariance ≤ 36.1, and against the truth ≤ 36.1. (Without re-linearisation — the plain
+    Gaussian summaries of §7 — the first one-condition windows are summarised 4° from the
+    truth and 11 of 288 runs over 12 seeds were rejected `inconsistent` with constant
+    angles: docs/identification.md.)"""
+    run, X, settle, _ = _ground(cfg, model, seed, sweeps=2)
+    start = np.zeros(14)
     par = Parameterisation(model, moment_floor=cfg.identification.moment_floor_Nm,
                            known_loads=True)
     P0 = np.eye(14) * cfg.identification.prior_sigma_rad**2
     batch = levenberg_marquardt(
         KnownLoadProblem(par, X[:, :6], X[:, 6:13], X[:, 13:],
-                         scored=np.arange(len(X)) >= settle), start, P0)
+                         scored=np.arange(len(X)) >= settle), start, P0, max_iterations=30)
     assert batch.status == "converged"
+    e = batch.theta - run.alpha[-1]
+    assert e @ np.linalg.solve(batch.P, e) <= 36.1
     for min_information in (1e-9, cfg.identification.min_information):
         post = _post(cfg, model, theta0=start, min_information=min_information)
         runner = _runner(cfg, model, post, "known_loads", "static", settle)
         recs = [runner.run_window(X[a:b, :6], X[a:b, 6:13], X[a:b, 13:], seq0=a)
                 for a, b in _windows(cfg, len(X))]
         reasons = [r.reason for r in recs]
-        assert "reset" not in reasons and reasons.count(None) >= 10
+        assert "reset" not in reasons and "inconsistent" not in reasons, reasons
+        assert reasons.count(None) >= 10
         e = post.theta - run.alpha[-1]
         assert e @ np.linalg.solve(post.P, e) <= 36.1
-        if min_information < 1e-6:
-            d = post.theta - batch.theta
-            assert d @ np.linalg.solve(batch.P, d) <= 36.1
-        else:
-            assert "not_identifiable" in reasons
-            assert np.all(np.diag(post.P) >= np.diag(batch.P))
+        d = post.theta - batch.theta
+        assert d @ np.linalg.solve(batch.P, d) <= 36.1, (min_information, reasons)
+        assert np.all(np.sqrt(np.diag(post.P)) <= 1.5 * np.sqrt(np.diag(batch.P)))
+
+
+def test_accumulated_moments_are_the_likelihood_of_the_joined_windows(cfg, model):
+    """Re-linearisation rests on V being a function of the moments G = Σ x xᵀ: the problem
+    of window 2 with window 1's moments has the cost, gradient and information of the two
+    windows as one (no log-det term, W the same for every sample)."""
+    run, X, settle, start = _ground(cfg, model, 704, sweeps=1)
+    par = Parameterisation(model, moment_floor=cfg.identification.moment_floor_Nm,
+                           known_loads=True)
+    W = 1000
+    a, b = slice(0, W), slice(W, 2 * W)
+    one = KnownLoadProblem(par, X[a, :6], X[a, 6:13], X[a, 13:])
+    two = KnownLoadProblem(par, X[b, :6], X[b, 6:13], X[b, 13:])
+    both = KnownLoadProblem(par, X[:2 * W, :6], X[:2 * W, 6:13], X[:2 * W, 13:])
+    joined = two.with_moments(one.G, one.n_scored)
+    th = start + 0.3 * DEG
+    e1, e2 = joined.evaluate(th), both.evaluate(th)
+    assert joined.n_scored == both.n_scored == 2 * W
+    np.testing.assert_allclose(e1.cost, e2.cost, rtol=1e-10)
+    np.testing.assert_allclose(e1.gradient, e2.gradient, rtol=1e-8, atol=1e-12 * abs(e2.cost))
+    np.testing.assert_allclose(e1.information, e2.information, rtol=1e-8)
+    # the earlier window's information, for the coloured-residual bound
+    np.testing.assert_allclose(joined.uncorrelated_information(th),
+                               one.evaluate(th).information, rtol=1e-8)
+    assert joined.residual_series(th)[0].shape == (W, 6)  # the new window's series
+
+
+def test_held_and_accumulated_windows_make_the_batch_posterior(cfg, model):
+    """A window not identifiable on its own is held and counted with the next one, and every
+    accepted window's moments are re-solved with the next: after [weak, strong, strong] the
+    posterior is the batch posterior of the three windows from the first prior."""
+    run, X, settle, start = _ground(cfg, model, 705, sweeps=1)
+    par = Parameterisation(model, moment_floor=cfg.identification.moment_floor_Nm,
+                           known_loads=True)
+    W = int(round(cfg.identification.window_s * cfg.sample_rate_hz))
+    post = _post(cfg, model, theta0=start)
+    runner = _runner(cfg, model, post, "known_loads", "static", 0)
+    # window 0: loads scaled to 0.1 % (information ×1e-6) and judged against a raised
+    # min_information, so it is held whatever its exact information ratio
+    k = 1e-3
+    post.min_information = 1e12
+    recs = [runner.run_window(k * X[:W, :6], k * X[:W, 6:13], k * X[:W, 13:], seq0=0)]
+    assert recs[0].reason == "not_identifiable" and post.windows_held == 1
+    post.min_information = cfg.identification.min_information
+    for j in (1, 2):
+        sl = slice(j * W, (j + 1) * W)
+        recs.append(runner.run_window(X[sl, :6], X[sl, 6:13], X[sl, 13:], seq0=j * W))
+    assert [r.reason for r in recs[1:]] == [None, None], [r.reason for r in recs]
+    assert post.windows_held == 0
+    Xb = np.vstack([k * X[:W], X[W:3 * W]])
+    batch = levenberg_marquardt(KnownLoadProblem(par, Xb[:, :6], Xb[:, 6:13], Xb[:, 13:]),
+                                start, post.P0, max_iterations=30)
+    assert batch.status == "converged"
+    d = post.theta - batch.theta
+    assert d @ np.linalg.solve(batch.P, d) <= 1e-3
+    L = np.linalg.cholesky(batch.P)
+    Li = np.linalg.inv(L)
+    lam = np.linalg.eigvalsh(Li @ post.P @ Li.T)  # 1 in every direction when equal
+    assert np.all(np.abs(lam - 1) < 0.02), lam
+    # a reset forgets the accumulation and starts again from the first prior's covariance
+    post.P = post.P0.copy()
+    post.fold()
+    assert post.G_acc is None and post.G_held is None
+    np.testing.assert_allclose(post.anchor_prior(0.0)[1], post.P0)
 
 
 def test_one_window_leaves_the_unseen_directions_at_their_prior(cfg, model):
