@@ -13,16 +13,18 @@ per sample. Three layers:
 * ``DesignCache`` — redesign when Ω leaves a band around the design point, designs cached by
   Ω rounded (relatively) to ``cache_resolution``; the stopped-rotor design below ``omega_min``;
 * ``LoadFilter`` (the per-sample path of the live service and of a bit-exact replay) and
-  ``filter_batch`` (the same recursion for whole arrays, off-line).
+  ``filter_batch`` (the same recursion for whole arrays, off-line: six single-output IIR
+  filters, performance.md P3).
 """
 from __future__ import annotations
 
+import weakref
 from collections import OrderedDict
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
-from scipy.linalg import cholesky, solve_discrete_are, solve_discrete_lyapunov
+from scipy.linalg import cholesky, eigh, solve_discrete_are, solve_discrete_lyapunov
 from scipy.optimize import brentq
 from scipy.signal import lfilter, place_poles, sosfilt, zpk2sos
 
@@ -53,7 +55,9 @@ class FilterDesign:
     ``harmonics`` are the harmonics that have states in this design (empty when the rotor
     is stopped); ``omega`` the Ω it was designed for (0 when stopped); ``blocks`` groups of
     states that the closed loop (I − K J) Φ leaves uncoupled (one per component for the
-    time-constant tuning), which the batch path uses.
+    time-constant tuning, all states for the Riccati gain); ``rotation`` and
+    ``rotated_gains`` the six single-output filters both tunings decompose into, which the
+    batch path runs.
     """
 
     Phi: np.ndarray  # (n, n)
@@ -80,6 +84,12 @@ class FilterDesign:
     # Time-constant tuning: the one gain every component has in whitened coordinates
     # (K = blockdiag(K_c) R⁻¹ with K_c = component_gain); None for the Riccati gain.
     component_gain: np.ndarray | None = None
+    # Both tunings are six single-output filters in rotated whitened coordinates
+    # y = M R⁻¹ (z − S T), x̃ = (M ⊗ I_m) x: K = (M⁻¹ ⊗ I_m) blockdiag(k̃_i) M R⁻¹ with
+    # M = ``rotation`` (6, 6; I for the time-constant gain) and k̃_i = ``rotated_gains[i]``
+    # (6, m). The batch path runs on this; None for a design without that structure.
+    rotation: np.ndarray | None = None
+    rotated_gains: np.ndarray | None = None
 
     @property
     def n_states(self) -> int:
@@ -236,32 +246,47 @@ def design_filter(
         # Error loop of the fixed gain: P⁻ = A P⁻ Aᵀ + Φ K W Kᵀ Φᵀ + Qd, A = Φ (I − K J).
         A = Phi @ (np.eye(n) - K @ J)
         P = solve_discrete_lyapunov(A, Phi @ K @ W @ K.T @ Phi.T + Qd)
+        rotation, rotated_gains = np.eye(N_COMPONENTS), np.tile(Kc[:, 0], (N_COMPONENTS, 1))
     else:
         if np.any(q <= 0):
             raise ValueError("the noise tuning needs positive process-noise PSDs")
-
-        def riccati(scale: float) -> tuple[np.ndarray, np.ndarray]:
-            P = solve_discrete_are(Phi.T, J.T, scale * Qd, W)
-            return P, np.linalg.solve(J @ P @ J.T + W, J @ P).T
-
+        # W couples the whitened components. M with M W' Mᵀ = I and M diag(q) Mᵀ = diag(μ)
+        # (W' = R⁻¹ W R⁻ᵀ; the symmetric-definite eigenproblem q v = μ W' v, M = Vᵀ)
+        # decouples them again: Φ = I ⊗ Φ_c, C = I ⊗ c and Qd = diag(q) ⊗ Qd_c commute with
+        # M ⊗ I_m, so in x̃ = (M ⊗ I_m) x with y = M R⁻¹ (z − S T) (unit noise) the Riccati
+        # equation of Eq 2.12–2.14 is six single-output ones with q/r = μ_i — the same
+        # solution as the 30-state one, exactly decoupled and better conditioned.
+        Wn = Rinv @ W @ Rinv.T
+        mu, V = eigh(np.diag(q), 0.5 * (Wn + Wn.T))
+        M, Mi = V.T, (0.5 * (Wn + Wn.T)) @ V  # Vᵀ W' V = I → (Vᵀ)⁻¹ = W' V
         if isinstance(psd, str):
-            # W couples the whitened components, so the full Riccati design is slower than
-            # each component's alone: one common factor on the PSDs (a 1-D search again)
-            # makes its slowest time constant τ too — the two tunings then agree.
-            def f(log_s: float) -> float:
-                _, K = riccati(np.exp(log_s))
-                taus = _closed_loop_time_constants(Phi - K @ J @ Phi, dt)
-                return np.log(np.max(taus)) - np.log(time_constant_s)
-
-            scale = np.exp(_root_log(f, 0.0, time_constant_s))
-            q, Qd = q * scale, Qd * scale
-        P, K = riccati(1.0)
+            # The slowest of the six is the one with the least process noise (τ falls as
+            # q/r grows): one common factor on the PSDs gives it τ, the slowest time
+            # constant of the whole design — the two tunings then agree.
+            scale = rho / float(np.min(mu))
+            q, mu, Qd = q * scale, mu * scale, Qd * scale
+        m = len(idx0)
+        rotated_gains = np.empty((N_COMPONENTS, m))
+        P_rot = np.zeros((n, n))
+        for i in range(N_COMPONENTS):
+            Pi = solve_discrete_are(Phi_c.T, C_c.T, mu[i] * Qd_unit_c, np.eye(1))
+            Pi = 0.5 * (Pi + Pi.T)
+            rotated_gains[i] = (Pi @ C_c.T / (C_c @ Pi @ C_c.T + 1.0))[:, 0]
+            P_rot[i * m:(i + 1) * m, i * m:(i + 1) * m] = Pi
+        Mik = np.kron(Mi, np.eye(m))
+        K = Mik @ _blockdiag_gain(rotated_gains) @ (M @ Rinv)
+        P = Mik @ P_rot @ Mik.T
         blocks = (tuple(range(n)),)
+        rotation = M
         Kc = None
     P = 0.5 * (P + P.T)
     B = J @ P @ J.T + W
     B = 0.5 * (B + B.T)
     taus = _closed_loop_time_constants(Phi - K @ J @ Phi, dt)
+    if tuning == "noise" and isinstance(psd, str) and abs(np.max(taus) / time_constant_s - 1) > 1e-6:
+        # e.g. many closely spaced harmonics: no PSD ratio reaches τ (the search saturates)
+        raise ValueError(f"no process-noise PSD gives a slowest time constant of {time_constant_s} s"
+                         f" (got {np.max(taus):.4g} s)")
     return FilterDesign(
         Phi=Phi, C=C, J=J, K=K, B=B, P_minus=P, Qd=Qd, W=W, omega=omega_d, dt=float(dt),
         harmonics=harmonics, low_frequency=low_frequency, rotor_stopped=stopped,
@@ -269,7 +294,17 @@ def design_filter(
         time_constant_s=float(time_constant_s), psd=q, R=R, geometry=geometry,
         blocks=blocks, labels=state_labels(harmonics, low_frequency),
         component_gain=None if Kc is None else Kc[:, 0].copy(),
+        rotation=rotation, rotated_gains=rotated_gains,
     )
+
+
+def _blockdiag_gain(gains: np.ndarray) -> np.ndarray:
+    """(n, 6) gain with column i = k̃_i on the states of component i (component-major)."""
+    nc, m = gains.shape
+    Kb = np.zeros((nc * m, nc))
+    for i in range(nc):
+        Kb[i * m:(i + 1) * m, i] = gains[i]
+    return Kb
 
 
 class DesignCache:
@@ -624,49 +659,179 @@ def _decay_samples(lam: np.ndarray, V: np.ndarray, N: int, tail: float = 1e-20) 
     return min(N, max(n, 1))
 
 
-def _batch_components(design: FilterDesign, S: np.ndarray, T: np.ndarray, z: np.ndarray,
-                      x0: np.ndarray) -> BatchResult:
-    """Time-constant designs: every component is the same single-input system in whitened
-    coordinates u' = R⁻¹ (z − S T), x_c(n) = A_c x_c(n−1) + k u'_c(n), A_c = (I − k c) Φ_c.
-    Ĥ_c and the whitened innovation e'_c = u'_c − c Φ_c x_c(n−1) are each one SISO filter
-    (second-order sections over all six components at once) plus the response to x0 by
-    modes; e = R e'."""
-    N, m = z.shape[0], design.n_states // N_COMPONENTS
+class _Group(NamedTuple):
+    """Rotated components sharing one gain k: x̃(n) = A x̃(n−1) + k y(n), A = (I − k c) Φ_c."""
+
+    rows: slice | np.ndarray
+    k: np.ndarray  # (m,)
+    A: np.ndarray  # (m, m)
+    sos: np.ndarray  # innovation filter ẽ = [Π(1 − p q⁻¹) / Π(1 − λ q⁻¹)] y, p ∈ eig Φ_c
+    h: float  # 1 − c k:  Ĥ' = c x̃⁺ = c Φ_c x̃(n−1) + c k ẽ = y − (1 − c k) ẽ
+    lam: np.ndarray  # (m,) modes of A, V, V⁻¹
+    V: np.ndarray
+    Vi: np.ndarray
+    e_x0: np.ndarray  # (nf, m): row n = λⁿ ∘ (−c Φ_c V), ẽ's response to x̃(−1) in modes
+    Ak_rev: np.ndarray  # (nf, m): row nf−1−j = A^j k (the inputs that still matter for x̃(N−1))
+
+
+class _Plan(NamedTuple):
+    """Design-dependent part of the batch path (made once per design, cached weakly)."""
+
+    m: int
+    M: np.ndarray | None  # rotation (None: identity)
+    Mi: np.ndarray | None  # M⁻¹
+    P: np.ndarray  # (6, 6) M R⁻¹: y = P (z − S T)
+    R_Mi: np.ndarray  # (6, 6) R M⁻¹: e = R M⁻¹ ẽ
+    groups: tuple[_Group, ...]
+
+
+_PLANS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # bounded by live designs
+
+
+def _make_plan(design: FilterDesign) -> _Plan | None:
+    """The six single-output filters of a design, or None when it lacks that structure
+    (checked on its own Φ, C and K, so a design built or altered elsewhere is never run
+    through a decomposition it does not satisfy)."""
+    M, gains = design.rotation, design.rotated_gains
+    n = design.n_states
+    m = n // N_COMPONENTS
+    if M is None or gains is None or design.R is None or gains.shape != (N_COMPONENTS, m):
+        return None
+    I6 = np.eye(N_COMPONENTS)
     Phi_c, c = design.Phi[:m, :m], design.C[0, :m]
-    k = design.component_gain
-    A = Phi_c - np.outer(k, c @ Phi_c)
+    if (np.max(np.abs(design.Phi - np.kron(I6, Phi_c))) > 1e-12 * np.max(np.abs(Phi_c))
+            or not np.array_equal(design.C, np.kron(I6, c[None, :]))):
+        return None
+    Mi = np.linalg.inv(M)
     Rinv = np.linalg.inv(design.R)
-    uw = Rinv @ z.T - (Rinv @ S) @ T.T  # (6, N), rows contiguous for sosfilt
-    X0 = x0.reshape(N_COMPONENTS, m)  # (6, m): row c = x0 of component c
-    # With s(n) = x(n−1): Ĥ'(n) = c A s(n) + c k u'(n);  e'(n) = −c Φ s(n) + u'(n).
-    lam, V, Vi = _modes(A)
-    nf = _decay_samples(lam, V, N)
-    powers = lam[None, :] ** np.arange(nf)[:, None]  # (nf, m)
-    z0 = X0 @ Vi.T  # (6, m) modal initial state per component
-    outs = []
-    for cy, d in ((c @ A, float(c @ k)), (-(c @ Phi_c), 1.0)):
-        y = sosfilt(_siso_sos(A, k, cy, d), uw, axis=-1)
-        y[:, :nf] += (z0 @ (powers * (cy @ V)[None, :]).T).real  # c_y A^n x0
-        outs.append(y)
-    H = outs[0].T
-    e = (design.R @ outs[1]).T
-    # Final state: A^N x0 + Σ_{j<nf} A^j k u'(N−1−j); older inputs have decayed below 1e-20.
-    Ak = ((powers * (Vi @ k)[None, :]) @ V.T).real  # (nf, m): row j = A^j k
-    X_last = uw[:, N - 1::-1][:, :nf] @ Ak + ((z0 * lam**N) @ V.T).real  # (6, m)
+    K = np.kron(Mi, np.eye(m)) @ _blockdiag_gain(gains) @ (M @ Rinv)
+    if np.max(np.abs(K - design.K)) > 1e-12 * np.max(np.abs(design.K)):
+        return None
+    groups = []
+    done = np.zeros(N_COMPONENTS, bool)
+    for i in range(N_COMPONENTS):  # components with the same gain share one filter call
+        if done[i]:
+            continue
+        same = np.flatnonzero(np.all(gains == gains[i], axis=1) & ~done)
+        done[same] = True
+        rows = slice(same[0], same[-1] + 1) if np.all(np.diff(same) == 1) else same
+        k = gains[i].copy()
+        cPhi = c @ Phi_c
+        A = Phi_c - np.outer(k, cPhi)
+        lam, V, Vi = _modes(A)
+        nf = _decay_samples(lam, V, 1 << 40)
+        if nf >= 1 << 40:  # not a stable closed loop: no decomposition into decaying modes
+            return None
+        powers = lam[None, :] ** np.arange(nf)[:, None]
+        groups.append(_Group(
+            rows=rows, k=k, A=A, sos=_siso_sos(A, k, -cPhi, 1.0), h=float(1.0 - c @ k),
+            lam=lam, V=V, Vi=Vi, e_x0=powers * (-cPhi @ V)[None, :],
+            Ak_rev=np.ascontiguousarray(((powers * (Vi @ k)[None, :]) @ V.T).real[::-1])))
+    identity = np.array_equal(M, I6)
+    return _Plan(m=m, M=None if identity else M, Mi=None if identity else Mi,
+                 P=Rinv if identity else M @ Rinv, R_Mi=design.R if identity else design.R @ Mi,
+                 groups=tuple(groups))
+
+
+def _plan(design: FilterDesign) -> _Plan | None:
+    try:
+        return _PLANS[design]
+    except KeyError:
+        plan = _PLANS[design] = _make_plan(design)
+        return plan
+
+
+def _group_states(g: _Group, Y: np.ndarray, X0: np.ndarray) -> np.ndarray:
+    """x̃(n) = A x̃(n−1) + k y(n) of every row of Y (rows, N) from x̃(−1) = X0 (rows, m), by
+    modes: ξ = V⁻¹ x̃, one first-order ``lfilter`` per mode over all rows at once; one mode
+    of each conjugate pair (its partner is the conjugate). Returns (N, rows, m)."""
+    rows, N = Y.shape
+    out = np.zeros((N, rows, g.A.shape[0]))
+    for j in np.flatnonzero(g.lam.imag >= 0):
+        lj, vj = g.lam[j], g.V[:, j]
+        gj, xi0 = g.Vi[j] @ g.k, X0 @ g.Vi[j]
+        if lj.imag == 0:
+            xi = lfilter([1.0], [1.0, -lj.real], gj.real * Y, axis=-1,
+                         zi=(lj.real * xi0.real)[:, None])[0]
+            out += xi.T[:, :, None] * vj.real
+        else:  # a pair adds 2 Re(v ξ)
+            xi = lfilter([1.0], [1.0, -lj], gj * Y, axis=-1, zi=(lj * xi0)[:, None])[0].T
+            out += 2.0 * (xi.real[:, :, None] * vj.real - xi.imag[:, :, None] * vj.imag)
+    return out
+
+
+_CHUNK = 4096  # columns per BLAS call in ``_dot_cols``
+
+
+def _dot_cols(A: np.ndarray, X: np.ndarray, A2: np.ndarray | None = None,
+              X2: np.ndarray | None = None) -> np.ndarray:
+    """A X (+ A2 X2), X (k, N) of any layout (e.g. z.T), as a C-contiguous (p, N), in blocks
+    of ``_CHUNK`` columns: one call over all N columns of such a skinny product is large
+    enough for OpenBLAS to use every thread, and on a shared machine that took 15–35 ms
+    instead of 0.25 ms (measured, N = 40 000, 2 loaded cores); blocks stay single-threaded
+    and in cache."""
+    N = X.shape[1]
+    out = np.empty((A.shape[0], N))
+    for s in range(0, N, _CHUNK):
+        blk = np.dot(A, X[:, s:s + _CHUNK])
+        if A2 is not None:
+            blk += np.dot(A2, X2[:, s:s + _CHUNK])
+        out[:, s:s + _CHUNK] = blk
+    return out
+
+
+def _batch_rotated(design: FilterDesign, plan: _Plan, S: np.ndarray, T: np.ndarray,
+                   z: np.ndarray, x0: np.ndarray) -> BatchResult:
+    """Six single-output filters in y = M R⁻¹ (z − S T), x̃ = (M ⊗ I) x (``FilterDesign``).
+
+    Per rotated component only the innovation ẽ is filtered — one IIR filter whose zeros are
+    the open-loop poles eig Φ_c and whose poles are the closed loop's, as second-order
+    sections over all rows sharing a gain; Ĥ' = y − (1 − c k) ẽ needs no filter. The response
+    to x0 is added by modes; e = R M⁻¹ ẽ, Ĥ = M⁻¹ Ĥ'. Nothing of size N × n is made unless
+    ``x_plus`` is asked for."""
+    N, m = z.shape[0], plan.m
+    P, Q = plan.P, -(plan.P @ S)
+    y = _dot_cols(P, z.T, Q, T.T)  # (6, N), rows contiguous for sosfilt
+    X0 = x0.reshape(N_COMPONENTS, m)
+    if plan.M is not None:
+        X0 = plan.M @ X0
+    X_last = np.empty((N_COMPONENTS, m))
+    e = None if len(plan.groups) == 1 else np.empty_like(y)
+    for g in plan.groups:
+        yr = y[g.rows]
+        er = sosfilt(g.sos, yr, axis=-1)
+        nf = min(N, g.e_x0.shape[0])
+        z0 = X0[g.rows] @ g.Vi.T  # modal x̃(−1), one row per component
+        # einsum, not BLAS: a (1, m) × (m, nf) product is a gemv that OpenBLAS threads, and
+        # waking threads on a loaded machine cost 7–20 ms per call (measured).
+        er[:, :nf] += np.einsum("rj,nj->rn", z0, g.e_x0[:nf]).real  # −c Φ_c Aⁿ x̃(−1)
+        # x̃(N−1) = A^N x̃(−1) + Σ_{j<nf} A^j k y(N−1−j): older inputs decayed below 1e-20
+        X_last[g.rows] = (np.einsum("rn,nj->rj", yr[:, N - nf:], g.Ak_rev[-nf:])
+                          + ((z0 * g.lam**N) @ g.V.T).real)
+        if isinstance(g.rows, slice):
+            yr -= g.h * er  # now Ĥ' (a view: y itself is no longer needed)
+        else:
+            y[g.rows] = yr - g.h * er
+        if e is None:
+            e = er
+        else:
+            e[g.rows] = er
+    del yr, er  # views that would keep the pre-mixing arrays alive
+    if plan.Mi is not None:
+        y = _dot_cols(plan.Mi, y)
+        X_last = plan.Mi @ X_last
+    e = _dot_cols(plan.R_Mi, e)
 
     def make() -> np.ndarray:
-        # State j of every component: x_j(n) = A_j s(n) + k_j u'(n), one more SISO filter
-        # each when k_j ≠ 0 (sections need a direct term); otherwise mode by mode.
-        if np.any(np.abs(k) <= 1e-12 * np.max(np.abs(k))):
-            return _x_plus_modal(design, z - T @ S.T, x0)
-        xp = np.empty((N, N_COMPONENTS, m))
-        for j in range(m):
-            y = sosfilt(_siso_sos(A, k, A[j], float(k[j])), uw, axis=-1)
-            y[:, :nf] += (z0 @ (powers * (A[j] @ V)[None, :]).T).real
-            xp[:, :, j] = y.T
-        return xp.reshape(N, N_COMPONENTS * m)
+        Y = _dot_cols(P, z.T, Q, T.T)
+        Xt = np.empty((N, N_COMPONENTS, m))
+        for g in plan.groups:
+            Xt[:, g.rows] = _group_states(g, Y[g.rows], X0[g.rows])
+        if plan.Mi is not None:  # x = (M⁻¹ ⊗ I) x̃
+            Xt = np.einsum("ai,nis->nas", plan.Mi, Xt)
+        return Xt.reshape(N, N_COMPONENTS * m)
 
-    return BatchResult(None, e, H, X_last.reshape(-1), make=make)
+    return BatchResult(None, e.T, y.T, X_last.reshape(-1), make=make)
 
 
 def filter_batch(design: FilterDesign, alpha: np.ndarray, T: np.ndarray, z: np.ndarray,
@@ -674,20 +839,23 @@ def filter_batch(design: FilterDesign, alpha: np.ndarray, T: np.ndarray, z: np.n
     """The recursion of ``LoadFilter.step`` (every sample measured) over whole arrays.
 
     Linear time-invariant for one design: x⁺(n) = (I − KJ)Φ x⁺(n−1) + K u(n) with
-    u = z − S T; e(n) = u(n) − JΦ x⁺(n−1); Ĥ = C x⁺. Time-constant designs run as six
-    identical single-input filters (``_batch_components``); Riccati designs mode by mode.
-    ``alpha``: the 14 angles or S (6, 7).
+    u = z − S T; e(n) = u(n) − JΦ x⁺(n−1); Ĥ = C x⁺. Designs of ``design_filter`` (both
+    tunings) run as six single-output filters (``_batch_rotated``); any other design mode
+    by mode over the whole state. ``alpha``: the 14 angles or S (6, 7). ``H`` and ``e`` may
+    be transposed views (not C-contiguous).
     """
     S = _wrench(design.geometry, alpha)
     T = np.asarray(T, float)
     z = np.asarray(z, float)
     N, n = z.shape[0], design.n_states
     x0 = np.zeros(n) if x0 is None else np.asarray(x0, float)
+    if x0.shape != (n,):
+        raise ValueError(f"x0 must have shape ({n},), got {x0.shape}")
     if N == 0:
         return BatchResult(np.zeros((0, n)), np.zeros((0, 6)), np.zeros((0, 6)), x0.copy())
-    kc = design.component_gain
-    if kc is not None and design.C[0, :n // N_COMPONENTS] @ kc != 0:
-        return _batch_components(design, S, T, z, x0)
+    plan = _plan(design)
+    if plan is not None:
+        return _batch_rotated(design, plan, S, T, z, x0)
     u = z - T @ S.T
     xp = _x_plus_modal(design, u, x0)
     JPhi = design.J @ design.Phi

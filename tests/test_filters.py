@@ -4,6 +4,8 @@ of the filter: hub loads of a static part plus harmonics with slowly varying amp
 translational accelerations, load cells from the exact balance, §4 noise."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy import stats
@@ -222,34 +224,103 @@ def test_innovation_covariance_matches_data_from_the_model(tuning):
 # --------------------------------------------------------------------- batch == step
 @pytest.mark.parametrize("tuning,kw", [
     ("time_constant", {}), ("time_constant", {"time_constant_s": 1.0}), ("noise", {}),
-    ("time_constant", {"low_frequency": False}), ("time_constant", {"omega_default": None}),
+    ("noise", {"time_constant_s": 1.0}), ("time_constant", {"low_frequency": False}),
+    ("noise", {"low_frequency": False}), ("time_constant", {"omega_default": None}),
+    ("noise", {"omega_default": None}),
 ])
 def test_batch_equals_the_per_sample_loop(tuning, kw):
+    """P3's batch path is the per-sample recursion: Ĥ, e, x⁺, x_last and NIS to 1e-9 of
+    each axis' range, from a random x0 with non-trivial angles. N spans several column
+    blocks of the batch products and more samples than the x0 response is tracked for
+    (τ = 0.1 s), or fewer (τ = 1 s); two chunks continue exactly from x_last. The design
+    with its decomposition removed (the generic modal path) agrees too."""
     rng = np.random.default_rng(3)
     alpha = _alpha()
     cache = _cache(tuning=tuning, **kw)
     lf = LoadFilter(cache, alpha, INVALID_AFTER)
-    n = 1500
+    n, cut = 9000, 4100
     _, _, T, z = synthetic_run(alpha, n, rng)
     x0 = rng.normal(0, 1e3, lf.design.n_states)
     lf.reset(x0)
     steps = [lf.step(T[i], z[i]) for i in range(n)]
+    ref = {"x": np.array([s.x for s in steps]), "e": np.array([s.e for s in steps]),
+           "H": np.array([s.H for s in steps])}
+    scale = {k: np.max(np.abs(v), axis=0) for k, v in ref.items()}
+    generic = filter_batch(dataclasses.replace(lf.design, rotation=None), alpha, T, z, x0=x0)
+    for b in (filter_batch(lf.design, alpha, T, z, x0=x0), generic):
+        for name, got in (("x", b.x_plus), ("e", b.e), ("H", b.H)):
+            assert np.all(np.isfinite(got)), name
+            assert np.max(np.abs(got - ref[name]) / scale[name]) < 1e-9, name
+        np.testing.assert_allclose(b.x_last, lf.state, rtol=0, atol=1e-9 * np.max(np.abs(lf.state)))
     b = filter_batch(lf.design, alpha, T, z, x0=x0)
-    for name, got, ref in (("x", b.x_plus, np.array([s.x for s in steps])),
-                           ("e", b.e, np.array([s.e for s in steps])),
-                           ("H", b.H, np.array([s.H for s in steps]))):
-        scale = np.max(np.abs(ref), axis=0)
-        assert np.max(np.abs(got - ref) / scale) < 1e-9, name
-    np.testing.assert_allclose(b.x_last, lf.state, rtol=0, atol=1e-9 * np.max(np.abs(lf.state)))
     nis = np.array([s.nis for s in steps])
     w = np.linalg.solve(np.linalg.cholesky(lf.design.B), b.e.T)
     np.testing.assert_allclose(nis, np.sum(w**2, axis=0), rtol=1e-9)
     # chunks continue exactly from x_last
-    b1 = filter_batch(lf.design, alpha, T[:700], z[:700], x0=x0)
-    b2 = filter_batch(lf.design, alpha, T[700:], z[700:], x0=b1.x_last)
-    np.testing.assert_allclose(b2.H, b.H[700:], rtol=0, atol=1e-9 * np.max(np.abs(b.H)))
+    b1 = filter_batch(lf.design, alpha, T[:cut], z[:cut], x0=x0)
+    b2 = filter_batch(lf.design, alpha, T[cut:], z[cut:], x0=b1.x_last)
+    np.testing.assert_allclose(b2.H, b.H[cut:], rtol=0, atol=1e-9 * np.max(np.abs(b.H)))
     xp, e, H, _ = b  # unpacks like the tuple of the API
     assert xp.shape == (n, lf.design.n_states) and e.shape == H.shape == (n, 6)
+
+
+@pytest.mark.parametrize("tuning", ["time_constant", "noise"])
+def test_batch_of_one_and_two_samples(tuning):
+    rng = np.random.default_rng(6)
+    alpha = _alpha(3)
+    lf = LoadFilter(_cache(tuning=tuning), alpha, INVALID_AFTER)
+    _, _, T, z = synthetic_run(alpha, 2, rng)
+    x0 = rng.normal(0, 1e3, lf.design.n_states)
+    lf.reset(x0)
+    steps = [lf.step(T[i], z[i]) for i in range(2)]
+    for n in (1, 2):
+        b = filter_batch(lf.design, alpha, T[:n], z[:n], x0=x0)
+        for name, got in (("H", b.H), ("e", b.e), ("x", b.x_plus)):
+            want = np.array([getattr(s, name) for s in steps[:n]])
+            np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-10 * np.max(np.abs(want)))
+        np.testing.assert_allclose(b.x_last, steps[n - 1].x, rtol=1e-10,
+                                   atol=1e-10 * np.max(np.abs(steps[n - 1].x)))
+
+
+@pytest.mark.parametrize("tuning", ["time_constant", "noise"])
+def test_batch_does_not_hold_the_state_history(tuning):
+    """Ĥ, e and x_last without the N × n state history (P3: it costs more than all of
+    them): the batch's peak allocation stays below that history's size alone."""
+    import tracemalloc
+
+    d = design_filter(MODEL, harmonics=HARMONICS, omega=OMEGA, dt=DT, tuning=tuning)
+    rng = np.random.default_rng(7)
+    n = 20000
+    T, z = rng.normal(size=(n, 7)), rng.normal(size=(n, 6))
+    filter_batch(d, np.zeros((6, 7)), T[:10], z[:10])  # the design's plan, made once
+    tracemalloc.start()
+    try:
+        b = filter_batch(d, np.zeros((6, 7)), T, z)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert np.all(np.isfinite(b.H)) and np.all(np.isfinite(b.e))
+    assert peak < n * d.n_states * 8, peak / (n * 48)
+
+
+@pytest.mark.parametrize("low_frequency", [True, False])
+def test_noise_design_is_the_full_riccati_solution(low_frequency):
+    """The noise tuning is designed as six single-output Riccati problems in rotated
+    whitened coordinates (M W' Mᵀ = I, M diag(q) Mᵀ diagonal); that must be the solution of
+    the 30-state equation with the design's own Qd and W, solved directly."""
+    from scipy.linalg import solve_discrete_are
+
+    d = design_filter(MODEL, harmonics=HARMONICS, omega=OMEGA, dt=DT, tuning="noise",
+                      low_frequency=low_frequency, alpha=_alpha())
+    P = solve_discrete_are(d.Phi.T, d.J.T, d.Qd, d.W)
+    K = np.linalg.solve(d.J @ P @ d.J.T + d.W, d.J @ P).T
+    assert np.max(np.abs(d.P_minus - P)) < 1e-8 * np.max(np.abs(P))
+    assert np.max(np.abs(d.K - K)) < 1e-8 * np.max(np.abs(K))
+    # and W does couple the whitened components (the rotation is not the identity)
+    Rinv = np.linalg.inv(d.R)
+    Wn = Rinv @ d.W @ Rinv.T
+    assert np.max(np.abs(Wn - np.diag(np.diag(Wn)))) > 0.05 * np.max(np.diag(Wn))
+    np.testing.assert_allclose(d.rotation @ Wn @ d.rotation.T, np.eye(6), atol=1e-10)
 
 
 def test_set_alpha_rebuilds_the_wrench_matrix():
