@@ -281,6 +281,15 @@ class SimulatorConfig:
 
 
 @dataclass(frozen=True)
+class StuckConfig:
+    """Stuck-channel detection (daq/stuck.py): a run of exactly equal readings."""
+
+    enabled: bool = True
+    false_alarm_per_hour: float = 1.0e-6  # per channel, honest channel at rest
+    max_delay_s: float = 0.5  # a channel needing a longer run to meet the rate is untested
+
+
+@dataclass(frozen=True)
 class RigConfig:
     source: str
     rig_name: str
@@ -305,6 +314,7 @@ class RigConfig:
     telemetry: TelemetryConfig
     recording: RecordingConfig
     simulator: SimulatorConfig
+    stuck: StuckConfig = field(default_factory=StuckConfig)
     raw: dict = field(repr=False, default_factory=dict)
 
     @property
@@ -685,6 +695,21 @@ def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = No
         substeps=sim.number("substeps", 10, integer=True, positive=True),
     )
     sim.finish()
+
+    stk = top.table("stuck", {})
+    stuck = StuckConfig(
+        enabled=stk.boolean("enabled", True),
+        false_alarm_per_hour=stk.number(
+            "false_alarm_per_hour", 1.0e-6, positive=True,
+            fix="give the accepted false alarms per channel-hour, e.g. 1e-6"),
+        max_delay_s=stk.number("max_delay_s", 0.5, positive=True,
+                               fix="give the longest run to wait for, in s, e.g. 0.5"),
+    )
+    if stuck.false_alarm_per_hour >= 1.0:
+        raise stk.error("false_alarm_per_hour", stuck.false_alarm_per_hour,
+                        "must be below 1 (a probability per channel-hour)",
+                        "use e.g. 1e-6")
+    stk.finish()
     top.finish()
 
     cfg = RigConfig(
@@ -693,7 +718,7 @@ def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = No
         cells=tuple(cells), angular=angular, accelerometers=tuple(accs), rotor=rotor,
         balance=balance, external_loads=tuple(ext), filter=filt, identification=ident,
         sync=sync, heartbeat=heartbeat, nodes=tuple(nodes), calibration=calibration,
-        telemetry=telemetry, recording=recording, simulator=simulator, raw=raw,
+        telemetry=telemetry, recording=recording, simulator=simulator, stuck=stuck, raw=raw,
     )
     _check_model(cfg)
     return cfg

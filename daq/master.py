@@ -7,11 +7,13 @@ Two parts:
   NMT state per node, boot-up detection, EMCY decoding tolerant of short frames with a
   bounded history (canopen's drops them and keeps an unbounded log). Replay runs it too, so
   node health replays exactly.
-* :class:`CanopenMaster` — active (live only): NMT reset-communication, wait for boot-up or
+* :class:`CanopenMaster` — active: NMT reset-communication, wait for boot-up or
   heartbeat, SDO verification of 0x1000 / 0x1018 / TPDO parameters against the EDS, 0x1017,
   NMT start, the SYNC producer (python-can ``send_periodic``), and a worker thread that
   reconfigures and restarts a node that rebooted or appeared late — SDO must never run on
-  the bus thread, which delivers the SDO responses.
+  the bus thread, which delivers the SDO responses. In lock-step (the simulator boots its
+  nodes and produces SYNC) only the restart part runs (:meth:`CanopenMaster.supervise`),
+  without a thread: the caller handles the events between pumps (``process_events``).
 """
 from __future__ import annotations
 
@@ -200,10 +202,15 @@ class CanopenMaster:
     """
 
     def __init__(self, cfg: RigConfig, table: DecodeTable, network: canopen.Network,
-                 supervisor: Supervisor, clock: Callable[[], float], periodic_sync: bool = True):
+                 supervisor: Supervisor, clock: Callable[[], float], periodic_sync: bool = True,
+                 threaded: bool = True):
         self.cfg, self.table, self.network, self.supervisor = cfg, table, network, supervisor
         self.clock = clock
         self.periodic_sync = periodic_sync
+        # threaded: a worker thread restarts nodes (SDO must not run on the bus thread).
+        # Not threaded (lock-step): the caller runs process_events() between its pumps, and
+        # every SDO request is answered before the client waits (Reader.supervise)
+        self.threaded = threaded
         self._sync_counter = 0
         self.remote: dict[str, canopen.RemoteNode] = {}
         for nl in table.nodes:
@@ -250,12 +257,22 @@ class CanopenMaster:
             self.configure(nl)
         for nl in present:
             self.remote[nl.name].nmt.send_command(NMT_START)
-        self.running = True
         if self.periodic_sync:
             self.start_sync()
-        self._worker = threading.Thread(target=self._work, name="rsra-canopen-master",
-                                        daemon=True)
-        self._worker.start()
+        self.supervise()
+
+    def supervise(self) -> None:
+        """From now on restart every node that boots (boot-up seen) or reports a state other
+        than operational: reconfigure over SDO, then NMT start (bus.md "Boot and
+        supervision"). Called by boot(); alone where another party booted the nodes (the
+        simulator in lock-step)."""
+        if self.running:
+            return
+        self.running = True
+        if self.threaded:
+            self._worker = threading.Thread(target=self._work, name="rsra-canopen-master",
+                                            daemon=True)
+            self._worker.start()
 
     def configure(self, nl: NodeLayout) -> None:
         """Step 2 for one node: identity and TPDO parameters against the EDS, then 0x1017."""
@@ -379,20 +396,36 @@ class CanopenMaster:
                 kind, node = self._events.get(timeout=0.1)
             except queue.Empty:
                 continue
-            nl = self.table.node(node)
+            self._restart(kind, node)
+
+    def process_events(self) -> int:
+        """Not threaded (lock-step): restart the nodes whose events are queued, in the
+        caller's thread. Returns the number handled."""
+        n = 0
+        while self.running:
             try:
-                self.configure(nl)
-                self.remote[node].nmt.send_command(NMT_START)
-                self.reconfigured += 1
-                log.info("node %s (%s) reconfigured and started", node, kind)
-            except BootError as e:
-                log.error("%s", e)
-            except Exception as e:  # the bus went away: keep the worker alive, report
-                self.supervisor.nodes[node].error = f"restart failed: {e}"
-                log.error("restart of %s failed: %s", node, e)
-            finally:
-                self._last_config[node] = self.clock()
-                self._pending.discard(node)
+                kind, node = self._events.get_nowait()
+            except queue.Empty:
+                return n
+            self._restart(kind, node)
+            n += 1
+        return n
+
+    def _restart(self, kind: str, node: str) -> None:
+        nl = self.table.node(node)
+        try:
+            self.configure(nl)
+            self.remote[node].nmt.send_command(NMT_START)
+            self.reconfigured += 1
+            log.info("node %s (%s) reconfigured and started", node, kind)
+        except BootError as e:
+            log.error("%s", e)
+        except Exception as e:  # the bus went away: keep the worker alive, report
+            self.supervisor.nodes[node].error = f"restart failed: {e}"
+            log.error("restart of %s failed: %s", node, e)
+        finally:
+            self._last_config[node] = self.clock()
+            self._pending.discard(node)
 
     def stop(self) -> None:
         self.running = False

@@ -1,6 +1,6 @@
 """The estimator thread's per-sample work (architecture.md data flow), free of I/O:
 
-sample → inertial loads → static estimate → load filter → records to publish;
+sample → stuck-channel test → inertial loads → static estimate → load filter → records;
         └→ calibration branch: content filter → window buffer → identification jobs.
 
 Identification results are applied from a stated sample (`applies_from_seq`), so a replay
@@ -15,6 +15,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from daq.config import RigConfig
+from daq.decoder import DecodeTable
+from daq.stuck import StuckMonitor
 from estimator.balance import inertial_load_matrix
 from estimator.content import ContentFilter
 from estimator.filters import DesignCache, LoadFilter
@@ -64,7 +66,8 @@ class WindowBuffer:
 class EstimatorPipeline:
     """Per-sample estimation for the live service and for replay (one code path)."""
 
-    def __init__(self, cfg: RigConfig, alpha0: np.ndarray, *, identification: bool = True):
+    def __init__(self, cfg: RigConfig, alpha0: np.ndarray, *, identification: bool = True,
+                 table: DecodeTable | None = None):
         self.cfg = cfg
         self.model = cfg.rig_model()
         self.fs = cfg.sample_rate_hz
@@ -120,6 +123,10 @@ class EstimatorPipeline:
         self._last_seq: int | None = None
         self._omega: float | None = None  # this sample's usable rotor speed
         self.design_errors = 0  # redesigns that failed: the current design was kept
+        # stuck channels (a frozen sensor with a clean status, daq/stuck.py): flagged
+        # fault:<cell|accelerometer> and treated like a faulted cell — predict-only (model
+        # §6), H_static null, not ok in the identification window
+        self.stuck = StuckMonitor(cfg, table) if cfg.stuck.enabled else None
 
     # --- identification results -------------------------------------------------------
     def deliver(self, record: dict, arrival_seq: int | None = None) -> None:
@@ -175,9 +182,15 @@ class EstimatorPipeline:
         T = np.asarray(s.T, float)
         accel = np.asarray(s.accel, float).reshape(-1)
         flags = list(s.flags)
+        stuck = False
+        if self.stuck is not None:
+            for fl in self.stuck.update(T, accel, s.flags):
+                stuck = True
+                if fl not in flags:
+                    flags.append(fl)
         cells_ok = bool(np.isfinite(T).all())
         acc_ok = bool(np.isfinite(accel).all())
-        bad_status = any(f.startswith(("overrange:", "fault:")) for f in flags)
+        bad_status = stuck or any(f.startswith(("overrange:", "fault:")) for f in flags)
         q = None
         drive_ok = True
         if self._D.shape[1]:

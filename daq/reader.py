@@ -28,7 +28,7 @@ import math
 import queue
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -175,6 +175,20 @@ class _LockedTap(can.Listener):
         pass
 
 
+class _ReaderNetwork(canopen.Network):
+    """canopen's Network with a hook after every transmission (canopen documents
+    ``send_message`` as the method to override). Lock-step: the hook lets the peer (the
+    simulator) answer and pumps the answer in, so canopen's blocking SDO client finds its
+    response already queued — no thread and no wall-clock wait (Reader.supervise)."""
+
+    after_send: Callable[[], None] | None = None
+
+    def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
+        super().send_message(can_id, data, remote)
+        if self.after_send is not None:
+            self.after_send()
+
+
 class Reader:
     """Calibrated, time-stamped samples from a CANopen bus.
 
@@ -188,6 +202,9 @@ class Reader:
 
     ``master=False`` only listens (no NMT, no SDO, no SYNC): a recording of another master, a
     bus whose nodes start by themselves, lock-step runs where the simulator owns the nodes.
+    ``restart_nodes=True`` with ``master=False`` (lock-step): the nodes were booted by someone
+    else, but once :meth:`supervise` is called a node that reboots is reconfigured over SDO
+    and started by this reader, as the live master does (bus.md "Boot and supervision").
     ``overflow="drop"`` (live) never blocks the bus thread: a full queue drops the item and
     counts it; ``"block"`` (lock-step) makes the bus thread wait and counts the waits.
     """
@@ -198,7 +215,8 @@ class Reader:
                  record: str | Path | None = None, record_format: str | None = None,
                  queue_size: int = DEFAULT_QUEUE, overflow: str = "drop",
                  wall_clock: bool | None = None, table: DecodeTable | None = None,
-                 offline: bool = False, periodic_sync: bool = True):
+                 offline: bool = False, periodic_sync: bool = True,
+                 restart_nodes: bool = False):
         if overflow not in ("drop", "block"):
             raise ValueError(f"overflow must be 'drop' or 'block', not {overflow!r}")
         self.cfg = cfg
@@ -212,6 +230,7 @@ class Reader:
         if channel is not None:
             self._bus_args["channel"] = channel
         self.use_master = master and not offline
+        self.restart_nodes = restart_nodes and not master and not offline
         self.periodic_sync = periodic_sync
         self.wall_clock = (not offline) if wall_clock is None else wall_clock
         self.overflow = overflow
@@ -235,7 +254,7 @@ class Reader:
         self._stop = threading.Event()
         self._started = False
 
-        self.network = canopen.Network(bus)
+        self.network = _ReaderNetwork(bus)
         # the bus thread wakes this often to see a stop (canopen's default: 1 s per close)
         self.network.NOTIFIER_CYCLE = NOTIFIER_CYCLE_S
         self.assembler = SampleAssembler(cfg, self.table, self._put)
@@ -300,13 +319,17 @@ class Reader:
                 self.master = CanopenMaster(self.cfg, self.table, self.network, self.supervisor,
                                             clock=lambda: self.tap.now,
                                             periodic_sync=self.periodic_sync)
+            elif self.restart_nodes:  # restarts only, armed by supervise()
+                self.master = CanopenMaster(self.cfg, self.table, self.network, self.supervisor,
+                                            clock=lambda: self.tap.now, periodic_sync=False,
+                                            threaded=notifier)
             if notifier:
                 self.network.connect()
             if self.wall_clock:
                 self._tick_thread = threading.Thread(target=self._tick, name="rsra-clock-tick",
                                                      daemon=True)
                 self._tick_thread.start()
-            if self.master is not None:
+            if self.master is not None and self.use_master:
                 self.master.boot()
         except BaseException:
             self.close()
@@ -322,6 +345,7 @@ class Reader:
     def close(self) -> None:
         """Stop SYNC, the master, the notifier, the recording; shut down a bus we opened."""
         self._stop.set()
+        self.network.after_send = None  # the peer may be closed before us
         if self.master is not None:
             self.master.stop()
         if self._tick_thread is not None:
@@ -361,6 +385,33 @@ class Reader:
             self.feed(msg)
             n += 1
         return n
+
+    def supervise(self, peer_pump: Callable[[], object] | None = None) -> None:
+        """``restart_nodes``: from now on restart a node that reboots (the boot-ups already
+        processed — the other master's start — are not acted upon). Without a bus thread,
+        ``peer_pump`` lets the other bus users answer (the simulator's ``pump``): after
+        every frame this reader sends, the peer is pumped and then this reader, so an SDO
+        response is in canopen's queue before the client waits for it. Node events are then
+        handled by :meth:`service_nodes`, called by the driver between steps."""
+        if self.master is None or self.use_master:
+            raise RuntimeError("supervise() needs restart_nodes=True and a started reader")
+        if peer_pump is not None:
+            if self.network.notifier is not None:
+                raise RuntimeError("peer_pump is for start(notifier=False)")
+
+            def answer() -> None:
+                peer_pump()
+                self.pump()
+
+            self.network.after_send = answer
+        self.master.supervise()
+
+    def service_nodes(self) -> int:
+        """Lock-step (no bus thread): restart the nodes that booted since the last call, in
+        this thread; simulated time does not move meanwhile. Returns the nodes handled."""
+        if self.master is None or self.master.threaded:
+            return 0
+        return self.master.process_events()
 
     def send_sync(self, timestamp: float | None = None) -> None:
         """Lock-step with the master: put one SYNC on the bus (``periodic_sync=False``)."""

@@ -7,10 +7,11 @@
 * Live (`--interface/--channel`, or `--sim` in real time): the reader's bus thread assembles
   samples into a bounded queue; this thread estimates and publishes; identification results
   apply from their planned sample, or from the first sample after they arrive (`late`).
-* Lock-step (`--sim … --speed max`, or a paced `--speed X`): the simulator is its own master
-  and SYNC producer; each step moves simulated time by one sample, so the samples are those of
-  real time and nothing reads the wall clock. The loop waits for identification results at
-  their planned sample, so a run is deterministic.
+* Lock-step (`--sim … --speed max`, or a paced `--speed X`): the simulator boots its nodes
+  and produces SYNC; each step moves simulated time by one sample, so the samples are those of
+  real time and nothing reads the wall clock. A node that reboots is restarted by the reader
+  (SDO and NMT start between two steps, answered synchronously: Reader.supervise). The loop
+  waits for identification results at their planned sample, so a run is deterministic.
 * Replay: recorded frames through the same reader; the recorded `angles` schedule reproduces
   the live run bit for bit, or `--recompute` runs the identification deterministically.
 
@@ -395,14 +396,20 @@ class Service:
                                 lockstep=True, threaded=False, t0=t0, keep_samples=keep)
                 bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=True,
                               preserve_timestamps=True)
-                reader = Reader(cfg, bus=bus, master=False, wall_clock=False, record=o.record,
-                                overflow="block", table=table)
+                # the simulator boots and starts its nodes and produces SYNC; the reader
+                # listens, and restarts a node that reboots (bus.md: reconfigured and
+                # restarted without restarting the service), its SDO answered in lock-step
+                reader = Reader(cfg, bus=bus, master=False, restart_nodes=True,
+                                wall_clock=False, record=o.record, overflow="block",
+                                table=table)
                 self.sim, self.reader = sim, reader
                 closers.append(bus.shutdown)
                 closers.append(reader.close)
                 closers.append(self._close_sim)
                 reader.start(notifier=False)
                 sim.start()
+                reader.pump()  # the simulator's own boot-ups: seen, not acted upon
+                reader.supervise(peer_pump=sim.pump)
                 self.recorder = reader.recorder
                 return self._lockstep_items()
             sim = Simulator(cfg, physics=AircraftPhysics(cfg, scenario, seed=o.seed,
@@ -454,6 +461,7 @@ class Service:
         while not self.stop_event.is_set():
             sim.step()
             reader.pump()
+            reader.service_nodes()  # a node that booted: restarted before time moves on
             k += 1
             yield from reader.poll()
             if speed:  # paced lock-step: simulated time runs at `speed` x the wall clock
@@ -592,6 +600,8 @@ class Service:
         if self.pipeline is not None:  # readings the estimator refused (bad input, counted)
             payload["estimator"] = {"implausible_omega": self.pipeline.implausible_omega,
                                     "design_errors": self.pipeline.design_errors}
+            if self.pipeline.stuck is not None:
+                payload["estimator"].update(self.pipeline.stuck.health())
         if self.warnings:
             payload["warnings"] = list(self.warnings)
         prev = (self.last_health or {}).get("recording") or {}
@@ -615,6 +625,10 @@ class Service:
                                           or self.pipeline.design_errors):
             out["implausible_omega"] = self.pipeline.implausible_omega
             out["design_errors"] = self.pipeline.design_errors
+        if self.pipeline is not None and self.pipeline.stuck is not None:
+            st = self.pipeline.stuck.health()
+            if st["stuck_episodes"]:
+                out["stuck"] = {"episodes": st["stuck_episodes"], "samples": st["stuck_samples"]}
         if self.latencies:
             a = np.fromiter(self.latencies, float) * 1e3
             out["latency_ms"] = {"p50": float(np.percentile(a, 50)),

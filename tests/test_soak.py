@@ -21,7 +21,7 @@ from daq.service import Service, ServiceOptions
 SOAK_S = float(os.environ.get("RSRA_SOAK_S", "600"))
 PAGE = os.sysconf("SC_PAGE_SIZE")
 # one fault every FAULT_EVERY_S seconds, cycling through every kind that recovers by itself
-# (a reboot waits for a master's NMT start: tests/test_faults_e2e.py)
+# (a reboot needs the service's SDO restart: covered by tests/test_faults_e2e.py)
 FAULT_EVERY_S = 4.0
 TEMPLATES = [
     "silent:cell_B@{a}-{a3}", "overrange:cell_C@{a}-{a3}", "sensor:cell_D@{a}-{a3}",
