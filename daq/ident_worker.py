@@ -85,8 +85,12 @@ def run_job(cfg, runs: dict, cache, job: dict) -> dict:
     gaps = np.diff(seq) > 1
     if gaps.any() and (np.diff(seq).max() - 1) > ident.gap_samples:
         ident.mark_discontinuity()
+    # the pipeline buffers z = I − D q: the measured external loads are already taken off
+    # (and W carries their noise), so their columns of the stacked data are zero here
+    n_ext = ident.par.model.external.wrenches.shape[1]
+    q = np.zeros((len(job["T"]), n_ext)) if n_ext else None
     rec = ident.run_window(job["z"], job["T"], job["known_H"] if mode == "known_loads" else None,
-                           seq0=int(seq[0]), valid=valid, t=float(job["t"][-1]))
+                           q, seq0=int(seq[0]), valid=valid, t=float(job["t"][-1]))
     # when the other mode runs next, its state must restart after new angles
     if rec.accepted:
         for other in runs.values():
