@@ -7,3 +7,10 @@ and appends JSON lines to ``bench/results/<module>.jsonl`` (``bench.common.write
 Benchmarks are not tests: the test suite only checks that each one runs in its tiny
 configuration and writes well-formed lines (tests/test_bench.py), never a timing.
 """
+import os
+
+# Benchmarks run with the service's BLAS setting (daq/__init__.py: one thread). Without it a
+# benchmark that imports only `estimator` let OpenBLAS start threads for long products, which
+# cost 15-35 ms a call on the shared 2 cores (measured in P3). The user's environment wins.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")

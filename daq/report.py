@@ -335,7 +335,7 @@ def prepare(cfg: RigConfig, rec: Records, truth: dict | None, units: str = "si")
 
 
 def _hub_summary(d: ReportData) -> dict:
-    rec, cfg = d.rec, d.cfg
+    rec = d.rec
     if rec.hub is None:
         return {"skipped": "no hub_loads records"}
     H, Hs = rec.hub["H"], rec.hub["H_static"]

@@ -439,7 +439,7 @@ def test_fault_error_frames(cfg, tmp_path):
 
 def test_fault_window_and_node_wildcard(cfg):
     with lockstep(cfg, "drop:*:0.5@1.0-1.5") as sim:
-        groups = by_sample(run_steps(sim, N))
+        run_steps(sim, N)
     samples = {f["sample"] for f in faults_of(sim, "drop")}
     assert samples and min(samples) >= 200 and max(samples) < 300
     assert {f["node"] for f in faults_of(sim, "drop")} == {n.name for n in sim.nodes}
