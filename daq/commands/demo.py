@@ -174,11 +174,14 @@ def _print_summary(console, summary: dict, state) -> None:
              f"identification runs {summary.get('identification_runs', 0)} "
              f"(accepted {summary.get('accepted', 0)}, rejected {summary.get('rejected', {})})"]
     with state.lock:
+        if state.held_n:
+            ratio = np.sqrt(state.held_err2 / state.held_n) / state.static_bound
+            lines.append(f"hub-load RMS error / static bound, held loads ({state.held_n} "
+                         "samples; X Y Z L M N): " + " ".join(f"{r:.2f}" for r in ratio))
         if state.err_n:
-            rms = np.sqrt(state.err2 / state.err_n)
-            ratio = rms / state.static_bound
-            lines.append("hub-load RMS error / static bound per axis (X Y Z L M N): "
-                         + " ".join(f"{r:.2f}" for r in ratio))
+            ratio = np.sqrt(state.err2 / state.err_n) / state.static_bound
+            lines.append(f"hub-load RMS error / static bound, every sample after 1 s, ramps "
+                         f"included ({state.err_n}): " + " ".join(f"{r:.2f}" for r in ratio))
         ang, ta = state.angles, state.truth_alpha
     if ang and ang.get("alpha") and ta is not None:
         names = ang["names"]
