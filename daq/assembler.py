@@ -8,8 +8,9 @@ No wall-clock timer decides anything here, so a replay of the same frames assemb
 the same samples.
 
 Hot path: one closure per COB-ID (subscribed with canopen's raw ``Network.subscribe``) does
-``len`` check, ``Struct.unpack`` and a slice store into a list; calibration (one numpy
-multiply-add over the whole sample) and the Sample object are built once per sample.
+the ``len`` and duplicate checks and keeps the frame; one ``struct`` unpack of the whole
+sample, the calibration (one numpy multiply-add) and the Sample object are built once per
+sample, with everything that depends only on which nodes reported cached per pattern.
 """
 from __future__ import annotations
 
@@ -93,6 +94,13 @@ class SampleAssembler:
 
     ``callbacks()`` gives the per-COB-ID frame callbacks (``cb(can_id, data, timestamp)``),
     the SYNC one included, for canopen's ``Network.subscribe``.
+
+    Per frame only the length and the duplicate check run and the frame is kept (one list
+    store; the bytes are read when the sample is passed on, within the same SYNC period, so
+    the caller must not reuse a frame's buffer before the next SYNC — python-can and canopen
+    hand over a new one per frame). Per sample: one ``struct`` unpack of every TPDO joined
+    in bit order (DecodeTable.sample_struct), one gather into the output layout
+    ``[T | accel | balance | drive | omega, azimuth]`` and one multiply-add (calibration).
     """
 
     def __init__(self, cfg: RigConfig, table: DecodeTable, emit: Callable[[Sample], None]):
@@ -100,10 +108,12 @@ class SampleAssembler:
         self.sync_cob_id = cfg.sync.cob_id
         self.overflow = cfg.sync.counter_overflow
         n = table.n_channels
-        self._template = [0.0] * n
-        self._raw: list[float] = list(self._template)
+        self._unpack = table.sample_struct.unpack
+        self._zero_frames = list(table.zero_frames)  # an unreported TPDO decodes as zeros
+        self._frames: list[Any] = list(self._zero_frames)  # one per TPDO, bit order
         self._have = table.all_bits  # TPDO bits reported since the last SYNC (all: none yet)
         self._expect = 0  # TPDO bits that complete the current sample
+        self._wait = -1  # = _expect while the sample is open, -1 (matches nothing) otherwise
         self._open = False  # the current sample is not passed on yet
         self._in_sample = False  # a SYNC has been seen
         self._sync_t = 0.0
@@ -134,20 +144,33 @@ class SampleAssembler:
         self._alive_bits = 0  # optional nodes whose heartbeat says operational
         self._pattern_cache: dict[tuple[int, int], tuple] = {}
 
-        # output index arrays (config order)
+        # output layout (config order): T | accel | balance | drive | omega, azimuth; one
+        # gather ``raw[perm]`` per sample, the Sample's arrays are views of its sections
         idx = table.index
-        self._T_idx = np.array([idx(f"{c.node}.force") for c in cfg.cells])
+        T_idx = [idx(f"{c.node}.force") for c in cfg.cells]
         self._status_idx = [idx(f"{c.node}.status") for c in cfg.cells]
         self._cell_names = [c.name for c in cfg.cells]
         self._cell_nodes = [c.node for c in cfg.cells]
         self._status_flags = [(f"overrange:{c.name}", f"fault:{c.name}") for c in cfg.cells]
-        self._acc_idx = np.array([[idx(f"{a.node}.{ax}") for ax in "xyz"]
-                                  for a in cfg.accelerometers])
+        codes = {i: lay.codes[i - lay.start] for lay in table.layouts
+                 for i in range(lay.start, lay.stop)}
+        # integer status bytes come out of struct as int already (bool/float ones need int())
+        self._status_is_int = all(codes[i] in "bBhHiIqQ" for i in self._status_idx)
+        acc_idx = [idx(f"{a.node}.{ax}") for a in cfg.accelerometers for ax in "xyz"]
+        perm = T_idx + acc_idx
+        self._sl_T = slice(0, len(T_idx))
+        self._sl_acc = slice(len(T_idx), len(perm))
+        self._n_acc = len(cfg.accelerometers)
         rn = cfg.rotor.node
-        self._rotor = (rn, idx(f"{rn}.omega"), idx(f"{rn}.azimuth"),
-                       table.channels[idx(f"{rn}.azimuth")].wrap) if rn else None
+        self._rotor = None
+        if rn:
+            self._rotor = (rn, len(perm), len(perm) + 1, table.channels[idx(f"{rn}.azimuth")].wrap)
+            perm += [idx(f"{rn}.omega"), idx(f"{rn}.azimuth")]
         bn = cfg.balance.node
-        self._balance = (bn, np.array([idx(f"{bn}.{k}") for k in "XYZLMN"])) if bn else None
+        self._balance = None
+        if bn:
+            self._balance = (bn, slice(len(perm), len(perm) + 6))
+            perm += [idx(f"{bn}.{k}") for k in "XYZLMN"]
         drive = []
         for e in cfg.external_loads:
             nl = table.node(e.node)
@@ -158,8 +181,14 @@ class SampleAssembler:
                                   f"the node maps {len(values)} values; an external load needs one",
                                   "map exactly one value in the drive-load node's TPDOs")
             drive.append((e.node, values[0]))
-        self._drive = ((tuple(n for n, _ in drive), np.array([i for _, i in drive]))
-                       if drive else None)
+        self._drive = None
+        if drive:
+            self._drive = (frozenset(n for n, _ in drive),
+                           slice(len(perm), len(perm) + len(drive)))
+            perm += [i for _, i in drive]
+        self._perm = np.array(perm, dtype=np.intp)
+        self._gain_out = table.gain[self._perm]  # calibration in the output layout
+        self._offset_out = table.offset[self._perm]
         self._node_of_channel = np.array(
             [next(k for k, nl in enumerate(table.nodes) if nl.start <= i < nl.stop)
              for i in range(n)], dtype=int)
@@ -178,14 +207,12 @@ class SampleAssembler:
     # -- frame callbacks -------------------------------------------------------------------
     def callbacks(self) -> dict[int, FrameCallback]:
         cbs: dict[int, FrameCallback] = {self.sync_cob_id: self.on_sync}
-        for cob, lay in self.table.tpdos.items():
-            cbs[cob] = self._make_tpdo_callback(lay.length, lay.struct.unpack, lay.start,
-                                                lay.stop, lay.bit)
+        for slot, lay in enumerate(self.table.layouts):
+            cbs[lay.cob_id] = self._make_tpdo_callback(lay.length, slot, lay.bit)
         return cbs
 
-    def _make_tpdo_callback(self, length: int, unpack: Callable, lo: int, hi: int,
-                            bit: int) -> FrameCallback:
-        raw = self._raw  # the same list object for the whole run (slice stores only)
+    def _make_tpdo_callback(self, length: int, slot: int, bit: int) -> FrameCallback:
+        frames = self._frames  # the same list object for the whole run (item stores only)
 
         def on_tpdo(can_id: int, data: Any, timestamp: float) -> None:
             if len(data) != length:
@@ -198,11 +225,11 @@ class SampleAssembler:
                 else:
                     self.orphan += 1
                 return
-            raw[lo:hi] = unpack(data)
+            frames[slot] = data  # decoded with the whole sample (_pass_on)
             have |= bit
             self._have = have
-            expect = self._expect
-            if have & expect == expect and self._open:
+            wait = self._wait
+            if have & wait == wait:  # every expected TPDO is in (never while not open)
                 self._pass_on(True)
 
         return on_tpdo
@@ -235,17 +262,19 @@ class SampleAssembler:
         self._sync_counter = counter
         have = self._have if self._in_sample else 0
         # optional nodes that reported in the last period count as alive (by frame order)
-        self._expect = self._required_bits | self._alive_bits | (have & self._optional_bits)
+        self._expect = expect = self._required_bits | self._alive_bits | (have & self._optional_bits)
         self._prev_have = have
-        self._raw[:] = self._template
+        self._frames[:] = self._zero_frames
         self._have = 0
         self._in_sample = True
         self._open = True
-        if self._expect == 0:
+        self._wait = expect
+        if expect == 0:
             self._pass_on(True)
 
     # -- sample construction (once per SYNC) -----------------------------------------------
     def _pattern(self, have: int, expect: int) -> tuple:
+        """What depends only on which TPDOs came and which were expected (cached, bounded)."""
         key = (have, expect)
         p = self._pattern_cache.get(key)
         if p is None:
@@ -258,10 +287,22 @@ class SampleAssembler:
                     nan_idx.extend(range(lo, hi))
                     if expect & mask:
                         missing.append(name)
-            cells = tuple((name, si, fl) for name, node, si, fl in zip(
+            cells = [(name, si, fl) for name, node, si, fl in zip(
                 self._cell_names, self._cell_nodes, self._status_idx, self._status_flags)
-                if node not in unreported)
-            p = (frozenset(unreported), tuple(missing), np.array(nan_idx, dtype=int), cells)
+                if node not in unreported]
+            names = tuple(c[0] for c in cells)
+            sis = tuple(c[1] for c in cells)
+            flags = tuple(c[2] for c in cells)
+            nan_set = set(nan_idx)
+            nan_out = np.array([k for k, i in enumerate(self._perm.tolist()) if i in nan_set],
+                               dtype=np.intp)
+            un = frozenset(unreported)
+            p = (un, tuple(missing), tuple(f"missing:{m}" for m in missing),
+                 np.array(nan_idx, dtype=int), nan_out if len(nan_out) else None,
+                 names, sis, flags,
+                 self._rotor is not None and self._rotor[0] not in un,
+                 self._balance is not None and self._balance[0] not in un,
+                 self._drive is not None and not un.intersection(self._drive[0]))
             if len(self._pattern_cache) >= _CACHE_MAX:
                 self._pattern_cache.clear()
             self._pattern_cache[key] = p
@@ -269,13 +310,21 @@ class SampleAssembler:
 
     def _pass_on(self, complete_trigger: bool) -> None:
         self._open = False
-        raw = self._raw
-        unreported, missing, nan_idx, reported_cells = self._pattern(self._have, self._expect)
-        cal = np.array(raw)
-        cal *= self.table.gain
-        cal += self.table.offset
+        self._wait = -1
+        (unreported, missing, missing_flags, nan_idx, nan_out, cell_names, status_idx,
+         status_flags, rotor_ok, balance_ok, drive_ok) = self._pattern(self._have, self._expect)
+        raw = self._unpack(b"".join(self._frames))  # every channel, channel order
         total = sum(raw)
-        if total - total != 0.0:  # some value is inf or nan (x - x is 0 for finite x)
+        if total - total == 0.0:  # all finite (x - x is 0 for finite x, nan for inf/nan)
+            out = np.array(raw)[self._perm]
+            out *= self._gain_out
+            out += self._offset_out
+            if nan_out is not None:
+                out[nan_out] = np.nan
+        else:
+            cal = np.array(raw)
+            cal *= self.table.gain
+            cal += self.table.offset
             bad = ~np.isfinite(cal)
             bad[nan_idx] = False
             bad_nodes = {self._node_names[k] for k in np.unique(self._node_of_channel[bad])}
@@ -284,33 +333,36 @@ class SampleAssembler:
                 # non-finite values mark the channel missing (and its node flagged)
                 cal[bad] = np.nan
                 missing = tuple(sorted(set(missing) | bad_nodes, key=self._node_names.index))
+                missing_flags = tuple(f"missing:{m}" for m in missing)
                 unreported = unreported | bad_nodes
-        if len(nan_idx):
-            cal[nan_idx] = np.nan
-        flags: list[str] = [f"missing:{m}" for m in missing]
-        if self._lost:
-            flags.append("lost_before")
-        status: dict[str, int] = {}
-        for name, si, (f_or, f_fault) in reported_cells:
-            st = int(raw[si])
-            status[name] = st
-            if st:
-                if st & STATUS_OVERRANGE:
-                    flags.append(f_or)
-                if st & STATUS_FAULT:
-                    flags.append(f_fault)
+                rotor_ok = rotor_ok and self._rotor[0] not in unreported
+                balance_ok = balance_ok and self._balance[0] not in unreported
+                drive_ok = drive_ok and not unreported.intersection(self._drive[0])
+            if len(nan_idx):
+                cal[nan_idx] = np.nan
+            out = cal[self._perm]
+        sts = [raw[i] for i in status_idx]
+        if not self._status_is_int:
+            sts = [int(x) for x in sts]
+        status = dict(zip(cell_names, sts))
+        if self._lost or any(sts):
+            flags = list(missing_flags)
+            if self._lost:
+                flags.append("lost_before")
+            for st, (f_or, f_fault) in zip(sts, status_flags):
+                if st:
+                    if st & STATUS_OVERRANGE:
+                        flags.append(f_or)
+                    if st & STATUS_FAULT:
+                        flags.append(f_fault)
+            flags = tuple(flags)
+        else:
+            flags = missing_flags
         omega = azimuth = None
-        if self._rotor is not None:
-            rn, oi, ai, wrap = self._rotor
-            if rn not in unreported:
-                omega = float(cal[oi])
-                azimuth = float(cal[ai]) % wrap if wrap else float(cal[ai])
-        known_H = None
-        if self._balance is not None and self._balance[0] not in unreported:
-            known_H = cal[self._balance[1]]
-        drive = None
-        if self._drive is not None and not unreported.intersection(self._drive[0]):
-            drive = cal[self._drive[1]]
+        if rotor_ok:
+            _, oi, ai, wrap = self._rotor
+            omega = out.item(oi)
+            azimuth = out.item(ai) % wrap if wrap else out.item(ai)
         complete = not missing
         if complete:
             self.complete += 1
@@ -318,10 +370,11 @@ class SampleAssembler:
             self.incomplete += 1
         self.emitted += 1
         self.emit(Sample(
-            seq=self._seq, sync=self._sync_counter, t=self._sync_t, T=cal[self._T_idx],
-            cell_status=status, accel=cal[self._acc_idx], omega=omega, azimuth=azimuth,
-            known_H=known_H, drive=drive, missing=missing, lost_before=self._lost,
-            flags=tuple(flags), complete=complete))
+            self._seq, self._sync_counter, self._sync_t, out[self._sl_T], status,
+            out[self._sl_acc].reshape(self._n_acc, 3), omega, azimuth,
+            out[self._balance[1]] if balance_ok else None,
+            out[self._drive[1]] if drive_ok else None,
+            missing, self._lost, flags, complete))
 
     def finish(self) -> None:
         """Pass on a pending incomplete sample (end of a replay; no further SYNC will come)."""

@@ -8,7 +8,8 @@ evaluated for the node id of the rig config, and every gain/offset from
 profile fixes it for every vendor.
 
 One precompiled little-endian :class:`struct.Struct` per COB-ID (CANopen is little-endian),
-so the hot path is ``len`` check + ``unpack`` + a slice store (see daq.assembler).
+and one for a whole sample (every TPDO's frame, joined in bit order): the hot path keeps the
+frame per TPDO and unpacks once per sample (see daq.assembler).
 """
 from __future__ import annotations
 
@@ -278,6 +279,14 @@ class DecodeTable:
         self.channels: tuple[Channel, ...] = tuple(channels)
         self.tpdos: dict[int, TpdoLayout] = tpdos
         self.all_bits = bit - 1
+        # TPDOs in bit order, which is also channel order (both follow the EDS scan above):
+        # the frames of one sample joined in this order unpack with ONE struct into the raw
+        # vector (the assembler keeps the frames and unpacks once per sample, not per frame)
+        self.layouts: tuple[TpdoLayout, ...] = tuple(sorted(tpdos.values(),
+                                                            key=lambda lay: lay.bit))
+        self.sample_struct = struct.Struct(
+            "<" + "".join(lay.struct.format.lstrip("<") for lay in self.layouts))
+        self.zero_frames: tuple[bytes, ...] = tuple(bytes(lay.length) for lay in self.layouts)
         # value = gain*scale*raw + offset, one multiply-add per sample (status: identity)
         self.gain = np.array([c.gain * c.scale for c in channels])
         self.offset = np.array([c.offset for c in channels])

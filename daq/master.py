@@ -195,6 +195,47 @@ class Supervisor:
         return out
 
 
+class SyncProducer:
+    """Periodic SYNC from a thread, for interfaces without periodic sending of their own.
+
+    python-can's thread-based fallback catches up a late SYNC by sending the missed ones back
+    to back: two SYNCs with no time between them for the nodes to answer, i.e. a sample with
+    no TPDO at all (bus.md: samples are assembled by frame order). Here a late SYNC goes out
+    at once and the next one keeps at least half a period from it; the counter still counts
+    every SYNC sent (CiA 301), so nothing is reported lost."""
+
+    def __init__(self, bus: can.BusABC, msgs: list[can.Message], period: float,
+                 lock: threading.Lock):
+        self.bus, self.msgs, self.period, self.lock = bus, msgs, period, lock
+        self.late = 0  # SYNCs sent later than planned (re-phased, not caught up)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="rsra-sync", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        k, period = 0, self.period
+        due = time.perf_counter()
+        while not self._stop.is_set():
+            try:
+                with self.lock:
+                    self.bus.send(self.msgs[k])
+            except can.CanError as e:  # the bus went away: stop producing, say so once
+                log.error("SYNC producer stopped: %s", e)
+                return
+            k = (k + 1) % len(self.msgs)
+            now = time.perf_counter()
+            due += period
+            if due < now + 0.5 * period:
+                self.late += 1
+                due = now + 0.5 * period
+            self._stop.wait(due - now)
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not threading.current_thread():
+            self._thread.join(timeout=2.0)
+
+
 class CanopenMaster:
     """Boot, verify, start and keep the nodes running (live only; needs a connected network).
 
@@ -340,7 +381,8 @@ class CanopenMaster:
 
     # -- SYNC --------------------------------------------------------------------------------
     def start_sync(self) -> None:
-        """Produce SYNC at the sample rate (kernel BCM on SocketCAN), counter 1…overflow."""
+        """Produce SYNC at the sample rate (kernel BCM on SocketCAN; a thread of ours where
+        the interface has no periodic sending of its own), counter 1…overflow."""
         if self.cfg.sync.producer != "service" or self.sync_task is not None:
             return
         cob = self.cfg.sync.cob_id & COB_MASK_11BIT
@@ -350,7 +392,12 @@ class CanopenMaster:
                     for c in range(1, ov + 1)]
         else:
             msgs = [can.Message(arbitration_id=cob, data=b"", is_extended_id=False)]
-        self.sync_task = self.network.bus.send_periodic(msgs, 1.0 / self.cfg.sample_rate_hz)
+        bus = self.network.bus
+        period = 1.0 / self.cfg.sample_rate_hz
+        if type(bus)._send_periodic_internal is not can.BusABC._send_periodic_internal:
+            self.sync_task = bus.send_periodic(msgs, period)  # the interface's own (BCM)
+        else:
+            self.sync_task = SyncProducer(bus, msgs, period, self.network.send_lock)
 
     def send_sync(self, timestamp: float | None = None) -> None:
         """One SYNC now (lock-step drivers: the caller owns the sample clock). ``timestamp``

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -173,7 +174,10 @@ class EstimatorPipeline:
         self.load_filter.set_alpha(self.alpha)
 
     # --- the per-sample path ----------------------------------------------------------
-    def process(self, s) -> PipelineOutput:
+    def process(self, s, early: Callable[[list], None] | None = None) -> PipelineOutput:
+        """One sample. ``early`` (live) receives the records up to and including hub_loads as
+        soon as they exist: the channels, innovations and calibration branch come after, off
+        the SYNC → hub-load latency path (performance.md P5)."""
         out = PipelineOutput()
         seq = int(s.seq)
         if self.first_seq is None:
@@ -239,6 +243,9 @@ class EstimatorPipeline:
             "seq": seq, "sync": int(s.sync), "t": float(s.t), "frame": self.frame,
             "H": None if res.H is None else res.H, "H_static": H_static, "omega": omega_pub,
             "flags": flags}))
+        if early is not None:
+            early(out.records)
+            out.records = []
         status = s.cell_status
         if not isinstance(status, dict):
             status = {n: int(b) for n, b in zip(self.cell_names, status)}

@@ -441,8 +441,9 @@ class Reader:
             if q.full():
                 self.blocked += 1
             q.put(item)
-        depth = q.qsize()
-        self.max_depth = max(self.max_depth, depth)
+        depth = len(q.queue)  # a statistic: no need for qsize()'s lock (bus thread, per sample)
+        if depth > self.max_depth:
+            self.max_depth = depth
 
     def get(self, timeout: float | None = None) -> Sample | HealthReport | None:
         """The next item (Sample or HealthReport), None after ``timeout`` seconds."""

@@ -531,18 +531,23 @@ class Service:
             self._wait_results(s.seq)
         else:
             self._poll_results()
-        out = p.process(s)
         publish = self.outputs.publish
         live = not self.lockstep and self.opts.replay is None
-        for key, payload in out.records:
-            publish(key, payload)
-            if key == "hub_loads" and live:
-                lat = time.time() - s.t
-                self.latencies.append(lat)
-                if lat > self.dt:
-                    self.deadline_misses += 1
-            elif key == "angles":
-                self._on_angles(payload)
+
+        def emit(records: list) -> None:
+            for key, payload in records:
+                publish(key, payload)
+                if key == "hub_loads" and live:
+                    lat = time.time() - s.t
+                    self.latencies.append(lat)
+                    if lat > self.dt:
+                        self.deadline_misses += 1
+                elif key == "angles":
+                    self._on_angles(payload)
+
+        # live: the hub loads are published before the rest of the sample is worked on
+        out = p.process(s, early=emit if live else None)
+        emit(out.records)
         if out.job is not None and self.worker is not None:
             if self.synchronous_ident:
                 self.worker.jobs.put(out.job)  # deterministic: every window runs

@@ -277,6 +277,12 @@ class Simulator:
         self._error: BaseException | None = None
         self._stop = threading.Event()
         self._ticker: threading.Thread | None = None
+        self._wake = threading.Event()  # the ticker re-plans its next wake-up
+        # real time: the physics block that the next SYNC would compute (~1 ms for 100 samples)
+        # is computed half a period after the current SYNC instead, off the SYNC → TPDO path
+        self._ahead: Any = None  # the next physics sample, computed ahead of its SYNC
+        self._prefetch_at: float | None = None  # wall-clock time of that computation
+        self.prefetched = 0  # physics samples computed ahead (real time)
         self._started = False
         self._closed = False
 
@@ -358,6 +364,7 @@ class Simulator:
             return
         self._closed = True
         self._stop.set()
+        self._wake.set()
         if self._ticker is not None:
             self._ticker.join(timeout=5.0)
         if self.network.notifier is not None:
@@ -422,6 +429,11 @@ class Simulator:
                               is_extended_id=False, is_remote_frame=remote,
                               is_error_frame=error, channel=self.channel, is_rx=False,
                               check=False)
+            if not remote:
+                # an immutable payload: python-can's virtual bus deep-copies every frame for
+                # every receiver, and bytes copy as themselves where a bytearray goes through
+                # copyreg (half the send time); receivers still get a bytearray
+                msg.data = bytes(msg.data)
             self.bus.send(msg)
             self.frames_sent += 1
             if self._logger is not None:
@@ -551,7 +563,9 @@ class Simulator:
     # ------------------------------------------------------------------------------------------
     # one SYNC cycle
     def _next_sample(self) -> Any:
-        s = self.physics.next_sample()
+        s, self._ahead = self._ahead, None
+        if s is None:
+            s = self.physics.next_sample()
         self.last_sample = s  # the latest truth, for live views (kept even without history)
         self.recent_samples.append(s)
         if self.keep_samples:
@@ -643,6 +657,9 @@ class Simulator:
                               length=len(bad), expected=len(fr.data))
                     fr = fr._replace(data=bad)
             self._send_frame(fr, t, node)
+        if not self.lockstep and self._ticker is not None and self._block_boundary():
+            self._prefetch_at = time.time() + 0.5 * self.dt
+            self._wake.set()
         if fi:
             f = fi.chance("unknown", k, st, slot=0x2000)
             if f is not None:
@@ -697,17 +714,36 @@ class Simulator:
 
     # ------------------------------------------------------------------------------------------
     # real time
+    def _block_boundary(self) -> bool:
+        """The physics computes a whole block at its next sample (AircraftPhysics: every
+        ``block_size`` samples) and that sample is not computed ahead yet."""
+        bs = getattr(self.physics, "block_size", None)
+        k = getattr(self.physics, "index", None)
+        return bool(bs) and k is not None and self._ahead is None and k % bs == 0
+
     def _tick_loop(self) -> None:
-        """Live heartbeats between SYNCs (wall clock): wake at the next due heartbeat."""
+        """Live heartbeats between SYNCs (wall clock): wake at the next due heartbeat, and
+        half a period after a SYNC that ended a physics block, to compute the next block then
+        (between SYNCs) rather than on the next SYNC's path to its TPDOs."""
         while not self._stop.is_set():
+            self._wake.clear()  # a set() from here on ends the wait below at once
             with self._lock:
                 nxt = [n.next_heartbeat for n in self.nodes if n.next_heartbeat is not None]
+                if self._prefetch_at is not None:
+                    nxt.append(self._prefetch_at)
             wait = min(nxt) - time.time() if nxt else 0.5
-            if self._stop.wait(min(max(wait, 0.0), 0.5)):
+            self._wake.wait(min(max(wait, 0.0), 0.5))
+            if self._stop.is_set():
                 return
             try:
                 with self._lock:
-                    self._advance(time.time())
+                    now = time.time()
+                    self._advance(now)
+                    if self._prefetch_at is not None and now >= self._prefetch_at:
+                        self._prefetch_at = None
+                        if self._block_boundary():  # still ahead of the next SYNC
+                            self._ahead = self.physics.next_sample()
+                            self.prefetched += 1
                     if self._logger is not None and time.time() - self._last_flush >= 1.0:
                         self._flush(time.time())
             except Exception as e:  # noqa: BLE001 - re-raised by check()
