@@ -1,4 +1,5 @@
-"""Run every benchmark, then regenerate bench/RESULTS.md (``python -m bench.run_all``).
+"""Run every benchmark, then regenerate bench/RESULTS.md and the README table
+(``python -m bench.run_all``).
 
 Each benchmark runs in its own process (``python -m bench.<module>``) with single-threaded
 BLAS, so one benchmark's threads, buses and imports cannot disturb the next; all lines of
@@ -64,6 +65,10 @@ def main(argv: list[str] | None = None) -> int:
         out_dir = args.out or RESULTS_DIR
         md = RESULTS_MD if args.out is None else os.path.join(args.out, "RESULTS.md")
         print(render_results(out_dir, md, command="python -m bench.run_all"))
+        if args.out is None:
+            from bench.readme import update_readme
+
+            update_readme()  # the README's short table, from the same lines
     return 1 if failed else 0
 
 

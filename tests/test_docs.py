@@ -448,3 +448,15 @@ def test_relative_links_point_at_existing_pages_and_headings(page):
             if anchor not in {_slug(h) for h in headings}:
                 broken.append(target)
     assert not broken, f"{page}: broken links {broken}"
+
+
+def test_readme_benchmark_table_is_generated_from_the_committed_results():
+    """README's table is what bench.readme renders from bench/results (no hand edits)."""
+    from bench.readme import BEGIN, END, README, render_table
+
+    text = README.read_text(encoding="utf-8")
+    assert BEGIN in text and END in text
+    table = text.split(BEGIN, 1)[1].split(END, 1)[0]
+    assert table.strip() == render_table().strip()
+    rows = [r for r in table.splitlines() if r.startswith("| ") and not r.startswith("| bench")]
+    assert rows and all(len(r.replace("\\|", "").split("|")) == 9 for r in rows)  # 7 cells
