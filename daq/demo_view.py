@@ -14,8 +14,7 @@ import numpy as np
 from daq.units import axis_units, to_units
 
 AXES = ("X", "Y", "Z", "L", "M", "N")
-HELD_S = 0.5  # a load is "held" when the truth stayed within …
-HELD_FRACTION = 0.1  # … this fraction of the static bound for HELD_S
+HELD_FRACTION = 0.1  # a load is "held" when its revolution mean moved less than this × bound
 
 
 class DemoState:
@@ -37,13 +36,15 @@ class DemoState:
         self.wall0 = time.monotonic()
         self.err2 = np.zeros(6)
         self.err_n = 0
-        # "held" loads: the truth has moved less than HELD_FRACTION of the static bound over
-        # the last HELD_S — the figure to compare with the bound (ramps between conditions
-        # are scored too, in err2, but a τ = 0.1 s filter lags them by design)
+        # "held" loads: the truth's mean over the last rotor revolution differs from the
+        # revolution before by less than HELD_FRACTION of the static bound (the mean over a
+        # revolution removes the rotor harmonics) — the figure to compare with the bound;
+        # ramps between conditions are scored too, in err2, but a τ = 0.1 s filter lags them
+        rev = 2 * math.pi / max(cfg.rotor.omega_nominal_rad_s, 1e-9) * cfg.sample_rate_hz
+        self._rev_n = max(1, int(round(rev)))
         self.held_err2 = np.zeros(6)
         self.held_n = 0
-        self._recent_truth: deque[np.ndarray] = deque(
-            maxlen=max(2, int(round(HELD_S * cfg.sample_rate_hz))))
+        self._recent_truth: deque[np.ndarray] = deque(maxlen=2 * self._rev_n)
         self.accepted = 0
         self.rejected: dict[str, int] = {}
         self.flags: dict[str, int] = {}
@@ -71,8 +72,9 @@ class DemoState:
                     rt = self._recent_truth
                     if (H is not None and payload["t"] - self.first_t > 1.0
                             and len(rt) == rt.maxlen):
-                        span = np.ptp(np.array(rt), axis=0)
-                        if np.all(span <= HELD_FRACTION * self.static_bound):
+                        a = np.array(rt)
+                        step = a[self._rev_n:].mean(0) - a[: self._rev_n].mean(0)
+                        if np.all(np.abs(step) <= HELD_FRACTION * self.static_bound):
                             self.held_err2 += e * e
                             self.held_n += 1
             elif key == "health":
