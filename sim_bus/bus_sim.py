@@ -22,6 +22,15 @@ wall clock. With ``threaded=False`` (the default in lock-step) nothing runs in t
 the bus in the caller's thread, in order, so a master that sends NMT start then SYNC and calls
 ``pump()`` gets a deterministic answer without any sleep. SDO needs a concurrent server: use
 ``threaded=True`` when a blocking SDO client talks to the simulator.
+
+Real time (spec performance.md P5): half a period after each SYNC the ticker computes the next
+physics sample and builds the whole answer to the next SYNC (``_prepare_next``: process image,
+TPDOs due, the drop/malformed/unknown/errorframe draws, the frames as python-can messages, the
+fault-log entries in order), so the SYNC only sends pre-built frames. A sample where a fault
+window opens or closes, a node reboots, an EMCY goes out or the SYNC is lost is built at its
+SYNC, as in lock-step; an NMT command or SDO request in between, or a SYNC counter other than
+the one predicted, undoes the plan (node snapshots) and the SYNC builds its answer itself.
+Lock-step never builds ahead.
 """
 from __future__ import annotations
 
@@ -47,6 +56,7 @@ from sim_bus.faults import (
     EMCY_SENSOR_FAULT,
     STATUS_OVER_RANGE,
     STATUS_SENSOR_FAULT,
+    WINDOW_KINDS,
     Fault,
     FaultInjector,
     parse_faults,
@@ -131,6 +141,43 @@ class TruthBuffer:
         k %= self._n
         c, r = divmod(k, self.chunk)
         return SimpleNamespace(**{f: self._chunks[f][c][r] for f in (self._fields or [])})
+
+
+class _TxMessage(can.Message):
+    """A frame the simulator sends. python-can's virtual bus deep-copies every sent frame for
+    every receiver (can/interfaces/virtual.py); copying this one builds the receiver's plain
+    ``can.Message`` directly — the payload is immutable bytes and the channel a str, there is
+    nothing deeper to copy — instead of ``copy.deepcopy`` recursing into both (a third of the
+    send time). Receivers get what they got before: a ``can.Message`` with a bytearray."""
+
+    __slots__ = ()
+
+    def __deepcopy__(self, memo: dict[int, Any] | None) -> can.Message:
+        data = self.data
+        return can.Message(timestamp=self.timestamp, arbitration_id=self.arbitration_id,
+                           is_extended_id=self.is_extended_id,
+                           is_remote_frame=self.is_remote_frame,
+                           is_error_frame=self.is_error_frame, channel=self.channel,
+                           dlc=self.dlc, data=data if type(data) is bytes else bytes(data),
+                           is_fd=self.is_fd, is_rx=self.is_rx,
+                           bitrate_switch=self.bitrate_switch,
+                           error_state_indicator=self.error_state_indicator)
+
+
+@dataclass
+class _Plan:
+    """The answer to the next SYNC, built ahead of it (real time): the node state is already
+    advanced (``snap`` undoes that), the frames are built; the SYNC only sends them."""
+
+    sample: Any
+    k: int
+    st: float
+    counter: int | None
+    n_sync: int
+    snap: list[tuple[SimNode, tuple]]
+    carried: list[tuple[SimNode, list]]
+    # in order: ("rec", args, kwargs) a fault-log entry, ("send", message) a frame
+    actions: list[tuple]
 
 
 def _round_us(t: float) -> float:
@@ -258,6 +305,7 @@ class Simulator:
         self.network.listeners.append(_Recorder(self))
         for n in self.nodes:
             n.attach(self.network)
+            n.before_change = self._discard_plan
         self.network.subscribe(COB_NMT, self._guard(self._on_nmt_frame))
         self.network.subscribe(self._sync_cob, self._guard(self._on_sync_frame))
         self._last_flush = self.t0
@@ -283,6 +331,12 @@ class Simulator:
         self._ahead: Any = None  # the next physics sample, computed ahead of its SYNC
         self._prefetch_at: float | None = None  # wall-clock time of that computation
         self.prefetched = 0  # physics samples computed ahead (real time)
+        # real time: the whole answer to the next SYNC (TPDO frames, fault decisions) is built
+        # half a period ahead by the ticker; the SYNC only sends it (spec performance.md P5)
+        self._plan: _Plan | None = None
+        self.prepared = 0  # SYNC answers built ahead and sent as built
+        self.plans_discarded = 0  # built ahead but undone (NMT/SDO in between, other counter)
+        self._last_counter: int | None = None  # the counter of the last SYNC answered
         self._started = False
         self._closed = False
 
@@ -425,7 +479,7 @@ class Simulator:
                 self._bus_free = ts + self._frame_time(len(data))
             else:
                 ts = time.time()
-            msg = can.Message(timestamp=ts, arbitration_id=cob_id, data=data,
+            msg = _TxMessage(timestamp=ts, arbitration_id=cob_id, data=data,
                               is_extended_id=False, is_remote_frame=remote,
                               is_error_frame=error, channel=self.channel, is_rx=False,
                               check=False)
@@ -441,6 +495,23 @@ class Simulator:
             if self._capture is not None:
                 self._capture.append(msg)
             return msg
+
+    def _build(self, cob_id: int, data: bytes, error: bool = False) -> _TxMessage:
+        """The message ``_transmit`` would send, built ahead; ``_send_built`` stamps it."""
+        msg = _TxMessage(timestamp=0.0, arbitration_id=cob_id, data=data, is_extended_id=False,
+                         is_error_frame=error, channel=self.channel, is_rx=False, check=False)
+        msg.data = bytes(msg.data)
+        return msg
+
+    def _send_built(self, msg: _TxMessage) -> None:
+        """Send a message built ahead, stamped now (real time: the wall clock, as _transmit)."""
+        msg.timestamp = time.time()
+        self.bus.send(msg)
+        self.frames_sent += 1
+        if self._logger is not None:
+            self._logger.on_message_received(msg)
+        if self._capture is not None:
+            self._capture.append(msg)
 
     def _send_frame(self, fr: Frame, t: float | None, node: SimNode | None) -> can.Message | None:
         if node is not None and node.silent:
@@ -581,6 +652,13 @@ class Simulator:
         """Everything one SYNC does: heartbeats due, the fault timeline at this sample, the
         physics sample into the nodes, EMCY on status changes, TPDOs in COB-ID order (bus
         arbitration), bus-level faults, the truth bookkeeping."""
+        plan, self._plan = self._plan, None
+        if plan is not None:  # real time: the answer was built ahead of this SYNC
+            if plan.counter == counter and plan.n_sync == self._n_sync and self._ahead is plan.sample:
+                self._commit(plan, counter, t, send_sync, jitter)
+                return
+            self._undo(plan)  # not the SYNC it was built for: build it now, as below
+        self._last_counter = counter
         self._advance(t)
         if received_sync is not None and self.lockstep:  # the master's SYNC occupied the bus
             self._bus_free = max(self._bus_free, t + self._frame_time(received_sync))
@@ -637,6 +715,7 @@ class Simulator:
                 self._apply_node_faults(feed, started)
             frames.extend((node, fr) for fr in self._status_emcy(feed))
         if lost:
+            self._schedule_ahead()
             fi.end_sample(st)
             return
         for n in self.nodes:
@@ -657,9 +736,7 @@ class Simulator:
                               length=len(bad), expected=len(fr.data))
                     fr = fr._replace(data=bad)
             self._send_frame(fr, t, node)
-        if not self.lockstep and self._ticker is not None and self._block_boundary():
-            self._prefetch_at = time.time() + 0.5 * self.dt
-            self._wake.set()
+        self._schedule_ahead()
         if fi:
             f = fi.chance("unknown", k, st, slot=0x2000)
             if f is not None:
@@ -670,6 +747,147 @@ class Simulator:
             if f is not None:
                 fi.record(k, st, "errorframe", None)
                 self._transmit("error", 0, b"", t, error=True)
+            fi.end_sample(st)
+
+    # ------------------------------------------------------------------------------------------
+    # real time: the next SYNC's answer built ahead of it
+    def _schedule_ahead(self) -> None:
+        """Half a period after this SYNC the ticker computes the next physics sample and builds
+        the next SYNC's frames (``_prepare_next``), off the SYNC → TPDO path (P5)."""
+        if not self.lockstep and self._ticker is not None:
+            self._prefetch_at = time.time() + 0.5 * self.dt
+            self._wake.set()
+
+    def _windows_change(self, st: float) -> bool:
+        """A window fault begins or ends at sample time ``st`` (FaultInjector.window_changes
+        would report a change), without changing the injector."""
+        fi = self.faults
+        for kind in WINDOW_KINDS:
+            for f in fi.of(kind):
+                now = f.active(st)
+                for n in self.nodes:
+                    if f.applies_to(n.name) and now != ((f.index, n.name) in fi._active):
+                        return True
+        return False
+
+    def _prepare_next(self) -> None:
+        """Build the answer to the next SYNC now (ticker thread, under the lock): the same
+        steps as ``_cycle`` in the same order — process image, node faults, TPDOs due, the
+        drop/malformed/unknown/errorframe draws (pure functions of seed, sample and slot) — with
+        the fault-log entries and the frames kept in order for the SYNC to emit and send.
+        Not built ahead (left to the SYNC, as before): a sample where a fault window opens or
+        closes, a node reboots, an EMCY goes out or the SYNC is lost; anything that then
+        changes a node (NMT, SDO) undoes the plan first (SimNode.before_change)."""
+        if self.lockstep or self._closed or self._plan is not None or not self._feeds:
+            return
+        ovf = self._counter_overflow
+        if self.autostart:
+            counter = self._counter % ovf + 1 if ovf else None
+            if self._sync_plan(self._n_sync)[1]:
+                return  # this SYNC is lost
+        elif not self.sync_info:
+            return  # follow mode: the master's counter is predicted from its last SYNC
+        else:
+            last = self._last_counter
+            counter = None if last is None or not ovf else last % ovf + 1
+        if self._ahead is None:
+            self._ahead = self.physics.next_sample()
+        sample = self._ahead
+        k = int(getattr(sample, "index", len(self.sync_info)))
+        st = float(getattr(sample, "t", k * self.dt))
+        fi = self.faults
+        if fi and (self._windows_change(st) or fi.reboots(st, [n.name for n in self.nodes])):
+            return
+        plan = _Plan(sample, k, st, counter, self._n_sync,
+                     [(n, n.snapshot()) for n in self.nodes], [], [])
+        enc = self._codec.encode(T=sample.T, cell_status=sample.cell_status, accel=sample.accel,
+                                 omega=sample.omega, azimuth=sample.azimuth,
+                                 H_balance=sample.H_balance, drive=sample.drive)
+        raw = {name: getattr(enc, name).tolist() for name in _ENCODED}
+        for feed in self._feeds:
+            feed.node.set_raws(feed.raws(raw))
+            if fi:
+                self._apply_node_faults(feed, [])
+            if self._status_emcy(feed):  # a status bit changes: left to the SYNC
+                for node, snap in plan.snap:
+                    node.restore(snap)
+                return
+        frames: list[tuple[SimNode, Frame]] = []
+        for n in self.nodes:
+            carried: list = []
+            frames.extend((n, fr) for fr in n.sync(counter, carried))
+            if carried:
+                plan.carried.append((n, carried))
+        frames.sort(key=lambda p: p[1].cob_id)  # arbitration: lowest identifier first
+        acts = plan.actions
+        for node, fr in frames:
+            if node.silent:
+                continue
+            if fr.kind == "tpdo" and fi:
+                f = fi.chance("drop", k, st, node.name, slot=fr.cob_id)
+                if f is not None:
+                    acts.append(("rec", (k, st, "drop", node.name),
+                                 {"cob_id": fr.cob_id, "tpdo": fr.tpdo}))
+                    continue
+                f = fi.chance("malformed", k, st, node.name, slot=0x1000 | fr.cob_id)
+                if f is not None:
+                    bad = fr.data[:-1] if len(fr.data) > 1 else fr.data + b"\x00"
+                    acts.append(("rec", (k, st, "malformed", node.name),
+                                 {"cob_id": fr.cob_id, "tpdo": fr.tpdo, "length": len(bad),
+                                  "expected": len(fr.data)}))
+                    fr = fr._replace(data=bad)
+            acts.append(("send", self._build(fr.cob_id, fr.data)))
+        if fi:
+            f = fi.chance("unknown", k, st, slot=0x2000)
+            if f is not None:
+                cob = f.cob_id if f.cob_id is not None else self._unknown_cob
+                acts.append(("rec", (k, st, "unknown", None), {"cob_id": cob}))
+                acts.append(("send", self._build(cob, fi.payload(k, 0x2000))))
+            f = fi.chance("errorframe", k, st, slot=0x3000)
+            if f is not None:
+                acts.append(("rec", (k, st, "errorframe", None), {}))
+                acts.append(("send", self._build(0, b"", error=True)))
+        self._plan = plan
+
+    def _undo(self, plan: _Plan) -> None:
+        """The nodes back to before ``plan`` was built (its sample stays the next one)."""
+        for node, snap in plan.snap:
+            node.restore(snap)
+        self.plans_discarded += 1
+
+    def _discard_plan(self) -> None:
+        """Something outside a SYNC cycle is about to change a node: undo the plan first."""
+        with self._lock:
+            plan, self._plan = self._plan, None
+            if plan is not None:
+                self._undo(plan)
+
+    def _commit(self, plan: _Plan, counter: int | None, t: float, send_sync: bool,
+                jitter: float) -> None:
+        """The SYNC a plan was built for: what ``_cycle`` does at the SYNC, in its order, with
+        the frames sent as built."""
+        self._last_counter = counter
+        self._advance(t)
+        self._next_sample()  # plan.sample: the truth bookkeeping
+        k, st, fi = plan.k, plan.st, self.faults
+        if send_sync:  # not lost: _prepare_next does not build a lost SYNC's answer
+            self._n_sync += 1
+            if jitter:
+                fi.record(k, st, "jitter", None, offset_s=jitter)
+            self._transmit("sync", self._sync_cob,
+                           bytes([counter]) if counter is not None else b"", t)
+        if len(self.sync_info) < MAX_TRUTH_SAMPLES:
+            self.sync_info.append((k, -1 if counter is None else counter, t, False))
+        for node, carried in plan.carried:
+            node.carry(carried)
+        for a in plan.actions:
+            if a[0] == "send":
+                self._send_built(a[1])
+            else:
+                fi.record(*a[1], **a[2])
+        self.prepared += 1
+        self._schedule_ahead()
+        if fi:
             fi.end_sample(st)
 
     def _apply_node_faults(self, feed: _NodeFeed, started: list[tuple[Fault, SimNode]]) -> None:
@@ -744,6 +962,7 @@ class Simulator:
                         if self._block_boundary():  # still ahead of the next SYNC
                             self._ahead = self.physics.next_sample()
                             self.prefetched += 1
+                        self._prepare_next()
                     if self._logger is not None and time.time() - self._last_flush >= 1.0:
                         self._flush(time.time())
             except Exception as e:  # noqa: BLE001 - re-raised by check()

@@ -237,6 +237,10 @@ class SimNode:
         self._hb_base, self._hb_n = 0.0, 1
         self._hb_next: float | None = None
         self.network: canopen.Network | None = None
+        # called before anything from outside a SYNC cycle (NMT, boot/reset, an SDO request)
+        # changes what the node answers: the bus simulator undoes a cycle it built ahead of
+        # its SYNC (real time) then, so the event applies to the state it would have met
+        self.before_change: Callable[[], None] | None = None
         self.local.add_read_callback(self._on_sdo_read)
         # LocalNode registers its NMT slave's on_write, which would start a wall-clock
         # heartbeat task on every write to 0x1017: replace it by our own.
@@ -263,6 +267,8 @@ class SimNode:
 
     def _on_sdo_request(self, can_id: int, data: bytearray, timestamp: float) -> None:
         with self._lock:  # the SDO server runs in the bus thread; SYNC may run elsewhere
+            if self.before_change is not None:
+                self.before_change()
             if not self.silent:
                 self.local.sdo.on_request(can_id, data, timestamp)
 
@@ -279,6 +285,8 @@ class SimNode:
         """Power-on (or the end of a reset): boot-up frame, then PRE-OPERATIONAL; the heartbeat
         producer starts one period later (CiA 301)."""
         t = self._clock() if t is None else t
+        if self.before_change is not None:
+            self.before_change()
         self._set_state(INITIALISING)
         self._sync_count.clear()
         self._started_counting.clear()
@@ -292,6 +300,8 @@ class SimNode:
     def reset(self, communication_only: bool = False, t: float | None = None) -> list[Frame]:
         """NMT reset node (the whole dictionary back to the EDS defaults, errors cleared) or
         reset communication (0x1000–0x1FFF only), then boot."""
+        if self.before_change is not None:
+            self.before_change()
         store = self.local.data_store
         for index in list(store):
             if not communication_only or 0x1000 <= index <= 0x1FFF:
@@ -305,6 +315,8 @@ class SimNode:
 
     def nmt(self, command: int, target: int, t: float | None = None) -> list[Frame]:
         """Apply an NMT command frame (command specifier, target node id; 0 = all)."""
+        if self.before_change is not None:
+            self.before_change()
         if self.silent or target not in (0, self.node_id) or self.state == INITIALISING:
             return []
         if command == NMT_START:
@@ -457,10 +469,15 @@ class SimNode:
             shift += e.bits
         return acc.to_bytes(cfg.length, "little"), vals
 
-    def sync(self, counter: int | None = None) -> list[Frame]:
+    def sync(self, counter: int | None = None,
+             carried: list[dict[tuple[int, int], int | float]] | None = None) -> list[Frame]:
         """React to one SYNC (with its counter byte, if any): the TPDOs due, in TPDO order.
         Only in OPERATIONAL. Transmission type 0 sends when the data changed; 1…240 every n-th
-        SYNC (from the SYNC whose counter equals the SYNC start value, when one is set)."""
+        SYNC (from the SYNC whose counter equals the SYNC start value, when one is set).
+
+        ``carried``: a cycle built ahead of its SYNC collects what the TPDOs carry there (the
+        caller applies it with ``carry()`` when the SYNC comes), so an SDO read in between
+        still returns what the bus has carried so far."""
         if self.state != OPERATIONAL:
             return []
         frames = []
@@ -484,9 +501,29 @@ class SimNode:
                 if c % t:
                     continue
             self._last_sent[cfg.number] = data
-            self._carried.update(vals)
+            if carried is None:
+                self._carried.update(vals)
+            else:
+                carried.append(dict(vals))
             frames.append(Frame("tpdo", cfg.cob_id, data, cfg.number))
         return frames
+
+    def carry(self, carried: list[dict[tuple[int, int], int | float]]) -> None:
+        """What TPDOs built ahead of their SYNC (``sync(…, carried)``) carried, now sent."""
+        for vals in carried:
+            self._carried.update(vals)
+
+    def snapshot(self) -> tuple:
+        """The state a SYNC cycle changes (process image, TPDO counting, errors), to undo a
+        cycle built ahead of its SYNC that the SYNC cannot use (``restore``)."""
+        return (dict(self._process), dict(self._sync_count), dict(self._started_counting),
+                dict(self._last_sent), dict(self._active_errors), self.error_register, self._tpdos)
+
+    def restore(self, snap: tuple) -> None:
+        (self._process, self._sync_count, self._started_counting, self._last_sent,
+         self._active_errors, self.error_register, self._tpdos) = (
+            dict(snap[0]), dict(snap[1]), dict(snap[2]), dict(snap[3]), dict(snap[4]),
+            snap[5], snap[6])
 
     # ---- EMCY ---------------------------------------------------------------------------------
     @property
