@@ -151,6 +151,39 @@ def test_the_detector_flags_a_frozen_stretch_from_its_kth_sample_to_its_end():
     assert det.episodes.tolist() == [1, 1, 0] and det.samples.tolist() == [16, 14, 0]
 
 
+def test_the_detector_matches_a_scalar_reference_on_random_streams():
+    """The vectorised in-place update (the estimator's per-sample path) against a plain
+    per-channel loop of the definition: runs of exactly equal present readings, NaN neither
+    extending nor ending a run, flagged from the k-th, k = 0 never; explained channels keep
+    their run but are not flagged or counted."""
+    rng = np.random.default_rng(7)
+    k = np.array([2, 3, 5, 0, 4, 1])
+    n, m = 3000, len(k)
+    # few levels and many NaNs: long runs, runs broken by NaN, restarts at the same value
+    x = rng.integers(0, 3, (n, m)).astype(float)
+    x[rng.random((n, m)) < 0.2] = np.nan
+    explained = rng.random((n, m)) < 0.1
+    det = StuckDetector(k)
+    value, run = [math.nan] * m, [0] * m
+    episodes, samples = [0] * m, [0] * m
+    for t in range(n):
+        got = det.update(x[t], explained[t])
+        want = []
+        for c in range(m):
+            v = x[t, c]
+            if math.isfinite(v):
+                run[c] = run[c] + 1 if v == value[c] else 1
+                value[c] = v
+            hit = math.isfinite(v) and k[c] > 0 and run[c] >= k[c] and not explained[t, c]
+            episodes[c] += hit and run[c] == k[c]
+            samples[c] += hit
+            want.append(hit)
+        assert got.tolist() == want, t
+        assert det.run.tolist() == run, t
+    assert det.episodes.tolist() == episodes and det.samples.tolist() == samples
+    assert min(samples[:3]) > 0 and samples[3] == 0  # the stream exercised the flagging
+
+
 def test_a_status_flag_explains_a_constant_cell(cfg):
     """An over-range cell reads full scale (constant): its status says why; not `stuck` too."""
     mon = StuckMonitor(cfg)
