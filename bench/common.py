@@ -25,7 +25,7 @@ import os
 import platform
 import sys
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -276,13 +276,17 @@ def latest_run(lines: Iterable[dict]) -> list[dict]:
     return [ln for ln in lines if ln.get("run_id") == last]
 
 
+def latest_runs(results_dir: str | Path = RESULTS_DIR) -> Iterator[tuple[str, list[dict]]]:
+    """(module, lines of its latest full-size run — empty when never run), in MODULES order."""
+    for mod in MODULES:
+        yield mod, latest_run(read_lines(Path(results_dir) / f"{mod}.jsonl"))
+
+
 def render_results(results_dir: str | Path = RESULTS_DIR, out: str | Path = RESULTS_MD,
                    command: str = "python -m bench.run_all") -> str:
     """Regenerate RESULTS.md from the latest full-size run of every benchmark."""
-    results_dir = Path(results_dir)
     rows, machines, dates, commands = [], [], [], set()
-    for mod in MODULES:
-        run = latest_run(read_lines(results_dir / f"{mod}.jsonl"))
+    for mod, run in latest_runs(results_dir):
         if not run:
             rows.append(f"| {mod} | — | not run | | | | | | |")
             continue

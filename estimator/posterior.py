@@ -43,8 +43,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -52,6 +50,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 from scipy.stats import chi2
 
+from .atomic import write_text_atomic
 from .identification import (
     FilterErrorProblem,
     FilterErrorState,
@@ -154,31 +153,9 @@ class PosteriorFileError(ValueError):
 
 
 def save_posterior(path: str | Path, state: PosteriorState) -> None:
-    """Write atomically: a temporary file in the same directory, fsync, rename."""
-    path = Path(path)
-    text = json.dumps(_finite_or_none(state.to_dict()), allow_nan=False, indent=1)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-    try:  # make the rename durable
-        dfd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(dfd)
-        finally:
-            os.close(dfd)
-    except OSError:
-        pass
+    """Write atomically (``estimator.atomic``: temporary file, fsync, rename)."""
+    write_text_atomic(path, json.dumps(_finite_or_none(state.to_dict()), allow_nan=False,
+                                       indent=1))
 
 
 def load_posterior(path: str | Path, names: Sequence[str] | None = None) -> PosteriorState:

@@ -479,33 +479,30 @@ class Simulator:
                 self._bus_free = ts + self._frame_time(len(data))
             else:
                 ts = time.time()
-            msg = _TxMessage(timestamp=ts, arbitration_id=cob_id, data=data,
-                              is_extended_id=False, is_remote_frame=remote,
-                              is_error_frame=error, channel=self.channel, is_rx=False,
-                              check=False)
-            if not remote:
-                # an immutable payload: python-can's virtual bus deep-copies every frame for
-                # every receiver, and bytes copy as themselves where a bytearray goes through
-                # copyreg (half the send time); receivers still get a bytearray
-                msg.data = bytes(msg.data)
-            self.bus.send(msg)
-            self.frames_sent += 1
-            if self._logger is not None:
-                self._logger.on_message_received(msg)
-            if self._capture is not None:
-                self._capture.append(msg)
+            msg = self._build(cob_id, data, error, remote=remote)
+            msg.timestamp = ts
+            self._emit(msg)
             return msg
 
-    def _build(self, cob_id: int, data: bytes, error: bool = False) -> _TxMessage:
-        """The message ``_transmit`` would send, built ahead; ``_send_built`` stamps it."""
+    def _build(self, cob_id: int, data: bytes, error: bool = False, *,
+               remote: bool = False) -> _TxMessage:
+        """The message to send (built at the SYNC by ``_transmit``, or ahead of it)."""
         msg = _TxMessage(timestamp=0.0, arbitration_id=cob_id, data=data, is_extended_id=False,
-                         is_error_frame=error, channel=self.channel, is_rx=False, check=False)
-        msg.data = bytes(msg.data)
+                         is_remote_frame=remote, is_error_frame=error, channel=self.channel,
+                         is_rx=False, check=False)
+        if not remote:
+            # an immutable payload: python-can's virtual bus deep-copies every frame for
+            # every receiver, and bytes copy as themselves where a bytearray goes through
+            # copyreg (half the send time); receivers still get a bytearray
+            msg.data = bytes(msg.data)
         return msg
 
     def _send_built(self, msg: _TxMessage) -> None:
         """Send a message built ahead, stamped now (real time: the wall clock, as _transmit)."""
         msg.timestamp = time.time()
+        self._emit(msg)
+
+    def _emit(self, msg: _TxMessage) -> None:
         self.bus.send(msg)
         self.frames_sent += 1
         if self._logger is not None:

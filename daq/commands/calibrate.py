@@ -6,11 +6,11 @@ import argparse
 import math
 import os
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from estimator.atomic import write_text_atomic
 from estimator.content import KINDS
 
 
@@ -69,17 +69,6 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
                    help="Levenberg-Marquardt iterations per stage (default "
                    "identification.max_iterations)")
     return p
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 class _Progress:
@@ -174,7 +163,7 @@ def run(args: argparse.Namespace) -> int:
     notes = _notes(cfg, result)
     wrote = None
     if out is not None and result.status != "diverged":
-        _write_atomic(out, fragment_toml(cfg, result))
+        write_text_atomic(out, fragment_toml(cfg, result))
         wrote = str(out)
     if args.json:
         d = result.to_dict(cfg)

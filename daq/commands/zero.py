@@ -32,7 +32,6 @@ import argparse
 import math
 import os
 import sys
-import tempfile
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -46,6 +45,7 @@ from scipy.stats import chi2
 from daq.config import G0, RigConfig
 from daq.decoder import DecodeTable
 from daq.units import FT_LBF_NM, LBF_N
+from estimator.atomic import write_text_atomic
 
 # At rest the accelerometers read f = a − g = −g: (0, 0, −g) in body axes with z down.
 GRAVITY_AT_REST = np.array([0.0, 0.0, -G0])
@@ -353,21 +353,6 @@ def fragment(cfg: RigConfig, result: TareResult, *, angles_from: str, bus: str) 
     return "\n".join(lines) + "\n"
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-
-
 # ---------------------------------------------------------------------------------------------
 # command line
 
@@ -480,7 +465,7 @@ def run(args: argparse.Namespace) -> int:
     if out is None:
         sys.stdout.write(text)
     else:
-        _write_atomic(out, text)
+        write_text_atomic(out, text)
         report.print(f"rsra zero: wrote {out} ({sum(c.n > 0 for c in result.channels)} channels)",
                      highlight=False)
     return 0
