@@ -237,6 +237,7 @@ class IdentificationConfig:
     settle_time_constants: float
     gap_s: float
     state_file: str
+    angle_limit_rad: float = math.radians(10.0)
 
 
 @dataclass(frozen=True)
@@ -565,7 +566,14 @@ def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = No
         settle_time_constants=idt.number("settle_time_constants", 5.0, nonneg=True),
         gap_s=idt.number("gap_s", 0.5, positive=True),
         state_file=idt.string("state_file", ""),
+        angle_limit_rad=math.radians(idt.number("angle_limit_deg", 10.0, positive=True)),
     )
+    over = np.flatnonzero(~(np.abs(init) <= ident.angle_limit_rad))
+    if over.size:
+        raise idt.error("initial_angles_deg", float(np.degrees(init[over[0]])),
+                        f"outside the physical range ±{math.degrees(ident.angle_limit_rad):g}° "
+                        "(identification.angle_limit_deg)",
+                        "give angles within the range, or widen angle_limit_deg")
     idt.finish()
 
     sy = top.table("sync", {})

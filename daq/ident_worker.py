@@ -25,13 +25,14 @@ RESULT_QUEUE = 16
 def build_identification(cfg, initial_state=None):
     """The two periodic identifications (known loads, filter error) over one posterior."""
     from estimator.filters import DesignCache
-    from estimator.posterior import PeriodicIdentification, SequentialPosterior
+    from estimator.posterior import PeriodicIdentification, SequentialPosterior, rig_fingerprint
 
     model = cfg.rig_model()
     idc = cfg.identification
     angle_names = model.geometry.angle_names
     names = angle_names if idc.parameters == "angles" else tuple(idc.parameters)
-    post = SequentialPosterior.from_config(idc, names, angle_names)
+    post = SequentialPosterior.from_config(idc, names, angle_names,
+                                           rig=rig_fingerprint(model.geometry))
     if initial_state is not None:
         post.restore(initial_state)
     fs = cfg.sample_rate_hz

@@ -67,6 +67,7 @@ class ServiceOptions:
     record: str | None = None
     duration: float | None = None  # seconds of acquisition time
     angles: str | None = None  # a saved posterior to start from
+    accept_rig_mismatch: bool = False  # use (or replace) a posterior of another rig
     zenoh: bool = True
     zenoh_config: str | None = None
     zenoh_listen: list[str] = field(default_factory=list)
@@ -169,50 +170,24 @@ def jsonl_sink(path: str | Path):
     return sink, f.close
 
 
-def initial_angles(cfg: RigConfig, state_path: str | None):
-    """(alpha0, posterior state or None) from the config or a saved posterior."""
+def initial_angles(cfg: RigConfig, state_path: str | None, accept_rig_mismatch: bool = False):
+    """(alpha0, posterior state or None, warning or None) from the config or a saved
+    posterior (of this rig, within the angles' physical range: daq.posterior_file)."""
     alpha0 = np.asarray(cfg.identification.initial_angles_rad, float).copy()
     if not state_path:
-        return alpha0, None
-    from estimator.posterior import load_posterior
+        return alpha0, None, None
+    from daq.posterior_file import load_checked
 
     names = cfg.rig_model().geometry.angle_names
     idc = cfg.identification
     wanted = names if idc.parameters == "angles" else tuple(idc.parameters)
-    state = load_posterior(state_path, wanted)  # PosteriorFileError on a corrupt file
+    # PosteriorFileError on a corrupt file, another rig's, or angles out of range
+    state, warning = load_checked(cfg, state_path, wanted,
+                                  accept_rig_mismatch=accept_rig_mismatch)
     for n, v in zip(state.names, state.theta):
         if n in names:
             alpha0[names.index(n)] = v
-    return alpha0, state
-
-
-def check_state_file(cfg: RigConfig) -> str | None:
-    """The configured ``identification.state_file`` is where accepted runs are saved; the
-    service starts from it only when asked (``--angles``, model §7). If it exists but is
-    unreadable, say so loudly at start (the service starts from the configured angles) and
-    move it aside to ``<name>.corrupt`` — kept, not overwritten by the next accepted run.
-    Returns the warning, or None."""
-    path = cfg.identification.state_file
-    if not path or not Path(path).exists():
-        return None
-    from estimator.posterior import PosteriorFileError, load_posterior
-
-    try:
-        load_posterior(path)
-        return None
-    except PosteriorFileError as e:
-        aside = Path(f"{path}.corrupt")
-        n = 1
-        while aside.exists():
-            aside = Path(f"{path}.corrupt.{n}")
-            n += 1
-        try:
-            Path(path).rename(aside)
-            where = f"moved to {aside}"
-        except OSError as err:
-            where = f"could not be moved aside ({err.strerror})"
-        return (f"identification.state_file: {e.problem}; {where}; the service starts from "
-                "the configured initial angles (identification.initial_angles_deg)")
+    return alpha0, state, warning
 
 
 def read_angles_schedule(folder: Path) -> tuple[dict | None, list[dict]]:
@@ -319,13 +294,21 @@ class Service:
                                     float)
                 state = None
             else:
-                alpha0, state = initial_angles(cfg, opts.angles)
-                if not opts.angles and opts.replay is None:
-                    warning = check_state_file(cfg)
-                    if warning:
-                        log.error("%s", warning)
-                        self.warnings.append(warning)
+                alpha0, state, warning = initial_angles(cfg, opts.angles,
+                                                        opts.accept_rig_mismatch)
+                if warning:
+                    log.warning("%s", warning)
+                    self.warnings.append(warning)
             use_ident = opts.identification and (opts.replay is None or opts.recompute)
+            if use_ident:
+                # the worker saves accepted runs there: only over a posterior of ours
+                # (ConfigError naming the key otherwise, before acquisition starts)
+                from daq.posterior_file import prepare_state_file
+
+                for warning in prepare_state_file(
+                        cfg, accept_rig_mismatch=opts.accept_rig_mismatch):
+                    log.warning("%s", warning)
+                    self.warnings.append(warning)
             self.pipeline = EstimatorPipeline(cfg, alpha0, identification=use_ident)
             for rec in recorded:
                 self.pipeline.deliver(rec)

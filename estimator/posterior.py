@@ -5,6 +5,8 @@ Every run takes the previous posterior as its prior, inflated by a random walk
 
 1. ``stale_input`` — too many samples of the window lack a required channel (no run);
 2. ``not_converged`` / ``diverged`` — the run is not sound;
+   ``out_of_range`` — its estimate leaves the physical range of the angles
+   (``identification.angle_limit_deg``);
 3. ``inconsistent`` — the consistency gate ``ν = Δθᵀ D⁺ Δθ > χ²_{d,0.999}`` with
    ``D = P_p − P_post``; after ``reset_after`` of them in a row the covariance is reset to the
    first prior's around the current mean (``reset``), so a real change is learned again
@@ -64,7 +66,7 @@ from .params import RigModel
 
 ACCEPTED = None
 REASONS = ("not_converged", "diverged", "not_identifiable", "inconsistent", "reset",
-           "stale_input")
+           "stale_input", "out_of_range")
 MODES = ("known_loads", "filter_error")
 GATE_PROBABILITY = 0.999  # model §7: accepted when ν ≤ χ²_{d, 0.999}
 GATE_RELATIVE_EIGENVALUE = 1e-6  # directions of D kept by the gate, relative to the largest
@@ -127,29 +129,127 @@ class AnglesRecord:
         return {k: _finite_or_none(getattr(self, k)) for k in keys}
 
 
+FORMAT_VERSION = 2  # 2: with the rig fingerprint; 1 (no fingerprint) is still read
+FINGERPRINT_ATOL = 1e-9  # m, and unit-vector components: a TOML → JSON round trip is exact
+
+
+def rig_fingerprint(geometry: Any) -> dict:
+    """What the angles of a posterior mean (docs/identification.md): every cell's name,
+    attach point and nominal axis, the hub position and the angle names, JSON-ready."""
+    return {
+        "cells": [{"name": str(n), "position_m": [float(v) for v in p],
+                   "nominal_axis": [float(v) for v in a]}
+                  for n, p, a in zip(geometry.cell_names, np.asarray(geometry.cell_positions),
+                                     np.asarray(geometry.cell_axes))],
+        "hub_position_m": [float(v) for v in np.asarray(geometry.hub_position)],
+        "angle_names": [str(n) for n in geometry.angle_names],
+    }
+
+
+def rig_difference(saved: Mapping[str, Any], current: Mapping[str, Any]) -> str | None:
+    """The first item in which two rig fingerprints differ, named (None when they agree)."""
+    def vec(x: Any) -> np.ndarray:
+        return np.asarray(x, float).reshape(-1)
+
+    def differ(a: Any, b: Any) -> bool:
+        a, b = vec(a), vec(b)
+        return a.shape != b.shape or not np.allclose(a, b, rtol=0.0, atol=FINGERPRINT_ATOL)
+
+    sc, cc = list(saved["cells"]), list(current["cells"])
+    if len(sc) != len(cc):
+        return f"number of cells: {len(sc)} in the file, {len(cc)} configured"
+    for i, (a, b) in enumerate(zip(sc, cc)):
+        if str(a["name"]) != str(b["name"]):
+            return f"cells[{i}].name: {a['name']!r} in the file, {b['name']!r} configured"
+        for key in ("position_m", "nominal_axis"):
+            if differ(a[key], b[key]):
+                return (f"cells[{i}].{key} (cell {b['name']}): {vec(a[key]).tolist()} in the "
+                        f"file, {vec(b[key]).tolist()} configured")
+    if differ(saved["hub_position_m"], current["hub_position_m"]):
+        return (f"hub_position_m: {vec(saved['hub_position_m']).tolist()} in the file, "
+                f"{vec(current['hub_position_m']).tolist()} configured")
+    if [str(n) for n in saved["angle_names"]] != [str(n) for n in current["angle_names"]]:
+        return (f"angle_names: {list(saved['angle_names'])} in the file, "
+                f"{list(current['angle_names'])} configured")
+    return None
+
+
+def _check_fingerprint(rig: Any) -> None:
+    """Raise ValueError unless ``rig`` has the shape :func:`rig_fingerprint` writes."""
+    if not isinstance(rig, dict) or not isinstance(rig.get("cells"), list):
+        raise ValueError("rig fingerprint is not an object with a list of cells")
+    for c in rig["cells"]:
+        if not isinstance(c, dict) or not isinstance(c.get("name"), str):
+            raise ValueError("rig fingerprint: a cell without a name")
+        for key in ("position_m", "nominal_axis"):
+            if np.asarray(c.get(key), float).shape != (3,):
+                raise ValueError(f"rig fingerprint: cell {c['name']} {key} is not 3 numbers")
+    if np.asarray(rig.get("hub_position_m"), float).shape != (3,):
+        raise ValueError("rig fingerprint: hub_position_m is not 3 numbers")
+    if not isinstance(rig.get("angle_names"), list):
+        raise ValueError("rig fingerprint: angle_names is not a list")
+
+
 @dataclass
 class PosteriorState:
-    """What is saved and loaded: the posterior and the sample it applies from."""
+    """What is saved and loaded: the posterior and the sample it applies from, and the rig
+    fingerprint of what its angles mean (None: a version-1 file, or not known)."""
 
     names: tuple[str, ...]
     theta: np.ndarray
     P: np.ndarray
     applies_from_seq: int | None = None
     t: float | None = None
+    rig: dict | None = None
+
+    @property
+    def version(self) -> int:
+        return FORMAT_VERSION if self.rig is not None else 1
 
     def to_dict(self) -> dict:
-        return {"format": "rsra-posterior", "version": 1, "names": list(self.names),
-                "theta": self.theta.tolist(), "P": self.P.tolist(),
-                "applies_from_seq": self.applies_from_seq, "t": self.t}
+        d: dict[str, Any] = {"format": "rsra-posterior", "version": self.version}
+        if self.rig is not None:
+            d["rig"] = self.rig
+        d.update({"names": list(self.names), "theta": self.theta.tolist(), "P": self.P.tolist(),
+                  "applies_from_seq": self.applies_from_seq, "t": self.t})
+        return d
 
 
 class PosteriorFileError(ValueError):
     """A posterior file that cannot be used, with the reason and what to do."""
 
-    def __init__(self, path: str | Path, problem: str) -> None:
+    FIX = ("delete it or pass a valid file (it is written by the service after an accepted "
+           "identification run)")
+
+    def __init__(self, path: str | Path, problem: str, fix: str | None = None) -> None:
         self.path, self.problem = str(path), problem
-        super().__init__(f"posterior file {path}: {problem} — delete it or pass a valid file "
-                         "(it is written by the service after an accepted identification run)")
+        super().__init__(f"posterior file {path}: {problem} — {fix or self.FIX}")
+
+
+def check_posterior(state: PosteriorState, path: str | Path, *, rig: Mapping[str, Any],
+                    angle_names: Sequence[str], angle_limit_rad: float,
+                    accept_rig_mismatch: bool = False) -> str | None:
+    """Whether a loaded posterior may be used on this rig: every angle within the physical
+    range ±``angle_limit_rad`` (always), and the file's rig fingerprint equal to ``rig``
+    (unless ``accept_rig_mismatch``). Raises :class:`PosteriorFileError` naming the angle or
+    the differing item; returns a one-line warning for a version-1 file (no fingerprint) or
+    an accepted mismatch, else None."""
+    for n, v in zip(state.names, state.theta):
+        if n in angle_names and not abs(v) <= angle_limit_rad:
+            raise PosteriorFileError(
+                path, f"angle {n} = {v:.6g} rad is outside the physical range "
+                f"±{math.degrees(angle_limit_rad):g}° (identification.angle_limit_deg)")
+    if state.rig is None:
+        return (f"posterior file {path}: format version 1 carries no rig fingerprint; its "
+                "angles are taken to belong to this rig (the next save writes version 2)")
+    diff = rig_difference(state.rig, rig)
+    if diff is None:
+        return None
+    if accept_rig_mismatch:
+        return (f"posterior file {path}: from another rig ({diff}); used anyway "
+                "(--accept-rig-mismatch)")
+    raise PosteriorFileError(path, f"its angles belong to another rig: {diff}",
+                             "check --config, or pass --accept-rig-mismatch to use it anyway")
 
 
 def save_posterior(path: str | Path, state: PosteriorState) -> None:
@@ -170,8 +270,16 @@ def load_posterior(path: str | Path, names: Sequence[str] | None = None) -> Post
         raise PosteriorFileError(path, f"not readable JSON ({exc})") from None
     if not isinstance(raw, dict) or raw.get("format") != "rsra-posterior":
         raise PosteriorFileError(path, 'not a posterior (missing "format": "rsra-posterior")')
-    if raw.get("version") != 1:
-        raise PosteriorFileError(path, f"unsupported version {raw.get('version')!r}")
+    version = raw.get("version")
+    if version not in (1, FORMAT_VERSION) or isinstance(version, bool):
+        raise PosteriorFileError(path, f"unsupported version {version!r}")
+    rig = None
+    if version >= 2:
+        rig = raw.get("rig")
+        try:
+            _check_fingerprint(rig)
+        except (TypeError, ValueError) as exc:
+            raise PosteriorFileError(path, f"malformed rig fingerprint ({exc})") from None
     try:
         fnames = tuple(str(n) for n in raw["names"])
         theta = np.asarray(raw["theta"], dtype=float)
@@ -199,7 +307,13 @@ def load_posterior(path: str | Path, names: Sequence[str] | None = None) -> Post
         raise PosteriorFileError(path, "applies_from_seq must be an integer or null")
     if t is not None and not isinstance(t, (int, float)):
         raise PosteriorFileError(path, "t must be a number or null")
-    return PosteriorState(fnames, theta, P, afs, None if t is None else float(t))
+    return PosteriorState(fnames, theta, P, afs, None if t is None else float(t), rig)
+
+
+def out_of_range(theta: np.ndarray, limit: np.ndarray) -> bool:
+    """A run's estimate outside the physical range |θ_k| ≤ limit_k (rejected ``out_of_range``:
+    no real load cell is tilted that far; the data or the model are wrong)."""
+    return not bool(np.all(np.abs(np.asarray(theta, float)) <= limit))
 
 
 def information_ratio(prior_cov: np.ndarray, M: np.ndarray) -> float:
@@ -259,9 +373,14 @@ class SequentialPosterior:
         relinearise: bool = True,
         max_accumulated_windows: int = MAX_ACCUMULATED_WINDOWS,
         max_held_windows: int = MAX_HELD_WINDOWS,
+        limit: np.ndarray | float = math.inf,
+        rig: dict | None = None,
     ) -> None:
         self.names = tuple(names)
         p = len(self.names)
+        # the physical range |θ_k| ≤ limit_k (angles: identification.angle_limit_deg)
+        self.limit = np.broadcast_to(np.asarray(limit, float), (p,)).copy()
+        self.rig = rig  # the fingerprint saved with the posterior (rig_fingerprint)
         self.theta = np.asarray(theta0, float).copy()
         self.P0 = np.diag(np.broadcast_to(np.asarray(sigma0, float), (p,)) ** 2)
         self.P = self.P0.copy()
@@ -336,10 +455,12 @@ class SequentialPosterior:
         *,
         theta0: np.ndarray | None = None,
         other_prior_sigma: Mapping[str, float] | None = None,
+        rig: dict | None = None,
     ) -> "SequentialPosterior":
         """From ``RigConfig.identification``: angles get ``prior_sigma_rad``, drift
-        ``drift_rate_rad2_s`` and ``sigma_max_rad``; other parameters need their prior σ in
-        ``other_prior_sigma`` (no drift; determined at 0.04 × prior σ)."""
+        ``drift_rate_rad2_s``, ``sigma_max_rad`` and the range ±``angle_limit_rad``; other
+        parameters need their prior σ in ``other_prior_sigma`` (no drift; determined at
+        0.04 × prior σ; no range). ``rig``: the fingerprint saved with it."""
         other_prior_sigma = dict(other_prior_sigma or {})
         sig0, drift, smax = [], [], []
         for n in names:
@@ -356,14 +477,16 @@ class SequentialPosterior:
         if theta0 is None:
             theta0 = np.array([ident.initial_angles_rad[list(angle_names).index(n)]
                                for n in names])
+        limit = [ident.angle_limit_rad if n in angle_names else math.inf for n in names]
         return cls(names, theta0, np.array(sig0), drift_rate=np.array(drift),
                    min_information=ident.min_information, sigma_max=np.array(smax),
-                   reset_after=ident.reset_after, stale_fraction=ident.stale_fraction)
+                   reset_after=ident.reset_after, stale_fraction=ident.stale_fraction,
+                   limit=np.array(limit), rig=rig)
 
     # ---------------------------------------------------------------------------------
     def state(self) -> PosteriorState:
         return PosteriorState(self.names, self.theta.copy(), self.P.copy(),
-                              self.applies_from_seq, self.t)
+                              self.applies_from_seq, self.t, self.rig)
 
     def restore(self, state: PosteriorState) -> None:
         """Start from a saved posterior (``--angles``)."""
@@ -431,6 +554,10 @@ class SequentialPosterior:
             reason = "not_converged" if result.status == "not_converged" else "diverged"
             return self._record(accepted=False, reason=reason, result=result, information=None,
                                 nu=None, d=0, **kw)
+        if out_of_range(result.theta, self.limit):
+            self.drop_held()  # the held windows were part of this run
+            return self._record(accepted=False, reason="out_of_range", result=result,
+                                information=None, nu=None, d=0, **kw)
         P_p = result.prior_cov
         info = information_ratio(P_p, result.information)
         low = info < self.min_information

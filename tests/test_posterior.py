@@ -38,6 +38,9 @@ DEG = np.pi / 180
 def _post(cfg, model, theta0=None, **kw):
     names = model.geometry.angle_names
     p = SequentialPosterior.from_config(cfg.identification, names, names, theta0=theta0)
+    # the linear-Gaussian worlds below draw their truth from the prior (σ 5°): no physical
+    # range here (test_a_result_outside_the_physical_range_is_rejected covers it)
+    p.limit = np.full(len(names), np.inf)
     for k, v in kw.items():
         setattr(p, k, v)
     return p

@@ -74,24 +74,15 @@ def prior_state(cfg: RigConfig) -> PosteriorState:
     from estimator.posterior import SequentialPosterior
 
     names, angle_names = _configured_names(cfg)
+    from estimator.posterior import rig_fingerprint
+
     try:
-        post = SequentialPosterior.from_config(cfg.identification, names, angle_names)
+        post = SequentialPosterior.from_config(cfg.identification, names, angle_names,
+                                               rig=rig_fingerprint(cfg.rig_model().geometry))
     except ValueError as e:
         raise UsageError(f"identification.parameters: {e}; only angles have a configured "
                          "prior") from None
     return post.state()
-
-
-def _looks_like_posterior(path: Path) -> bool:
-    """A file `reset` may overwrite: empty, or one that says it is a posterior."""
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError):
-        return False
-    if not text.strip():
-        return True
-    # the format tag near the start, even in a truncated file (save_posterior writes it first)
-    return '"format": "rsra-posterior"' in text[:200]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -193,24 +184,25 @@ def _show(cfg: RigConfig, args: argparse.Namespace) -> int:
 
 def _reset(cfg: RigConfig, args: argparse.Namespace) -> int:
     from daq.cli import UsageError
-    from estimator.posterior import load_posterior, save_posterior
+    from daq.posterior_file import classify
+    from estimator.posterior import save_posterior
 
     path = Path(args.state)
     state = prior_state(cfg)
-    if path.is_dir():
+    # the same rule as the service's identification.state_file: only a posterior of ours
+    kind, old, problem = classify(path)
+    if kind == "foreign" and path.is_dir():
         raise UsageError(f"{path} is a folder; give the posterior file")
-    if path.exists():
-        try:
-            old = load_posterior(path)
-            was = (f"replaced a posterior of {len(old.names)} parameters with "
-                   f"{describe(old, cfg)['determined']} determined directions"
-                   if set(old.names) <= set(_configured_names(cfg)[1])
-                   else f"replaced a posterior of {len(old.names)} parameters")
-        except PosteriorFileError as e:
-            if not _looks_like_posterior(path):
-                raise UsageError(f"{path} is not a posterior file ({e.problem}); refusing to "
-                                 "overwrite it: check the path, or delete the file first") from None
-            was = f"replaced a damaged posterior ({e.problem})"
+    if kind == "foreign":
+        raise UsageError(f"{path} {problem}; refusing to overwrite it: check the path, or "
+                         "delete the file first")
+    if kind == "posterior":
+        was = (f"replaced a posterior of {len(old.names)} parameters with "
+               f"{describe(old, cfg)['determined']} determined directions"
+               if set(old.names) <= set(_configured_names(cfg)[1])
+               else f"replaced a posterior of {len(old.names)} parameters")
+    elif kind == "damaged":
+        was = f"replaced a damaged posterior ({problem})"
     else:
         was = "created it"
     try:

@@ -62,6 +62,9 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
     p.add_argument("--angles", metavar="STATE", default=None,
                    help="start from the angles of a saved posterior (rsra angles show) instead of "
                    "identification.initial_angles_deg")
+    from daq.posterior_file import add_accept_option
+
+    add_accept_option(p)
     p.add_argument("--prior-sigma-deg", type=float, default=None, metavar="DEG",
                    help="σ of the weak prior on the angles (default identification.prior_sigma_deg);"
                    " positions get 0.1 m, masses and inertias 25 %% of their configured value")
@@ -110,7 +113,8 @@ def run(args: argparse.Namespace) -> int:
     from daq.cli import UsageError
     from daq.jsonout import dumps
     from daq.replay import ReplayError, config_for, expand
-    from estimator.posterior import PosteriorFileError, load_posterior
+    from daq.posterior_file import load_checked
+    from estimator.posterior import PosteriorFileError
 
     if args.prior_sigma_deg is not None and not (math.isfinite(args.prior_sigma_deg)
                                                  and args.prior_sigma_deg > 0):
@@ -133,9 +137,12 @@ def run(args: argparse.Namespace) -> int:
     alpha_start = None
     if args.angles:
         try:
-            state = load_posterior(args.angles)
+            state, warning = load_checked(cfg, args.angles,
+                                          accept_rig_mismatch=args.accept_rig_mismatch)
         except PosteriorFileError as e:
             raise UsageError(str(e)) from None
+        if warning:
+            print(f"rsra calibrate: warning: {warning}", file=sys.stderr)
         angle_names = cfg.rig_model().geometry.angle_names
         alpha_start = np.asarray(cfg.identification.initial_angles_rad, float).copy()
         for n, v in zip(state.names, state.theta):

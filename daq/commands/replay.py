@@ -40,6 +40,9 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
                    "the recording's angle schedule")
     p.add_argument("--angles", metavar="STATE", default=None,
                    help="start from a saved posterior instead of the recording's")
+    from daq.posterior_file import add_accept_option
+
+    add_accept_option(p)
     p.add_argument("--zenoh-config", metavar="FILE", default=None, help="with --publish")
     p.add_argument("--zenoh-listen", action="append", default=[], metavar="EP",
                    help="with --publish (default tcp/127.0.0.1:7447)")
@@ -88,6 +91,7 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"--out {args.out}: cannot write ({e.strerror})") from None
     opts = ServiceOptions(replay=list(args.logs), recompute=args.recompute, realtime=args.realtime,
                           angles=args.angles, zenoh=args.publish,
+                          accept_rig_mismatch=args.accept_rig_mismatch,
                           zenoh_config=args.zenoh_config, zenoh_listen=args.zenoh_listen,
                           zenoh_connect=args.zenoh_connect)
     service = Service(cfg, opts)

@@ -51,6 +51,9 @@ def add_service_options(p: argparse.ArgumentParser) -> None:
                    help="record every frame, the angle schedule and the effective config here")
     p.add_argument("--angles", metavar="STATE", default=None,
                    help="start from a saved posterior (see identification.state_file)")
+    from daq.posterior_file import add_accept_option
+
+    add_accept_option(p)
     p.add_argument("--zenoh-config", metavar="FILE", default=None,
                    help="a Zenoh config file (TLS, user/password, access control)")
     p.add_argument("--zenoh-listen", action="append", default=[], metavar="EP",
@@ -118,7 +121,8 @@ def options_from_args(args: argparse.Namespace):
     return ServiceOptions(
         interface=args.interface, channel=args.channel, sim=args.sim, seed=args.seed,
         faults=args.faults, speed=args.speed, record=args.record, duration=args.duration,
-        angles=args.angles, zenoh_config=args.zenoh_config, zenoh_listen=args.zenoh_listen,
+        angles=args.angles, accept_rig_mismatch=args.accept_rig_mismatch,
+        zenoh_config=args.zenoh_config, zenoh_listen=args.zenoh_listen,
         zenoh_connect=args.zenoh_connect, truth=getattr(args, "truth", None))
 
 

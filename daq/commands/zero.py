@@ -405,6 +405,9 @@ Exit 0 when the fragment is written, 2 for a usage or configuration error.""")
     p.add_argument("--angles", default=None, metavar="STATE",
                    help="take α for S(α) from a saved posterior (default: the configured "
                    "initial angles)")
+    from daq.posterior_file import add_accept_option
+
+    add_accept_option(p)
     return p
 
 
@@ -432,7 +435,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     table = DecodeTable(cfg)
     specs = channel_specs(cfg, table, args.max_offset_fs)
-    alpha, angles_from = _angles(cfg, args.angles)
+    alpha, angles_from = _angles(cfg, args.angles, args.accept_rig_mismatch)
 
     report = Console(stderr=out is None, soft_wrap=True)
     if not report.is_terminal:
@@ -471,20 +474,24 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _angles(cfg: RigConfig, state: str | None) -> tuple[np.ndarray, str]:
+def _angles(cfg: RigConfig, state: str | None,
+            accept_rig_mismatch: bool = False) -> tuple[np.ndarray, str]:
     if state is None:
         deg = np.degrees(cfg.identification.initial_angles_rad)
         return cfg.identification.initial_angles_rad, (
             "the configured initial angles" + (f" ({deg[0]:g} deg)" if np.all(deg == deg[0])
                                                else ""))
     from daq.cli import UsageError
-    from estimator.posterior import PosteriorFileError, load_posterior
+    from daq.posterior_file import load_checked
+    from estimator.posterior import PosteriorFileError
 
     names = cfg.rig_model().geometry.angle_names
     try:
-        st = load_posterior(state)
+        st, warning = load_checked(cfg, state, accept_rig_mismatch=accept_rig_mismatch)
     except PosteriorFileError as e:
         raise UsageError(f"--angles: {e}") from None
+    if warning:
+        print(f"rsra zero: warning: {warning}", file=sys.stderr)
     alpha = np.array(cfg.identification.initial_angles_rad, float)
     for name, value in zip(st.names, st.theta):
         if name in names:
