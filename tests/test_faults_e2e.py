@@ -36,7 +36,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from daq.config import load_config
+from daq.config import ConfigError, load_config
 from daq.jsonout import dumps
 from daq.pipeline import EstimatorPipeline
 from daq.service import Service, ServiceOptions
@@ -557,25 +557,16 @@ def test_a_corrupt_saved_posterior_is_refused_by_rsra_run(tmp_path):
     assert str(bad) in r.stderr and "not readable JSON" in r.stderr
 
 
-def test_a_corrupt_configured_state_file_warns_and_the_service_starts_from_the_config(
-        tmp_path, caplog):
-    import logging
-
+def test_a_corrupt_configured_state_file_is_a_config_error_and_left_as_it_was(tmp_path):
+    """Not ours (nothing proves the service wrote it): the service does not start, says so
+    naming the key, and neither moves nor overwrites it (it used to rename it *.corrupt)."""
     state = tmp_path / "posterior.json"
-    state.write_text("\x00\x00 half-written by a dying disk")
+    state.write_bytes(b"\x00\x00 half-written by a dying disk")
     cfg = load_config(overrides={"identification": {"state_file": str(state)}})
-    with caplog.at_level(logging.ERROR):
-        svc = Service(cfg, ServiceOptions(sim="ground-test", seed=SEED, speed=None,
-                                          duration=1.5, zenoh=False, identification=False))
-        health = []
-        svc.add_sink(lambda k, p: health.append(p) if k == "health" else None)
-        summary = svc.run()
-    assert summary["samples"] == 300
-    (warning,) = summary["warnings"]
-    assert "identification.state_file" in warning and "starts from the configured" in warning
-    assert health and health[-1]["warnings"] == [warning]
-    assert any(warning in r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR)
-    # kept for inspection, not overwritten by the next accepted run
-    assert not state.exists() and (tmp_path / "posterior.json.corrupt").read_bytes().startswith(
-        b"\x00\x00")
-    np.testing.assert_array_equal(summary["alpha_applied"], cfg.identification.initial_angles_rad)
+    svc = Service(cfg, ServiceOptions(sim="ground-test", seed=SEED, speed=None,
+                                      duration=1.5, zenoh=False))
+    with pytest.raises(ConfigError, match="identification.state_file"):
+        svc.run()
+    assert svc.samples == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["posterior.json"]
+    assert state.read_bytes() == b"\x00\x00 half-written by a dying disk"
