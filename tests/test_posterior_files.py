@@ -349,3 +349,19 @@ def test_an_identification_result_outside_the_range_is_rejected_out_of_range(cfg
             np.testing.assert_array_equal(post.theta, theta)
             np.testing.assert_array_equal(post.P, P)
             assert rec.to_dict()["reason"] == "out_of_range"
+
+
+def test_angles_show_names_the_rig_difference_and_the_version(cfg, tmp_path, capsys):
+    path = tmp_path / "p.json"
+    st = _state(cfg)
+    save_posterior(path, st)
+    assert main(["angles", "show", str(path), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["version"] == 2 and d["rig_difference"] is None
+    st.rig["angle_names"][0] = "delta_Z"
+    save_posterior(path, st)
+    assert main(["angles", "show", str(path), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["rig_difference"].startswith("angle_names")
+    assert main(["angles", "show", str(path)]) == 0
+    assert "note: saved on another rig (angle_names" in capsys.readouterr().out

@@ -65,7 +65,19 @@ def describe(state: PosteriorState, cfg: RigConfig) -> dict:
         "applies_from_seq": state.applies_from_seq,
         "t": state.t,
         "matches_config": tuple(state.names) == tuple(configured),
+        "version": state.version,
+        "rig_difference": _rig_difference(state, cfg),
     }
+
+
+def _rig_difference(state: PosteriorState, cfg: RigConfig) -> str | None:
+    """The first item in which the file's rig fingerprint differs from the configured rig
+    (None: the same rig, or a version-1 file without a fingerprint)."""
+    from estimator.posterior import rig_difference, rig_fingerprint
+
+    if state.rig is None:
+        return None
+    return rig_difference(state.rig, rig_fingerprint(cfg.rig_model().geometry))
 
 
 def prior_state(cfg: RigConfig) -> PosteriorState:
@@ -112,7 +124,7 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
                       help='print {"file", "names", "angles_deg", "sigma_deg", "sigma_max_deg", '
                       '"determined", "parameters", "determined_parameters", '
                       '"undetermined_directions": [{"sigma_deg", "components"}], "condition", '
-                      '"applies_from_seq", "t", "matches_config"}')
+                      '"applies_from_seq", "t", "matches_config", "version", "rig_difference"}')
     reset = acts.add_parser(
         "reset", help="rewrite a posterior with the configured prior (no questions)",
         description="Rewrite STATE atomically with the configured prior: the angles of "
@@ -176,6 +188,11 @@ def _show(cfg: RigConfig, args: argparse.Namespace) -> int:
     if len(undet) > SHOW_DIRECTIONS:
         console.print(f"  … and {len(undet) - SHOW_DIRECTIONS} more (--json lists them all)",
                       highlight=False)
+    if d["rig_difference"] is not None:
+        console.print(f"note: saved on another rig ({d['rig_difference']}): --angles refuses "
+                      "it without --accept-rig-mismatch", highlight=False)
+    elif d["version"] == 1:
+        console.print("note: format version 1, without a rig fingerprint", highlight=False)
     if not d["matches_config"]:
         console.print("note: the config identifies other parameters: the service would refuse "
                       "this file (reset it or check --config)", highlight=False)
