@@ -48,8 +48,8 @@ PRIOR_SIGMA_POSITION_M = 0.1
 PRIOR_SIGMA_MASS_FRACTION = 0.25
 # Physical plausibility (flagged, never refused): deformation angles are small (the report's
 # Eq A2 linearises them; RSRA's fuselage deflections are a few degrees), masses and inertias
-# are positive and near the drawings, attach points near the drawings.
-PLAUSIBLE_ANGLE_RAD = math.radians(10.0)
+# are positive and near the drawings, attach points near the drawings. The angles' range is
+# the one physical range of the project, identification.angle_limit_deg (default 10°).
 PLAUSIBLE_MASS_FRACTION = 0.5
 PLAUSIBLE_POSITION_M = 0.2
 # Residual RMS above this multiple of what the sensor noise explains is flagged as model error
@@ -465,8 +465,10 @@ def plausibility(cfg: RigConfig, names: Sequence[str], theta: np.ndarray,
         if not math.isfinite(v):
             flags.append(PlausibilityFlag(n, v, "not a finite number"))
         elif n in angles:
-            if abs(v) > PLAUSIBLE_ANGLE_RAD:
-                flags.append(PlausibilityFlag(n, v, f"|angle| > {math.degrees(PLAUSIBLE_ANGLE_RAD):g}°"))
+            lim = cfg.identification.angle_limit_rad
+            if abs(v) > lim:
+                flags.append(PlausibilityFlag(n, v, f"|angle| > {math.degrees(lim):g}° "
+                                              "(identification.angle_limit_deg)"))
         elif n.startswith(("m_", "I_")):
             if v <= 0:
                 flags.append(PlausibilityFlag(n, v, "not positive"))
