@@ -70,6 +70,7 @@ def replay_records(cfg: RigConfig, logs: list[str], realtime: bool = False,
 def run(args: argparse.Namespace) -> int:
     from daq.cli import UsageError
     from daq.commands.run import setup_logging
+    from daq.config import ConfigError
     from daq.jsonout import dumps
     from daq.replay import ReplayError, config_for, expand
     from daq.service import Service, ServiceOptions
@@ -109,6 +110,8 @@ def run(args: argparse.Namespace) -> int:
         summary = service.run()
     except PosteriorFileError as e:
         raise UsageError(str(e)) from None
+    except ConfigError:  # e.g. identification.state_file (--recompute): exit 2 naming the key
+        raise
     except (ValueError, OSError) as e:  # a corrupt or truncated log file
         raise UsageError(f"cannot read the recording: {e}") from None
     finally:
