@@ -30,6 +30,8 @@ from estimator.posterior import (
     save_posterior,
 )
 
+from helpers_net import free_tcp_port
+
 ROOT = Path(__file__).resolve().parents[1]
 RIG = ROOT / "config" / "rig.toml"
 DEG = math.pi / 180
@@ -66,6 +68,11 @@ def _state(cfg, theta=None, rig=True) -> PosteriorState:
                           rig_fingerprint(cfg.rig_model().geometry) if rig else None)
 
 
+def _listen() -> list[str]:
+    """A free loopback port for the service's Zenoh session (never the default 7447)."""
+    return ["--zenoh-listen", f"tcp/127.0.0.1:{free_tcp_port()}"]
+
+
 def _one_line(err: str) -> str:
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert len(lines) == 1 and "Traceback" not in err, err
@@ -88,7 +95,7 @@ def test_a_state_file_naming_a_folder_is_a_config_error_and_the_folder_is_untouc
     conf = _config_file(tmp_path, str(folder))
     before = _snapshot(work)
     r = subprocess.run([sys.executable, "-m", "daq", "run", "--config", str(conf), "--sim",
-                        "ground-test", "--speed", "max", "--duration", "1"],
+                        "ground-test", "--speed", "max", "--duration", "1", *_listen()],
                        capture_output=True, text=True, timeout=120, check=False, env=ENV,
                        cwd=tmp_path)
     assert r.returncode == 2, (r.returncode, r.stderr)
@@ -271,7 +278,7 @@ def test_rsra_run_refuses_another_rigs_posterior_and_accepts_it_when_told(cfg, t
     st.rig["cells"][0]["position_m"] = [0.7, -0.945, 0.354]
     save_posterior(path, st)
     argv = ["run", "--sim", "ground-test", "--speed", "max", "--duration", "0.2",
-            "--angles", str(path), "--log-level", "warning"]
+            "--angles", str(path), "--log-level", "warning", *_listen()]
     assert main(argv) == 2
     line = _one_line(capsys.readouterr().err)
     assert "cells[0].position_m (cell A)" in line and str(path) in line
@@ -308,7 +315,7 @@ def test_rsra_run_refuses_theta_100_rad_in_one_line(cfg, tmp_path, capsys):
     path = tmp_path / "p.json"
     save_posterior(path, _state(cfg, theta=np.r_[100.0, np.zeros(13)]))
     assert main(["run", "--sim", "ground-test", "--speed", "max", "--duration", "0.2",
-                 "--angles", str(path)]) == 2
+                 "--angles", str(path), *_listen()]) == 2
     line = _one_line(capsys.readouterr().err)
     assert "delta_A = 100 rad" in line and "angle_limit_deg" in line
 
@@ -365,3 +372,18 @@ def test_angles_show_names_the_rig_difference_and_the_version(cfg, tmp_path, cap
     assert d["rig_difference"].startswith("angle_names")
     assert main(["angles", "show", str(path)]) == 0
     assert "note: saved on another rig (angle_names" in capsys.readouterr().out
+
+
+def test_replay_recompute_refuses_a_folder_as_state_file_as_a_config_error(tmp_path, capsys):
+    rec = tmp_path / "rec"
+    assert main(["run", "--sim", "ground-test", "--speed", "max", "--duration", "0.3",
+                 "--record", str(rec), "--log-level", "error", *_listen()]) == 0
+    capsys.readouterr()
+    folder = tmp_path / "d"
+    folder.mkdir()
+    conf = _config_file(tmp_path, str(folder))
+    before = _snapshot(tmp_path)
+    assert main(["replay", str(rec), "--recompute", "--config", str(conf)]) == 2
+    line = _one_line(capsys.readouterr().err)
+    assert "configuration error: identification.state_file" in line and "is a folder" in line
+    assert _snapshot(tmp_path) == before
