@@ -387,3 +387,16 @@ def test_replay_recompute_refuses_a_folder_as_state_file_as_a_config_error(tmp_p
     line = _one_line(capsys.readouterr().err)
     assert "configuration error: identification.state_file" in line and "is a folder" in line
     assert _snapshot(tmp_path) == before
+
+
+def test_a_save_through_a_symbolic_link_replaces_the_target_and_keeps_the_link(cfg, tmp_path):
+    target = tmp_path / "real" / "posterior.json"
+    target.parent.mkdir()
+    save_posterior(target, _state(cfg))
+    link = tmp_path / "state.json"
+    link.symlink_to(target)
+    save_posterior(link, _state(cfg, theta=np.full(14, 1 * DEG)))
+    assert link.is_symlink() and os.readlink(link) == str(target)
+    np.testing.assert_allclose(load_posterior(target).theta, 1 * DEG)
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["posterior.json", "real",
+                                                             "state.json"]
