@@ -345,11 +345,22 @@ class Recorder(can.Listener):
 
 def recorded_config_raw(folder: str | Path) -> dict | None:
     """The effective configuration a recording folder holds (None if it has none)."""
+    from daq.config import ConfigError
+
     p = Path(folder) / CONFIG_FILE
     if not p.is_file():
         return None
-    with open(p, encoding="utf-8") as f:
-        return json.load(f)
+    try:
+        with open(p, encoding="utf-8") as f:
+            raw = json.load(f)
+    except (ValueError, UnicodeDecodeError) as e:  # cut short, damaged
+        raise ConfigError("<file>", str(p), f"not valid JSON ({e}): cut short or damaged",
+                          "give the rig config the recording was made with (--config), or "
+                          "repair the file") from None
+    if not isinstance(raw, dict):
+        raise ConfigError("<file>", str(p), "not a recorded configuration (not a JSON object)",
+                          "give the rig config the recording was made with (--config)")
+    return raw
 
 
 def recorded_config(folder: str | Path) -> RigConfig | None:

@@ -6,6 +6,7 @@ Writes one JSON object per published message with ``--out`` (``{"key": "channels
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -70,7 +71,6 @@ def run(args: argparse.Namespace) -> int:
     from daq.jsonout import dumps
     from daq.replay import ReplayError, config_for, expand
     from daq.service import Service, ServiceOptions
-    from estimator.posterior import PosteriorFileError
 
     setup_logging(args.log_level, None)
     try:
@@ -78,14 +78,11 @@ def run(args: argparse.Namespace) -> int:
     except ReplayError as e:
         raise UsageError(str(e)) from None
     cfg = config_for(args.logs, args.config)
-    out = None
+    out: _LazyFile | None = None
     if args.out == "-":
         out = sys.stdout
     elif args.out:
-        try:
-            out = open(Path(args.out), "w", encoding="utf-8")
-        except OSError as e:
-            raise UsageError(f"--out {args.out}: cannot write ({e.strerror})") from None
+        out = _LazyFile(Path(args.out))
     opts = ServiceOptions(replay=list(args.logs), recompute=args.recompute, realtime=args.realtime,
                           angles=args.angles, zenoh=args.publish,
                           zenoh_config=args.zenoh_config, zenoh_listen=args.zenoh_listen,
@@ -103,10 +100,11 @@ def run(args: argparse.Namespace) -> int:
     service.add_sink(sink)
     try:
         summary = service.run()
-    except PosteriorFileError as e:
-        raise UsageError(str(e)) from None
-    except (ValueError, OSError) as e:  # a corrupt or truncated log file
-        raise UsageError(f"cannot read the recording: {e}") from None
+    except ReplayError as e:  # a damaged recording: what was replayed before it is kept
+        if isinstance(out, _LazyFile) and out.records:
+            raise ReplayError(f"{e} ({args.out} holds the {out.records} records before "
+                              "it)") from None
+        raise
     finally:
         progress.close()
         if out is not None and out is not sys.stdout:
@@ -118,6 +116,37 @@ def run(args: argparse.Namespace) -> int:
              f"(accepted {summary.get('accepted', 0)})")
     print(text, file=sys.stderr if out is sys.stdout else sys.stdout)
     return 0
+
+
+class _LazyFile:
+    """The --out file, created at the first record: a replay refused before it publishes
+    anything (a damaged recording, a bad config, a Zenoh port in use) leaves no empty file and
+    leaves an existing one as it was. Where it cannot be written is checked at once."""
+
+    def __init__(self, path: Path):
+        from daq.cli import UsageError
+
+        self.path = path
+        self.file = None
+        self.records = 0
+        parent = path.parent if str(path.parent) else Path(".")
+        if path.is_dir():
+            raise UsageError(f"--out {path}: is a folder; fix: give a file name")
+        if not parent.is_dir():
+            raise UsageError(f"--out {path}: no folder {parent}; fix: create it or write elsewhere")
+        if not os.access(path if path.exists() else parent, os.W_OK):
+            raise UsageError(f"--out {path}: cannot write there (permission denied); fix: "
+                             "write elsewhere")
+
+    def write(self, text: str) -> None:
+        if self.file is None:
+            self.file = open(self.path, "w", encoding="utf-8")
+        self.file.write(text)
+        self.records += 1
+
+    def close(self) -> None:
+        if self.file is not None:
+            self.file.close()
 
 
 def _summary(counts: dict, health: dict | None) -> str:
