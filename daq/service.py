@@ -439,9 +439,14 @@ class Service:
                 # the simulator boots and starts its nodes and produces SYNC; the reader
                 # listens, and restarts a node that reboots (bus.md: reconfigured and
                 # restarted without restarting the service), its SDO answered in lock-step
-                reader = Reader(cfg, bus=bus, master=False, restart_nodes=True,
-                                wall_clock=False, record=o.record, overflow="block",
-                                table=table)
+                try:
+                    reader = Reader(cfg, bus=bus, master=False, restart_nodes=True,
+                                    wall_clock=False, record=o.record, overflow="block",
+                                    table=table)
+                except BaseException:  # e.g. the recording cannot start: close what is open
+                    bus.shutdown()
+                    sim.close()
+                    raise
                 self.sim, self.reader = sim, reader
                 closers.append(bus.shutdown)
                 closers.append(reader.close)

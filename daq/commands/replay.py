@@ -6,6 +6,7 @@ Writes one JSON object per published message with ``--out`` (``{"key": "channels
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 from collections.abc import Iterator
@@ -69,14 +70,17 @@ def run(args: argparse.Namespace) -> int:
     from daq.cli import UsageError
     from daq.commands.run import setup_logging
     from daq.jsonout import dumps
-    from daq.replay import ReplayError, config_for, expand
+    from daq.replay import ReplayError, config_for, expand, read_frames
     from daq.service import Service, ServiceOptions
 
     setup_logging(args.log_level, None)
     try:
-        expand(args.logs)
+        files = expand(args.logs)
     except ReplayError as e:
         raise UsageError(str(e)) from None
+    for f in files:  # a file that is not a recording at all: refused before any work
+        with contextlib.closing(read_frames([f])) as frames:
+            next(frames, None)
     cfg = config_for(args.logs, args.config)
     out: _LazyFile | None = None
     if args.out == "-":
