@@ -400,6 +400,10 @@ def load_config(path: str | Path | None = None, overrides: dict | None = None) -
     except FileNotFoundError:
         raise ConfigError("--config", str(p), "file not found",
                           "give the path of a rig TOML, or omit --config for the default rig") from None
+    except (OSError, UnicodeDecodeError) as e:  # a folder, no permission, not text
+        why = e.strerror if isinstance(e, OSError) and e.strerror else str(e)
+        raise ConfigError("--config", str(p), f"cannot be read ({why})",
+                          "give the path of a rig TOML, or omit --config for the default rig") from None
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:

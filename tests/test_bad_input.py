@@ -144,6 +144,20 @@ def nan_loads(tmp, rec):
             "--zenoh-listen", f"tcp/127.0.0.1:{free_tcp_port()}"]
 
 
+def config_folder(tmp, rec):
+    (tmp / "conf").mkdir()
+    return ["noise-budget", "--config", str(tmp / "conf")]
+
+
+def log_file_nowhere(tmp, rec):
+    return _sim_run(str(config_dir() / "rig.toml"), "--log-file", str(tmp / "nodir" / "x.log"))
+
+
+def sweep_junk(tmp, rec):
+    (tmp / "junk.blf").write_bytes(b"\0" * 100)
+    return ["sweep", str(tmp / "junk.blf"), "--out", str(tmp / "sweep-out")]
+
+
 # (inputs, exit status, words the one line must hold)
 CASES = {
     "junk.blf": (junk_blf, 2, ["junk.blf", "BLFParseError", "fix:"]),
@@ -164,6 +178,9 @@ CASES = {
                                                            "accel_1"]),
     "demo --faults drop:cell_Q": (demo_bad_fault, 2, ["cell_Q", "did you mean 'cell_G'"]),
     "scenario with NaN loads": (nan_loads, 2, ["loads.conditions[0][5]", "finite"]),
+    "--config naming a folder": (config_folder, 2, ["--config", "Is a directory", "fix:"]),
+    "--log-file in a missing folder": (log_file_nowhere, 2, ["--log-file", "fix:"]),
+    "sweep of a junk file": (sweep_junk, 2, ["junk.blf", "BLFParseError"]),
 }
 
 
@@ -212,6 +229,20 @@ def test_replay_out_is_created_only_by_a_record_and_a_damaged_tail_keeps_what_ca
     n = len(out.read_text().splitlines())
     assert n > 50
     assert "bad.log:1001" in line and f"holds the {n} records before it" in line
+
+
+def test_replay_out_on_a_full_disk_is_one_line_exit_1(recording, capsys):
+    if not os.path.exists("/dev/full"):
+        pytest.skip("needs /dev/full")
+    assert main(["replay", str(recording), "--out", "/dev/full"]) == 1
+    line = _one_line(capsys.readouterr().err)
+    assert "/dev/full: --out cannot be written (No space left on device)" in line
+
+
+def test_a_replay_that_publishes_nothing_still_writes_its_empty_out(tmp_path, capsys):
+    (tmp_path / "empty.log").write_text("")
+    assert main(["replay", str(tmp_path / "empty.log"), "--out", str(tmp_path / "o.jsonl")]) == 0
+    assert (tmp_path / "o.jsonl").read_text() == ""
 
 
 def _busy_port():

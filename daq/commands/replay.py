@@ -104,6 +104,8 @@ def run(args: argparse.Namespace) -> int:
     service.add_sink(sink)
     try:
         summary = service.run()
+        if isinstance(out, _LazyFile):
+            out.touch()  # a replay that published nothing still gives its (empty) output
     except ReplayError as e:  # a damaged recording: what was replayed before it is kept
         if isinstance(out, _LazyFile) and out.records:
             raise ReplayError(f"{e} ({args.out} holds the {out.records} records before "
@@ -143,10 +145,18 @@ class _LazyFile:
                              "write elsewhere")
 
     def write(self, text: str) -> None:
+        try:
+            if self.file is None:
+                self.file = open(self.path, "w", encoding="utf-8")
+            self.file.write(text)
+        except OSError as e:  # a full disk: exit 1, one line naming the file
+            raise OSError(e.errno, f"--out cannot be written ({e.strerror or e})",
+                          str(self.path)) from None
+        self.records += 1
+
+    def touch(self) -> None:
         if self.file is None:
             self.file = open(self.path, "w", encoding="utf-8")
-        self.file.write(text)
-        self.records += 1
 
     def close(self) -> None:
         if self.file is not None:

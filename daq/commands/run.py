@@ -90,8 +90,14 @@ def setup_logging(level: str, log_file: str | None) -> None:
     for h in list(root.handlers):
         root.removeHandler(h)
     if log_file:
-        h: logging.Handler = logging.handlers.RotatingFileHandler(
-            log_file, maxBytes=LOG_FILE_BYTES, backupCount=LOG_FILE_BACKUPS)
+        try:
+            h: logging.Handler = logging.handlers.RotatingFileHandler(
+                log_file, maxBytes=LOG_FILE_BYTES, backupCount=LOG_FILE_BACKUPS)
+        except OSError as e:
+            from daq.cli import UsageError
+
+            raise UsageError(f"--log-file {log_file}: cannot be written ({e.strerror or e}); "
+                             "fix: give a file in an existing, writable folder") from None
     else:
         h = logging.StreamHandler(sys.stderr)
     h.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
