@@ -206,11 +206,44 @@ def read_angles_schedule(folder: Path) -> tuple[dict | None, list[dict]]:
             except ValueError:
                 log.warning("%s:%d: unreadable angles record skipped (a crash mid-write?)", p, n)
                 continue
+            problem = _schedule_problem(rec)
+            if problem:
+                from daq.replay import ReplayError
+
+                raise ReplayError(f"{p}:{n}: {problem}; fix: replay with --recompute (runs the "
+                                  "identification again) or repair that line")
             if rec.get("initial"):
                 initial = rec
             else:
                 records.append(rec)
     return initial, records
+
+
+def _finite_numbers(x: Any) -> bool:
+    return isinstance(x, list) and all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in x)
+
+
+def _schedule_problem(rec: Any) -> str | None:
+    """What makes a recorded angles record unusable (None: usable)."""
+    if not isinstance(rec, dict):
+        return "an angles record must be a JSON object"
+    if rec.get("initial"):
+        alpha = rec.get("alpha_all", rec.get("alpha"))
+        if not _finite_numbers(alpha) or not alpha:
+            return "the starting record has no finite 'alpha_all' angles"
+        return None
+    seq = rec.get("applies_from_seq")
+    if "applies_from_seq" not in rec:
+        return "angles record without 'applies_from_seq' (the sample it applies from)"
+    if not isinstance(seq, int) or isinstance(seq, bool) or seq < 0:
+        return f"'applies_from_seq' = {seq!r} is not a sample number"
+    if rec.get("accepted"):
+        names, alpha = rec.get("names"), rec.get("alpha")
+        if (not isinstance(names, list) or not all(isinstance(x, str) for x in names)
+                or not _finite_numbers(alpha) or len(names) != len(alpha)):
+            return "an accepted angles record needs 'names' and as many finite 'alpha' values"
+    return None
 
 
 class Service:
@@ -292,6 +325,13 @@ class Service:
             if recorded_initial is not None and not opts.angles:
                 alpha0 = np.asarray(recorded_initial.get("alpha_all", recorded_initial["alpha"]),
                                     float)
+                n_angles = len(cfg.rig_model().geometry.angle_names)
+                if alpha0.shape != (n_angles,):
+                    from daq.replay import ReplayError
+
+                    raise ReplayError(f"{folder / 'angles.jsonl'}: the starting record holds "
+                                      f"{alpha0.size} angles, the rig has {n_angles}; fix: "
+                                      "replay with --recompute or give the recording's --config")
                 state = None
             else:
                 alpha0, state, warning = initial_angles(cfg, opts.angles,
@@ -382,9 +422,14 @@ class Service:
                 # the simulator boots and starts its nodes and produces SYNC; the reader
                 # listens, and restarts a node that reboots (bus.md: reconfigured and
                 # restarted without restarting the service), its SDO answered in lock-step
-                reader = Reader(cfg, bus=bus, master=False, restart_nodes=True,
-                                wall_clock=False, record=o.record, overflow="block",
-                                table=table)
+                try:
+                    reader = Reader(cfg, bus=bus, master=False, restart_nodes=True,
+                                    wall_clock=False, record=o.record, overflow="block",
+                                    table=table)
+                except BaseException:  # e.g. the recording cannot start: close what is open
+                    bus.shutdown()
+                    sim.close()
+                    raise
                 self.sim, self.reader = sim, reader
                 closers.append(bus.shutdown)
                 closers.append(reader.close)

@@ -66,13 +66,14 @@ def _endpoint(args) -> tuple[list[str], str | None]:
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from daq.commands.run import config_for_run, setup_logging
+    from daq.commands.run import check_sim_faults, config_for_run, setup_logging
     from daq.demo_view import DemoState, render
     from daq.service import Service, ServiceOptions
     from estimator.noise_budget import noise_budget
 
     setup_logging(args.log_level, None)
     cfg = config_for_run(args.config, args.scenario)
+    check_sim_faults(cfg, args.scenario, args.faults, args.speed)  # before anything is created
     listen, note = _endpoint(args)
     report_jsonl = None
     closers = []

@@ -6,6 +6,8 @@ Writes one JSON object per published message with ``--out`` (``{"key": "channels
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -70,26 +72,24 @@ def replay_records(cfg: RigConfig, logs: list[str], realtime: bool = False,
 def run(args: argparse.Namespace) -> int:
     from daq.cli import UsageError
     from daq.commands.run import setup_logging
-    from daq.config import ConfigError
     from daq.jsonout import dumps
-    from daq.replay import ReplayError, config_for, expand
+    from daq.replay import ReplayError, config_for, expand, read_frames
     from daq.service import Service, ServiceOptions
-    from estimator.posterior import PosteriorFileError
 
     setup_logging(args.log_level, None)
     try:
-        expand(args.logs)
+        files = expand(args.logs)
     except ReplayError as e:
         raise UsageError(str(e)) from None
+    for f in files:  # a file that is not a recording at all: refused before any work
+        with contextlib.closing(read_frames([f])) as frames:
+            next(frames, None)
     cfg = config_for(args.logs, args.config)
-    out = None
+    out: _LazyFile | None = None
     if args.out == "-":
         out = sys.stdout
     elif args.out:
-        try:
-            out = open(Path(args.out), "w", encoding="utf-8")
-        except OSError as e:
-            raise UsageError(f"--out {args.out}: cannot write ({e.strerror})") from None
+        out = _LazyFile(Path(args.out))
     opts = ServiceOptions(replay=list(args.logs), recompute=args.recompute, realtime=args.realtime,
                           angles=args.angles, zenoh=args.publish,
                           accept_rig_mismatch=args.accept_rig_mismatch,
@@ -108,12 +108,13 @@ def run(args: argparse.Namespace) -> int:
     service.add_sink(sink)
     try:
         summary = service.run()
-    except PosteriorFileError as e:
-        raise UsageError(str(e)) from None
-    except ConfigError:  # e.g. identification.state_file (--recompute): exit 2 naming the key
+        if isinstance(out, _LazyFile):
+            out.touch()  # a replay that published nothing still gives its (empty) output
+    except ReplayError as e:  # a damaged recording: what was replayed before it is kept
+        if isinstance(out, _LazyFile) and out.records:
+            raise ReplayError(f"{e} ({args.out} holds the {out.records} records before "
+                              "it)") from None
         raise
-    except (ValueError, OSError) as e:  # a corrupt or truncated log file
-        raise UsageError(f"cannot read the recording: {e}") from None
     finally:
         progress.close()
         if out is not None and out is not sys.stdout:
@@ -125,6 +126,45 @@ def run(args: argparse.Namespace) -> int:
              f"(accepted {summary.get('accepted', 0)})")
     print(text, file=sys.stderr if out is sys.stdout else sys.stdout)
     return 0
+
+
+class _LazyFile:
+    """The --out file, created at the first record: a replay refused before it publishes
+    anything (a damaged recording, a bad config, a Zenoh port in use) leaves no empty file and
+    leaves an existing one as it was. Where it cannot be written is checked at once."""
+
+    def __init__(self, path: Path):
+        from daq.cli import UsageError
+
+        self.path = path
+        self.file = None
+        self.records = 0
+        parent = path.parent if str(path.parent) else Path(".")
+        if path.is_dir():
+            raise UsageError(f"--out {path}: is a folder; fix: give a file name")
+        if not parent.is_dir():
+            raise UsageError(f"--out {path}: no folder {parent}; fix: create it or write elsewhere")
+        if not os.access(path if path.exists() else parent, os.W_OK):
+            raise UsageError(f"--out {path}: cannot write there (permission denied); fix: "
+                             "write elsewhere")
+
+    def write(self, text: str) -> None:
+        try:
+            if self.file is None:
+                self.file = open(self.path, "w", encoding="utf-8")
+            self.file.write(text)
+        except OSError as e:  # a full disk: exit 1, one line naming the file
+            raise OSError(e.errno, f"--out cannot be written ({e.strerror or e})",
+                          str(self.path)) from None
+        self.records += 1
+
+    def touch(self) -> None:
+        if self.file is None:
+            self.file = open(self.path, "w", encoding="utf-8")
+
+    def close(self) -> None:
+        if self.file is not None:
+            self.file.close()
 
 
 def _summary(counts: dict, health: dict | None) -> str:

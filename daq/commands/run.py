@@ -93,8 +93,14 @@ def setup_logging(level: str, log_file: str | None) -> None:
     for h in list(root.handlers):
         root.removeHandler(h)
     if log_file:
-        h: logging.Handler = logging.handlers.RotatingFileHandler(
-            log_file, maxBytes=LOG_FILE_BYTES, backupCount=LOG_FILE_BACKUPS)
+        try:
+            h: logging.Handler = logging.handlers.RotatingFileHandler(
+                log_file, maxBytes=LOG_FILE_BYTES, backupCount=LOG_FILE_BACKUPS)
+        except OSError as e:
+            from daq.cli import UsageError
+
+            raise UsageError(f"--log-file {log_file}: cannot be written ({e.strerror or e}); "
+                             "fix: give a file in an existing, writable folder") from None
     else:
         h = logging.StreamHandler(sys.stderr)
     h.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
@@ -127,35 +133,27 @@ def options_from_args(args: argparse.Namespace):
 
 
 def run_service(cfg, opts, quiet: bool = False) -> int:
-    from daq.cli import UsageError
-    from daq.master import BootError
-    from daq.recorder import RecordingError
-    from daq.service import BusOpenError, Service
-    from estimator.posterior import PosteriorFileError
-    from sim_bus.faults import FaultSpecError
+    """Run the service to its end; every failure reaches the one error path in daq.cli."""
+    from daq.service import Service
 
     service = Service(cfg, opts)
     service.install_signal_handlers()
-    try:
-        summary = service.run()
-    except (PosteriorFileError, FaultSpecError, RecordingError) as e:
-        raise UsageError(str(e)) from None
-    except BootError as e:
-        print(f"rsra: the nodes could not be started: {e}", file=sys.stderr)
-        return 1
-    except BusOpenError as e:
-        raise UsageError(str(e)) from None
-    except Exception as e:
-        import zenoh
-
-        if isinstance(e, zenoh.ZError):  # refused by a router (TLS, password), bad endpoint
-            print(f"rsra: cannot open the Zenoh session: {e} (check --zenoh-config/"
-                  "--zenoh-listen/--zenoh-connect, certificates and credentials)", file=sys.stderr)
-            return 1
-        raise
+    summary = service.run()
     if not quiet:
         print(json.dumps({"summary": summary}, allow_nan=False, default=str))
     return 0
+
+
+def check_sim_faults(cfg, scenario: str | None, faults: str | None, speed: float | None) -> None:
+    """A --faults SPEC checked against the simulated bus before anything starts (FaultSpecError:
+    one line, exit 2): the same parse and check as the simulator's."""
+    if not faults or scenario is None:
+        return
+    from sim_bus.bus_sim import check_faults
+    from sim_bus.scenarios import load_scenario
+
+    # the service's simulator produces SYNC itself (autostart) in lock-step only
+    check_faults(cfg, faults, load_scenario(scenario).nodes_present, autostart=speed != 1.0)
 
 
 def config_for_run(config: str | None, scenario: str | None):
@@ -181,4 +179,5 @@ def run(args: argparse.Namespace) -> int:
     setup_logging(args.log_level, args.log_file)
     opts = options_from_args(args)
     cfg = config_for_run(args.config, args.sim)
+    check_sim_faults(cfg, args.sim, args.faults, args.speed)
     return run_service(cfg, opts)

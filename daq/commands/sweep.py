@@ -3,6 +3,7 @@ report Phase I, Eq 1.3–1.5, Table I, Figures 4–18; daq/sweep.py)."""
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -36,6 +37,19 @@ def _default_out(first: str) -> Path:
     return p.parent / f"{p.name if p.is_dir() else p.stem}-sweep"
 
 
+def _check_writable(out: Path) -> None:
+    from daq.cli import UsageError
+
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"--out {out}: is a file; give a folder")
+    p = out
+    while not p.exists():
+        p = p.parent
+    if not os.access(p, os.W_OK):
+        raise UsageError(f"--out {out}: cannot create the folder (permission denied in {p}); "
+                         "give a writable folder")
+
+
 def run(args: argparse.Namespace) -> int:
     from daq.cli import UsageError
     from daq.jsonout import dumps
@@ -48,11 +62,7 @@ def run(args: argparse.Namespace) -> int:
     except ReplayError as e:
         raise UsageError(str(e)) from None
     out = Path(args.out) if args.out else _default_out(args.logs[0])
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise UsageError(f"--out {out}: cannot create the folder ({e.strerror}); give a "
-                         "writable folder") from None
+    _check_writable(out)  # created once the recording has been read: a bad one leaves nothing
     cfg = config_for(args.logs, args.config)
     status = _Status(sys.stderr.isatty())
     try:
@@ -68,6 +78,11 @@ def run(args: argparse.Namespace) -> int:
             result = analyse_sweep(cfg, data)
         except SweepError as e:
             raise UsageError(f"{args.logs[0]}: {e}") from None
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise UsageError(f"--out {out}: cannot create the folder ({e.strerror}); give a "
+                             "writable folder") from None
         status.say("plotting")
         plots = plot_sweep(result, out, args.units)
     finally:
