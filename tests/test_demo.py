@@ -14,6 +14,11 @@ def test_demo_runs_and_summarises(tmp_path):
                        capture_output=True, text=True, timeout=300, stdin=subprocess.DEVNULL)
     assert r.returncode == 0, r.stderr[-2000:]
     assert "summary" in r.stdout
+    # stdout is a pipe, not a terminal: no line wrapped at 80 columns (issue 13)
+    lines = r.stdout.splitlines()
+    assert any(x.startswith("rsra demo:") and f"telemetry on {ep} (try" in x for x in lines)
+    rms = [x for x in lines if "hub-load RMS error / static bound" in x]
+    assert len(rms) == 2 and all(len(x.split("):")[-1].split()) == 6 for x in rms), rms
     line = next(x for x in r.stdout.splitlines() if x.startswith('{"summary"'))
     summary = json.loads(line)["summary"]
     assert summary["samples"] == 1200 and summary["lost"] == 0
@@ -27,3 +32,22 @@ def test_demo_bad_argument_is_one_line_exit_2():
     r = subprocess.run([sys.executable, "-m", "daq", "demo", "--scenario", "nosuch"],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and r.stderr.count("\n") == 1
+
+
+def test_a_console_on_a_pipe_or_file_wraps_nothing():
+    import io
+
+    from rich.table import Table
+
+    from daq.console import make_console
+
+    c = make_console(file=io.StringIO())
+    assert not c.is_terminal
+    text = "telemetry on tcp/127.0.0.1:7447 " + "x" * 150
+    c.print(text)
+    t = Table("name", "value")
+    t.add_row("a" * 70, "b" * 70)
+    c.print(t)
+    out = c.file.getvalue().splitlines()
+    assert out[0] == text
+    assert any("a" * 70 in x and "b" * 70 in x for x in out)  # the table's row on one line

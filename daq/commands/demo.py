@@ -64,9 +64,8 @@ def _endpoint(args) -> tuple[list[str], str | None]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rich.console import Console
-
     from daq.commands.run import config_for_run, setup_logging
+    from daq.console import make_console
     from daq.demo_view import DemoState, render
     from daq.service import Service, ServiceOptions
     from estimator.noise_budget import noise_budget
@@ -107,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
         jsink, jclose = jsonl_sink(report_jsonl)
         svc.add_sink(jsink)
         closers.append(jclose)
-    console = Console()
+    console = make_console()
     speed = "as fast as possible (lock-step)" if args.speed is None else (
         "real time" if args.speed == 1.0 else f"{args.speed:g}x real time (lock-step)")
     title = f"{args.scenario}, {speed}"
