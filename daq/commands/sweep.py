@@ -3,6 +3,7 @@ report Phase I, Eq 1.3–1.5, Table I, Figures 4–18; daq/sweep.py)."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 from pathlib import Path
 
@@ -40,14 +41,14 @@ def run(args: argparse.Namespace) -> int:
     from daq.cli import UsageError
     from daq.jsonout import dumps
     from daq.replay import ReplayError, config_for, expand
-    from daq.sweep import (SweepError, analyse_sweep, load_sweep_data, plot_sweep, sweep_json,
-                           sweep_table)
+    from daq.sweep import sweep_json, sweep_table
 
     try:
         expand(args.logs)
     except ReplayError as e:
         raise UsageError(str(e)) from None
     out = Path(args.out) if args.out else _default_out(args.logs[0])
+    created = not out.exists()
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:
@@ -57,19 +58,12 @@ def run(args: argparse.Namespace) -> int:
     status = _Status(sys.stderr.isatty())
     try:
         status.say("replaying the recording")
-        try:
-            data = load_sweep_data(cfg, args.logs)
-        except SweepError as e:
-            raise UsageError(f"{args.logs[0]}: {e}") from None
-        except (ValueError, OSError) as e:  # a corrupt or truncated log file
-            raise UsageError(f"cannot read the recording: {e}") from None
-        status.say(f"analysing {len(data.t)} samples")
-        try:
-            result = analyse_sweep(cfg, data)
-        except SweepError as e:
-            raise UsageError(f"{args.logs[0]}: {e}") from None
-        status.say("plotting")
-        plots = plot_sweep(result, out, args.units)
+        data, result, plots = _analyse(args, cfg, out, status)
+    except UsageError:
+        if created:  # a rejected recording leaves no empty output folder behind
+            with contextlib.suppress(OSError):
+                out.rmdir()
+        raise
     finally:
         status.close()
     table = sweep_table(result, args.units)
@@ -79,10 +73,34 @@ def run(args: argparse.Namespace) -> int:
     print(table)
     print(f"\nwrote {out / 'sweep_table.txt'}, {out / 'sweep.json'} and "
           f"{len(plots)} plots in {out}")
+    if result.excluded:
+        secs = sum(s.stop - s.start for s in result.excluded) / result.fs
+        print(f"note: {len(result.excluded)} stretches of oscillating load ({secs:.1f} s) on "
+              "several axes at once are not a shaker excitation and were left out",
+              file=sys.stderr)
     if data.filled:
         print(f"note: {data.filled} of {len(data.t)} samples were missing or incomplete and "
               "were interpolated", file=sys.stderr)
     return 0
+
+
+def _analyse(args, cfg, out: Path, status):
+    from daq.cli import UsageError
+    from daq.sweep import SweepError, analyse_sweep, load_sweep_data, plot_sweep
+
+    try:
+        data = load_sweep_data(cfg, args.logs)
+    except SweepError as e:
+        raise UsageError(f"{args.logs[0]}: {e}") from None
+    except (ValueError, OSError) as e:  # a corrupt or truncated log file
+        raise UsageError(f"cannot read the recording: {e}") from None
+    status.say(f"analysing {len(data.t)} samples")
+    try:
+        result = analyse_sweep(cfg, data)
+    except SweepError as e:
+        raise UsageError(f"{args.logs[0]}: {e}") from None
+    status.say("plotting")
+    return data, result, plot_sweep(result, out, args.units)
 
 
 class _Status:
