@@ -116,8 +116,40 @@ def run(args: argparse.Namespace) -> int:
     text = _summary(counts, health)
     text += (f"; identification runs {summary.get('identification_runs', 0)} "
              f"(accepted {summary.get('accepted', 0)})")
-    print(text, file=sys.stderr if out is sys.stdout else sys.stdout)
+    stream = sys.stderr if out is sys.stdout else sys.stdout
+    print(text, file=stream)
+    note = schedule_note(summary.get("angles_schedule"))
+    if note:
+        print(note, file=stream)
     return 0
+
+
+def schedule_note(sch: dict | None) -> str | None:
+    """One line: where the replay's angles came from (recomputed, or the recorded schedule,
+    and whether that schedule was empty or partial)."""
+    if not sch:
+        return None
+    if sch["source"] == "recomputed":
+        if sch["why"] == "--recompute":
+            return "angles: identification recomputed (--recompute)"
+        return ("angles: the recording holds no angle schedule (no angles.jsonl): "
+                "identification recomputed")
+    start = ("its starting angles" if sch["initial"] else
+             "the configured initial angles or --angles (it holds no starting angles)")
+    if sch["records"] == 0 or sch.get("last_applies_from_seq") is None:
+        return (f"angles: {sch['file']} holds no angles record: the angles stayed at {start} "
+                "(--recompute to identify)")
+    n = sch["records"]
+    text = f"angles: the recorded schedule, {n} record{'s' if n != 1 else ''}"
+    if sch.get("partial"):
+        text = (f"angles: the recorded schedule is partial: it ends at sample "
+                f"{sch['last_applies_from_seq']} ({n} record{'s' if n != 1 else ''}), "
+                f"{sch['uncovered_s']:.1f} s before the end of the recording; the last recorded "
+                "angles held from there (--recompute to identify)")
+    if not sch["initial"]:
+        text += ("; it holds no starting angles: started from the configured initial angles "
+                 "or --angles")
+    return text
 
 
 def _summary(counts: dict, health: dict | None) -> str:
