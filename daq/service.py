@@ -316,7 +316,12 @@ class Service:
             if opts.replay is not None:
                 folder = next((Path(p) for p in opts.replay if Path(p).is_dir()), None)
                 schedule = None if folder is None else folder / "angles.jsonl"
-                if opts.recompute:
+                if not opts.identification:
+                    # the starting angles (the recording's, or --angles) for the whole replay
+                    if folder is not None:
+                        recorded_initial, _ = read_angles_schedule(folder)
+                    self.schedule = {"source": "off"}
+                elif opts.recompute:
                     self.schedule = {"source": "recomputed", "why": "--recompute"}
                 elif schedule is None or not schedule.is_file():
                     # a recording from elsewhere (bus.md): the identification is recomputed

@@ -3,6 +3,7 @@ import json
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import zenoh
@@ -202,7 +203,7 @@ def _replay(cfg, src, capsys=None):
 
         assert main(["replay", str(src), "--out", str(src) + ".jsonl"]) == 0
         note = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("angles: "))
-        lines = open(str(src) + ".jsonl").read().splitlines()
+        lines = Path(str(src) + ".jsonl").read_text().splitlines()
         return note, [x for x in lines if x.startswith('{"key":"angles"')]
     svc = Service(cfg, ServiceOptions(replay=[str(src)], zenoh=False))
     got = []
@@ -217,6 +218,8 @@ def test_replay_recomputes_without_a_schedule_and_says_what_a_partial_one_holds(
     no angles.jsonl) runs the identification itself; an empty or partial schedule is used as
     it is, and the replay says so (issue 13)."""
     import shutil
+
+    from daq.commands.replay import schedule_note
 
     rec = tmp_path / "rec"
     _, live, _ = run_lockstep(cfg, tmp_path, 16.0, record=str(rec), seed=7)
@@ -248,3 +251,12 @@ def test_replay_recomputes_without_a_schedule_and_says_what_a_partial_one_holds(
         assert [json.loads(g)["applies_from_seq"] for g in got] == [
             a["applies_from_seq"] for a in live_angles[:held - 1]]
     assert "ends at sample 1199 (1 record), 10.0 s before the end of the recording" in note
+
+    # identification off (issue 14): neither the schedule nor a recomputation
+    svc = Service(cfg, ServiceOptions(replay=[str(rec)], zenoh=False, identification=False))
+    got = []
+    svc.add_sink(lambda k, p: got.append(k) if k == "angles" else None)
+    summary = svc.run()
+    assert got == [] and summary["identification_runs"] == 0
+    assert summary["alpha_applied"] == json.loads(lines[0])["alpha_all"]
+    assert "identification off" in schedule_note(summary["angles_schedule"])

@@ -16,7 +16,7 @@ DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
     from daq.cli import common_options
-    from daq.commands.run import add_sim_options
+    from daq.commands.run import add_no_identification, add_sim_options
 
     p = sub.add_parser(name, help="the simulator and the service in one process, with a live view",
                        description="The main job on the embedded default: the simulated "
@@ -35,6 +35,10 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
                    help="at the end, write plots (PNG) and a summary here")
     p.add_argument("--record", metavar="DIR", default=None,
                    help="record every frame, the angle schedule and the truth here")
+    p.add_argument("--angles", metavar="STATE", default=None,
+                   help="start from a saved posterior (e.g. a ground test's "
+                   "identification.state_file) instead of the configured initial angles")
+    add_no_identification(p)
     p.add_argument("--zenoh-listen", action="append", default=[], metavar="EP",
                    help=f"Zenoh endpoint (default {DEFAULT_ENDPOINT}, or a free loopback port "
                    "when that one is taken)")
@@ -64,14 +68,20 @@ def _endpoint(args) -> tuple[list[str], str | None]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from daq.cli import UsageError
     from daq.commands.run import config_for_run, setup_logging
     from daq.console import make_console
     from daq.demo_view import DemoState, render
-    from daq.service import Service, ServiceOptions
+    from daq.service import Service, ServiceOptions, initial_angles
     from estimator.noise_budget import noise_budget
+    from estimator.posterior import PosteriorFileError
 
     setup_logging(args.log_level, None)
     cfg = config_for_run(args.config, args.scenario)
+    try:  # a bad --angles file: one line before anything starts
+        alpha0, _ = initial_angles(cfg, args.angles)
+    except PosteriorFileError as e:
+        raise UsageError(str(e)) from None
     listen, note = _endpoint(args)
     report_jsonl = None
     closers = []
@@ -81,12 +91,13 @@ def run(args: argparse.Namespace) -> int:
         report_jsonl = Path(tmp) / "records.jsonl"
     opts = ServiceOptions(sim=args.scenario, seed=args.seed, faults=args.faults, speed=args.speed,
                           duration=args.duration, zenoh_listen=listen, record=args.record,
+                          angles=args.angles, identification=args.identification,
                           keep_truth=bool(args.report),
                           truth=str(Path(report_jsonl).parent / "truth.npz") if report_jsonl else None)
     svc = Service(cfg, opts)
     svc.install_signal_handlers()
     model = cfg.rig_model()
-    nb = noise_budget(model, cfg.identification.initial_angles_rad)
+    nb = noise_budget(model, alpha0)
     state = DemoState(cfg, nb.total, model.geometry.angle_names)
 
     def sink(key, payload):

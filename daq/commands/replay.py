@@ -40,6 +40,11 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
                    "the recording's angle schedule")
     p.add_argument("--angles", metavar="STATE", default=None,
                    help="start from a saved posterior instead of the recording's")
+    from daq.commands.run import add_no_identification
+
+    add_no_identification(p, help="neither the recorded angle schedule nor a recomputed "
+                          "identification: the angles stay at the recording's starting angles "
+                          "(or --angles) for the whole replay")
     p.add_argument("--zenoh-config", metavar="FILE", default=None, help="with --publish")
     p.add_argument("--zenoh-listen", action="append", default=[], metavar="EP",
                    help="with --publish (default tcp/127.0.0.1:7447)")
@@ -73,6 +78,8 @@ def run(args: argparse.Namespace) -> int:
     from estimator.posterior import PosteriorFileError
 
     setup_logging(args.log_level, None)
+    if args.recompute and not args.identification:
+        raise UsageError("--recompute and --no-identification contradict each other; give one")
     try:
         expand(args.logs)
     except ReplayError as e:
@@ -88,6 +95,7 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"--out {args.out}: cannot write ({e.strerror})") from None
     opts = ServiceOptions(replay=list(args.logs), recompute=args.recompute, realtime=args.realtime,
                           angles=args.angles, zenoh=args.publish,
+                          identification=args.identification,
                           zenoh_config=args.zenoh_config, zenoh_listen=args.zenoh_listen,
                           zenoh_connect=args.zenoh_connect)
     service = Service(cfg, opts)
@@ -129,6 +137,9 @@ def schedule_note(sch: dict | None) -> str | None:
     and whether that schedule was empty or partial)."""
     if not sch:
         return None
+    if sch["source"] == "off":
+        return ("angles: identification off (--no-identification): the angles stayed at the "
+                "starting angles")
     if sch["source"] == "recomputed":
         if sch["why"] == "--recompute":
             return "angles: identification recomputed (--recompute)"

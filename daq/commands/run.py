@@ -46,11 +46,18 @@ def add_sim_options(p: argparse.ArgumentParser) -> None:
                    help="stop after S seconds of acquisition time (exit 0)")
 
 
+def add_no_identification(p: argparse.ArgumentParser, help: str | None = None) -> None:
+    p.add_argument("--no-identification", dest="identification", action="store_false",
+                   help=help or "no on-line identification: the angles stay at the starting "
+                   "ones (--angles, else the configured initial angles) for the whole run")
+
+
 def add_service_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--record", metavar="DIR", default=None,
                    help="record every frame, the angle schedule and the effective config here")
     p.add_argument("--angles", metavar="STATE", default=None,
                    help="start from a saved posterior (see identification.state_file)")
+    add_no_identification(p)
     p.add_argument("--zenoh-config", metavar="FILE", default=None,
                    help="a Zenoh config file (TLS, user/password, access control)")
     p.add_argument("--zenoh-listen", action="append", default=[], metavar="EP",
@@ -119,7 +126,8 @@ def options_from_args(args: argparse.Namespace):
         interface=args.interface, channel=args.channel, sim=args.sim, seed=args.seed,
         faults=args.faults, speed=args.speed, record=args.record, duration=args.duration,
         angles=args.angles, zenoh_config=args.zenoh_config, zenoh_listen=args.zenoh_listen,
-        zenoh_connect=args.zenoh_connect, truth=getattr(args, "truth", None))
+        zenoh_connect=args.zenoh_connect, truth=getattr(args, "truth", None),
+        identification=args.identification)
 
 
 def run_service(cfg, opts, quiet: bool = False) -> int:
