@@ -200,6 +200,11 @@ def _print_summary(console, summary: dict, state) -> None:
         s = np.degrees([np.sqrt(ang["P"][i][i]) for i in range(len(names))])
         lines.append(f"angles: max |error| {np.abs(e).max():.3f} deg, max sigma {s.max():.3f} deg, "
                      f"determined {ang.get('determined')}/{len(names)}")
+    elif not ang and summary.get("alpha_applied") and ta is not None:
+        # no identification run: the starting angles held for the whole run
+        e = np.degrees(np.asarray(summary["alpha_applied"], float) - ta)
+        lines.append(f"angles (held, no identification run): max |error| "
+                     f"{np.abs(e).max():.3f} deg")
     console.print("[bold]summary[/]: " + "\n  ".join(lines))
     if not console.is_terminal:
         print(json.dumps({"summary": summary}, default=str), file=sys.stdout)
