@@ -273,7 +273,6 @@ class Service:
         self.recorder = None
         self.warnings: list[str] = []  # start-up problems the service went on with
         self.schedule: dict | None = None  # replay: where the angles come from
-        self.first_seq: int | None = None
 
     def add_sink(self, sink: Callable[[str, dict], None]) -> None:
         self._extra_sinks.append(sink)
@@ -582,7 +581,6 @@ class Service:
         self.last_seq = s.seq
         if self.first_t is None:
             self.first_t = s.t
-            self.first_seq = s.seq
         self.last_t = s.t
 
     def _on_angles(self, rec: dict) -> None:

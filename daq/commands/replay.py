@@ -16,6 +16,7 @@ from daq.reader import Reader
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
     from daq.cli import common_options
+    from daq.commands.run import add_no_identification
 
     p = sub.add_parser(
         name, help="feed recordings through the reader and the estimator (and write every record)",
@@ -40,8 +41,6 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
                    "the recording's angle schedule")
     p.add_argument("--angles", metavar="STATE", default=None,
                    help="start from a saved posterior instead of the recording's")
-    from daq.commands.run import add_no_identification
-
     add_no_identification(p, help="neither the recorded angle schedule nor a recomputed "
                           "identification: the angles stay at the recording's starting angles "
                           "(or --angles) for the whole replay")
