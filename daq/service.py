@@ -280,6 +280,7 @@ class Service:
         self.pipeline: EstimatorPipeline | None = None
         self.recorder = None
         self.warnings: list[str] = []  # start-up problems the service went on with
+        self.schedule: dict | None = None  # replay: where the angles come from
 
     def add_sink(self, sink: Callable[[str, dict], None]) -> None:
         self._extra_sinks.append(sink)
@@ -318,10 +319,29 @@ class Service:
         closers: list[Callable[[], None]] = []
         try:
             recorded_initial, recorded = (None, [])
+            recompute = opts.recompute
             if opts.replay is not None:
                 folder = next((Path(p) for p in opts.replay if Path(p).is_dir()), None)
-                if folder is not None and not opts.recompute:
+                schedule = None if folder is None else folder / "angles.jsonl"
+                if not opts.identification:
+                    # the starting angles (the recording's, or --angles) for the whole replay
+                    if folder is not None:
+                        recorded_initial, _ = read_angles_schedule(folder)
+                    self.schedule = {"source": "off"}
+                elif opts.recompute:
+                    self.schedule = {"source": "recomputed", "why": "--recompute"}
+                elif schedule is None or not schedule.is_file():
+                    # a recording from elsewhere (bus.md): the identification is recomputed
+                    recompute = True
+                    self.schedule = {"source": "recomputed", "why": "no angle schedule"}
+                else:
                     recorded_initial, recorded = read_angles_schedule(folder)
+                    applies = [r.get("applies_from_seq") for r in recorded]
+                    applies = [a for a in applies if isinstance(a, int)]
+                    self.schedule = {"source": "recorded", "file": str(schedule),
+                                     "records": len(recorded),
+                                     "initial": recorded_initial is not None,
+                                     "last_applies_from_seq": max(applies, default=None)}
             if recorded_initial is not None and not opts.angles:
                 alpha0 = np.asarray(recorded_initial.get("alpha_all", recorded_initial["alpha"]),
                                     float)
@@ -339,7 +359,7 @@ class Service:
                 if warning:
                     log.warning("%s", warning)
                     self.warnings.append(warning)
-            use_ident = opts.identification and (opts.replay is None or opts.recompute)
+            use_ident = opts.identification and (opts.replay is None or recompute)
             if use_ident:
                 # the worker saves accepted runs there: only over a posterior of ours
                 # (ConfigError naming the key otherwise, before acquisition starts)
@@ -674,4 +694,22 @@ class Service:
                              if last.get("P") else None}
         if self.pipeline is not None:
             out["alpha_applied"] = self.pipeline.alpha.tolist()
+        if self.schedule is not None:
+            out["angles_schedule"] = self._schedule_summary()
         return out
+
+    def _schedule_summary(self) -> dict:
+        """Replay: where the angles came from. A recorded schedule is partial when the
+        recording runs on for more than a period, the apply delay and a second past its last
+        record (a live run publishes one record per period)."""
+        sch = dict(self.schedule)
+        if sch["source"] != "recorded" or self.last_seq is None:
+            return sch
+        idc = self.cfg.identification
+        last = sch["last_applies_from_seq"]
+        sch["last_seq"] = self.last_seq
+        if last is not None:
+            sch["uncovered_s"] = max(0, self.last_seq - last) / self.fs
+            sch["partial"] = self.last_seq - last > (idc.period_s + idc.apply_delay_s
+                                                     + 1.0) * self.fs
+        return sch

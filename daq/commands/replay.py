@@ -18,6 +18,7 @@ from daq.reader import Reader
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
     from daq.cli import common_options
+    from daq.commands.run import add_no_identification
 
     p = sub.add_parser(
         name, help="feed recordings through the reader and the estimator (and write every record)",
@@ -45,6 +46,9 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
     from daq.posterior_file import add_accept_option
 
     add_accept_option(p)
+    add_no_identification(p, help="neither the recorded angle schedule nor a recomputed "
+                          "identification: the angles stay at the recording's starting angles "
+                          "(or --angles) for the whole replay")
     p.add_argument("--zenoh-config", metavar="FILE", default=None, help="with --publish")
     p.add_argument("--zenoh-listen", action="append", default=[], metavar="EP",
                    help="with --publish (default tcp/127.0.0.1:7447)")
@@ -77,6 +81,8 @@ def run(args: argparse.Namespace) -> int:
     from daq.service import Service, ServiceOptions
 
     setup_logging(args.log_level, None)
+    if args.recompute and not args.identification:
+        raise UsageError("--recompute and --no-identification contradict each other; give one")
     try:
         files = expand(args.logs)
     except ReplayError as e:
@@ -93,6 +99,7 @@ def run(args: argparse.Namespace) -> int:
     opts = ServiceOptions(replay=list(args.logs), recompute=args.recompute, realtime=args.realtime,
                           angles=args.angles, zenoh=args.publish,
                           accept_rig_mismatch=args.accept_rig_mismatch,
+                          identification=args.identification,
                           zenoh_config=args.zenoh_config, zenoh_listen=args.zenoh_listen,
                           zenoh_connect=args.zenoh_connect)
     service = Service(cfg, opts)
@@ -124,7 +131,11 @@ def run(args: argparse.Namespace) -> int:
     text = _summary(counts, health)
     text += (f"; identification runs {summary.get('identification_runs', 0)} "
              f"(accepted {summary.get('accepted', 0)})")
-    print(text, file=sys.stderr if out is sys.stdout else sys.stdout)
+    stream = sys.stderr if out is sys.stdout else sys.stdout
+    print(text, file=stream)
+    note = schedule_note(summary.get("angles_schedule"))
+    if note:
+        print(note, file=stream)
     return 0
 
 
@@ -165,6 +176,35 @@ class _LazyFile:
     def close(self) -> None:
         if self.file is not None:
             self.file.close()
+def schedule_note(sch: dict | None) -> str | None:
+    """One line: where the replay's angles came from (recomputed, or the recorded schedule,
+    and whether that schedule was empty or partial)."""
+    if not sch:
+        return None
+    if sch["source"] == "off":
+        return ("angles: identification off (--no-identification): the angles stayed at the "
+                "starting angles")
+    if sch["source"] == "recomputed":
+        if sch["why"] == "--recompute":
+            return "angles: identification recomputed (--recompute)"
+        return ("angles: the recording holds no angle schedule (no angles.jsonl): "
+                "identification recomputed")
+    start = ("its starting angles" if sch["initial"] else
+             "the configured initial angles or --angles (it holds no starting angles)")
+    if sch["records"] == 0 or sch.get("last_applies_from_seq") is None:
+        return (f"angles: {sch['file']} holds no angles record: the angles stayed at {start} "
+                "(--recompute to identify)")
+    n = sch["records"]
+    text = f"angles: the recorded schedule, {n} record{'s' if n != 1 else ''}"
+    if sch.get("partial"):
+        text = (f"angles: the recorded schedule is partial: it ends at sample "
+                f"{sch['last_applies_from_seq']} ({n} record{'s' if n != 1 else ''}), "
+                f"{sch['uncovered_s']:.1f} s before the end of the recording; the last recorded "
+                "angles held from there (--recompute to identify)")
+    if not sch["initial"]:
+        text += ("; it holds no starting angles: started from the configured initial angles "
+                 "or --angles")
+    return text
 
 
 def _summary(counts: dict, health: dict | None) -> str:

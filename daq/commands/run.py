@@ -46,6 +46,12 @@ def add_sim_options(p: argparse.ArgumentParser) -> None:
                    help="stop after S seconds of acquisition time (exit 0)")
 
 
+def add_no_identification(p: argparse.ArgumentParser, help: str | None = None) -> None:
+    p.add_argument("--no-identification", dest="identification", action="store_false",
+                   help=help or "no on-line identification: the angles stay at the starting "
+                   "ones (--angles, else the configured initial angles) for the whole run")
+
+
 def add_service_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--record", metavar="DIR", default=None,
                    help="record every frame, the angle schedule and the effective config here")
@@ -54,6 +60,7 @@ def add_service_options(p: argparse.ArgumentParser) -> None:
     from daq.posterior_file import add_accept_option
 
     add_accept_option(p)
+    add_no_identification(p)
     p.add_argument("--zenoh-config", metavar="FILE", default=None,
                    help="a Zenoh config file (TLS, user/password, access control)")
     p.add_argument("--zenoh-listen", action="append", default=[], metavar="EP",
@@ -129,7 +136,8 @@ def options_from_args(args: argparse.Namespace):
         faults=args.faults, speed=args.speed, record=args.record, duration=args.duration,
         angles=args.angles, accept_rig_mismatch=args.accept_rig_mismatch,
         zenoh_config=args.zenoh_config, zenoh_listen=args.zenoh_listen,
-        zenoh_connect=args.zenoh_connect, truth=getattr(args, "truth", None))
+        zenoh_connect=args.zenoh_connect, truth=getattr(args, "truth", None),
+        identification=args.identification)
 
 
 def run_service(cfg, opts, quiet: bool = False) -> int:

@@ -54,8 +54,7 @@ def run(args: argparse.Namespace) -> int:
     from daq.cli import UsageError
     from daq.jsonout import dumps
     from daq.replay import ReplayError, config_for, expand
-    from daq.sweep import (SweepError, analyse_sweep, load_sweep_data, plot_sweep, sweep_json,
-                           sweep_table)
+    from daq.sweep import sweep_json, sweep_table
 
     try:
         expand(args.logs)
@@ -94,6 +93,11 @@ def run(args: argparse.Namespace) -> int:
     print(table)
     print(f"\nwrote {out / 'sweep_table.txt'}, {out / 'sweep.json'} and "
           f"{len(plots)} plots in {out}")
+    if result.excluded:
+        secs = sum(s.stop - s.start for s in result.excluded) / result.fs
+        print(f"note: {len(result.excluded)} stretches of oscillating load ({secs:.1f} s) on "
+              "several axes at once are not a shaker excitation and were left out",
+              file=sys.stderr)
     if data.filled:
         print(f"note: {data.filled} of {len(data.t)} samples were missing or incomplete and "
               "were interpolated", file=sys.stderr)
