@@ -319,12 +319,20 @@ class SupervisedIdentification:
         self._restart_seqs: deque[int] = deque(maxlen=MAX_RESTARTS)
         self._next_check = 0.0
         self.generation = 0  # workers started after the first
+        # the service is stopping (Ctrl-C, SIGTERM — which a service manager sends to the
+        # whole group, the worker included): a worker found dead now is not restarted
+        self.stopping = False
         self.worker: IdentificationWorker | None = IdentificationWorker(
             cfg, initial_state, initializer=initializer)
 
     @property
     def off(self) -> bool:
         return self.worker is None
+
+    @property
+    def proc(self):
+        """The current worker process (None when identification is off)."""
+        return None if self.worker is None else self.worker.proc
 
     # -- supervision ------------------------------------------------------------------------
     def check(self, seq: int | None, *, every_call: bool = False) -> bool:
@@ -340,6 +348,8 @@ class SupervisedIdentification:
             self._next_check = now + self.check_interval_s
         if self.worker.alive():
             return True
+        if self.stopping:
+            return False
         self._died(seq)
         return self.worker is not None
 

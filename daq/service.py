@@ -310,6 +310,8 @@ class Service:
 
     def stop(self, *_: Any) -> None:
         self.stop_event.set()
+        if self.worker is not None:
+            self.worker.stopping = True
 
     def install_signal_handlers(self) -> None:
         if threading.current_thread() is threading.main_thread():
