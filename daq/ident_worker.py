@@ -5,13 +5,26 @@ The worker owns the sequential posterior and the filter-error state, which conti
 window to window; the estimator thread sends windows and receives `angles` records. Queues
 are bounded: a window that finds the worker still busy with two others is dropped and
 counted (it would be stale by the time it ran).
+
+The worker is supervised (:class:`SupervisedIdentification`, docs/reliability.md): a worker
+that dies is seen within a fraction of a second, reported in `health` and the log, and
+restarted from the last accepted posterior — at most `MAX_RESTARTS` times in
+`RESTART_WINDOW_S` of acquisition time, after which identification is off for the rest of the
+run. The worker ignores SIGINT (a Ctrl-C reaches the whole process group; the parent shuts
+it down) and exits when its parent dies.
 """
 from __future__ import annotations
 
 import logging
 import multiprocessing as mp
+import multiprocessing.queues
+import os
 import queue
+import signal
+import threading
+import time
 import traceback
+from collections import deque
 from typing import Any
 
 import numpy as np
@@ -20,6 +33,9 @@ log = logging.getLogger("rsra.identification")
 
 JOB_QUEUE = 2
 RESULT_QUEUE = 16
+MAX_RESTARTS = 3  # restarts of a dead worker allowed within RESTART_WINDOW_S ...
+RESTART_WINDOW_S = 60.0  # ... of acquisition time; one more death and identification is off
+CHECK_INTERVAL_S = 0.2  # real time: how often the worker's liveness is checked (wall clock)
 
 
 def build_identification(cfg, initial_state=None):
@@ -100,47 +116,108 @@ def run_job(cfg, runs: dict, cache, job: dict) -> dict:
     out = rec.to_dict()
     out["applies_from_seq"] = int(job["applies_from_seq"])
     out["late"] = False
+    out["restarted"] = False
     out["job_id"] = job["job_id"]
     out["condition"] = rec.condition
     return out
 
 
-def _worker_main(cfg, initial_state, jobs: mp.Queue, results: mp.Queue) -> None:
+def save_state(post, rec: dict, state_file: str) -> str | None:
+    """Save the posterior after an accepted run; the error text if that failed (the result
+    stands: it is applied and published, and the next accepted run saves again)."""
+    try:
+        from estimator.posterior import save_posterior
+
+        st = post.state()
+        st.applies_from_seq = rec["applies_from_seq"]
+        save_posterior(state_file, st)
+        return None
+    except Exception as e:  # a full disk, a read-only directory, ...
+        what = e.strerror if isinstance(e, OSError) and e.strerror else f"{type(e).__name__}: {e}"
+        return f"{state_file}: {what}"
+
+
+def handle_job(cfg, post, runs: dict, cache, job: dict, state_file: str | None) -> dict:
+    """One job → its `angles` record (or an error record); a failed save is attached as
+    ``save_error`` (None when the save worked), never in place of the result."""
+    try:
+        rec = run_job(cfg, runs, cache, job)
+    except Exception as e:
+        return {"job_id": job["job_id"], "error": f"{type(e).__name__}: {e}",
+                "traceback": traceback.format_exc(limit=5)}
+    if rec["accepted"] and state_file:
+        rec["save_error"] = save_state(post, rec, state_file)
+    return rec
+
+
+def _exit_with_parent() -> None:
+    """A worker never outlives its parent (kill -9 of the service included): a thread waits on
+    the parent's sentinel (a pipe the parent holds open; readable when it is gone) and exits
+    the process."""
+    parent = mp.parent_process()
+    if parent is None:
+        return
+
+    def watch() -> None:
+        from multiprocessing.connection import wait
+
+        wait([parent.sentinel])
+        os._exit(0)
+
+    threading.Thread(target=watch, name="rsra-parent-watch", daemon=True).start()
+
+
+def _worker_main(cfg, initial_state, jobs: mp.Queue, results: mp.Queue,
+                 restarted: bool = False, initializer=None) -> None:
+    # Ctrl-C goes to the whole process group: the parent stops the run and then this worker
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # blocked by the parent
+    _exit_with_parent()
+    if initializer is not None:
+        initializer()
     try:
         post, runs, cache = build_identification(cfg, initial_state)
     except Exception as e:  # report and stop: the service goes on without identification
-        results.put({"error": f"identification worker failed to start: {e}"})
+        results.put({"error": f"identification worker failed to start: {e}", "fatal": True})
         return
     state_file = cfg.identification.state_file
     while True:
         job = jobs.get()
         if job is None:
             break
-        try:
-            rec = run_job(cfg, runs, cache, job)
-            if rec["accepted"] and state_file:
-                from estimator.posterior import save_posterior
-
-                st = post.state()
-                st.applies_from_seq = rec["applies_from_seq"]
-                save_posterior(state_file, st)
-        except Exception as e:
-            rec = {"job_id": job["job_id"], "error": f"{type(e).__name__}: {e}",
-                   "traceback": traceback.format_exc(limit=5)}
+        rec = handle_job(cfg, post, runs, cache, job, state_file)
+        if restarted and "error" not in rec:  # the first record after a restart says so
+            rec["restarted"], restarted = True, False
         results.put(rec)
+
+
+class _JobQueue(multiprocessing.queues.Queue):
+    """The job queue; when a dead worker's pipe is closed under the feeder thread, the broken
+    pipe is logged, not printed as a traceback."""
+
+    @staticmethod
+    def _on_queue_feeder_error(e, obj):
+        log.debug("identification job not delivered (worker gone): %s", e)
 
 
 class IdentificationWorker:
     """Owns the worker process and its two bounded queues."""
 
-    def __init__(self, cfg, initial_state=None):
+    def __init__(self, cfg, initial_state=None, *, restarted: bool = False, initializer=None):
         ctx = mp.get_context("spawn")
-        self.jobs = ctx.Queue(maxsize=JOB_QUEUE)
+        self.jobs = _JobQueue(maxsize=JOB_QUEUE, ctx=ctx)
         self.results = ctx.Queue(maxsize=RESULT_QUEUE)
         self.proc = ctx.Process(target=_worker_main, args=(cfg, initial_state, self.jobs,
-                                                           self.results),
+                                                           self.results, restarted, initializer),
                                 name="rsra-identification", daemon=True)
-        self.proc.start()
+        # SIGINT blocked while the worker is spawned: it inherits the mask, so a Ctrl-C during
+        # its start-up (imports) raises nothing there; the worker then ignores SIGINT. Here
+        # a Ctrl-C meanwhile stays pending and is delivered when unblocked, not lost.
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            self.proc.start()
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, old)
         self.submitted = 0
         self.dropped = 0
         self.errors = 0
@@ -191,6 +268,220 @@ class IdentificationWorker:
             self.proc.join(2.0)
         for q in (self.jobs, self.results):
             q.close()
+
+    def abandon(self) -> None:
+        """After the worker died: let go of its queues without reading them (a message cut by
+        the kill could block a read) and reap the process. Our own copy of the job pipe's
+        reading end is closed, so a feeder thread blocked writing to the dead worker gets a
+        broken pipe and ends instead of blocking for ever."""
+        for q in (self.jobs, self.results):
+            q.cancel_join_thread()
+        try:
+            self.jobs._reader.close()
+        except (AttributeError, OSError):
+            pass
+        for q in (self.jobs, self.results):
+            q.close()
+        self.proc.join(1.0)
+
+
+class SupervisedIdentification:
+    """The identification worker under supervision (issue 13; docs/reliability.md).
+
+    * A dead worker (killed, crashed) is seen at the next :meth:`check` — every sample in
+      lock-step and replay, every ``CHECK_INTERVAL_S`` of wall clock live — reported in the log
+      and in :meth:`health` as dead, and restarted from the last accepted posterior (the
+      starting one before any): held windows and filter-error state start afresh, the jobs
+      in its hands are lost (``on_restart`` is told, to forget them; it is told too when
+      identification goes off), and the new worker's
+      first record carries ``restarted: true``.
+    * At most ``MAX_RESTARTS`` restarts within ``RESTART_WINDOW_S`` of acquisition time; one
+      death more, or a worker that cannot start, and identification is off (``off``).
+    * A save of the posterior that failed is reported (``save_error``, logged) and the result
+      stands; the next accepted run saves again.
+    """
+
+    def __init__(self, cfg, initial_state=None, *, on_restart=None, initializer=None,
+                 check_interval_s: float = CHECK_INTERVAL_S):
+        self.cfg = cfg
+        self.fs = cfg.sample_rate_hz
+        self.state = initial_state  # the last accepted posterior: where a restart starts
+        self.on_restart = on_restart
+        self.initializer = initializer
+        self.check_interval_s = float(check_interval_s)
+        self.submitted = 0
+        self.dropped = 0
+        self.deaths = 0
+        self.restarts = 0
+        self.last_death: str | None = None
+        self.off_reason: str | None = None
+        self.save_error: str | None = None
+        self.save_failures = 0
+        self._restart_seqs: deque[int] = deque(maxlen=MAX_RESTARTS)
+        self._next_check = 0.0
+        self.generation = 0  # workers started after the first
+        # the service is stopping (Ctrl-C, SIGTERM — which a service manager sends to the
+        # whole group, the worker included): a worker found dead now is not restarted
+        self.stopping = False
+        self.worker: IdentificationWorker | None = IdentificationWorker(
+            cfg, initial_state, initializer=initializer)
+
+    @property
+    def off(self) -> bool:
+        return self.worker is None
+
+    @property
+    def proc(self):
+        """The current worker process (None when identification is off)."""
+        return None if self.worker is None else self.worker.proc
+
+    # -- supervision ------------------------------------------------------------------------
+    def check(self, seq: int | None, *, every_call: bool = False) -> bool:
+        """Is the worker alive (after a restart if it had died)? False when identification is
+        off. Live it looks at most every ``check_interval_s``; ``every_call`` (lock-step) at
+        every call, so that a run is deterministic."""
+        if self.worker is None:
+            return False
+        if not every_call:
+            now = time.monotonic()
+            if now < self._next_check:
+                return True
+            self._next_check = now + self.check_interval_s
+        if self.worker.alive():
+            return True
+        if self.stopping:
+            return False
+        self._died(seq)
+        return self.worker is not None
+
+    def _died(self, seq: int | None) -> None:
+        code = self.worker.proc.exitcode
+        how = (f"killed by {signal.Signals(-code).name}" if code is not None and code < 0
+               and -code in signal.valid_signals() else f"exit code {code}")
+        seq = 0 if seq is None else int(seq)
+        if code == 0:  # exited by itself: it could not start (its last words say why)
+            msgs = [r.get("error") for r in self.worker.poll() if r.get("fatal")]
+            self.worker.abandon()
+            self.worker = None
+            self._turn_off(msgs[0] if msgs else "the identification worker exited")
+            return
+        self.deaths += 1
+        self.last_death = f"died at sample {seq} ({how})"
+        self.worker.abandon()
+        self.worker = None
+        window = int(round(RESTART_WINDOW_S * self.fs))
+        if len(self._restart_seqs) == MAX_RESTARTS and seq - self._restart_seqs[0] < window:
+            self._turn_off(f"the identification worker died {MAX_RESTARTS + 1} times within "
+                           f"{RESTART_WINDOW_S:g} s (last: {how})")
+            return
+        self._restart_seqs.append(seq)
+        self.restarts += 1
+        log.error("identification worker %s; restarted from the last accepted posterior "
+                  "(restart %d; at most %d in %g s)", self.last_death, self.restarts,
+                  MAX_RESTARTS, RESTART_WINDOW_S)
+        self.generation += 1
+        self.worker = IdentificationWorker(self.cfg, self.state, restarted=True,
+                                           initializer=self.initializer)
+        if self.on_restart is not None:
+            self.on_restart()  # the jobs the dead one held are lost
+
+    def _turn_off(self, reason: str) -> None:
+        self.off_reason = reason
+        if self.worker is not None:
+            self.worker.close()
+            self.worker = None
+        log.error("%s: identification is off for the rest of the run (the estimate goes on "
+                  "with the angles in force)", reason)
+        if self.on_restart is not None:
+            self.on_restart()  # told too: no job will come back
+
+    # -- jobs and results -------------------------------------------------------------------
+    def submit(self, job: dict, seq: int | None = None) -> bool:
+        """Live: hand over a window, never waiting; False if not taken (busy, dead or off; a
+        window cut before a death was seen is not given to the new worker)."""
+        generation = self.generation
+        if not self.check(seq, every_call=True) or self.generation != generation:
+            return False
+        if self.worker.submit(job):
+            self.submitted += 1
+            return True
+        self.dropped += 1  # alive, and still busy with two windows
+        log.warning("identification busy: window ending at sample %d dropped",
+                    int(job["seq"][-1]))
+        return False
+
+    def put(self, job: dict, seq: int | None = None) -> bool:
+        """Lock-step: hand over a window, waiting for room; False if the worker died."""
+        generation = self.generation
+        while self.check(seq, every_call=True) and self.generation == generation:
+            try:
+                self.worker.jobs.put(job, timeout=0.5)
+                self.submitted += 1
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def poll(self, seq: int | None = None) -> list[dict]:
+        """Live: the results in (after a liveness check)."""
+        self.check(seq)
+        if self.worker is None:
+            return []
+        return [r for r in map(self._received, self.worker.poll()) if r is not None]
+
+    def wait(self, seq: int | None = None, timeout: float = 120.0) -> dict | None:
+        """Lock-step: the next result. None when the worker died (restarted or off: the jobs
+        it held are lost) or gave none within ``timeout`` (then it is treated as hung: ended
+        and restarted)."""
+        generation = self.generation
+        while self.check(seq, every_call=True) and self.generation == generation:
+            r = self.worker.wait(timeout=min(timeout, 1.0))
+            if r is not None:
+                r = self._received(r)
+                if r is not None:
+                    return r
+                continue
+            timeout -= 1.0
+            if timeout <= 0:
+                log.error("identification worker gave no result for %g s: ended", 120.0)
+                self.worker.proc.kill()
+                self.worker.proc.join(5.0)
+        return None
+
+    def _received(self, r: dict) -> dict | None:
+        """Book-keeping on a result: a fatal start error turns identification off; an
+        accepted run becomes the restart point; a failed save is reported."""
+        if r.get("fatal"):
+            self._turn_off(str(r.get("error")))
+            return None
+        if "save_error" in r:
+            err = r.pop("save_error")
+            if err is not None:
+                self.save_failures += 1
+                log.error("posterior not saved: %s; the result is applied and the next accepted "
+                          "run saves again", err)
+            elif self.save_error is not None:
+                log.warning("posterior saved again (%s)", self.cfg.identification.state_file)
+            self.save_error = err
+        if r.get("accepted") and "error" not in r:
+            from estimator.posterior import PosteriorState
+
+            self.state = PosteriorState(tuple(r["names"]), np.asarray(r["alpha"], float),
+                                        np.asarray(r["P"], float), r.get("applies_from_seq"),
+                                        r.get("t"))
+        return r
+
+    def health(self) -> dict:
+        """The `health` record's ``identification`` object (telemetry.md)."""
+        return {"worker": "off" if self.worker is None else "running",
+                "pid": None if self.worker is None else self.worker.proc.pid,
+                "deaths": self.deaths, "restarts": self.restarts, "last_death": self.last_death,
+                "off_reason": self.off_reason, "save_error": self.save_error,
+                "save_failures": self.save_failures}
+
+    def close(self) -> None:
+        if self.worker is not None:
+            self.worker.close()
 
 
 def queue_stats(worker: IdentificationWorker | None) -> dict[str, Any]:

@@ -110,6 +110,9 @@ class EstimatorPipeline:
         # calibration branch
         idc = cfg.identification
         self.identification = identification
+        # the identification worker died too often and is off (service): every hub_loads
+        # record is flagged so
+        self.identification_off = False
         self.period_n = int(round(idc.period_s * self.fs))
         self.window_n = int(round(idc.window_s * self.fs))
         self.apply_delay_n = int(round(idc.apply_delay_s * self.fs))
@@ -250,6 +253,8 @@ class EstimatorPipeline:
         for fl in res.flags:
             if fl not in flags:
                 flags.append(fl)
+        if self.identification_off:
+            flags.append("identification_off")
         omega_pub = omega if omega is not None else (
             None if self.cfg.rotor.stopped or refused else self.cfg.rotor.omega_nominal_rad_s)
         out.records.append(("hub_loads", {

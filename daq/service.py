@@ -281,15 +281,27 @@ class Service:
         self.recorder = None
         self.warnings: list[str] = []  # start-up problems the service went on with
         self.schedule: dict | None = None  # replay: where the angles come from
+        self.worker_initializer = None  # called first in the worker process (tests)
 
     def add_sink(self, sink: Callable[[str, dict], None]) -> None:
         self._extra_sinks.append(sink)
 
     # -- set-up ----------------------------------------------------------------------------
     def _setup_identification(self, alpha0, state) -> None:
-        from daq.ident_worker import IdentificationWorker
+        from daq.ident_worker import SupervisedIdentification
 
-        self.worker = IdentificationWorker(self.cfg, state)
+        self.worker = SupervisedIdentification(self.cfg, state, on_restart=self._worker_lost,
+                                               initializer=self.worker_initializer)
+
+    def _worker_lost(self) -> None:
+        """The identification worker died: the windows it held are lost (a restart is a
+        discontinuity; its first record says so), and when it is off for good the pipeline
+        stops cutting windows and flags every sample."""
+        p = self.pipeline
+        p.outstanding.clear()
+        if self.worker is not None and self.worker.off:
+            p.identification = False
+            p.identification_off = True
 
     def _initial_record(self, alpha0, state) -> dict:
         names = self.cfg.rig_model().geometry.angle_names
@@ -307,6 +319,8 @@ class Service:
 
     def stop(self, *_: Any) -> None:
         self.stop_event.set()
+        if self.worker is not None:
+            self.worker.stopping = True
 
     def install_signal_handlers(self) -> None:
         if threading.current_thread() is threading.main_thread():
@@ -548,7 +562,7 @@ class Service:
         if self.worker is None or self.synchronous_ident:
             return
         arrival = self.last_seq if self.last_seq is not None else 0
-        for r in self.worker.poll():
+        for r in self.worker.poll(self.last_seq):  # (and restarts a dead worker)
             self._deliver(r, arrival)
 
     def _deliver(self, r: dict, arrival: int | None) -> None:
@@ -562,14 +576,15 @@ class Service:
         self.pipeline.deliver(r, arrival_seq=arrival)
 
     def _wait_results(self, seq: int) -> None:
-        """Lock-step and replay: the result of every window due at this sample first."""
-        while self.worker is not None and self.pipeline.waiting_for(seq):
-            r = self.worker.wait(timeout=120.0)
-            if r is None:
-                log.error("identification worker stopped; identification is off")
+        """Lock-step and replay: the result of every window due at this sample first; a dead
+        worker is seen at every sample (restarted, or identification off: deterministic)."""
+        if self.worker is None:
+            return
+        self.worker.check(seq, every_call=True)
+        while self.pipeline.waiting_for(seq):
+            r = self.worker.wait(seq, timeout=120.0)
+            if r is None:  # it died: restarted or off, its jobs forgotten (_worker_lost)
                 self.pipeline.outstanding.clear()
-                self._close_worker()
-                self.worker = None
                 return
             self._deliver(r, None)
 
@@ -598,12 +613,11 @@ class Service:
         emit(out.records)
         if out.job is not None and self.worker is not None:
             if self.synchronous_ident:
-                self.worker.jobs.put(out.job)  # deterministic: every window runs
-                self.worker.submitted += 1
-            elif not self.worker.submit(out.job):
+                # deterministic: every window runs (unless the worker died meanwhile)
+                if not self.worker.put(out.job, s.seq):
+                    p.outstanding.pop(out.job["job_id"], None)
+            elif not self.worker.submit(out.job, s.seq):  # busy, dead or off: logged
                 p.outstanding.pop(out.job["job_id"], None)
-                log.warning("identification busy: window ending at sample %d dropped",
-                            int(out.job["seq"][-1]))
         self.samples += 1
         self.lost += int(s.lost_before)
         self.last_seq = s.seq
@@ -646,6 +660,7 @@ class Service:
             queues["identification"] = {"submitted": self.worker.submitted,
                                         "dropped": self.worker.dropped,
                                         "errors": self.ident_errors}
+            payload["identification"] = self.worker.health()
         if self.outputs is not None and self.outputs.low_rate is not None:
             queues["publisher"] = {"depth": self.outputs.low_rate.queue.qsize(),
                                    "dropped": self.outputs.low_rate.dropped}
