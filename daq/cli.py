@@ -24,6 +24,7 @@ COMMANDS = {
     "report": "report",
     "sweep": "sweep",
     "calibrate": "calibrate",
+    "export": "export",
 }
 
 
