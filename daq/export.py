@@ -561,6 +561,8 @@ def replay_to_jsonl(cfg: RigConfig, logs: list[str], out, on_error: Callable[[st
                     ) -> dict:
     """A recording through the service's replay path (the same as `rsra replay --out`):
     every published record as a JSON line into the text stream ``out``."""
+    from can.io.blf import BLFParseError
+
     from daq.config import ConfigError
     from daq.jsonout import dumps
     from daq.service import Service, ServiceOptions
@@ -578,5 +580,5 @@ def replay_to_jsonl(cfg: RigConfig, logs: list[str], out, on_error: Callable[[st
         raise on_error(str(e)) from None
     except ConfigError:
         raise
-    except (ValueError, OSError) as e:  # a corrupt or truncated log file
+    except (ValueError, OSError, BLFParseError) as e:  # a corrupt or truncated log file
         raise on_error(f"cannot read the recording: {e}") from None

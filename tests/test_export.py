@@ -323,6 +323,11 @@ def test_bad_input_is_refused_in_one_line_and_leaves_no_file(results, tmp_path, 
         capsys, ["export", str(tmp_path / "nope.jsonl"), "--mcap", str(out / "n.mcap")])
     assert "no such file or folder" in _one_line_exit_2(
         capsys, ["export", str(tmp_path / "nope.log"), "--parquet", str(out / "n")])
+    junk = tmp_path / "junk.blf"
+    junk.write_bytes(bytes(range(256)) * 8)
+    assert "cannot read the recording" in _one_line_exit_2(
+        capsys, ["export", str(junk), "--mcap", str(out / "j.mcap"), "--parquet",
+                 str(out / "jpq")])
     assert "nothing to write" in _one_line_exit_2(capsys, ["export", str(results)])
     assert "need the telemetry" in _one_line_exit_2(capsys, ["export", "--mcap",
                                                              str(out / "m.mcap")])
