@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 import cantools
+import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
@@ -114,6 +115,31 @@ def test_the_dbc_marks_real32_values_as_float_signals_with_units(cfg, tmp_path):
     assert db.get_message_by_name("SYNC").frame_id == cfg.sync.cob_id
     st = db.get_message_by_name("cell_A_TPDO1").get_signal_by_name("cell_A_status")
     assert st.choices[1] == "over-range" and st.choices[2] == "sensor fault"
+
+
+def test_the_dbc_carries_the_calibration_of_every_channel(rng):
+    """Every TPDO of a calibrated rig: cantools' value == the decode table's, any frame."""
+    from daq.config import load_config
+    from daq.decoder import DecodeTable
+    from daq.export import build_dbc
+
+    cfg = load_config(overrides={"calibration": {
+        "cell_B.force": {"gain": 1.01, "offset": -50.0},
+        "accel_1.z": {"gain": 0.98, "offset": 0.05},
+        "balance.M": {"gain": 1.002, "offset": 3.0}}})
+    table = DecodeTable(cfg)
+    db = cantools.database.Database()
+    db.add_dbc_string(build_dbc(cfg, table).as_dbc_string())  # through the DBC text
+    for cob, lay in table.tpdos.items():
+        m = db.get_message_by_frame_id(cob)
+        for _ in range(50):
+            data = rng.integers(0, 256, lay.length, dtype=np.uint8).tobytes()
+            ours = table.decode(cob, data)
+            theirs = m.decode(data, decode_choices=False)
+            assert len(ours) == len(theirs)
+            for key, v in ours.items():
+                w = theirs[key.replace(".", "_")]
+                assert v == w or (math.isnan(v) and math.isnan(w)), (key, v, w)
 
 
 def test_the_eds_unit_objects_say_what_the_decoder_assumes(cfg):
