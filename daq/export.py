@@ -244,7 +244,6 @@ FIELDS: dict[str, list[tuple[str, str, str]]] = {
         ("latency_ms.max", "number", "ms"), ("latency_ms.deadline_misses", "integer", ""),
         ("warnings", "array:string", "")],
 }
-KEYS = tuple(FIELDS)
 
 
 def _type_schema(jtype: str) -> dict:
