@@ -3,13 +3,16 @@ PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+# setuptools prints an information note on every editable install of a layout that is not
+# src/ (ours maps config/ to rsra_config); silence that one note, nothing else
+PIP_INSTALL := PYTHONWARNINGS="ignore:Editable installation" $(BIN)/pip install -q
 
 .PHONY: setup demo test test-all bench lint clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q -e '.[test,plots,bench]'
+	$(PIP_INSTALL) -e '.[test,bench]'
 	touch $(STAMP)
 
 setup: $(STAMP)
@@ -24,7 +27,7 @@ test-all: $(STAMP)
 	$(BIN)/python -m pytest -q -m "slow or soak or not (slow or soak)"
 
 bench: $(STAMP)
-	$(BIN)/pip install -q -e '.[bench]'
+	$(PIP_INSTALL) -e '.[bench]'
 	$(BIN)/python -m bench.run_all
 
 lint: $(STAMP)

@@ -297,6 +297,10 @@ def load_known_load_data(
                 parts = [z, T, H] + ([q[:Q]] if Q else [])
                 seg.put(np.concatenate(parts))
         except (ValueError, OSError) as e:  # a corrupt or truncated log file
+            from daq.replay import ReplayError
+
+            if isinstance(e, ReplayError):  # names the file (and line) already
+                raise CalibrationError(str(e)) from None
             raise CalibrationError(f"{path}: cannot read the recording ({e})") from None
         finally:
             reader.close()

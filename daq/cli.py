@@ -5,7 +5,10 @@ Exit status: 0 success, 2 usage or configuration error, 1 anything else.
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
+import os
+import re
 import sys
 
 from daq.config import ConfigError
@@ -65,16 +68,68 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         return int(args._run(args) or 0)
-    except ConfigError as e:
-        print(f"rsra {args.command}: configuration error: {e}", file=sys.stderr)
-        return 2
-    except UsageError as e:
-        print(f"rsra {args.command}: error: {e}", file=sys.stderr)
-        return 2
     except KeyboardInterrupt:
         return 130
     except BrokenPipeError:
         return 0
+    except Exception as e:  # the one error path: every failure is one line (cli.md)
+        if os.environ.get("RSRA_DEBUG"):
+            raise
+        status, line = describe_error(e)
+        print(f"rsra {args.command}: {line}", file=sys.stderr)
+        return status
+
+
+_RUST_SOURCE = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")
+
+
+def zenoh_error_line(e: BaseException) -> str:
+    """A Zenoh error in one line, without the Rust source paths it carries."""
+    text = " ".join(_RUST_SOURCE.sub("", str(e)).split())
+    m = re.search(r"bound to (\S+?):? \[.*Address already in use", text)
+    if m:
+        return (f"cannot listen on {m.group(1)}: the address is in use (another rsra or Zenoh "
+                "router?); fix: stop that process or give a free port with --zenoh-listen "
+                "tcp/127.0.0.1:PORT")
+    return (f"cannot open the Zenoh session: {text}; fix: check --zenoh-config, "
+            "--zenoh-listen and --zenoh-connect, certificates and credentials")
+
+
+def describe_error(e: BaseException) -> tuple[int, str]:
+    """(exit status, one line) for any exception that ends a command: 2 for a usage,
+    configuration or bad-input error, 1 for anything else (cli.md)."""
+    from daq.master import BootError
+    from daq.recorder import RecordingError
+    from daq.replay import ReplayError
+    from daq.service import BusOpenError
+    from estimator.posterior import PosteriorFileError
+    from sim_bus.faults import FaultSpecError
+
+    if isinstance(e, ConfigError):
+        return 2, f"configuration error: {_one_line(e)}"
+    if isinstance(e, (UsageError, PosteriorFileError, FaultSpecError, RecordingError,
+                      ReplayError, BusOpenError)):
+        return 2, f"error: {_one_line(e)}"
+    if isinstance(e, BootError):
+        return 1, f"the nodes could not be started: {_one_line(e)}"
+    try:
+        import zenoh
+
+        if isinstance(e, zenoh.ZError):
+            return 1, zenoh_error_line(e)
+    except ImportError:  # pragma: no cover - zenoh is a dependency
+        pass
+    if isinstance(e, OSError):
+        where = e.filename if e.filename is not None else ""
+        what = e.strerror or str(e)
+        return 1, (f"{where}: {what}" if where else what) + (
+            "; fix: free some space or write elsewhere" if e.errno == errno.ENOSPC else "")
+    return 1, (f"internal error: {type(e).__name__}: {_one_line(e)} (please report it; "
+               "RSRA_DEBUG=1 shows the traceback)")
+
+
+def _one_line(e: BaseException) -> str:
+    return " ".join(str(e).split()) or type(e).__name__
 
 
 if __name__ == "__main__":

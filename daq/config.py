@@ -41,6 +41,20 @@ class ConfigError(ValueError):
 
 
 _MISSING = object()
+COB_MAX_11BIT = 0x7FF
+# the rotor-speed band the load filter is designed for at start-up (flight: +-2 %); every
+# modelled harmonic must stay below Nyquist over it (daq.pipeline prefills it)
+DESIGN_BAND = 0.02
+
+
+def predefined_cob_ids(node_id: int) -> dict[int, str]:
+    """COB-ID -> use, for a node's CiA 301 predefined connection set (and NMT)."""
+    ids = {0x000: "NMT", 0x080 + node_id: "EMCY", 0x580 + node_id: "SDO response",
+           0x600 + node_id: "SDO request", 0x700 + node_id: "heartbeat"}
+    for n in range(4):
+        ids[0x180 + 0x100 * n + node_id] = f"TPDO{n + 1}"
+        ids[0x200 + 0x100 * n + node_id] = f"RPDO{n + 1}"
+    return ids
 
 
 class _Section:
@@ -387,6 +401,10 @@ def load_config(path: str | Path | None = None, overrides: dict | None = None) -
     except FileNotFoundError:
         raise ConfigError("--config", str(p), "file not found",
                           "give the path of a rig TOML, or omit --config for the default rig") from None
+    except (OSError, UnicodeDecodeError) as e:  # a folder, no permission, not text
+        why = e.strerror if isinstance(e, OSError) and e.strerror else str(e)
+        raise ConfigError("--config", str(p), f"cannot be read ({why})",
+                          "give the path of a rig TOML, or omit --config for the default rig") from None
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
@@ -517,6 +535,18 @@ def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = No
         psd: str | np.ndarray = "auto"
     else:
         psd = flt.vector("process_noise_psd", 6, positive=True)
+    # every harmonic below Nyquist over the rotor-speed band designed at start-up: above it
+    # the load filter cannot be designed (the Riccati solver fails; model §5)
+    for h in sorted(harm_raw, reverse=True):
+        f_h = h * rotor.omega_nominal_rad_s * (1 + DESIGN_BAND) / (2 * math.pi)
+        if f_h >= rate / 2:
+            f_rot = rotor.omega_nominal_rad_s / (2 * math.pi)
+            raise flt.error("harmonics", harm_raw,
+                            f"harmonic {h} is at {f_h:.3g} Hz ({h} × {f_rot:.3g} Hz rotor "
+                            f"frequency, +{DESIGN_BAND:.0%} design band), at or above the "
+                            f"Nyquist frequency {rate / 2:g} Hz of rig.sample_rate_hz = {rate:g}",
+                            f"remove harmonic {h} or raise rig.sample_rate_hz above "
+                            f"{2 * f_h:.3g} Hz")
     filt = FilterConfig(
         harmonics=tuple(sorted(harm_raw)),
         low_frequency_states=flt.boolean("low_frequency_states", True),
@@ -547,6 +577,10 @@ def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = No
     if window > period:
         raise idt.error("window_s", window, f"exceeds period_s = {period} (samples would count twice)",
                         "make window_s <= period_s")
+    for key, v in (("window_s", window), ("period_s", period)):
+        if round(v * rate) < 1:
+            raise idt.error(key, v, f"is less than one sample at rig.sample_rate_hz = {rate:g}",
+                            f"give at least {1 / rate:g} s (one sample); the default is 5.0")
     ident = IdentificationConfig(
         parameters=params,
         initial_angles_rad=init,
@@ -582,6 +616,9 @@ def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = No
         cob_id=sy.number("cob_id", 0x80, integer=True, positive=True),
         counter_overflow=sy.number("counter_overflow", 240, integer=True, nonneg=True),
     )
+    if sync.cob_id > COB_MAX_11BIT:
+        raise sy.error("cob_id", sync.cob_id, "is not an 11-bit COB-ID",
+                       "use 0x80 (the CANopen default)")
     if not (sync.counter_overflow == 0 or 2 <= sync.counter_overflow <= 240):
         raise sy.error("counter_overflow", sync.counter_overflow, "CiA 301 allows 0 or 2…240",
                        "use 240 (the default)")
@@ -625,6 +662,17 @@ def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = No
                                 eds=eds_path, required=n.boolean("required", True)))
         n.finish()
 
+    # the SYNC COB-ID against every COB-ID of the configured nodes' predefined connection set
+    # (CiA 301: a SYNC on a node's COB-ID is taken for that node's frame, and the reverse, so
+    # no sample is ever assembled); the TPDO COB-IDs the EDS files give are checked against
+    # it again with the decode table (daq.decoder)
+    for nc in nodes:
+        owner = predefined_cob_ids(nc.node_id).get(sync.cob_id)
+        if owner is not None:
+            raise ConfigError("sync.cob_id", hex(sync.cob_id),
+                              f"is the {owner} COB-ID of node {nc.name!r} (id 0x{nc.node_id:02X})",
+                              "use 0x80 (the CANopen default), or a COB-ID no node uses", source)
+
     def need_node(key: str, node: str, role: str, optional: bool = False) -> None:
         if optional and not node:
             return
@@ -658,7 +706,11 @@ def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = No
         if node_name not in names:
             raise cal_sec.error(k, cal_sec.data[k], f"no node named {node_name!r}",
                                 'use keys "<node>.<channel>", e.g. "cell_A.force"')
-        calibration[k] = (entry.number("gain", 1.0), entry.number("offset", 0.0))
+        gain = entry.number("gain", 1.0)
+        if gain == 0:
+            raise entry.error("gain", gain, "a zero gain erases the channel",
+                              "give the channel's gain (value = gain * raw + offset), e.g. 1.0")
+        calibration[k] = (gain, entry.number("offset", 0.0))
         entry.finish()
     cal_sec.finish()
 

@@ -22,7 +22,7 @@ import canopen
 import numpy as np
 from canopen.objectdictionary import ODVariable, datatypes
 
-from daq.config import G0, ConfigError, RigConfig
+from daq.config import G0, ConfigError, RigConfig, predefined_cob_ids
 
 # CANopen basic data types -> struct codes (CiA 301 §7.1.4); the bit length in the mapping
 # entry must agree with the type.
@@ -157,6 +157,23 @@ def _mapping_struct(node: str, role: str, od: canopen.ObjectDictionary, n: int,
     return fmt, values
 
 
+def _check_cob_clashes(cfg: RigConfig, tpdos: dict[int, "TpdoLayout"]) -> None:
+    """Every TPDO COB-ID the EDS files give against the SYNC and every node's NMT, EMCY, SDO
+    and heartbeat COB-ID: two uses of one COB-ID are indistinguishable on the bus (a SYNC
+    taken for a TPDO, or the reverse, and no sample is ever assembled)."""
+    fixed = {cfg.sync.cob_id: "the SYNC (sync.cob_id)"}
+    for nc in cfg.nodes:
+        for cob, use in predefined_cob_ids(nc.node_id).items():
+            if not use.startswith(("TPDO", "RPDO")):
+                fixed.setdefault(cob, f"the {use} of node {nc.name!r}")
+    for cob, lay in tpdos.items():
+        if cob in fixed:
+            key = "sync.cob_id" if cob == cfg.sync.cob_id else f"eds[{lay.node}]"
+            raise ConfigError(key, hex(cob), f"{lay.node} TPDO{lay.number} COB-ID 0x{cob:03X} is "
+                              f"also {fixed[cob]}", "give every COB-ID one use (sync.cob_id = "
+                              "0x80, the CANopen default, and the nodes' predefined COB-IDs)")
+
+
 class DecodeTable:
     """Every TPDO of every configured node: layouts, channel list and calibration vectors.
 
@@ -275,6 +292,7 @@ class DecodeTable:
                 raise ConfigError(f"calibration.{key}", cfg.calibration[key],
                                   "no such channel", "use one of: " + ", ".join(
                                       c.key for c in channels if not c.is_status))
+        _check_cob_clashes(cfg, tpdos)
         self.nodes: tuple[NodeLayout, ...] = tuple(nodes)
         self.channels: tuple[Channel, ...] = tuple(channels)
         self.tpdos: dict[int, TpdoLayout] = tpdos

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from daq.config import RigConfig
+from daq.config import DESIGN_BAND, ConfigError, RigConfig
 from daq.decoder import DecodeTable
 from daq.stuck import StuckMonitor
 from estimator.balance import inertial_load_matrix
@@ -25,7 +25,7 @@ from estimator.geometry import hub_transfer_matrix, wrench_matrix
 
 log = logging.getLogger("rsra.pipeline")
 
-PREFILL_BAND = 0.02  # the rotor-speed band designed at start-up (flight: +-2 %)
+PREFILL_BAND = DESIGN_BAND  # the rotor-speed band designed at start-up (flight: +-2 %)
 
 
 @dataclass
@@ -91,9 +91,20 @@ class EstimatorPipeline:
             omega_default=None if cfg.rotor.stopped else cfg.rotor.omega_nominal_rad_s)
         # a redesign takes 10-60 ms, longer than a sample: design the expected band now
         w0 = cfg.rotor.omega_nominal_rad_s
-        self.cache.prefill(w0 * (1 - PREFILL_BAND), w0 * (1 + PREFILL_BAND))
-        self.load_filter = LoadFilter(self.cache, self.alpha,
-                                      invalid_after_samples=int(round(f.invalid_after_s * self.fs)))
+        try:
+            self.cache.prefill(w0 * (1 - PREFILL_BAND), w0 * (1 + PREFILL_BAND))
+            self.load_filter = LoadFilter(
+                self.cache, self.alpha, invalid_after_samples=int(round(f.invalid_after_s * self.fs)))
+        except (np.linalg.LinAlgError, ValueError) as e:  # the config check (Nyquist) passed
+            if isinstance(e, ConfigError):
+                raise
+            why = " ".join(f"{type(e).__name__}: {e}".split())
+            raise ConfigError(
+                "filter", f"harmonics {list(f.harmonics)}, time_constant_s {f.time_constant_s:g}",
+                f"the load filter cannot be designed at rig.sample_rate_hz = {self.fs:g} and "
+                f"rotor.omega_nominal_rad_s = {w0:g} ({why})",
+                "use fewer or lower harmonics, a longer time_constant_s or a higher sample rate",
+                cfg.source) from None
         self.cell_names = [c.name for c in cfg.cells]
         self.innov_every = max(1, int(round(self.fs / cfg.telemetry.innovations_hz)))
         # calibration branch

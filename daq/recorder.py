@@ -97,14 +97,24 @@ class Recorder(can.Listener):
         self.rotate_bytes = int((rotate_mb if rotate_mb is not None else rec.rotate_mb) * MB)
         self.cap_bytes = int((cap_mb if cap_mb is not None else rec.cap_mb) * MB)
         self.flush_s = flush_s if flush_s is not None else cfg.recording.flush_s
-        self.folder.mkdir(parents=True, exist_ok=True)
-        if frame_files(self.folder) or (self.folder / ANGLES_FILE).exists():
+        if self.folder.exists() and not self.folder.is_dir():
+            raise RecordingError(f"{self.folder} is a file, not a folder: give a new folder")
+        if self.folder.exists() and (frame_files(self.folder)
+                                     or (self.folder / ANGLES_FILE).exists()):
             raise RecordingError(f"{self.folder} already holds a recording; nothing is ever "
                                  "overwritten: give a new folder")
-        self._write_config(cfg)
+        # what this start creates, removed again if the start fails (a full disk, no
+        # permission): a recording that never started leaves nothing behind
+        self._created: list[Path] = []
+        try:
+            self._start_files(cfg)
+        except OSError as e:
+            self._remove_created()
+            raise OSError(e.errno, f"cannot start the recording ({e.strerror or e}); nothing "
+                          "was recorded", str(self.folder)) from None
+        self._created = []
         self._lock = threading.Lock()  # angles.jsonl is written from the service thread
         self._io_lock = threading.Lock()  # frames: bus thread, and the live idle tick
-        self._angles = open(self.folder / ANGLES_FILE, "w", encoding="utf-8")
         self._rotated: list[Path] = []
         self._closed_bytes = 0
         self.frames = 0
@@ -112,8 +122,6 @@ class Recorder(can.Listener):
         self.error: str | None = None
         self.active = True
         self._last_flush: float | None = None
-        base = self.folder / f"{FRAMES_STEM}.{self.fmt}"
-        self._logger = can.SizedRotatingLogger(base_filename=base, max_bytes=self.rotate_bytes)
         self._logger.namer = self._name_rotated
         self._size = 0  # bytes_written as of the writer's last check (health reads this live)
         # live: a bounded queue to a writer thread (a slow disk must not stall the bus thread)
@@ -130,21 +138,58 @@ class Recorder(can.Listener):
             self._writer.start()
 
     # -- files -------------------------------------------------------------------------------
+    def _new(self, path: Path) -> Path:
+        """``path``, noted as created by this start unless it was there already."""
+        if not (path.exists() or path.is_symlink()):
+            self._created.append(path)
+        return path
+
+    def _start_files(self, cfg: RigConfig) -> None:
+        missing = []
+        p = self.folder
+        while not p.exists():
+            missing.append(p)
+            p = p.parent
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self._created.extend(reversed(missing))  # outermost first
+        self._write_config(cfg)
+        self._angles = open(self._new(self.folder / ANGLES_FILE), "w", encoding="utf-8")
+        base = self._new(self.folder / f"{FRAMES_STEM}.{self.fmt}")
+        self._logger = can.SizedRotatingLogger(base_filename=base, max_bytes=self.rotate_bytes)
+
+    def _remove_created(self) -> None:
+        for f in ("_angles",):
+            fh = getattr(self, f, None)
+            if fh is not None:
+                try:
+                    fh.close()
+                except OSError:
+                    pass
+        for p in reversed(self._created):  # innermost first
+            try:
+                if p.is_dir() and not p.is_symlink():
+                    p.rmdir()  # only if empty: never anything we did not write
+                else:
+                    p.unlink()
+            except OSError:
+                pass
+        self._created = []
+
     def _write_config(self, cfg: RigConfig) -> None:
         eff = cfg.effective()
-        eds_dir = self.folder / EDS_DIR
+        eds_dir = self._new(self.folder / EDS_DIR)
         eds_dir.mkdir(exist_ok=True)
         nodes = []
         for raw_node, nc in zip(eff.get("nodes", []), cfg.nodes):
             d = dict(raw_node)
             target = eds_dir / nc.eds.name
             if not target.exists():
-                shutil.copyfile(nc.eds, target)
+                shutil.copyfile(nc.eds, self._new(target))
             d["eds"] = f"{EDS_DIR}/{nc.eds.name}"
             nodes.append(d)
         if nodes:
             eff["nodes"] = nodes
-        with open(self.folder / CONFIG_FILE, "w", encoding="utf-8") as f:
+        with open(self._new(self.folder / CONFIG_FILE), "w", encoding="utf-8") as f:
             json.dump(_json_safe(eff), f, indent=1, allow_nan=False)
 
     def _name_rotated(self, default_name: str) -> str:
@@ -345,11 +390,22 @@ class Recorder(can.Listener):
 
 def recorded_config_raw(folder: str | Path) -> dict | None:
     """The effective configuration a recording folder holds (None if it has none)."""
+    from daq.config import ConfigError
+
     p = Path(folder) / CONFIG_FILE
     if not p.is_file():
         return None
-    with open(p, encoding="utf-8") as f:
-        return json.load(f)
+    try:
+        with open(p, encoding="utf-8") as f:
+            raw = json.load(f)
+    except (ValueError, UnicodeDecodeError) as e:  # cut short, damaged
+        raise ConfigError("<file>", str(p), f"not valid JSON ({e}): cut short or damaged",
+                          "give the rig config the recording was made with (--config), or "
+                          "repair the file") from None
+    if not isinstance(raw, dict):
+        raise ConfigError("<file>", str(p), "not a recorded configuration (not a JSON object)",
+                          "give the rig config the recording was made with (--config)")
+    return raw
 
 
 def recorded_config(folder: str | Path) -> RigConfig | None:

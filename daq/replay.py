@@ -16,6 +16,7 @@ decode tables never depend on having seen the boot.
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
@@ -63,10 +64,14 @@ class _CompleteLines:
     def __init__(self, path: Path):
         self.file = open(path, encoding="utf-8", errors="replace")
         self.partial = 0  # cut lines dropped (0 or 1)
+        self.lineno = 0  # the line last handed to the parser (1-based)
+        self.line = ""
 
     def __iter__(self) -> Iterator[str]:
         for line in self.file:
             if line.endswith("\n"):
+                self.lineno += 1
+                self.line = line
                 yield line
             else:
                 self.partial += 1
@@ -78,14 +83,54 @@ class _CompleteLines:
 
 
 def read_frames(paths: Sequence[str | Path]) -> Iterator[can.Message]:
-    """Every frame of the recordings, in order (python-can LogReader per file)."""
+    """Every frame of the recordings, in order (python-can LogReader per file).
+
+    A file that cannot be read — not the format its name says, damaged, a line that is not a
+    frame, a time stamp that is not a finite number — raises :class:`ReplayError` naming the
+    file (and the line of a text log) where it stops; the frames before it have been
+    yielded."""
     for f in expand(paths):
         if f.suffix.lower() == ".log":
-            with can.CanutilsLogReader(_CompleteLines(f)) as reader:
-                yield from reader
+            lines = _CompleteLines(f)
+            try:
+                with can.CanutilsLogReader(lines) as reader:
+                    for msg in reader:
+                        if not math.isfinite(msg.timestamp):
+                            raise ValueError(f"time stamp {msg.timestamp} is not a finite number")
+                        yield msg
+            except ReplayError:
+                raise
+            except Exception as e:  # python-can raises assorted errors on a bad line
+                raise ReplayError(
+                    f"{f}:{lines.lineno}: not a candump frame ({_why(e)}): "
+                    f"{lines.line.strip()[:60]!r}; fix: repair or delete that line (a candump "
+                    "line reads '(1700000000.000000) can0 181#0102')") from None
             continue
-        with can.LogReader(f) as reader:
-            yield from reader
+        n = 0
+        try:
+            with can.LogReader(f) as reader:
+                for msg in reader:
+                    if not math.isfinite(msg.timestamp):
+                        raise ValueError(f"frame {n + 1}: time stamp {msg.timestamp} is not a "
+                                         "finite number")
+                    n += 1
+                    yield msg
+        except ReplayError:
+            raise
+        except Exception as e:  # BLFParseError, zlib.error, struct.error, …
+            where = f"after {n} frames" if n else "at its start"
+            raise ReplayError(
+                f"{f}: not a readable {f.suffix.lstrip('.').lower()} recording {where} "
+                f"({_why(e)}); fix: give an undamaged recording (rename it if its suffix "
+                "names the wrong format)") from None
+
+
+def _why(e: BaseException) -> str:
+    name = type(e).__name__
+    if name == "error":  # zlib.error, struct.error: say whose
+        name = f"{type(e).__module__}.error"
+    text = " ".join(str(e).split())
+    return f"{name}: {text}" if text else name
 
 
 def config_for(paths: Sequence[str | Path], config: str | Path | None = None) -> RigConfig:

@@ -206,11 +206,44 @@ def read_angles_schedule(folder: Path) -> tuple[dict | None, list[dict]]:
             except ValueError:
                 log.warning("%s:%d: unreadable angles record skipped (a crash mid-write?)", p, n)
                 continue
+            problem = _schedule_problem(rec)
+            if problem:
+                from daq.replay import ReplayError
+
+                raise ReplayError(f"{p}:{n}: {problem}; fix: replay with --recompute (runs the "
+                                  "identification again) or repair that line")
             if rec.get("initial"):
                 initial = rec
             else:
                 records.append(rec)
     return initial, records
+
+
+def _finite_numbers(x: Any) -> bool:
+    return isinstance(x, list) and all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in x)
+
+
+def _schedule_problem(rec: Any) -> str | None:
+    """What makes a recorded angles record unusable (None: usable)."""
+    if not isinstance(rec, dict):
+        return "an angles record must be a JSON object"
+    if rec.get("initial"):
+        alpha = rec.get("alpha_all", rec.get("alpha"))
+        if not _finite_numbers(alpha) or not alpha:
+            return "the starting record has no finite 'alpha_all' angles"
+        return None
+    seq = rec.get("applies_from_seq")
+    if "applies_from_seq" not in rec:
+        return "angles record without 'applies_from_seq' (the sample it applies from)"
+    if not isinstance(seq, int) or isinstance(seq, bool) or seq < 0:
+        return f"'applies_from_seq' = {seq!r} is not a sample number"
+    if rec.get("accepted"):
+        names, alpha = rec.get("names"), rec.get("alpha")
+        if (not isinstance(names, list) or not all(isinstance(x, str) for x in names)
+                or not _finite_numbers(alpha) or len(names) != len(alpha)):
+            return "an accepted angles record needs 'names' and as many finite 'alpha' values"
+    return None
 
 
 class Service:
@@ -247,6 +280,7 @@ class Service:
         self.pipeline: EstimatorPipeline | None = None
         self.recorder = None
         self.warnings: list[str] = []  # start-up problems the service went on with
+        self.schedule: dict | None = None  # replay: where the angles come from
 
     def add_sink(self, sink: Callable[[str, dict], None]) -> None:
         self._extra_sinks.append(sink)
@@ -285,13 +319,39 @@ class Service:
         closers: list[Callable[[], None]] = []
         try:
             recorded_initial, recorded = (None, [])
+            recompute = opts.recompute
             if opts.replay is not None:
                 folder = next((Path(p) for p in opts.replay if Path(p).is_dir()), None)
-                if folder is not None and not opts.recompute:
+                schedule = None if folder is None else folder / "angles.jsonl"
+                if not opts.identification:
+                    # the starting angles (the recording's, or --angles) for the whole replay
+                    if folder is not None:
+                        recorded_initial, _ = read_angles_schedule(folder)
+                    self.schedule = {"source": "off"}
+                elif opts.recompute:
+                    self.schedule = {"source": "recomputed", "why": "--recompute"}
+                elif schedule is None or not schedule.is_file():
+                    # a recording from elsewhere (bus.md): the identification is recomputed
+                    recompute = True
+                    self.schedule = {"source": "recomputed", "why": "no angle schedule"}
+                else:
                     recorded_initial, recorded = read_angles_schedule(folder)
+                    applies = [r.get("applies_from_seq") for r in recorded]
+                    applies = [a for a in applies if isinstance(a, int)]
+                    self.schedule = {"source": "recorded", "file": str(schedule),
+                                     "records": len(recorded),
+                                     "initial": recorded_initial is not None,
+                                     "last_applies_from_seq": max(applies, default=None)}
             if recorded_initial is not None and not opts.angles:
                 alpha0 = np.asarray(recorded_initial.get("alpha_all", recorded_initial["alpha"]),
                                     float)
+                n_angles = len(cfg.rig_model().geometry.angle_names)
+                if alpha0.shape != (n_angles,):
+                    from daq.replay import ReplayError
+
+                    raise ReplayError(f"{folder / 'angles.jsonl'}: the starting record holds "
+                                      f"{alpha0.size} angles, the rig has {n_angles}; fix: "
+                                      "replay with --recompute or give the recording's --config")
                 state = None
             else:
                 alpha0, state, warning = initial_angles(cfg, opts.angles,
@@ -299,7 +359,7 @@ class Service:
                 if warning:
                     log.warning("%s", warning)
                     self.warnings.append(warning)
-            use_ident = opts.identification and (opts.replay is None or opts.recompute)
+            use_ident = opts.identification and (opts.replay is None or recompute)
             if use_ident:
                 # the worker saves accepted runs there: only over a posterior of ours
                 # (ConfigError naming the key otherwise, before acquisition starts)
@@ -382,9 +442,14 @@ class Service:
                 # the simulator boots and starts its nodes and produces SYNC; the reader
                 # listens, and restarts a node that reboots (bus.md: reconfigured and
                 # restarted without restarting the service), its SDO answered in lock-step
-                reader = Reader(cfg, bus=bus, master=False, restart_nodes=True,
-                                wall_clock=False, record=o.record, overflow="block",
-                                table=table)
+                try:
+                    reader = Reader(cfg, bus=bus, master=False, restart_nodes=True,
+                                    wall_clock=False, record=o.record, overflow="block",
+                                    table=table)
+                except BaseException:  # e.g. the recording cannot start: close what is open
+                    bus.shutdown()
+                    sim.close()
+                    raise
                 self.sim, self.reader = sim, reader
                 closers.append(bus.shutdown)
                 closers.append(reader.close)
@@ -629,4 +694,22 @@ class Service:
                              if last.get("P") else None}
         if self.pipeline is not None:
             out["alpha_applied"] = self.pipeline.alpha.tolist()
+        if self.schedule is not None:
+            out["angles_schedule"] = self._schedule_summary()
         return out
+
+    def _schedule_summary(self) -> dict:
+        """Replay: where the angles came from. A recorded schedule is partial when the
+        recording runs on for more than a period, the apply delay and a second past its last
+        record (a live run publishes one record per period)."""
+        sch = dict(self.schedule)
+        if sch["source"] != "recorded" or self.last_seq is None:
+            return sch
+        idc = self.cfg.identification
+        last = sch["last_applies_from_seq"]
+        sch["last_seq"] = self.last_seq
+        if last is not None:
+            sch["uncovered_s"] = max(0, self.last_seq - last) / self.fs
+            sch["partial"] = self.last_seq - last > (idc.period_s + idc.apply_delay_s
+                                                     + 1.0) * self.fs
+        return sch

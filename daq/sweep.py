@@ -160,6 +160,15 @@ class Segment:
     start: int
     stop: int
     amplitude: float  # sine amplitude of the excitation (√2 × RMS of the high-passed balance)
+    # largest RMS, in balance-noise σ, of the oscillation on another axis that the excited
+    # axis does not explain (least squares, zero lag): ~1 for a shaker on one axis (noise),
+    # far above SNR_THRESHOLD when several axes oscillate independently (rotor harmonics)
+    other_axes_snr: float = 0.0
+
+    @property
+    def single_axis(self) -> bool:
+        """A shaker excitation along one axis, the case Eq 1.4/1.5 evaluate."""
+        return self.other_axes_snr <= SNR_THRESHOLD
 
 
 def detect_segments(known_H: np.ndarray, fs: float, sigma_balance: np.ndarray,
@@ -182,8 +191,14 @@ def detect_segments(known_H: np.ndarray, fs: float, sigma_balance: np.ndarray,
             continue
         axis = int(np.bincount(np.argmax(snr[a:b], axis=1), minlength=6).argmax())
         m = (b - a) // 10  # the middle 80 % (the ramps at both ends are lower)
-        amp = math.sqrt(2.0) * float(np.sqrt(np.mean(hp[a + m:b - m, axis] ** 2)))
-        out.append(Segment(axis=axis, start=int(a), stop=int(b), amplitude=amp))
+        mid = hp[a + m:b - m]
+        x = mid[:, axis]
+        amp = math.sqrt(2.0) * float(np.sqrt(np.mean(x**2)))
+        resid = mid - np.outer(x, mid.T @ x / max(float(x @ x), 1e-300))
+        other = np.sqrt(np.mean(resid**2, axis=0)) / np.asarray(sigma_balance, float)
+        other[axis] = 0.0
+        out.append(Segment(axis=axis, start=int(a), stop=int(b), amplitude=amp,
+                           other_axes_snr=float(other.max())))
     return out
 
 
@@ -312,6 +327,8 @@ class SweepResult:
     filled: int
     sources: list[str]
     model_geometry: object = None  # estimator Geometry (for R₀)
+    # stretches of oscillating load on several axes at once (not a shaker): left out
+    excluded: list[Segment] = field(default_factory=list)
 
     def by_axis(self) -> dict[int, list[LevelResult]]:
         out: dict[int, list[LevelResult]] = {}
@@ -343,17 +360,28 @@ def analyse_sweep(cfg: RigConfig, data: SweepData, alpha: np.ndarray | None = No
     R0 = hub_transfer_matrix(model.geometry, "body")  # the balance measures in body axes
     D = model.external.wrenches if model.external.wrenches.shape[1] else None
     sigma_bal = cfg.balance.sigma
-    segments = detect_segments(data.known_H, data.fs, sigma_bal)
-    if not segments:
+    found = detect_segments(data.known_H, data.fs, sigma_bal)
+    if not found:
         raise SweepError("no shaker excitation found in the balance data (no stretch of at "
                          f"least {MIN_SEGMENT_S:g} s where the oscillating load exceeds "
                          f"{SNR_THRESHOLD:g}× the balance noise)")
+    segments = [s for s in found if s.single_axis]
+    excluded = [s for s in found if not s.single_axis]
+    if not segments:
+        worst = max(excluded, key=lambda s: s.other_axes_snr)
+        total = sum(s.stop - s.start for s in excluded) / data.fs
+        raise SweepError(
+            "the recording holds no shake-test sweep: the oscillating load found "
+            f"({len(excluded)} stretch{'es' if len(excluded) > 1 else ''}, {total:.1f} s) is on "
+            f"several axes at once (up to {worst.other_axes_snr:.0f}× the balance noise on an axis the "
+            f"{AXES[worst.axis]} load does not explain), as rotor harmonics are; a sweep "
+            "excites one axis at a time")
     levels = [analyse_level(data, g, S, R0, D) for g in _group_levels(segments)]
     return SweepResult(fs=data.fs, frame="body", alpha=alpha,
                        budget=noise_budget(model, alpha, "body"), sigma_balance=sigma_bal,
                        levels=levels, segments=segments, n_samples=len(data.t),
                        filled=data.filled, sources=list(data.sources),
-                       model_geometry=model.geometry)
+                       model_geometry=model.geometry, excluded=excluded)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -479,6 +507,9 @@ def sweep_json(result: SweepResult, units: str = "si") -> dict:
     return {
         "units": axis_units(units), "axes": list(AXES), "frame": result.frame,
         "sources": result.sources, "samples": result.n_samples, "filled_samples": result.filled,
+        "excluded_segments": [{"start_s": s.start / result.fs, "stop_s": s.stop / result.fs,
+                               "largest_axis": AXES[s.axis],
+                               "other_axes_snr": s.other_axes_snr} for s in result.excluded],
         "angles_rad": result.alpha.tolist(),
         "noise_budget": {"total": tot.tolist(), "load_cells": cells.tolist(),
                          "accelerometers": acc.tolist(),

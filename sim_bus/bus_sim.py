@@ -227,6 +227,23 @@ _CODEC_TYPES = {
 }
 
 
+def _validate(parsed: tuple[Fault, ...], nodes: list[tuple[str, str]], autostart: bool) -> None:
+    validate_faults(parsed, dict(nodes), {name: ROLE_CHANNELS[role] for name, role in nodes},
+                    autostart)
+
+
+def check_faults(cfg: RigConfig, spec: str, nodes_present: tuple[str, ...] | None,
+                 autostart: bool) -> tuple[Fault, ...]:
+    """Parse and check a fault SPEC against the nodes a simulator of ``cfg`` would put on the
+    bus (the same selection and check as :class:`Simulator`), before building one: raises
+    FaultSpecError."""
+    parsed = parse_faults(spec)
+    _validate(parsed, [(n.name, n.role) for n in cfg.nodes
+                       if n.required or nodes_present is None or n.role in nodes_present],
+              autostart)
+    return parsed
+
+
 class Simulator:
     """Every configured node on one python-can bus, fed by the physics one sample per SYNC.
 
@@ -279,8 +296,7 @@ class Simulator:
         self._sync_cob = cfg.sync.cob_id
         # ---- faults --------------------------------------------------------------------------
         parsed = parse_faults(faults) if isinstance(faults, (str, type(None))) else tuple(faults)
-        validate_faults(parsed, {n.name: n.role for n in self.nodes},
-                        {n.name: ROLE_CHANNELS[n.role] for n in self.nodes}, autostart)
+        _validate(parsed, [(n.name, n.role) for n in self.nodes], autostart)
         self.faults = FaultInjector(parsed, seed=self.seed)
         self._frozen: dict[tuple[int, str, str], int | float] = {}
         self._unknown_cob = self._pick_unknown_cob()

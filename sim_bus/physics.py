@@ -373,12 +373,14 @@ class AircraftPhysics:
         frame_rot = hub_matrix(np.zeros(3), cfg.shaft_tilt_rad, scenario.loads.frame)
         self.load_frame = frame_rot  # scenario axes -> body axes (block-diagonal)
 
-        # independent random streams (chunk-invariant draws)
+        # independent random streams (chunk-invariant draws); the aircraft's base angles have a
+        # stream of their own, so that every scenario flies the same aircraft for a given seed
+        # (a ground test and a flight share their base angles whatever else they draw)
         ss = np.random.SeedSequence(self.seed)
-        (params, r_cell, r_acc, r_bal, r_drive, r_base) = [np.random.default_rng(s)
-                                                            for s in ss.spawn(6)]
+        (params, r_cell, r_acc, r_bal, r_drive, r_base, r_angles) = [np.random.default_rng(s)
+                                                                     for s in ss.spawn(7)]
         self._rng = {"cell": r_cell, "acc": r_acc, "bal": r_bal, "drive": r_drive, "base": r_base}
-        self._draw_parameters(params)
+        self._draw_parameters(params, r_angles)
         self._build_schedules()
 
         self._base = None
@@ -393,8 +395,9 @@ class AircraftPhysics:
         self._pos = 0
 
     # ------------------------------------------------------------------ set-up
-    def _draw_parameters(self, rng: np.random.Generator) -> None:
-        """All per-seed random parameters, drawn in a fixed order whatever the variant."""
+    def _draw_parameters(self, rng: np.random.Generator, angles_rng: np.random.Generator) -> None:
+        """All per-seed random parameters, drawn in a fixed order whatever the variant; the base
+        angles from their own stream (the same aircraft in every scenario)."""
         sc = self.scenario
         self.harm_orders = np.array([h.resolve_order(self.blades) for h in sc.harmonics], int)
         self.harm_amp = np.array([rng.uniform(h.amplitude_min, h.amplitude_max)
@@ -405,7 +408,8 @@ class AircraftPhysics:
                           for h in sc.harmonics]
         self.omega_slow = _slow_variation(rng, (), sc.rotor.omega_period_s)
         ang = sc.angles
-        base_draw = rng.uniform(-ang.range_rad, ang.range_rad, 14)
+        rng.uniform(-ang.range_rad, ang.range_rad, 14)  # the former draw: the rest unchanged
+        base_draw = angles_rng.uniform(-ang.range_rad, ang.range_rad, 14)
         self.alpha_base = base_draw if isinstance(ang.base, str) else np.array(ang.base, float)
         step_signs = rng.choice([-1.0, 1.0], (max(len(ang.step_at_s), 1), 14))
         self.alpha_steps = step_signs[: len(ang.step_at_s)] * ang.step_rad

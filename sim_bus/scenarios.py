@@ -277,6 +277,12 @@ def parse_scenario(raw: dict, source: str = "<scenario>", variants: dict | None 
         raise ld.error("conditions", conds_raw, "must be a list of [X, Y, Z, L, M, N] rows",
                        "write conditions = [[0.0, 0.0, -80000.0, 0.0, 0.0, 0.0], ...] in N and N·m")
     conditions = np.asarray(conds_raw, dtype=float)
+    bad = np.argwhere(~np.isfinite(conditions))
+    if bad.size:
+        i, j = (int(x) for x in bad[0])
+        raise ConfigError(f"{ld.key('conditions')}[{i}][{j}]", float(conditions[i, j]),
+                          f"must be finite (the {AXES[j]} load of condition {i + 1})",
+                          "replace it with a finite load in N or N·m", source)
     hold = ld.number("hold_s", duration / len(conditions), positive=True)
     ramp = ld.number("ramp_s", 0.5, nonneg=True)
     if len(conditions) > 1 and ramp >= hold:

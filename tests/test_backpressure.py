@@ -74,6 +74,72 @@ def test_a_stalled_zenoh_subscriber_never_stalls_acquisition(cfg):
           f"{len(seqs)} delivered afterwards, {missed} dropped by Zenoh (DROP), seen as seq gaps")
 
 
+def test_a_high_rate_put_never_waits_for_a_stalled_subscriber(cfg):
+    """The publisher's blocking, measured where it would happen: every high-rate put returns
+    while the subscriber is stalled. Zenoh closes a link blocked for `wait_before_close`
+    (5 s by default), after which a BLOCK put returns too — enough for a BLOCK publisher to pass
+    the test above. Here the publisher's session waits 10 min before closing, so a BLOCK put
+    stays in `put()` for as long as the subscriber does not move."""
+    from daq.telemetry import HIGH_RATE_KEYS, TelemetryPublisher, zenoh_config
+
+    n = 600  # × 3 keys × ~16 kB = ~30 MB: more than every buffer on the way
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    prefix = cfg.telemetry.prefix
+    entered, released = threading.Event(), threading.Event()
+    got: list[int] = []
+
+    def stalled(sample: zenoh.Sample) -> None:
+        entered.set()
+        released.wait(300)
+        got.append(json.loads(sample.payload.to_string())["seq"])
+
+    pub_conf = zenoh_config(cfg.telemetry, listen=[], connect=[ep])
+    pub_conf.insert_json5("transport/link/tx/queue/congestion_control/block/wait_before_close",
+                          "600000000")  # µs
+    filler = list(np.linspace(0.0, 1.0, 800))
+    with zenoh.open(viewer_config([], listen=[ep])) as zs:
+        sub = zs.declare_subscriber(f"{prefix}/**", stalled)
+        with zenoh.open(pub_conf) as zp:
+            tp = TelemetryPublisher(zp, prefix)
+            th = None
+            try:
+                # the route is up once the subscriber's callback is entered: it now stalls
+                probes = 0
+                while not entered.wait(0.05):
+                    tp.publish("hub_loads", {"seq": -1})
+                    probes += 1
+                    assert probes < 600, "no route to the subscriber"
+                done: list[int] = []
+                longest = [0.0]
+
+                def publish_all() -> None:
+                    for k in range(n):
+                        for key in HIGH_RATE_KEYS:
+                            t0 = time.perf_counter()
+                            tp.publish(key, {"seq": k, "filler": filler})
+                            longest[0] = max(longest[0], time.perf_counter() - t0)
+                        done.append(k)
+
+                th = threading.Thread(target=publish_all)
+                th.start()
+                th.join(120)  # a put that waited for the subscriber would still be there
+                puts_while_stalled = len(done) * len(HIGH_RATE_KEYS)
+                assert not released.is_set()
+            finally:
+                released.set()
+                if th is not None:
+                    th.join(60)
+                time.sleep(0.5)  # what is still in the loopback socket
+                tp.close()
+        sub.undeclare()
+    assert puts_while_stalled == n * len(HIGH_RATE_KEYS), "a put waited for the subscriber"
+    delivered = len({k for k in got if k >= 0})
+    assert delivered < n  # the buffers overflowed: a BLOCK put would have had to wait
+    print(f"stalled subscriber: {puts_while_stalled} high-rate puts returned while it was "
+          f"stalled (longest {longest[0] * 1e3:.1f} ms); {delivered} of {n} seq delivered "
+          "afterwards")
+
+
 def _live_reader(cfg, tmp_path, **kw):
     ch = channel_name("backpressure")
     r = Reader(cfg, interface="virtual", channel=ch, master=False, wall_clock=True,

@@ -487,3 +487,23 @@ def test_angles_a_corrupt_file_is_a_one_line_error(cfg, rng, tmp_path, capsys):
     assert main(["angles", "reset", str(other)]) == 2
     assert "refusing to overwrite" in one_line_error(capsys.readouterr().err)
     assert other.read_text() == RIG.read_text()
+
+
+def test_no_identification_reaches_the_service_from_run_demo_and_replay(tmp_path, capsys):
+    """Issue 14: `--no-identification` on `run`, `demo` and `replay` (and `--angles` on
+    `demo`); replay refuses it with `--recompute`."""
+    from daq.commands.run import options_from_args
+
+    p = build_parser()
+    args = p.parse_args(["run", "--sim", "flight", "--no-identification", "--angles", "a.json"])
+    opts = options_from_args(args)
+    assert opts.identification is False and opts.angles == "a.json"
+    assert options_from_args(p.parse_args(["run", "--sim", "flight"])).identification is True
+    args = p.parse_args(["demo", "--angles", "a.json", "--no-identification"])
+    assert args.angles == "a.json" and args.identification is False
+    assert p.parse_args(["replay", "x.log", "--no-identification"]).identification is False
+    out = tmp_path / "out.jsonl"
+    assert main(["replay", "x.log", "--recompute", "--no-identification", "--out",
+                 str(out)]) == 2
+    line = one_line_error(capsys.readouterr().err)
+    assert "--recompute" in line and "--no-identification" in line and not out.exists()

@@ -14,6 +14,11 @@ def test_demo_runs_and_summarises(tmp_path):
                        capture_output=True, text=True, timeout=300, stdin=subprocess.DEVNULL)
     assert r.returncode == 0, r.stderr[-2000:]
     assert "summary" in r.stdout
+    # stdout is a pipe, not a terminal: no line wrapped at 80 columns (issue 13)
+    lines = r.stdout.splitlines()
+    assert any(x.startswith("rsra demo:") and f"telemetry on {ep} (try" in x for x in lines)
+    rms = [x for x in lines if "hub-load RMS error / static bound" in x]
+    assert len(rms) == 2 and all(len(x.split("):")[-1].split()) == 6 for x in rms), rms
     line = next(x for x in r.stdout.splitlines() if x.startswith('{"summary"'))
     summary = json.loads(line)["summary"]
     assert summary["samples"] == 1200 and summary["lost"] == 0
@@ -27,3 +32,67 @@ def test_demo_bad_argument_is_one_line_exit_2():
     r = subprocess.run([sys.executable, "-m", "daq", "demo", "--scenario", "nosuch"],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and r.stderr.count("\n") == 1
+
+
+def test_a_console_on_a_pipe_or_file_wraps_nothing():
+    import io
+
+    from rich.table import Table
+
+    from daq.console import make_console
+
+    c = make_console(file=io.StringIO())
+    assert not c.is_terminal
+    text = "telemetry on tcp/127.0.0.1:7447 " + "x" * 150
+    c.print(text)
+    t = Table("name", "value")
+    t.add_row("a" * 70, "b" * 70)
+    c.print(t)
+    out = c.file.getvalue().splitlines()
+    assert out[0] == text
+    assert any("a" * 70 in x and "b" * 70 in x for x in out)  # the table's row on one line
+
+
+def _posterior_at(tmp_path, deg: float):
+    """A saved posterior (through `rsra angles reset`) with every angle at `deg`."""
+    from daq.cli import main
+    from daq.config import default_config_path
+
+    conf = tmp_path / "rig.toml"
+    text = default_config_path().read_text(encoding="utf-8")
+    assert text.count("initial_angles_deg = 0.0") == 1
+    conf.write_text(text.replace("initial_angles_deg = 0.0", f"initial_angles_deg = {deg}"),
+                    encoding="utf-8")
+    post = tmp_path / "post.json"
+    assert main(["angles", "reset", "--config", str(conf), str(post)]) == 0
+    return post
+
+
+def test_demo_flies_from_a_saved_posterior_with_identification_off(tmp_path):
+    """Issue 14: `rsra demo --angles STATE --no-identification` — the angles of the posterior
+    for the whole run, no identification run."""
+    import math
+
+    post = _posterior_at(tmp_path, 2.0)
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    r = subprocess.run([sys.executable, "-m", "daq", "demo", "--scenario", "flight", "--seed",
+                        "7", "--speed", "max", "--duration", "6", "--angles", str(post),
+                        "--no-identification", "--zenoh-listen", ep],
+                       capture_output=True, text=True, timeout=300, stdin=subprocess.DEVNULL,
+                       check=False)
+    assert r.returncode == 0, r.stderr[-2000:]
+    line = next(x for x in r.stdout.splitlines() if x.startswith('{"summary"'))
+    summary = json.loads(line)["summary"]
+    assert summary["samples"] == 1200 and summary["identification_runs"] == 0
+    assert summary["published"].get("angles", 0) == 0
+    assert summary["alpha_applied"] == [math.radians(2.0)] * 14
+
+
+def test_demo_refuses_a_bad_angles_file_in_one_line_before_starting(tmp_path):
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    rep = tmp_path / "rep"
+    r = subprocess.run([sys.executable, "-m", "daq", "demo", "--angles", str(bad), "--report",
+                        str(rep)], capture_output=True, text=True, timeout=60, check=False)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and str(bad) in r.stderr
+    assert r.stdout == "" and not rep.exists()

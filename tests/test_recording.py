@@ -309,3 +309,27 @@ def test_recording_is_thread_safe_for_angles(cfg, tmp_path):
     lines = (tmp_path / "threads" / ANGLES_FILE).read_text().splitlines()
     assert sorted((json.loads(x)["i"], json.loads(x)["k"]) for x in lines) == \
         [(i, k) for i in range(4) for k in range(50)]
+
+
+def test_a_last_line_cut_anywhere_is_dropped_never_read_as_a_wrong_frame(cfg, tmp_path):
+    """A crash can cut the last line of a candump recording anywhere; the cut line is dropped,
+    whatever is left of it. Every cut position of the last line is tried (deterministic): cut
+    in its data field, a candump line still parses — as a shorter, wrong frame."""
+    rec = Recorder(tmp_path / "whole", cfg)
+    msgs = period_frames(cfg, 0, T0) + period_frames(cfg, 1, T0 + cfg.sample_period_s)
+    for m in msgs:
+        rec.on_message_received(m)
+    rec.stop()
+    path = frame_files(tmp_path / "whole")[0]
+    text = path.read_text()
+    whole = list(read_frames([path]))
+    assert len(whole) == len(msgs)
+    last = text.rstrip("\n").rsplit("\n", 1)[1]
+    assert len(whole[-1].data) >= 2  # the data field can be cut to a shorter frame
+    head = text[:len(text) - len(last) - 1]
+    cut_file = tmp_path / "cut.log"
+    for n in range(len(last) + 1):  # the whole line without its newline, down to nothing
+        cut_file.write_text(head + last[:n])
+        got = list(read_frames([cut_file]))
+        assert len(got) == len(whole) - 1, n
+        assert all(a.equals(b) for a, b in zip(got, whole)), n

@@ -3,6 +3,7 @@ import json
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import zenoh
@@ -190,3 +191,72 @@ def test_identification_runs_on_a_rig_with_measured_external_loads(cfg, tmp_path
     # from the 4° cold start a first window may need more than 10 iterations (measured: 38
     # of 2 400 runs in bench A3); the rest are accepted
     assert sum(a["accepted"] for a in ang) >= 3, [a["reason"] for a in ang]
+
+
+def _replay(cfg, src, capsys=None):
+    """(the replay's note on its angles, its angles records as JSON text); through the
+    command when capsys is given, else through the Service."""
+    from daq.commands.replay import schedule_note
+
+    if capsys is not None:
+        from daq.cli import main
+
+        assert main(["replay", str(src), "--out", str(src) + ".jsonl"]) == 0
+        note = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("angles: "))
+        lines = Path(str(src) + ".jsonl").read_text().splitlines()
+        return note, [x for x in lines if x.startswith('{"key":"angles"')]
+    svc = Service(cfg, ServiceOptions(replay=[str(src)], zenoh=False))
+    got = []
+    svc.add_sink(lambda k, p: got.append(dumps({"key": k, **p})) if k == "angles" else None)
+    summary = svc.run()
+    return schedule_note(summary["angles_schedule"]), got
+
+
+def test_replay_recomputes_without_a_schedule_and_says_what_a_partial_one_holds(
+        cfg, tmp_path, capsys):
+    """bus.md: a replay without an angle schedule (a frame file from elsewhere, a folder with
+    no angles.jsonl) runs the identification itself; an empty or partial schedule is used as
+    it is, and the replay says so (issue 13)."""
+    import shutil
+
+    from daq.commands.replay import schedule_note
+
+    rec = tmp_path / "rec"
+    _, live, _ = run_lockstep(cfg, tmp_path, 16.0, record=str(rec), seed=7)
+    live_angles = [json.loads(p) for k, p in live if k == "angles"]
+    assert len(live_angles) == 3
+    # lock-step runs the identification synchronously: a recomputed replay gives its records
+    ref = [dumps({"key": "angles", **a}) for a in live_angles]
+
+    # a plain frame file, and a folder without angles.jsonl: recomputed, the same records
+    plain = tmp_path / "plain.log"
+    shutil.copy(next(rec.glob("frames*.log")), plain)
+    bare = tmp_path / "bare"
+    shutil.copytree(rec, bare)
+    (bare / "angles.jsonl").unlink()
+    for src, cap in ((plain, capsys), (bare, None)):
+        note, got = _replay(cfg, src, cap)
+        assert "holds no angle schedule" in note and "recomputed" in note
+        assert got == ref
+
+    # an empty schedule (the starting angles only) and a partial one (its first record)
+    lines = (rec / "angles.jsonl").read_text().splitlines()
+    assert json.loads(lines[0])["initial"] and len(lines) == 4
+    for held, words in ((1, "holds no angles record"), (2, "schedule is partial")):
+        part = tmp_path / f"part{held}"
+        shutil.copytree(rec, part)
+        (part / "angles.jsonl").write_text("\n".join(lines[:held]) + "\n")
+        note, got = _replay(cfg, part)
+        assert words in note, note
+        assert [json.loads(g)["applies_from_seq"] for g in got] == [
+            a["applies_from_seq"] for a in live_angles[:held - 1]]
+    assert "ends at sample 1199 (1 record), 10.0 s before the end of the recording" in note
+
+    # identification off (issue 14): neither the schedule nor a recomputation
+    svc = Service(cfg, ServiceOptions(replay=[str(rec)], zenoh=False, identification=False))
+    got = []
+    svc.add_sink(lambda k, p: got.append(k) if k == "angles" else None)
+    summary = svc.run()
+    assert got == [] and summary["identification_runs"] == 0
+    assert summary["alpha_applied"] == json.loads(lines[0])["alpha_all"]
+    assert "identification off" in schedule_note(summary["angles_schedule"])

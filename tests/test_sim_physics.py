@@ -330,6 +330,33 @@ def test_true_angles_constant_step_and_linear(cfg):
     assert thrust_deg == pytest.approx(0.84, abs=0.01)  # 1 deg per 100 kN, 84 kN
 
 
+def test_ground_test_and_flight_fly_the_same_aircraft_for_a_seed(cfg):
+    """Calibrate on the ground, fly with that posterior (issue 14): for a given seed every
+    scenario with random base angles has the same base angles, whatever else it draws (here a
+    flight with a third harmonic and no manoeuvres draws other parameters in between)."""
+    from sim_bus.scenarios import parse_scenario
+
+    raw = tomllib.loads((scenario_dir() / "flight.toml").read_text())
+    raw["harmonics"].append(dict(raw["harmonics"][0], order=2))
+    raw.pop("manoeuvres")
+    other = parse_scenario(raw)
+    bases = []
+    for seed in (1, 7, 1301, 1401):
+        a = [AircraftPhysics(cfg, sc, seed=seed).alpha_base
+             for sc in (load_scenario("ground-test"), load_scenario("flight"), other)]
+        np.testing.assert_array_equal(a[0], a[1])
+        np.testing.assert_array_equal(a[0], a[2])
+        assert np.abs(a[0]).max() <= math.radians(4.0)
+        bases.append(a[0])
+    assert not np.array_equal(bases[0], bases[1])  # another seed, another aircraft
+    # the flight's true angles are those base angles moved with the static load
+    fl = simulate(cfg, "flight", duration_s=1.0, seed=7)
+    gt = simulate(cfg, "ground-test", duration_s=1.0, seed=7)
+    assert np.all(gt.alpha_true == AircraftPhysics(cfg, "flight", seed=7).alpha_base)
+    drift = np.degrees(np.abs(fl.alpha_true - gt.alpha_true[0]).max())
+    assert 0.5 < drift < 1.5  # about 1° per 100 kN of thrust (trim 95 kN)
+
+
 # ----------------------------------------------------------------------------- determinism
 
 def test_same_seed_identical_other_seed_different(cfg):

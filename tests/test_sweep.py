@@ -81,6 +81,8 @@ def test_segments_found_in_the_balance_data(sweep_rec, cfg):
     for s, lev in zip(segs, LEVELS_LBF * 3):
         assert s.amplitude == pytest.approx(lev * LBF_N, rel=0.02)
         assert (s.stop - s.start) / data.fs == pytest.approx(SWEEP_S + 1.0, abs=1.0)
+        # one axis at a time: the other axes hold balance noise only (RMS ~ 1 σ)
+        assert s.single_axis and s.other_axes_snr < 1.5
 
 
 def test_sweep_recovers_unmodelled_loads_and_table(sweep_rec, cfg, capsys):
@@ -158,6 +160,19 @@ def test_recording_without_balance_is_a_usage_error(tmp_path, cfg, capsys):
     assert main(["sweep", str(tmp_path / "flight.log"), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip()
     assert "balance" in err and "\n" not in err
+
+
+def test_a_recording_that_holds_no_sweep_says_so(tmp_path, cfg, capsys):
+    """A ground test (rotor harmonics on every axis, balance on the bus) is not a shake test:
+    one line saying so, exit 2, no output folder left behind (issue 13)."""
+    from sim_bus.scenarios import load_scenario
+
+    _record(cfg, load_scenario("ground-test"), 4.0, tmp_path / "ground.log")
+    out = tmp_path / "o"
+    assert main(["sweep", str(tmp_path / "ground.log"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "holds no shake-test sweep" in err and "several axes" in err and "\n" not in err
+    assert not out.exists()
 
 
 @pytest.mark.parametrize("argv, text", [

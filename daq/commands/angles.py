@@ -162,10 +162,11 @@ def _show(cfg: RigConfig, args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({"file": str(args.state), **d}, allow_nan=False))
         return 0
-    from rich.console import Console
     from rich.table import Table
 
-    console = Console(soft_wrap=True)
+    from daq.console import make_console
+
+    console = make_console()
     smax = d["sigma_max_deg"]
     t = Table(title=f"Posterior {args.state} (rig {cfg.rig_name!r})")
     for col in ("parameter", "angle (deg)", "σ (deg)", f"σ ≤ {smax:g}°"):

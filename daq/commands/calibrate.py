@@ -223,14 +223,14 @@ def _fmt(v: float, unit: str) -> str:
 
 
 def _print_tables(cfg, result, units: str, notes: list[str], wrote: str | None) -> None:
-    from rich.console import Console
     from rich.table import Table
 
     from daq.calibrate import parameter_unit
+    from daq.console import make_console
     from daq.units import axis_units, to_units
 
     # a pipe gets the full table (rich assumes 80 columns there and would cut the numbers)
-    con = Console(soft_wrap=True, width=None if sys.stdout.isatty() else 132)
+    con = make_console()
     d = result.data
     con.print(f"calibrate: {', '.join(d.files)} — {d.samples_read} samples read "
               f"({d.duration_s:.1f} s), {d.n_valid} with known loads, {d.n_scored} scored "

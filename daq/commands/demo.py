@@ -16,7 +16,7 @@ DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
     from daq.cli import common_options
-    from daq.commands.run import add_sim_options
+    from daq.commands.run import add_no_identification, add_sim_options
 
     p = sub.add_parser(name, help="the simulator and the service in one process, with a live view",
                        description="The main job on the embedded default: the simulated "
@@ -35,6 +35,13 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
                    help="at the end, write plots (PNG) and a summary here")
     p.add_argument("--record", metavar="DIR", default=None,
                    help="record every frame, the angle schedule and the truth here")
+    p.add_argument("--angles", metavar="STATE", default=None,
+                   help="start from a saved posterior (e.g. a ground test's "
+                   "identification.state_file) instead of the configured initial angles")
+    from daq.posterior_file import add_accept_option
+
+    add_accept_option(p)
+    add_no_identification(p)
     p.add_argument("--zenoh-listen", action="append", default=[], metavar="EP",
                    help=f"Zenoh endpoint (default {DEFAULT_ENDPOINT}, or a free loopback port "
                    "when that one is taken)")
@@ -64,15 +71,21 @@ def _endpoint(args) -> tuple[list[str], str | None]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rich.console import Console
-
-    from daq.commands.run import config_for_run, setup_logging
+    from daq.cli import UsageError
+    from daq.commands.run import check_sim_faults, config_for_run, setup_logging
+    from daq.console import make_console
     from daq.demo_view import DemoState, render
-    from daq.service import Service, ServiceOptions
+    from daq.service import Service, ServiceOptions, initial_angles
     from estimator.noise_budget import noise_budget
+    from estimator.posterior import PosteriorFileError
 
     setup_logging(args.log_level, None)
     cfg = config_for_run(args.config, args.scenario)
+    check_sim_faults(cfg, args.scenario, args.faults, args.speed)  # before anything is created
+    try:  # a bad --angles file: one line before anything starts
+        alpha0, _, _ = initial_angles(cfg, args.angles, args.accept_rig_mismatch)
+    except PosteriorFileError as e:
+        raise UsageError(str(e)) from None
     listen, note = _endpoint(args)
     report_jsonl = None
     closers = []
@@ -82,12 +95,14 @@ def run(args: argparse.Namespace) -> int:
         report_jsonl = Path(tmp) / "records.jsonl"
     opts = ServiceOptions(sim=args.scenario, seed=args.seed, faults=args.faults, speed=args.speed,
                           duration=args.duration, zenoh_listen=listen, record=args.record,
+                          angles=args.angles, accept_rig_mismatch=args.accept_rig_mismatch,
+                          identification=args.identification,
                           keep_truth=bool(args.report),
                           truth=str(Path(report_jsonl).parent / "truth.npz") if report_jsonl else None)
     svc = Service(cfg, opts)
     svc.install_signal_handlers()
     model = cfg.rig_model()
-    nb = noise_budget(model, cfg.identification.initial_angles_rad)
+    nb = noise_budget(model, alpha0)
     state = DemoState(cfg, nb.total, model.geometry.angle_names)
 
     def sink(key, payload):
@@ -107,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
         jsink, jclose = jsonl_sink(report_jsonl)
         svc.add_sink(jsink)
         closers.append(jclose)
-    console = Console()
+    console = make_console()
     speed = "as fast as possible (lock-step)" if args.speed is None else (
         "real time" if args.speed == 1.0 else f"{args.speed:g}x real time (lock-step)")
     title = f"{args.scenario}, {speed}"
@@ -190,6 +205,11 @@ def _print_summary(console, summary: dict, state) -> None:
         s = np.degrees([np.sqrt(ang["P"][i][i]) for i in range(len(names))])
         lines.append(f"angles: max |error| {np.abs(e).max():.3f} deg, max sigma {s.max():.3f} deg, "
                      f"determined {ang.get('determined')}/{len(names)}")
+    elif not ang and summary.get("alpha_applied") and ta is not None:
+        # no identification run: the starting angles held for the whole run
+        e = np.degrees(np.asarray(summary["alpha_applied"], float) - ta)
+        lines.append(f"angles (held, no identification run): max |error| "
+                     f"{np.abs(e).max():.3f} deg")
     console.print("[bold]summary[/]: " + "\n  ".join(lines))
     if not console.is_terminal:
         print(json.dumps({"summary": summary}, default=str), file=sys.stdout)

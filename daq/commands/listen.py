@@ -164,11 +164,12 @@ def run(args: argparse.Namespace) -> int:
                 for k in keys]
         live = None
         if not args.json:
-            from rich.console import Console
             from rich.live import Live
 
+            from daq.console import make_console
+
             live = Live(render(stats, prefix, args.units, time.monotonic()),
-                        console=Console(), refresh_per_second=4, transient=False)
+                        console=make_console(), refresh_per_second=4, transient=False)
             live.start()
         try:
             last_draw = 0.0

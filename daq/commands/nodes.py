@@ -298,10 +298,11 @@ def run(args: argparse.Namespace) -> int:
 
 def _print_table(cfg: RigConfig, reports: list[NodeReport], args: argparse.Namespace,
                  ok: bool) -> None:
-    from rich.console import Console
     from rich.table import Table
 
-    console = Console(soft_wrap=True)
+    from daq.console import make_console
+
+    console = make_console()
     if not console.is_terminal:
         console.width = max(console.width, 120)  # piped into a file: don't wrap the table
     t = Table(title=f"Nodes of rig {cfg.rig_name!r} on {args.interface}"

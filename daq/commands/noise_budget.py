@@ -32,13 +32,14 @@ def run(args: argparse.Namespace) -> int:
                           "load_cells": cells.tolist(), "accelerometers": acc.tolist()},
                          allow_nan=False))
         return 0
-    from rich.console import Console
     from rich.table import Table
+
+    from daq.console import make_console
 
     t = Table(title=f"Static-estimate noise budget, rig {cfg.rig_name!r}, {cfg.hub_frame} axes")
     for col in ("axis", "unit", "total σ", "load cells", "accelerometers"):
         t.add_column(col, justify="right" if col not in ("axis", "unit") else "left")
     for i, ax in enumerate(AXES):
         t.add_row(ax, units[i], f"{total[i]:.1f}", f"{cells[i]:.1f}", f"{acc[i]:.1f}")
-    Console().print(t)
+    make_console().print(t)
     return 0

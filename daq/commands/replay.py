@@ -6,6 +6,8 @@ Writes one JSON object per published message with ``--out`` (``{"key": "channels
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -16,6 +18,7 @@ from daq.reader import Reader
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
     from daq.cli import common_options
+    from daq.commands.run import add_no_identification
 
     p = sub.add_parser(
         name, help="feed recordings through the reader and the estimator (and write every record)",
@@ -43,6 +46,9 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
     from daq.posterior_file import add_accept_option
 
     add_accept_option(p)
+    add_no_identification(p, help="neither the recorded angle schedule nor a recomputed "
+                          "identification: the angles stay at the recording's starting angles "
+                          "(or --angles) for the whole replay")
     p.add_argument("--zenoh-config", metavar="FILE", default=None, help="with --publish")
     p.add_argument("--zenoh-listen", action="append", default=[], metavar="EP",
                    help="with --publish (default tcp/127.0.0.1:7447)")
@@ -70,29 +76,30 @@ def replay_records(cfg: RigConfig, logs: list[str], realtime: bool = False,
 def run(args: argparse.Namespace) -> int:
     from daq.cli import UsageError
     from daq.commands.run import setup_logging
-    from daq.config import ConfigError
     from daq.jsonout import dumps
-    from daq.replay import ReplayError, config_for, expand
+    from daq.replay import ReplayError, config_for, expand, read_frames
     from daq.service import Service, ServiceOptions
-    from estimator.posterior import PosteriorFileError
 
     setup_logging(args.log_level, None)
+    if args.recompute and not args.identification:
+        raise UsageError("--recompute and --no-identification contradict each other; give one")
     try:
-        expand(args.logs)
+        files = expand(args.logs)
     except ReplayError as e:
         raise UsageError(str(e)) from None
+    for f in files:  # a file that is not a recording at all: refused before any work
+        with contextlib.closing(read_frames([f])) as frames:
+            next(frames, None)
     cfg = config_for(args.logs, args.config)
-    out = None
+    out: _LazyFile | None = None
     if args.out == "-":
         out = sys.stdout
     elif args.out:
-        try:
-            out = open(Path(args.out), "w", encoding="utf-8")
-        except OSError as e:
-            raise UsageError(f"--out {args.out}: cannot write ({e.strerror})") from None
+        out = _LazyFile(Path(args.out))
     opts = ServiceOptions(replay=list(args.logs), recompute=args.recompute, realtime=args.realtime,
                           angles=args.angles, zenoh=args.publish,
                           accept_rig_mismatch=args.accept_rig_mismatch,
+                          identification=args.identification,
                           zenoh_config=args.zenoh_config, zenoh_listen=args.zenoh_listen,
                           zenoh_connect=args.zenoh_connect)
     service = Service(cfg, opts)
@@ -108,12 +115,13 @@ def run(args: argparse.Namespace) -> int:
     service.add_sink(sink)
     try:
         summary = service.run()
-    except PosteriorFileError as e:
-        raise UsageError(str(e)) from None
-    except ConfigError:  # e.g. identification.state_file (--recompute): exit 2 naming the key
+        if isinstance(out, _LazyFile):
+            out.touch()  # a replay that published nothing still gives its (empty) output
+    except ReplayError as e:  # a damaged recording: what was replayed before it is kept
+        if isinstance(out, _LazyFile) and out.records:
+            raise ReplayError(f"{e} ({args.out} holds the {out.records} records before "
+                              "it)") from None
         raise
-    except (ValueError, OSError) as e:  # a corrupt or truncated log file
-        raise UsageError(f"cannot read the recording: {e}") from None
     finally:
         progress.close()
         if out is not None and out is not sys.stdout:
@@ -123,8 +131,80 @@ def run(args: argparse.Namespace) -> int:
     text = _summary(counts, health)
     text += (f"; identification runs {summary.get('identification_runs', 0)} "
              f"(accepted {summary.get('accepted', 0)})")
-    print(text, file=sys.stderr if out is sys.stdout else sys.stdout)
+    stream = sys.stderr if out is sys.stdout else sys.stdout
+    print(text, file=stream)
+    note = schedule_note(summary.get("angles_schedule"))
+    if note:
+        print(note, file=stream)
     return 0
+
+
+class _LazyFile:
+    """The --out file, created at the first record: a replay refused before it publishes
+    anything (a damaged recording, a bad config, a Zenoh port in use) leaves no empty file and
+    leaves an existing one as it was. Where it cannot be written is checked at once."""
+
+    def __init__(self, path: Path):
+        from daq.cli import UsageError
+
+        self.path = path
+        self.file = None
+        self.records = 0
+        parent = path.parent if str(path.parent) else Path(".")
+        if path.is_dir():
+            raise UsageError(f"--out {path}: is a folder; fix: give a file name")
+        if not parent.is_dir():
+            raise UsageError(f"--out {path}: no folder {parent}; fix: create it or write elsewhere")
+        if not os.access(path if path.exists() else parent, os.W_OK):
+            raise UsageError(f"--out {path}: cannot write there (permission denied); fix: "
+                             "write elsewhere")
+
+    def write(self, text: str) -> None:
+        try:
+            if self.file is None:
+                self.file = open(self.path, "w", encoding="utf-8")
+            self.file.write(text)
+        except OSError as e:  # a full disk: exit 1, one line naming the file
+            raise OSError(e.errno, f"--out cannot be written ({e.strerror or e})",
+                          str(self.path)) from None
+        self.records += 1
+
+    def touch(self) -> None:
+        if self.file is None:
+            self.file = open(self.path, "w", encoding="utf-8")
+
+    def close(self) -> None:
+        if self.file is not None:
+            self.file.close()
+def schedule_note(sch: dict | None) -> str | None:
+    """One line: where the replay's angles came from (recomputed, or the recorded schedule,
+    and whether that schedule was empty or partial)."""
+    if not sch:
+        return None
+    if sch["source"] == "off":
+        return ("angles: identification off (--no-identification): the angles stayed at the "
+                "starting angles")
+    if sch["source"] == "recomputed":
+        if sch["why"] == "--recompute":
+            return "angles: identification recomputed (--recompute)"
+        return ("angles: the recording holds no angle schedule (no angles.jsonl): "
+                "identification recomputed")
+    start = ("its starting angles" if sch["initial"] else
+             "the configured initial angles or --angles (it holds no starting angles)")
+    if sch["records"] == 0 or sch.get("last_applies_from_seq") is None:
+        return (f"angles: {sch['file']} holds no angles record: the angles stayed at {start} "
+                "(--recompute to identify)")
+    n = sch["records"]
+    text = f"angles: the recorded schedule, {n} record{'s' if n != 1 else ''}"
+    if sch.get("partial"):
+        text = (f"angles: the recorded schedule is partial: it ends at sample "
+                f"{sch['last_applies_from_seq']} ({n} record{'s' if n != 1 else ''}), "
+                f"{sch['uncovered_s']:.1f} s before the end of the recording; the last recorded "
+                "angles held from there (--recompute to identify)")
+    if not sch["initial"]:
+        text += ("; it holds no starting angles: started from the configured initial angles "
+                 "or --angles")
+    return text
 
 
 def _summary(counts: dict, health: dict | None) -> str:

@@ -46,6 +46,12 @@ def add_sim_options(p: argparse.ArgumentParser) -> None:
                    help="stop after S seconds of acquisition time (exit 0)")
 
 
+def add_no_identification(p: argparse.ArgumentParser, help: str | None = None) -> None:
+    p.add_argument("--no-identification", dest="identification", action="store_false",
+                   help=help or "no on-line identification: the angles stay at the starting "
+                   "ones (--angles, else the configured initial angles) for the whole run")
+
+
 def add_service_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--record", metavar="DIR", default=None,
                    help="record every frame, the angle schedule and the effective config here")
@@ -54,6 +60,7 @@ def add_service_options(p: argparse.ArgumentParser) -> None:
     from daq.posterior_file import add_accept_option
 
     add_accept_option(p)
+    add_no_identification(p)
     p.add_argument("--zenoh-config", metavar="FILE", default=None,
                    help="a Zenoh config file (TLS, user/password, access control)")
     p.add_argument("--zenoh-listen", action="append", default=[], metavar="EP",
@@ -93,8 +100,14 @@ def setup_logging(level: str, log_file: str | None) -> None:
     for h in list(root.handlers):
         root.removeHandler(h)
     if log_file:
-        h: logging.Handler = logging.handlers.RotatingFileHandler(
-            log_file, maxBytes=LOG_FILE_BYTES, backupCount=LOG_FILE_BACKUPS)
+        try:
+            h: logging.Handler = logging.handlers.RotatingFileHandler(
+                log_file, maxBytes=LOG_FILE_BYTES, backupCount=LOG_FILE_BACKUPS)
+        except OSError as e:
+            from daq.cli import UsageError
+
+            raise UsageError(f"--log-file {log_file}: cannot be written ({e.strerror or e}); "
+                             "fix: give a file in an existing, writable folder") from None
     else:
         h = logging.StreamHandler(sys.stderr)
     h.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
@@ -123,39 +136,32 @@ def options_from_args(args: argparse.Namespace):
         faults=args.faults, speed=args.speed, record=args.record, duration=args.duration,
         angles=args.angles, accept_rig_mismatch=args.accept_rig_mismatch,
         zenoh_config=args.zenoh_config, zenoh_listen=args.zenoh_listen,
-        zenoh_connect=args.zenoh_connect, truth=getattr(args, "truth", None))
+        zenoh_connect=args.zenoh_connect, truth=getattr(args, "truth", None),
+        identification=args.identification)
 
 
 def run_service(cfg, opts, quiet: bool = False) -> int:
-    from daq.cli import UsageError
-    from daq.master import BootError
-    from daq.recorder import RecordingError
-    from daq.service import BusOpenError, Service
-    from estimator.posterior import PosteriorFileError
-    from sim_bus.faults import FaultSpecError
+    """Run the service to its end; every failure reaches the one error path in daq.cli."""
+    from daq.service import Service
 
     service = Service(cfg, opts)
     service.install_signal_handlers()
-    try:
-        summary = service.run()
-    except (PosteriorFileError, FaultSpecError, RecordingError) as e:
-        raise UsageError(str(e)) from None
-    except BootError as e:
-        print(f"rsra: the nodes could not be started: {e}", file=sys.stderr)
-        return 1
-    except BusOpenError as e:
-        raise UsageError(str(e)) from None
-    except Exception as e:
-        import zenoh
-
-        if isinstance(e, zenoh.ZError):  # refused by a router (TLS, password), bad endpoint
-            print(f"rsra: cannot open the Zenoh session: {e} (check --zenoh-config/"
-                  "--zenoh-listen/--zenoh-connect, certificates and credentials)", file=sys.stderr)
-            return 1
-        raise
+    summary = service.run()
     if not quiet:
         print(json.dumps({"summary": summary}, allow_nan=False, default=str))
     return 0
+
+
+def check_sim_faults(cfg, scenario: str | None, faults: str | None, speed: float | None) -> None:
+    """A --faults SPEC checked against the simulated bus before anything starts (FaultSpecError:
+    one line, exit 2): the same parse and check as the simulator's."""
+    if not faults or scenario is None:
+        return
+    from sim_bus.bus_sim import check_faults
+    from sim_bus.scenarios import load_scenario
+
+    # the service's simulator produces SYNC itself (autostart) in lock-step only
+    check_faults(cfg, faults, load_scenario(scenario).nodes_present, autostart=speed != 1.0)
 
 
 def config_for_run(config: str | None, scenario: str | None):
@@ -181,4 +187,5 @@ def run(args: argparse.Namespace) -> int:
     setup_logging(args.log_level, args.log_file)
     opts = options_from_args(args)
     cfg = config_for_run(args.config, args.sim)
+    check_sim_faults(cfg, args.sim, args.faults, args.speed)
     return run_service(cfg, opts)

@@ -57,10 +57,10 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     import can
-    from rich.console import Console
 
     from daq.cli import UsageError
     from daq.config import load_config
+    from daq.console import make_console
     from sim_bus.bus_sim import RecordError, Simulator
     from sim_bus.faults import FaultSpecError
     from sim_bus.physics import AircraftPhysics
@@ -95,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"cannot open the bus --interface {args.interface} --channel "
                          f"{args.channel}: {e}; check the interface and channel") from None
 
-    console = Console(stderr=True, soft_wrap=True)
+    console = make_console(stderr=True)
     stop = threading.Event()
     t_start = time.monotonic()
     mode = "autostart, producing SYNC" if args.autostart else "waiting for the master's NMT start and SYNC"

@@ -3,6 +3,7 @@ report Phase I, Eq 1.3–1.5, Table I, Figures 4–18; daq/sweep.py)."""
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -36,23 +37,31 @@ def _default_out(first: str) -> Path:
     return p.parent / f"{p.name if p.is_dir() else p.stem}-sweep"
 
 
+def _check_writable(out: Path) -> None:
+    from daq.cli import UsageError
+
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"--out {out}: is a file; give a folder")
+    p = out
+    while not p.exists():
+        p = p.parent
+    if not os.access(p, os.W_OK):
+        raise UsageError(f"--out {out}: cannot create the folder (permission denied in {p}); "
+                         "give a writable folder")
+
+
 def run(args: argparse.Namespace) -> int:
     from daq.cli import UsageError
     from daq.jsonout import dumps
     from daq.replay import ReplayError, config_for, expand
-    from daq.sweep import (SweepError, analyse_sweep, load_sweep_data, plot_sweep, sweep_json,
-                           sweep_table)
+    from daq.sweep import sweep_json, sweep_table
 
     try:
         expand(args.logs)
     except ReplayError as e:
         raise UsageError(str(e)) from None
     out = Path(args.out) if args.out else _default_out(args.logs[0])
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise UsageError(f"--out {out}: cannot create the folder ({e.strerror}); give a "
-                         "writable folder") from None
+    _check_writable(out)  # created once the recording has been read: a bad one leaves nothing
     cfg = config_for(args.logs, args.config)
     status = _Status(sys.stderr.isatty())
     try:
@@ -68,6 +77,11 @@ def run(args: argparse.Namespace) -> int:
             result = analyse_sweep(cfg, data)
         except SweepError as e:
             raise UsageError(f"{args.logs[0]}: {e}") from None
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise UsageError(f"--out {out}: cannot create the folder ({e.strerror}); give a "
+                             "writable folder") from None
         status.say("plotting")
         plots = plot_sweep(result, out, args.units)
     finally:
@@ -79,6 +93,11 @@ def run(args: argparse.Namespace) -> int:
     print(table)
     print(f"\nwrote {out / 'sweep_table.txt'}, {out / 'sweep.json'} and "
           f"{len(plots)} plots in {out}")
+    if result.excluded:
+        secs = sum(s.stop - s.start for s in result.excluded) / result.fs
+        print(f"note: {len(result.excluded)} stretches of oscillating load ({secs:.1f} s) on "
+              "several axes at once are not a shaker excitation and were left out",
+              file=sys.stderr)
     if data.filled:
         print(f"note: {data.filled} of {len(data.t)} samples were missing or incomplete and "
               "were interpolated", file=sys.stderr)

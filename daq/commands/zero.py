@@ -413,10 +413,10 @@ Exit 0 when the fragment is written, 2 for a usage or configuration error.""")
 
 def run(args: argparse.Namespace) -> int:
     import can
-    from rich.console import Console
 
     from daq.cli import UsageError
     from daq.config import load_config
+    from daq.console import make_console
     from daq.master import BootError
     from daq.reader import Reader
 
@@ -437,7 +437,7 @@ def run(args: argparse.Namespace) -> int:
     specs = channel_specs(cfg, table, args.max_offset_fs)
     alpha, angles_from = _angles(cfg, args.angles, args.accept_rig_mismatch)
 
-    report = Console(stderr=out is None, soft_wrap=True)
+    report = make_console(stderr=out is None)
     if not report.is_terminal:
         report.width = max(report.width, 120)
     bus = f"{args.interface}:{args.channel}" if args.channel else args.interface
