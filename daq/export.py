@@ -302,7 +302,8 @@ def read_records(path: Path) -> Iterator[tuple[str, dict]]:
         with open(path, encoding="utf-8", errors="replace") as f:
             yield from _parse_lines(path, f)
     except OSError as e:
-        raise ExportError(f"{path}: cannot read ({e.strerror})") from None
+        raise ExportError(f"{path}: cannot read ({e.strerror}); fix: check the path and "
+                          "its permissions") from None
 
 
 def _parse_lines(path: Path, f) -> Iterator[tuple[str, dict]]:
@@ -312,10 +313,10 @@ def _parse_lines(path: Path, f) -> Iterator[tuple[str, dict]]:
         try:
             rec = json.loads(line)
         except ValueError as e:
-            raise ExportError(f"{path}:{n}: not a JSON line ({e.msg}); give a file "
+            raise ExportError(f"{path}:{n}: not a JSON line ({e.msg}); fix: give a file "
                               "written by `rsra replay --out`") from None
         if not isinstance(rec, dict) or not isinstance(rec.get("key"), str):
-            raise ExportError(f"{path}:{n}: a record without a \"key\"; give a file "
+            raise ExportError(f"{path}:{n}: a record without a \"key\"; fix: give a file "
                               "written by `rsra replay --out`")
         key = rec.pop("key")
         yield key, rec
@@ -580,4 +581,6 @@ def replay_to_jsonl(cfg: RigConfig, logs: list[str], out, on_error: Callable[[st
     except ConfigError:
         raise
     except (ValueError, OSError, BLFParseError) as e:  # a corrupt or truncated log file
-        raise on_error(f"cannot read the recording: {e}") from None
+        why = " ".join(str(e).split())
+        raise on_error(f"cannot read the recording: {why}" + (
+            "" if "fix:" in why else "; fix: give an undamaged recording")) from None

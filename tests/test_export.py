@@ -324,7 +324,7 @@ def _one_line_exit_2(capsys, argv) -> str:
     assert cli_main(argv) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("rsra export: error: "), err
-    assert "Traceback" not in err
+    assert "Traceback" not in err and "; fix: " in err, err
     return err
 
 

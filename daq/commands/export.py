@@ -48,12 +48,13 @@ class _Staged:
 
     def file(self, target: Path, usage: Callable[[str], Exception]) -> Path:
         if target.is_dir():
-            raise usage(f"{target}: is a folder; give a file name")
+            raise usage(f"{target}: is a folder; fix: give a file name")
         try:
             fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.",
                                        suffix=".part")
         except OSError as e:
-            raise usage(f"{target}: cannot write ({e.strerror})") from None
+            raise usage(f"{target}: cannot write there ({e.strerror}); fix: create the "
+                        "folder or write elsewhere") from None
         os.close(fd)
         mask = os.umask(0)  # mkstemp makes 0600: give the file the mode open() would
         os.umask(mask)
@@ -63,12 +64,13 @@ class _Staged:
 
     def folder(self, target: Path, usage: Callable[[str], Exception]) -> None:
         if target.exists() and not target.is_dir():
-            raise usage(f"--parquet {target}: is a file; give a folder")
+            raise usage(f"--parquet {target}: is a file; fix: give a folder")
         if not target.exists():
             try:
                 target.mkdir()
             except OSError as e:
-                raise usage(f"--parquet {target}: cannot create ({e.strerror})") from None
+                raise usage(f"--parquet {target}: cannot create ({e.strerror}); fix: "
+                            "create its parent folder or write elsewhere") from None
             self.made_dir = target
 
     def commit(self) -> None:
@@ -96,26 +98,29 @@ def run(args: argparse.Namespace) -> int:
     from daq.replay import ReplayError, config_for, expand
 
     if not (args.dbc or args.mcap or args.parquet):
-        raise UsageError("nothing to write: give --dbc FILE, --mcap FILE or --parquet DIR")
+        raise UsageError("nothing to write; fix: give --dbc FILE, --mcap FILE or --parquet DIR")
     telemetry = None
     logs: list[str] = []
     if args.inputs:
         tel = [p for p in args.inputs if Path(p).suffix.lower() in TELEMETRY_SUFFIXES]
         if tel and len(args.inputs) > 1:
-            raise UsageError(f"{tel[0]}: export one telemetry file at a time, without "
-                             "recordings beside it")
+            raise UsageError(f"{tel[0]}: a telemetry file among other inputs; fix: export "
+                             "one telemetry file at a time, on its own")
         if tel:
             telemetry = Path(tel[0])
             if not telemetry.is_file():
-                raise UsageError(f"{telemetry}: no such file")
+                raise UsageError(f"{telemetry}: no such file; fix: give a file written by "
+                                 "`rsra replay --out`")
         else:
             try:
                 expand(args.inputs)
             except ReplayError as e:
-                raise UsageError(f"{e}") from None
+                raise UsageError(f"{e}" + ("" if "fix:" in str(e) else (
+                    "; fix: give recordings (frame files or recording folders) or a "
+                    "RESULTS.jsonl written by `rsra replay --out`"))) from None
             logs = list(args.inputs)
     elif args.mcap or args.parquet:
-        raise UsageError("--mcap and --parquet need the telemetry to export: give a "
+        raise UsageError("--mcap and --parquet need the telemetry to export; fix: give a "
                          "RESULTS.jsonl from `rsra replay --out`, or recordings")
     cfg = config_for(logs, args.config) if logs else load_config(args.config)
 
@@ -185,7 +190,7 @@ def _telemetry(cfg, source: Path | None, scratch, args, mcap_tmp: Path | None,
             yield rec.pop("key"), rec
 
     if next(records(), None) is None:
-        raise ExportError(f"{source or ' '.join(args.inputs)}: no telemetry records; give a "
+        raise ExportError(f"{source or ' '.join(args.inputs)}: no telemetry records; fix: give a "
                           "file written by `rsra replay --out`, or a recording with samples")
     out = []
     if mcap_tmp is not None:
