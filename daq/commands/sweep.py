@@ -54,7 +54,8 @@ def run(args: argparse.Namespace) -> int:
     from daq.cli import UsageError
     from daq.jsonout import dumps
     from daq.replay import ReplayError, config_for, expand
-    from daq.sweep import sweep_json, sweep_table
+    from daq.sweep import (SweepError, analyse_sweep, load_sweep_data, plot_sweep, sweep_json,
+                           sweep_table)
 
     try:
         expand(args.logs)
