@@ -27,6 +27,7 @@ COMMANDS = {
     "report": "report",
     "sweep": "sweep",
     "calibrate": "calibrate",
+    "export": "export",
 }
 
 
