@@ -198,7 +198,7 @@ FIELDS: dict[str, list[tuple[str, str, str]]] = {
         ("information", "number", ""), ("nu", "number", ""), ("cost", "number", ""),
         ("iterations", "integer", ""), ("window", "array:integer", ""),
         ("applies_from_seq", "integer", ""), ("late", "boolean", ""),
-        ("condition", "number", "")],
+        ("restarted", "boolean", ""), ("condition", "number", "")],
     "health": [
         ("t", "number", "s (UNIX)"), ("nodes", "object", ""),
         ("nodes.<node>.state", "string", ""), ("nodes.<node>.heartbeat_age", "number", "s"),
@@ -227,6 +227,12 @@ FIELDS: dict[str, list[tuple[str, str, str]]] = {
         ("queues.master_events.dropped", "integer", ""),
         *[(f"queues.identification.{n}", "integer", "") for n in (
             "submitted", "dropped", "errors")],
+        ("identification", "object", ""), ("identification.worker", "string", ""),
+        ("identification.pid", "integer", ""), ("identification.deaths", "integer", ""),
+        ("identification.restarts", "integer", ""), ("identification.last_death", "string", ""),
+        ("identification.off_reason", "string", ""),
+        ("identification.save_error", "string", ""),
+        ("identification.save_failures", "integer", ""),
         ("queues.publisher.depth", "integer", ""), ("queues.publisher.dropped", "integer", ""),
         ("estimator.implausible_omega", "integer", ""),
         ("estimator.design_errors", "integer", ""), ("estimator.stuck_samples", "integer", ""),

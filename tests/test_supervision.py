@@ -251,7 +251,9 @@ def test_a_failed_posterior_save_keeps_the_result_and_is_retried(tmp_path, caplo
     state_file = tmp_path / "posterior.json"
     cfg = load_config(overrides={"identification": {**SHORT["identification"],
                                                      "state_file": str(state_file)}})
-    svc, recs = _lockstep(cfg, 5.2)  # (a health record after the second result)
+    # health comes at whole seconds of acquisition (UNIX) time: 5.9 s holds one after the
+    # second result (applied at 4.5 s) whatever the start phase
+    svc, recs = _lockstep(cfg, 5.9)
     svc.worker_initializer = disk_full_once
     applied = {}
 
