@@ -83,6 +83,10 @@ class FrameTap(can.Listener):
         self.reader = reader
         self.subscribers = network.subscribers  # canopen's subscribe table (live dict)
         self.known = frozenset(known)
+        asm = reader.assembler
+        self.sync_cob = asm.sync_cob_id
+        self.stamp_sync = asm.stamp_sync
+        self.stamp_frame = asm.clock.stamp_frame
         self.frames = 0
         self.errors = 0
         self.bus_off = 0
@@ -98,6 +102,14 @@ class FrameTap(can.Listener):
     def on_message_received(self, msg: can.Message) -> None:
         self.frames += 1
         t = _floor(msg.timestamp * 1e6 + 0.5) / 1e6  # 1 µs, the recordings' resolution
+        # a time far from where the SYNC counter / schedule puts the frame is re-stamped
+        # (counted as a bad timestamp; docs/reliability.md)
+        cid = msg.arbitration_id
+        if cid == self.sync_cob and not (msg.is_extended_id or msg.is_error_frame
+                                         or msg.is_remote_frame):
+            t = _floor(self.stamp_sync(msg.data, t, self.frame_time) * 1e6 + 0.5) / 1e6
+        else:
+            t = _floor(self.stamp_frame(t, self.frame_time) * 1e6 + 0.5) / 1e6
         if t > self.frame_time:
             self.frame_time = t
             if t >= self.deadline:
@@ -107,7 +119,6 @@ class FrameTap(can.Listener):
         # the frame carries the acquisition time from here on: the recorder (next listener)
         # writes exactly this value, so a replay sees the same clock bit for bit
         msg.timestamp = t
-        cid = msg.arbitration_id
         cbs = self.subscribers.get(cid)
         if cbs is None or msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
             self._classify(msg, cid, cbs)
@@ -518,5 +529,13 @@ class Reader:
             queues["master_events"] = {"depth": self.master._events.qsize(),
                                        "dropped": self.master.events_dropped}
         rec = self.recorder.status() if self.recorder is not None else {"active": False}
-        return {"t": t if math.isfinite(t) else None, "nodes": self.supervisor.snapshot(t),
-                "bus": bus, "samples": asm.counters(), "queues": queues, "recording": rec}
+        payload = {"t": t if math.isfinite(t) else None, "nodes": self.supervisor.snapshot(t),
+                   "bus": bus, "samples": asm.counters(), "queues": queues, "recording": rec}
+        payload["sync"] = self.sync_health(t)
+        return payload
+
+    # -- health: SYNC counts and times (one section: docs/telemetry.md "sync.*") -----------
+    def sync_health(self, t: float) -> dict:
+        """Duplicated SYNCs, bad timestamps (docs/reliability.md)."""
+        asm = self.assembler
+        return {"duplicate": asm.duplicate_sync, "bad_timestamp": asm.clock.bad_timestamp}
