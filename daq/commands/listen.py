@@ -170,6 +170,9 @@ def render(stats: dict[str, KeyStats], prefix: str, units: str, now: float):
             f"unknown {bus.get('unknown')} malformed {bus.get('malformed')} | samples: complete "
             f"{smp.get('complete')} incomplete {smp.get('incomplete')} lost {smp.get('lost')} | "
             f"latency p50 {lat.get('p50')} ms p99 {lat.get('p99')} ms")
+        from daq.demo_view import sync_text
+
+        parts.append("sync: " + sync_text(h))
     return Group(*parts)
 
 
