@@ -39,11 +39,12 @@ class SyncClock:
     * Otherwise the counter gives the number lost modulo the counter cycle (``overflow``) and
       the frame time resolves the wraps: ``k`` periods after the last SYNC means ``k − 1``
       lost, i.e. the counter's count plus the whole cycles that fit.
-    * A frame whose time is more than ``tol`` periods from where the counter (a SYNC) or the
-      running SYNC schedule (any other frame) puts it is a **bad timestamp**: it is
-      re-stamped (a SYNC where its counter puts it, another frame at the current clock) and
-      never moves the acquisition clock. Unless the next frame confirms it: then the clock
-      really stepped there (a paused producer, a clock step) and the count is withdrawn.
+    * A SYNC whose time is more than ``tol`` periods from where its counter puts it, or any
+      other frame more than ``tol`` periods ahead of the running SYNC schedule, is a **bad
+      timestamp**: it is re-stamped (a SYNC where its counter puts it, another frame at the
+      current clock) and never moves the acquisition clock. Unless the next frame confirms
+      a time ahead: then the clock really stepped there (a paused producer, a clock step)
+      and the count is withdrawn.
 
     ``stamp_sync``/``stamp_frame`` take the raw (1 µs) time and the current acquisition
     clock and return the time the frame is to carry.
@@ -148,8 +149,9 @@ class SyncClock:
             self.bad_timestamp += 1
             self._suspect = (t, None)
             return clock
-        if running and t < clock - tol * dt:
-            self.bad_timestamp += 1  # far behind: re-stamped at the clock (never backwards)
+        # far behind: re-stamped at the clock by the tap (never backwards), not counted —
+        # our own transmissions come back stamped at send time, or not at all (canopen's
+        # SDO requests in lock-step: 0.0)
         if sync:
             self.base_t = max(t, clock)
         return t

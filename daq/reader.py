@@ -110,9 +110,11 @@ class FrameTap(can.Listener):
         cid = msg.arbitration_id
         if cid == self.sync_cob and not (msg.is_extended_id or msg.is_error_frame
                                          or msg.is_remote_frame):
-            t = _floor(self.stamp_sync(msg.data, t, self.frame_time) * 1e6 + 0.5) / 1e6
+            ts = self.stamp_sync(msg.data, t, self.frame_time)
         else:
-            t = _floor(self.stamp_frame(t, self.frame_time) * 1e6 + 0.5) / 1e6
+            ts = self.stamp_frame(t, self.frame_time)
+        if ts != t:
+            t = _floor(ts * 1e6 + 0.5) / 1e6
         if t > self.frame_time:
             self.frame_time = t
             if t >= self.deadline:
