@@ -128,9 +128,8 @@ class Outputs:
         if opts.zenoh:
             import zenoh
 
-            from daq.telemetry import TelemetryPublisher, zenoh_config
-
             from daq.config import ConfigError, zenoh_endpoint_problem
+            from daq.telemetry import TelemetryPublisher, zenoh_config
 
             for opt, eps in (("--zenoh-listen", opts.zenoh_listen),
                              ("--zenoh-connect", opts.zenoh_connect)):

@@ -150,7 +150,7 @@ class TruthBuffer:
         import tempfile
 
         if self._file is None:
-            self._file = tempfile.TemporaryFile(prefix="rsra-truth-")
+            self._file = tempfile.TemporaryFile(prefix="rsra-truth-")  # noqa: SIM115 (lives with the buffer)
         f = self._file
         f.seek(0, 2)
         for chunks in self._chunks.values():

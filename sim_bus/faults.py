@@ -240,7 +240,7 @@ class FaultLog:
         import tempfile
 
         if self._file is None:
-            self._file = tempfile.TemporaryFile(prefix="rsra-faults-")
+            self._file = tempfile.TemporaryFile(prefix="rsra-faults-")  # noqa: SIM115 (lives with the log)
         self._file.seek(0, 2)
         pickle.dump(list(self._mem), self._file, protocol=pickle.HIGHEST_PROTOCOL)
         self._spilled += len(self._mem)

@@ -32,8 +32,8 @@ def clean(cfg, n: int, ks=None) -> list[can.Message]:
 
 
 def copy(m: can.Message, **kw) -> can.Message:
-    d = dict(timestamp=m.timestamp, arbitration_id=m.arbitration_id, data=bytes(m.data),
-             is_extended_id=m.is_extended_id)
+    d = {"timestamp": m.timestamp, "arbitration_id": m.arbitration_id, "data": bytes(m.data),
+         "is_extended_id": m.is_extended_id}
     d.update(kw)
     return can.Message(**d)
 
