@@ -97,7 +97,9 @@ def sync_text(health: dict | None) -> str:
     """The health ``sync`` section in one line (demo view, ``rsra listen``): sample slots
     never taken (late SYNCs), duplicated SYNCs, bad timestamps, the measured sample rate and
     its flag below 99 % of the configured rate."""
-    sy = (health or {}).get("sync") or {}
+    sy = (health or {}).get("sync")
+    if not sy:
+        return "—"  # a service without the section
     parts = []
     if "periods_not_taken" in sy:
         parts.append(f"not taken {sy['periods_not_taken']} (late SYNCs {sy.get('late')})")
