@@ -25,7 +25,6 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import shutil
-import sys
 import tempfile
 from pathlib import Path
 
@@ -66,27 +65,17 @@ def run_service(duration: float, every_s: float, record_dir: str) -> dict:
     every = max(1, round(every_s * cfg.sample_rate_hz))
     # bounded: duration / every_s entries
     series: list[tuple[float, float | None, float | None, float]] = []
-    per_sample: list[int] = []
 
     def truth_mb() -> float:
         """Memory of the in-process simulator's truth bookkeeping (the test harness's record
-        of what it sent, bounded at one hour): the TruthBuffer arrays, allocated in chunks,
-        and the per-SYNC list ``sync_info`` (a tuple per sample, sized with getsizeof)."""
+        of what it sent): the TruthBuffer chunks held in memory (full ones are spilled to an
+        anonymous file) and the compact per-SYNC table ``sync_info``."""
         sim = svc.sim
         if sim is None:
             return 0.0
         total = 0
-        buf = getattr(sim, "samples", None)
-        if buf is not None and len(buf):
-            if not per_sample:
-                per_sample.append(sum(np.asarray(v).nbytes for v in vars(buf[0]).values()))
-            total += -(-len(buf) // buf.chunk) * buf.chunk * per_sample[0]
-        info = getattr(sim, "sync_info", None)
-        if info:
-            e = info[-1]
-            total += len(info) * (8 + sys.getsizeof(e) + sum(
-                sys.getsizeof(x) for x in e if not isinstance(x, bool) and not (
-                    isinstance(x, int) and -5 <= x <= 256)))  # small ints are shared
+        for part in (getattr(sim, "samples", None), getattr(sim, "sync_info", None)):
+            total += getattr(part, "nbytes", 0)
         return total / 2**20
 
     def sink(key: str, payload: dict) -> None:

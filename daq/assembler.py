@@ -26,6 +26,135 @@ from daq.decoder import STATUS_FAULT, STATUS_OVERRANGE, DecodeTable
 
 FrameCallback = Callable[[int, Any, float], None]
 _CACHE_MAX = 256  # distinct (reported, expected) patterns remembered (bounded)
+TIME_TOLERANCE_PERIODS = 4  # "a few periods": a frame time further than this from where the
+#                             SYNC counter puts it is a bad timestamp (docs/reliability.md)
+
+
+class SyncClock:
+    """Where each SYNC is in time, from its counter and its frame time (docs/reliability.md
+    "SYNC counter and frame times"). Frame order only, no wall clock.
+
+    * A SYNC whose counter repeats the last accepted one is a **duplicate** (no new sample),
+      unless its time says a whole number of counter cycles went by (then it is a gap).
+    * Otherwise the counter gives the number lost modulo the counter cycle (``overflow``) and
+      the frame time resolves the wraps: ``k`` periods after the last SYNC means ``k − 1``
+      lost, i.e. the counter's count plus the whole cycles that fit.
+    * A SYNC whose time is more than ``tol`` periods from where its counter puts it, or any
+      other frame more than ``tol`` periods ahead of the running SYNC schedule, is a **bad
+      timestamp**: it is re-stamped (a SYNC where its counter puts it, another frame at the
+      current clock) and never moves the acquisition clock. Unless the next frame confirms
+      a time ahead: then the clock really stepped there (a paused producer, a clock step)
+      and the count is withdrawn.
+
+    ``stamp_sync``/``stamp_frame`` take the raw (1 µs) time and the current acquisition
+    clock and return the time the frame is to carry.
+    """
+
+    def __init__(self, period: float, overflow: int, tol: float = TIME_TOLERANCE_PERIODS):
+        self.period = float(period)
+        self.overflow = int(overflow)
+        # wraps are resolvable only within half a counter cycle
+        self.tol = min(float(tol), (self.overflow - 1) / 2) if self.overflow else float(tol)
+        self.base_t: float | None = None  # time of the last accepted SYNC
+        self.base_c = 0  # its counter
+        self._suspect: tuple[float, int | None] | None = None  # (raw time, SYNC counter)
+        self.bad_timestamp = 0
+        # the result for the SYNC just stamped (read by the assembler): lost, duplicate
+        self.lost = 0
+        self.duplicate = False
+
+    def _gap(self, x: float, lost_c: int, same: bool) -> int | None:
+        """Samples lost for a SYNC ``x`` periods after the base whose counter says ``lost_c``
+        (mod overflow); None when no whole number of counter cycles fits within ``tol``."""
+        ov = self.overflow
+        if same:  # the counter repeats: a gap of a whole number of cycles, or a duplicate
+            m = max(1, round(x / ov))
+            return m * ov - 1 if abs(x - m * ov) <= self.tol else None
+        m = max(0, round((x - lost_c - 1) / ov))
+        return lost_c + m * ov if abs(x - (lost_c + 1 + m * ov)) <= self.tol else None
+
+    def _confirm(self, t: float) -> None:
+        """A pending suspect frame: confirmed (the clock stepped) if ``t`` is not back
+        before it; then its bad-timestamp count is withdrawn (and a SYNC becomes the base)."""
+        st, sc = self._suspect
+        self._suspect = None
+        if t >= st - self.tol * self.period:
+            self.bad_timestamp -= 1
+            if sc is not None:
+                self.base_t, self.base_c = st, sc
+
+    def stamp_sync(self, counter: int, t: float, clock: float) -> float:
+        """A SYNC with a valid counter (1…overflow) at raw time ``t``."""
+        self.lost, self.duplicate = 0, False
+        if self.base_t is None:
+            self.base_t, self.base_c = t, counter
+            return t
+        ov, dt = self.overflow, self.period
+        same = counter == self.base_c
+        lost_c = (counter - (self.base_c % ov + 1)) % ov
+        lost = self._gap((t - self.base_t) / dt, lost_c, same)
+        if lost is None and self._suspect is not None:
+            st, sc = self._suspect
+            if sc is not None:  # consistent with the suspect SYNC: the clock stepped there
+                same2 = counter == sc
+                lost2 = self._gap((t - st) / dt, (counter - (sc % ov + 1)) % ov, same2)
+                if lost2 is not None:
+                    self._suspect = None
+                    self.bad_timestamp -= 1
+                    self.base_t, self.base_c = t, counter
+                    self.lost = lost2
+                    return t
+        if self._suspect is not None:
+            self._confirm(t)
+        if lost is not None:
+            self.base_t, self.base_c = t, counter
+            self.lost = lost
+            return t
+        if same:  # a repeat whose time fits no whole cycle: the same SYNC again
+            self.duplicate = True
+            return t
+        # the time fits no count the counter allows: a bad timestamp. The gap is the
+        # counter's; the SYNC is re-stamped where the counter puts it, unless that is far
+        # from the clock too (the counter jumped: a restarted producer): then at its own
+        # time if that is plausible, else at the clock — never moving the clock by a
+        # disputed amount
+        self.bad_timestamp += 1
+        near = (1 + self.tol) * dt
+        predicted = self.base_t + (lost_c + 1) * dt
+        if abs(predicted - clock) <= near:
+            stamp = max(predicted, clock)
+        elif abs(t - clock) <= near:
+            stamp = max(t, clock)
+        else:
+            stamp = clock
+        self.base_t, self.base_c = stamp, counter
+        if t > stamp + self.tol * dt:  # ahead: the next frame may show the clock stepped
+            self._suspect = (t, counter)
+        self.lost = lost_c
+        return stamp
+
+    def stamp_frame(self, t: float, clock: float, sync: bool = False) -> float:
+        """Any other frame (a SYNC without counter: ``sync=True``): far ahead of a running
+        SYNC schedule, it is held at the clock until the next frame confirms it."""
+        if self._suspect is not None:
+            self._confirm(t)
+        base = self.base_t
+        if base is None or clock == -math.inf:
+            if sync:
+                self.base_t = t
+            return t
+        dt, tol = self.period, self.tol
+        running = clock <= base + (1 + tol) * dt  # SYNCs are coming
+        if running and t > clock + tol * dt:
+            self.bad_timestamp += 1
+            self._suspect = (t, None)
+            return clock
+        # far behind: re-stamped at the clock by the tap (never backwards), not counted —
+        # our own transmissions come back stamped at send time, or not at all (canopen's
+        # SDO requests in lock-step: 0.0)
+        if sync:
+            self.base_t = max(t, clock)
+        return t
 
 
 @dataclass(slots=True)
@@ -121,8 +250,9 @@ class SampleAssembler:
         self._lost = 0
         self._seq = 0  # seq of the current sample
         self._next_seq = 0
-        self._prev_counter: int | None = None
         self._prev_have = 0
+        self.clock = SyncClock(1.0 / cfg.sample_rate_hz, self.overflow)
+        self._stamped: tuple[Any, float] | None = None  # (data, t) the tap stamped last
         # counters (health)
         self.complete = 0
         self.incomplete = 0
@@ -130,6 +260,7 @@ class SampleAssembler:
         self.malformed = 0
         self.duplicate = 0
         self.orphan = 0  # TPDOs before the first SYNC
+        self.duplicate_sync = 0  # SYNCs repeating the last counter (no sample)
         self.emitted = 0
 
         self._required_bits = 0
@@ -234,26 +365,43 @@ class SampleAssembler:
 
         return on_tpdo
 
-    def on_sync(self, can_id: int, data: Any, timestamp: float) -> None:
+    def sync_counter(self, data: Any) -> int | None:
+        """The counter of a well-formed SYNC (0 when none is configured); None: malformed."""
         n = len(data)
-        ov = self.overflow
-        if ov:
-            if n != 1 or not 1 <= data[0] <= ov:
-                self.malformed += 1
-                return
-            counter = data[0]
+        if self.overflow:
+            return data[0] if n == 1 and 1 <= data[0] <= self.overflow else None
+        return 0 if n <= 1 else None
+
+    def stamp_sync(self, data: Any, t: float, clock: float) -> float:
+        """The time a SYNC frame is to carry (called by the reader's frame tap before the
+        frame is dispatched; ``clock`` is the acquisition clock so far)."""
+        counter = self.sync_counter(data)
+        if counter is None:  # malformed: an ordinary frame for the clock
+            return self.clock.stamp_frame(t, clock)
+        if counter and self.overflow:
+            t = self.clock.stamp_sync(counter, t, clock)
         else:
-            if n > 1:
-                self.malformed += 1
-                return
-            counter = 0
+            t = self.clock.stamp_frame(t, clock, sync=True)
+        self._stamped = (data, t)
+        return t
+
+    def on_sync(self, can_id: int, data: Any, timestamp: float) -> None:
+        counter = self.sync_counter(data)
+        if counter is None:
+            self.malformed += 1
+            return
+        ov = self.overflow
+        stamped, self._stamped = self._stamped, None
+        if stamped is None or stamped[0] is not data:  # not through the tap (direct use)
+            timestamp = self.stamp_sync(data, timestamp, timestamp)
+            self._stamped = None
+        clk = self.clock
+        if ov and clk.duplicate:
+            self.duplicate_sync += 1  # the same SYNC again: no new sample, no seq
+            return
         if self._open:
             self._pass_on(False)  # incomplete: passed on at the next SYNC, missing flagged
-        lost = 0
-        if ov and self._prev_counter is not None:
-            # CiA 301 counter runs 1…overflow then restarts at 1: a skip is a lost sample
-            lost = (counter - (self._prev_counter % ov + 1)) % ov
-        self._prev_counter = counter
+        lost = clk.lost if ov else 0
         self.lost += lost
         self._seq = self._next_seq + lost
         self._next_seq = self._seq + 1

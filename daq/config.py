@@ -31,6 +31,32 @@ ROLES = ("load_cell", "accelerometer", "rotor_speed", "balance", "drive_load")
 CONTENTS = ("static", "harmonics", "broadband")
 
 
+# Zenoh's link protocols (zenoh-link) and those whose address is <host>:<port>
+ZENOH_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream", "unixpipe", "serial",
+                   "vsock")
+_IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+
+
+def zenoh_endpoint_problem(ep: str) -> str | None:
+    """What is wrong with a Zenoh endpoint ``<protocol>/<address>[?<metadata>][#<config>]``,
+    or None. Zenoh itself accepts an unknown protocol or a bad address in its config and
+    fails only when the session opens (or, for some, listens nowhere without a word)."""
+    proto, sep, rest = ep.partition("/")
+    address = rest.split("?", 1)[0].split("#", 1)[0]
+    if not sep or not address:
+        return "not a Zenoh endpoint (<protocol>/<address>)"
+    if proto not in ZENOH_PROTOCOLS:
+        return f"unknown Zenoh protocol {proto!r} (one of {', '.join(ZENOH_PROTOCOLS)})"
+    if proto in _IP_PROTOCOLS:
+        host, colon, port = address.rpartition(":")
+        if not colon or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
+            return "the address must be <host>:<port> with a port 0…65535"
+        bracketed = host.startswith("[") and host.endswith("]")
+        if (":" in host or "[" in host or "]" in host) and not bracketed:
+            return "an IPv6 address goes in brackets: [::1]:7447"
+    return None
+
+
 class ConfigError(ValueError):
     """A configuration mistake: which key, what value, what to do."""
 
@@ -725,6 +751,10 @@ def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = No
         if not isinstance(eps, list) or not all(isinstance(x, str) for x in eps):
             raise tel.error(key, eps, "must be a list of Zenoh endpoints",
                             f'e.g. {key} = ["tcp/127.0.0.1:7447"]')
+        for ep in eps:
+            problem = zenoh_endpoint_problem(ep)
+            if problem:
+                raise tel.error(key, ep, problem, f'e.g. {key} = ["tcp/127.0.0.1:7447"]')
     telemetry = TelemetryConfig(
         prefix=prefix,
         mode=tel.string("mode", "peer", ("peer", "client", "router")),

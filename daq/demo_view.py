@@ -93,6 +93,24 @@ def _f(x, fmt="{:9.1f}") -> str:
     return "—" if x is None or (isinstance(x, float) and not math.isfinite(x)) else fmt.format(x)
 
 
+def sync_text(health: dict | None) -> str:
+    """The health ``sync`` section in one line (demo view, ``rsra listen``): sample slots
+    never taken (late SYNCs), duplicated SYNCs, bad timestamps, the measured sample rate and
+    its flag below 99 % of the configured rate."""
+    sy = (health or {}).get("sync")
+    if not sy:
+        return "—"  # a service without the section
+    parts = []
+    if "periods_not_taken" in sy:
+        parts.append(f"not taken {sy['periods_not_taken']} (late SYNCs {sy.get('late')})")
+    parts.append(f"duplicate SYNCs {sy.get('duplicate', 0)}  bad timestamps "
+                 f"{sy.get('bad_timestamp', 0)}")
+    rate = sy.get("rate_hz")
+    if rate is not None:
+        parts.append(f"rate {rate:.1f}/s" + ("  RATE LOW (< 99 %)" if sy.get("rate_low") else ""))
+    return "  ".join(parts)
+
+
 def render(state: DemoState, title: str, units: str):
     from rich.console import Group
     from rich.panel import Panel
@@ -120,7 +138,9 @@ def render(state: DemoState, title: str, units: str):
     head = Text.assemble(
         (f"{title}  ", "bold"),
         f"acquisition {acq:7.1f} s   {rate:6.0f} samples/s   lost {smp.get('lost', 0)}   "
-        f"{latency}")
+        + (f"not taken {nt}   " if (nt := ((health or {}).get("sync") or {}).get(
+            "periods_not_taken")) is not None else "")
+        + f"{latency}")
     parts.append(head)
 
     u = axis_units(units)
@@ -200,5 +220,6 @@ def render(state: DemoState, title: str, units: str):
             f"{b.get('bus_off')}  unknown {b.get('unknown')}  malformed {b.get('malformed')} | "
             f"samples complete {smp.get('complete')}  incomplete {smp.get('incomplete')}  "
             f"lost {smp.get('lost')}"))
+        parts.append(Text("sync: " + sync_text(health)))
     return Panel(Group(*parts), title="rsra demo — Ctrl-C to stop", expand=False)
 

@@ -202,19 +202,31 @@ class SyncProducer:
     to back: two SYNCs with no time between them for the nodes to answer, i.e. a sample with
     no TPDO at all (bus.md: samples are assembled by frame order). Here a late SYNC goes out
     at once and the next one keeps at least half a period from it; the counter still counts
-    every SYNC sent (CiA 301), so nothing is reported lost."""
+    every SYNC sent (CiA 301), so no sample is lost — but the sample slots skipped are never
+    taken: ``periods_not_taken`` counts them (health ``sync.periods_not_taken``)."""
 
     def __init__(self, bus: can.BusABC, msgs: list[can.Message], period: float,
-                 lock: threading.Lock):
+                 lock: threading.Lock, *, clock: Callable[[], float] = time.perf_counter,
+                 start: bool = True):
         self.bus, self.msgs, self.period, self.lock = bus, msgs, period, lock
+        self.clock = clock
         self.late = 0  # SYNCs sent later than planned (re-phased, not caught up)
+        self.sent = 0
+        # the schedule's total shift from re-phasing, and the whole periods it cost: the
+        # sample slots never taken (health sync.periods_not_taken)
+        self.shift_s = 0.0
+        self.periods_not_taken = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="rsra-sync", daemon=True)
-        self._thread.start()
+        if start:
+            self._thread.start()
+
+    def _wait(self, s: float) -> bool:
+        return self._stop.wait(s)
 
     def _run(self) -> None:
         k, period = 0, self.period
-        due = time.perf_counter()
+        due = self.clock()
         while not self._stop.is_set():
             try:
                 with self.lock:
@@ -222,13 +234,18 @@ class SyncProducer:
             except can.CanError as e:  # the bus went away: stop producing, say so once
                 log.error("SYNC producer stopped: %s", e)
                 return
+            self.sent += 1
             k = (k + 1) % len(self.msgs)
-            now = time.perf_counter()
+            now = self.clock()
             due += period
             if due < now + 0.5 * period:
+                # more than half a period late: re-phase (no catching up); every later slot
+                # moves by the same amount, so the shift adds up to the periods not taken
                 self.late += 1
+                self.shift_s += now + 0.5 * period - due
+                self.periods_not_taken = int(self.shift_s / period + 1e-9)
                 due = now + 0.5 * period
-            self._stop.wait(due - now)
+            self._wait(due - now)
 
     def stop(self) -> None:
         self._stop.set()

@@ -28,6 +28,7 @@ import math
 import queue
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -58,6 +59,8 @@ COB_TIME = 0x100
 DEFAULT_QUEUE = 1024  # samples (≈ 5 s at 200 samples/s)
 TICK_S = 0.1  # live idle tick of the acquisition clock
 NOTIFIER_CYCLE_S = 0.1
+RATE_WINDOW = 10  # health periods over which the sample rate is measured
+RATE_LOW_FRACTION = 0.99  # below this fraction of sample_rate_hz: sync.rate_low
 _floor = math.floor
 
 
@@ -83,6 +86,12 @@ class FrameTap(can.Listener):
         self.reader = reader
         self.subscribers = network.subscribers  # canopen's subscribe table (live dict)
         self.known = frozenset(known)
+        asm = reader.assembler
+        self.sync_cob = asm.sync_cob_id
+        self.stamp_sync = asm.stamp_sync
+        self.stamp_frame = asm.clock.stamp_frame
+        self._clock = asm.clock
+        self._ahead_s = asm.clock.tol * asm.clock.period
         self.frames = 0
         self.errors = 0
         self.bus_off = 0
@@ -98,6 +107,18 @@ class FrameTap(can.Listener):
     def on_message_received(self, msg: can.Message) -> None:
         self.frames += 1
         t = _floor(msg.timestamp * 1e6 + 0.5) / 1e6  # 1 µs, the recordings' resolution
+        # a time far from where the SYNC counter / schedule puts the frame is re-stamped
+        # (counted as a bad timestamp; docs/reliability.md)
+        cid = msg.arbitration_id
+        if cid == self.sync_cob and not (msg.is_extended_id or msg.is_error_frame
+                                         or msg.is_remote_frame):
+            ts = self.stamp_sync(msg.data, t, self.frame_time)
+        elif self._clock._suspect is None and t <= self.frame_time + self._ahead_s:
+            ts = t  # stamp_frame's common case, inline (nothing pending, not far ahead)
+        else:
+            ts = self.stamp_frame(t, self.frame_time)
+        if ts != t:
+            t = _floor(ts * 1e6 + 0.5) / 1e6
         if t > self.frame_time:
             self.frame_time = t
             if t >= self.deadline:
@@ -107,7 +128,6 @@ class FrameTap(can.Listener):
         # the frame carries the acquisition time from here on: the recorder (next listener)
         # writes exactly this value, so a replay sees the same clock bit for bit
         msg.timestamp = t
-        cid = msg.arbitration_id
         cbs = self.subscribers.get(cid)
         if cbs is None or msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
             self._classify(msg, cid, cbs)
@@ -242,6 +262,8 @@ class Reader:
         self.health_period_s = 1.0
         self._next_health = math.inf
         self.last_health: dict | None = None
+        self._rate_hist: deque[tuple[float, int]] = deque(maxlen=RATE_WINDOW + 1)
+        self._rate_hz: float | None = None
         # --record DIR is taken as given (and must be new); recording.dir in the config is a
         # parent folder: every run records into its own time-stamped subfolder
         self.record_dir = Path(record) if record else (
@@ -481,6 +503,7 @@ class Reader:
             # 1 Hz on acquisition time; a long gap gives one report, not a burst
             self._next_health = max(self._next_health + self.health_period_s,
                                     math.floor(t) + self.health_period_s)
+            self._measure_rate(t)
             payload = self.health(t)
             self.last_health = payload
             self._put(HealthReport(t, payload))
@@ -518,5 +541,31 @@ class Reader:
             queues["master_events"] = {"depth": self.master._events.qsize(),
                                        "dropped": self.master.events_dropped}
         rec = self.recorder.status() if self.recorder is not None else {"active": False}
-        return {"t": t if math.isfinite(t) else None, "nodes": self.supervisor.snapshot(t),
-                "bus": bus, "samples": asm.counters(), "queues": queues, "recording": rec}
+        payload = {"t": t if math.isfinite(t) else None, "nodes": self.supervisor.snapshot(t),
+                   "bus": bus, "samples": asm.counters(), "queues": queues, "recording": rec}
+        payload["sync"] = self.sync_health(t)
+        return payload
+
+    # -- health: SYNC counts and times (one section: docs/telemetry.md "sync.*") -----------
+    def sync_health(self, t: float) -> dict:
+        """Duplicated SYNCs, bad timestamps (docs/reliability.md), late SYNCs of our own
+        producer and the sample rate over the last ``RATE_WINDOW`` health periods."""
+        asm = self.assembler
+        out: dict = {"duplicate": asm.duplicate_sync, "bad_timestamp": asm.clock.bad_timestamp}
+        task = self.master.sync_task if self.master is not None else None
+        if task is not None and hasattr(task, "periods_not_taken"):
+            out["late"] = task.late
+            out["periods_not_taken"] = task.periods_not_taken
+        out["rate_hz"] = self._rate_hz
+        out["rate_low"] = self._rate_hz is not None and \
+            self._rate_hz < RATE_LOW_FRACTION * self.cfg.sample_rate_hz
+        return out
+
+    def _measure_rate(self, t: float) -> None:
+        """Samples assembled per second of acquisition time, over the last health periods
+        (called once per health period, before the report)."""
+        hist = self._rate_hist
+        hist.append((t, self.assembler.emitted))
+        (t0, n0), (t1, n1) = hist[0], hist[-1]
+        self._rate_hz = (n1 - n0) / (t1 - t0) if t1 - t0 >= 0.999 * self.health_period_s \
+            else None

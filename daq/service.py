@@ -129,14 +129,25 @@ class Outputs:
         if opts.zenoh:
             import zenoh
 
+            from daq.config import ConfigError, zenoh_endpoint_problem
             from daq.telemetry import TelemetryPublisher, zenoh_config
 
+            for opt, eps in (("--zenoh-listen", opts.zenoh_listen),
+                             ("--zenoh-connect", opts.zenoh_connect)):
+                for ep in eps or ():
+                    problem = zenoh_endpoint_problem(ep)
+                    if problem:
+                        raise ConfigError(opt, ep, problem, f"e.g. {opt} tcp/127.0.0.1:7447")
             conf = zenoh_config(cfg.telemetry, listen=opts.zenoh_listen or None,
                                 connect=opts.zenoh_connect or None,
                                 config_file=opts.zenoh_config)
             self.session = zenoh.open(conf)
-            self.telemetry = TelemetryPublisher(self.session, cfg.telemetry.prefix,
-                                                cfg.effective())
+            # state/config tells the endpoints the session really uses (options, config file)
+            effective = cfg.effective()
+            tel = effective.setdefault("telemetry", {})
+            for k in ("listen", "connect"):
+                tel[k] = json.loads(conf.get_json(f"{k}/endpoints"))
+            self.telemetry = TelemetryPublisher(self.session, cfg.telemetry.prefix, effective)
             self.low_rate = _LowRatePublisher(self.telemetry.publish)
 
     def publish(self, key: str, payload: dict) -> None:

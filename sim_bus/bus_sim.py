@@ -59,6 +59,7 @@ from sim_bus.faults import (
     WINDOW_KINDS,
     Fault,
     FaultInjector,
+    FaultLog,
     parse_faults,
     validate_faults,
 )
@@ -100,17 +101,30 @@ class SampleSource(Protocol):
 class TruthBuffer:
     """The samples the bus carried, stored compactly: one growing array per sample field (in
     chunks, so appending is cheap and memory is ~8 bytes per number, not a Python object per
-    sample). Bounded: past ``max_samples`` further samples are counted, not kept."""
+    sample). Bounded: past ``max_samples`` further samples are counted, not kept.
 
-    def __init__(self, max_samples: int = MAX_TRUTH_SAMPLES, chunk: int = 4096):
+    ``spill=True``: every full chunk goes to an anonymous temporary file (``TMPDIR``; it has
+    no name on disk and disappears with the process, even after ``kill -9``), so resident
+    memory stays flat over a long run; :meth:`arrays` reads them back (at the end, to write
+    the truth file)."""
+
+    def __init__(self, max_samples: int = MAX_TRUTH_SAMPLES, chunk: int = 4096,
+                 spill: bool = False):
         self.max_samples, self.chunk = int(max_samples), int(chunk)
+        self.spill = spill
         self._fields: list[str] | None = None
-        self._chunks: dict[str, list[np.ndarray]] = {}
+        self._chunks: dict[str, list[np.ndarray | tuple[int, np.dtype, tuple]]] = {}
         self._n = 0
+        self._file: Any = None
         self.dropped = 0
 
     def __len__(self) -> int:
         return self._n
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held in memory (chunks not spilled)."""
+        return sum(c.nbytes for v in self._chunks.values() for c in v if isinstance(c, np.ndarray))
 
     def append(self, sample: Any) -> None:
         if self._n >= self.max_samples:
@@ -129,10 +143,32 @@ class TruthBuffer:
                 self._chunks.setdefault(name, []).append(np.zeros((self.chunk,) + a.shape, a.dtype))
             self._chunks[name][-1][row] = v
         self._n += 1
+        if self.spill and row == self.chunk - 1:
+            self._spill_last()
+
+    def _spill_last(self) -> None:
+        import tempfile
+
+        if self._file is None:
+            self._file = tempfile.TemporaryFile(prefix="rsra-truth-")  # noqa: SIM115 (lives with the buffer)
+        f = self._file
+        f.seek(0, 2)
+        for chunks in self._chunks.values():
+            a = chunks[-1]
+            chunks[-1] = (f.tell(), a.dtype, a.shape)
+            f.write(a.tobytes())
+
+    def _load(self, c) -> np.ndarray:
+        if isinstance(c, np.ndarray):
+            return c
+        off, dtype, shape = c
+        self._file.seek(off)
+        return np.fromfile(self._file, dtype=dtype, count=int(np.prod(shape))).reshape(shape)
 
     def arrays(self) -> dict[str, np.ndarray]:
         """Every field stacked over the kept samples (first axis = sample)."""
-        return {k: np.concatenate(v)[: self._n] for k, v in self._chunks.items()}
+        return {k: np.concatenate([self._load(c) for c in v])[: self._n]
+                for k, v in self._chunks.items()}
 
     def __getitem__(self, k: int) -> SimpleNamespace:
         """Sample k's fields (a view into the buffer)."""
@@ -140,7 +176,84 @@ class TruthBuffer:
             raise IndexError(k)
         k %= self._n
         c, r = divmod(k, self.chunk)
-        return SimpleNamespace(**{f: self._chunks[f][c][r] for f in (self._fields or [])})
+        return SimpleNamespace(**{f: self._load(self._chunks[f][c])[r]
+                                  for f in (self._fields or [])})
+
+
+class SyncLog:
+    """Per SYNC cycle: (sample index, counter (-1: none), time, lost), compactly. With
+    ``keep`` every cycle up to ``max_n`` (the truth file's sync arrays), in a spilled
+    :class:`TruthBuffer` (resident memory flat); without, only the last ``recent`` (live
+    views, tests that look back a little) in a ring — what a run without a truth file needs.
+    ``len()`` is the number of cycles ever appended."""
+
+    _DTYPE = np.dtype([("k", np.int64), ("counter", np.int16), ("t", np.float64),
+                       ("lost", np.bool_)])
+
+    def __init__(self, keep: bool, max_n: int = MAX_TRUTH_SAMPLES, recent: int = RECENT_SAMPLES,
+                 chunk: int = 4096):
+        self.keep = keep
+        self.capacity = int(max_n) if keep else int(recent)
+        self._buf = TruthBuffer(self.capacity, chunk, spill=True) if keep else None
+        self._ring = None if keep else np.zeros(self.capacity, self._DTYPE)
+        self._n = 0  # appended in all
+
+    def __len__(self) -> int:
+        return self._n
+
+    @property
+    def nbytes(self) -> int:
+        return self._buf.nbytes if self.keep else self._ring.nbytes
+
+    def append(self, entry: tuple[int, int, float, bool]) -> None:
+        n = self._n
+        self._n += 1
+        if self.keep:
+            k, c, t, lost = entry
+            self._buf.append(SimpleNamespace(k=int(k), counter=int(c), t=float(t),
+                                             lost=bool(lost)))
+        else:
+            self._ring[n % self.capacity] = entry
+
+    def _span(self) -> tuple[int, int]:
+        """(first, number) of the entries held."""
+        if self.keep:
+            return 0, len(self._buf)
+        held = min(self._n, self.capacity)
+        return self._n - held, held
+
+    def __getitem__(self, i: int) -> tuple[int, int, float, bool]:
+        """Entry ``i`` (0 = the first SYNC cycle; negative from the latest), if held."""
+        if i < 0:
+            i += self._n
+        first, held = self._span()
+        if not first <= i < first + held:
+            raise IndexError(f"SYNC cycle {i} is not kept (keep_samples=False keeps the last "
+                             f"{self.capacity})")
+        e = self._buf[i] if self.keep else None
+        if e is not None:
+            return int(e.k), int(e.counter), float(e.t), bool(e.lost)
+        r = self._ring[i % self.capacity]
+        return int(r["k"]), int(r["counter"]), float(r["t"]), bool(r["lost"])
+
+    def __iter__(self):
+        a = self.arrays()
+        for r in a:
+            yield int(r["k"]), int(r["counter"]), float(r["t"]), bool(r["lost"])
+
+    def arrays(self) -> np.ndarray:
+        """The entries held, in order (a structured array: k, counter, t, lost)."""
+        first, held = self._span()
+        out = np.zeros(held, self._DTYPE)
+        if not held:
+            return out
+        if self.keep:
+            for name, v in self._buf.arrays().items():
+                out[name] = v
+        else:
+            idx = np.arange(first, first + held) % self.capacity
+            out[:] = self._ring[idx]
+        return out
 
 
 class _TxMessage(can.Message):
@@ -298,6 +411,7 @@ class Simulator:
         parsed = parse_faults(faults) if isinstance(faults, (str, type(None))) else tuple(faults)
         _validate(parsed, [(n.name, n.role) for n in self.nodes], autostart)
         self.faults = FaultInjector(parsed, seed=self.seed)
+        self.faults.log = FaultLog(keep=keep_samples)  # all of it only for a truth file
         self._frozen: dict[tuple[int, str, str], int | float] = {}
         self._unknown_cob = self._pick_unknown_cob()
         self._logger: can.Listener | None = None
@@ -333,10 +447,12 @@ class Simulator:
         self.frames_sent = 0
         self.frames_received = 0
         self.error_frames_received = 0
-        self.samples = TruthBuffer()  # what every SYNC carried (keep_samples), bounded
+        # what every SYNC carried (keep_samples), bounded, spilled to an anonymous temporary
+        # file chunk by chunk (resident memory flat); per SYNC cycle the compact SyncLog
+        self.samples = TruthBuffer(spill=keep_samples)
         self.last_sample: Any = None
         self.recent_samples: deque = deque(maxlen=RECENT_SAMPLES)  # bounded, for live views
-        self.sync_info: list[tuple[int, int, float, bool]] = []  # (sample, counter, t, lost)
+        self.sync_info = SyncLog(keep_samples)  # (sample, counter, t, lost) per SYNC cycle
         self.truth_truncated = False
         self._error: BaseException | None = None
         self._stop = threading.Event()
@@ -691,8 +807,7 @@ class Simulator:
             else:
                 self._transmit("sync", self._sync_cob,
                                bytes([counter]) if counter is not None else b"", t)
-        if len(self.sync_info) < MAX_TRUTH_SAMPLES:
-            self.sync_info.append((k, -1 if counter is None else counter, t, lost))
+        self.sync_info.append((k, -1 if counter is None else counter, t, lost))
         if fi:
             started = []
             for f, name, on in fi.window_changes(k, st, names):
@@ -889,8 +1004,7 @@ class Simulator:
                 fi.record(k, st, "jitter", None, offset_s=jitter)
             self._transmit("sync", self._sync_cob,
                            bytes([counter]) if counter is not None else b"", t)
-        if len(self.sync_info) < MAX_TRUTH_SAMPLES:
-            self.sync_info.append((k, -1 if counter is None else counter, t, False))
+        self.sync_info.append((k, -1 if counter is None else counter, t, False))
         for node, carried in plan.carried:
             node.carry(carried)
         for a in plan.actions:
@@ -1048,10 +1162,10 @@ class Simulator:
 
     def sync_arrays(self) -> dict[str, np.ndarray]:
         """Per sample: index, SYNC counter (0: the SYNC carried none), SYNC time, lost flag."""
-        a = np.array(self.sync_info, dtype=float).reshape(-1, 4)
-        return {"sample_index": a[:, 0].astype(np.int64),
-                "sync_counter": np.maximum(a[:, 1], 0).astype(np.uint8),
-                "sync_time": a[:, 2], "sync_lost": a[:, 3].astype(bool)}
+        a = self.sync_info.arrays()
+        return {"sample_index": a["k"].astype(np.int64),
+                "sync_counter": np.maximum(a["counter"], 0).astype(np.uint8),
+                "sync_time": a["t"].astype(float), "sync_lost": a["lost"].astype(bool)}
 
     def truth_arrays(self) -> dict[str, np.ndarray]:
         """The kept samples as sim_bus.truth arrays: the physics truth, the channels as the bus

@@ -50,6 +50,7 @@ PROBABILITY_KINDS = ("drop", "malformed", "unknown", "lostsync", "errorframe")
 AUTOSTART_KINDS = ("lostsync", "jitter")
 STATUS_KINDS = ("overrange", "sensor")
 MAX_LOG = 1_000_000  # bounded truth log; further entries are only counted
+RECENT_LOG = 1024  # without a truth file: the last entries only
 
 _NUM = r"(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?"
 
@@ -203,14 +204,70 @@ def _mix(x: int) -> int:
     return x ^ (x >> 31)
 
 
+class FaultLog:
+    """The injected faults' entries, bounded. ``keep`` (a truth file will be written): every
+    entry up to ``max_n``, full chunks spilled (pickled) to an anonymous temporary file so
+    resident memory stays flat; otherwise only the last ``recent`` (live views). ``len()`` is
+    the number of entries held."""
+
+    def __init__(self, keep: bool = True, max_n: int = MAX_LOG, recent: int = RECENT_LOG,
+                 chunk: int = 1024):
+        self.keep = keep
+        self.maxlen = int(max_n) if keep else int(recent)
+        self.chunk = int(chunk)
+        self._mem: deque = deque(maxlen=None if keep else self.maxlen)
+        self._spilled = 0
+        self._file = None
+
+    def __len__(self) -> int:
+        return self._spilled + len(self._mem)
+
+    def append(self, entry: dict) -> bool:
+        """Keep ``entry``; False when the log is full (keep) and it was not kept."""
+        if self.keep:
+            if len(self) >= self.maxlen:
+                return False
+            self._mem.append(entry)
+            if len(self._mem) >= self.chunk:
+                self._spill()
+            return True
+        full = len(self._mem) == self.maxlen
+        self._mem.append(entry)  # a ring: the oldest goes
+        return not full
+
+    def _spill(self) -> None:
+        import pickle
+        import tempfile
+
+        if self._file is None:
+            self._file = tempfile.TemporaryFile(prefix="rsra-faults-")  # noqa: SIM115 (lives with the log)
+        self._file.seek(0, 2)
+        pickle.dump(list(self._mem), self._file, protocol=pickle.HIGHEST_PROTOCOL)
+        self._spilled += len(self._mem)
+        self._mem.clear()
+
+    def __iter__(self):
+        if self._file is not None:
+            import pickle
+
+            self._file.seek(0)
+            n = 0
+            while n < self._spilled:
+                part = pickle.load(self._file)
+                n += len(part)
+                yield from part
+        yield from list(self._mem)
+
+
 @dataclass
 class FaultInjector:
     """Runtime side of a fault plan: windows, instants and random draws by sample, and the log."""
 
     faults: tuple[Fault, ...]
     seed: int = 0
-    log: deque = field(default_factory=lambda: deque(maxlen=MAX_LOG))
+    log: FaultLog = field(default_factory=FaultLog)
     dropped_log_entries: int = 0
+    counts: dict = field(default_factory=dict)  # entries by kind, all of them (bounded: kinds)
     _prev_t: float = -math.inf
     _active: set = field(default_factory=set)
 
@@ -229,10 +286,15 @@ class FaultInjector:
         return (h >> 11) * (1.0 / (1 << 53))
 
     def record(self, sample: int, t: float, kind: str, node: str | None, **extra) -> None:
-        if len(self.log) == self.log.maxlen:
+        self.counts[kind] = self.counts.get(kind, 0) + 1
+        if not self.log.append({"sample": int(sample), "t": float(t), "kind": kind,
+                                "node": node, **extra}):
             self.dropped_log_entries += 1
-            return
-        self.log.append({"sample": int(sample), "t": float(t), "kind": kind, "node": node, **extra})
+
+    @property
+    def events(self) -> int:
+        """Entries recorded since the start (kept or not)."""
+        return sum(self.counts.values())
 
     def of(self, kind: str) -> list[Fault]:
         return self.by_kind.get(kind, [])

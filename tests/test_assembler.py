@@ -61,13 +61,15 @@ def test_skipped_sync_counters_count_as_lost_samples_and_keep_their_numbers(cfg)
     r = Reader.offline(cfg)
     ks = [0, 1, 4, 5, 236, 237, 238, 239, 240, 243]  # counter = k % 240 + 1: wraps 240 -> 1
     out = []
-    for j, k in enumerate(ks):
-        out += feed(r, period_frames(cfg, k, T0 + j * DT))
+    for k in ks:
+        out += feed(r, period_frames(cfg, k, T0 + k * DT))
     got = [(s.seq, s.sync, s.lost_before) for s in samples(out)]
     assert got == [(0, 1, 0), (1, 2, 0), (4, 5, 2), (5, 6, 0), (236, 237, 230), (237, 238, 0),
                    (238, 239, 0), (239, 240, 0), (240, 1, 0), (243, 4, 2)]
     assert [("lost_before" in s.flags) for s in samples(out)] == [g[2] > 0 for g in got]
     assert r.health()["samples"]["lost"] == 2 + 230 + 2
+    sy = r.health()["sync"]
+    assert (sy["duplicate"], sy["bad_timestamp"]) == (0, 0)
 
 
 def test_without_a_counter_byte_nothing_is_counted_lost():

@@ -73,8 +73,11 @@ def frame(draw):
     if kind == "unknown":
         cob = draw(st.integers(0, 0x7FF).filter(lambda c: c not in KNOWN))
         return ("data", cob, draw(st.binary(max_size=8)), False)
-    if kind == "extended":
-        return ("data", draw(st.integers(0, 0x1FFFFFFF)), draw(st.binary(max_size=8)), True)
+    if kind == "extended":  # mostly on the configured COB-IDs: they must not pass as ours
+        cob = draw(st.one_of(st.sampled_from(TPDO_COBS + [SYNC_COB]),
+                             st.integers(0, 0x1FFFFFFF)))
+        n = draw(st.sampled_from([_table.tpdos[cob].length if cob in _table.tpdos else 1, 8]))
+        return ("data", cob, draw(st.binary(min_size=n, max_size=n)), True)
     if kind == "error":
         return ("error", draw(st.integers(0, 0x1FFFFFFF)), b"", False)
     return ("remote", draw(st.sampled_from(TPDO_COBS + [SYNC_COB])), b"", False)
@@ -157,8 +160,10 @@ def test_arbitrary_frames_never_raise_and_never_reach_the_filter_as_non_finite(m
     # every bad frame is counted somewhere
     n_err = sum(m.is_error_frame for m in msgs)
     assert tap.errors == n_err
-    n_ext = sum(m.is_extended_id and not m.is_error_frame for m in msgs)
-    assert tap.unknown >= n_ext
+    # extended identifiers (on our COB-IDs too) and unknown ones: counted, never used
+    n_unknown = sum(not m.is_error_frame and (m.is_extended_id or m.arbitration_id not in KNOWN)
+                    for m in msgs)
+    assert tap.unknown == n_unknown
     prev = None
     for s in samples:
         _check_sample(s)
@@ -175,11 +180,49 @@ def test_arbitrary_frames_never_raise_and_never_reach_the_filter_as_non_finite(m
 
 
 @FUZZ_SMALL
+@given(data=st.data())
+def test_extended_frames_on_the_configured_cob_ids_change_no_sample(data):
+    """A 29-bit frame whose identifier equals a TPDO's or the SYNC's COB-ID is another
+    device's frame: counted unknown, and the samples are those of the frames without it."""
+    import can
+    from helpers_canopen import period_frames
+
+    clean = []
+    for k in range(8):
+        clean.extend(period_frames(_cfg, k, T0 + k * DT))
+    mixed = []
+    n_ext = 0
+    for m in clean:
+        mixed.append(m)
+        for cob in data.draw(st.lists(st.sampled_from(TPDO_COBS + [SYNC_COB]), max_size=2)):
+            n = _table.tpdos[cob].length if cob in _table.tpdos else 1
+            mixed.append(can.Message(timestamp=m.timestamp, arbitration_id=cob,
+                                     data=data.draw(st.binary(min_size=n, max_size=n)),
+                                     is_extended_id=True))
+            n_ext += 1
+
+    def run(msgs):
+        r = Reader.offline(_cfg)
+        for m in msgs:
+            r.feed(m)
+        r.assembler.finish()
+        return r, [s for s in r.poll() if not isinstance(s, HealthReport)]
+
+    _, ref = run(clean)
+    r, got = run(mixed)
+    assert len(got) == len(ref) and all(a.same_as(b) for a, b in zip(got, ref))
+    assert r.tap.unknown == n_ext and r.assembler.duplicate == 0
+
+
+@FUZZ_SMALL
 @given(counters=st.lists(st.integers(0, 255), min_size=1, max_size=60),
        drop=st.lists(st.booleans(), min_size=60, max_size=60))
 def test_any_sync_counter_sequence_is_counted_not_trusted(counters, drop):
-    """Counters out of range are malformed SYNCs; skips are lost samples; duplicates and
-    wrap-arounds do not break the numbering."""
+    """Any counter sequence, one SYNC per period (docs/reliability.md "SYNC counter and frame
+    times"): counters out of range are malformed; a counter repeating the last one is a
+    duplicate SYNC (no sample, no seq); otherwise the counter's skip is the number lost (no
+    sequence here is long enough for a whole counter cycle to fit in its times); a count the
+    frame times cannot hold re-stamps the SYNC; the numbering and the clock never break."""
     from helpers_canopen import period_frames
 
     r = Reader.offline(_cfg)
@@ -194,11 +237,16 @@ def test_any_sync_counter_sequence_is_counted_not_trusted(counters, drop):
     samples = [s for s in r.poll() if not isinstance(s, HealthReport)]
     asm = r.assembler
     valid = [c for c in counters if 1 <= c <= ov]
-    assert len(samples) == len(valid)
     assert asm.malformed == len(counters) - len(valid)
-    expected_lost = sum((b - (a % ov + 1)) % ov for a, b in itertools.pairwise(valid))
+    dups = sum(b == a for a, b in itertools.pairwise(valid))
+    assert asm.duplicate_sync == dups and len(samples) == len(valid) - dups
+    kept = [c for i, c in enumerate(valid) if i == 0 or c != valid[i - 1]]
+    expected_lost = sum((b - (a % ov + 1)) % ov for a, b in itertools.pairwise(kept))
     assert asm.lost == expected_lost == sum(s.lost_before for s in samples)
-    assert [s.seq for s in samples] == sorted({s.seq for s in samples})
+    assert [s.sync for s in samples] == kept
+    for a, b in itertools.pairwise(samples):
+        assert b.seq - a.seq - 1 == b.lost_before and b.t >= a.t
+    assert 0 <= asm.clock.bad_timestamp <= max(0, len(kept) - 1)
 
 
 @FUZZ

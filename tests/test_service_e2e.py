@@ -94,7 +94,9 @@ def test_flight_with_faults_runs_to_the_end_with_every_fault_visible():
     faults = ("drop:cell_B:0.05;malformed:cell_D:0.02;unknown:0.02;errorframe:0.01;"
               "lostsync:0.01;overrange:cell_E@4-5;stuck:accel_1@6-7;silent:cell_F@8-9;"
               "jitter:0.3ms")
-    svc, recs, truth, summary = _run(cfg, sim="flight", faults=faults, duration=12.0, seed=4)
+    # the whole fault log (kept for a truth file; otherwise only its last 1 024 entries)
+    svc, recs, truth, summary = _run(cfg, sim="flight", faults=faults, duration=12.0, seed=4,
+                                     keep_truth=True)
     n = round(12.0 * cfg.sample_rate_hz)
     hub = recs["hub_loads"]
     assert hub[-1]["seq"] == n - 1  # ran to the end (lost samples keep their numbers)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from collections import deque
@@ -40,24 +41,52 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
     return p
 
 
-class KeyStats:
-    """Rate, missed samples (by seq) and staleness of one key; bounded history."""
+# Missed messages are counted where the publication is regular (docs/telemetry.md): every
+# sample for these keys (each missing seq), every n-th sample for `innovations` (n found as
+# the greatest common divisor of the seq steps); `angles` and `health` are published on
+# events and are never dropped by Zenoh (congestion control BLOCK): not counted.
+EVERY_SAMPLE = ("hub_loads", "channels")
+EVERY_NTH_SAMPLE = ("innovations",)
 
-    def __init__(self) -> None:
+
+class KeyStats:
+    """Rate, missed messages (by seq, where the key is published regularly) and staleness of
+    one key; bounded history."""
+
+    def __init__(self, key: str = "") -> None:
+        self.key = key.rsplit("/", 1)[-1]
+        self.counted = self.key in EVERY_SAMPLE or self.key in EVERY_NTH_SAMPLE
         self.count = 0
-        self.missed = 0
+        self.first_seq: int | None = None
         self.last_seq: int | None = None
+        self.n_seq = 0  # messages with a seq, in order
+        self.stride = 1 if self.key in EVERY_SAMPLE else 0  # 0: not known yet
         self.last_arrival = 0.0
         self.arrivals: deque[float] = deque(maxlen=256)
         self.latest: dict = {}
 
+    @property
+    def missed(self) -> int | None:
+        """Messages never received between the first and the latest; None: not counted."""
+        if not self.counted:
+            return None
+        if self.first_seq is None or not self.stride:
+            return 0
+        return max(0, (self.last_seq - self.first_seq) // self.stride + 1 - self.n_seq)
+
     def add(self, payload: dict, now: float) -> None:
         self.count += 1
         seq = payload.get("seq") if isinstance(payload, dict) else None
-        if isinstance(seq, int):
-            if self.last_seq is not None and seq > self.last_seq + 1:
-                self.missed += seq - self.last_seq - 1
-            self.last_seq = seq
+        if self.counted and isinstance(seq, int) and not isinstance(seq, bool):
+            if self.first_seq is None:
+                self.first_seq = seq
+                self.last_seq = seq
+                self.n_seq = 1
+            elif seq > self.last_seq:
+                if self.key not in EVERY_SAMPLE:
+                    self.stride = math.gcd(self.stride, seq - self.last_seq)
+                self.last_seq = seq
+                self.n_seq += 1
         self.last_arrival = now
         self.arrivals.append(now)
         self.latest = payload if isinstance(payload, dict) else {"value": payload}
@@ -85,7 +114,9 @@ def render(stats: dict[str, KeyStats], prefix: str, units: str, now: float):
         t.add_column(col, justify="right" if col != "key" else "left")
     for key in sorted(stats):
         s = stats[key]
-        t.add_row(key, str(s.count), f"{s.rate():.1f}", str(s.missed), f"{now - s.last_arrival:.2f}")
+        missed = s.missed
+        t.add_row(key, str(s.count), f"{s.rate():.1f}", "—" if missed is None else str(missed),
+                  f"{now - s.last_arrival:.2f}")
     parts.append(t)
     hl = stats.get("hub_loads")
     if hl and hl.latest:
@@ -139,6 +170,9 @@ def render(stats: dict[str, KeyStats], prefix: str, units: str, now: float):
             f"unknown {bus.get('unknown')} malformed {bus.get('malformed')} | samples: complete "
             f"{smp.get('complete')} incomplete {smp.get('incomplete')} lost {smp.get('lost')} | "
             f"latency p50 {lat.get('p50')} ms p99 {lat.get('p99')} ms")
+        from daq.demo_view import sync_text
+
+        parts.append("sync: " + sync_text(h))
     return Group(*parts)
 
 
@@ -190,7 +224,7 @@ def run(args: argparse.Namespace) -> int:
                                 "key": key, "value": payload}
                             sys.stdout.write(json.dumps(rec) + "\n")
                         else:
-                            stats.setdefault(key, KeyStats()).add(payload, time.monotonic())
+                            stats.setdefault(key, KeyStats(key)).add(payload, time.monotonic())
                         if args.count is not None and received >= args.count:
                             return 0
                 now = time.monotonic()

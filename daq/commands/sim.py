@@ -104,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
 
     def progress(n_samples: int, _t: float) -> None:
         console.print(f"  {time.monotonic() - t_start:7.1f} s  {n_samples:8d} samples  "
-                      f"{sim.frames_sent:9d} frames sent  {len(sim.faults.log):6d} faults",
+                      f"{sim.frames_sent:9d} frames sent  {sim.faults.events:6d} faults",
                       highlight=False)
 
     interrupted = False
@@ -120,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
     truth = sim.write_truth(Path(args.truth)) if args.truth and len(sim.samples) else None
     how = "stopped (Ctrl-C)" if interrupted else "done"
     console.print(f"rsra sim: {how}: {len(sim.sync_info)} samples, {sim.frames_sent} frames sent, "
-                  f"{len(sim.faults.log)} fault events"
+                  f"{sim.faults.events} fault events"
                   + (f", frames in {args.record}" if args.record else "")
                   + (f", truth in {truth}" if truth else ""))
     return 0

@@ -1,0 +1,168 @@
+"""SYNC counts and frame times that are true (docs/reliability.md "SYNC counter and frame
+times"): duplicated SYNCs, gaps longer than a counter cycle, bad timestamps — each against
+the samples the clean frames give."""
+from __future__ import annotations
+
+import can
+import numpy as np
+from helpers_canopen import T0, period_frames
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from daq.reader import HealthReport, Reader
+from daq.recorder import Recorder, frame_files
+from daq.replay import replay
+
+DT = 0.005
+
+
+def run(cfg, frames) -> tuple[Reader, list]:
+    r = Reader.offline(cfg)
+    for m in frames:
+        r.feed(m)
+    r.assembler.finish()
+    return r, [x for x in r.poll() if not isinstance(x, HealthReport)]
+
+
+def clean(cfg, n: int, ks=None) -> list[can.Message]:
+    out = []
+    for k in (range(n) if ks is None else ks):
+        out += period_frames(cfg, k, T0 + k * DT)
+    return out
+
+
+def copy(m: can.Message, **kw) -> can.Message:
+    d = {"timestamp": m.timestamp, "arbitration_id": m.arbitration_id, "data": bytes(m.data),
+         "is_extended_id": m.is_extended_id}
+    d.update(kw)
+    return can.Message(**d)
+
+
+def same_samples(a, b) -> bool:
+    return len(a) == len(b) and all(x.same_as(y) for x, y in zip(a, b))
+
+
+def test_one_duplicated_sync_is_counted_and_changes_no_sample(cfg):
+    """Before: `lost 239` and the following samples numbered 239 too far."""
+    frames = clean(cfg, 300)
+    _, ref = run(cfg, frames)
+    i = next(j for j, m in enumerate(frames) if m.arbitration_id == 0x80
+             and m.timestamp == T0 + 100 * DT)
+    dup = frames[:i + 1] + [copy(frames[i])] + frames[i + 1:]
+    r, got = run(cfg, dup)
+    assert same_samples(got, ref)
+    h = r.health()
+    assert h["samples"]["lost"] == 0 and h["sync"]["duplicate"] == 1
+    assert h["sync"]["bad_timestamp"] == 0
+
+
+def test_a_repeated_sync_later_in_its_period_is_still_a_duplicate(cfg):
+    frames = clean(cfg, 50)
+    i = next(j for j, m in enumerate(frames) if m.arbitration_id == 0x80
+             and m.timestamp == T0 + 20 * DT)
+    dup = frames[:i + 4] + [copy(frames[i], timestamp=frames[i + 3].timestamp)] + frames[i + 4:]
+    r, got = run(cfg, dup)
+    assert [s.seq for s in got] == list(range(50)) and r.assembler.lost == 0
+    assert r.assembler.duplicate_sync == 1
+
+
+def test_every_frame_duplicated_gives_the_same_samples(cfg):
+    """Before: `lost 956000` over 4 000 samples."""
+    frames = clean(cfg, 1000)
+    _, ref = run(cfg, frames)
+    r, got = run(cfg, [c for m in frames for c in (m, copy(m))])
+    assert same_samples(got, ref)
+    h = r.health()
+    assert h["samples"]["lost"] == 0 and h["sync"]["duplicate"] == 1000
+    assert h["bus"]["duplicate"] == len(frames) - 1000
+
+
+def test_a_gap_longer_than_the_counter_cycle_is_counted_from_the_frame_times(cfg):
+    ov = cfg.sync.counter_overflow
+    for gap in (1, ov - 1, ov, ov + 1, 1333, 5 * ov):
+        ks = [0, 1, 2, 3 + gap, 4 + gap]
+        r, got = run(cfg, clean(cfg, 0, ks))
+        assert [s.seq for s in got] == ks, gap
+        assert r.assembler.lost == gap and got[3].lost_before == gap
+        assert r.assembler.duplicate_sync == 0 and r.assembler.clock.bad_timestamp == 0
+
+
+def test_a_missing_middle_file_of_a_rotated_recording_counts_its_samples_lost(cfg, tmp_path):
+    """Before: a real gap of 1 333 samples was reported as 133 (counter modulo 240)."""
+    n = 6000
+    frames = clean(cfg, n)
+    rec = Recorder(tmp_path / "rec", cfg, rotate_mb=0.2)
+    for m in frames:
+        rec.on_message_received(m)
+    rec.stop()
+    files = frame_files(tmp_path / "rec")
+    assert len(files) >= 3
+    removed = files[1]
+    with can.LogReader(removed) as lr:
+        syncs = [m.timestamp for m in lr if m.arbitration_id == 0x80]
+    removed.unlink()
+    got = [x for x in replay(cfg, [tmp_path / "rec"], finish=True)
+           if not isinstance(x, HealthReport)]
+    seqs = [s.seq for s in got]
+    true_k = [round((s.t - T0) / DT) for s in got]
+    assert seqs == true_k  # every sample keeps its true number
+    assert sum(s.lost_before for s in got) == len(syncs) > 240
+    assert len(got) == n - len(syncs)
+
+
+def _stamped(frames, i, dt):
+    return frames[:i] + [copy(frames[i], timestamp=frames[i].timestamp + dt)] + frames[i + 1:]
+
+
+def test_one_frame_stamped_far_away_is_re_stamped_and_moves_no_clock(cfg):
+    """Before: a frame stamped +1e6 s moved the clock, and the next 2 999 samples all got
+    that same time."""
+    n = 3000
+    frames = clean(cfg, n)
+    _, ref = run(cfg, frames)
+    sync_i = next(j for j, m in enumerate(frames) if m.timestamp == T0 + 1000 * DT)
+    for i, dt, bad in [(sync_i, 1e6, 1), (sync_i + 2, 1e6, 1), (sync_i, -1e6, 1),
+                       (sync_i, 37 * DT, 1), (sync_i + 2, -1e6, 0)]:
+        r, got = run(cfg, _stamped(frames, i, dt))
+        assert same_samples(got, ref), (i, dt)
+        # a TPDO far behind is re-stamped at the clock, not counted (own frames come back
+        # stamped at send time or not at all)
+        assert r.health()["sync"]["bad_timestamp"] == bad, (i, dt)
+        assert r.assembler.lost == 0
+
+
+def test_a_real_step_of_the_clock_is_followed_not_counted(cfg):
+    """A producer that pauses (no SYNC lost: the counter goes on) and resumes: the clock
+    follows the frames after a one-frame hold; nothing is counted bad."""
+    ks = list(range(50))
+    frames = clean(cfg, 50)
+    pause = 7.3  # s
+    stepped = [copy(m, timestamp=m.timestamp + (pause if m.timestamp >= T0 + 25 * DT else 0))
+               for m in frames]
+    r, got = run(cfg, stepped)
+    assert [s.seq for s in got] == ks and r.assembler.lost == 0
+    assert r.assembler.clock.bad_timestamp == 0
+    assert [s.t for s in got[26:]] == [round(T0 + k * DT + pause, 6) for k in ks[26:]]
+
+
+@settings(max_examples=60, deadline=None)
+@given(steps=st.lists(st.one_of(st.integers(1, 3), st.integers(4, 1500), st.just(0)),
+                      min_size=1, max_size=25),
+       jitter=st.lists(st.floats(-0.45, 0.45), min_size=26, max_size=26))
+def test_any_true_sync_sequence_is_numbered_and_counted_exactly(cfg, steps, jitter):
+    """SYNC k at k periods (± 0.45 of jitter), counters k % overflow + 1, any gaps (longer
+    than the counter cycle too) and repeated SYNCs (step 0): every sample keeps its true
+    number, lost = the true gaps, duplicates counted, no bad timestamp."""
+    ks = [0]
+    for s in steps:
+        ks.append(ks[-1] + s)
+    frames = []
+    for j, k in enumerate(ks):
+        frames += period_frames(cfg, k, T0 + (k + jitter[j]) * DT)
+    r, got = run(cfg, frames)
+    uniq = sorted(set(ks))
+    assert [s.seq for s in got] == uniq
+    assert r.assembler.lost == uniq[-1] + 1 - len(uniq) == sum(s.lost_before for s in got)
+    assert r.assembler.duplicate_sync == len(ks) - len(uniq)
+    assert r.assembler.clock.bad_timestamp == 0
+    assert np.all(np.diff([s.t for s in got]) > 0)
