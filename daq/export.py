@@ -220,6 +220,10 @@ FIELDS: dict[str, list[tuple[str, str, str]]] = {
             "frames", "errors", "bus_off", "unknown", "malformed", "duplicate", "orphan",
             "remote", "callback_errors")],
         *[(f"samples.{n}", "integer", "") for n in ("complete", "incomplete", "lost")],
+        ("sync", "object", ""), ("sync.duplicate", "integer", ""),
+        ("sync.bad_timestamp", "integer", ""), ("sync.late", "integer", ""),
+        ("sync.periods_not_taken", "integer", ""), ("sync.rate_hz", "number", "samples/s"),
+        ("sync.rate_low", "boolean", ""),
         ("queues", "object", ""),
         *[(f"queues.samples.{n}", "integer", "") for n in (
             "depth", "size", "max_depth", "dropped", "blocked")],
