@@ -153,6 +153,16 @@ def log_file_nowhere(tmp, rec):
     return _sim_run(str(config_dir() / "rig.toml"), "--log-file", str(tmp / "nodir" / "x.log"))
 
 
+def _sim(command, *extra):
+    def make(tmp, rec):
+        if command == "sim":
+            return ["sim", "--scenario", "ground-test", "--autostart", "--duration", "1", *extra]
+        return [command, "--sim" if command == "run" else "--scenario", "ground-test",
+                "--speed", "max", "--duration", "1",
+                "--zenoh-listen", f"tcp/127.0.0.1:{free_tcp_port()}", *extra]
+    return make
+
+
 def sweep_junk(tmp, rec):
     (tmp / "junk.blf").write_bytes(b"\0" * 100)
     return ["sweep", str(tmp / "junk.blf"), "--out", str(tmp / "sweep-out")]
@@ -181,6 +191,12 @@ CASES = {
     "--config naming a folder": (config_folder, 2, ["--config", "Is a directory", "fix:"]),
     "--log-file in a missing folder": (log_file_nowhere, 2, ["--log-file", "fix:"]),
     "sweep of a junk file": (sweep_junk, 2, ["junk.blf", "BLFParseError"]),
+    "run --seed -5": (_sim("run", "--seed", "-5"), 2, ["--seed", ">= 0"]),
+    "demo --seed -5": (_sim("demo", "--seed", "-5"), 2, ["--seed", ">= 0"]),
+    "sim --seed -5": (_sim("sim", "--seed", "-5"), 2, ["--seed", ">= 0"]),
+    "run --duration inf": (_sim("run", "--duration", "inf"), 2, ["--duration", "finite"]),
+    "demo --duration inf": (_sim("demo", "--duration", "inf"), 2, ["--duration", "finite"]),
+    "sim --duration inf": (_sim("sim", "--duration", "inf"), 2, ["--duration", "finite"]),
 }
 
 
@@ -198,7 +214,10 @@ def test_every_bad_input_is_one_line_with_its_fix_and_leaves_nothing(name, tmp_p
     monkeypatch.chdir(tmp_path)
     argv = make(tmp_path, recording)
     before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
-    rc = main(argv)
+    try:
+        rc = main(argv)
+    except SystemExit as e:  # a bad option: argparse's own exit (status 2, one line)
+        rc = e.code
     line = _one_line(capsys.readouterr().err)
     assert rc == status, line
     for w in words:

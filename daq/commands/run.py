@@ -5,6 +5,7 @@ import argparse
 import json
 import logging
 import logging.handlers
+import math
 import sys
 
 LOG_FILE_BYTES = 10 * 1024 * 1024
@@ -28,13 +29,24 @@ def positive_float(text: str) -> float:
         v = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"'{text}' is not a number") from None
-    if not v > 0:
-        raise argparse.ArgumentTypeError("must be > 0")
+    if not 0 < v < math.inf:
+        raise argparse.ArgumentTypeError("must be a finite number > 0")
+    return v
+
+
+def seed(text: str) -> int:
+    """A simulator seed: a whole number >= 0 (numpy's SeedSequence refuses negatives)."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError("must be a whole number >= 0")
     return v
 
 
 def add_sim_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--seed", type=int, default=None, help="simulator seed (default: the scenario's)")
+    p.add_argument("--seed", type=seed, default=None, help="simulator seed (default: the scenario's)")
     p.add_argument("--faults", default=None, metavar="SPEC",
                    help="simulator faults, e.g. 'drop:cell_A:0.1;reboot:cell_C@12.5' "
                    "(see docs/simulator.md)")

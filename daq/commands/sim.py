@@ -23,6 +23,7 @@ FAULT_HELP = (
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
     from daq.cli import common_options
+    from daq.commands.run import positive_float, seed
 
     p = sub.add_parser(
         name, help="the simulated aircraft alone on a bus",
@@ -39,9 +40,9 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
                    "a bench rig)")
     p.add_argument("--channel", default="vcan0", metavar="C",
                    help="bus channel (default vcan0)")
-    p.add_argument("--duration", type=float, default=None, metavar="S",
+    p.add_argument("--duration", type=positive_float, default=None, metavar="S",
                    help="stop after S seconds and exit 0 (default: until Ctrl-C)")
-    p.add_argument("--seed", type=int, default=None, metavar="N",
+    p.add_argument("--seed", type=seed, default=None, metavar="N",
                    help="random seed of the physics and the faults (default: the scenario's)")
     p.add_argument("--truth", default=None, metavar="FILE",
                    help="write the truth (hub loads, angles, channels before noise, SYNC "
