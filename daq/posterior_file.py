@@ -125,6 +125,10 @@ def prepare_state_file(cfg: RigConfig, *, accept_rig_mismatch: bool = False) -> 
     if not path:
         return []
     key = "identification.state_file"
+    folder = Path(os.path.realpath(path)).parent
+    if not folder.is_dir():  # never created for it: nothing the user did not name
+        raise ConfigError(key, path, f"its folder {folder} does not exist",
+                          "create the folder, or name a file in an existing one")
     kind, state, problem = classify(path)
     if kind == "foreign":
         raise ConfigError(key, path, f"{problem}; the service writes only its own posterior "

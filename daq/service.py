@@ -261,6 +261,13 @@ class Service:
     """Builds the sources, the pipeline, the worker and the outputs; `run()` until done."""
 
     def __init__(self, cfg: RigConfig, opts: ServiceOptions):
+        if opts.replay is not None and cfg.identification.state_file:
+            # a replay (recomputed or not) saves no posterior: identification.state_file is the
+            # live service's output, never one the user named for a replay (cli.md)
+            import dataclasses
+
+            cfg = dataclasses.replace(cfg, identification=dataclasses.replace(
+                cfg.identification, state_file=""))
         self.cfg = cfg
         self.opts = opts
         self.stop_event = threading.Event()

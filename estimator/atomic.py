@@ -33,9 +33,16 @@ def own_temp_pid(name: str, target_name: str) -> int | None:
 
 def write_text_atomic(path: str | Path, text: str) -> None:
     path = Path(os.path.realpath(path))  # through a symbolic link: the link stays the user's
-    path.parent.mkdir(parents=True, exist_ok=True)
+    # no parent folder is created (nothing the user did not name): a missing one fails here
     fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path), suffix=".tmp", dir=path.parent)
     try:
+        try:  # the mode of the file it replaces, else what open() would give (not mkstemp's 0600)
+            mode = os.stat(path).st_mode & 0o7777
+        except OSError:
+            umask = os.umask(0)
+            os.umask(umask)
+            mode = 0o666 & ~umask
+        os.fchmod(fd, mode)
         with os.fdopen(fd, "w", encoding="utf-8") as f:
             f.write(text)
             f.flush()

@@ -218,8 +218,8 @@ class PosteriorState:
 class PosteriorFileError(ValueError):
     """A posterior file that cannot be used, with the reason and what to do."""
 
-    FIX = ("delete it or pass a valid file (it is written by the service after an accepted "
-           "identification run)")
+    FIX = ("pass a posterior written by rsra (the service saves one to "
+           "identification.state_file after an accepted identification run)")
 
     def __init__(self, path: str | Path, problem: str, fix: str | None = None) -> None:
         self.path, self.problem = str(path), problem

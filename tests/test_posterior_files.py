@@ -374,19 +374,57 @@ def test_angles_show_names_the_rig_difference_and_the_version(cfg, tmp_path, cap
     assert "note: saved on another rig (angle_names" in capsys.readouterr().out
 
 
-def test_replay_recompute_refuses_a_folder_as_state_file_as_a_config_error(tmp_path, capsys):
+def test_a_replay_never_writes_state_file_not_even_when_it_recomputes(tmp_path, capsys):
+    """identification.state_file is the live service's output: a replay (recomputed, or
+    recomputed because the recording holds no schedule) saves no posterior over it."""
     rec = tmp_path / "rec"
-    assert main(["run", "--sim", "ground-test", "--speed", "max", "--duration", "0.3",
+    assert main(["run", "--sim", "ground-test", "--speed", "max", "--duration", "12",
                  "--record", str(rec), "--log-level", "error", *_listen()]) == 0
+    (rec / "angles.jsonl").unlink()  # a recording without a schedule: recomputed
     capsys.readouterr()
+    cfg = load_config()
+    post = tmp_path / "ground-posterior.json"
+    save_posterior(post, _state(cfg, theta=np.full(14, 0.5 * DEG)))
     folder = tmp_path / "d"
     folder.mkdir()
-    conf = _config_file(tmp_path, str(folder))
+    for state_file in (post, folder):
+        conf = _config_file(tmp_path, str(state_file))
+        before = _snapshot(tmp_path)
+        out = tmp_path / f"out-{state_file.name}.jsonl"
+        assert main(["replay", str(rec), "--recompute", "--config", str(conf),
+                     "--out", str(out), "--log-level", "error"]) == 0
+        capsys.readouterr()
+        accepted = [r for r in map(json.loads, out.read_text().splitlines())
+                    if r["key"] == "angles" and r.get("accepted")]
+        assert accepted  # there was something to save
+        out.unlink()
+        assert _snapshot(tmp_path) == before
+
+
+def test_a_state_file_in_a_missing_folder_is_a_config_error_and_no_folder_is_made(tmp_path,
+                                                                                  capsys):
+    conf = _config_file(tmp_path, str(tmp_path / "nodir" / "sub" / "post.json"))
     before = _snapshot(tmp_path)
-    assert main(["replay", str(rec), "--recompute", "--config", str(conf)]) == 2
+    assert main(["run", "--sim", "ground-test", "--speed", "max", "--duration", "0.3",
+                 "--config", str(conf), "--log-level", "error", *_listen()]) == 2
     line = _one_line(capsys.readouterr().err)
-    assert "configuration error: identification.state_file" in line and "is a folder" in line
-    assert _snapshot(tmp_path) == before
+    assert "identification.state_file" in line and "does not exist" in line
+    assert _snapshot(tmp_path) == before and not (tmp_path / "nodir").exists()
+
+
+def test_a_save_keeps_the_mode_of_the_file_it_replaces(cfg, tmp_path):
+    p = tmp_path / "posterior.json"
+    save_posterior(p, _state(cfg))
+    os.chmod(p, 0o640)
+    save_posterior(p, _state(cfg, theta=np.full(14, 1 * DEG)))
+    assert (os.stat(p).st_mode & 0o777) == 0o640
+    new = tmp_path / "new.json"
+    umask = os.umask(0o022)
+    try:
+        save_posterior(new, _state(cfg))
+    finally:
+        os.umask(umask)
+    assert (os.stat(new).st_mode & 0o777) == 0o644
 
 
 def test_a_save_through_a_symbolic_link_replaces_the_target_and_keeps_the_link(cfg, tmp_path):
