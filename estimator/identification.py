@@ -922,3 +922,143 @@ def identify_known_loads(
     prob = KnownLoadProblem(par, z, T, H, q, scored)
     return levenberg_marquardt(prob, prior_mean, prior_cov, max_iterations=max_iterations,
                                max_lag=max_lag)
+
+
+# ------------------------------------------------------------------------------------------
+# Filter-error mode: what the filter model predicts for its innovations, and a score
+# covariance robust to content outside the model (docs/identification.md, "the information
+# rule of filter-error runs")
+# ------------------------------------------------------------------------------------------
+def innovation_autocovariance(
+    Phi: np.ndarray, K: np.ndarray, J: np.ndarray, Qd: np.ndarray, W: np.ndarray,
+    content_sos: np.ndarray | None, max_lag: int,
+) -> np.ndarray:
+    """Γ(k) = E[e_{n+k} e_nᵀ], k = 0 … max_lag, of the calibration filter's innovations as its
+    own model predicts them: hub loads from the load model (x⁺ = Φ x + w, w ~ Q_d), the
+    measurement noise white with covariance W(θ) and then passed through the causal content
+    filter (the same filter on every channel, ``content_sos``; None: no filter), and the fixed
+    gain K. Coloured by design — the content filter and a gain that is not the Riccati gain —
+    so a plain whiteness or NIS test against B would reject or pass everything.
+
+    In the filter's error coordinates ε = x − x⁻ (stationary: the hub-load states themselves
+    are undamped oscillators) with the content-filter states c of the six noise channels,
+    driven by u = [w, v]:  ε' = Φ(I − KJ) ε + w − ΦK (C_f c + D_f v),  c' = A_f c + B_f v,
+    e = J ε + C_f c + D_f v. Stationary covariance by the discrete Lyapunov equation."""
+    ns = Phi.shape[0]
+    if content_sos is None:
+        Af, Bf, Cf, Df = (np.zeros((0, 0)), np.zeros((0, 1)), np.zeros((1, 0)),
+                          np.ones((1, 1)))
+    else:
+        Af, Bf, Cf, Df = scipy.signal.tf2ss(*scipy.signal.sos2tf(np.asarray(content_sos)))
+        Df = np.atleast_2d(Df)
+    nf = Af.shape[0]
+    I6 = np.eye(6)
+    AF, BF, CF, DF = (np.kron(I6, Af), np.kron(I6, Bf), np.kron(I6, Cf), np.kron(I6, Df))
+    n = ns + 6 * nf
+    A = np.zeros((n, n))
+    G = np.zeros((n, ns + 6))
+    es, cs = slice(0, ns), slice(ns, n)
+    PK = Phi @ K
+    A[es, es] = Phi @ (np.eye(ns) - K @ J)
+    A[es, cs] = -PK @ CF
+    G[es, :ns] = np.eye(ns)
+    G[es, ns:] = -PK @ DF
+    A[cs, cs] = AF
+    G[cs, ns:] = BF
+    C = np.zeros((6, n))
+    C[:, es] = J
+    C[:, cs] = CF
+    D = np.zeros((6, ns + 6))
+    D[:, ns:] = DF
+    U = scipy.linalg.block_diag(Qd, W)
+    Sigma = scipy.linalg.solve_discrete_lyapunov(A, G @ U @ G.T)
+    out = np.empty((max_lag + 1, 6, 6))
+    out[0] = C @ Sigma @ C.T + D @ U @ D.T
+    X = A @ Sigma @ C.T + G @ U @ D.T  # E[ξ_{n+1} e_nᵀ]
+    for k in range(1, max_lag + 1):
+        out[k] = C @ X
+        X = A @ X
+    out[0] = 0.5 * (out[0] + out[0].T)
+    return out
+
+
+@dataclass
+class InnovationTest:
+    """The window's innovations against the autocovariance the filter model predicts:
+    q = Σ eₙᵀ Γ(0)⁻¹ eₙ over the scored samples, a Gaussian quadratic form whose mean and
+    variance follow from Γ(k); its 1 − α point from the scaled χ² with those two moments
+    (Satterthwaite; the false-alarm rate is checked by Monte Carlo on the model itself,
+    tests/test_identification.py). One-sided: only excess innovation (content the model does
+    not predict) fails."""
+
+    statistic: float
+    mean: float
+    limit: float
+    passed: bool
+
+
+def innovation_test(e: np.ndarray, scored: np.ndarray, gamma: np.ndarray,
+                    false_alarm: float = 1e-3) -> InnovationTest:
+    from scipy.stats import chi2 as _chi2
+
+    scored = np.asarray(scored, bool)
+    N = int(scored.sum())
+    G0inv = np.linalg.inv(gamma[0])
+    q = float(np.einsum("na,ab,nb->", e[scored], G0inv, e[scored]))
+    mean = 6.0 * N
+    L = min(len(gamma) - 1, max(N - 1, 0))
+    k = np.arange(L + 1)
+    # tr(Γ0⁻¹ Γ(k) Γ0⁻¹ Γ(k)ᵀ) per lag; Var q = 2 Σ_{|k|<N} (N − |k|) of it
+    Xk = G0inv @ gamma[: L + 1]
+    tr = np.einsum("kab,kba->k", Xk, np.transpose(Xk, (0, 2, 1)))
+    var = 2.0 * (N * tr[0] + 2.0 * np.sum((N - k[1:]) * tr[1:]))
+    c = var / (2.0 * mean)
+    nu = 2.0 * mean * mean / var
+    limit = float(c * _chi2.isf(false_alarm, nu))
+    return InnovationTest(q, mean, limit, bool(q <= limit))
+
+
+def score_covariance_hac(e: np.ndarray, de: np.ndarray, weight: np.ndarray,
+                         max_lag: int) -> np.ndarray:
+    """Robust (sandwich) covariance of the score Σ sₙ, sₙ = (∂eₙ/∂θ)ᵀ B⁻¹ eₙ, from the
+    window's own score series: Newey–West (Bartlett weights up to ``max_lag``). Unlike M it
+    does not assume the residuals are what the model says: residual content the load model
+    does not describe (broadband loads, leakage of off-design harmonics) inflates it. Rows of
+    ``e``/``de`` that are zero (unscored samples) contribute nothing."""
+    Winv = np.linalg.inv(weight)
+    s = np.einsum("nap,ab,nb->np", de, Winv, e)  # (N, p)
+    N, p = s.shape
+    L = int(min(max_lag, N - 1))
+    M = scipy.fft.next_fast_len(N + L + 1, real=True)
+    F = np.fft.rfft(s, n=M, axis=0)
+    cross = np.fft.irfft(np.conj(F)[:, :, None] * F[:, None, :], n=M, axis=0)[: L + 1]
+    w = 1.0 - np.arange(L + 1) / (L + 1.0)
+    Q = cross[0] + np.einsum("k,kab->ab", w[1:], cross[1:] + cross[1:].transpose(0, 2, 1))
+    return 0.5 * (Q + Q.T)
+
+
+def predicted_score_covariance(de: np.ndarray, weight: np.ndarray, gamma: np.ndarray
+                               ) -> np.ndarray:
+    """Covariance of the score Σ Dₙᵀ B⁻¹ eₙ when the innovations have the autocovariance Γ(k)
+    the filter model predicts (k = 0 … len(gamma) − 1): Σ_i Σ_j D_iᵀ B⁻¹ Γ(j − i) B⁻¹ D_j,
+    exactly, by FFT (zero-padded, as :func:`coloured_residual_information`). Under the model
+    this is the true variance of the score — M assumes white innovations of covariance B,
+    which the content filter and the narrow-band hub-load states make far from true."""
+    N, _, p = de.shape
+    L = int(min(len(gamma) - 1, N - 1))
+    M = scipy.fft.next_fast_len(N + L + 1, real=True)
+    rc = np.zeros((M, 6, 6))
+    rc[: L + 1] = gamma[: L + 1].transpose(0, 2, 1)
+    if L:
+        rc[M - L:] = gamma[1: L + 1][::-1]
+    Rf = np.fft.rfft(rc, axis=0)
+    G = np.linalg.inv(weight) @ de
+    Gf = np.fft.rfft(G, n=M, axis=0)
+    w = np.full(Rf.shape[0], 2.0 / M)
+    w[0] = 1.0 / M
+    if M % 2 == 0:
+        w[-1] = 1.0 / M
+    RG = Rf @ Gf
+    Gw = np.conj(Gf) * w[:, None, None]
+    Q = (Gw.reshape(-1, p).T @ RG.reshape(-1, p)).real
+    return 0.5 * (Q + Q.T)
