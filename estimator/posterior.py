@@ -58,8 +58,9 @@ from .identification import (
     KnownLoadProblem,
     Parameterisation,
     InnovationTest,
+    SPECTRUM_SEGMENT,
     innovation_autocovariance,
-    innovation_test,
+    innovation_spectrum_test,
     levenberg_marquardt,
     predicted_score_covariance,
     score_covariance_hac,
@@ -660,8 +661,9 @@ class PeriodicIdentification:
         W = self.par.terms(theta).W
         d = self.design
         n = max(int(prob.n_scored), 1)
-        gamma = innovation_autocovariance(d.Phi, d.K, d.J, d.Qd, W, self.content_sos, n)
-        test = innovation_test(e, prob.scored, gamma, self.false_alarm)
+        gamma = innovation_autocovariance(d.Phi, d.K, d.J, d.Qd, W, self.content_sos,
+                                          max(n, SPECTRUM_SEGMENT))
+        test = innovation_spectrum_test(e, prob.scored, gamma, self.false_alarm)
         lag = int(self.content_settle_samples) + self.filter_settle_samples
         Q_data = score_covariance_hac(e, de, B, lag)
         Q_model = predicted_score_covariance(de, B, gamma)
