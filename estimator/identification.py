@@ -929,12 +929,12 @@ def identify_known_loads(
 # covariance robust to content outside the model (docs/identification.md, "the information
 # rule of filter-error runs")
 # ------------------------------------------------------------------------------------------
-def innovation_autocovariance(
+def innovation_model(
     Phi: np.ndarray, K: np.ndarray, J: np.ndarray, Qd: np.ndarray, W: np.ndarray,
-    content_sos: np.ndarray | None, max_lag: int,
-) -> np.ndarray:
-    """Γ(k) = E[e_{n+k} e_nᵀ], k = 0 … max_lag, of the calibration filter's innovations as its
-    own model predicts them: hub loads from the load model (x⁺ = Φ x + w, w ~ Q_d), the
+    content_sos: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(A, G, C, D, U): ξ' = A ξ + G u, e = C ξ + D u, u white with covariance U — the
+    calibration filter's innovations as its own model predicts them: hub loads from the load model (x⁺ = Φ x + w, w ~ Q_d), the
     measurement noise white with covariance W(θ) and then passed through the causal content
     filter (the same filter on every channel, ``content_sos``; None: no filter), and the fixed
     gain K. Coloured by design — the content filter and a gain that is not the Riccati gain —
@@ -971,6 +971,16 @@ def innovation_autocovariance(
     D = np.zeros((6, ns + 6))
     D[:, ns:] = DF
     U = scipy.linalg.block_diag(Qd, W)
+    return A, G, C, D, U
+
+
+def innovation_autocovariance(
+    Phi: np.ndarray, K: np.ndarray, J: np.ndarray, Qd: np.ndarray, W: np.ndarray,
+    content_sos: np.ndarray | None, max_lag: int,
+) -> np.ndarray:
+    """Γ(k) = E[e_{n+k} e_nᵀ], k = 0 … max_lag, of the calibration filter's innovations as its
+    own model predicts them (:func:`innovation_model`)."""
+    A, G, C, D, U = innovation_model(Phi, K, J, Qd, W, content_sos)
     Sigma = scipy.linalg.solve_discrete_lyapunov(A, G @ U @ G.T)
     out = np.empty((max_lag + 1, 6, 6))
     out[0] = C @ Sigma @ C.T + D @ U @ D.T
@@ -1068,9 +1078,22 @@ SPECTRUM_SEGMENT = 256  # samples per Welch segment of the innovation spectrum t
 SPECTRUM_FLOOR = 1e-3  # bins whose predicted power is below this fraction of the peak: not tested
 
 
-def innovation_spectrum_test(e: np.ndarray, scored: np.ndarray, gamma: np.ndarray,
-                             false_alarm: float = 1e-3, segment: int = SPECTRUM_SEGMENT
-                             ) -> InnovationTest:
+def expected_welch_spectrum(gamma: np.ndarray, segment: int = SPECTRUM_SEGMENT) -> np.ndarray:
+    """E_j (F, 6, 6) = Σ_{|τ|<L} Γ(τ) c(τ) e^{−iω_j τ}: the expectation of the Hann-window
+    Welch estimate of a process with autocovariance Γ (leakage included), L = ``segment``."""
+    L = int(segment)
+    w = np.hanning(L)
+    c = np.correlate(w, w, "full")[L - 1:] / float(w @ w)  # c(τ), τ = 0 … L − 1
+    G = (gamma[:L] * c[:, None, None]).reshape(L, 36)
+    Gt = gamma[1:L].transpose(0, 2, 1) * c[1:, None, None]
+    F = L // 2 + 1
+    ph = np.exp(-2j * np.pi * np.outer(np.arange(F), np.arange(L)) / L)  # (F, L)
+    return (ph @ G + ph[:, 1:].conj() @ Gt.reshape(L - 1, 36)).reshape(F, 6, 6)
+
+
+def innovation_spectrum_test(e: np.ndarray, scored: np.ndarray, gamma: np.ndarray | None,
+                             false_alarm: float = 1e-3, segment: int = SPECTRUM_SEGMENT, *,
+                             expected: np.ndarray | None = None) -> InnovationTest:
     """The window's innovations against the spectrum the filter model predicts, bin by bin.
 
     Welch estimate Ŝ_j (Hann, 50 % overlap) of the longest run of scored samples; its
@@ -1095,17 +1118,13 @@ def innovation_spectrum_test(e: np.ndarray, scored: np.ndarray, gamma: np.ndarra
     step = L // 2
     starts = range(0, len(x) - L + 1, step)
     K = len(starts)
-    if K < 2 or len(gamma) < L:
+    if K < 2 or (expected is None and len(gamma) < L):
         return InnovationTest(0.0, 1.0, np.inf, True)
     w = np.hanning(L)
     w2 = float(w @ w)
     X = np.fft.rfft(np.stack([w[:, None] * x[s:s + L] for s in starts]), axis=1)  # (K, F, 6)
     S = np.einsum("kfa,kfb->fab", X, X.conj()) / (K * w2)
-    c = np.correlate(w, w, "full")[L - 1:] / w2  # c(τ), τ = 0 … L − 1
-    G = gamma[:L] * c[:, None, None]
-    F = L // 2 + 1
-    ph = np.exp(-2j * np.pi * np.outer(np.arange(F), np.arange(L)) / L)  # (F, L)
-    E = np.einsum("ft,tab->fab", ph, G) + np.einsum("ft,tba->fab", ph[:, 1:].conj(), G[1:])
+    E = expected_welch_spectrum(gamma, L) if expected is None else expected
     tr = np.real(np.einsum("faa->f", E))
     keep = tr >= SPECTRUM_FLOOR * tr.max()
     t = np.real(np.einsum("faa->f", np.linalg.solve(E[keep], S[keep]))) / 6.0

@@ -135,8 +135,8 @@ class AnglesRecord:
     def to_dict(self) -> dict:
         """The telemetry ``angles`` payload (SI: radians)."""
         keys = ("t", "seq", "mode", "content", "accepted", "reason", "detail", "names", "alpha",
-                "P", "sigma_cr", "sigma_cr_corrected", "determined", "information", "nu", "cost",
-                "iterations", "window", "applies_from_seq", "late")
+                "P", "sigma_cr", "sigma_cr_corrected", "determined", "window_determined",
+                "information", "nu", "cost", "iterations", "window", "applies_from_seq", "late")
         return {k: _finite_or_none(getattr(self, k)) for k in keys}
 
 
