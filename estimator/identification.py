@@ -994,38 +994,14 @@ def innovation_autocovariance(
 
 @dataclass
 class InnovationTest:
-    """The window's innovations against the autocovariance the filter model predicts:
-    q = Σ eₙᵀ Γ(0)⁻¹ eₙ over the scored samples, a Gaussian quadratic form whose mean and
-    variance follow from Γ(k); its 1 − α point from the scaled χ² with those two moments
-    (Satterthwaite; the false-alarm rate is checked by Monte Carlo on the model itself,
-    tests/test_identification.py). One-sided: only excess innovation (content the model does
-    not predict) fails."""
+    """The outcome of :func:`innovation_spectrum_test`: the statistic, its mean under the
+    model, its limit at the false-alarm rate, and whether it passed (one-sided: only excess
+    innovation — content the model does not predict — fails)."""
 
     statistic: float
     mean: float
     limit: float
     passed: bool
-
-
-def innovation_test(e: np.ndarray, scored: np.ndarray, gamma: np.ndarray,
-                    false_alarm: float = 1e-3) -> InnovationTest:
-    from scipy.stats import chi2 as _chi2
-
-    scored = np.asarray(scored, bool)
-    N = int(scored.sum())
-    G0inv = np.linalg.inv(gamma[0])
-    q = float(np.einsum("na,ab,nb->", e[scored], G0inv, e[scored]))
-    mean = 6.0 * N
-    L = min(len(gamma) - 1, max(N - 1, 0))
-    k = np.arange(L + 1)
-    # tr(Γ0⁻¹ Γ(k) Γ0⁻¹ Γ(k)ᵀ) per lag; Var q = 2 Σ_{|k|<N} (N − |k|) of it
-    Xk = G0inv @ gamma[: L + 1]
-    tr = np.einsum("kab,kba->k", Xk, np.transpose(Xk, (0, 2, 1)))
-    var = 2.0 * (N * tr[0] + 2.0 * np.sum((N - k[1:]) * tr[1:]))
-    c = var / (2.0 * mean)
-    nu = 2.0 * mean * mean / var
-    limit = float(c * _chi2.isf(false_alarm, nu))
-    return InnovationTest(q, mean, limit, bool(q <= limit))
 
 
 def score_covariance_hac(e: np.ndarray, de: np.ndarray, weight: np.ndarray,

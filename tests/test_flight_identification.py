@@ -114,7 +114,7 @@ def test_innovation_spectrum_test_false_alarm_rate_by_monte_carlo():
             stats_.append(t.statistic / t.limit)
     print("false alarms", fails, "of", reps, "largest statistic/limit", max(stats_))
     assert fails <= 7
-    # and it is not vacuous: a quarter more noise power than predicted fails it
+    # and it is not vacuous: half as much noise power again as predicted fails most windows
     e = _simulate_innovations(A, G, C, D, U, n, 200, rng) * np.sqrt(1.5)
     fails_big = sum(not innovation_spectrum_test(x, np.ones(n, bool), None, expected=Ex).passed
                     for x in e)
