@@ -198,9 +198,12 @@ def paired_not_worse(with_: np.ndarray, without: np.ndarray, false_alarm: float)
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = arg_parser(__doc__.splitlines()[0]).parse_args(argv)
+    p = arg_parser(__doc__.splitlines()[0])
+    p.add_argument("--seeds", type=int, default=N_SEEDS,
+                   help=f"number of seeds (default {N_SEEDS}; fewer only when time is short)")
+    args = p.parse_args(argv)
     w = writer_from_args(BENCH, args)
-    seeds = list(range(1, 3 if args.tiny else N_SEEDS + 1))
+    seeds = list(range(1, 3 if args.tiny else args.seeds + 1))
     res = seed_map(_one_seed_tiny if args.tiny else one_seed, seeds, processes=2)
     for arm in ARMS:
         rows = [r[arm] for r in res]
