@@ -42,17 +42,18 @@ SWEEPS = 2
 
 
 # ------------------------------------------------------------------------------ the harness
-def run_calibration(cfg, run, *, known_loads: bool) -> Iterator[tuple[int, dict, np.ndarray,
-                                                                        np.ndarray]]:
+def run_calibration(cfg, run, *, known_loads: bool, initial_state=None
+                    ) -> Iterator[tuple[int, dict, np.ndarray, np.ndarray]]:
     """The service's calibration branch over an off-line run: yields, per window,
-    (last sample, the angles record, posterior θ, posterior P) in window order."""
+    (last sample, the angles record, posterior θ, posterior P) in window order.
+    ``initial_state``: a saved posterior to start from (``--angles``)."""
     from daq.ident_worker import build_identification, run_job
     from estimator.balance import inertial_loads
     from estimator.content import ContentFilter
 
     model = cfg.rig_model()
     idc, fs = cfg.identification, cfg.sample_rate_hz
-    post, runs, cache = build_identification(cfg)
+    post, runs, cache = build_identification(cfg, initial_state)
     mode = "known_loads" if known_loads else "filter_error"
     content = idc.content_known_loads if known_loads else idc.content_filter_error
     # daq.pipeline: x = [T, z, H] through one causal content filter per mode

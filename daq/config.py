@@ -28,7 +28,7 @@ from estimator.params import (
 
 G0 = 9.80665  # standard gravity, m/s^2
 ROLES = ("load_cell", "accelerometer", "rotor_speed", "balance", "drive_load")
-CONTENTS = ("static", "harmonics", "broadband")
+CONTENTS = ("static", "harmonics", "broadband", "vibration")
 
 
 # Zenoh's link protocols (zenoh-link) and those whose address is <host>:<port>

@@ -82,6 +82,8 @@ def build_identification(cfg, initial_state=None):
     design = cache.design_for(w0)
     ferr = PeriodicIdentification(mode="filter_error", content=idc.content_filter_error,
                                   design=design,
+                                  content_sos=ContentFilter(idc.content_filter_error, fs, w0,
+                                                            harm, 1).sos,
                                   content_settle_samples=settle(idc.content_filter_error),
                                   **common)
     return post, {"known_loads": known, "filter_error": ferr}, cache

@@ -12,6 +12,10 @@ loads, so that the balance I = S T + R H (+ D q) still holds exactly in the filt
   which keep the zero at DC so the static load stays out — solved so that the sum is
   exactly 1∠0° at every modelled harmonic.
 * ``broadband``: identity.
+* ``vibration``: 4th-order Butterworth high-pass at half the 1/rev frequency — everything but
+  the static loads and manoeuvres (which the calibration filter, without low-frequency states,
+  does not model): for filter-error runs on fuselage-borne vibration of a rig that measures its
+  angular accelerations (docs/identification.md, the information rule).
 
 Filters are returned as second-order sections (the parallel sum converted to a cascade with
 its poles and zeros). ``ContentFilter`` keeps the filter state between calls.
@@ -21,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.signal import butter, iirpeak, sosfilt, sosfilt_zi, zpk2sos
 
-KINDS = ("static", "harmonics", "broadband")
+KINDS = ("static", "harmonics", "broadband", "vibration")
 PEAK_Q = 5.0  # report Phase II band-pass (model.md §7)
 STATIC_ORDER = 4
 STATIC_CUTOFF_FRACTION = 0.5  # of the 1/rev frequency
@@ -79,9 +83,10 @@ def design_content_filter(kind: str, fs: float, omega: float,
     rotor speed ``omega`` (rad/s); ``harmonics`` the modelled multiples of 1/rev."""
     if kind == "broadband":
         return np.array([[1.0, 0.0, 0.0, 1.0, 0.0, 0.0]])
-    if kind == "static":
+    if kind in ("static", "vibration"):
         f1 = _one_per_rev_hz(omega)
-        return butter(STATIC_ORDER, STATIC_CUTOFF_FRACTION * f1, btype="low", fs=fs, output="sos")
+        return butter(STATIC_ORDER, STATIC_CUTOFF_FRACTION * f1,
+                      btype="low" if kind == "static" else "high", fs=fs, output="sos")
     if kind == "harmonics":
         harmonics = tuple(int(k) for k in harmonics)
         if not harmonics:

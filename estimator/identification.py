@@ -922,3 +922,189 @@ def identify_known_loads(
     prob = KnownLoadProblem(par, z, T, H, q, scored)
     return levenberg_marquardt(prob, prior_mean, prior_cov, max_iterations=max_iterations,
                                max_lag=max_lag)
+
+
+# ------------------------------------------------------------------------------------------
+# Filter-error mode: what the filter model predicts for its innovations, and a score
+# covariance robust to content outside the model (docs/identification.md, "the information
+# rule of filter-error runs")
+# ------------------------------------------------------------------------------------------
+def innovation_model(
+    Phi: np.ndarray, K: np.ndarray, J: np.ndarray, Qd: np.ndarray, W: np.ndarray,
+    content_sos: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(A, G, C, D, U): ξ' = A ξ + G u, e = C ξ + D u, u white with covariance U — the
+    calibration filter's innovations as its own model predicts them: hub loads from the load model (x⁺ = Φ x + w, w ~ Q_d), the
+    measurement noise white with covariance W(θ) and then passed through the causal content
+    filter (the same filter on every channel, ``content_sos``; None: no filter), and the fixed
+    gain K. Coloured by design — the content filter and a gain that is not the Riccati gain —
+    so a plain whiteness or NIS test against B would reject or pass everything.
+
+    In the filter's error coordinates ε = x − x⁻ (stationary: the hub-load states themselves
+    are undamped oscillators) with the content-filter states c of the six noise channels,
+    driven by u = [w, v]:  ε' = Φ(I − KJ) ε + w − ΦK (C_f c + D_f v),  c' = A_f c + B_f v,
+    e = J ε + C_f c + D_f v. Stationary covariance by the discrete Lyapunov equation."""
+    ns = Phi.shape[0]
+    if content_sos is None:
+        Af, Bf, Cf, Df = (np.zeros((0, 0)), np.zeros((0, 1)), np.zeros((1, 0)),
+                          np.ones((1, 1)))
+    else:
+        Af, Bf, Cf, Df = scipy.signal.tf2ss(*scipy.signal.sos2tf(np.asarray(content_sos)))
+        Df = np.atleast_2d(Df)
+    nf = Af.shape[0]
+    I6 = np.eye(6)
+    AF, BF, CF, DF = (np.kron(I6, Af), np.kron(I6, Bf), np.kron(I6, Cf), np.kron(I6, Df))
+    n = ns + 6 * nf
+    A = np.zeros((n, n))
+    G = np.zeros((n, ns + 6))
+    es, cs = slice(0, ns), slice(ns, n)
+    PK = Phi @ K
+    A[es, es] = Phi @ (np.eye(ns) - K @ J)
+    A[es, cs] = -PK @ CF
+    G[es, :ns] = np.eye(ns)
+    G[es, ns:] = -PK @ DF
+    A[cs, cs] = AF
+    G[cs, ns:] = BF
+    C = np.zeros((6, n))
+    C[:, es] = J
+    C[:, cs] = CF
+    D = np.zeros((6, ns + 6))
+    D[:, ns:] = DF
+    U = scipy.linalg.block_diag(Qd, W)
+    return A, G, C, D, U
+
+
+def innovation_autocovariance(
+    Phi: np.ndarray, K: np.ndarray, J: np.ndarray, Qd: np.ndarray, W: np.ndarray,
+    content_sos: np.ndarray | None, max_lag: int,
+) -> np.ndarray:
+    """Γ(k) = E[e_{n+k} e_nᵀ], k = 0 … max_lag, of the calibration filter's innovations as its
+    own model predicts them (:func:`innovation_model`)."""
+    A, G, C, D, U = innovation_model(Phi, K, J, Qd, W, content_sos)
+    Sigma = scipy.linalg.solve_discrete_lyapunov(A, G @ U @ G.T)
+    out = np.empty((max_lag + 1, 6, 6))
+    out[0] = C @ Sigma @ C.T + D @ U @ D.T
+    X = A @ Sigma @ C.T + G @ U @ D.T  # E[ξ_{n+1} e_nᵀ]
+    for k in range(1, max_lag + 1):
+        out[k] = C @ X
+        X = A @ X
+    out[0] = 0.5 * (out[0] + out[0].T)
+    return out
+
+
+@dataclass
+class InnovationTest:
+    """The outcome of :func:`innovation_spectrum_test`: the statistic, its mean under the
+    model, its limit at the false-alarm rate, and whether it passed (one-sided: only excess
+    innovation — content the model does not predict — fails)."""
+
+    statistic: float
+    mean: float
+    limit: float
+    passed: bool
+
+
+def score_covariance_hac(e: np.ndarray, de: np.ndarray, weight: np.ndarray,
+                         max_lag: int) -> np.ndarray:
+    """Robust (sandwich) covariance of the score Σ sₙ, sₙ = (∂eₙ/∂θ)ᵀ B⁻¹ eₙ, from the
+    window's own score series: Newey–West (Bartlett weights up to ``max_lag``). Unlike M it
+    does not assume the residuals are what the model says: residual content the load model
+    does not describe (broadband loads, leakage of off-design harmonics) inflates it. Rows of
+    ``e``/``de`` that are zero (unscored samples) contribute nothing."""
+    Winv = np.linalg.inv(weight)
+    s = np.einsum("nap,ab,nb->np", de, Winv, e)  # (N, p)
+    N, p = s.shape
+    L = int(min(max_lag, N - 1))
+    M = scipy.fft.next_fast_len(N + L + 1, real=True)
+    F = np.fft.rfft(s, n=M, axis=0)
+    cross = np.fft.irfft(np.conj(F)[:, :, None] * F[:, None, :], n=M, axis=0)[: L + 1]
+    w = 1.0 - np.arange(L + 1) / (L + 1.0)
+    Q = cross[0] + np.einsum("k,kab->ab", w[1:], cross[1:] + cross[1:].transpose(0, 2, 1))
+    return 0.5 * (Q + Q.T)
+
+
+def predicted_score_covariance(de: np.ndarray, weight: np.ndarray, gamma: np.ndarray
+                               ) -> np.ndarray:
+    """Covariance of the score Σ Dₙᵀ B⁻¹ eₙ when the innovations have the autocovariance Γ(k)
+    the filter model predicts (k = 0 … len(gamma) − 1): Σ_i Σ_j D_iᵀ B⁻¹ Γ(j − i) B⁻¹ D_j,
+    exactly, by FFT (zero-padded, as :func:`coloured_residual_information`). Under the model
+    this is the true variance of the score — M assumes white innovations of covariance B,
+    which the content filter and the narrow-band hub-load states make far from true."""
+    N, _, p = de.shape
+    L = int(min(len(gamma) - 1, N - 1))
+    M = scipy.fft.next_fast_len(N + L + 1, real=True)
+    rc = np.zeros((M, 6, 6))
+    rc[: L + 1] = gamma[: L + 1].transpose(0, 2, 1)
+    if L:
+        rc[M - L:] = gamma[1: L + 1][::-1]
+    Rf = np.fft.rfft(rc, axis=0)
+    G = np.linalg.inv(weight) @ de
+    Gf = np.fft.rfft(G, n=M, axis=0)
+    w = np.full(Rf.shape[0], 2.0 / M)
+    w[0] = 1.0 / M
+    if M % 2 == 0:
+        w[-1] = 1.0 / M
+    RG = Rf @ Gf
+    Gw = np.conj(Gf) * w[:, None, None]
+    Q = (Gw.reshape(-1, p).T @ RG.reshape(-1, p)).real
+    return 0.5 * (Q + Q.T)
+
+
+SPECTRUM_SEGMENT = 256  # samples per Welch segment of the innovation spectrum test (1.3 s)
+SPECTRUM_FLOOR = 1e-3  # bins whose predicted power is below this fraction of the peak: not tested
+
+
+def expected_welch_spectrum(gamma: np.ndarray, segment: int = SPECTRUM_SEGMENT) -> np.ndarray:
+    """E_j (F, 6, 6) = Σ_{|τ|<L} Γ(τ) c(τ) e^{−iω_j τ}: the expectation of the Hann-window
+    Welch estimate of a process with autocovariance Γ (leakage included), L = ``segment``."""
+    L = int(segment)
+    w = np.hanning(L)
+    c = np.correlate(w, w, "full")[L - 1:] / float(w @ w)  # c(τ), τ = 0 … L − 1
+    G = (gamma[:L] * c[:, None, None]).reshape(L, 36)
+    Gt = gamma[1:L].transpose(0, 2, 1) * c[1:, None, None]
+    F = L // 2 + 1
+    ph = np.exp(-2j * np.pi * np.outer(np.arange(F), np.arange(L)) / L)  # (F, L)
+    return (ph @ G + ph[:, 1:].conj() @ Gt.reshape(L - 1, 36)).reshape(F, 6, 6)
+
+
+def innovation_spectrum_test(e: np.ndarray, scored: np.ndarray, gamma: np.ndarray | None,
+                             false_alarm: float = 1e-3, segment: int = SPECTRUM_SEGMENT, *,
+                             expected: np.ndarray | None = None) -> InnovationTest:
+    """The window's innovations against the spectrum the filter model predicts, bin by bin.
+
+    Welch estimate Ŝ_j (Hann, 50 % overlap) of the longest run of scored samples; its
+    expectation under the model E_j = Σ_{|τ|<L} Γ(τ) c(τ) e^{−iω_j τ} (c: the window's
+    normalised autocorrelation, so leakage is predicted exactly); t_j = tr(E_j⁻¹ Ŝ_j)/6, mean 1.
+    Under the model 12 K t_j is about χ²_{12K} (K segments); the limit is its
+    1 − false_alarm/bins point (Bonferroni over the bins tested). The statistic is max_j t_j:
+    load content the model does not describe (broadband hub loads, a harmonic off its design
+    frequency, a neglected angular inertia) shows as excess power in some bins, which a lag-0
+    test against a loose hub-load model cannot see. The false-alarm rate is checked by Monte
+    Carlo on the model itself (tests/test_identification.py)."""
+    from scipy.stats import chi2 as _chi2
+
+    scored = np.asarray(scored, bool)
+    flips = np.flatnonzero(np.diff(np.concatenate([[0], scored.astype(np.int8), [0]])))
+    runs = list(zip(flips[0::2], flips[1::2]))
+    L = int(segment)
+    if not runs:
+        return InnovationTest(0.0, 1.0, np.inf, True)
+    a, b = max(runs, key=lambda r: r[1] - r[0])
+    x = np.asarray(e[a:b], float)
+    step = L // 2
+    starts = range(0, len(x) - L + 1, step)
+    K = len(starts)
+    if K < 2 or (expected is None and len(gamma) < L):
+        return InnovationTest(0.0, 1.0, np.inf, True)
+    w = np.hanning(L)
+    w2 = float(w @ w)
+    X = np.fft.rfft(np.stack([w[:, None] * x[s:s + L] for s in starts]), axis=1)  # (K, F, 6)
+    S = np.einsum("kfa,kfb->fab", X, X.conj()) / (K * w2)
+    E = expected_welch_spectrum(gamma, L) if expected is None else expected
+    tr = np.real(np.einsum("faa->f", E))
+    keep = tr >= SPECTRUM_FLOOR * tr.max()
+    t = np.real(np.einsum("faa->f", np.linalg.solve(E[keep], S[keep]))) / 6.0
+    nb = int(keep.sum())
+    limit = float(_chi2.isf(false_alarm / nb, 12 * K) / (12 * K))
+    q = float(t.max())
+    return InnovationTest(q, 1.0, limit, bool(q <= limit))

@@ -59,7 +59,13 @@ from .identification import (
     IdentificationResult,
     KnownLoadProblem,
     Parameterisation,
+    InnovationTest,
+    SPECTRUM_SEGMENT,
+    innovation_autocovariance,
+    innovation_spectrum_test,
     levenberg_marquardt,
+    predicted_score_covariance,
+    score_covariance_hac,
     scored_mask,
 )
 from .params import RigModel
@@ -67,6 +73,9 @@ from .params import RigModel
 ACCEPTED = None
 REASONS = ("not_converged", "diverged", "not_identifiable", "inconsistent", "reset",
            "stale_input", "out_of_range")
+# the test that decided a run (the record's ``detail``; docs/telemetry.md)
+DETAILS = ("passed", "missing_samples", "convergence", "information_ratio", "own_information",
+           "robust_information", "innovations", "gate", "range")
 MODES = ("known_loads", "filter_error")
 GATE_PROBABILITY = 0.999  # model §7: accepted when ν ≤ χ²_{d, 0.999}
 GATE_RELATIVE_EIGENVALUE = 1e-6  # directions of D kept by the gate, relative to the largest
@@ -120,12 +129,16 @@ class AnglesRecord:
     run_P: np.ndarray | None = None  # the run's (M + P_p⁻¹)⁻¹
     status: str | None = None  # LM status
     undetermined: np.ndarray | None = None  # (p, k) directions with σ > sigma_max
+    detail: str | None = None  # the test that decided (telemetry.md; DETAILS)
+    innovation: float | None = None  # filter error: q / its model-predicted mean
+    innovation_limit: float | None = None  # the 1 − 10⁻³ point of the same ratio
+    window_determined: int = 0  # directions the window's own (robust) information determines
 
     def to_dict(self) -> dict:
         """The telemetry ``angles`` payload (SI: radians)."""
-        keys = ("t", "seq", "mode", "content", "accepted", "reason", "names", "alpha", "P",
-                "sigma_cr", "sigma_cr_corrected", "determined", "information", "nu", "cost",
-                "iterations", "window", "applies_from_seq", "late")
+        keys = ("t", "seq", "mode", "content", "accepted", "reason", "detail", "names", "alpha",
+                "P", "sigma_cr", "sigma_cr_corrected", "determined", "window_determined",
+                "information", "nu", "cost", "iterations", "window", "applies_from_seq", "late")
         return {k: _finite_or_none(getattr(self, k)) for k in keys}
 
 
@@ -503,8 +516,9 @@ class SequentialPosterior:
 
     def _record(self, *, accepted: bool, reason: str | None, mode: str, content: str,
                 window: tuple[int, int], t: float | None, result: IdentificationResult | None,
-                information: float | None, nu: float | None, d: int, late: bool = False
-                ) -> AnglesRecord:
+                information: float | None, nu: float | None, d: int, late: bool = False,
+                detail: str | None = None, checks: "FilterErrorChecks | None" = None,
+                window_determined: int = 0) -> AnglesRecord:
         det, U, cond = determined_directions(self.P, self.sigma_max)
         return AnglesRecord(
             t=t, seq=int(window[1]), mode=mode, content=content, accepted=accepted,
@@ -519,6 +533,11 @@ class SequentialPosterior:
             run_theta=None if result is None else result.theta.copy(),
             run_P=None if result is None else result.P.copy(),
             status=None if result is None else result.status, undetermined=U,
+            detail=detail, window_determined=int(window_determined),
+            innovation=None if checks is None else checks.innovation.statistic
+            / checks.innovation.mean,
+            innovation_limit=None if checks is None else checks.innovation.limit
+            / checks.innovation.mean,
         )
 
     def update(
@@ -535,6 +554,7 @@ class SequentialPosterior:
         moments: tuple[np.ndarray, int] | None = None,
         dt: float = 0.0,
         gate: tuple[float, int] | None = None,
+        checks: "FilterErrorChecks | None" = None,
     ) -> AnglesRecord:
         """Judge one run whose prior was :meth:`prior` (it is read from ``result``).
 
@@ -547,24 +567,27 @@ class SequentialPosterior:
         kw = dict(mode=mode, content=content, window=window, t=t)
         if result is None or missing_fraction > self.stale_fraction:
             return self._record(accepted=False, reason="stale_input", result=result,
-                                information=None, nu=None, d=0, **kw)
+                                information=None, nu=None, d=0, detail="missing_samples", **kw)
         if tuple(result.names) != self.names:
             raise ValueError("the run identified other parameters than this posterior holds")
         if not result.sound:
             reason = "not_converged" if result.status == "not_converged" else "diverged"
             return self._record(accepted=False, reason=reason, result=result, information=None,
-                                nu=None, d=0, **kw)
+                                nu=None, d=0, detail="convergence", **kw)
         if out_of_range(result.theta, self.limit):
             self.drop_held()  # the held windows were part of this run
             return self._record(accepted=False, reason="out_of_range", result=result,
-                                information=None, nu=None, d=0, **kw)
+                                information=None, nu=None, d=0, detail="range", **kw)
         P_p = result.prior_cov
         info = information_ratio(P_p, result.information)
+        if checks is not None:
+            return self._update_filter_error(result, info, checks, apply_delay_samples,
+                                             arrived_seq, kw)
         low = info < self.min_information
         if low and not self.gate_low_information:
             self._hold(moments)
             return self._record(accepted=False, reason="not_identifiable", result=result,
-                                information=info, nu=None, d=0, **kw)
+                                information=info, nu=None, d=0, detail="information_ratio", **kw)
         if gate is None:
             nu, d, ok = consistency_gate(result.theta - result.prior_mean, P_p, result.P,
                                          self.gate_probability)
@@ -579,14 +602,14 @@ class SequentialPosterior:
                 self.inconsistent_in_a_row = 0
                 self.fold()
                 return self._record(accepted=False, reason="reset", result=result,
-                                    information=info, nu=nu, d=d, **kw)
+                                    information=info, nu=nu, d=d, detail="gate", **kw)
             self.drop_held()  # the held windows were part of an inconsistent run
             return self._record(accepted=False, reason="inconsistent", result=result,
-                                information=info, nu=nu, d=d, **kw)
+                                information=info, nu=nu, d=d, detail="gate", **kw)
         if low:
             self._hold(moments)
             return self._record(accepted=False, reason="not_identifiable", result=result,
-                                information=info, nu=nu, d=d, **kw)
+                                information=info, nu=nu, d=d, detail="information_ratio", **kw)
         self.inconsistent_in_a_row = 0
         self.theta, self.P = result.theta.copy(), result.P.copy()
         self._after_accepted(moments, dt)
@@ -595,7 +618,89 @@ class SequentialPosterior:
         self.applies_from_seq = int(arrived_seq) + 1 if late else planned
         self.t = t
         return self._record(accepted=True, reason=ACCEPTED, result=result, information=info,
-                            nu=nu, d=d, late=late, **kw)
+                            nu=nu, d=d, late=late, detail="passed", **kw)
+
+    def _update_filter_error(self, result: IdentificationResult, info: float,
+                             checks: "FilterErrorChecks", apply_delay_samples: int,
+                             arrived_seq: int | None, kw: dict) -> AnglesRecord:
+        """The information rule of filter-error runs (docs/identification.md): the window's
+        OWN information decides which directions a run may update — whatever the prior knows —
+        the innovations must be what the filter model predicts, and the information must
+        survive a score covariance that does not trust the model (sandwich)."""
+        P_p, theta_p = result.prior_cov, result.prior_mean
+        base = dict(result=result, information=info, checks=checks, **kw)
+        s = self.sigma_max
+        Ms = result.information * s[:, None] * s[None, :]
+        lam, V = np.linalg.eigh(0.5 * (Ms + Ms.T))
+        own = lam >= 1.0  # 1/√λ ≤ sigma_max: the window alone determines this direction
+        if not own.any():
+            return self._record(accepted=False, reason="not_identifiable", nu=None, d=0,
+                                detail="own_information", **base)
+        if not checks.innovation.passed:
+            # the data are not what the filter model predicts (unmodelled load content):
+            # no evidence about the angles either way, so the reset streak is left alone
+            return self._record(accepted=False, reason="inconsistent", nu=None, d=0,
+                                detail="innovations", window_determined=int(own.sum()), **base)
+        Vk, lk = V[:, own], lam[own]
+        # the variance of the score along each direction: the larger of what the window's own
+        # score series shows and what the model predicts for its coloured innovations
+        var = np.zeros(len(lk))
+        for Q in (checks.score_covariance, checks.score_covariance_model):
+            if Q is not None:
+                Qs = Q * s[:, None] * s[None, :]
+                var = np.maximum(var, np.einsum("ai,ab,bi->i", Vk, Qs, Vk))
+        robust = lk**2 / np.maximum(var, 1e-300)
+        use = np.minimum(lk, robust)  # the smaller of the model's and the sandwich's
+        keep = use >= 1.0
+        if not keep.any():
+            return self._record(accepted=False, reason="not_identifiable", nu=None, d=0,
+                                detail="robust_information", window_determined=0, **base)
+        Vk, lk, use = Vk[:, keep], lk[keep], use[keep]
+        # the window's estimate in its determined directions (linearised at the run's
+        # result: M θ̂_w = P_run⁻¹ θ_run − P_p⁻¹ θ_p), weighted by the information used
+        Pp_inv = np.linalg.inv(P_p)
+        b = np.linalg.solve(result.P, result.theta) - Pp_inv @ theta_p
+        proj = (Vk.T @ (s * b)) / lk  # window estimate along each kept direction (scaled)
+        Mk = (Vk * use) @ Vk.T  # scaled coordinates
+        hk = Vk @ (use * proj)
+        Pinv_s = Pp_inv * s[:, None] * s[None, :]  # prior information in scaled coordinates
+        P_new_s = np.linalg.inv(Pinv_s + Mk)
+        P_new_s = 0.5 * (P_new_s + P_new_s.T)
+        phi = P_new_s @ (Pinv_s @ (theta_p / s) + hk)
+        theta_new = s * phi
+        P_new = P_new_s * s[:, None] * s[None, :]
+        nu, d, ok = consistency_gate(theta_new - theta_p, P_p, P_new, self.gate_probability)
+        wd = int(keep.sum())
+        if not ok:
+            self.inconsistent_in_a_row += 1
+            if self.inconsistent_in_a_row >= self.reset_after:
+                self.P = self.P0.copy()
+                self.inconsistent_in_a_row = 0
+                self.fold()
+                return self._record(accepted=False, reason="reset", nu=nu, d=d, detail="gate",
+                                    window_determined=wd, **base)
+            return self._record(accepted=False, reason="inconsistent", nu=nu, d=d,
+                                detail="gate", window_determined=wd, **base)
+        self.inconsistent_in_a_row = 0
+        self.theta, self.P = theta_new, P_new
+        self.fold()
+        window = kw["window"]
+        planned = int(window[1]) + int(apply_delay_samples)
+        late = arrived_seq is not None and arrived_seq + 1 > planned
+        self.applies_from_seq = int(arrived_seq) + 1 if late else planned
+        self.t = kw["t"]
+        return self._record(accepted=True, reason=ACCEPTED, nu=nu, d=d, late=late,
+                            detail="passed", window_determined=wd, **base)
+
+
+@dataclass
+class FilterErrorChecks:
+    """What a filter-error run is judged on beyond model §7's gate: the innovation test
+    against the model-predicted autocovariance and the robust (sandwich) score covariance."""
+
+    innovation: InnovationTest
+    score_covariance: np.ndarray  # (p, p) from the window's own score series (Newey–West)
+    score_covariance_model: np.ndarray | None = None  # (p, p) from the predicted Γ(k)
 
 
 @dataclass
@@ -629,6 +734,9 @@ class PeriodicIdentification:
     gap_samples: int | None = None
     design: Any = None
     alpha_base: np.ndarray | None = None
+    content_sos: np.ndarray | None = None  # the content filter (filter error: Γ(k) of §7 rule)
+    robust_filter_error: bool = True  # False: model §7's decisions only (for comparison)
+    false_alarm: float = 1e-3  # the innovation test's
     filter_state: FilterErrorState | None = field(default=None, init=False)
     _settle_pending: int = field(default=0, init=False)
     _last_end: int | None = field(default=None, init=False)
@@ -671,6 +779,22 @@ class PeriodicIdentification:
         lam = np.linalg.eigvalsh(L.T @ res.information @ L)
         d = int(np.sum(lam > GATE_RELATIVE_EIGENVALUE * max(lam[-1], 0.0))) if lam[-1] > 0 else 0
         return nu, d
+
+    def filter_error_checks(self, prob: FilterErrorProblem, theta: np.ndarray
+                            ) -> FilterErrorChecks:
+        """The innovation test and the sandwich score covariance of a filter-error window
+        at the run's estimate θ (docs/identification.md, the information rule)."""
+        e, de, B = prob.residual_series(theta)
+        W = self.par.terms(theta).W
+        d = self.design
+        n = max(int(prob.n_scored), 1)
+        gamma = innovation_autocovariance(d.Phi, d.K, d.J, d.Qd, W, self.content_sos,
+                                          max(n, SPECTRUM_SEGMENT))
+        test = innovation_spectrum_test(e, prob.scored, gamma, self.false_alarm)
+        lag = int(self.content_settle_samples) + self.filter_settle_samples
+        Q_data = score_covariance_hac(e, de, B, lag)
+        Q_model = predicted_score_covariance(de, B, gamma)
+        return FilterErrorChecks(test, Q_data, Q_model)
 
     @property
     def filter_settle_samples(self) -> int:
@@ -763,10 +887,14 @@ class PeriodicIdentification:
         else:
             res = levenberg_marquardt(prob, theta_p, P_p, max_iterations=self.max_iterations,
                                       max_lag=max_lag)
+        checks = None
+        if self.mode == "filter_error" and self.robust_filter_error and res.sound:
+            checks = self.filter_error_checks(prob, res.theta)
         rec = post.update(res, window=window, mode=self.mode, content=self.content,
                           t=t, missing_fraction=missing,
                           apply_delay_samples=self.apply_delay_samples,
-                          arrived_seq=arrived_seq, moments=moments, dt=dt, gate=gate)
+                          arrived_seq=arrived_seq, moments=moments, dt=dt, gate=gate,
+                          checks=checks)
         if self.mode == "filter_error" and res.end_state is not None and res.status != "diverged":
             self.filter_state = res.end_state
         if rec.accepted:

@@ -388,6 +388,15 @@ class AircraftPhysics:
             bv = scenario.base_vibration
             self._base = _BaseVibration(bv.band_hz, self.dt / self.substeps, bv.rms_g * G0,
                                         self._rng["base"])
+        self._turb = None
+        tb = scenario.turbulence
+        if tb.enabled:
+            if 2 * tb.band_hz[1] >= self.substeps * cfg.sample_rate_hz:
+                raise ValueError("turbulence band reaches the simulator's substep Nyquist")
+            r_turb = np.random.default_rng(ss.spawn(1)[0])  # a 7th stream: the others unchanged
+            # band-passed white noise of unit RMS on 3 + 3 axes (forces, moments)
+            self._turb = [_BaseVibration(tb.band_hz, self.dt / self.substeps, 1.0, r_turb)
+                          for _ in range(2)]
         self._mounts: OrderedDict[bytes, _Mounts] = OrderedDict()
         self._state: tuple[np.ndarray, np.ndarray] | None = None
         self._k_next = 0  # index of the next block's first sample
@@ -577,6 +586,10 @@ class AircraftPhysics:
                     re = _interp_samples(amp.real, frac, B, n)  # slow amplitude: linear in time
                     im = _interp_samples(amp.imag, frac, B, n)
                     target += re * cos_t - im * sin_t  # Re(A e^{i theta})
+        if self._turb is not None:  # broadband hub loads outside the filter's load model
+            nb = len(ts) - 1
+            turb = np.hstack([tv.block(nb)[2] for tv in self._turb])  # (B n + 1, 6)
+            H += turb * sc.turbulence.rms
         if sc.shaker is not None:
             tc = ts % sc.duration_s
             amp = self.shaker_amp.value(tc)

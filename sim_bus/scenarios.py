@@ -36,6 +36,7 @@ VARIANT_SHORTCUTS = {
     "angles": ("angles", "mode"),
     "unmodelled": ("unmodelled", "enabled"),
     "base_vibration": ("base_vibration", "enabled"),
+    "turbulence": ("turbulence", "enabled"),
 }
 
 
@@ -126,6 +127,16 @@ class BaseVibration:
 
 
 @dataclass(frozen=True)
+class Turbulence:
+    """Broadband hub loads outside the filter's load model (A6): band-limited Gaussian noise
+    (Butterworth band-pass of white noise) with the given RMS per hub-load component."""
+
+    enabled: bool
+    rms: np.ndarray  # (6,) N and N·m
+    band_hz: tuple[float, float]
+
+
+@dataclass(frozen=True)
 class UnmodelledLoad:
     """Report Phase I: a roll torque and an x-force proportional to the applied Y and X loads,
     with a phase (180 deg: elastic), in no measured channel."""
@@ -168,6 +179,8 @@ class Scenario:
     drive: DriveLoads
     rig_overrides: dict = field(default_factory=dict)  # for load_config(overrides=...)
     variants: dict = field(default_factory=dict)
+    turbulence: Turbulence = field(default_factory=lambda: Turbulence(
+        False, np.zeros(6), (0.5, 40.0)))
 
 
 def scenario_dir() -> Path:
@@ -401,6 +414,18 @@ def parse_scenario(raw: dict, source: str = "<scenario>", variants: dict | None 
                        "set enabled = false or scenario.quasi_static = false")
     bv.finish()
 
+    tb = top.table("turbulence", {})
+    tband = tb.vector("band_hz", 2, [0.5, 40.0], positive=True, unit=" in Hz")
+    trms = _six(tb, "rms", [2000.0, 2000.0, 3000.0, 2000.0, 2000.0, 1000.0])
+    if tband[0] >= tband[1]:
+        raise tb.error("band_hz", tband.tolist(), "must be [low, high] with low < high",
+                       "e.g. band_hz = [0.5, 40.0]")
+    if np.any(trms < 0):
+        raise tb.error("rms", trms.tolist(), "must be >= 0", "give RMS values in N and N·m")
+    turbulence = Turbulence(enabled=tb.boolean("enabled", False), rms=trms,
+                            band_hz=(float(tband[0]), float(tband[1])))
+    tb.finish()
+
     um = top.table("unmodelled", {})
     unmodelled = UnmodelledLoad(
         enabled=um.boolean("enabled", False),
@@ -425,4 +450,5 @@ def parse_scenario(raw: dict, source: str = "<scenario>", variants: dict | None 
     return Scenario(**scenario_head, loads=loads, harmonics=tuple(harmonics),
                     manoeuvres=tuple(manoeuvres), shaker=shaker, rotor=rotor, angles=angles,
                     base_vibration=base_vibration, unmodelled=unmodelled, drive=drive,
-                    rig_overrides=overrides, variants=dict(variants or {}))
+                    rig_overrides=overrides, variants=dict(variants or {}),
+                    turbulence=turbulence)
