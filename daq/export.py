@@ -192,9 +192,11 @@ FIELDS: dict[str, list[tuple[str, str, str]]] = {
     "angles": [
         ("t", "number", "s (UNIX)"), ("seq", "integer", ""), ("mode", "string", ""),
         ("content", "string", ""), ("accepted", "boolean", ""), ("reason", "string", ""),
+        ("detail", "string", ""),
         ("names", "array:string", ""), ("alpha", "array:number", "rad"),
         ("P", "array:array:number", "rad²"), ("sigma_cr", "array:number", "rad"),
         ("sigma_cr_corrected", "array:number", "rad"), ("determined", "integer", ""),
+        ("window_determined", "integer", ""),
         ("information", "number", ""), ("nu", "number", ""), ("cost", "number", ""),
         ("iterations", "integer", ""), ("window", "array:integer", ""),
         ("applies_from_seq", "integer", ""), ("late", "boolean", ""),
