@@ -574,15 +574,15 @@ class SequentialPosterior:
             reason = "not_converged" if result.status == "not_converged" else "diverged"
             return self._record(accepted=False, reason=reason, result=result, information=None,
                                 nu=None, d=0, detail="convergence", **kw)
+        P_p = result.prior_cov
+        info = information_ratio(P_p, result.information)
+        if checks is not None:  # range-checked on what it would apply (its own directions)
+            return self._update_filter_error(result, info, checks, apply_delay_samples,
+                                             arrived_seq, kw)
         if out_of_range(result.theta, self.limit):
             self.drop_held()  # the held windows were part of this run
             return self._record(accepted=False, reason="out_of_range", result=result,
                                 information=None, nu=None, d=0, detail="range", **kw)
-        P_p = result.prior_cov
-        info = information_ratio(P_p, result.information)
-        if checks is not None:
-            return self._update_filter_error(result, info, checks, apply_delay_samples,
-                                             arrived_seq, kw)
         low = info < self.min_information
         if low and not self.gate_low_information:
             self._hold(moments)
@@ -669,8 +669,11 @@ class SequentialPosterior:
         phi = P_new_s @ (Pinv_s @ (theta_p / s) + hk)
         theta_new = s * phi
         P_new = P_new_s * s[:, None] * s[None, :]
-        nu, d, ok = consistency_gate(theta_new - theta_p, P_p, P_new, self.gate_probability)
         wd = int(keep.sum())
+        if out_of_range(theta_new, self.limit):  # the physical range (identification.md)
+            return self._record(accepted=False, reason="out_of_range", nu=None, d=0,
+                                detail="range", window_determined=wd, **base)
+        nu, d, ok = consistency_gate(theta_new - theta_p, P_p, P_new, self.gate_probability)
         if not ok:
             self.inconsistent_in_a_row += 1
             if self.inconsistent_in_a_row >= self.reset_after:

@@ -33,7 +33,7 @@ def _check_flight(cfg, recs, truth):
     angles = recs["angles"]
     assert angles and all(a["mode"] == "filter_error" for a in angles)
     for a in angles:
-        assert a["detail"] in ("passed", "convergence", "own_information", "innovations",
+        assert a["detail"] in ("passed", "convergence", "own_information", "innovations", "range",
                                "robust_information", "gate")
         if a["accepted"]:  # an accepted run: its window determined what it changed
             assert a["window_determined"] > 0, a

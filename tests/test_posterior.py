@@ -229,6 +229,10 @@ def test_save_and_load_round_trip_atomically(tmp_path, cfg, model):
     st = PosteriorState(names, rng.normal(size=14) * DEG, A @ A.T * 1e-6 + np.eye(14) * 1e-8,
                         applies_from_seq=1234, t=17.5)
     path = tmp_path / "state" / "angles.json"
+    with pytest.raises(FileNotFoundError):  # no folder is created for it
+        save_posterior(path, st)
+    assert not path.parent.exists()
+    path.parent.mkdir()
     save_posterior(path, st)
     back = load_posterior(path, names)
     np.testing.assert_array_equal(back.theta, st.theta)
