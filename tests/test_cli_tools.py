@@ -452,8 +452,12 @@ def test_angles_reset_writes_the_configured_prior_and_show_reads_it_back(cfg, rn
     assert d["determined"] == 0 and d["condition"] == pytest.approx(1.0)
     np.testing.assert_allclose(d["angles_deg"], 2.0, rtol=1e-12)
     np.testing.assert_allclose(d["sigma_deg"], 3.0, rtol=1e-12)
-    # a new file (and folder) is created
+    # a new file is created, but no folder for it (nothing the user did not name)
     fresh = tmp_path / "new" / "state.json"
+    assert main(["angles", "reset", str(fresh)]) == 2
+    capsys.readouterr()
+    assert not fresh.parent.exists()
+    fresh.parent.mkdir()
     assert main(["angles", "reset", str(fresh)]) == 0
     assert "created it" in capsys.readouterr().out
     np.testing.assert_array_equal(load_posterior(fresh, names).theta,
