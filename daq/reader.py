@@ -61,6 +61,8 @@ TICK_S = 0.1  # live idle tick of the acquisition clock
 NOTIFIER_CYCLE_S = 0.1
 RATE_WINDOW = 10  # health periods over which the sample rate is measured
 RATE_LOW_FRACTION = 0.99  # below this fraction of sample_rate_hz: sync.rate_low
+TIMEBASE_BLOCK = 256  # frames per estimate of a foreign frame timebase's offset
+FOREIGN_TIMEBASE_S = 0.05  # a receipt delay floor beyond this: frames carry a foreign clock
 _floor = math.floor
 
 
@@ -176,14 +178,57 @@ class FrameTap(can.Listener):
         pass
 
 
+class Timebase:
+    """Live: frame timestamps in the local wall clock's timebase (docs/reliability.md
+    "Frame timebase").
+
+    The acquisition clock's idle tick reads the wall clock, so frame times must be on it
+    too. SocketCAN and python-can's virtual bus stamp frames with it; an interface with a
+    clock of its own (a device clock counting from power-up, another machine's clock) does
+    not. Each frame's receipt delay ``wall − timestamp`` is the transport latency plus the
+    offset between the two clocks; its minimum over a block of frames estimates the offset
+    (the latency's floor taken with it). An estimate within ``FOREIGN_TIMEBASE_S`` of zero
+    is the local clock and the timestamps are kept exactly; otherwise every timestamp is
+    moved by the estimate (the frames keep their own spacing, only the origin moves). The
+    estimate follows drift block by block and falls at once to a smaller delay."""
+
+    def __init__(self, block: int = TIMEBASE_BLOCK, clock: Callable[[], float] = time.time):
+        self.block = block
+        self.clock = clock
+        self.offset: float | None = None  # estimated wall − frame time (s)
+        self.shift = 0.0  # what is added to every timestamp (0.0: the local timebase)
+        self._min = math.inf
+        self._n = 0
+
+    def map(self, ts: float) -> float:
+        d = self.clock() - ts
+        if d < self._min:
+            self._min = d
+        self._n += 1
+        if self.offset is None or d < self.offset:  # the first frame, or a faster one
+            self._set(d)
+        elif self._n >= self.block:  # a block's floor: follows a drift either way
+            self._set(self._min)
+        if self._n >= self.block:
+            self._min, self._n = math.inf, 0
+        return ts + self.shift
+
+    def _set(self, offset: float) -> None:
+        self.offset = offset
+        self.shift = offset if abs(offset) > FOREIGN_TIMEBASE_S else 0.0
+
+
 class _LockedTap(can.Listener):
-    """The tap behind the lock shared with the live idle tick."""
+    """The tap behind the lock shared with the live idle tick, frames mapped onto the
+    wall clock's timebase first (Timebase)."""
 
     def __init__(self, tap: FrameTap):
         self.tap = tap
+        self.timebase = Timebase()
 
     def on_message_received(self, msg: can.Message) -> None:
         with self.tap.lock:
+            msg.timestamp = self.timebase.map(msg.timestamp)
             self.tap.on_message_received(msg)
 
     __call__ = on_message_received
