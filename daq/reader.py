@@ -50,6 +50,7 @@ from daq.master import (
     Supervisor,
 )
 from daq.recorder import Recorder
+from daq.sharedbus import shutdown_bus
 
 log = logging.getLogger(__name__)
 
@@ -424,7 +425,7 @@ class Reader:
         if self.recorder is not None:
             self.recorder.stop()
         if self._own_bus and self._bus is not None:
-            self._bus.shutdown()
+            shutdown_bus(self._bus)
             self._bus = None
             self.network.bus = None
 
