@@ -67,6 +67,27 @@ def _handler_class():
     return NoBrowserHandler
 
 
+def _server_class():
+    from can_remote.server import RemoteServer
+
+    class Server(RemoteServer):
+        """python-can-remote's server with the handler above; a client's broken connection
+        is one log line, not a traceback on the console (socketserver's default)."""
+
+        def __init__(self, *args, **kw):
+            super().__init__(*args, **kw)
+            self.RequestHandlerClass = _handler_class()
+
+        def handle_error(self, request, client_address) -> None:
+            import sys
+
+            e = sys.exc_info()[1]
+            log.info("connection from %s ended: %s: %s", client_address,
+                     type(e).__name__, e)
+
+    return Server
+
+
 class BusServer:
     """python-can-remote's RemoteServer on ``host:port`` (port 0: a free one) sharing the
     python-can bus ``interface``/``channel``. ``start()`` serves from a thread; ``close()``
@@ -74,10 +95,7 @@ class BusServer:
 
     def __init__(self, host: str = LOOPBACK, port: int = DEFAULT_PORT,
                  interface: str = "virtual", channel: str = "rig"):
-        from can_remote.server import RemoteServer
-
-        self.server = RemoteServer(host, port, interface=interface, channel=channel)
-        self.server.RequestHandlerClass = _handler_class()
+        self.server = _server_class()(host, port, interface=interface, channel=channel)
         self.host, self.port = host, self.server.server_port
         self._thread: threading.Thread | None = None
 
