@@ -124,7 +124,8 @@ def test_bench_rig_across_processes_on_the_shared_bus(cfg, tmp_path):
             subs = [z.declare_subscriber(f"{prefix}/hub_loads", on_hub),
                     z.declare_subscriber(f"{prefix}/health", on_health)]
             run = _spawn(["run", "--interface", "remote", "--channel", url, "--duration",
-                          str(RUN_S), "--zenoh-connect", ep], stdout=subprocess.PIPE,
+                          str(RUN_S), "--zenoh-connect", ep, "--zenoh-listen",
+                          f"tcp/127.0.0.1:{free_tcp_port()}"], stdout=subprocess.PIPE,
                          stderr=logs["run"])
             children.append(run)
             out, _ = run.communicate(timeout=180)
