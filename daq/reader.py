@@ -63,6 +63,8 @@ NOTIFIER_CYCLE_S = 0.1
 RATE_WINDOW = 10  # health periods over which the sample rate is measured
 RATE_LOW_FRACTION = 0.99  # below this fraction of sample_rate_hz: sync.rate_low
 TIMEBASE_BLOCK = 256  # frames per estimate of a foreign frame timebase's offset
+TIMEBASE_FIRST_BLOCK = 16  # the first block (a quick first estimate)
+TIMEBASE_QUANTILE = 0.1  # the block's quantile of receipt delays taken as the offset
 FOREIGN_TIMEBASE_S = 0.05  # a receipt delay floor beyond this: frames carry a foreign clock
 _floor = math.floor
 
@@ -187,31 +189,32 @@ class Timebase:
     too. SocketCAN and python-can's virtual bus stamp frames with it; an interface with a
     clock of its own (a device clock counting from power-up, another machine's clock) does
     not. Each frame's receipt delay ``wall − timestamp`` is the transport latency plus the
-    offset between the two clocks; its minimum over a block of frames estimates the offset
-    (the latency's floor taken with it). An estimate within ``FOREIGN_TIMEBASE_S`` of zero
-    is the local clock and the timestamps are kept exactly; otherwise every timestamp is
-    moved by the estimate (the frames keep their own spacing, only the origin moves). The
-    estimate follows drift block by block and falls at once to a smaller delay."""
+    offset between the two clocks; a low quantile of it over a block of frames (robust to a
+    few frames stamped far away: those stay bad timestamps, SyncClock) estimates the offset
+    with the latency's floor. An estimate within ``FOREIGN_TIMEBASE_S`` of zero is the local
+    clock and the timestamps are kept exactly; otherwise every timestamp is moved by the
+    estimate (the frames keep their own spacing, only the origin moves). The first frame
+    gives the first estimate; a short first block, then one block after another, follow
+    drift."""
 
     def __init__(self, block: int = TIMEBASE_BLOCK, clock: Callable[[], float] = time.time):
         self.block = block
         self.clock = clock
         self.offset: float | None = None  # estimated wall − frame time (s)
         self.shift = 0.0  # what is added to every timestamp (0.0: the local timebase)
-        self._min = math.inf
-        self._n = 0
+        self._d: list[float] = []
+        self._n = min(block, TIMEBASE_FIRST_BLOCK)
 
     def map(self, ts: float) -> float:
         d = self.clock() - ts
-        if d < self._min:
-            self._min = d
-        self._n += 1
-        if self.offset is None or d < self.offset:  # the first frame, or a faster one
+        if self.offset is None:
             self._set(d)
-        elif self._n >= self.block:  # a block's floor: follows a drift either way
-            self._set(self._min)
-        if self._n >= self.block:
-            self._min, self._n = math.inf, 0
+        self._d.append(d)
+        if len(self._d) >= self._n:
+            ds = sorted(self._d)
+            self._set(ds[int(TIMEBASE_QUANTILE * (len(ds) - 1))])
+            self._d.clear()
+            self._n = self.block
         return ts + self.shift
 
     def _set(self, offset: float) -> None:
