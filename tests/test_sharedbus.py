@@ -67,3 +67,13 @@ def test_a_client_whose_connection_the_server_dropped_is_closed_once():
 def test_loopback_addresses():
     assert is_loopback("127.0.0.1") and is_loopback("::1") and is_loopback("localhost")
     assert not is_loopback("0.0.0.0") and not is_loopback("192.168.1.2")
+
+
+@pytest.mark.parametrize("argv, word", [(["--port", "70000"], "--port"),
+                                        (["--interface", "nosuch", "--port", "0"], "nosuch")])
+def test_rsra_bus_bad_input_is_one_line_exit_2(capsys, argv, word):
+    from daq.cli import main
+
+    assert main(["bus", *argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and word in err and "Traceback" not in err

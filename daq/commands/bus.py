@@ -37,6 +37,13 @@ def run(args: argparse.Namespace) -> int:
 
     if not 0 <= args.port <= 65535:
         raise UsageError(f"--port {args.port}: give a TCP port 0–65535")
+    import can
+
+    try:  # the bus shared is opened per client: find a wrong interface or channel now
+        can.Bus(interface=args.interface, channel=args.channel).shutdown()
+    except (can.CanError, OSError, ValueError, ImportError) as e:
+        raise UsageError(f"cannot open the bus --interface {args.interface} --channel "
+                         f"{args.channel}: {e}; check the interface and channel") from None
     try:
         server = BusServer(args.bind, args.port, interface=args.interface, channel=args.channel)
     except OSError as e:
