@@ -20,6 +20,7 @@ COMMANDS = {
     "run": "run",
     "demo": "demo",
     "sim": "sim",
+    "bus": "bus",
     "replay": "replay",
     "nodes": "nodes",
     "zero": "zero",

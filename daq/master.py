@@ -195,6 +195,10 @@ class Supervisor:
         return out
 
 
+# python-can bus classes whose own send_periodic sends a sequence of messages in turn
+PERIODIC_SEQUENCE_BUSES = frozenset({"SocketcanBus"})
+
+
 class SyncProducer:
     """Periodic SYNC from a thread, for interfaces without periodic sending of their own.
 
@@ -411,7 +415,12 @@ class CanopenMaster:
             msgs = [can.Message(arbitration_id=cob, data=b"", is_extended_id=False)]
         bus = self.network.bus
         period = 1.0 / self.cfg.sample_rate_hz
-        if type(bus)._send_periodic_internal is not can.BusABC._send_periodic_internal:
+        native = type(bus)._send_periodic_internal is not can.BusABC._send_periodic_internal
+        # the interface's own periodic sending (kernel-timed BCM on SocketCAN) for a sequence
+        # of SYNCs (the counter) only where it is known to send sequences: python-can-remote's
+        # server keeps one message per COB-ID (the last), so every SYNC would carry the same
+        # counter (docs/deployment.md "A shared bus between processes")
+        if native and (len(msgs) == 1 or type(bus).__name__ in PERIODIC_SEQUENCE_BUSES):
             self.sync_task = bus.send_periodic(msgs, period)  # the interface's own (BCM)
         else:
             self.sync_task = SyncProducer(bus, msgs, period, self.network.send_lock)

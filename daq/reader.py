@@ -50,6 +50,7 @@ from daq.master import (
     Supervisor,
 )
 from daq.recorder import Recorder
+from daq.sharedbus import shutdown_bus
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +62,10 @@ TICK_S = 0.1  # live idle tick of the acquisition clock
 NOTIFIER_CYCLE_S = 0.1
 RATE_WINDOW = 10  # health periods over which the sample rate is measured
 RATE_LOW_FRACTION = 0.99  # below this fraction of sample_rate_hz: sync.rate_low
+TIMEBASE_BLOCK = 256  # frames per estimate of a foreign frame timebase's offset
+TIMEBASE_FIRST_BLOCK = 16  # the first block (a quick first estimate)
+TIMEBASE_QUANTILE = 0.1  # the block's quantile of receipt delays taken as the offset
+FOREIGN_TIMEBASE_S = 0.05  # a receipt delay floor beyond this: frames carry a foreign clock
 _floor = math.floor
 
 
@@ -176,14 +181,58 @@ class FrameTap(can.Listener):
         pass
 
 
+class Timebase:
+    """Live: frame timestamps in the local wall clock's timebase (docs/reliability.md
+    "Frame timebase").
+
+    The acquisition clock's idle tick reads the wall clock, so frame times must be on it
+    too. SocketCAN and python-can's virtual bus stamp frames with it; an interface with a
+    clock of its own (a device clock counting from power-up, another machine's clock) does
+    not. Each frame's receipt delay ``wall − timestamp`` is the transport latency plus the
+    offset between the two clocks; a low quantile of it over a block of frames (robust to a
+    few frames stamped far away: those stay bad timestamps, SyncClock) estimates the offset
+    with the latency's floor. An estimate within ``FOREIGN_TIMEBASE_S`` of zero is the local
+    clock and the timestamps are kept exactly; otherwise every timestamp is moved by the
+    estimate (the frames keep their own spacing, only the origin moves). The first frame
+    gives the first estimate; a short first block, then one block after another, follow
+    drift."""
+
+    def __init__(self, block: int = TIMEBASE_BLOCK, clock: Callable[[], float] = time.time):
+        self.block = block
+        self.clock = clock
+        self.offset: float | None = None  # estimated wall − frame time (s)
+        self.shift = 0.0  # what is added to every timestamp (0.0: the local timebase)
+        self._d: list[float] = []
+        self._n = min(block, TIMEBASE_FIRST_BLOCK)
+
+    def map(self, ts: float) -> float:
+        d = self.clock() - ts
+        if self.offset is None:
+            self._set(d)
+        self._d.append(d)
+        if len(self._d) >= self._n:
+            ds = sorted(self._d)
+            self._set(ds[int(TIMEBASE_QUANTILE * (len(ds) - 1))])
+            self._d.clear()
+            self._n = self.block
+        return ts + self.shift
+
+    def _set(self, offset: float) -> None:
+        self.offset = offset
+        self.shift = offset if abs(offset) > FOREIGN_TIMEBASE_S else 0.0
+
+
 class _LockedTap(can.Listener):
-    """The tap behind the lock shared with the live idle tick."""
+    """The tap behind the lock shared with the live idle tick, frames mapped onto the
+    wall clock's timebase first (Timebase)."""
 
     def __init__(self, tap: FrameTap):
         self.tap = tap
+        self.timebase = Timebase()
 
     def on_message_received(self, msg: can.Message) -> None:
         with self.tap.lock:
+            msg.timestamp = self.timebase.map(msg.timestamp)
             self.tap.on_message_received(msg)
 
     __call__ = on_message_received
@@ -379,7 +428,7 @@ class Reader:
         if self.recorder is not None:
             self.recorder.stop()
         if self._own_bus and self._bus is not None:
-            self._bus.shutdown()
+            shutdown_bus(self._bus)
             self._bus = None
             self.network.bus = None
 

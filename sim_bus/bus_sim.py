@@ -51,6 +51,7 @@ import numpy as np
 from canopen.objectdictionary import datatypes as od_types
 
 from daq.config import RigConfig
+from daq.sharedbus import shutdown_bus
 from sim_bus.faults import (
     EMCY_OVER_RANGE,
     EMCY_SENSOR_FAULT,
@@ -563,7 +564,7 @@ class Simulator:
                 self._logger.stop()
                 self._logger = None
             if self._own_bus:
-                self.bus.shutdown()
+                shutdown_bus(self.bus)
 
     def __enter__(self) -> "Simulator":
         return self.start()

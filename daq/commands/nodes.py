@@ -286,7 +286,13 @@ def run(args: argparse.Namespace) -> int:
         reports = check_network(cfg, network, timeout, table)
     finally:
         sdo_log.setLevel(level)
-        network.disconnect()
+        bus = network.bus
+        try:
+            network.disconnect()
+        except Exception:  # the interface's own shutdown failed: closed once, quietly
+            from daq.sharedbus import shutdown_bus
+
+            shutdown_bus(bus)
     ok = all(r.ok for r in reports)
     if args.json:
         print(json.dumps({"ok": ok, "interface": args.interface, "channel": args.channel,

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import threading
 import time
 from pathlib import Path
@@ -109,6 +110,13 @@ def run(args: argparse.Namespace) -> int:
                       highlight=False)
 
     interrupted = False
+    terminated = threading.Event()
+
+    def on_term(signum, frame):  # noqa: ARG001 - SIGTERM: the same clean stop as Ctrl-C
+        terminated.set()
+        stop.set()
+
+    old_term = signal.signal(signal.SIGTERM, on_term)
     try:
         with sim:
             try:
@@ -118,8 +126,10 @@ def run(args: argparse.Namespace) -> int:
                 stop.set()
     finally:
         sim.close()
+        signal.signal(signal.SIGTERM, old_term)
     truth = sim.write_truth(Path(args.truth)) if args.truth and len(sim.samples) else None
-    how = "stopped (Ctrl-C)" if interrupted else "done"
+    how = ("stopped (Ctrl-C)" if interrupted else "stopped (SIGTERM)" if terminated.is_set()
+           else "done")
     console.print(f"rsra sim: {how}: {len(sim.sync_info)} samples, {sim.frames_sent} frames sent, "
                   f"{sim.faults.events} fault events"
                   + (f", frames in {args.record}" if args.record else "")

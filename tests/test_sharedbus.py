@@ -1,0 +1,79 @@
+"""The shared bus (daq.sharedbus, `rsra bus`): python-can-remote's server on loopback,
+browser origins refused, the port released, a client closed once (issue 17)."""
+from __future__ import annotations
+
+import http.client
+import socket
+import time
+
+import can
+import pytest
+
+pytest.importorskip("can_remote", reason="python-can-remote (the shared bus) is not installed")
+
+from daq.sharedbus import BusServer, is_loopback, shutdown_bus  # noqa: E402
+
+
+def _upgrade(port: int, origin: str | None) -> int:
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=5)
+    headers = {"Upgrade": "websocket", "Connection": "Upgrade", "Sec-WebSocket-Version": "13",
+               "Sec-WebSocket-Key": "dGhlIHNhbXBsZSBub25jZQ==",
+               "Sec-WebSocket-Protocol": "can.json.v1"}
+    if origin is not None:
+        headers["Origin"] = origin
+    conn.request("GET", "/", headers=headers)
+    status = conn.getresponse().status
+    conn.close()
+    return status
+
+
+def test_frames_pass_between_clients_and_a_browser_origin_is_refused():
+    with BusServer(port=0, channel="t-share") as srv:
+        assert srv.server.server_address[0] == "127.0.0.1" and srv.url.startswith("ws://127.")
+        a = can.Bus(channel=srv.url, interface="remote")
+        b = can.Bus(channel=srv.url, interface="remote")
+        try:
+            a.send(can.Message(arbitration_id=0x80, data=b"\x07", is_extended_id=False))
+            m = b.recv(5)
+            assert m is not None and m.arbitration_id == 0x80 and bytes(m.data) == b"\x07"
+            for origin in ("http://evil.example", "null", "http://127.0.0.1:8000"):
+                assert _upgrade(srv.port, origin) == 403
+            assert srv.refused == 3
+            assert _upgrade(srv.port, None) == 101  # python-can-remote's clients send none
+        finally:
+            shutdown_bus(a)
+            shutdown_bus(b)
+        port = srv.port
+    with socket.socket() as s:  # released: a new server can listen there
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        s.bind(("127.0.0.1", port))
+        s.listen()
+
+
+def test_a_client_whose_connection_the_server_dropped_is_closed_once():
+    """python-can-remote's client: its shutdown raises ValueError (fd -1) when the server
+    already closed the connection, and __del__ tries again; shutdown_bus closes it once."""
+    with BusServer(port=0, channel="t-drop") as srv:
+        bus = can.Bus(channel=srv.url, interface="remote")
+        bus.remote_protocol.send_periodic_stop(0x123)  # no such task: the server drops us
+        deadline = time.monotonic() + 5
+        with pytest.raises(Exception):  # noqa: B017 - the library's WebsocketClosed
+            while time.monotonic() < deadline:
+                bus.recv(0.5)
+        shutdown_bus(bus)  # no exception
+        assert bus._is_shutdown  # so python-can's __del__ does not shut it down again
+
+
+def test_loopback_addresses():
+    assert is_loopback("127.0.0.1") and is_loopback("::1") and is_loopback("localhost")
+    assert not is_loopback("0.0.0.0") and not is_loopback("192.168.1.2")
+
+
+@pytest.mark.parametrize("argv, word", [(["--port", "70000"], "--port"),
+                                        (["--interface", "nosuch", "--port", "0"], "nosuch")])
+def test_rsra_bus_bad_input_is_one_line_exit_2(capsys, argv, word):
+    from daq.cli import main
+
+    assert main(["bus", *argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and word in err and "Traceback" not in err
