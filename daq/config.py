@@ -26,6 +26,8 @@ from estimator.params import (
     RigModel,
 )
 
+MAX_SAMPLE_RATE_HZ = 10_000.0  # a SYNC every 100 µs: more than any CAN bus carries
+
 G0 = 9.80665  # standard gravity, m/s^2
 ROLES = ("load_cell", "accelerometer", "rotor_speed", "balance", "drive_load")
 CONTENTS = ("static", "harmonics", "broadband", "vibration")
@@ -456,6 +458,9 @@ def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = No
     if not rig_name or "/" in rig_name or any(c in rig_name for c in "*?$#"):
         raise rig.error("name", rig_name, "must be a plain name", "use letters, digits, - or _")
     rate = rig.number("sample_rate_hz", 200.0, positive=True)
+    if rate > MAX_SAMPLE_RATE_HZ:  # beyond any CAN bus (1 Mbit/s: ~1 100 samples/s here)
+        raise rig.error("sample_rate_hz", rate, f"must be at most {MAX_SAMPLE_RATE_HZ:g} Hz",
+                        "set rig.sample_rate_hz to the SYNC rate of the bus (200 by default)")
     rig.finish()
 
     geo = top.table("geometry")

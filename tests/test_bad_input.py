@@ -163,6 +163,22 @@ def _sim(command, *extra):
     return make
 
 
+def truth_nowhere(command):
+    def make(tmp, rec):
+        return _sim(command, "--truth", str(tmp / "nodir" / "t.npz"))(tmp, rec)
+    return make
+
+
+def rate_1e9(tmp, rec):
+    return _sim_run(_rig(tmp, "sample_rate_hz = 200.0", "sample_rate_hz = 1e9"))
+
+
+def listen_bad(*extra):
+    def make(tmp, rec):
+        return ["listen", "--zenoh-connect", f"tcp/127.0.0.1:{free_tcp_port()}", *extra]
+    return make
+
+
 def sweep_junk(tmp, rec):
     (tmp / "junk.blf").write_bytes(b"\0" * 100)
     return ["sweep", str(tmp / "junk.blf"), "--out", str(tmp / "sweep-out")]
@@ -197,6 +213,13 @@ CASES = {
     "run --duration inf": (_sim("run", "--duration", "inf"), 2, ["--duration", "finite"]),
     "demo --duration inf": (_sim("demo", "--duration", "inf"), 2, ["--duration", "finite"]),
     "sim --duration inf": (_sim("sim", "--duration", "inf"), 2, ["--duration", "finite"]),
+    "run --truth in a missing folder": (truth_nowhere("run"), 2, ["--truth", "no folder",
+                                                                   "fix:"]),
+    "sim --truth in a missing folder": (truth_nowhere("sim"), 2, ["--truth", "no folder",
+                                                                   "fix:"]),
+    "sample_rate_hz = 1e9": (rate_1e9, 2, ["rig.sample_rate_hz", "at most"]),
+    "listen --duration -1": (listen_bad("--duration", "-1"), 2, ["--duration", "> 0"]),
+    "listen --count -1": (listen_bad("--count", "-1"), 2, ["--count", "> 0"]),
 }
 
 

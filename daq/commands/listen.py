@@ -34,9 +34,11 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
                    help="endpoint to connect to (default: the config's listen endpoints)")
     p.add_argument("--zenoh-config", default=None, metavar="FILE",
                    help="a Zenoh config file (TLS, user/password) instead of --zenoh-connect")
-    p.add_argument("--duration", type=float, default=None, metavar="S",
+    from daq.commands.run import positive_float, positive_int
+
+    p.add_argument("--duration", type=positive_float, default=None, metavar="S",
                    help="stop after S seconds (exit 0)")
-    p.add_argument("--count", type=int, default=None, metavar="N",
+    p.add_argument("--count", type=positive_int, default=None, metavar="N",
                    help="stop after N messages")
     return p
 

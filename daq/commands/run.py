@@ -6,7 +6,9 @@ import json
 import logging
 import logging.handlers
 import math
+import os
 import sys
+from pathlib import Path
 
 LOG_FILE_BYTES = 10 * 1024 * 1024
 LOG_FILE_BACKUPS = 5
@@ -31,6 +33,16 @@ def positive_float(text: str) -> float:
         raise argparse.ArgumentTypeError(f"'{text}' is not a number") from None
     if not 0 < v < math.inf:
         raise argparse.ArgumentTypeError("must be a finite number > 0")
+    return v
+
+
+def positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number") from None
+    if v <= 0:
+        raise argparse.ArgumentTypeError("must be a whole number > 0")
     return v
 
 
@@ -195,8 +207,31 @@ def config_for_run(config: str | None, scenario: str | None):
     return load_config(config, overrides=sc.rig_overrides or None)
 
 
+def check_output_file(option: str, path: str) -> None:
+    """An output file named on the command line, checked before any work: not a folder, in an
+    existing folder we may write (no folder is created for it: nothing the user did not name)."""
+    from daq.cli import UsageError
+
+    p = Path(path)
+    if p.is_dir():
+        raise UsageError(f"{option} {path}: is a folder; fix: give a file name")
+    parent = p.resolve().parent
+    if not parent.is_dir():
+        raise UsageError(f"{option} {path}: no folder {parent}; fix: create it or write elsewhere")
+    if not os.access(parent, os.W_OK):
+        raise UsageError(f"{option} {path}: folder {parent} is not writable; fix: write "
+                         "elsewhere")
+
+
 def run(args: argparse.Namespace) -> int:
+    from daq.cli import UsageError
+
     setup_logging(args.log_level, args.log_file)
+    if args.truth:  # found out now, not after the run
+        if not args.sim:
+            raise UsageError("--truth needs --sim (the truth is the simulator's); fix: add "
+                             "--sim SCENARIO or leave --truth out")
+        check_output_file("--truth", args.truth)
     opts = options_from_args(args)
     cfg = config_for_run(args.config, args.sim)
     check_sim_faults(cfg, args.sim, args.faults, args.speed)

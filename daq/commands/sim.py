@@ -7,7 +7,6 @@ every frame with python-can's Logger; --truth writes the physics truth and the i
 from __future__ import annotations
 
 import argparse
-import os
 import signal
 import threading
 import time
@@ -71,14 +70,9 @@ def run(args: argparse.Namespace) -> int:
     if args.duration is not None and not args.duration > 0:
         raise UsageError(f"--duration {args.duration}: must be a positive number of seconds")
     if args.truth:  # found out now, not after the run
-        parent = Path(args.truth).resolve().parent
-        try:
-            parent.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise UsageError(f"--truth {args.truth}: {e}; give a writable file") from None
-        if not os.access(parent, os.W_OK):
-            raise UsageError(f"--truth {args.truth}: folder {parent} is not writable; "
-                             "give a writable file")
+        from daq.commands.run import check_output_file
+
+        check_output_file("--truth", args.truth)
     cfg = load_config(args.config)
     from daq.decoder import DecodeTable
 
