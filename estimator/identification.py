@@ -628,21 +628,26 @@ def coloured_residual_information(
     Evaluated exactly in the frequency domain: zero-padding to M ≥ N + L makes the circular
     convolution linear, and Parseval turns the double sum into (1/M) Σ_f Ĝ_fᴴ R̂_f Ĝ_f.
     """
-    N, _, p = de.shape
     Winv = np.linalg.inv(weight)
     R = residual_autocorrelation(e, max_lag, n)
     rho = np.einsum("ab,kba->k", Winv, R)
     cross = np.flatnonzero(rho[1:] <= 0.0)
     L = int(cross[0]) if cross.size else len(R) - 1  # lags 0..L are kept
+    return _score_quadratic(R, Winv @ de, L), L
+
+
+def _score_quadratic(gamma: np.ndarray, G: np.ndarray, L: int) -> np.ndarray:
+    """Σ_i Σ_j G_iᵀ Γ(j−i) G_j for G (N, 6, p) and the autocovariance Γ(k), k = 0 … L
+    (Γ(−k) = Γ(k)ᵀ), exactly: zero-padding to M ≥ N + L makes the circular convolution
+    Y_i = Σ_j c(i−j) G_j, c(d) = Γ(−d), linear, and Parseval turns the double sum into
+    (1/M) Σ_f Ĝ_fᴴ R̂_f Ĝ_f."""
+    N, _, p = G.shape
     M = scipy.fft.next_fast_len(N + L + 1, real=True)
-    # Var(Σ G_iᵀ e_i) = Σ_i Σ_j G_iᵀ Γ(j−i) G_j, Γ(k) = E[e_n e_{n+k}ᵀ] ≈ R(k), Γ(−k) = R(k)ᵀ:
-    # a convolution Y_i = Σ_j c(i−j) G_j with c(d) = Γ(−d)
     rc = np.zeros((M, 6, 6))
-    rc[: L + 1] = R[: L + 1].transpose(0, 2, 1)
+    rc[: L + 1] = gamma[: L + 1].transpose(0, 2, 1)
     if L:
-        rc[M - L:] = R[1: L + 1][::-1]
+        rc[M - L:] = gamma[1: L + 1][::-1]
     Rf = np.fft.rfft(rc, axis=0)  # (F, 6, 6)
-    G = Winv @ de  # (N, 6, p)
     Gf = np.fft.rfft(G, n=M, axis=0)  # (F, 6, p)
     w = np.full(Rf.shape[0], 2.0 / M)
     w[0] = 1.0 / M
@@ -651,7 +656,7 @@ def coloured_residual_information(
     RG = Rf @ Gf
     Gw = np.conj(Gf) * w[:, None, None]
     Q = (Gw.reshape(-1, p).T @ RG.reshape(-1, p)).real
-    return 0.5 * (Q + Q.T), L
+    return 0.5 * (Q + Q.T)
 
 
 # ------------------------------------------------------------------------------------------
@@ -1030,24 +1035,9 @@ def predicted_score_covariance(de: np.ndarray, weight: np.ndarray, gamma: np.nda
     exactly, by FFT (zero-padded, as :func:`coloured_residual_information`). Under the model
     this is the true variance of the score — M assumes white innovations of covariance B,
     which the content filter and the narrow-band hub-load states make far from true."""
-    N, _, p = de.shape
+    N = de.shape[0]
     L = int(min(len(gamma) - 1, N - 1))
-    M = scipy.fft.next_fast_len(N + L + 1, real=True)
-    rc = np.zeros((M, 6, 6))
-    rc[: L + 1] = gamma[: L + 1].transpose(0, 2, 1)
-    if L:
-        rc[M - L:] = gamma[1: L + 1][::-1]
-    Rf = np.fft.rfft(rc, axis=0)
-    G = np.linalg.inv(weight) @ de
-    Gf = np.fft.rfft(G, n=M, axis=0)
-    w = np.full(Rf.shape[0], 2.0 / M)
-    w[0] = 1.0 / M
-    if M % 2 == 0:
-        w[-1] = 1.0 / M
-    RG = Rf @ Gf
-    Gw = np.conj(Gf) * w[:, None, None]
-    Q = (Gw.reshape(-1, p).T @ RG.reshape(-1, p)).real
-    return 0.5 * (Q + Q.T)
+    return _score_quadratic(gamma, np.linalg.inv(weight) @ de, L)
 
 
 SPECTRUM_SEGMENT = 256  # samples per Welch segment of the innovation spectrum test (1.3 s)
