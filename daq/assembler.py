@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from daq import stagetiming
 from daq.config import RigConfig
 from daq.decoder import STATUS_FAULT, STATUS_OVERRANGE, DecodeTable
 
@@ -457,6 +458,8 @@ class SampleAssembler:
         return p
 
     def _pass_on(self, complete_trigger: bool) -> None:
+        if stagetiming.TIMER is not None:  # off unless a benchmark asked (performance.md P5b)
+            stagetiming.TIMER.frame_done(self._seq)
         self._open = False
         self._wait = -1
         (unreported, missing, missing_flags, nan_idx, nan_out, cell_names, status_idx,

@@ -16,6 +16,7 @@ from typing import Any
 import zenoh
 
 from daq.config import TelemetryConfig
+from daq import stagetiming
 from daq.jsonout import dumps
 
 log = logging.getLogger("rsra.telemetry")
@@ -124,9 +125,14 @@ class TelemetryPublisher:
     def publish(self, key: str, payload: dict) -> str:
         """Publish one record; returns the JSON text (for recording or replay output)."""
         text = dumps(payload)
+        timer = stagetiming.TIMER  # None unless a benchmark asked (docs/performance.md P5b)
+        if timer is not None and key == "hub_loads":
+            timer.handed_on(payload["seq"])
         try:
             self._pubs[key].put(text)
             self.published[key] += 1
+            if timer is not None and key == "hub_loads":
+                timer.put_done(payload["seq"])
         except Exception as e:  # a closed session at shutdown, a transport error
             self.errors += 1
             log.debug("publish %s failed: %s", key, e)

@@ -123,6 +123,11 @@ class ContentFilter:
         self._identity = kind == "broadband"
         self._zi_unit = sosfilt_zi(self.sos)  # (sections, 2): steady state for a unit input
         self._zi: np.ndarray | None = None
+        # the per-sample path (one row: the live estimator thread) runs the sections itself
+        # with Python-float coefficients — the same operations in the same order as
+        # scipy's sosfilt (direct form II transposed), bit for bit, without sosfilt's
+        # per-call validation and reshaping (docs/performance.md)
+        self._sections = [tuple(float(c) for c in row) for row in self.sos]
         self.settle_samples = int(np.ceil(settle_time_constants
                                           * slowest_time_constant_samples(self.sos)))
 
@@ -139,5 +144,19 @@ class ContentFilter:
             return X.copy()
         if self._zi is None:
             self._zi = self._zi_unit[:, :, None] * X[0][None, None, :]
+        if X.shape[0] == 1:
+            return self._step(X[0])[None, :]
         Y, self._zi = sosfilt(self.sos, X, axis=0, zi=self._zi)
         return Y
+
+    def _step(self, x: np.ndarray) -> np.ndarray:
+        """One sample through every section, the state updated in place: scipy's sosfilt
+        loop (``y = b0 x + z0; z0 = b1 x − a1 y + z1; z1 = b2 x − a2 y``), elementwise."""
+        zi = self._zi
+        for s, (b0, b1, b2, _, a1, a2) in enumerate(self._sections):
+            z = zi[s]
+            y = b0 * x + z[0]
+            z[0] = b1 * x - a1 * y + z[1]
+            z[1] = b2 * x - a2 * y
+            x = y
+        return x

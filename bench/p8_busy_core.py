@@ -1,0 +1,99 @@
+"""P8 — ``rsra run --sim ground-test`` in real time at 200 samples/s while another process
+keeps one core busy for 60 s (docs/performance.md).
+
+The service runs as a user starts it (its own process, identification in its worker
+process); after a warm-up a burner (``python -c 'while True: pass'`` under a 60 s limit)
+starts beside it. The figure is the share of SYNC periods on time while the burner ran:
+1 − (SYNCs sent more than half a period late, health ``sync.late``) / (SYNCs sent,
+``sync.sent``), both differenced over the burner's minute from the service's own ``health``
+records (received here over Zenoh); the sample slots never taken (``sync.periods_not_taken``)
+and the deadline misses are reported beside it. Peer: the same service for the same minute
+without the burner, in the same run. Target: ≥ 99.9 % on time; every late or skipped period
+counted in ``health``.
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+
+from bench.common import arg_parser, ratio, writer_from_args
+from bench.rig import Receiver, free_tcp_port, spawn, stop, wait_listening
+
+BENCH = "p8_busy_core"
+WARMUP_S = 8.0
+BURN_S = 60.0
+HEALTH_WAIT_S = 3.0  # health is published every second
+
+
+def _sync(h: dict | None) -> dict:
+    return dict(((h or {}).get("sync") or {}))
+
+
+def one_run(burn: bool, seconds: float, warmup: float = WARMUP_S) -> dict:
+    from daq.config import load_config
+
+    cfg = load_config()
+    port = free_tcp_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    svc = spawn(["-m", "daq", "run", "--sim", "ground-test", "--speed", "1", "--zenoh-listen", ep,
+                 "--log-level", "warning"])
+    rx = burner = None
+    try:
+        wait_listening(port, svc)
+        rx = Receiver(ep, cfg.telemetry.prefix, int(cfg.sample_rate_hz * (seconds + 120)))
+        time.sleep(warmup)
+        h0 = rx.health
+        t0 = time.monotonic()
+        if burn:
+            burner = subprocess.Popen(["timeout", f"{seconds:g}", sys.executable, "-c",
+                                       "while True: pass"])
+        time.sleep(seconds)
+        if burner is not None:
+            burner.wait(30)
+        time.sleep(HEALTH_WAIT_S)
+        h1 = rx.health
+        wall = time.monotonic() - t0
+    finally:
+        if burner is not None and burner.poll() is None:
+            burner.kill()
+        if rx is not None:
+            rx.close()
+        rc = stop(svc)
+    s0, s1 = _sync(h0), _sync(h1)
+    if not s1:
+        raise RuntimeError(f"no health record from the service (exit {rc})")
+    d = {k: (s1.get(k) or 0) - (s0.get(k) or 0) for k in ("sent", "late", "periods_not_taken")}
+    lat0 = (h0 or {}).get("latency_ms") or {}
+    lat1 = (h1 or {}).get("latency_ms") or {}
+    d["deadline_misses"] = (lat1.get("deadline_misses") or 0) - (lat0.get("deadline_misses") or 0)
+    d["on_time"] = 1.0 - d["late"] / d["sent"] if d["sent"] else None
+    d["window_s"] = round(wall, 1)
+    d["burner"] = burn
+    d["load_average"] = os.getloadavg()[0]
+    return d
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = arg_parser(__doc__.splitlines()[0]).parse_args(argv)
+    w = writer_from_args(BENCH, args)
+    seconds = 3.0 if args.tiny else BURN_S
+    warmup = 2.0 if args.tiny else WARMUP_S
+    quiet = one_run(False, seconds, warmup)
+    busy = one_run(True, seconds, warmup)
+    print(f"bench.p8_busy_core: quiet {quiet}; busy {busy}", flush=True)
+    on_time = busy["on_time"]
+    w.add("on_time_periods", None if on_time is None else 100.0 * on_time, "% of SYNC periods",
+          peer="the same service, same run, no burner (% on time)",
+          peer_figure=None if quiet["on_time"] is None else 100.0 * quiet["on_time"],
+          ratio_value=ratio(on_time, quiet["on_time"]), ratio_is="figure/peer",
+          target="≥ 99.9 % of SYNC periods on time with one core busy for 60 s",
+          met=on_time is not None and on_time >= 0.999, busy=busy, quiet=quiet,
+          counted_in_health="sync.late, sync.periods_not_taken, latency_ms.deadline_misses",
+          command="rsra run --sim ground-test --speed 1, beside: timeout 60 python -c 'while True: pass'")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

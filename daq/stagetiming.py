@@ -1,0 +1,77 @@
+"""Optional internal timing of the service's own share of the latency (docs/performance.md
+P5b): the last frame of a sample received → ``hub_loads`` handed to Zenoh.
+
+Off by default and then free: ``TIMER`` is None and the two call sites test one module
+global. A benchmark switches it on for one process by setting ``RSRA_STAGE_TIMING`` to a
+file path in that process's environment; the stamps (``time.perf_counter``) go into
+preallocated arrays indexed by ``seq`` modulo the capacity (bounded), and are written once,
+at exit, as an ``.npz`` file with one row per sample:
+
+* ``seq``;
+* ``frame`` — the sample was completed by its last TPDO (the assembler, in the thread that
+  received the frame), or passed on incomplete at the next SYNC;
+* ``handed`` — ``hub_loads`` encoded and about to be put (the estimator thread);
+* ``put`` — Zenoh's ``put`` returned.
+
+Nothing here is read by the service itself: it never changes what is computed or published.
+"""
+from __future__ import annotations
+
+import atexit
+import os
+import time
+
+import numpy as np
+
+ENV = "RSRA_STAGE_TIMING"
+CAPACITY = 1 << 17  # samples kept (≈ 11 min at 200 samples/s): bounded
+
+
+class StageTimer:
+    """Per-sample stamps in preallocated arrays (bounded, no allocation per sample)."""
+
+    def __init__(self, path: str, capacity: int = CAPACITY) -> None:
+        self.path = path
+        self.capacity = capacity
+        self.seq = np.full(capacity, -1, dtype=np.int64)
+        self.frame = np.full(capacity, np.nan)
+        self.handed = np.full(capacity, np.nan)
+        self.put = np.full(capacity, np.nan)
+        self.n_max = -1
+        self.clock = time.perf_counter
+
+    def frame_done(self, seq: int) -> None:
+        i = seq % self.capacity
+        self.seq[i] = seq
+        self.frame[i] = self.clock()
+        self.handed[i] = self.put[i] = np.nan
+        if seq > self.n_max:
+            self.n_max = seq
+
+    def handed_on(self, seq: int) -> None:
+        i = seq % self.capacity
+        if self.seq[i] == seq:
+            self.handed[i] = self.clock()
+
+    def put_done(self, seq: int) -> None:
+        i = seq % self.capacity
+        if self.seq[i] == seq:
+            self.put[i] = self.clock()
+
+    def write(self) -> None:
+        ok = self.seq >= 0
+        order = np.argsort(self.seq[ok])
+        np.savez(self.path, seq=self.seq[ok][order], frame=self.frame[ok][order],
+                 handed=self.handed[ok][order], put=self.put[ok][order])
+
+
+def _from_env() -> StageTimer | None:
+    path = os.environ.get(ENV)
+    if not path:
+        return None
+    timer = StageTimer(path)
+    atexit.register(timer.write)
+    return timer
+
+
+TIMER: StageTimer | None = _from_env()
