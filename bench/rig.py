@@ -121,6 +121,7 @@ class Receiver:
         self.stamps = np.zeros(capacity)
         self.seq = np.zeros(capacity, dtype=np.int64)
         self.t = np.zeros(capacity)
+        self.bad = np.zeros(capacity, dtype=bool)  # flagged lost_before or missing:<node>
         self.size = 0
         self.capacity = capacity
         self.n = 0
@@ -142,6 +143,8 @@ class Receiver:
             self.stamps[self.n] = t
             self.seq[self.n] = rec["seq"]
             self.t[self.n] = rec["t"]
+            self.bad[self.n] = any(f == "lost_before" or f.startswith("missing:")
+                                   for f in rec.get("flags") or ())
             self.size = len(raw)
             self.n += 1
 
@@ -150,6 +153,20 @@ class Receiver:
             self.health = json.loads(sample.payload.to_bytes())
         except ValueError:
             pass
+
+    def last_seq(self) -> int:
+        with self._lock:
+            return int(self.seq[: self.n].max()) if self.n else -1
+
+    def window(self, seq_after: int, seq_to: int) -> dict:
+        """Samples seq_after < seq ≤ seq_to: expected, received, flagged (lost_before,
+        missing:<node>)."""
+        with self._lock:
+            seq, bad = self.seq[: self.n].copy(), self.bad[: self.n].copy()
+        sel = (seq > seq_after) & (seq <= seq_to)
+        got = int(len(np.unique(seq[sel])))
+        return {"expected": seq_to - seq_after, "received": got,
+                "missing": seq_to - seq_after - got, "flagged": int(bad[sel].sum())}
 
     def count(self) -> int:
         with self._lock:

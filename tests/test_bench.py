@@ -62,3 +62,82 @@ def test_results_table_from_latest_full_runs(tmp_path):
     assert "2,000,000" in text and "20.0 (figure/peer)" in text
     assert "| p1_decode | — | not run |" in text
     assert (tmp_path / "RESULTS.md").read_text() == text
+
+
+# ---------------------------------------------------------------- the cross-process benches
+def test_rate_config_is_the_default_rig_at_another_rate(tmp_path):
+    from bench.rig import rate_config
+    from daq.config import load_config
+
+    base = load_config()
+    cfg = load_config(rate_config(731.0, tmp_path))
+    assert cfg.sample_rate_hz == 731.0
+    assert [n.name for n in cfg.nodes] == [n.name for n in base.nodes]
+    assert [c.name for c in cfg.cells] == [c.name for c in base.cells]
+    assert [n.eds for n in cfg.nodes] == [n.eds for n in base.nodes]
+
+
+def test_floor_responder_sends_the_simulators_frames():
+    """The do-nothing responder answers a SYNC with exactly the TPDOs the simulated aircraft
+    sends in ground-test (the floor is only a floor if the frames are the same)."""
+    import uuid
+
+    from bench.rig import response_frames
+    from daq.config import load_config
+    from sim_bus.bus_sim import Simulator
+    from sim_bus.physics import AircraftPhysics
+    from sim_bus.scenarios import load_scenario
+
+    cfg = load_config()
+    physics = AircraftPhysics(cfg, load_scenario("ground-test"), seed=1)
+    with Simulator(cfg, physics=physics, seed=1, autostart=True, lockstep=True,
+                   channel=f"floor-{uuid.uuid4().hex}") as sim:
+        frames = [m for _ in range(5) for m in sim.step()]
+    last = []  # the frames after the last SYNC: one period's answer
+    for m in frames:
+        if m.arbitration_id == cfg.sync.cob_id:
+            last = []
+        elif 0x180 <= m.arbitration_id < 0x580:  # TPDOs
+            last.append((m.arbitration_id, len(m.data)))
+    assert sorted(response_frames("ground-test")) == sorted(last)
+
+
+def test_stage_timing_hook_is_off_unless_asked(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    import numpy as np
+
+    from daq import stagetiming
+    from helpers_net import free_tcp_port
+
+    assert stagetiming.TIMER is None  # off by default: the service pays nothing
+    out = tmp_path / "stages.npz"
+    env = {**os.environ, stagetiming.ENV: str(out)}
+    r = subprocess.run([sys.executable, "-m", "daq", "run", "--sim", "ground-test", "--speed",
+                        "max", "--duration", "1", "--no-identification", "--zenoh-listen",
+                        f"tcp/127.0.0.1:{free_tcp_port()}", "--log-level", "warning"],
+                       env=env, capture_output=True, text=True, timeout=240)
+    assert r.returncode == 0, r.stderr[-2000:]
+    st = np.load(out)
+    assert len(st["seq"]) >= 200 and np.all(np.diff(st["seq"]) == 1)
+    ok = np.isfinite(st["put"])
+    assert ok.mean() > 0.99  # every published hub_loads timed
+    assert np.all(st["frame"][ok] <= st["handed"][ok])
+    assert np.all(st["handed"][ok] <= st["put"][ok])
+
+
+def test_stage_profile_quick(capsys):
+    import shutil
+    import sys
+    from pathlib import Path
+
+    if not (shutil.which("py-spy") or Path(sys.executable).with_name("py-spy").exists()):
+        pytest.skip("py-spy is not installed (pip install py-spy; the bench extra has it)")
+    from bench.profile_stages import main
+
+    assert main(["--quick"]) == 0
+    line = json.loads([s for s in capsys.readouterr().out.splitlines() if s.startswith("{")][-1])
+    assert line["configuration"] == "inproc-200" and line["samples"] > 0
+    assert line["process"]["cpu_us_per_sample"] > 0
