@@ -83,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
         r_f = np.array(list(curve[tau]["filter"].values()))
         r_s = np.array(list(curve[tau]["static"].values()))
         worst, worst_static = float(r_f.max()), float(r_s.max())
-        # performance.md A2: the 0.8 target is at the report's τ = 0.1 s; the other τ are
+        # docs/performance.md A2: the 0.8 target is at the report's τ = 0.1 s; the other τ are
         # the curve it asks for — reported, not decided (a longer τ lags the harmonics more)
         target = ("≤ 0.8 × the §4 bound on every axis" if tau == TARGET_TAU else
                   "reported: the curve against τ (the 0.8 target applies at τ = 0.1 s)")

@@ -1,4 +1,4 @@
-"""P6 — the highest sustained sample rate with zero lost samples (performance.md).
+"""P6 — the highest sustained sample rate with zero lost samples (docs/performance.md).
 
 Simulator and service in one process on python-can's virtual bus, in real time: the
 service (``daq.service.Service``) is the CANopen master and produces SYNC at the configured

@@ -45,6 +45,10 @@ SIM_RULES = (
                                            "_send_frame (sim_bus", "_build (sim_bus")),
     ("sim: scheduling, other", ("sim_bus/", "daq/commands/sim.py")),
 )
+SERVER_RULES = (
+    ("bus server: WebSocket + JSON (python-can-remote)", ("can_remote/", "json/", "socket")),
+    ("bus server: virtual bus", ("can/",)),
+)
 SERVICE_RULES = (
     ("JSON encoding", ("json/", "daq/jsonout.py")),
     ("Zenoh put", ("publish (daq/telemetry.py",)),
@@ -70,7 +74,15 @@ def idle(frames: list[str]) -> bool:
 
 
 def classify(frames: list[str]) -> str:
+    if any("can_remote/server.py" in f for f in frames):
+        for f in reversed(frames):
+            for name, pats in SERVER_RULES:
+                if any(p in f for p in pats):
+                    return name
+        return "bus server: other"
     side_sim = any("sim_bus/" in f for f in frames)
+    if any("can_remote/" in f for f in frames):  # the shared bus's client (its JSON included)
+        return "sim: frames out (python-can send)" if side_sim else "frames in (python-can recv, notifier)"
     rules = SIM_RULES if side_sim else SERVICE_RULES
     for f in reversed(frames):  # innermost first
         for name, pats in rules:
@@ -146,7 +158,7 @@ def run_shared(rate: float, seconds: float, tmp: Path) -> dict:
         wait_listening(port, svc)
         rx = Receiver(ep, load_config().telemetry.prefix, int(rate * (seconds + WARMUP_S + 60)))
         time.sleep(WARMUP_S)
-        return measure({"service": svc, "simulator": sim}, rx, seconds, tmp)
+        return measure({"service": svc, "simulator": sim, "bus server": bus}, rx, seconds, tmp)
     finally:
         if rx is not None:
             rx.close()
@@ -177,7 +189,7 @@ def markdown(results: dict) -> str:
     stages: list[str] = []
     cols = []
     for conf, r in results.items():
-        for name in ("service", "simulator", "process"):
+        for name in ("service", "simulator", "bus server", "process"):
             if name in r:
                 cols.append((f"{conf} {name}", r[name], r))
                 for s in r[name]["stages_us"]:
@@ -202,6 +214,8 @@ def main(argv: list[str] | None = None) -> int:
                    choices=("shared-200", "shared-limit", "inproc-200", "lockstep"))
     p.add_argument("--quick", action="store_true", help="3 s of inproc-200 (smoke test)")
     p.add_argument("--markdown", action="store_true", help="also print the Markdown table")
+    p.add_argument("--keep", default=None, metavar="DIR",
+                   help="keep py-spy's raw stacks here (one file per configuration and process)")
     args = p.parse_args(argv)
     from bench.p6_max_rate import bus_limit_samples_per_s
     from daq.config import load_config
@@ -223,6 +237,10 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 r = run_inproc(["--speed", "max", "--no-identification"], seconds, tmp, 5000.0)
             results[conf] = r
+            if args.keep:
+                Path(args.keep).mkdir(parents=True, exist_ok=True)
+                for f in tmp.glob("*.txt"):
+                    shutil.copy(f, Path(args.keep) / f"{conf}-{f.name}")
             print(json.dumps({"configuration": conf, **r}), flush=True)
     if args.markdown:
         print(markdown(results))

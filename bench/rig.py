@@ -52,9 +52,11 @@ def _die_with_parent() -> None:  # Linux: a child dies with the benchmark
         pass
 
 
-def spawn(argv: list[str], *, env: dict | None = None, log=None) -> subprocess.Popen:
-    """A child process (``argv`` after the interpreter), single-threaded BLAS, dies with us."""
-    return subprocess.Popen([sys.executable, *argv], env={**os.environ, **BLAS_ENV, **(env or {})},
+def spawn(argv: list[str], *, env: dict | None = None, log=None,
+          prefix: list[str] | None = None) -> subprocess.Popen:
+    """A child process (``argv`` after the interpreter; ``prefix`` before it, e.g. ``chrt``),
+    single-threaded BLAS, dies with us."""
+    return subprocess.Popen([*(prefix or []), sys.executable, *argv], env={**os.environ, **BLAS_ENV, **(env or {})},
                             stdout=log or subprocess.DEVNULL, stderr=log or subprocess.DEVNULL,
                             preexec_fn=_die_with_parent if sys.platform == "linux" else None)
 

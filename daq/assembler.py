@@ -458,7 +458,7 @@ class SampleAssembler:
         return p
 
     def _pass_on(self, complete_trigger: bool) -> None:
-        if stagetiming.TIMER is not None:  # off unless a benchmark asked (performance.md P5b)
+        if stagetiming.TIMER is not None:  # off unless a benchmark asked (docs/performance.md P5b)
             stagetiming.TIMER.frame_done(self._seq)
         self._open = False
         self._wait = -1

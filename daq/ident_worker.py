@@ -1,5 +1,5 @@
 """The periodic identification in its own process (a Python thread would hold the GIL for
-milliseconds and stall the estimator thread; performance.md P5).
+milliseconds and stall the estimator thread; docs/performance.md P5).
 
 The worker owns the sequential posterior and the filter-error state, which continue from
 window to window; the estimator thread sends windows and receives `angles` records. Queues

@@ -191,7 +191,7 @@ class EstimatorPipeline:
     def process(self, s, early: Callable[[list], None] | None = None) -> PipelineOutput:
         """One sample. ``early`` (live) receives the records up to and including hub_loads as
         soon as they exist: the channels, innovations and calibration branch come after, off
-        the SYNC → hub-load latency path (performance.md P5)."""
+        the SYNC → hub-load latency path (docs/performance.md P5)."""
         out = PipelineOutput()
         seq = int(s.seq)
         if self.first_seq is None:

@@ -14,7 +14,7 @@ per sample. Three layers:
   Ω rounded (relatively) to ``cache_resolution``; the stopped-rotor design below ``omega_min``;
 * ``LoadFilter`` (the per-sample path of the live service and of a bit-exact replay) and
   ``filter_batch`` (the same recursion for whole arrays, off-line: six single-output IIR
-  filters, performance.md P3).
+  filters, docs/performance.md P3).
 """
 from __future__ import annotations
 

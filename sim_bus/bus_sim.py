@@ -23,7 +23,7 @@ the bus in the caller's thread, in order, so a master that sends NMT start then 
 ``pump()`` gets a deterministic answer without any sleep. SDO needs a concurrent server: use
 ``threaded=True`` when a blocking SDO client talks to the simulator.
 
-Real time (spec performance.md P5): half a period after each SYNC the ticker computes the next
+Real time (docs/performance.md P5): half a period after each SYNC the ticker computes the next
 physics sample and builds the whole answer to the next SYNC (``_prepare_next``: process image,
 TPDOs due, the drop/malformed/unknown/errorframe draws, the frames as python-can messages, the
 fault-log entries in order), so the SYNC only sends pre-built frames. A sample where a fault
@@ -465,7 +465,7 @@ class Simulator:
         self._prefetch_at: float | None = None  # wall-clock time of that computation
         self.prefetched = 0  # physics samples computed ahead (real time)
         # real time: the whole answer to the next SYNC (TPDO frames, fault decisions) is built
-        # half a period ahead by the ticker; the SYNC only sends it (spec performance.md P5)
+        # half a period ahead by the ticker; the SYNC only sends it (docs/performance.md P5)
         self._plan: _Plan | None = None
         self.prepared = 0  # SYNC answers built ahead and sent as built
         self.plans_discarded = 0  # built ahead but undone (NMT/SDO in between, other counter)

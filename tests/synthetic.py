@@ -271,7 +271,7 @@ def harmonic_state(design: SmallDesign, coef: np.ndarray, omega: float,
 
 
 # ------------------------------------------------------------------------------------------
-# The statistical decisions of performance.md (overall false-alarm rate 10⁻³, Bonferroni)
+# The statistical decisions of docs/performance.md (overall false-alarm rate 10⁻³, Bonferroni)
 # ------------------------------------------------------------------------------------------
 FALSE_ALARM = 1e-3
 
@@ -300,7 +300,7 @@ class Decisions:
 
 
 def decisions(errors: np.ndarray, covariances: np.ndarray) -> Decisions:
-    """performance.md: per seed the joint χ²_p of the error against the reported covariance
+    """docs/performance.md: per seed the joint χ²_p of the error against the reported covariance
     ≤ χ²_p(1 − 10⁻³/n) (48.7 for 14 angles and 100 seeds); the mean error of each angle within
     z(10⁻³/2p) standard errors (3.97); the variance of error/σ_CR inside the two-sided χ²_{n−1}
     bounds at 10⁻³/2p per tail."""

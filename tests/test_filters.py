@@ -1,5 +1,5 @@
 """Hub-load dynamics, fixed-gain Kalman filter designs, the per-sample and batch paths
-(model.md §5–§6, performance.md A2). The synthetic data are generated here, independently
+(model.md §5–§6, docs/performance.md A2). The synthetic data are generated here, independently
 of the filter: hub loads of a static part plus harmonics with slowly varying amplitude,
 translational accelerations, load cells from the exact balance, §4 noise."""
 from __future__ import annotations
@@ -339,7 +339,7 @@ def test_set_alpha_rebuilds_the_wrench_matrix():
 
 # --------------------------------------------------------------- accuracy (A2)
 def test_load_filter_beats_the_static_bound_at_the_harmonics():
-    """performance.md A2: true angles, τ = 0.1 s, RMS error ≤ 0.8 × the §4 static bound on
+    """docs/performance.md A2: true angles, τ = 0.1 s, RMS error ≤ 0.8 × the §4 static bound on
     every axis; the static estimate itself sits at the bound (checks the generator)."""
     alpha = _alpha()
     bound = noise_budget(MODEL, alpha).total
