@@ -2,7 +2,7 @@
 
 Boots the nodes like the service (normal master), averages every calibrated channel over
 ``--seconds`` of acquisition time and writes new zero offsets as a ``[calibration]`` TOML
-fragment (``"<node>.<channel>" = { gain = …, offset = … }``, the table daq.config reads).
+fragment (``"<node>.<channel>" = { gain = …, offset = … }``, the table rsra.config.rig reads).
 
 What each channel reads at rest after the tare (its *target*):
 
@@ -42,10 +42,10 @@ from typing import Any, Callable
 import numpy as np
 from scipy.stats import chi2
 
-from daq.config import G0, RigConfig
-from daq.decoder import DecodeTable
-from daq.units import FT_LBF_NM, LBF_N
-from estimator.atomic import write_text_atomic
+from rsra.config.rig import G0, RigConfig
+from rsra.daq.decoder import DecodeTable
+from rsra.config.units import FT_LBF_NM, LBF_N
+from rsra.estimator.atomic import write_text_atomic
 
 # At rest the accelerometers read f = a − g = −g: (0, 0, −g) in body axes with z down.
 GRAVITY_AT_REST = np.array([0.0, 0.0, -G0])
@@ -116,7 +116,7 @@ def channel_specs(cfg: RigConfig, table: DecodeTable,
     def add(key: str, kind: str, quantity: str, sigma: float | None, full_scale: float | None,
             target: float | None) -> None:
         if not table.has_channel(key):
-            from daq.config import ConfigError
+            from rsra.config.rig import ConfigError
             raise ConfigError("nodes", key.split(".")[0], f"the EDS maps no channel {key!r}",
                               "use the EDS of the role's device profile (bus.md)")
         node = cfg.node(key.split(".")[0])
@@ -183,8 +183,8 @@ def tare(cfg: RigConfig, specs: list[ChannelSpec], values: np.ndarray, *,
 
     ``values`` (N, C) calibrated with the current config (nan = missing); ``alpha`` the 14
     angles of S (default: the configured initial angles)."""
-    from estimator.balance import inertial_load_matrix
-    from estimator.geometry import hub_transfer_matrix, wrench_matrix
+    from rsra.estimator.balance import inertial_load_matrix
+    from rsra.estimator.geometry import hub_transfer_matrix, wrench_matrix
 
     values = np.asarray(values, float).reshape(-1, len(specs))
     finite = np.isfinite(values)
@@ -280,7 +280,7 @@ def acquire(reader: Any, seconds: float, row: Callable[[Any], np.ndarray], n_cha
     """Samples from a started reader for ``seconds`` of acquisition time (sample stamps):
     (values (N, C), time span, counts of status flags). Bounded: at most 1.5× the expected
     number of samples are kept."""
-    from daq.reader import HealthReport
+    from rsra.daq.reader import HealthReport
 
     rate = reader.cfg.sample_rate_hz
     cap = int(math.ceil(seconds * rate * 1.5)) + 16
@@ -357,7 +357,7 @@ def fragment(cfg: RigConfig, result: TareResult, *, angles_from: str, bus: str) 
 # command line
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
-    from daq.cli import common_options
+    from rsra.daq.commands.options import common_options
 
     p = sub.add_parser(
         name, help="tare: zero offsets with the rotor stopped and no applied load",
@@ -405,7 +405,7 @@ Exit 0 when the fragment is written, 2 for a usage or configuration error.""")
     p.add_argument("--angles", default=None, metavar="STATE",
                    help="take α for S(α) from a saved posterior (default: the configured "
                    "initial angles)")
-    from daq.posterior_file import add_accept_option
+    from rsra.daq.posterior_file import add_accept_option
 
     add_accept_option(p)
     return p
@@ -414,11 +414,11 @@ Exit 0 when the fragment is written, 2 for a usage or configuration error.""")
 def run(args: argparse.Namespace) -> int:
     import can
 
-    from daq.cli import UsageError
-    from daq.config import load_config
-    from daq.console import make_console
-    from daq.master import BootError
-    from daq.reader import Reader
+    from rsra.daq.commands.options import UsageError
+    from rsra.daq.rigmodel import load_rig
+    from rsra.daq.console import make_console
+    from rsra.daq.master import BootError
+    from rsra.daq.reader import Reader
 
     if args.interface is None:
         raise UsageError("give the bus: --interface I [--channel C], e.g. --interface socketcan "
@@ -432,7 +432,7 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else None
     if out is not None and not os.access(out.resolve().parent, os.W_OK):
         raise UsageError(f"--out {args.out}: folder {out.resolve().parent} is not writable")
-    cfg = load_config(args.config)
+    cfg = load_rig(args.config)
     table = DecodeTable(cfg)
     specs = channel_specs(cfg, table, args.max_offset_fs)
     alpha, angles_from = _angles(cfg, args.angles, args.accept_rig_mismatch)
@@ -481,9 +481,9 @@ def _angles(cfg: RigConfig, state: str | None,
         return cfg.identification.initial_angles_rad, (
             "the configured initial angles" + (f" ({deg[0]:g} deg)" if np.all(deg == deg[0])
                                                else ""))
-    from daq.cli import UsageError
-    from daq.posterior_file import load_checked
-    from estimator.posterior import PosteriorFileError
+    from rsra.daq.commands.options import UsageError
+    from rsra.daq.posterior_file import load_checked
+    from rsra.estimator.posterior import PosteriorFileError
 
     names = cfg.rig_model().geometry.angle_names
     try:
