@@ -42,18 +42,18 @@ LATE_MAX = 0.001
 
 
 def service_trial(channel: str, rate: float, seconds: float, warmup: float, tmp: Path) -> dict:
-    from daq.config import load_config
+    from rsra.config.rig import load_config
 
     cfg_path = rate_config(rate, tmp)
     prefix = load_config().telemetry.prefix
     sim = svc = rx = None
     try:
-        sim = spawn(["-m", "daq", "sim", "--scenario", "ground-test", "--interface", "remote",
+        sim = spawn(["-m", "rsra", "sim", "--scenario", "ground-test", "--interface", "remote",
                      "--channel", channel])
         time.sleep(2.0)
         port = free_tcp_port()
         ep = f"tcp/127.0.0.1:{port}"
-        svc = spawn(["-m", "daq", "run", "--config", str(cfg_path), "--interface", "remote",
+        svc = spawn(["-m", "rsra", "run", "--config", str(cfg_path), "--interface", "remote",
                      "--channel", channel, "--zenoh-listen", ep, "--log-level", "warning"])
         wait_listening(port, svc)
         rx = Receiver(ep, prefix, int(rate * (seconds + warmup + 180)))

@@ -48,12 +48,12 @@ def rt_prefix() -> list[str] | None:
 
 def one_run(burn: bool, seconds: float, warmup: float = WARMUP_S,
             prefix: list[str] | None = None) -> dict:
-    from daq.config import load_config
+    from rsra.config.rig import load_config
 
     cfg = load_config()
     port = free_tcp_port()
     ep = f"tcp/127.0.0.1:{port}"
-    svc = spawn(["-m", "daq", "run", "--sim", "ground-test", "--speed", "1", "--zenoh-listen", ep,
+    svc = spawn(["-m", "rsra", "run", "--sim", "ground-test", "--speed", "1", "--zenoh-listen", ep,
                  "--log-level", "warning"], prefix=prefix)
     rx = burner = None
     try:
