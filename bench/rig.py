@@ -222,7 +222,7 @@ def responder_main(channel: str, frames: list[tuple[int, int]], stop_after: floa
     """Do-nothing responder: on every SYNC (0x080) send the same frames, constant data."""
     import can
 
-    from rsra.daq.sharedbus import shutdown_bus
+    from rsra.canbus import shutdown_bus
 
     bus = can.Bus(channel=channel, interface="remote")
     msgs = [can.Message(arbitration_id=c, data=bytes(n), is_extended_id=False) for c, n in frames]
@@ -247,7 +247,7 @@ def floor_master_main(channel: str, frames: list[tuple[int, int]], rate: float, 
     next SYNC)."""
     import can
 
-    from rsra.daq.sharedbus import shutdown_bus
+    from rsra.canbus import shutdown_bus
 
     bus = can.Bus(channel=channel, interface="remote")
     pub = session = None
