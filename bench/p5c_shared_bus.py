@@ -83,7 +83,7 @@ class _FloorReceiver:
     def __init__(self, endpoint: str, key: str, capacity: int) -> None:
         import zenoh
 
-        from daq.telemetry import viewer_config
+        from rsra.daq.telemetry import viewer_config
 
         self.stamps, self.t = np.zeros(capacity), np.zeros(capacity)
         self.n = 0
@@ -103,17 +103,17 @@ class _FloorReceiver:
 
 
 def service_run(channel: str, seconds: float, warmup: float, tmp: Path) -> dict:
-    from daq.config import load_config
+    from rsra.config.rig import load_config
 
     cfg = load_config()
     sim = svc = rx = None
     try:
-        sim = spawn(["-m", "daq", "sim", "--scenario", "ground-test", "--interface", "remote",
+        sim = spawn(["-m", "rsra", "sim", "--scenario", "ground-test", "--interface", "remote",
                      "--channel", channel])
         time.sleep(2.0)
         port = free_tcp_port()
         ep = f"tcp/127.0.0.1:{port}"
-        svc = spawn(["-m", "daq", "run", "--interface", "remote", "--channel", channel,
+        svc = spawn(["-m", "rsra", "run", "--interface", "remote", "--channel", channel,
                      "--zenoh-listen", ep, "--log-level", "warning"])
         wait_listening(port, svc)
         rx = Receiver(ep, cfg.telemetry.prefix, int(RATE * (seconds + warmup + 120)))

@@ -35,25 +35,25 @@ CONFIRM_S = 60.0
 CONFIRM_TRIES = 2
 WARMUP_S = 6.0
 START_RATE = 200.0
-MIN_RATE = 25.0
+MIN_RATE = 50.0  # the default rig refuses rates below 31.5 samples/s (its 5th harmonic)
 MAX_RATE = 3200.0
 BISECT_STEPS = 2
 LATE_MAX = 0.001
 
 
 def service_trial(channel: str, rate: float, seconds: float, warmup: float, tmp: Path) -> dict:
-    from daq.config import load_config
+    from rsra.config.rig import load_config
 
     cfg_path = rate_config(rate, tmp)
     prefix = load_config().telemetry.prefix
     sim = svc = rx = None
     try:
-        sim = spawn(["-m", "daq", "sim", "--scenario", "ground-test", "--interface", "remote",
+        sim = spawn(["-m", "rsra", "sim", "--scenario", "ground-test", "--interface", "remote",
                      "--channel", channel])
         time.sleep(2.0)
         port = free_tcp_port()
         ep = f"tcp/127.0.0.1:{port}"
-        svc = spawn(["-m", "daq", "run", "--config", str(cfg_path), "--interface", "remote",
+        svc = spawn(["-m", "rsra", "run", "--config", str(cfg_path), "--interface", "remote",
                      "--channel", channel, "--zenoh-listen", ep, "--log-level", "warning"])
         wait_listening(port, svc)
         rx = Receiver(ep, prefix, int(rate * (seconds + warmup + 180)))

@@ -142,18 +142,18 @@ def measure(procs: dict[str, subprocess.Popen], rx: Receiver, seconds: float, tm
 
 
 def run_shared(rate: float, seconds: float, tmp: Path) -> dict:
-    from daq.config import load_config
+    from rsra.config.rig import load_config
 
     cfg_path = rate_config(rate, tmp)
     bus, channel = start_bus()
     sim = svc = rx = None
     try:
-        sim = spawn(["-m", "daq", "sim", "--scenario", "ground-test", "--interface", "remote",
+        sim = spawn(["-m", "rsra", "sim", "--scenario", "ground-test", "--interface", "remote",
                      "--channel", channel])
         time.sleep(2.0)
         port = free_tcp_port()
         ep = f"tcp/127.0.0.1:{port}"
-        svc = spawn(["-m", "daq", "run", "--config", str(cfg_path), "--interface", "remote",
+        svc = spawn(["-m", "rsra", "run", "--config", str(cfg_path), "--interface", "remote",
                      "--channel", channel, "--zenoh-listen", ep, "--log-level", "warning"])
         wait_listening(port, svc)
         rx = Receiver(ep, load_config().telemetry.prefix, int(rate * (seconds + WARMUP_S + 60)))
@@ -167,11 +167,11 @@ def run_shared(rate: float, seconds: float, tmp: Path) -> dict:
 
 
 def run_inproc(extra: list[str], seconds: float, tmp: Path, rate_hint: float) -> dict:
-    from daq.config import load_config
+    from rsra.config.rig import load_config
 
     port = free_tcp_port()
     ep = f"tcp/127.0.0.1:{port}"
-    svc = spawn(["-m", "daq", "run", "--sim", "ground-test", *extra, "--zenoh-listen", ep,
+    svc = spawn(["-m", "rsra", "run", "--sim", "ground-test", *extra, "--zenoh-listen", ep,
                  "--log-level", "warning"])
     rx = None
     try:
@@ -218,7 +218,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="keep py-spy's raw stacks here (one file per configuration and process)")
     args = p.parse_args(argv)
     from bench.p6_max_rate import bus_limit_samples_per_s
-    from daq.config import load_config
+    from rsra.config.rig import load_config
 
     limit = math.floor(bus_limit_samples_per_s(load_config())[0])
     confs = ["inproc-200"] if args.quick else (args.only or ["shared-200", "shared-limit",

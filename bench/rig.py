@@ -82,7 +82,7 @@ def stop(proc: subprocess.Popen | None, timeout: float = 20.0) -> int | None:
 def start_bus() -> tuple[subprocess.Popen, str]:
     """``rsra bus`` on a free loopback port; returns the process and the python-can channel."""
     port = free_tcp_port()
-    proc = spawn(["-m", "daq", "bus", "--port", str(port)])
+    proc = spawn(["-m", "rsra", "bus", "--port", str(port)])
     wait_listening(port, proc)
     return proc, f"ws://127.0.0.1:{port}/"
 
@@ -90,7 +90,7 @@ def start_bus() -> tuple[subprocess.Popen, str]:
 def rate_config(rate: float, folder: str | Path) -> Path:
     """The packaged rig at another ``rig.sample_rate_hz`` (a copy in ``folder``, EDS paths
     made absolute)."""
-    from daq.config import default_config_path
+    from rsra.config.rig import default_config_path
 
     src = default_config_path()
     text = src.read_text(encoding="utf-8")
@@ -118,7 +118,7 @@ class Receiver:
     def __init__(self, endpoint: str, prefix: str, capacity: int) -> None:
         import zenoh
 
-        from daq.telemetry import viewer_config
+        from rsra.daq.telemetry import viewer_config
 
         self.stamps = np.zeros(capacity)
         self.seq = np.zeros(capacity, dtype=np.int64)
@@ -205,9 +205,9 @@ def scored(seq: np.ndarray, t: np.ndarray, lat: np.ndarray, warmup: float, n_exp
 def response_frames(scenario: str = "ground-test") -> list[tuple[int, int]]:
     """(COB-ID, length) of every TPDO the simulated aircraft sends per SYNC in ``scenario``:
     the required nodes and the optional ones the scenario carries."""
-    from daq.config import load_config
-    from daq.decoder import DecodeTable
-    from sim_bus.scenarios import load_scenario
+    from rsra.config.rig import load_config
+    from rsra.daq.decoder import DecodeTable
+    from rsra.sim_bus.scenarios import load_scenario
 
     cfg = load_config()
     present = set(load_scenario(scenario).nodes_present)
@@ -222,7 +222,7 @@ def responder_main(channel: str, frames: list[tuple[int, int]], stop_after: floa
     """Do-nothing responder: on every SYNC (0x080) send the same frames, constant data."""
     import can
 
-    from daq.sharedbus import shutdown_bus
+    from rsra.canbus import shutdown_bus
 
     bus = can.Bus(channel=channel, interface="remote")
     msgs = [can.Message(arbitration_id=c, data=bytes(n), is_extended_id=False) for c, n in frames]
@@ -247,7 +247,7 @@ def floor_master_main(channel: str, frames: list[tuple[int, int]], rate: float, 
     next SYNC)."""
     import can
 
-    from daq.sharedbus import shutdown_bus
+    from rsra.canbus import shutdown_bus
 
     bus = can.Bus(channel=channel, interface="remote")
     pub = session = None

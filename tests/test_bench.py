@@ -67,7 +67,7 @@ def test_results_table_from_latest_full_runs(tmp_path):
 # ---------------------------------------------------------------- the cross-process benches
 def test_rate_config_is_the_default_rig_at_another_rate(tmp_path):
     from bench.rig import rate_config
-    from daq.config import load_config
+    from rsra.config.rig import load_config
 
     base = load_config()
     cfg = load_config(rate_config(731.0, tmp_path))
@@ -83,10 +83,10 @@ def test_floor_responder_sends_the_simulators_frames():
     import uuid
 
     from bench.rig import response_frames
-    from daq.config import load_config
-    from sim_bus.bus_sim import Simulator
-    from sim_bus.physics import AircraftPhysics
-    from sim_bus.scenarios import load_scenario
+    from rsra.config.rig import load_config
+    from rsra.sim_bus.bus_sim import Simulator
+    from rsra.sim_bus.physics import AircraftPhysics
+    from rsra.sim_bus.scenarios import load_scenario
 
     cfg = load_config()
     physics = AircraftPhysics(cfg, load_scenario("ground-test"), seed=1)
@@ -109,13 +109,13 @@ def test_stage_timing_hook_is_off_unless_asked(tmp_path):
 
     import numpy as np
 
-    from daq import stagetiming
+    from rsra.daq import stagetiming
     from helpers_net import free_tcp_port
 
     assert stagetiming.TIMER is None  # off by default: the service pays nothing
     out = tmp_path / "stages.npz"
     env = {**os.environ, stagetiming.ENV: str(out)}
-    r = subprocess.run([sys.executable, "-m", "daq", "run", "--sim", "ground-test", "--speed",
+    r = subprocess.run([sys.executable, "-m", "rsra", "run", "--sim", "ground-test", "--speed",
                         "max", "--duration", "1", "--no-identification", "--zenoh-listen",
                         f"tcp/127.0.0.1:{free_tcp_port()}", "--log-level", "warning"],
                        env=env, capture_output=True, text=True, timeout=240)
