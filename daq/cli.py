@@ -29,6 +29,7 @@ COMMANDS = {
     "sweep": "sweep",
     "calibrate": "calibrate",
     "export": "export",
+    "web": "web",
 }
 
 
