@@ -11,6 +11,9 @@
     red: { cssClass: 'is-limit--red', name: 'Red', low: -Infinity, high: Infinity }
   };
 
+  // counters of what reached the views (read by the browser test and handy in the console)
+  window.rsraStats = { delivered: {}, history: {}, messages: 0 };
+
   function id(key) {
     return { namespace: NS, key: key };
   }
@@ -130,8 +133,14 @@
     };
     this.ws.onmessage = function (ev) {
       const msg = JSON.parse(ev.data);
+      const st = window.rsraStats;
+      st.messages += 1;
       (msg.points || []).forEach(function (p) {
-        (self.listeners[p[0]] || []).forEach((cb) => cb(p[1]));
+        const l = self.listeners[p[0]] || [];
+        if (l.length) {
+          st.delivered[p[0]] = (st.delivered[p[0]] || 0) + 1;
+        }
+        l.forEach((cb) => cb(p[1]));
       });
     };
     this.ws.onclose = function () {
@@ -193,7 +202,11 @@
           if (options.strategy === 'latest') {
             q.set('strategy', 'latest');
           }
-          return fetch('/api/history?' + q.toString()).then((r) => r.json());
+          return fetch('/api/history?' + q.toString()).then((r) => r.json()).then(function (d) {
+            const st = window.rsraStats.history;
+            st[o.identifier.key] = (st[o.identifier.key] || 0) + d.length;
+            return d;
+          });
         },
         supportsSubscribe: (o) => o.type === TYPE,
         subscribe: (o, cb) => rt.subscribe(o.identifier.key, cb),
