@@ -19,7 +19,7 @@ setup: $(STAMP)
 
 # NASA Open MCT for `rsra web`, from the npm registry (package.json/package-lock.json pinned);
 # its dist/ goes into the Python package (git-ignored; a wheel built after this includes it)
-OPENMCT := daq/web/openmct
+OPENMCT := daq/web/openmct-dist
 $(OPENMCT)/openmct.js: package.json package-lock.json
 	npm ci --no-audit --no-fund --ignore-scripts --loglevel=error
 	rm -rf $(OPENMCT)

@@ -15,6 +15,10 @@ def test_wheel_installs_and_runs_outside_the_repo(tmp_path):
     names = zipfile.ZipFile(wheel).namelist()
     assert "rsra_config/rig.toml" in names
     assert "rsra_config/eds/load_cell.eds" in names
+    # rsra web: its page and plugin always, Open MCT once `make web` has put it in place
+    assert {"daq/web/web-static/index.html", "daq/web/web-static/rsra-plugin.js"} <= set(names)
+    if (ROOT / "daq" / "web" / "openmct-dist" / "openmct.js").is_file():
+        assert "daq/web/openmct-dist/openmct.js" in names
     target = tmp_path / "site"
     subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target",
                     str(target), str(wheel)], check=True, capture_output=True)

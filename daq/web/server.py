@@ -30,8 +30,8 @@ from daq.web.history import History, HistoryFileError, TelemetryFile, merged_que
 log = logging.getLogger("rsra.web")
 
 HERE = Path(__file__).resolve().parent
-STATIC_DIR = HERE / "static"
-OPENMCT_DIR = HERE / "openmct"  # filled by `make web` (git-ignored)
+STATIC_DIR = HERE / "web-static"
+OPENMCT_DIR = HERE / "openmct-dist"  # filled by `make web` (git-ignored)
 FLUSH_S = 0.1  # batches sent to each browser this often
 MAX_BATCHES = 50  # per browser: 5 s of batches
 MAX_BATCH_POINTS = 20000  # per batch
