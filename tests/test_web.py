@@ -276,8 +276,10 @@ def test_http_and_websocket_refuse_other_hosts_and_origins(dic, tmp_path):
             msg = json.loads((await ws.receive(timeout=10)).data)
             assert msg["points"] == [["hub.H.Z", {"utc": 1000.0, "value": -80000.0}]]
             await ws.close()
+            gw.ingest("hub_loads", json.dumps(_hub(3, 1.1)))  # seq 1 and 2 missed
             st = gw.status()
             assert st["refused"] == 3 and st["points_sent"] == 1
+            assert st["received"]["hub_loads"] == 2 and st["missed"]["hub_loads"] == 2
 
     asyncio.run(go())
 
@@ -424,9 +426,10 @@ def test_browser_shows_hub_loads_live_and_history_after_reload(tmp_path):
                 args=CHROMIUM_FLAGS, viewport={"width": 1600, "height": 1000})
             try:
                 page = ctx.new_page()
+                page.set_default_timeout(120_000)  # a loaded machine: no timing asserted
                 errors = []
                 page.on("pageerror", lambda e: errors.append(str(e)))
-                page.goto(url)
+                page.goto(url, timeout=120_000)
                 plot = page.get_by_text("Hub loads (body axes)", exact=False).first
                 plot.wait_for(timeout=120_000)
                 page.locator(".gl-plot").first.wait_for(timeout=60_000)

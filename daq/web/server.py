@@ -36,6 +36,8 @@ FLUSH_S = 0.1  # batches sent to each browser this often
 MAX_BATCHES = 50  # per browser: 5 s of batches
 MAX_BATCH_POINTS = 20000  # per batch
 MAX_SUBSCRIPTIONS = 2000  # per browser
+# keys published at every sample: a gap in `seq` is a message missed (as `rsra listen` counts)
+EVERY_SAMPLE = ("hub_loads", "channels")
 
 
 def openmct_dir() -> Path | None:
@@ -142,7 +144,7 @@ class Gateway:
         self.refused = 0
         self.dropped_closed = 0  # points dropped by browsers that have gone
         self.sent_closed = 0
-        self.stats = {}  # key -> daq.commands.listen.KeyStats (missed messages by seq)
+        self.seq: dict[str, list[int]] = {}  # key -> [first, last, received in order]
         self.started = time.monotonic()
 
     # -- telemetry in --------------------------------------------------------------------
@@ -156,9 +158,14 @@ class Gateway:
             self.bad_messages += 1
             return
         self.received[key] = self.received.get(key, 0) + 1
-        from daq.commands.listen import KeyStats
-
-        self.stats.setdefault(key, KeyStats(key)).add(payload, time.monotonic())
+        seq = payload.get("seq")
+        if key in EVERY_SAMPLE and isinstance(seq, int) and not isinstance(seq, bool):
+            s = self.seq.get(key)
+            if s is None or seq < s[0]:  # the first, or a restarted service
+                self.seq[key] = [seq, seq, 1]
+            elif seq > s[1]:
+                s[1] = seq
+                s[2] += 1
         t = payload.get("t")
         if isinstance(t, (int, float)) and not isinstance(t, bool):
             self.history.add(key, float(t), text)
@@ -181,7 +188,7 @@ class Gateway:
             "rig": self.dic.rig, "prefix": self.dic.prefix,
             "uptime_s": round(time.monotonic() - self.started, 1),
             "received": dict(self.received),
-            "missed": {k: s.missed for k, s in self.stats.items() if s.missed is not None},
+            "missed": {k: s[1] - s[0] + 1 - s[2] for k, s in self.seq.items()},
             "bad_messages": self.bad_messages,
             "history": {"seconds": self.history.history_s, "messages": self.history.count(),
                         "bytes": self.history.bytes, "evicted": self.history.evicted,
