@@ -20,9 +20,9 @@ from scipy.stats import binom
 
 pytest.importorskip("aiohttp", reason="aiohttp (the gateway's server) is not installed")
 
-from daq.web import dictionary as D  # noqa: E402
-from daq.web.history import History, HistoryFileError, TelemetryFile  # noqa: E402
-from daq.web.server import (Client, Gateway, allowed_hosts, openmct_dir,  # noqa: E402
+from rsra.daq.web import dictionary as D  # noqa: E402
+from rsra.daq.web.history import History, HistoryFileError, TelemetryFile  # noqa: E402
+from rsra.daq.web.server import (Client, Gateway, allowed_hosts, openmct_dir,  # noqa: E402
                             request_allowed)
 from tests.helpers_net import free_tcp_port  # noqa: E402
 
@@ -45,7 +45,7 @@ def _hub(seq, t, H=None, S=None, flags=()):
 
 # -- dictionary ----------------------------------------------------------------------------
 def test_dictionary_is_built_from_the_rig_config(cfg, dic):
-    from estimator.noise_budget import noise_budget
+    from rsra.estimator.noise_budget import noise_budget
 
     ids = dic.by_id
     for i, ax in enumerate(D.AXES):
@@ -188,7 +188,7 @@ def test_history_query_is_strided_and_keeps_the_newest(dic):
 
 
 def test_telemetry_files_jsonl_and_mcap(dic, tmp_path):
-    from daq.export import write_mcap
+    from rsra.daq.export import write_mcap
 
     recs = [("hub_loads", _hub(i, 10.0 + i * 0.005, H=[float(i)] * 6)) for i in range(50)]
     recs.append(("innovations", {"seq": 0, "t": 10.0, "nis": 5.0}))
@@ -335,8 +335,8 @@ def test_batch_size_is_bounded(dic):
 
 # -- the command's bad input ---------------------------------------------------------------
 def test_web_command_bad_input(tmp_path, capsys, monkeypatch):
-    from daq import cli
-    from daq.web import server
+    from rsra.daq import cli
+    from rsra.daq.web import server
 
     monkeypatch.setattr(server, "OPENMCT_DIR", tmp_path / "none")
     assert cli.main(["web"]) == 2
@@ -371,7 +371,7 @@ def _die_with_parent() -> None:
 
 def _spawn(args, **kw) -> subprocess.Popen:
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    return subprocess.Popen([sys.executable, "-m", "daq", *args], env=env,
+    return subprocess.Popen([sys.executable, "-m", "rsra", *args], env=env,
                             preexec_fn=_die_with_parent, text=True, **kw)
 
 

@@ -9,7 +9,7 @@ import sys
 
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
-    from daq.cli import common_options
+    from rsra.daq.commands.options import common_options
 
     p = sub.add_parser(name, help="Open MCT in the browser: live hub loads, limits, history",
                        description="A gateway that subscribes to the rig's telemetry over Zenoh "
@@ -17,7 +17,7 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
                        "open. Files given (`rsra replay --out` JSONL, MCAP from `rsra export "
                        "--mcap`) add their telemetry to the history.")
     common_options(p, units=False)
-    from daq.commands.run import positive_float
+    from rsra.daq.commands.options import positive_float
 
     p.add_argument("files", nargs="*", metavar="FILE",
                    help="telemetry files for history (JSONL of `rsra replay --out` or MCAP)")
@@ -51,12 +51,12 @@ def _port(text: str) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    from daq.cli import UsageError
-    from daq.config import load_config
-    from daq.telemetry import viewer_config, zenoh_config
-    from daq.web.dictionary import build_dictionary
-    from daq.web.history import History, HistoryFileError, TelemetryFile, key_rates
-    from daq.web.server import Gateway, allowed_hosts, is_loopback, openmct_dir, serve
+    from rsra.daq.commands.options import UsageError
+    from rsra.daq.rigmodel import load_rig
+    from rsra.daq.telemetry import viewer_config, zenoh_config
+    from rsra.daq.web.dictionary import build_dictionary
+    from rsra.daq.web.history import History, HistoryFileError, TelemetryFile, key_rates
+    from rsra.daq.web.server import Gateway, allowed_hosts, is_loopback, openmct_dir, serve
 
     omct = openmct_dir()
     if omct is None:
@@ -68,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--host {args.host} is not a loopback address: anyone who reaches "
                          "it reads the rig's telemetry (no login, no TLS); fix: add "
                          "--allow-remote if that is what you want, or keep 127.0.0.1")
-    cfg = load_config(args.config)
+    cfg = load_rig(args.config)
     prefix = args.prefix or cfg.telemetry.prefix
     files = []
     for f in args.files:

@@ -111,8 +111,8 @@ class Dictionary:
 
 
 def build_dictionary(cfg, prefix: str | None = None) -> Dictionary:
-    """The dictionary of a rig config (:class:`daq.config.RigConfig`)."""
-    from estimator.noise_budget import noise_budget
+    """The dictionary of a rig config (:class:`rsra.config.rig.RigConfig`)."""
+    from rsra.estimator.noise_budget import noise_budget
 
     model = cfg.rig_model()
     sigma = [float(s) for s in noise_budget(model, cfg.identification.initial_angles_rad).total]

@@ -21,7 +21,7 @@ from collections import deque
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-from daq.web.dictionary import Dictionary, points
+from rsra.daq.web.dictionary import Dictionary, points
 
 MAX_POINTS = 4000  # per series and source in one history answer
 LOW_RATE_CAP = 2000  # angles and health messages kept at most (besides the time bound)

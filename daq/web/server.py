@@ -24,8 +24,8 @@ from pathlib import Path
 
 from aiohttp import WSMsgType, web
 
-from daq.web.dictionary import Dictionary, points
-from daq.web.history import History, HistoryFileError, TelemetryFile, merged_query
+from rsra.daq.web.dictionary import Dictionary, points
+from rsra.daq.web.history import History, HistoryFileError, TelemetryFile, merged_query
 
 log = logging.getLogger("rsra.web")
 
