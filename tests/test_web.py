@@ -4,14 +4,11 @@ headless Chromium against `rsra run --sim ground-test`. Nothing here asserts tim
 from __future__ import annotations
 
 import asyncio
-import io
 import json
-import math
 import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
