@@ -185,7 +185,7 @@ def test_history_query_is_strided_and_keeps_the_newest(dic):
 
 
 def test_telemetry_files_jsonl_and_mcap(dic, tmp_path):
-    from rsra.daq.export import write_mcap
+    from rsra.daq.analysis.export import write_mcap
 
     recs = [("hub_loads", _hub(i, 10.0 + i * 0.005, H=[float(i)] * 6)) for i in range(50)]
     recs.append(("innovations", {"seq": 0, "t": 10.0, "nis": 5.0}))
