@@ -30,6 +30,7 @@ COMMANDS = {
     "sweep": "sweep",
     "calibrate": "calibrate",
     "export": "export",
+    "web": "web",
 }
 
 
