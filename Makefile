@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 # src/ (ours maps config/ to rsra_config); silence that one note, nothing else
 PIP_INSTALL := PYTHONWARNINGS="ignore:Editable installation" $(BIN)/pip install -q
 
-.PHONY: setup demo test test-all bench lint clean
+.PHONY: setup web demo test test-all bench lint clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -17,13 +17,27 @@ $(STAMP): pyproject.toml
 
 setup: $(STAMP)
 
+# NASA Open MCT for `rsra web`, from the npm registry (package.json/package-lock.json pinned);
+# its dist/ goes into the Python package (git-ignored; a wheel built after this includes it)
+OPENMCT := daq/web/openmct-dist
+$(OPENMCT)/openmct.js: package.json package-lock.json
+	npm ci --no-audit --no-fund --ignore-scripts --loglevel=error
+	rm -rf $(OPENMCT)
+	mkdir -p $(OPENMCT)
+	cp -R node_modules/openmct/dist/. $(OPENMCT)/
+	cp node_modules/openmct/LICENSE.md $(OPENMCT)/
+	find $(OPENMCT) -name '*.map' -delete
+	rm -rf $(OPENMCT)/types
+
+web: $(OPENMCT)/openmct.js
+
 demo: $(STAMP)
 	$(BIN)/rsra demo
 
-test: $(STAMP)
+test: $(STAMP) web
 	$(BIN)/python -m pytest -q
 
-test-all: $(STAMP)
+test-all: $(STAMP) web
 	$(BIN)/python -m pytest -q -m "slow or soak or not (slow or soak)"
 
 bench: $(STAMP)
@@ -39,9 +53,9 @@ $(LINT_STAMP): pyproject.toml $(STAMP)
 
 lint: $(LINT_STAMP)
 	$(BIN)/ruff check daq estimator sim_bus config rsra tests bench
-	rm -rf build/lint
+	rm -rf build/lint build/lib  # setuptools keeps stale modules in build/lib
 	$(BIN)/pip install -q --no-deps --no-compile --target build/lint . 2>&1 | grep -v "^WARNING: Location" || true
 	cd build/lint && PYTHONPATH=. ../../$(BIN)/lint-imports --no-cache ../../pyproject.toml
 
 clean:
-	rm -rf $(VENV) build *.egg-info
+	rm -rf $(VENV) build *.egg-info node_modules $(OPENMCT)

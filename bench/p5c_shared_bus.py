@@ -83,7 +83,7 @@ class _FloorReceiver:
     def __init__(self, endpoint: str, key: str, capacity: int) -> None:
         import zenoh
 
-        from rsra.daq.telemetry import viewer_config
+        from rsra.daq.runtime.telemetry import viewer_config
 
         self.stamps, self.t = np.zeros(capacity), np.zeros(capacity)
         self.n = 0

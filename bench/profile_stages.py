@@ -43,7 +43,7 @@ SIM_RULES = (
     ("sim: node PDO packing", ("sim_bus/nodes.py",)),
     ("sim: frames out (python-can send)", ("can/", "can_remote/", "_transmit (sim_bus", "_emit (sim_bus",
                                            "_send_frame (sim_bus", "_build (sim_bus")),
-    ("sim: scheduling, other", ("sim_bus/", "daq/commands/sim.py")),
+    ("sim: scheduling, other", ("sim_bus/", "daq/cli/commands/sim.py")),
 )
 SERVER_RULES = (
     ("bus server: WebSocket + JSON (python-can-remote)", ("can_remote/", "json/", "socket")),
@@ -51,12 +51,12 @@ SERVER_RULES = (
 )
 SERVICE_RULES = (
     ("JSON encoding", ("json/", "daq/jsonout.py")),
-    ("Zenoh put", ("publish (daq/telemetry.py",)),
-    ("estimator (filter, balance, stuck test, records)", ("estimator/", "daq/pipeline.py", "daq/stuck.py")),
-    ("assembly + decode", ("daq/assembler.py", "daq/decoder.py")),
-    ("frame tap + clock", ("daq/reader.py:1", "on_message_received (daq/reader.py", "stamp",
-                           "daq/timebase", "daq/recorder.py")),
-    ("SYNC producer", ("daq/master.py",)),
+    ("Zenoh put", ("publish (daq/runtime/telemetry.py",)),
+    ("estimator (filter, balance, stuck test, records)", ("estimator/", "daq/runtime/pipeline.py", "daq/runtime/stuck.py")),
+    ("assembly + decode", ("daq/bus/assembler.py", "daq/bus/decoder.py")),
+    ("frame tap + clock", ("daq/bus/reader.py:1", "on_message_received (daq/bus/reader.py", "stamp",
+                           "daq/timebase", "daq/bus/recorder.py")),
+    ("SYNC producer", ("daq/bus/master.py",)),
     ("frames in (python-can recv, notifier)", ("can/", "can_remote/", "canopen/", "queue.py",
                                                "threading.py")),
     ("service loop, publishing, other", ("daq/",)),

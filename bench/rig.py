@@ -118,7 +118,7 @@ class Receiver:
     def __init__(self, endpoint: str, prefix: str, capacity: int) -> None:
         import zenoh
 
-        from rsra.daq.telemetry import viewer_config
+        from rsra.daq.runtime.telemetry import viewer_config
 
         self.stamps = np.zeros(capacity)
         self.seq = np.zeros(capacity, dtype=np.int64)
@@ -206,7 +206,7 @@ def response_frames(scenario: str = "ground-test") -> list[tuple[int, int]]:
     """(COB-ID, length) of every TPDO the simulated aircraft sends per SYNC in ``scenario``:
     the required nodes and the optional ones the scenario carries."""
     from rsra.config.rig import load_config
-    from rsra.daq.decoder import DecodeTable
+    from rsra.daq.bus.decoder import DecodeTable
     from rsra.sim_bus.scenarios import load_scenario
 
     cfg = load_config()

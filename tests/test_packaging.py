@@ -22,6 +22,11 @@ def test_wheel_installs_and_runs_outside_the_repo(tmp_path):
     assert "rsra/config/scenarios/ground-test.toml" in names
     top = {n.split("/")[0] for n in names if not n.split("/")[0].endswith((".dist-info", ".data"))}
     assert top == {"rsra"}, top
+    # rsra web: its page and plugin always, Open MCT once `make web` has put it in place
+    assert {"rsra/daq/web/web-static/index.html",
+            "rsra/daq/web/web-static/rsra-plugin.js"} <= set(names)
+    if (ROOT / "daq" / "web" / "openmct-dist" / "openmct.js").is_file():
+        assert "rsra/daq/web/openmct-dist/openmct.js" in names
     target = tmp_path / "site"
     subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target",
                     str(target), str(wheel)], check=True, capture_output=True)

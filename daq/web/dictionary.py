@@ -1,0 +1,305 @@
+"""The Open MCT telemetry dictionary of a rig, its limits, and telemetry payloads as points.
+
+Pure: no I/O. One *measurement* is one Open MCT telemetry object (one series): an id such as
+``hub.H.Z``, a name, a unit, a format, the Zenoh key it comes from, and optional limit lines.
+:func:`points` turns one telemetry payload (docs/telemetry.md) into ``(id, datum)`` pairs;
+a datum is ``{"utc": ms, "value": …, …}`` and carries ``"lim"`` (``"yellow"``/``"red"``) when
+it is outside its limits, so the browser only maps that to Open MCT's limit classes.
+
+Limits, from what rsra knows (docs/web.md):
+
+* hub loads: the static estimate against the filter estimate, per axis, in units of the
+  static-estimate noise σ of the noise budget (model §4): yellow beyond the two-sided 10⁻³
+  quantile of a normal variable (3.29 σ), red beyond 10⁻⁶ (4.89 σ); the band
+  ``H ± 3.29 σ`` is drawn as two series (``hub.upper.*``, ``hub.lower.*``);
+* NIS: the χ² band with 6 degrees of freedom — yellow outside the two-sided 10⁻³ band,
+  red above the 10⁻⁶ upper quantile (absolute limit lines in the plot);
+* node states: ``operational`` fine, ``booting``/``pre-operational``/``stopped`` yellow,
+  ``missing``/``lost``/``error`` red (an optional node never heard: no limit); flags and cell status bytes: faults red, the rest yellow;
+* identification verdicts: accepted fine, ``inconsistent``/``reset``/``diverged``/
+  ``out_of_range`` red, other rejections yellow; health counters of errors and losses
+  yellow (red for bus-off) once non-zero.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+from scipy.stats import chi2, norm
+
+AXES = ("X", "Y", "Z", "L", "M", "N")
+AXIS_UNITS = ("N", "N", "N", "N·m", "N·m", "N·m")
+AXIS_NAMES = ("X force", "Y force", "Z force", "L moment", "M moment", "N moment")
+ACC_AXES = ("x", "y", "z")
+
+FALSE_ALARM_YELLOW = 1e-3  # per sample, two-sided
+FALSE_ALARM_RED = 1e-6
+Z_YELLOW = float(norm.isf(FALSE_ALARM_YELLOW / 2))  # 3.29
+Z_RED = float(norm.isf(FALSE_ALARM_RED / 2))  # 4.89
+NIS_DOF = 6
+NIS_YELLOW = (float(chi2.ppf(FALSE_ALARM_YELLOW / 2, NIS_DOF)),
+              float(chi2.isf(FALSE_ALARM_YELLOW / 2, NIS_DOF)))
+NIS_RED_HIGH = float(chi2.isf(FALSE_ALARM_RED, NIS_DOF))
+
+NODE_STATE_LIMIT = {"operational": None, "booting": "yellow", "pre-operational": "yellow",
+                    "stopped": "yellow", "missing": "red", "lost": "red", "error": "red"}
+VERDICT_RED = ("inconsistent", "reset", "diverged", "out_of_range")
+# health counters shown: (path in the health record, name, unit, limit once non-zero)
+COUNTERS = (
+    ("bus.frames", "bus frames", "", None),
+    ("bus.errors", "bus error frames", "", "yellow"),
+    ("bus.bus_off", "bus-off events", "", "red"),
+    ("bus.malformed", "malformed frames", "", "yellow"),
+    ("samples.complete", "complete samples", "", None),
+    ("samples.incomplete", "incomplete samples", "", "yellow"),
+    ("samples.lost", "lost samples", "", "yellow"),
+    ("queues.samples.dropped", "samples dropped (queue)", "", "yellow"),
+    ("queues.identification.dropped", "identification windows dropped", "", None),
+    ("identification.deaths", "identification process deaths", "", "yellow"),
+    ("sync.rate_hz", "sample rate", "Hz", None),
+    ("latency_ms.p99", "latency p99", "ms", None),
+)
+
+
+@dataclass
+class Measurement:
+    id: str
+    name: str
+    group: str
+    source: str  # the Zenoh key under the prefix
+    unit: str = ""
+    format: str = "float"  # "float", "integer" or "string"
+    extra: tuple[tuple[str, str, str], ...] = ()  # (key, name, unit) more values of a datum
+    limits: dict[str, Any] | None = None  # absolute limit lines (Open MCT getLimits)
+    value_name: str = ""  # the value's column name where it differs from the name
+
+
+    def as_json(self) -> dict:
+        d = {"id": self.id, "name": self.name, "group": self.group, "source": self.source,
+             "unit": self.unit, "format": self.format,
+             "value_name": self.value_name or self.name,
+             "extra": [{"key": k, "name": n, "unit": u} for k, n, u in self.extra]}
+        if self.limits is not None:
+            d["limits"] = self.limits
+        return d
+
+
+@dataclass
+class Dictionary:
+    rig: str
+    prefix: str
+    frame: str
+    measurements: list[Measurement]
+    sigma_static: list[float]  # per axis, SI
+    cells: tuple[str, ...]
+    accelerometers: tuple[str, ...]
+    nodes: tuple[str, ...]
+    angles: tuple[str, ...]
+    by_id: dict[str, Measurement] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.by_id = {m.id: m for m in self.measurements}
+
+    def as_json(self) -> dict:
+        return {"rig": self.rig, "prefix": self.prefix, "frame": self.frame,
+                "sigma_static": self.sigma_static, "z_yellow": Z_YELLOW, "z_red": Z_RED,
+                "nis_band": list(NIS_YELLOW), "nis_red": NIS_RED_HIGH,
+                "cells": list(self.cells), "accelerometers": list(self.accelerometers),
+                "nodes": list(self.nodes), "angles": list(self.angles),
+                "measurements": [m.as_json() for m in self.measurements]}
+
+
+def build_dictionary(cfg, prefix: str | None = None) -> Dictionary:
+    """The dictionary of a rig config (:class:`rsra.config.rig.RigConfig`)."""
+    from rsra.estimator.noise_budget import noise_budget
+
+    model = cfg.rig_model()
+    sigma = [float(s) for s in noise_budget(model, cfg.identification.initial_angles_rad).total]
+    cells = tuple(c.name for c in cfg.cells)
+    accs = tuple(a.name for a in cfg.accelerometers)
+    nodes = tuple(n.name for n in cfg.nodes)
+    angles = tuple(model.geometry.angle_names)
+    ms: list[Measurement] = []
+    for i, ax in enumerate(AXES):
+        u = AXIS_UNITS[i]
+        ms.append(Measurement(f"hub.H.{ax}", f"{ax} filter", "Hub loads", "hub_loads", u))
+        ms.append(Measurement(f"hub.static.{ax}", f"{ax} static", "Hub loads", "hub_loads", u,
+                              extra=(("ref", "filter", u), ("dev", "deviation", "σ"))))
+        ms.append(Measurement(f"hub.upper.{ax}", f"{ax} filter +{Z_YELLOW:.2f}σ", "Hub loads",
+                              "hub_loads", u))
+        ms.append(Measurement(f"hub.lower.{ax}", f"{ax} filter −{Z_YELLOW:.2f}σ", "Hub loads",
+                              "hub_loads", u))
+    ms.append(Measurement("hub.omega", "rotor speed", "Hub loads", "hub_loads", "rad/s"))
+    ms.append(Measurement("hub.flags", "sample flags", "Hub loads", "hub_loads", "",
+                          format="string"))
+    for c in cells:
+        ms.append(Measurement(f"cell.{c}", f"cell {c} force", "Load cells", "channels", "N",
+                              extra=(("status", "status byte", ""),)))
+    for a in accs:
+        for ax in ACC_AXES:
+            ms.append(Measurement(f"accel.{a}.{ax}", f"{a} {ax}", "Accelerations", "channels",
+                                  "m/s²"))
+    ms.append(Measurement("nis", "NIS (χ², 6 dof)", "Innovations", "innovations", "",
+                          limits={"yellow": list(NIS_YELLOW), "red": [None, NIS_RED_HIGH]}))
+    for n in angles:
+        ms.append(Measurement(f"angle.{n}", n, "Angles", "angles", "deg", value_name="angle",
+                              extra=(("sigma", "σ", "deg"), ("lo", "−1σ", "deg"),
+                                     ("hi", "+1σ", "deg"))))
+    ms.append(Measurement("ident.verdict", "identification verdict", "Identification", "angles",
+                          format="string", extra=(("detail", "decided by", ""),
+                                                  ("mode", "mode", ""),
+                                                  ("content", "content", ""))))
+    ms.append(Measurement("ident.determined", "directions determined", "Identification",
+                          "angles", format="integer"))
+    for n in nodes:
+        ms.append(Measurement(f"node.{n}", f"{n} state", "Nodes", "health", format="string",
+                              value_name="state",
+                              extra=(("boots", "boots", ""), ("losses", "losses", ""),
+                                     ("emcy", "EMCY count", ""))))
+    for path, name, unit, _ in COUNTERS:
+        fmt = "float" if unit else "integer"
+        ms.append(Measurement(f"health.{path}", name, "Health", "health", unit, format=fmt))
+    return Dictionary(cfg.rig_name, prefix or cfg.telemetry.prefix, cfg.hub_frame, ms, sigma,
+                      cells, accs, nodes, angles)
+
+
+def _num(v: Any) -> float | None:
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return None
+    return float(v) if math.isfinite(v) else None
+
+
+def _get(d: Any, path: str) -> Any:
+    for p in path.split("."):
+        if not isinstance(d, dict):
+            return None
+        d = d.get(p)
+    return d
+
+
+def _idx(v: Any, i: int) -> Any:
+    return v[i] if isinstance(v, list) and i < len(v) else None
+
+
+def static_limit(dev_sigma: float) -> str | None:
+    a = abs(dev_sigma)
+    return "red" if a > Z_RED else "yellow" if a > Z_YELLOW else None
+
+
+def nis_limit(nis: float) -> str | None:
+    if nis > NIS_RED_HIGH:
+        return "red"
+    return "yellow" if not NIS_YELLOW[0] <= nis <= NIS_YELLOW[1] else None
+
+
+def flags_limit(flags: list[str]) -> str | None:
+    red = any(f == "invalid" or f.startswith(("missing:", "fault:", "overrange:"))
+              for f in flags)
+    return "red" if red else "yellow" if flags else None
+
+
+def verdict_limit(accepted: Any, reason: Any) -> str | None:
+    if accepted:
+        return None
+    return "red" if reason in VERDICT_RED else "yellow"
+
+
+def node_limit(state: Any, required: Any = True) -> str | None:
+    """An optional node never heard is normal (no limit); other states by the table."""
+    if state == "missing" and required is False:
+        return None
+    return NODE_STATE_LIMIT.get(state, "yellow")
+
+
+def status_limit(status: Any) -> str | None:
+    if not isinstance(status, int) or isinstance(status, bool):
+        return None
+    return "red" if status & 0b11 else None
+
+
+def _datum(utc: float, value: Any, lim: str | None = None, **extra) -> dict:
+    d = {"utc": utc, "value": value, **extra}
+    if lim:
+        d["lim"] = lim
+    return d
+
+
+def points(dic: Dictionary, key: str, p: dict) -> list[tuple[str, dict]]:
+    """The Open MCT points of one telemetry payload of ``key`` (the key under the prefix);
+    missing or null values give no point."""
+    t = _num(p.get("t")) if isinstance(p, dict) else None
+    if t is None:
+        return []
+    utc = round(t * 1000.0, 3)
+    out: list[tuple[str, dict]] = []
+    if key == "hub_loads":
+        H, S = p.get("H"), p.get("H_static")
+        for i, ax in enumerate(AXES):
+            h, s, sig = _num(_idx(H, i)), _num(_idx(S, i)), dic.sigma_static[i]
+            if h is not None:
+                out.append((f"hub.H.{ax}", _datum(utc, h)))
+                out.append((f"hub.upper.{ax}", _datum(utc, h + Z_YELLOW * sig)))
+                out.append((f"hub.lower.{ax}", _datum(utc, h - Z_YELLOW * sig)))
+            if s is not None:
+                dev = None if h is None or sig <= 0 else (s - h) / sig
+                out.append((f"hub.static.{ax}", _datum(
+                    utc, s, None if dev is None else static_limit(dev), ref=h,
+                    dev=None if dev is None else round(dev, 3))))
+        om = _num(p.get("omega"))
+        if om is not None:
+            out.append(("hub.omega", _datum(utc, om)))
+        flags = [f for f in (p.get("flags") or []) if isinstance(f, str)]
+        out.append(("hub.flags", _datum(utc, ", ".join(flags) or "none", flags_limit(flags))))
+    elif key == "channels":
+        T, status = p.get("T"), p.get("status") or {}
+        for i, c in enumerate(dic.cells):
+            v = _num(_idx(T, i))
+            if v is not None:
+                st = status.get(c) if isinstance(status, dict) else None
+                out.append((f"cell.{c}", _datum(utc, v, status_limit(st), status=st)))
+        acc = p.get("accel")
+        for i, a in enumerate(dic.accelerometers):
+            vec = _idx(acc, i)
+            for j, ax in enumerate(ACC_AXES):
+                v = _num(_idx(vec, j))
+                if v is not None:
+                    out.append((f"accel.{a}.{ax}", _datum(utc, v)))
+    elif key == "innovations":
+        v = _num(p.get("nis"))
+        if v is not None:
+            out.append(("nis", _datum(utc, v, nis_limit(v))))
+    elif key == "angles":
+        names, alpha, P = p.get("names") or [], p.get("alpha") or [], p.get("P")
+        for i, n in enumerate(names):
+            a = _num(_idx(alpha, i))
+            if a is None or f"angle.{n}" not in dic.by_id:
+                continue
+            var = _num(_idx(_idx(P, i), i))
+            deg = math.degrees(a)
+            sig = math.degrees(math.sqrt(var)) if var is not None and var >= 0 else None
+            out.append((f"angle.{n}", _datum(
+                utc, deg, sigma=sig, lo=None if sig is None else deg - sig,
+                hi=None if sig is None else deg + sig)))
+        acc, reason = p.get("accepted"), p.get("reason")
+        out.append(("ident.verdict", _datum(
+            utc, "accepted" if acc else f"rejected: {reason}", verdict_limit(acc, reason),
+            detail=p.get("detail"), mode=p.get("mode"), content=p.get("content"))))
+        det = p.get("determined")
+        if isinstance(det, int) and not isinstance(det, bool):
+            out.append(("ident.determined", _datum(utc, det)))
+    elif key == "health":
+        nodes = p.get("nodes") or {}
+        for n in dic.nodes:
+            nd = nodes.get(n) if isinstance(nodes, dict) else None
+            if not isinstance(nd, dict):
+                continue
+            st = nd.get("state")
+            out.append((f"node.{n}", _datum(
+                utc, str(st), node_limit(st, nd.get("required")), boots=nd.get("boots"),
+                losses=nd.get("losses"), emcy=nd.get("emcy_count"))))
+        for path, _, _, lim in COUNTERS:
+            v = _num(_get(p, path))
+            if v is not None:
+                out.append((f"health.{path}", _datum(utc, v, lim if v > 0 else None)))
+    return out

@@ -1,0 +1,238 @@
+/* rsra plugin for NASA Open MCT: objects from the gateway's telemetry dictionary, history over
+ * HTTP (/api/history), real-time points over one WebSocket (/ws), limits from the points'
+ * "lim" field (computed by the gateway: noise budget, chi-square band of the NIS, node states,
+ * flags, verdicts) and a default layout. Apache-2.0, part of rsra. */
+(function () {
+  'use strict';
+  const NS = 'rsra';
+  const TYPE = 'rsra.telemetry';
+  const LIMITS = {
+    yellow: { cssClass: 'is-limit--yellow', name: 'Yellow', low: -Infinity, high: Infinity },
+    red: { cssClass: 'is-limit--red', name: 'Red', low: -Infinity, high: Infinity }
+  };
+
+  // counters of what reached the views (read by the browser test and handy in the console)
+  window.rsraStats = { delivered: {}, history: {}, messages: 0 };
+
+  function id(key) {
+    return { namespace: NS, key: key };
+  }
+
+  function valueMeta(m) {
+    const fmt = m.format === 'string' ? { format: 'string' }
+      : m.format === 'integer' ? { formatString: '%d' } : { formatString: '%0.1f' };
+    const values = [
+      { key: 'utc', source: 'utc', name: 'Time', format: 'utc', hints: { domain: 1 } },
+      Object.assign({ key: 'value', name: m.value_name || m.name, unit: m.unit,
+        hints: { range: 1 } }, fmt)
+    ];
+    (m.extra || []).forEach(function (e, i) {
+      values.push({ key: e.key, name: e.name, unit: e.unit,
+        format: ['detail', 'mode', 'content'].includes(e.key) ? 'string' : undefined,
+        formatString: ['detail', 'mode', 'content'].includes(e.key) ? undefined : '%0.3f',
+        hints: { range: i + 2 } });
+    });
+    return values;
+  }
+
+  function series(key, color, limitLines) {
+    return { identifier: id(key), color: color, markers: false, alarmMarkers: true,
+      limitLines: Boolean(limitLines) };
+  }
+
+  function buildObjects(dic) {
+    const objs = {};
+    const groups = {};
+    dic.measurements.forEach(function (m) {
+      objs[m.id] = {
+        identifier: id(m.id), name: m.name, type: TYPE, location: NS + ':folder.' + m.group,
+        telemetry: { values: valueMeta(m) }, rsra: m
+      };
+      (groups[m.group] = groups[m.group] || []).push(id(m.id));
+    });
+    const axes = ['X', 'Y', 'Z', 'L', 'M', 'N'];
+    const hubPlots = axes.map(function (ax) {
+      const key = 'plot.hub.' + ax;
+      objs[key] = {
+        identifier: id(key), type: 'telemetry.plot.overlay', location: NS + ':plot.hub',
+        name: ax + ' (' + dic.measurements.find((m) => m.id === 'hub.H.' + ax).unit + ')',
+        composition: ['hub.lower.', 'hub.upper.', 'hub.static.', 'hub.H.'].map((p) => id(p + ax)),
+        configuration: { series: [
+          series('hub.lower.' + ax, '#c8a600'), series('hub.upper.' + ax, '#c8a600'),
+          series('hub.static.' + ax, '#6f7f8f'), series('hub.H.' + ax, '#35c7ff')
+        ] }
+      };
+      return id(key);
+    });
+    const layoutParts = {
+      'plot.hub': { type: 'telemetry.plot.stacked', name: 'Hub loads (' + dic.frame
+        + ' axes): filter, static, ±' + dic.z_yellow.toFixed(2) + 'σ static noise bound',
+        composition: hubPlots },
+      'plot.nis': { type: 'telemetry.plot.overlay', name: 'NIS against its χ² band (6 dof)',
+        composition: [id('nis')],
+        configuration: { series: [series('nis', '#35c7ff', true)] } },
+      'lad.nodes': { type: 'LadTable', name: 'Nodes and health',
+        composition: dic.nodes.map((n) => id('node.' + n))
+          .concat([id('hub.flags'), id('hub.omega')])
+          .concat(dic.measurements.filter((m) => m.group === 'Health').map((m) => id(m.id))) },
+      'lad.ident': { type: 'LadTable', name: 'Latest identification',
+        composition: [id('ident.verdict'), id('ident.determined')] },
+      'table.angles': { type: 'table', name: 'Load-cell angles (deg, ±1σ)',
+        composition: dic.angles.map((n) => id('angle.' + n)),
+        configuration: { hiddenColumns: {}, rowLimit: dic.angles.length } }
+    };
+    Object.keys(layoutParts).forEach(function (k) {
+      objs[k] = Object.assign({ identifier: id(k), location: NS + ':layout' }, layoutParts[k]);
+    });
+    function item(key, x, y, w, h) {
+      return { type: 'subobject-view', identifier: id(key), id: 'rsra-' + key, x: x, y: y,
+        width: w, height: h, hasFrame: true, fontSize: 'default', font: 'default' };
+    }
+    objs.layout = {
+      identifier: id('layout'), type: 'layout', location: NS + ':root',
+      name: 'Rig ' + dic.rig + ' — default layout',
+      composition: Object.keys(layoutParts).map(id),
+      configuration: {
+        layoutGrid: [10, 10], objectStyles: {},
+        items: [
+          item('plot.hub', 0, 0, 96, 86),
+          item('lad.nodes', 97, 0, 58, 36),
+          item('lad.ident', 97, 37, 58, 9),
+          item('table.angles', 97, 47, 58, 24),
+          item('plot.nis', 97, 72, 58, 14)
+        ]
+      }
+    };
+    const folders = Object.keys(groups).map(function (g) {
+      objs['folder.' + g] = { identifier: id('folder.' + g), type: 'folder', name: g,
+        location: NS + ':root', composition: groups[g] };
+      return id('folder.' + g);
+    });
+    objs.root = { identifier: id('root'), type: 'folder', location: 'ROOT',
+      name: 'rsra ' + dic.rig + ' (' + dic.prefix + ')',
+      composition: [id('layout')].concat(folders) };
+    Object.values(objs).forEach(function (o) {
+      o.configuration = o.configuration || {}; // views keep their settings there
+    });
+    return objs;
+  }
+
+  function Realtime(url) {
+    this.url = url;
+    this.listeners = {};
+    this.open();
+  }
+  Realtime.prototype.open = function () {
+    const self = this;
+    this.ws = new WebSocket(this.url);
+    this.ws.onopen = function () {
+      const ids = Object.keys(self.listeners);
+      if (ids.length) {
+        self.ws.send(JSON.stringify({ subscribe: ids }));
+      }
+    };
+    this.ws.onmessage = function (ev) {
+      const msg = JSON.parse(ev.data);
+      const st = window.rsraStats;
+      st.messages += 1;
+      (msg.points || []).forEach(function (p) {
+        const l = self.listeners[p[0]] || [];
+        if (l.length) {
+          st.delivered[p[0]] = (st.delivered[p[0]] || 0) + 1;
+        }
+        l.forEach((cb) => cb(p[1]));
+      });
+    };
+    this.ws.onclose = function () {
+      setTimeout(() => self.open(), 1000);
+    };
+  };
+  Realtime.prototype.send = function (msg) {
+    if (this.ws.readyState === WebSocket.OPEN) {
+      this.ws.send(JSON.stringify(msg));
+    }
+  };
+  Realtime.prototype.subscribe = function (key, cb) {
+    const l = (this.listeners[key] = this.listeners[key] || []);
+    l.push(cb);
+    if (l.length === 1) {
+      this.send({ subscribe: [key] });
+    }
+    const self = this;
+    return function () {
+      const i = l.indexOf(cb);
+      if (i >= 0) {
+        l.splice(i, 1);
+      }
+      if (!l.length) {
+        delete self.listeners[key];
+        self.send({ unsubscribe: [key] });
+      }
+    };
+  };
+
+  window.RsraPlugin = function (dic) {
+    return function install(openmct) {
+      const objs = buildObjects(dic);
+      openmct.types.addType(TYPE, { name: 'rsra telemetry', cssClass: 'icon-telemetry',
+        description: 'A series of the rsra rig telemetry', creatable: false });
+      openmct.objects.addRoot(id('root'));
+      openmct.objects.addProvider(NS, {
+        get: function (identifier) {
+          const o = objs[identifier.key];
+          return o ? Promise.resolve(JSON.parse(JSON.stringify(o)))
+            : Promise.reject(new Error('no such rsra object ' + identifier.key));
+        },
+        // views (plots, tables) keep their settings on their object: in this page only
+        create: function () {
+          return Promise.resolve(false);
+        },
+        update: function (o) {
+          objs[o.identifier.key] = JSON.parse(JSON.stringify(o));
+          return Promise.resolve(true);
+        }
+      });
+      const proto = location.protocol === 'https:' ? 'wss://' : 'ws://';
+      const rt = new Realtime(proto + location.host + '/ws');
+      openmct.telemetry.addProvider({
+        supportsRequest: (o) => o.type === TYPE,
+        request: function (o, options) {
+          const q = new URLSearchParams({ id: o.identifier.key, start: options.start,
+            end: options.end });
+          if (options.strategy === 'latest') {
+            q.set('strategy', 'latest');
+          }
+          return fetch('/api/history?' + q.toString()).then((r) => r.json()).then(function (d) {
+            const st = window.rsraStats.history;
+            st[o.identifier.key] = (st[o.identifier.key] || 0) + d.length;
+            return d;
+          });
+        },
+        supportsSubscribe: (o) => o.type === TYPE,
+        subscribe: (o, cb) => rt.subscribe(o.identifier.key, cb),
+        supportsLimits: (o) => o.type === TYPE,
+        getLimitEvaluator: function () {
+          return { evaluate: function (datum, valueMetadata) {
+            if (valueMetadata && valueMetadata.key !== 'value') {
+              return undefined;
+            }
+            return datum && datum.lim ? LIMITS[datum.lim] : undefined;
+          } };
+        },
+        getLimits: function (o) {
+          const lim = o.rsra && o.rsra.limits;
+          return { limits: function () {
+            if (!lim) {
+              return Promise.resolve({});
+            }
+            return Promise.resolve({
+              WARNING: { low: { color: 'yellow', value: lim.yellow[0] },
+                high: { color: 'yellow', value: lim.yellow[1] } },
+              CRITICAL: { low: { color: 'red', value: 0 }, high: { color: 'red', value: lim.red[1] } }
+            });
+          } };
+        }
+      });
+    };
+  };
+})();

@@ -1,0 +1,461 @@
+"""`rsra web` (issue 18): the Open MCT gateway — dictionary, limits, bounded history, telemetry
+files, Host/Origin refusal, bounded browser queues, the command's bad input, and a real
+headless Chromium against `rsra run --sim ground-test`. Nothing here asserts timing."""
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.stats import binom
+
+pytest.importorskip("aiohttp", reason="aiohttp (the gateway's server) is not installed")
+
+from rsra.daq.web import dictionary as D  # noqa: E402
+from rsra.daq.web.history import History, HistoryFileError, TelemetryFile  # noqa: E402
+from rsra.daq.web.server import (Client, Gateway, allowed_hosts, openmct_dir,  # noqa: E402
+                            request_allowed)
+from tests.helpers_net import free_tcp_port  # noqa: E402
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_FLAGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
+                  "--disable-component-update", "--disable-sync", "--no-first-run"]
+
+
+@pytest.fixture(scope="module")
+def dic(cfg):
+    return D.build_dictionary(cfg)
+
+
+def _hub(seq, t, H=None, S=None, flags=()):
+    return {"seq": seq, "sync": 1, "t": t, "frame": "body",
+            "H": H if H is not None else [1.0, 2.0, -80000.0, 4.0, 5.0, 6.0],
+            "H_static": S if S is not None else [1.0, 2.0, -80000.0, 4.0, 5.0, 6.0],
+            "omega": 19.4, "flags": list(flags)}
+
+
+# -- dictionary ----------------------------------------------------------------------------
+def test_dictionary_is_built_from_the_rig_config(cfg, dic):
+    from rsra.estimator.noise_budget import noise_budget
+
+    ids = dic.by_id
+    for i, ax in enumerate(D.AXES):
+        unit = "N" if i < 3 else "N·m"
+        for kind in ("H", "static", "upper", "lower"):
+            assert ids[f"hub.{kind}.{ax}"].unit == unit
+    assert [m.id for m in dic.measurements if m.group == "Load cells"] == \
+        [f"cell.{c.name}" for c in cfg.cells]
+    assert all(ids[f"cell.{c.name}"].unit == "N" for c in cfg.cells)
+    assert {f"accel.{a.name}.{x}" for a in cfg.accelerometers for x in "xyz"} <= set(ids)
+    assert ids["hub.omega"].unit == "rad/s"
+    angles = cfg.rig_model().geometry.angle_names
+    assert len(angles) == 14
+    for n in angles:
+        m = ids[f"angle.{n}"]
+        assert m.unit == "deg" and "sigma" in [e[0] for e in m.extra]
+    assert ids["nis"].limits["yellow"] == pytest.approx(list(D.NIS_YELLOW))
+    assert {f"node.{n.name}" for n in cfg.nodes} <= set(ids)
+    assert {"ident.verdict", "ident.determined", "health.bus.errors",
+            "health.samples.lost"} <= set(ids)
+    nb = noise_budget(cfg.rig_model(), cfg.identification.initial_angles_rad).total
+    assert dic.sigma_static == pytest.approx(list(nb))
+    json.dumps(dic.as_json(), allow_nan=False)  # strict JSON for the browser
+
+
+# -- limits --------------------------------------------------------------------------------
+def test_limit_thresholds():
+    assert D.Z_YELLOW == pytest.approx(3.2905, abs=1e-3)
+    assert D.static_limit(D.Z_YELLOW * 0.999) is None
+    assert D.static_limit(-D.Z_YELLOW * 1.001) == "yellow"
+    assert D.static_limit(D.Z_RED * 1.001) == "red"
+    lo, hi = D.NIS_YELLOW
+    assert D.nis_limit(6.0) is None
+    assert D.nis_limit(lo * 0.99) == "yellow" and D.nis_limit(hi * 1.01) == "yellow"
+    assert D.nis_limit(D.NIS_RED_HIGH * 1.01) == "red"
+    assert D.node_limit("operational") is None
+    assert D.node_limit("pre-operational") == "yellow"
+    assert D.node_limit("lost") == "red" and D.node_limit("missing", True) == "red"
+    assert D.node_limit("missing", False) is None
+    assert D.flags_limit([]) is None and D.flags_limit(["lost_before"]) == "yellow"
+    assert D.flags_limit(["predict_only", "missing:cell_C"]) == "red"
+    assert D.verdict_limit(True, None) is None
+    assert D.verdict_limit(False, "not_identifiable") == "yellow"
+    assert D.verdict_limit(False, "inconsistent") == "red"
+    assert D.status_limit(0) is None and D.status_limit(1) == "red" and D.status_limit(2) == "red"
+
+
+def test_limits_false_alarm_rate_monte_carlo(dic):
+    """A consistent static estimate (H + N(0, σ)) and a consistent NIS (χ²₆) go yellow at the
+    1e-3 rate: the count lies inside its binomial 1e-3 acceptance band."""
+    rng = np.random.default_rng(18)
+    n = 200_000
+    lo, hi = binom.ppf(5e-4, n, D.FALSE_ALARM_YELLOW), binom.isf(5e-4, n, D.FALSE_ALARM_YELLOW)
+    dev = rng.standard_normal(n)
+    flagged = sum(D.static_limit(float(x)) is not None for x in dev)
+    assert lo <= flagged <= hi, (flagged, lo, hi)
+    nis = rng.chisquare(6, n)  # a consistent filter: χ² with 6 dof (telemetry.md)
+    flagged = sum(D.nis_limit(float(x)) is not None for x in nis)
+    assert lo <= flagged <= hi, (flagged, lo, hi)
+    # and through points(): the deviation is measured in the axis' noise-budget σ
+    sig = dic.sigma_static
+    H = [0.0, 0.0, -8e4, 0.0, 0.0, 0.0]
+    S = [h + 3.0 * s for h, s in zip(H, sig)]  # 3 σ: inside
+    assert all("lim" not in d for i, d in D.points(dic, "hub_loads", _hub(0, 1.0, H, S))
+               if i.startswith("hub.static."))
+    S = [h + 3.6 * s for h, s in zip(H, sig)]  # 3.6 σ: yellow on every axis
+    got = {i: d for i, d in D.points(dic, "hub_loads", _hub(0, 1.0, H, S))}
+    assert all(got[f"hub.static.{ax}"]["lim"] == "yellow" for ax in D.AXES)
+    assert got["hub.upper.Z"]["value"] == pytest.approx(H[2] + D.Z_YELLOW * sig[2])
+
+
+def test_points_of_every_key(dic, cfg):
+    pts = dict(D.points(dic, "hub_loads", _hub(3, 100.0, H=[None] * 6,
+                                               flags=["missing:cell_C", "predict_only"])))
+    assert "hub.H.Z" not in pts and "hub.upper.Z" not in pts  # null H: no point
+    assert pts["hub.static.Z"]["value"] == -80000.0 and pts["hub.static.Z"]["ref"] is None
+    assert pts["hub.flags"] == {"utc": 100000.0, "value": "missing:cell_C, predict_only",
+                                "lim": "red"}
+    cells = [c.name for c in cfg.cells]
+    ch = {"seq": 3, "t": 100.0, "T": [1.0] * 6 + [None], "accel": [[0.1, 0.2, -9.81]],
+          "status": dict(zip(cells, [0, 1, 2, 0, 0, 0]))}
+    pts = dict(D.points(dic, "channels", ch))
+    assert pts[f"cell.{cells[1]}"]["lim"] == "red" and "lim" not in pts[f"cell.{cells[0]}"]
+    assert f"cell.{cells[6]}" not in pts
+    assert pts[f"accel.{cfg.accelerometers[0].name}.z"]["value"] == -9.81
+    assert dict(D.points(dic, "innovations", {"t": 1.0, "nis": 80.0}))["nis"]["lim"] == "red"
+    names = list(dic.angles)
+    P = (np.eye(14) * np.radians(0.1) ** 2).tolist()
+    ang = {"t": 5.0, "names": names, "alpha": [np.radians(2.0)] * 14, "P": P,
+           "accepted": False, "reason": "inconsistent", "detail": "gate", "determined": 14}
+    pts = dict(D.points(dic, "angles", ang))
+    a = pts[f"angle.{names[0]}"]
+    assert a["value"] == pytest.approx(2.0) and a["sigma"] == pytest.approx(0.1)
+    assert a["lo"] == pytest.approx(1.9) and a["hi"] == pytest.approx(2.1)
+    assert pts["ident.verdict"]["value"] == "rejected: inconsistent"
+    assert pts["ident.verdict"]["lim"] == "red" and pts["ident.determined"]["value"] == 14
+    health = {"t": 6.0, "nodes": {"cell_A": {"state": "lost", "required": True},
+                                  "balance": {"state": "missing", "required": False}},
+              "bus": {"errors": 2, "frames": 10}, "samples": {"lost": 0}}
+    pts = dict(D.points(dic, "health", health))
+    assert pts["node.cell_A"]["lim"] == "red" and "lim" not in pts["node.balance"]
+    assert pts["health.bus.errors"]["lim"] == "yellow"
+    assert "lim" not in pts["health.bus.frames"] and "lim" not in pts["health.samples.lost"]
+    assert D.points(dic, "hub_loads", {"seq": 1}) == []  # no time: no point
+    for _, d in D.points(dic, "hub_loads", _hub(1, 1.0)):
+        json.dumps(d, allow_nan=False)
+
+
+# -- history -------------------------------------------------------------------------------
+def test_history_is_bounded_by_count_and_age(dic):
+    h = History(10.0, {"hub_loads": 20.0})  # cap 250 messages
+    assert h.cap("hub_loads") == 250
+    t0 = 1000.0
+    for i in range(400):  # 400 messages within 4 s: the count bound
+        h.add("hub_loads", t0 + i * 0.01, json.dumps(_hub(i, t0 + i * 0.01)))
+    assert h.count("hub_loads") == 250
+    assert h.bytes == sum(len(x) for x in h._text["hub_loads"])
+    for i in range(30):  # 1 Hz for 30 s: the age bound
+        t = t0 + 10 + i
+        h.add("hub_loads", t, json.dumps(_hub(1000 + i, t)))
+    ts = list(h._t["hub_loads"])
+    assert ts[-1] - ts[0] <= 10.0 and h.count("hub_loads") == 11
+    assert h.bytes == sum(len(x) for x in h._text["hub_loads"])
+    h.add("hub_loads", t0, json.dumps(_hub(0, t0)))  # out of order: a restarted service
+    assert h.count("hub_loads") == 1
+
+
+def test_history_query_is_strided_and_keeps_the_newest(dic):
+    h = History(1000.0, {"hub_loads": 200.0})
+    for i in range(1000):
+        t = 50.0 + i * 0.005
+        h.add("hub_loads", t, json.dumps(_hub(i, t, H=[float(i)] * 6)))
+    got = h.query(dic, "hub.H.X", 50.0, 60.0, max_points=100)
+    assert 90 <= len(got) <= 100
+    assert got[-1]["value"] == 999.0  # the newest is in
+    assert [d["utc"] for d in got] == sorted(d["utc"] for d in got)
+    got = h.query(dic, "hub.H.X", 51.0, 51.1)
+    assert [d["value"] for d in got] == [float(i) for i in range(200, 221)]
+    assert h.query(dic, "no.such", 0, 1e12) == []
+
+
+def test_telemetry_files_jsonl_and_mcap(dic, tmp_path):
+    from rsra.daq.analysis.export import write_mcap
+
+    recs = [("hub_loads", _hub(i, 10.0 + i * 0.005, H=[float(i)] * 6)) for i in range(50)]
+    recs.append(("innovations", {"seq": 0, "t": 10.0, "nis": 5.0}))
+    jl = tmp_path / "tel.jsonl"
+    jl.write_text("".join(json.dumps({"key": k, **p}) + "\n" for k, p in recs))
+    mc = tmp_path / "tel.mcap"
+    with open(mc, "wb") as f:
+        write_mcap(recs, f, dic.prefix)
+    for path in (jl, mc):
+        tf = TelemetryFile(path, dic.prefix)
+        assert tf.counts == {"hub_loads": 50, "innovations": 1}
+        assert (tf.t0, tf.t1) == (10.0, pytest.approx(10.245))
+        got = tf.query(dic, "hub.H.Y", 0.0, 1e12)
+        assert [d["value"] for d in got] == [float(i) for i in range(50)]
+        assert len(tf.query(dic, "hub.H.Y", 0.0, 1e12, max_points=10)) <= 10
+        assert tf.query(dic, "hub.H.Y", 20.0, 30.0) == []
+        assert tf.query(dic, "nis", 0.0, 1e12)[0]["value"] == 5.0
+    bad = tmp_path / "bad.jsonl"
+    bad.write_text("not json\n")
+    with pytest.raises(HistoryFileError, match="bad.jsonl:1"):
+        TelemetryFile(bad, dic.prefix)
+    with pytest.raises(HistoryFileError, match="no such file"):
+        TelemetryFile(tmp_path / "nope.jsonl", dic.prefix)
+
+
+# -- Host / Origin -------------------------------------------------------------------------
+def test_request_allowed_host_and_origin():
+    hosts = allowed_hosts("127.0.0.1", 8080)
+    assert request_allowed({"Host": "127.0.0.1:8080"}, hosts) is None
+    assert request_allowed({"Host": "localhost:8080",
+                            "Origin": "http://localhost:8080"}, hosts) is None
+    assert "Host" in request_allowed({"Host": "evil.example:8080"}, hosts)  # DNS rebinding
+    assert "Host" in request_allowed({"Host": "127.0.0.1:9999"}, hosts)
+    assert "Host" in request_allowed({}, hosts)
+    assert "cross-origin" in request_allowed({"Host": "127.0.0.1:8080",
+                                              "Origin": "http://evil.example"}, hosts)
+    assert "cross-origin" in request_allowed({"Host": "127.0.0.1:8080",
+                                              "Origin": "http://localhost:8080"}, hosts)
+    assert "cross-origin" in request_allowed({"Host": "127.0.0.1:8080", "Origin": "null"},
+                                             hosts)
+    remote = allowed_hosts("192.0.2.7", 80, ["rig.example"])
+    assert request_allowed({"Host": "rig.example"}, remote) is None
+    assert request_allowed({"Host": "localhost:80"}, remote) is not None
+
+
+def _gateway(dic, tmp_path, files=()):
+    return Gateway(dic, History(60.0, {"hub_loads": 200.0}), list(files),
+                   allowed_hosts("127.0.0.1", 0), openmct=tmp_path)
+
+
+def test_http_and_websocket_refuse_other_hosts_and_origins(dic, tmp_path):
+    from aiohttp import WSServerHandshakeError
+    from aiohttp.test_utils import TestClient, TestServer
+
+    (tmp_path / "openmct.js").write_text("// stand-in")
+
+    async def go():
+        gw = _gateway(dic, tmp_path)
+        async with TestClient(TestServer(gw.app(), host="127.0.0.1")) as c:
+            port = c.server.port
+            gw.hosts = allowed_hosts("127.0.0.1", port)
+            own = f"127.0.0.1:{port}"
+            r = await c.get("/status", headers={"Host": own})
+            assert r.status == 200 and (await r.json())["rig"] == dic.rig
+            r = await c.get("/openmct/openmct.js", headers={"Host": own})
+            assert r.status == 200
+            r = await c.get("/api/dictionary", headers={"Host": f"evil.example:{port}"})
+            assert r.status == 403
+            r = await c.get("/api/history?id=hub.H.Z",
+                            headers={"Host": own, "Origin": "http://evil.example"})
+            assert r.status == 403
+            with pytest.raises(WSServerHandshakeError) as e:
+                await c.ws_connect("/ws", headers={"Host": own,
+                                                   "Origin": "http://evil.example"})
+            assert e.value.status == 403
+            ws = await c.ws_connect("/ws", headers={"Host": own, "Origin": f"http://{own}"})
+            await ws.send_str(json.dumps({"subscribe": ["hub.H.Z", "no.such"]}))
+            for _ in range(100):
+                if gw.clients and next(iter(gw.clients)).subs:
+                    break
+                await asyncio.sleep(0.01)
+            assert next(iter(gw.clients)).subs == {"hub.H.Z"}
+            gw.ingest("hub_loads", json.dumps(_hub(0, 1.0)))
+            gw.flush()
+            msg = json.loads((await ws.receive(timeout=10)).data)
+            assert msg["points"] == [["hub.H.Z", {"utc": 1000.0, "value": -80000.0}]]
+            await ws.close()
+            gw.ingest("hub_loads", json.dumps(_hub(3, 1.1)))  # seq 1 and 2 missed
+            st = gw.status()
+            assert st["refused"] == 3 and st["points_sent"] == 1
+            assert st["received"]["hub_loads"] == 2 and st["missed"]["hub_loads"] == 2
+
+    asyncio.run(go())
+
+
+# -- bounded browser queues ----------------------------------------------------------------
+class _StalledWS:
+    """A browser that never reads: every send waits forever."""
+
+    def __init__(self):
+        self.sends = 0
+
+    async def send_str(self, text):
+        self.sends += 1
+        await asyncio.Event().wait()
+
+
+def test_slow_browser_queue_is_bounded_and_drops_are_counted(dic):
+    """A browser that stops reading: its queue stays at max_batches, the oldest batches are
+    dropped and counted, and the gateway's ingest goes on (it never waits on a browser)."""
+
+    async def go():
+        gw = Gateway(dic, History(60.0, {"hub_loads": 200.0}), [], set())
+        ws = _StalledWS()
+        c = Client(ws, max_batches=5)
+        c.subs = {f"hub.{k}.{ax}" for k in ("H", "static") for ax in D.AXES}
+        gw.clients.add(c)
+        writer = asyncio.create_task(c.writer())
+        n_msgs, per_flush = 2000, 20  # 10 s at 200/s, flushed every 0.1 s
+        for i in range(n_msgs):
+            gw.ingest("hub_loads", json.dumps(_hub(i, 1.0 + i * 0.005)))
+            if i % per_flush == per_flush - 1:
+                gw.flush()
+                await asyncio.sleep(0)
+        offered = n_msgs * 12
+        held = sum(len(b) for b in c.queue) + len(c.batch)
+        in_flight = per_flush * 12 * ws.sends  # the one batch stuck in send_str
+        assert len(c.queue) <= 5 and c.max_depth == 5
+        assert c.dropped == offered - held - in_flight > 0
+        assert gw.history.count("hub_loads") == n_msgs
+        writer.cancel()
+        return c.dropped, offered
+
+    dropped, offered = asyncio.run(go())
+    print(f"slow browser: {dropped} of {offered} points dropped (queue 5 batches)")
+
+
+def test_batch_size_is_bounded(dic):
+    c = Client(None, max_batches=2, max_batch_points=10)
+    c.subs = {"hub.H.X"}
+    c.offer([("hub.H.X", {"utc": i, "value": 0.0}) for i in range(25)])
+    assert len(c.batch) == 10 and c.dropped == 15
+
+
+# -- the command's bad input ---------------------------------------------------------------
+def test_web_command_bad_input(tmp_path, capsys, monkeypatch):
+    from rsra.daq import cli
+    from rsra.daq.web import server
+
+    monkeypatch.setattr(server, "OPENMCT_DIR", tmp_path / "none")
+    assert cli.main(["web"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "make web" in err, err
+    (tmp_path / "omct").mkdir()
+    (tmp_path / "omct" / "openmct.js").write_text("//")
+    monkeypatch.setattr(server, "OPENMCT_DIR", tmp_path / "omct")
+    assert cli.main(["web", "--host", "0.0.0.0"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--allow-remote" in err, err
+    bad = tmp_path / "x.jsonl"
+    bad.write_text("{\n")
+    assert cli.main(["web", str(bad)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "x.jsonl:1" in err, err
+    with pytest.raises(SystemExit) as e:
+        cli.main(["web", "--port", "70000"])
+    assert e.value.code == 2
+    assert bad.read_text() == "{\n"
+
+
+# -- a real browser ------------------------------------------------------------------------
+def _die_with_parent() -> None:
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+
+
+def _spawn(args, **kw) -> subprocess.Popen:
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    return subprocess.Popen([sys.executable, "-m", "rsra", *args], env=env,
+                            preexec_fn=_die_with_parent, text=True, **kw)
+
+
+def _stop(p: subprocess.Popen) -> None:
+    if p.poll() is None:
+        p.send_signal(signal.SIGINT)
+        try:
+            p.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait(timeout=10)
+
+
+def _browser_skip_reason() -> str | None:
+    if not Path(CHROMIUM).is_file():
+        return f"chromium is not installed ({CHROMIUM}; .ci/run installs Debian's chromium)"
+    if openmct_dir() is None:
+        return "the Open MCT files are not installed (run `make web`)"
+    try:
+        import playwright.sync_api  # noqa: F401
+    except ImportError:
+        return "the Python package playwright is not installed (the test extra)"
+    return None
+
+
+@pytest.mark.timeout(300)
+def test_browser_shows_hub_loads_live_and_history_after_reload(tmp_path):
+    """Headless Chromium opens `rsra web` against `rsra run --sim ground-test` (real time):
+    it finds the hub-load plot, sees new points arrive, and after a reload gets history."""
+    why = _browser_skip_reason()
+    if why:
+        pytest.skip(why)
+    from playwright.sync_api import sync_playwright
+
+    zport, wport = free_tcp_port(), free_tcp_port()
+    ep = f"tcp/127.0.0.1:{zport}"
+    logs = {n: open(tmp_path / f"{n}.log", "w+") for n in ("run", "web")}
+    procs: list[subprocess.Popen] = []
+    try:
+        run = _spawn(["run", "--sim", "ground-test", "--duration", "120", "--zenoh-listen", ep],
+                     stdout=subprocess.DEVNULL, stderr=logs["run"])
+        procs.append(run)
+        web = _spawn(["web", "--port", str(wport), "--zenoh-connect", ep],
+                     stdout=subprocess.PIPE, stderr=logs["web"])
+        procs.append(web)
+        line = web.stdout.readline()
+        assert f"http://127.0.0.1:{wport}/" in line, line + _read(logs["web"])
+        url = line.split("open ", 1)[1].split()[0]
+        with sync_playwright() as pw:
+            ctx = pw.chromium.launch_persistent_context(
+                str(tmp_path / "profile"), executable_path=CHROMIUM, headless=True,
+                args=CHROMIUM_FLAGS, viewport={"width": 1600, "height": 1000})
+            try:
+                page = ctx.new_page()
+                page.set_default_timeout(120_000)  # a loaded machine: no timing asserted
+                errors = []
+                page.on("pageerror", lambda e: errors.append(str(e)))
+                page.goto(url, timeout=120_000)
+                plot = page.get_by_text("Hub loads (body axes)", exact=False).first
+                plot.wait_for(timeout=120_000)
+                page.locator(".gl-plot").first.wait_for(timeout=60_000)
+                page.wait_for_function("() => (window.rsraStats.delivered['hub.H.Z'] || 0) > 0",
+                                       timeout=120_000)
+                n1 = page.evaluate("() => window.rsraStats.delivered['hub.H.Z']")
+                page.wait_for_function(
+                    f"() => window.rsraStats.delivered['hub.H.Z'] > {n1}", timeout=60_000)
+                assert run.poll() is None, _read(logs["run"])
+                page.reload()
+                page.get_by_text("Hub loads (body axes)", exact=False).first.wait_for(
+                    timeout=120_000)
+                page.wait_for_function("() => (window.rsraStats.history['hub.H.Z'] || 0) > 0",
+                                       timeout=120_000)
+                assert not errors, errors
+            finally:
+                ctx.close()
+    finally:
+        for p in reversed(procs):
+            _stop(p)
+        if procs[-1:] and procs[-1].stdout:
+            procs[-1].stdout.close()
+    out = _read(logs["web"])
+    assert "Traceback" not in out, out
+    for f in logs.values():
+        f.close()
+
+
+def _read(f) -> str:
+    f.flush()
+    f.seek(0)
+    return f.read()
