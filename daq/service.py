@@ -21,6 +21,7 @@ slow subscriber may block them.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -39,19 +40,11 @@ import numpy as np
 from daq.config import RigConfig
 from daq.jsonout import dumps
 from daq.pipeline import EstimatorPipeline
+from daq.sources import SIM_BLOCK, BusOpenError, Source, make_source  # noqa: F401 (re-exported)
 
 log = logging.getLogger("rsra.service")
 
 LOW_RATE_QUEUE = 64
-# the in-process simulator computes its physics in blocks of samples; a block of 1000 takes
-# 7-14 ms, longer than a 5 ms sample period, which in real time made the simulated nodes miss
-# a SYNC every 5 s. 100-sample blocks take ~1 ms. Lock-step uses the same size, so a seed gives
-# the same samples in both modes.
-SIM_BLOCK = 100
-
-
-class BusOpenError(RuntimeError):
-    """The CAN interface could not be opened (no such interface or channel, no driver)."""
 LATENCY_HISTORY = 2000
 ANGLES_HISTORY = 16  # recent angles records kept in memory (~15 kB each with P)
 
@@ -171,6 +164,16 @@ class Outputs:
         self.telemetry = self.session = None
 
 
+def _close_logged(stack: contextlib.ExitStack, close: Callable[[], None]) -> None:
+    """Close ``close`` when ``stack`` unwinds; a failure is logged and the rest still close."""
+    def run() -> None:
+        try:
+            close()
+        except Exception as e:  # keep closing the rest
+            log.error("shutdown: %s", e)
+    stack.callback(run)
+
+
 def jsonl_sink(path: str | Path):
     """A sink writing `{"key": …, …payload}` lines (strict JSON), and its closer."""
     f = open(path, "w", encoding="utf-8")
@@ -201,67 +204,14 @@ def initial_angles(cfg: RigConfig, state_path: str | None, accept_rig_mismatch: 
     return alpha0, state, warning
 
 
-def read_angles_schedule(folder: Path) -> tuple[dict | None, list[dict]]:
-    """The starting posterior and the recorded angles records of a recording folder."""
-    p = folder / "angles.jsonl"
-    if not p.is_file():
-        return None, []
-    initial, records = None, []
-    with open(p, encoding="utf-8") as f:
-        for n, line in enumerate(f, 1):
-            line = line.strip()
-            if not line:
-                continue
-            try:
-                rec = json.loads(line)
-            except ValueError:
-                log.warning("%s:%d: unreadable angles record skipped (a crash mid-write?)", p, n)
-                continue
-            problem = _schedule_problem(rec)
-            if problem:
-                from daq.replay import ReplayError
-
-                raise ReplayError(f"{p}:{n}: {problem}; fix: replay with --recompute (runs the "
-                                  "identification again) or repair that line")
-            if rec.get("initial"):
-                initial = rec
-            else:
-                records.append(rec)
-    return initial, records
-
-
-def _finite_numbers(x: Any) -> bool:
-    return isinstance(x, list) and all(
-        isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in x)
-
-
-def _schedule_problem(rec: Any) -> str | None:
-    """What makes a recorded angles record unusable (None: usable)."""
-    if not isinstance(rec, dict):
-        return "an angles record must be a JSON object"
-    if rec.get("initial"):
-        alpha = rec.get("alpha_all", rec.get("alpha"))
-        if not _finite_numbers(alpha) or not alpha:
-            return "the starting record has no finite 'alpha_all' angles"
-        return None
-    seq = rec.get("applies_from_seq")
-    if "applies_from_seq" not in rec:
-        return "angles record without 'applies_from_seq' (the sample it applies from)"
-    if not isinstance(seq, int) or isinstance(seq, bool) or seq < 0:
-        return f"'applies_from_seq' = {seq!r} is not a sample number"
-    if rec.get("accepted"):
-        names, alpha = rec.get("names"), rec.get("alpha")
-        if (not isinstance(names, list) or not all(isinstance(x, str) for x in names)
-                or not _finite_numbers(alpha) or len(names) != len(alpha)):
-            return "an accepted angles record needs 'names' and as many finite 'alpha' values"
-    return None
-
-
 class Service:
     """Builds the sources, the pipeline, the worker and the outputs; `run()` until done."""
 
     def __init__(self, cfg: RigConfig, opts: ServiceOptions):
-        if opts.replay is not None and cfg.identification.state_file:
+        # the kind of source (bus, simulator in real time or lock-step, replay): chosen once
+        # here from the options, asked what it is afterwards (daq.sources)
+        self.source: Source = make_source(cfg, opts)
+        if not self.source.saves_posterior and cfg.identification.state_file:
             # a replay (recomputed or not) saves no posterior: identification.state_file is the
             # live service's output, never one the user named for a replay (cli.md)
             import dataclasses
@@ -275,12 +225,8 @@ class Service:
         self.dt = 1.0 / self.fs
         self.latencies: deque[float] = deque(maxlen=LATENCY_HISTORY)
         self.deadline_misses = 0
-        self.lockstep = opts.replay is None and opts.sim is not None and opts.speed != 1.0
-        self.synchronous_ident = self.lockstep or (opts.replay is not None)
         self.worker = None
         self.ident_errors = 0
-        self.reader = None
-        self.sim = None
         self.outputs: Outputs | None = None
         self.summary: dict[str, Any] = {}
         self.last_seq: int | None = None
@@ -296,10 +242,23 @@ class Service:
         self.last_health: dict | None = None
         self._extra_sinks: list[Callable[[str, dict], None]] = []
         self.pipeline: EstimatorPipeline | None = None
-        self.recorder = None
         self.warnings: list[str] = []  # start-up problems the service went on with
         self.schedule: dict | None = None  # replay: where the angles come from
         self.worker_initializer = None  # called first in the worker process (tests)
+
+    @property
+    def reader(self):
+        """The source's reader (its health, its recorder), once the source is open."""
+        return self.source.reader
+
+    @property
+    def sim(self):
+        """The in-process simulator, if the source has one."""
+        return self.source.sim
+
+    @property
+    def recorder(self):
+        return self.source.recorder
 
     def add_sink(self, sink: Callable[[str, dict], None]) -> None:
         self._extra_sinks.append(sink)
@@ -348,32 +307,10 @@ class Service:
     # -- the run -----------------------------------------------------------------------------
     def run(self) -> dict:
         opts, cfg = self.opts, self.cfg
-        closers: list[Callable[[], None]] = []
-        try:
-            recorded_initial, recorded = (None, [])
-            recompute = opts.recompute
-            if opts.replay is not None:
-                folder = next((Path(p) for p in opts.replay if Path(p).is_dir()), None)
-                schedule = None if folder is None else folder / "angles.jsonl"
-                if not opts.identification:
-                    # the starting angles (the recording's, or --angles) for the whole replay
-                    if folder is not None:
-                        recorded_initial, _ = read_angles_schedule(folder)
-                    self.schedule = {"source": "off"}
-                elif opts.recompute:
-                    self.schedule = {"source": "recomputed", "why": "--recompute"}
-                elif schedule is None or not schedule.is_file():
-                    # a recording from elsewhere (bus.md): the identification is recomputed
-                    recompute = True
-                    self.schedule = {"source": "recomputed", "why": "no angle schedule"}
-                else:
-                    recorded_initial, recorded = read_angles_schedule(folder)
-                    applies = [r.get("applies_from_seq") for r in recorded]
-                    applies = [a for a in applies if isinstance(a, int)]
-                    self.schedule = {"source": "recorded", "file": str(schedule),
-                                     "records": len(recorded),
-                                     "initial": recorded_initial is not None,
-                                     "last_applies_from_seq": max(applies, default=None)}
+        with contextlib.ExitStack() as stack:
+            plan = self.source.angles_plan(opts.identification, opts.recompute)
+            self.schedule = plan.schedule
+            recorded_initial, recorded, folder = plan.recorded_initial, plan.recorded, plan.folder
             if recorded_initial is not None and not opts.angles:
                 alpha0 = np.asarray(recorded_initial.get("alpha_all", recorded_initial["alpha"]),
                                     float)
@@ -391,7 +328,7 @@ class Service:
                 if warning:
                     log.warning("%s", warning)
                     self.warnings.append(warning)
-            use_ident = opts.identification and (opts.replay is None or recompute)
+            use_ident = opts.identification and (self.source.saves_posterior or plan.recompute)
             if use_ident:
                 # the worker saves accepted runs there: only over a posterior of ours
                 # (ConfigError naming the key otherwise, before acquisition starts)
@@ -405,155 +342,22 @@ class Service:
             for rec in recorded:
                 self.pipeline.deliver(rec)
             self.outputs = Outputs(cfg, opts)
-            closers.append(self.outputs.close)
+            _close_logged(stack, self.outputs.close)
             self.outputs.sinks.extend(self._extra_sinks)
             if use_ident:
                 self._setup_identification(alpha0, state)
-                closers.append(self._close_worker)
-            source = self._make_source(closers)
+                _close_logged(stack, self._close_worker)
+            stack.enter_context(self.source)
             if self.recorder is not None:
                 self.recorder.write_angles(self._initial_record(alpha0, state))
-            log.info("service started: %s", self._describe())
-            self._loop(source)
-        finally:
-            for close in reversed(closers):
-                try:
-                    close()
-                except Exception as e:  # keep closing the rest
-                    log.error("shutdown: %s", e)
+            log.info("service started: %s", self.source.describe())
+            self._loop(self.source.items(self.stop_event))
         self.summary = self._summary()
         return self.summary
 
     def _close_worker(self) -> None:
         if self.worker is not None:
             self.worker.close()
-
-    def _describe(self) -> str:
-        o = self.opts
-        if o.replay is not None:
-            return f"replay of {', '.join(o.replay)}"
-        if o.sim:
-            mode = "lock-step, as fast as possible" if o.speed is None else (
-                f"lock-step at {o.speed:g}x real time" if self.lockstep else "real time")
-            return f"simulator {o.sim!r} in process ({mode})"
-        return f"bus {o.interface}:{o.channel}"
-
-    def _make_source(self, closers) -> Iterator:
-        import can
-
-        o, cfg = self.opts, self.cfg
-        from daq.decoder import DecodeTable
-        from daq.reader import Reader
-
-        # the EDS files first: one the simulator cannot read either is a ConfigError naming
-        # the key (exit 2), not a traceback from inside the simulator's nodes
-        table = DecodeTable(cfg)
-        if o.replay is not None:
-            from daq.replay import replay
-
-            reader = Reader.offline(cfg, table=table)
-            self.reader = reader
-            return replay(cfg, o.replay, realtime=o.realtime, reader=reader, finish=True)
-        if o.sim is not None:
-            from sim_bus.bus_sim import Simulator
-            from sim_bus.physics import AircraftPhysics
-            from sim_bus.scenarios import load_scenario
-
-            scenario = load_scenario(o.sim, **o.scenario_variants)
-            channel = o.channel or f"rsra-{id(self):x}"
-            # the truth history (bounded, ~0.5 kB a sample) only when a truth file is wanted
-            keep = bool(o.truth or o.record or o.keep_truth)
-            if self.lockstep:
-                t0 = round(time.time(), 3)  # simulated time reads like UNIX time
-                sim = Simulator(cfg, physics=AircraftPhysics(cfg, scenario, seed=o.seed,
-                                                              block_size=SIM_BLOCK),
-                                seed=o.seed, faults=o.faults, channel=channel, autostart=True,
-                                lockstep=True, threaded=False, t0=t0, keep_samples=keep)
-                bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=True,
-                              preserve_timestamps=True)
-                # the simulator boots and starts its nodes and produces SYNC; the reader
-                # listens, and restarts a node that reboots (bus.md: reconfigured and
-                # restarted without restarting the service), its SDO answered in lock-step
-                try:
-                    reader = Reader(cfg, bus=bus, master=False, restart_nodes=True,
-                                    wall_clock=False, record=o.record, overflow="block",
-                                    table=table)
-                except BaseException:  # e.g. the recording cannot start: close what is open
-                    bus.shutdown()
-                    sim.close()
-                    raise
-                self.sim, self.reader = sim, reader
-                closers.append(bus.shutdown)
-                closers.append(reader.close)
-                closers.append(self._close_sim)
-                reader.start(notifier=False)
-                sim.start()
-                reader.pump()  # the simulator's own boot-ups: seen, not acted upon
-                reader.supervise(peer_pump=sim.pump)
-                self.recorder = reader.recorder
-                return self._lockstep_items()
-            sim = Simulator(cfg, physics=AircraftPhysics(cfg, scenario, seed=o.seed,
-                                                              block_size=SIM_BLOCK),
-                            seed=o.seed, faults=o.faults, channel=channel, autostart=False,
-                            lockstep=False, threaded=True, keep_samples=keep)
-            self.sim = sim
-            closers.append(self._close_sim)
-            sim.start()
-            reader = Reader(cfg, interface="virtual", channel=channel, master=True,
-                            record=o.record, overflow="drop", table=table)
-        else:
-            reader = Reader(cfg, interface=o.interface, channel=o.channel, master=True,
-                            record=o.record, overflow="drop", table=table)
-        self.reader = reader
-        closers.append(reader.close)
-        from daq.master import BootError
-
-        try:
-            reader.start()  # boots the nodes; BootError names node, object and both values
-        except BootError:
-            raise
-        except (OSError, ImportError, ValueError, can.CanError) as e:
-            raise BusOpenError(
-                f"cannot open the bus {o.interface or 'virtual'}:{o.channel} ({e}); check "
-                f"--interface/--channel (python-can interfaces: "
-                f"{', '.join(sorted(set(can.VALID_INTERFACES) - {'udp_multicast'}))})") from None
-        self.recorder = reader.recorder
-        return self._live_items()
-
-    def _close_sim(self) -> None:
-        if self.sim is None:
-            return
-        truth = self.opts.truth
-        if truth is None and self.recorder is not None:
-            truth = str(Path(self.recorder.folder) / "truth.npz")
-        self.sim.close()  # first: in real time its threads would still be appending
-        if truth:
-            try:
-                self.sim.write_truth(truth)
-            except Exception as e:
-                log.error("truth not written: %s", e)
-
-    def _lockstep_items(self) -> Iterator:
-        sim, reader = self.sim, self.reader
-        speed = self.opts.speed
-        wall0 = time.monotonic()
-        k = 0
-        while not self.stop_event.is_set():
-            sim.step()
-            reader.pump()
-            reader.service_nodes()  # a node that booted: restarted before time moves on
-            k += 1
-            yield from reader.poll()
-            if speed:  # paced lock-step: simulated time runs at `speed` x the wall clock
-                ahead = k * self.dt / speed - (time.monotonic() - wall0)
-                if ahead > 0:
-                    time.sleep(ahead)
-
-    def _live_items(self) -> Iterator:
-        reader = self.reader
-        while not self.stop_event.is_set():
-            item = reader.get(timeout=0.05)
-            yield item  # None when idle: results are still polled
 
     # -- per item ------------------------------------------------------------------------------
     def _loop(self, source: Iterator) -> None:
@@ -577,7 +381,7 @@ class Service:
                 break
 
     def _poll_results(self) -> None:
-        if self.worker is None or self.synchronous_ident:
+        if self.worker is None or self.source.deterministic:
             return
         arrival = self.last_seq if self.last_seq is not None else 0
         for r in self.worker.poll(self.last_seq):  # (and restarts a dead worker)
@@ -608,12 +412,12 @@ class Service:
 
     def _on_sample(self, s) -> None:
         p = self.pipeline
-        if self.synchronous_ident:
+        if self.source.deterministic:
             self._wait_results(s.seq)
         else:
             self._poll_results()
         publish = self.outputs.publish
-        live = not self.lockstep and self.opts.replay is None
+        live = not self.source.deterministic
 
         def emit(records: list) -> None:
             for key, payload in records:
@@ -630,7 +434,7 @@ class Service:
         out = p.process(s, early=emit if live else None)
         emit(out.records)
         if out.job is not None and self.worker is not None:
-            if self.synchronous_ident:
+            if self.source.deterministic:
                 # deterministic: every window runs (unless the worker died meanwhile)
                 if not self.worker.put(out.job, s.seq):
                     p.outstanding.pop(out.job["job_id"], None)
@@ -644,7 +448,7 @@ class Service:
         self.last_t = s.t
 
     def _on_angles(self, rec: dict) -> None:
-        if self.recorder is not None and self.opts.replay is None:
+        if self.recorder is not None:  # (a replay records nothing)
             self.recorder.write_angles(rec)
         self.angles_log.append(rec)
         self.ident_runs += 1
