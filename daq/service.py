@@ -40,6 +40,7 @@ import numpy as np
 from daq.config import RigConfig
 from daq.jsonout import dumps
 from daq.pipeline import EstimatorPipeline
+from daq.records import AnglesRecord, IdentError, IdentResult, InitialAngles
 from daq.sources import SIM_BLOCK, BusOpenError, Source, make_source  # noqa: F401 (re-exported)
 
 log = logging.getLogger("rsra.service")
@@ -143,7 +144,9 @@ class Outputs:
             self.telemetry = TelemetryPublisher(self.session, cfg.telemetry.prefix, effective)
             self.low_rate = _LowRatePublisher(self.telemetry.publish)
 
-    def publish(self, key: str, payload: dict) -> None:
+    def publish(self, key: str, payload: dict | AnglesRecord) -> None:
+        if not isinstance(payload, dict):  # a typed record: its JSON object (daq.records)
+            payload = payload.to_dict()
         self.counts[key] = self.counts.get(key, 0) + 1
         for sink in self.sinks:
             sink(key, payload)
@@ -234,7 +237,7 @@ class Service:
         self.last_t: float | None = None
         # the latest angles records (bounded: a record with its P is ~10 kB, one per period
         # for as long as the service runs) and running counts for the summary
-        self.angles_log: deque[dict] = deque(maxlen=ANGLES_HISTORY)
+        self.angles_log: deque[AnglesRecord] = deque(maxlen=ANGLES_HISTORY)
         self.ident_runs = 0
         self.ident_rejected: dict[str, int] = {}
         self.lost = 0
@@ -280,7 +283,7 @@ class Service:
             p.identification = False
             p.identification_off = True
 
-    def _initial_record(self, alpha0, state) -> dict:
+    def _initial_record(self, alpha0, state) -> InitialAngles:
         names = self.cfg.rig_model().geometry.angle_names
         if state is not None:
             P = state.P.tolist()
@@ -291,8 +294,7 @@ class Service:
             rec_names = list(names)
             theta = alpha0.tolist()
             P = (np.eye(len(names)) * s * s).tolist()
-        return {"initial": True, "names": rec_names, "alpha": theta, "P": P,
-                "alpha_all": alpha0.tolist(), "applies_from_seq": None}
+        return InitialAngles(names=rec_names, alpha=theta, P=P, alpha_all=alpha0.tolist())
 
     def stop(self, *_: Any) -> None:
         self.stop_event.set()
@@ -349,7 +351,7 @@ class Service:
                 _close_logged(stack, self._close_worker)
             stack.enter_context(self.source)
             if self.recorder is not None:
-                self.recorder.write_angles(self._initial_record(alpha0, state))
+                self.recorder.write_angles(self._initial_record(alpha0, state).to_dict())
             log.info("service started: %s", self.source.describe())
             self._loop(self.source.items(self.stop_event))
         self.summary = self._summary()
@@ -387,15 +389,14 @@ class Service:
         for r in self.worker.poll(self.last_seq):  # (and restarts a dead worker)
             self._deliver(r, arrival)
 
-    def _deliver(self, r: dict, arrival: int | None) -> None:
-        if "error" in r:
+    def _deliver(self, r: IdentResult | IdentError, arrival: int | None) -> None:
+        if isinstance(r, IdentError):
             self.ident_errors += 1
-            log.error("identification: %s", r["error"])
-            job = r.get("job_id")
-            if job is not None:
-                self.pipeline.outstanding.pop(job, None)
+            log.error("identification: %s", r.error)
+            if r.job_id is not None:
+                self.pipeline.outstanding.pop(r.job_id, None)
             return
-        self.pipeline.deliver(r, arrival_seq=arrival)
+        self.pipeline.deliver(r.record, arrival_seq=arrival, job_id=r.job_id)
 
     def _wait_results(self, seq: int) -> None:
         """Lock-step and replay: the result of every window due at this sample first; a dead
@@ -437,9 +438,9 @@ class Service:
             if self.source.deterministic:
                 # deterministic: every window runs (unless the worker died meanwhile)
                 if not self.worker.put(out.job, s.seq):
-                    p.outstanding.pop(out.job["job_id"], None)
+                    p.outstanding.pop(out.job.job_id, None)
             elif not self.worker.submit(out.job, s.seq):  # busy, dead or off: logged
-                p.outstanding.pop(out.job["job_id"], None)
+                p.outstanding.pop(out.job.job_id, None)
         self.samples += 1
         self.lost += int(s.lost_before)
         self.last_seq = s.seq
@@ -447,9 +448,9 @@ class Service:
             self.first_t = s.t
         self.last_t = s.t
 
-    def _on_angles(self, rec: dict) -> None:
+    def _on_angles(self, rec: AnglesRecord) -> None:
         if self.recorder is not None:  # (a replay records nothing)
-            self.recorder.write_angles(rec)
+            self.recorder.write_angles(rec.to_dict())
         self.angles_log.append(rec)
         self.ident_runs += 1
         if not rec.get("accepted"):
@@ -526,7 +527,7 @@ class Service:
         if self.angles_log:
             last = self.angles_log[-1]
             out["angles"] = {"names": last.get("names"), "alpha": last.get("alpha"),
-                             "sigma": [math.sqrt(max(last["P"][i][i], 0.0))
+                             "sigma": [math.sqrt(max(last.P[i][i], 0.0))
                                        for i in range(len(last.get("names") or []))]
                              if last.get("P") else None}
         if self.pipeline is not None:

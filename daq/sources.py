@@ -33,6 +33,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
+from daq.records import AnglesRecord
+
 if TYPE_CHECKING:
     from daq.assembler import Sample
     from daq.config import RigConfig
@@ -63,7 +65,7 @@ class AnglesPlan:
     summary's ``angles_schedule`` (None for a live source); ``folder``: the recording."""
 
     recorded_initial: dict | None = None
-    recorded: list[dict] = field(default_factory=list)
+    recorded: list[AnglesRecord] = field(default_factory=list)
     recompute: bool = False
     schedule: dict | None = None
     folder: Path | None = None
@@ -332,8 +334,9 @@ class ReplaySource(_Base):
             plan.recompute = True
             plan.schedule = {"source": "recomputed", "why": "no angle schedule"}
         else:
-            plan.recorded_initial, plan.recorded = read_angles_schedule(folder)
-            applies = [r.get("applies_from_seq") for r in plan.recorded]
+            plan.recorded_initial, recorded = read_angles_schedule(folder)
+            plan.recorded = [AnglesRecord.from_dict(r) for r in recorded]
+            applies = [r.get("applies_from_seq") for r in recorded]
             applies = [a for a in applies if isinstance(a, int)]
             plan.schedule = {"source": "recorded", "file": str(schedule),
                              "records": len(plan.recorded),

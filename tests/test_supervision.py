@@ -290,7 +290,9 @@ def test_a_failed_save_is_reported_with_the_record_in_the_worker(monkeypatch):
     monkeypatch.setattr("estimator.posterior.save_posterior",
                         lambda path, st: (_ for _ in ()).throw(
                             OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))))
-    rec = {"accepted": True, "applies_from_seq": 10}
+    from daq.records import AnglesRecord, IdentJob
+
+    rec = AnglesRecord(accepted=True, applies_from_seq=10)
 
     class Post:
         def state(self):
@@ -299,6 +301,8 @@ def test_a_failed_save_is_reported_with_the_record_in_the_worker(monkeypatch):
 
     err = ident_worker.save_state(Post(), rec, "/nowhere/posterior.json")
     assert err == "/nowhere/posterior.json: No space left on device"
-    monkeypatch.setattr(ident_worker, "run_job", lambda *a: dict(rec))
-    out = ident_worker.handle_job(None, Post(), {}, None, {"job_id": 1}, "/x.json")
-    assert out["accepted"] and "error" not in out and "No space" in out["save_error"]
+    monkeypatch.setattr(ident_worker, "run_job", lambda *a: rec.to_dict())
+    job = IdentJob(1, "known_loads", "band", 10, *[None] * 9)
+    out = ident_worker.handle_job(None, Post(), {}, None, job, "/x.json")
+    assert isinstance(out, ident_worker.IdentResult)
+    assert out.record.accepted and "No space" in out.save_error
