@@ -132,7 +132,7 @@ def save_state(post, rec: AnglesRecord, state_file: str) -> str | None:
     """Save the posterior after an accepted run; the error text if that failed (the result
     stands: it is applied and published, and the next accepted run saves again)."""
     try:
-        from estimator.posterior import save_posterior
+        from daq.persistence import save_posterior
 
         st = post.state()
         st.applies_from_seq = rec.applies_from_seq

@@ -27,8 +27,9 @@ from daq.calibrate import (
 )
 from daq.cli import build_parser, main
 from daq.config import load_config
+from daq.persistence import save_posterior
 from estimator.content import ContentFilter
-from estimator.posterior import PosteriorState, save_posterior
+from estimator.posterior import PosteriorState
 from sim_bus.bus_sim import Simulator
 from sim_bus.truth import read_truth
 

@@ -20,8 +20,9 @@ from helpers_canopen import channel_name
 
 from daq.cli import build_parser, main
 from daq.config import G0, config_dir, load_config, parse_config
+from daq.persistence import load_posterior, save_posterior
 from estimator.geometry import hub_transfer_matrix, wrench_matrix
-from estimator.posterior import PosteriorState, load_posterior, save_posterior
+from estimator.posterior import PosteriorState
 
 EDS = config_dir() / "eds"
 RIG = config_dir() / "rig.toml"

@@ -231,7 +231,7 @@ def test_ctrl_c_stops_the_service_cleanly_without_a_traceback():
 def disk_full_once() -> None:
     """Worker initializer (runs in the worker process): its first posterior save fails with
     ENOSPC, as on a full disk; the later ones write."""
-    import estimator.posterior as posterior
+    import daq.persistence as posterior
 
     real, calls = posterior.save_posterior, []
 
@@ -245,7 +245,7 @@ def disk_full_once() -> None:
 
 
 def test_a_failed_posterior_save_keeps_the_result_and_is_retried(tmp_path, caplog):
-    from estimator.posterior import load_posterior
+    from daq.persistence import load_posterior
 
     caplog.set_level(logging.INFO)
     state_file = tmp_path / "posterior.json"
@@ -287,7 +287,7 @@ def test_a_failed_posterior_save_keeps_the_result_and_is_retried(tmp_path, caplo
 def test_a_failed_save_is_reported_with_the_record_in_the_worker(monkeypatch):
     """The worker's own step: the save raising OSError(ENOSPC) gives the record, with the
     error attached, not an error record in its place."""
-    monkeypatch.setattr("estimator.posterior.save_posterior",
+    monkeypatch.setattr("daq.persistence.save_posterior",
                         lambda path, st: (_ for _ in ()).throw(
                             OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))))
     from daq.records import AnglesRecord, IdentJob

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from estimator.atomic import write_text_atomic
+from daq.persistence import write_text_atomic
 from estimator.content import KINDS
 
 

@@ -44,8 +44,8 @@ from scipy.stats import chi2
 
 from daq.config import G0, RigConfig
 from daq.decoder import DecodeTable
+from daq.persistence import write_text_atomic
 from daq.units import FT_LBF_NM, LBF_N
-from estimator.atomic import write_text_atomic
 
 # At rest the accelerometers read f = a − g = −g: (0, 0, −g) in body axes with z down.
 GRAVITY_AT_REST = np.array([0.0, 0.0, -G0])
