@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -188,10 +188,17 @@ class EstimatorPipeline:
         self.load_filter.set_alpha(self.alpha)
 
     # --- the per-sample path ----------------------------------------------------------
-    def process(self, s, early: Callable[[list], None] | None = None) -> PipelineOutput:
-        """One sample. ``early`` (live) receives the records up to and including hub_loads as
-        soon as they exist: the channels, innovations and calibration branch come after, off
-        the SYNC → hub-load latency path (performance.md P5)."""
+    def process(self, s) -> PipelineOutput:
+        """One sample: every record and the identification job, if one is due."""
+        first, rest = self.stages(s)
+        first.records.extend(rest.records)
+        first.job = rest.job
+        return first
+
+    def stages(self, s) -> Iterator[PipelineOutput]:
+        """One sample in two steps the caller pulls (live): first the records up to and
+        including hub_loads, then the channels, innovations and calibration branch — off the
+        SYNC → hub-load latency path (performance.md P5). Both steps must be taken."""
         out = PipelineOutput()
         seq = int(s.seq)
         if self.first_seq is None:
@@ -261,9 +268,8 @@ class EstimatorPipeline:
             "seq": seq, "sync": int(s.sync), "t": float(s.t), "frame": self.frame,
             "H": None if res.H is None else res.H, "H_static": H_static, "omega": omega_pub,
             "flags": flags}))
-        if early is not None:
-            early(out.records)
-            out.records = []
+        yield out
+        out = PipelineOutput()
         status = s.cell_status
         if not isinstance(status, dict):
             status = {n: int(b) for n, b in zip(self.cell_names, status)}
@@ -277,7 +283,7 @@ class EstimatorPipeline:
         self.samples_processed += 1
         if self.identification:
             out.job = self._calibration_branch(s, seq, T, z, measured)
-        return out
+        yield out
 
     def _calibration_branch(self, s, seq, T, z, measured) -> IdentJob | None:
         known = s.known_H is not None and bool(np.isfinite(np.asarray(s.known_H, float)).all())

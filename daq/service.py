@@ -111,38 +111,52 @@ class _LowRatePublisher:
 
 
 class Outputs:
-    """Where the records go: Zenoh, a JSONL file, in-process sinks (tests, the demo view)."""
+    """Where the records go: Zenoh, a JSONL file, in-process sinks (tests, the demo view).
+
+    What it opens (Zenoh session, publisher, low-rate thread) is held by an ExitStack and
+    closed in reverse order by :meth:`close` (or ``with``)."""
 
     def __init__(self, cfg: RigConfig, opts: ServiceOptions):
         self.cfg = cfg
+        self._stack = contextlib.ExitStack()
         self.session = None
         self.telemetry = None
         self.low_rate: _LowRatePublisher | None = None
         self.sinks: list[Callable[[str, dict], None]] = []
         self.counts: dict[str, int] = {}
         if opts.zenoh:
-            import zenoh
+            try:
+                self._open_zenoh(cfg, opts)
+            except BaseException:  # what was opened before the failure is closed
+                self._stack.close()
+                raise
 
-            from daq.config import ConfigError, zenoh_endpoint_problem
-            from daq.telemetry import TelemetryPublisher, zenoh_config
+    def _open_zenoh(self, cfg: RigConfig, opts: ServiceOptions) -> None:
+        import zenoh
 
-            for opt, eps in (("--zenoh-listen", opts.zenoh_listen),
-                             ("--zenoh-connect", opts.zenoh_connect)):
-                for ep in eps or ():
-                    problem = zenoh_endpoint_problem(ep)
-                    if problem:
-                        raise ConfigError(opt, ep, problem, f"e.g. {opt} tcp/127.0.0.1:7447")
-            conf = zenoh_config(cfg.telemetry, listen=opts.zenoh_listen or None,
-                                connect=opts.zenoh_connect or None,
-                                config_file=opts.zenoh_config)
-            self.session = zenoh.open(conf)
-            # state/config tells the endpoints the session really uses (options, config file)
-            effective = cfg.effective()
-            tel = effective.setdefault("telemetry", {})
-            for k in ("listen", "connect"):
-                tel[k] = json.loads(conf.get_json(f"{k}/endpoints"))
-            self.telemetry = TelemetryPublisher(self.session, cfg.telemetry.prefix, effective)
-            self.low_rate = _LowRatePublisher(self.telemetry.publish)
+        from daq.config import ConfigError, zenoh_endpoint_problem
+        from daq.telemetry import TelemetryPublisher, zenoh_config
+
+        for opt, eps in (("--zenoh-listen", opts.zenoh_listen),
+                         ("--zenoh-connect", opts.zenoh_connect)):
+            for ep in eps or ():
+                problem = zenoh_endpoint_problem(ep)
+                if problem:
+                    raise ConfigError(opt, ep, problem, f"e.g. {opt} tcp/127.0.0.1:7447")
+        conf = zenoh_config(cfg.telemetry, listen=opts.zenoh_listen or None,
+                            connect=opts.zenoh_connect or None,
+                            config_file=opts.zenoh_config)
+        self.session = zenoh.open(conf)
+        self._stack.callback(self.session.close)
+        # state/config tells the endpoints the session really uses (options, config file)
+        effective = cfg.effective()
+        tel = effective.setdefault("telemetry", {})
+        for k in ("listen", "connect"):
+            tel[k] = json.loads(conf.get_json(f"{k}/endpoints"))
+        self.telemetry = TelemetryPublisher(self.session, cfg.telemetry.prefix, effective)
+        self._stack.callback(self.telemetry.close)
+        self.low_rate = _LowRatePublisher(self.telemetry.publish)
+        self._stack.callback(self.low_rate.close)
 
     def publish(self, key: str, payload: dict | AnglesRecord) -> None:
         if not isinstance(payload, dict):  # a typed record: its JSON object (daq.records)
@@ -158,13 +172,14 @@ class Outputs:
             self.telemetry.publish(key, payload)
 
     def close(self) -> None:
-        if self.low_rate is not None:
-            self.low_rate.close()
-        if self.telemetry is not None:
-            self.telemetry.close()
-        if self.session is not None:
-            self.session.close()
+        self._stack.close()
         self.telemetry = self.session = None
+
+    def __enter__(self) -> Outputs:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 def _close_logged(stack: contextlib.ExitStack, close: Callable[[], None]) -> None:
@@ -431,8 +446,12 @@ class Service:
                 elif key == "angles":
                     self._on_angles(payload)
 
-        # live: the hub loads are published before the rest of the sample is worked on
-        out = p.process(s, early=emit if live else None)
+        if live:  # the hub loads are published before the rest of the sample is worked on
+            stages = p.stages(s)
+            emit(next(stages).records)
+            out = next(stages)
+        else:
+            out = p.process(s)
         emit(out.records)
         if out.job is not None and self.worker is not None:
             if self.source.deterministic:
