@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # (imported when used: the tare and calibrate commands need no scipy)
-    from estimator.posterior import PosteriorState
+    from rsra.estimator.posterior import PosteriorState
 
 TEMP_TAG = "rsra-tmp"  # fixed part of every temporary name (with the writer's pid)
 
@@ -75,7 +75,7 @@ def write_text_atomic(path: str | Path, text: str) -> None:
 
 def save_posterior(path: str | Path, state: PosteriorState) -> None:
     """Write atomically (:func:`write_text_atomic`: temporary file, fsync, rename)."""
-    from estimator.posterior import posterior_to_json
+    from rsra.estimator.posterior import posterior_to_json
 
     write_text_atomic(path, posterior_to_json(state))
 
@@ -83,7 +83,7 @@ def save_posterior(path: str | Path, state: PosteriorState) -> None:
 def load_posterior(path: str | Path, names: Sequence[str] | None = None) -> PosteriorState:
     """Read and check a saved posterior; a missing, corrupt or mismatched file raises
     :class:`estimator.posterior.PosteriorFileError`."""
-    from estimator.posterior import PosteriorFileError, posterior_from_json
+    from rsra.estimator.posterior import PosteriorFileError, posterior_from_json
 
     path = Path(path)
     try:

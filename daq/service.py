@@ -37,11 +37,11 @@ from typing import Any
 
 import numpy as np
 
-from daq.config import RigConfig
-from daq.jsonout import dumps
-from daq.pipeline import EstimatorPipeline
-from daq.records import AnglesRecord, IdentError, IdentResult, InitialAngles
-from daq.sources import SIM_BLOCK, BusOpenError, Source, make_source  # noqa: F401 (re-exported)
+from rsra.config.rig import RigConfig
+from rsra.daq.jsonout import dumps
+from rsra.daq.pipeline import EstimatorPipeline
+from rsra.daq.records import AnglesRecord, IdentError, IdentResult, InitialAngles
+from rsra.daq.sources import SIM_BLOCK, BusOpenError, Source, make_source  # noqa: F401 (re-exported)
 
 log = logging.getLogger("rsra.service")
 
@@ -134,8 +134,8 @@ class Outputs:
     def _open_zenoh(self, cfg: RigConfig, opts: ServiceOptions) -> None:
         import zenoh
 
-        from daq.config import ConfigError, zenoh_endpoint_problem
-        from daq.telemetry import TelemetryPublisher, zenoh_config
+        from rsra.config.rig import ConfigError, zenoh_endpoint_problem
+        from rsra.daq.telemetry import TelemetryPublisher, zenoh_config
 
         for opt, eps in (("--zenoh-listen", opts.zenoh_listen),
                          ("--zenoh-connect", opts.zenoh_connect)):
@@ -208,7 +208,7 @@ def initial_angles(cfg: RigConfig, state_path: str | None, accept_rig_mismatch: 
     alpha0 = np.asarray(cfg.identification.initial_angles_rad, float).copy()
     if not state_path:
         return alpha0, None, None
-    from daq.posterior_file import load_checked
+    from rsra.daq.posterior_file import load_checked
 
     names = cfg.rig_model().geometry.angle_names
     idc = cfg.identification
@@ -283,7 +283,7 @@ class Service:
 
     # -- set-up ----------------------------------------------------------------------------
     def _setup_identification(self, alpha0, state) -> None:
-        from daq.ident_worker import SupervisedIdentification
+        from rsra.daq.ident_worker import SupervisedIdentification
 
         self.worker = SupervisedIdentification(self.cfg, state, on_restart=self._worker_lost,
                                                initializer=self.worker_initializer)
@@ -333,7 +333,7 @@ class Service:
                                     float)
                 n_angles = len(cfg.rig_model().geometry.angle_names)
                 if alpha0.shape != (n_angles,):
-                    from daq.replay import ReplayError
+                    from rsra.daq.replay import ReplayError
 
                     raise ReplayError(f"{folder / 'angles.jsonl'}: the starting record holds "
                                       f"{alpha0.size} angles, the rig has {n_angles}; fix: "
@@ -349,7 +349,7 @@ class Service:
             if use_ident:
                 # the worker saves accepted runs there: only over a posterior of ours
                 # (ConfigError naming the key otherwise, before acquisition starts)
-                from daq.posterior_file import prepare_state_file
+                from rsra.daq.posterior_file import prepare_state_file
 
                 for warning in prepare_state_file(
                         cfg, accept_rig_mismatch=opts.accept_rig_mismatch):
@@ -378,7 +378,7 @@ class Service:
 
     # -- per item ------------------------------------------------------------------------------
     def _loop(self, source: Iterator) -> None:
-        from daq.reader import HealthReport
+        from rsra.daq.reader import HealthReport
 
         # --duration counts samples of acquisition time (lost ones included: they keep seq)
         n_max = None if self.opts.duration is None else max(1, round(self.opts.duration * self.fs))

@@ -33,14 +33,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
-from daq.records import AnglesRecord
+from rsra.daq.records import AnglesRecord
 
 if TYPE_CHECKING:
-    from daq.assembler import Sample
-    from daq.config import RigConfig
-    from daq.decoder import DecodeTable
-    from daq.reader import HealthReport, Reader
-    from daq.recorder import Recorder
+    from rsra.daq.assembler import Sample
+    from rsra.config.rig import RigConfig
+    from rsra.daq.decoder import DecodeTable
+    from rsra.daq.reader import HealthReport, Reader
+    from rsra.daq.recorder import Recorder
 
 log = logging.getLogger("rsra.service")
 
@@ -167,8 +167,7 @@ class BusSource(_Base):
     def _open(self) -> None:
         import can
 
-        from daq.master import BootError
-        from daq.reader import Reader
+        from rsra.daq.reader import Reader
 
         reader = Reader(self.cfg, interface=self.interface, channel=self.channel, master=True,
                         record=self.record, overflow="drop", table=self.table)
@@ -176,8 +175,6 @@ class BusSource(_Base):
         self._close_quietly(reader.close)
         try:
             reader.start()  # boots the nodes; BootError names node, object and both values
-        except BootError:
-            raise
         except (OSError, ImportError, ValueError, can.CanError) as e:
             raise BusOpenError(
                 f"cannot open the bus {self.interface or 'virtual'}:{self.channel} ({e}); check "
@@ -192,8 +189,8 @@ class BusSource(_Base):
 
 
 def _physics(cfg: RigConfig, sim: str, seed: int | None, variants: dict) -> Any:
-    from sim_bus.physics import AircraftPhysics
-    from sim_bus.scenarios import load_scenario
+    from rsra.sim_bus.physics import AircraftPhysics
+    from rsra.sim_bus.scenarios import load_scenario
 
     return AircraftPhysics(cfg, load_scenario(sim, **variants), seed=seed, block_size=SIM_BLOCK)
 
@@ -224,7 +221,7 @@ class RealtimeSimSource(BusSource):
         return f"simulator {self.sim_opts.scenario!r} in process (real time)"
 
     def _open(self) -> None:
-        from sim_bus.bus_sim import Simulator
+        from rsra.sim_bus.bus_sim import Simulator
 
         o = self.sim_opts
         # the truth history (bounded, ~0.5 kB a sample) only when a truth file is wanted
@@ -260,9 +257,9 @@ class LockstepSource(_Base):
     def _open(self) -> None:
         import can
 
-        from daq.reader import Reader
-        from sim_bus.bus_sim import Simulator
-        from sim_bus.drivers import HandoffBus, LockstepDriver
+        from rsra.daq.reader import Reader
+        from rsra.sim_bus.bus_sim import Simulator
+        from rsra.sim_bus.drivers import HandoffBus, LockstepDriver
 
         o, cfg = self.sim_opts, self.cfg
         channel = o.channel or f"rsra-{id(self):x}"
@@ -345,8 +342,8 @@ class ReplaySource(_Base):
         return plan
 
     def _open(self) -> None:
-        from daq.reader import Reader
-        from daq.replay import replay
+        from rsra.daq.reader import Reader
+        from rsra.daq.replay import replay
 
         self.reader = Reader.offline(self.cfg, table=self.table)
         self._items = replay(self.cfg, self.paths, realtime=self.paced, reader=self.reader,
@@ -361,7 +358,7 @@ def make_source(cfg: RigConfig, opts: Any) -> Source:
     simulator in lock-step (``--speed`` other than 1) or real time, or a bus. Reads the EDS
     files first: one the simulator cannot read either is a ConfigError naming the key (exit
     2), not a traceback from inside the simulator's nodes."""
-    from daq.decoder import DecodeTable
+    from rsra.daq.decoder import DecodeTable
 
     table = DecodeTable(cfg)
     if opts.replay is not None:
@@ -396,7 +393,7 @@ def read_angles_schedule(folder: Path) -> tuple[dict | None, list[dict]]:
                 continue
             problem = _schedule_problem(rec)
             if problem:
-                from daq.replay import ReplayError
+                from rsra.daq.replay import ReplayError
 
                 raise ReplayError(f"{p}:{n}: {problem}; fix: replay with --recompute (runs the "
                                   "identification again) or repair that line")

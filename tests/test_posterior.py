@@ -10,11 +10,11 @@ import pytest
 from scipy.stats import chi2
 from synthetic import TruthGeometry, harmonic_state, paper_run, static_run
 
-from daq.persistence import load_posterior, save_posterior
-from estimator.balance import inertial_loads, measurement_covariance
-from estimator.content import ContentFilter
-from estimator.filters import design_filter
-from estimator.identification import (
+from rsra.daq.persistence import load_posterior, save_posterior
+from rsra.estimator.balance import inertial_loads, measurement_covariance
+from rsra.estimator.content import ContentFilter
+from rsra.estimator.filters import design_filter
+from rsra.estimator.identification import (
     FilterErrorProblem,
     FilterErrorState,
     IdentificationResult,
@@ -22,7 +22,7 @@ from estimator.identification import (
     Parameterisation,
     levenberg_marquardt,
 )
-from estimator.posterior import (
+from rsra.estimator.posterior import (
     PeriodicIdentification,
     PosteriorFileError,
     PosteriorState,

@@ -9,10 +9,10 @@ import threading
 import numpy as np
 import pytest
 
-from daq.jsonout import dumps
-from daq.records import ABSENT, AnglesRecord, IdentJob
-from daq.service import ServiceOptions
-from daq.sources import (
+from rsra.daq.jsonout import dumps
+from rsra.daq.records import ABSENT, AnglesRecord, IdentJob
+from rsra.daq.service import ServiceOptions
+from rsra.daq.sources import (
     BusSource,
     LockstepSource,
     RealtimeSimSource,
@@ -45,7 +45,7 @@ def test_the_options_choose_a_source_class_and_nothing_else(cfg, opts, kind, det
 def _lockstep_run(cfg, folder):
     """The simulator in lock-step with a node reboot: every frame as the reader recorded it
     (times from the simulator's t0), pump calls made inside a transmission, restarts."""
-    from daq.replay import read_frames
+    from rsra.daq.replay import read_frames
 
     src = LockstepSource(cfg, make_source(cfg, ServiceOptions(sim="ground-test")).table,
                          SimOptions("ground-test", seed=5, faults=REBOOT), speed=None,
@@ -109,7 +109,7 @@ def _angles_dict():
 
 def _estimator_keys():
     """The keys of estimator.posterior.AnglesRecord.to_dict, in order (read from a record)."""
-    from estimator.posterior import AnglesRecord as Numeric
+    from rsra.estimator.posterior import AnglesRecord as Numeric
 
     fields = {f.name: None for f in dataclasses.fields(Numeric)}
     return list(Numeric(**fields).to_dict())
