@@ -1,6 +1,6 @@
 """The service runtime (`rsra run`, `rsra demo`, `rsra replay`): one code path for every source.
 
-    source (live bus │ simulator in lock-step │ recording) ─▶ reader ─▶ samples
+    source (live bus │ simulator in lock-step │ recording: rsra.daq.sources) ─▶ samples
         ─▶ estimator loop (this thread): pipeline.process(sample) ─▶ publishers
         └▶ identification windows ─▶ worker process ─▶ angles records ─▶ applied from a stated sample
 
@@ -15,6 +15,8 @@
 * Replay: recorded frames through the same reader; the recorded `angles` schedule reproduces
   the live run bit for bit, or `--recompute` runs the identification deterministically.
 
+The kind of source is chosen once (``make_source``) and the service asks it only what it is
+(``deterministic``, ``saves_posterior``, its angle plan); docs/architecture.md "Runtime".
 High-rate records are published inline (Zenoh congestion control DROP never blocks); the
 low-rate ones (angles, health) go through a small bounded queue to a publisher thread, since a
 slow subscriber may block them.
