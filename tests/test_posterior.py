@@ -10,7 +10,7 @@ import pytest
 from scipy.stats import chi2
 from synthetic import TruthGeometry, harmonic_state, paper_run, static_run
 
-from rsra.daq.persistence import load_posterior, save_posterior
+from rsra.daq.runtime.persistence import load_posterior, save_posterior
 from rsra.estimator.balance import inertial_loads, measurement_covariance
 from rsra.estimator.content import ContentFilter
 from rsra.estimator.filters import design_filter

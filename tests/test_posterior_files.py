@@ -18,9 +18,9 @@ from helpers_net import free_tcp_port
 
 from rsra.daq.cli import main
 from rsra.config.rig import ConfigError, load_config
-from rsra.daq.persistence import load_posterior, own_temp_pid, save_posterior, temp_prefix
-from rsra.daq.posterior_file import classify, load_checked, prepare_state_file
-from rsra.daq.service import Service, ServiceOptions
+from rsra.daq.runtime.persistence import load_posterior, own_temp_pid, save_posterior, temp_prefix
+from rsra.daq.runtime.posterior_file import classify, load_checked, prepare_state_file
+from rsra.daq.runtime.service import Service, ServiceOptions
 from rsra.estimator.identification import IdentificationResult
 from rsra.estimator.posterior import (
     PosteriorFileError,
@@ -165,7 +165,7 @@ def test_classify_is_the_rule_angles_reset_applies(cfg, tmp_path, capsys):
 
 KILLED_WRITER = """
 import sys, time
-import rsra.daq.persistence as a
+import rsra.daq.runtime.persistence as a
 def stall(fd):
     print("writing", flush=True)
     time.sleep(60)
@@ -212,7 +212,7 @@ def test_a_killed_save_leaves_a_temp_file_that_the_next_start_removes_and_nothin
 
 
 def test_the_worker_saves_version_2_with_the_rig_fingerprint(cfg, tmp_path):
-    from rsra.daq.ident_worker import build_identification
+    from rsra.daq.runtime.ident_worker import build_identification
 
     post, _, _ = build_identification(cfg)
     path = tmp_path / "p.json"

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from rsra.daq.jsonout import dumps
-from rsra.daq.records import ABSENT, AnglesRecord, IdentJob
-from rsra.daq.service import ServiceOptions
-from rsra.daq.sources import (
+from rsra.daq.runtime.records import ABSENT, AnglesRecord, IdentJob
+from rsra.daq.runtime.service import ServiceOptions
+from rsra.daq.runtime.sources import (
     BusSource,
     LockstepSource,
     RealtimeSimSource,
@@ -45,7 +45,7 @@ def test_the_options_choose_a_source_class_and_nothing_else(cfg, opts, kind, det
 def _lockstep_run(cfg, folder):
     """The simulator in lock-step with a node reboot: every frame as the reader recorded it
     (times from the simulator's t0), pump calls made inside a transmission, restarts."""
-    from rsra.daq.replay import read_frames
+    from rsra.daq.bus.replay import read_frames
 
     src = LockstepSource(cfg, make_source(cfg, ServiceOptions(sim="ground-test")).table,
                          SimOptions("ground-test", seed=5, faults=REBOOT), speed=None,

@@ -15,10 +15,10 @@ import time
 
 import numpy as np
 
-import rsra.daq.ident_worker as ident_worker
+import rsra.daq.runtime.ident_worker as ident_worker
 from rsra.config.rig import load_config
 from rsra.daq.jsonout import dumps
-from rsra.daq.service import Service, ServiceOptions
+from rsra.daq.runtime.service import Service, ServiceOptions
 from tests.helpers_net import free_tcp_port
 
 # two identification periods in 4.6 s of acquisition time (windows end at samples 399 and
@@ -231,7 +231,7 @@ def test_ctrl_c_stops_the_service_cleanly_without_a_traceback():
 def disk_full_once() -> None:
     """Worker initializer (runs in the worker process): its first posterior save fails with
     ENOSPC, as on a full disk; the later ones write."""
-    import rsra.daq.persistence as posterior
+    import rsra.daq.runtime.persistence as posterior
 
     real, calls = posterior.save_posterior, []
 
@@ -245,7 +245,7 @@ def disk_full_once() -> None:
 
 
 def test_a_failed_posterior_save_keeps_the_result_and_is_retried(tmp_path, caplog):
-    from rsra.daq.persistence import load_posterior
+    from rsra.daq.runtime.persistence import load_posterior
 
     caplog.set_level(logging.INFO)
     state_file = tmp_path / "posterior.json"
@@ -287,10 +287,10 @@ def test_a_failed_posterior_save_keeps_the_result_and_is_retried(tmp_path, caplo
 def test_a_failed_save_is_reported_with_the_record_in_the_worker(monkeypatch):
     """The worker's own step: the save raising OSError(ENOSPC) gives the record, with the
     error attached, not an error record in its place."""
-    monkeypatch.setattr("rsra.daq.persistence.save_posterior",
+    monkeypatch.setattr("rsra.daq.runtime.persistence.save_posterior",
                         lambda path, st: (_ for _ in ()).throw(
                             OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))))
-    from rsra.daq.records import AnglesRecord, IdentJob
+    from rsra.daq.runtime.records import AnglesRecord, IdentJob
 
     rec = AnglesRecord(accepted=True, applies_from_seq=10)
 
