@@ -333,7 +333,7 @@ def test_record_on_a_full_disk_is_one_line_exit_1_and_leaves_nothing(tmp_path, c
 
 
 def test_a_recording_that_cannot_start_removes_only_what_it_created(cfg, tmp_path, monkeypatch):
-    from rsra.daq import recorder as rec_mod
+    from rsra.daq.bus import recorder as rec_mod
 
     def full(*a, **k):
         raise OSError(errno.ENOSPC, "No space left on device")

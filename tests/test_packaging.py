@@ -11,7 +11,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_wheel_installs_and_runs_outside_the_repo(tmp_path):
     """One import namespace (issue 15): the wheel's only top-level package is `rsra`; the
     packaged rig, EDS and scenarios come with it; `python -m rsra --help` runs outside the repo
-    and no generic name (`daq`, `estimator`, `sim_bus`, `rsra.config`, `config`) is importable."""
+    and no generic name (`daq`, `estimator`, `sim_bus`, `rsra_config`, `config`) is importable."""
     wheel_dir = tmp_path / "wheel"
     subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps",
                     "-w", str(wheel_dir), str(ROOT)], check=True, capture_output=True)
@@ -39,7 +39,7 @@ def test_wheel_installs_and_runs_outside_the_repo(tmp_path):
                             capture_output=True, text=True, env=env)
     assert helped.returncode == 0, helped.stderr
     assert "usage: rsra" in helped.stdout
-    for generic in ("daq", "estimator", "sim_bus", "rsra.config", "config"):
+    for generic in ("daq", "estimator", "sim_bus", "rsra_config", "config"):
         probe = subprocess.run([sys.executable, "-c", f"import {generic}"], cwd=tmp_path,
                                capture_output=True, text=True, env=env)
         assert probe.returncode != 0 and "No module named" in probe.stderr, generic

@@ -47,8 +47,7 @@ def _lockstep_run(cfg, folder):
     (times from the simulator's t0), pump calls made inside a transmission, restarts."""
     from rsra.daq.bus.replay import read_frames
 
-    src = LockstepSource(cfg, make_source(cfg, ServiceOptions(sim="ground-test")).table,
-                         SimOptions("ground-test", seed=5, faults=REBOOT), speed=None,
+    src = LockstepSource(cfg, SimOptions("ground-test", seed=5, faults=REBOOT), speed=None,
                          record=str(folder))
     nested = []
     sending = threading.local()

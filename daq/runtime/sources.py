@@ -97,9 +97,9 @@ class _Base:
     deterministic: ClassVar[bool] = False
     saves_posterior: ClassVar[bool] = True
 
-    def __init__(self, cfg: RigConfig, table: DecodeTable):
+    def __init__(self, cfg: RigConfig):
         self.cfg = cfg
-        self.table = table
+        self.table: DecodeTable | None = None  # read on open (the EDS files)
         self.reader: Reader | None = None
         self.sim: Any = None
         self.recorder: Recorder | None = None
@@ -109,7 +109,12 @@ class _Base:
         return AnglesPlan(recompute=recompute)
 
     def __enter__(self):
+        from rsra.daq.bus.decoder import DecodeTable
+
         try:
+            # the EDS files first: one the simulator cannot read either is a ConfigError
+            # naming the key (exit 2), not a traceback from inside the simulator's nodes
+            self.table = DecodeTable(self.cfg)
             self._open()
         except BaseException:
             self._stack.close()
@@ -156,9 +161,9 @@ class BusSource(_Base):
     """A CANopen bus through python-can; the reader boots the nodes, produces SYNC and
     supervises them; samples come from its bus thread through a bounded queue."""
 
-    def __init__(self, cfg: RigConfig, table: DecodeTable, *, interface: str | None,
+    def __init__(self, cfg: RigConfig, *, interface: str | None,
                  channel: str | None, record: str | None = None):
-        super().__init__(cfg, table)
+        super().__init__(cfg)
         self.interface, self.channel, self.record = interface, channel, record
 
     def describe(self) -> str:
@@ -211,9 +216,9 @@ class SimOptions:
 class RealtimeSimSource(BusSource):
     """The simulator in real time on a virtual bus (its own threads), the reader its master."""
 
-    def __init__(self, cfg: RigConfig, table: DecodeTable, sim: SimOptions,
+    def __init__(self, cfg: RigConfig, sim: SimOptions,
                  record: str | None = None):
-        super().__init__(cfg, table, interface="virtual",
+        super().__init__(cfg, interface="virtual",
                          channel=sim.channel or f"rsra-{id(self):x}", record=record)
         self.sim_opts = sim
 
@@ -243,9 +248,9 @@ class LockstepSource(_Base):
 
     deterministic = True
 
-    def __init__(self, cfg: RigConfig, table: DecodeTable, sim: SimOptions,
+    def __init__(self, cfg: RigConfig, sim: SimOptions,
                  speed: float | None, record: str | None = None):
-        super().__init__(cfg, table)
+        super().__init__(cfg)
         self.sim_opts, self.speed, self.record = sim, speed, record
         self.driver = None
 
@@ -306,9 +311,9 @@ class ReplaySource(_Base):
     deterministic = True
     saves_posterior = False  # identification.state_file is the live service's output (cli.md)
 
-    def __init__(self, cfg: RigConfig, table: DecodeTable, paths: list[str],
+    def __init__(self, cfg: RigConfig, paths: list[str],
                  paced: bool = False):
-        super().__init__(cfg, table)
+        super().__init__(cfg)
         self.paths, self.paced = list(paths), paced
         self._items: Iterator | None = None
 
@@ -355,22 +360,18 @@ class ReplaySource(_Base):
 
 def make_source(cfg: RigConfig, opts: Any) -> Source:
     """The source the run options name (``daq.service.ServiceOptions``): a replay, the
-    simulator in lock-step (``--speed`` other than 1) or real time, or a bus. Reads the EDS
-    files first: one the simulator cannot read either is a ConfigError naming the key (exit
-    2), not a traceback from inside the simulator's nodes."""
-    from rsra.daq.bus.decoder import DecodeTable
-
-    table = DecodeTable(cfg)
+    simulator in lock-step (``--speed`` other than 1) or real time, or a bus. Opens nothing
+    (the source does, entered)."""
     if opts.replay is not None:
-        return ReplaySource(cfg, table, opts.replay, paced=opts.realtime)
+        return ReplaySource(cfg, opts.replay, paced=opts.realtime)
     if opts.sim is not None:
         sim = SimOptions(scenario=opts.sim, seed=opts.seed, faults=opts.faults,
                          channel=opts.channel, truth=opts.truth, keep_truth=opts.keep_truth,
                          variants=opts.scenario_variants)
         if opts.speed != 1.0:
-            return LockstepSource(cfg, table, sim, opts.speed, record=opts.record)
-        return RealtimeSimSource(cfg, table, sim, record=opts.record)
-    return BusSource(cfg, table, interface=opts.interface, channel=opts.channel,
+            return LockstepSource(cfg, sim, opts.speed, record=opts.record)
+        return RealtimeSimSource(cfg, sim, record=opts.record)
+    return BusSource(cfg, interface=opts.interface, channel=opts.channel,
                      record=opts.record)
 
 
