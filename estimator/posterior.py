@@ -39,7 +39,8 @@ before, none and 21.1 after).
 A rejected run leaves the posterior as it was. :class:`PeriodicIdentification` ties windows
 of (content-filtered) data, the identification of ``estimator.identification`` and this
 posterior together, carrying the filter-error state and its sensitivities from window to
-window. Pure numerics, plus the small atomic save/load of the posterior the spec asks for.
+window. Pure numerics; the posterior's JSON text is made and checked here
+(:func:`posterior_to_json`, :func:`posterior_from_json`), the files are daq.persistence's.
 """
 from __future__ import annotations
 
@@ -52,7 +53,6 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 from scipy.stats import chi2
 
-from .atomic import write_text_atomic
 from .identification import (
     FilterErrorProblem,
     FilterErrorState,
@@ -265,21 +265,18 @@ def check_posterior(state: PosteriorState, path: str | Path, *, rig: Mapping[str
                              "check --config, or pass --accept-rig-mismatch to use it anyway")
 
 
-def save_posterior(path: str | Path, state: PosteriorState) -> None:
-    """Write atomically (``estimator.atomic``: temporary file, fsync, rename)."""
-    write_text_atomic(path, json.dumps(_finite_or_none(state.to_dict()), allow_nan=False,
-                                       indent=1))
+def posterior_to_json(state: PosteriorState) -> str:
+    """The saved posterior's text (strict JSON; daq.persistence writes it atomically)."""
+    return json.dumps(_finite_or_none(state.to_dict()), allow_nan=False, indent=1)
 
 
-def load_posterior(path: str | Path, names: Sequence[str] | None = None) -> PosteriorState:
-    """Read and check a saved posterior; a corrupt or mismatched file raises
-    :class:`PosteriorFileError`."""
-    path = Path(path)
+def posterior_from_json(text: str, path: str | Path,
+                        names: Sequence[str] | None = None) -> PosteriorState:
+    """Parse and check a saved posterior's text (``path`` names it in the errors); a corrupt
+    or mismatched one raises :class:`PosteriorFileError`."""
     try:
-        raw = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise PosteriorFileError(path, "no such file") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raw = json.loads(text)
+    except json.JSONDecodeError as exc:
         raise PosteriorFileError(path, f"not readable JSON ({exc})") from None
     if not isinstance(raw, dict) or raw.get("format") != "rsra-posterior":
         raise PosteriorFileError(path, 'not a posterior (missing "format": "rsra-posterior")')

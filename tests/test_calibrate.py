@@ -27,8 +27,9 @@ from rsra.daq.analysis.calibrate import (
 )
 from rsra.daq.cli import build_parser, main
 from rsra.config.rig import load_config
+from rsra.daq.runtime.persistence import save_posterior
 from rsra.estimator.content import ContentFilter
-from rsra.estimator.posterior import PosteriorState, save_posterior
+from rsra.estimator.posterior import PosteriorState
 from rsra.sim_bus.bus_sim import Simulator
 from rsra.sim_bus.truth import read_truth
 

@@ -20,8 +20,9 @@ from helpers_canopen import channel_name
 
 from rsra.daq.cli import build_parser, main
 from rsra.config.rig import G0, config_dir, load_config, parse_config
+from rsra.daq.runtime.persistence import load_posterior, save_posterior
 from rsra.estimator.geometry import hub_transfer_matrix, wrench_matrix
-from rsra.estimator.posterior import PosteriorState, load_posterior, save_posterior
+from rsra.estimator.posterior import PosteriorState
 
 EDS = config_dir() / "eds"
 RIG = config_dir() / "rig.toml"

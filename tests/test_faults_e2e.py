@@ -481,8 +481,8 @@ def window_job(cfg):
                     job = pipe.process(s).job or job
     finally:
         rig.close()
-    assert job["mode"] == "known_loads"
-    return job, pipe
+    assert job.mode == "known_loads"
+    return job.as_mapping(), pipe
 
 
 def _copy(job):
@@ -520,7 +520,10 @@ def test_a_bad_window_never_replaces_the_angles(cfg, window_job, corrupt, reason
 
     pipe = window_job[1]
     alpha = pipe.alpha.copy()
-    pipe.deliver(rec)
+    from rsra.daq.runtime.records import AnglesRecord
+
+    pipe.deliver(AnglesRecord.from_dict({k: v for k, v in rec.items() if k != "job_id"}),
+                 job_id=rec["job_id"])
     out = PipelineOutput()
     pipe._apply_due(rec["applies_from_seq"], out)
     assert [k for k, _ in out.records] == ["angles"]

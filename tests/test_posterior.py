@@ -8,7 +8,9 @@ import os
 import numpy as np
 import pytest
 from scipy.stats import chi2
+from synthetic import TruthGeometry, harmonic_state, paper_run, static_run
 
+from rsra.daq.runtime.persistence import load_posterior, save_posterior
 from rsra.estimator.balance import inertial_loads, measurement_covariance
 from rsra.estimator.content import ContentFilter
 from rsra.estimator.filters import design_filter
@@ -27,10 +29,7 @@ from rsra.estimator.posterior import (
     SequentialPosterior,
     consistency_gate,
     information_ratio,
-    load_posterior,
-    save_posterior,
 )
-from synthetic import TruthGeometry, harmonic_state, paper_run, static_run
 
 DEG = np.pi / 180
 

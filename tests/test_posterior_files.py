@@ -14,23 +14,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers_net import free_tcp_port
 
 from rsra.daq.cli import main
 from rsra.config.rig import ConfigError, load_config
+from rsra.daq.runtime.persistence import load_posterior, own_temp_pid, save_posterior, temp_prefix
 from rsra.daq.runtime.posterior_file import classify, load_checked, prepare_state_file
 from rsra.daq.runtime.service import Service, ServiceOptions
-from rsra.estimator.atomic import own_temp_pid, temp_prefix
 from rsra.estimator.identification import IdentificationResult
 from rsra.estimator.posterior import (
     PosteriorFileError,
     PosteriorState,
     SequentialPosterior,
-    load_posterior,
     rig_fingerprint,
-    save_posterior,
 )
-
-from helpers_net import free_tcp_port
 
 ROOT = Path(__file__).resolve().parents[1]
 RIG = ROOT / "config" / "rig.toml"
@@ -168,7 +165,7 @@ def test_classify_is_the_rule_angles_reset_applies(cfg, tmp_path, capsys):
 
 KILLED_WRITER = """
 import sys, time
-import rsra.estimator.atomic as a
+import rsra.daq.runtime.persistence as a
 def stall(fd):
     print("writing", flush=True)
     time.sleep(60)

@@ -231,7 +231,7 @@ def test_ctrl_c_stops_the_service_cleanly_without_a_traceback():
 def disk_full_once() -> None:
     """Worker initializer (runs in the worker process): its first posterior save fails with
     ENOSPC, as on a full disk; the later ones write."""
-    import rsra.estimator.posterior as posterior
+    import rsra.daq.runtime.persistence as posterior
 
     real, calls = posterior.save_posterior, []
 
@@ -245,7 +245,7 @@ def disk_full_once() -> None:
 
 
 def test_a_failed_posterior_save_keeps_the_result_and_is_retried(tmp_path, caplog):
-    from rsra.estimator.posterior import load_posterior
+    from rsra.daq.runtime.persistence import load_posterior
 
     caplog.set_level(logging.INFO)
     state_file = tmp_path / "posterior.json"
@@ -287,10 +287,12 @@ def test_a_failed_posterior_save_keeps_the_result_and_is_retried(tmp_path, caplo
 def test_a_failed_save_is_reported_with_the_record_in_the_worker(monkeypatch):
     """The worker's own step: the save raising OSError(ENOSPC) gives the record, with the
     error attached, not an error record in its place."""
-    monkeypatch.setattr("rsra.estimator.posterior.save_posterior",
+    monkeypatch.setattr("rsra.daq.runtime.persistence.save_posterior",
                         lambda path, st: (_ for _ in ()).throw(
                             OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))))
-    rec = {"accepted": True, "applies_from_seq": 10}
+    from rsra.daq.runtime.records import AnglesRecord, IdentJob
+
+    rec = AnglesRecord(accepted=True, applies_from_seq=10)
 
     class Post:
         def state(self):
@@ -299,6 +301,8 @@ def test_a_failed_save_is_reported_with_the_record_in_the_worker(monkeypatch):
 
     err = ident_worker.save_state(Post(), rec, "/nowhere/posterior.json")
     assert err == "/nowhere/posterior.json: No space left on device"
-    monkeypatch.setattr(ident_worker, "run_job", lambda *a: dict(rec))
-    out = ident_worker.handle_job(None, Post(), {}, None, {"job_id": 1}, "/x.json")
-    assert out["accepted"] and "error" not in out and "No space" in out["save_error"]
+    monkeypatch.setattr(ident_worker, "run_job", lambda *a: rec.to_dict())
+    job = IdentJob(1, "known_loads", "band", 10, *[None] * 9)
+    out = ident_worker.handle_job(None, Post(), {}, None, job, "/x.json")
+    assert isinstance(out, ident_worker.IdentResult)
+    assert out.record.accepted and "No space" in out.save_error

@@ -12,8 +12,9 @@ Two parts:
   NMT start, the SYNC producer (python-can ``send_periodic``), and a worker thread that
   reconfigures and restarts a node that rebooted or appeared late — SDO must never run on
   the bus thread, which delivers the SDO responses. In lock-step (the simulator boots its
-  nodes and produces SYNC) only the restart part runs (:meth:`CanopenMaster.supervise`),
-  without a thread: the caller handles the events between pumps (``process_events``).
+  nodes and produces SYNC) only the restart part runs (:meth:`CanopenMaster.supervise`), in
+  the same worker thread; the lock-step driver (sim_bus.drivers) holds simulated time and
+  serves its transmissions while it works.
 """
 from __future__ import annotations
 
@@ -258,15 +259,12 @@ class CanopenMaster:
     """
 
     def __init__(self, cfg: RigConfig, table: DecodeTable, network: canopen.Network,
-                 supervisor: Supervisor, clock: Callable[[], float], periodic_sync: bool = True,
-                 threaded: bool = True):
+                 supervisor: Supervisor, clock: Callable[[], float], periodic_sync: bool = True):
         self.cfg, self.table, self.network, self.supervisor = cfg, table, network, supervisor
         self.clock = clock
         self.periodic_sync = periodic_sync
-        # threaded: a worker thread restarts nodes (SDO must not run on the bus thread).
-        # Not threaded (lock-step): the caller runs process_events() between its pumps, and
-        # every SDO request is answered before the client waits (Reader.supervise)
-        self.threaded = threaded
+        # a worker thread restarts nodes (SDO must not run on the thread that delivers the
+        # answers: the bus thread live, the lock-step driver's otherwise)
         self._sync_counter = 0
         self.remote: dict[str, canopen.RemoteNode] = {}
         for nl in table.nodes:
@@ -325,10 +323,9 @@ class CanopenMaster:
         if self.running:
             return
         self.running = True
-        if self.threaded:
-            self._worker = threading.Thread(target=self._work, name="rsra-canopen-master",
-                                            daemon=True)
-            self._worker.start()
+        self._worker = threading.Thread(target=self._work, name="rsra-canopen-master",
+                                        daemon=True)
+        self._worker.start()
 
     def configure(self, nl: NodeLayout) -> None:
         """Step 2 for one node: identity and TPDO parameters against the EDS (the verifier
@@ -421,19 +418,6 @@ class CanopenMaster:
             except queue.Empty:
                 continue
             self._restart(kind, node)
-
-    def process_events(self) -> int:
-        """Not threaded (lock-step): restart the nodes whose events are queued, in the
-        caller's thread. Returns the number handled."""
-        n = 0
-        while self.running:
-            try:
-                kind, node = self._events.get_nowait()
-            except queue.Empty:
-                return n
-            self._restart(kind, node)
-            n += 1
-        return n
 
     def _restart(self, kind: str, node: str) -> None:
         nl = self.table.node(node)

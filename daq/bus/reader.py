@@ -244,20 +244,6 @@ class _LockedTap(can.Listener):
         pass
 
 
-class _ReaderNetwork(canopen.Network):
-    """canopen's Network with a hook after every transmission (canopen documents
-    ``send_message`` as the method to override). Lock-step: the hook lets the peer (the
-    simulator) answer and pumps the answer in, so canopen's blocking SDO client finds its
-    response already queued — no thread and no wall-clock wait (Reader.supervise)."""
-
-    after_send: Callable[[], None] | None = None
-
-    def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
-        super().send_message(can_id, data, remote)
-        if self.after_send is not None:
-            self.after_send()
-
-
 class Reader:
     """Calibrated, time-stamped samples from a CANopen bus.
 
@@ -273,7 +259,8 @@ class Reader:
     bus whose nodes start by themselves, lock-step runs where the simulator owns the nodes.
     ``restart_nodes=True`` with ``master=False`` (lock-step): the nodes were booted by someone
     else, but once :meth:`supervise` is called a node that reboots is reconfigured over SDO
-    and started by this reader, as the live master does (bus.md "Boot and supervision").
+    and started by this reader's master thread, as the live master does (bus.md "Boot and
+    supervision"); a lock-step driver (sim_bus.drivers) holds time while :meth:`busy`.
     ``overflow="drop"`` (live) never blocks the bus thread: a full queue drops the item and
     counts it; ``"block"`` (lock-step) makes the bus thread wait and counts the waits.
     """
@@ -325,7 +312,7 @@ class Reader:
         self._stop = threading.Event()
         self._started = False
 
-        self.network = _ReaderNetwork(bus)
+        self.network = canopen.Network(bus)
         # the bus thread wakes this often to see a stop (canopen's default: 1 s per close)
         self.network.NOTIFIER_CYCLE = NOTIFIER_CYCLE_S
         self.assembler = SampleAssembler(cfg, self.table, self._put)
@@ -392,8 +379,7 @@ class Reader:
                                             periodic_sync=self.periodic_sync)
             elif self.restart_nodes:  # restarts only, armed by supervise()
                 self.master = CanopenMaster(self.cfg, self.table, self.network, self.supervisor,
-                                            clock=lambda: self.tap.now, periodic_sync=False,
-                                            threaded=notifier)
+                                            clock=lambda: self.tap.now, periodic_sync=False)
             if notifier:
                 self.network.connect()
             if self.wall_clock:
@@ -416,7 +402,6 @@ class Reader:
     def close(self) -> None:
         """Stop SYNC, the master, the notifier, the recording; shut down a bus we opened."""
         self._stop.set()
-        self.network.after_send = None  # the peer may be closed before us
         if self.master is not None:
             self.master.stop()
         if self._tick_thread is not None:
@@ -457,32 +442,19 @@ class Reader:
             n += 1
         return n
 
-    def supervise(self, peer_pump: Callable[[], object] | None = None) -> None:
+    def supervise(self) -> None:
         """``restart_nodes``: from now on restart a node that reboots (the boot-ups already
-        processed — the other master's start — are not acted upon). Without a bus thread,
-        ``peer_pump`` lets the other bus users answer (the simulator's ``pump``): after
-        every frame this reader sends, the peer is pumped and then this reader, so an SDO
-        response is in canopen's queue before the client waits for it. Node events are then
-        handled by :meth:`service_nodes`, called by the driver between steps."""
+        processed — the other master's start — are not acted upon), in the master's thread.
+        Without a bus thread the SDO answers come in through :meth:`pump`: a lock-step
+        driver (sim_bus.drivers.LockstepDriver) pumps this reader and the peer while
+        :meth:`busy`, with the reader's transmissions handed over (HandoffBus)."""
         if self.master is None or self.use_master:
             raise RuntimeError("supervise() needs restart_nodes=True and a started reader")
-        if peer_pump is not None:
-            if self.network.notifier is not None:
-                raise RuntimeError("peer_pump is for start(notifier=False)")
-
-            def answer() -> None:
-                peer_pump()
-                self.pump()
-
-            self.network.after_send = answer
         self.master.supervise()
 
-    def service_nodes(self) -> int:
-        """Lock-step (no bus thread): restart the nodes that booted since the last call, in
-        this thread; simulated time does not move meanwhile. Returns the nodes handled."""
-        if self.master is None or self.master.threaded:
-            return 0
-        return self.master.process_events()
+    def busy(self) -> bool:
+        """A node reconfiguration is pending or running (lock-step drivers hold time)."""
+        return not self.master_idle()
 
     def send_sync(self, timestamp: float | None = None) -> None:
         """Lock-step with the master: put one SYNC on the bus (``periodic_sync=False``)."""

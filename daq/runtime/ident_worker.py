@@ -25,8 +25,11 @@ import threading
 import time
 import traceback
 from collections import deque
+from dataclasses import replace
 
 import numpy as np
+
+from rsra.daq.runtime.records import ABSENT, AnglesRecord, IdentError, IdentJob, IdentResult
 
 log = logging.getLogger("rsra.identification")
 
@@ -83,7 +86,8 @@ def build_identification(cfg, initial_state=None):
 
 
 def run_job(cfg, runs: dict, cache, job: dict) -> dict:
-    """One window → one `angles` record (telemetry.md) with the job id attached."""
+    """One window (``IdentJob.as_mapping()``) → the `angles` record's JSON object
+    (telemetry.md) with the job id attached (the numerics; :func:`handle_job` types it)."""
     mode = job["mode"]
     ident = runs[mode]
     seq = job["seq"]
@@ -117,14 +121,14 @@ def run_job(cfg, runs: dict, cache, job: dict) -> dict:
     return out
 
 
-def save_state(post, rec: dict, state_file: str) -> str | None:
+def save_state(post, rec: AnglesRecord, state_file: str) -> str | None:
     """Save the posterior after an accepted run; the error text if that failed (the result
     stands: it is applied and published, and the next accepted run saves again)."""
     try:
-        from rsra.estimator.posterior import save_posterior
+        from rsra.daq.runtime.persistence import save_posterior
 
         st = post.state()
-        st.applies_from_seq = rec["applies_from_seq"]
+        st.applies_from_seq = rec.applies_from_seq
         save_posterior(state_file, st)
         return None
     except Exception as e:  # a full disk, a read-only directory, ...
@@ -132,17 +136,20 @@ def save_state(post, rec: dict, state_file: str) -> str | None:
         return f"{state_file}: {what}"
 
 
-def handle_job(cfg, post, runs: dict, cache, job: dict, state_file: str | None) -> dict:
-    """One job → its `angles` record (or an error record); a failed save is attached as
+def handle_job(cfg, post, runs: dict, cache, job: IdentJob,
+               state_file: str | None) -> IdentResult | IdentError:
+    """One job → its `angles` record (or an error); a failed save is attached as
     ``save_error`` (None when the save worked), never in place of the result."""
     try:
-        rec = run_job(cfg, runs, cache, job)
+        out = run_job(cfg, runs, cache, job.as_mapping())
     except Exception as e:
-        return {"job_id": job["job_id"], "error": f"{type(e).__name__}: {e}",
-                "traceback": traceback.format_exc(limit=5)}
-    if rec["accepted"] and state_file:
-        rec["save_error"] = save_state(post, rec, state_file)
-    return rec
+        return IdentError(f"{type(e).__name__}: {e}", job.job_id,
+                          traceback.format_exc(limit=5))
+    job_id = out.pop("job_id", job.job_id)
+    res = IdentResult(job_id, AnglesRecord.from_dict(out))
+    if res.record.accepted and state_file:
+        res = replace(res, save_error=save_state(post, res.record, state_file))
+    return res
 
 
 def _exit_with_parent() -> None:
@@ -173,7 +180,7 @@ def _worker_main(cfg, initial_state, jobs: mp.Queue, results: mp.Queue,
     try:
         post, runs, cache = build_identification(cfg, initial_state)
     except Exception as e:  # report and stop: the service goes on without identification
-        results.put({"error": f"identification worker failed to start: {e}", "fatal": True})
+        results.put(IdentError(f"identification worker failed to start: {e}", fatal=True))
         return
     state_file = cfg.identification.state_file
     while True:
@@ -181,8 +188,9 @@ def _worker_main(cfg, initial_state, jobs: mp.Queue, results: mp.Queue,
         if job is None:
             break
         rec = handle_job(cfg, post, runs, cache, job, state_file)
-        if restarted and "error" not in rec:  # the first record after a restart says so
-            rec["restarted"], restarted = True, False
+        if restarted and isinstance(rec, IdentResult):  # the first record after a restart
+            rec = replace(rec, record=replace(rec.record, restarted=True))  # says so
+            restarted = False
         results.put(rec)
 
 
@@ -216,7 +224,7 @@ class IdentificationWorker:
         self.submitted = 0
         self.dropped = 0
 
-    def submit(self, job: dict) -> bool:
+    def submit(self, job: IdentJob) -> bool:
         try:
             self.jobs.put_nowait(job)
             self.submitted += 1
@@ -225,7 +233,7 @@ class IdentificationWorker:
             self.dropped += 1
             return False
 
-    def poll(self) -> list[dict]:
+    def poll(self) -> list[IdentResult | IdentError]:
         out = []
         while True:
             try:
@@ -233,7 +241,7 @@ class IdentificationWorker:
             except queue.Empty:
                 return out
 
-    def wait(self, timeout: float = 60.0) -> dict | None:
+    def wait(self, timeout: float = 60.0) -> IdentResult | IdentError | None:
         """Block for the next result (lock-step). None when the worker has died."""
         while True:
             try:
@@ -354,7 +362,8 @@ class SupervisedIdentification:
                and -code in signal.valid_signals() else f"exit code {code}")
         seq = 0 if seq is None else int(seq)
         if code == 0:  # exited by itself: it could not start (its last words say why)
-            msgs = [r.get("error") for r in self.worker.poll() if r.get("fatal")]
+            msgs = [r.error for r in self.worker.poll()
+                    if isinstance(r, IdentError) and r.fatal]
             self.worker.abandon()
             self.worker = None
             self._turn_off(msgs[0] if msgs else "the identification worker exited")
@@ -390,7 +399,7 @@ class SupervisedIdentification:
             self.on_restart()  # told too: no job will come back
 
     # -- jobs and results -------------------------------------------------------------------
-    def submit(self, job: dict, seq: int | None = None) -> bool:
+    def submit(self, job: IdentJob, seq: int | None = None) -> bool:
         """Live: hand over a window, never waiting; False if not taken (busy, dead or off; a
         window cut before a death was seen is not given to the new worker)."""
         generation = self.generation
@@ -401,10 +410,10 @@ class SupervisedIdentification:
             return True
         self.dropped += 1  # alive, and still busy with two windows
         log.warning("identification busy: window ending at sample %d dropped",
-                    int(job["seq"][-1]))
+                    int(job.seq[-1]))
         return False
 
-    def put(self, job: dict, seq: int | None = None) -> bool:
+    def put(self, job: IdentJob, seq: int | None = None) -> bool:
         """Lock-step: hand over a window, waiting for room; False if the worker died."""
         generation = self.generation
         while self.check(seq, every_call=True) and self.generation == generation:
@@ -416,14 +425,15 @@ class SupervisedIdentification:
                 continue
         return False
 
-    def poll(self, seq: int | None = None) -> list[dict]:
+    def poll(self, seq: int | None = None) -> list[IdentResult | IdentError]:
         """Live: the results in (after a liveness check)."""
         self.check(seq)
         if self.worker is None:
             return []
         return [r for r in map(self._received, self.worker.poll()) if r is not None]
 
-    def wait(self, seq: int | None = None, timeout: float = 120.0) -> dict | None:
+    def wait(self, seq: int | None = None,
+             timeout: float = 120.0) -> IdentResult | IdentError | None:
         """Lock-step: the next result. None when the worker died (restarted or off: the jobs
         it held are lost) or gave none within ``timeout`` (then it is treated as hung: ended
         and restarted)."""
@@ -442,14 +452,16 @@ class SupervisedIdentification:
                 self.worker.proc.join(5.0)
         return None
 
-    def _received(self, r: dict) -> dict | None:
+    def _received(self, r: IdentResult | IdentError) -> IdentResult | IdentError | None:
         """Book-keeping on a result: a fatal start error turns identification off; an
         accepted run becomes the restart point; a failed save is reported."""
-        if r.get("fatal"):
-            self._turn_off(str(r.get("error")))
-            return None
-        if "save_error" in r:
-            err = r.pop("save_error")
+        if isinstance(r, IdentError):
+            if r.fatal:
+                self._turn_off(str(r.error))
+                return None
+            return r
+        if r.save_error is not ABSENT:
+            err = r.save_error
             if err is not None:
                 self.save_failures += 1
                 log.error("posterior not saved: %s; the result is applied and the next accepted "
@@ -457,12 +469,13 @@ class SupervisedIdentification:
             elif self.save_error is not None:
                 log.warning("posterior saved again (%s)", self.cfg.identification.state_file)
             self.save_error = err
-        if r.get("accepted") and "error" not in r:
+        rec = r.record
+        if rec.accepted:
             from rsra.estimator.posterior import PosteriorState
 
-            self.state = PosteriorState(tuple(r["names"]), np.asarray(r["alpha"], float),
-                                        np.asarray(r["P"], float), r.get("applies_from_seq"),
-                                        r.get("t"))
+            self.state = PosteriorState(tuple(rec.names), np.asarray(rec.alpha, float),
+                                        np.asarray(rec.P, float), rec.get("applies_from_seq"),
+                                        rec.get("t"))
         return r
 
     def health(self) -> dict:

@@ -10,14 +10,15 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from collections.abc import Iterator
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from rsra.config.rig import DESIGN_BAND, ConfigError, RigConfig
 from rsra.daq.bus.assembler import channels_payload
 from rsra.daq.bus.decoder import DecodeTable
+from rsra.daq.runtime.records import ABSENT, AnglesRecord, IdentJob
 from rsra.daq.runtime.stuck import StuckMonitor
 from rsra.estimator.balance import inertial_load_matrix
 from rsra.estimator.content import ContentFilter
@@ -33,7 +34,7 @@ PREFILL_BAND = DESIGN_BAND  # the rotor-speed band designed at start-up (flight:
 @dataclass
 class PipelineOutput:
     records: list[tuple[str, dict]] = field(default_factory=list)
-    job: dict | None = None  # an identification window to submit
+    job: IdentJob | None = None  # an identification window to submit
 
 
 class WindowBuffer:
@@ -119,7 +120,7 @@ class EstimatorPipeline:
         }
         self.first_seq: int | None = None
         self.last_known_seq: int | None = None
-        self.pending: list[dict] = []  # results waiting for their apply sample
+        self.pending: list[AnglesRecord] = []  # results waiting for their apply sample
         self.outstanding: dict[int, int] = {}  # job id -> planned apply seq
         self.next_job_id = 0
         # a rotor speed whose highest modelled harmonic is at or above Nyquist cannot be
@@ -135,38 +136,37 @@ class EstimatorPipeline:
         self.stuck = StuckMonitor(cfg, table) if cfg.stuck.enabled else None
 
     # --- identification results -------------------------------------------------------
-    def deliver(self, record: dict, arrival_seq: int | None = None) -> None:
-        """Hand over an identification result (live) or a recorded angles record (replay).
+    def deliver(self, rec: AnglesRecord, arrival_seq: int | None = None,
+                job_id: int | None = None) -> None:
+        """Hand over an identification result of job ``job_id`` (live) or a recorded angles
+        record (replay).
 
         Live: it applies from its planned sample, or — when it arrives after that sample —
         from the first sample after arrival (`late`). A recorded record carries its
         `applies_from_seq` and is applied exactly there.
         """
-        rec = dict(record)
-        job = rec.pop("job_id", None)
-        if job is not None:
-            planned = self.outstanding.pop(job, rec.get("applies_from_seq"))
+        if job_id is not None:
+            planned = self.outstanding.pop(job_id, rec.get("applies_from_seq"))
             if arrival_seq is not None and planned is not None and arrival_seq >= planned:
-                rec["applies_from_seq"] = arrival_seq + 1
-                rec["late"] = True
+                rec = replace(rec, applies_from_seq=arrival_seq + 1, late=True)
             else:
-                rec["applies_from_seq"] = planned
-                rec.setdefault("late", False)
+                rec = replace(rec, applies_from_seq=planned,
+                              late=False if rec.late is ABSENT else rec.late)
         self.pending.append(rec)
-        self.pending.sort(key=lambda r: r["applies_from_seq"])
+        self.pending.sort(key=lambda r: r.applies_from_seq)
 
     def waiting_for(self, seq: int) -> list[int]:
         """Jobs whose result must be in before sample `seq` is processed (lock-step)."""
         return [j for j, s in self.outstanding.items() if s <= seq]
 
     def _apply_due(self, seq: int, out: PipelineOutput) -> None:
-        while self.pending and self.pending[0]["applies_from_seq"] <= seq:
+        while self.pending and self.pending[0].applies_from_seq <= seq:
             rec = self.pending.pop(0)
-            if rec.get("accepted"):
-                names = rec.get("names") or []
+            if rec.accepted:
+                names = rec.names or []
                 alpha = self.alpha.copy()
                 angle_names = self.model.geometry.angle_names
-                for n, v in zip(names, rec["alpha"]):
+                for n, v in zip(names, rec.alpha):
                     if n in angle_names:
                         alpha[angle_names.index(n)] = v
                 self.set_alpha(alpha)
@@ -178,10 +178,17 @@ class EstimatorPipeline:
         self.load_filter.set_alpha(self.alpha)
 
     # --- the per-sample path ----------------------------------------------------------
-    def process(self, s, early: Callable[[list], None] | None = None) -> PipelineOutput:
-        """One sample. ``early`` (live) receives the records up to and including hub_loads as
-        soon as they exist: the channels, innovations and calibration branch come after, off
-        the SYNC → hub-load latency path (docs/performance.md P5)."""
+    def process(self, s) -> PipelineOutput:
+        """One sample: every record and the identification job, if one is due."""
+        first, rest = self.stages(s)
+        first.records.extend(rest.records)
+        first.job = rest.job
+        return first
+
+    def stages(self, s) -> Iterator[PipelineOutput]:
+        """One sample in two steps the caller pulls (live): first the records up to and
+        including hub_loads, then the channels, innovations and calibration branch — off the
+        SYNC → hub-load latency path (docs/performance.md P5). Both steps must be taken."""
         out = PipelineOutput()
         seq = int(s.seq)
         if self.first_seq is None:
@@ -251,9 +258,8 @@ class EstimatorPipeline:
             "seq": seq, "sync": int(s.sync), "t": float(s.t), "frame": self.frame,
             "H": None if res.H is None else res.H, "H_static": H_static, "omega": omega_pub,
             "flags": flags}))
-        if early is not None:
-            early(out.records)
-            out.records = []
+        yield out
+        out = PipelineOutput()
         status = s.cell_status
         if not isinstance(status, dict):
             status = {n: int(b) for n, b in zip(self.cell_names, status)}
@@ -263,9 +269,9 @@ class EstimatorPipeline:
                                                 "nis": res.nis}))
         if self.identification:
             out.job = self._calibration_branch(s, seq, T, z, measured)
-        return out
+        yield out
 
-    def _calibration_branch(self, s, seq, T, z, measured) -> dict | None:
+    def _calibration_branch(self, s, seq, T, z, measured) -> IdentJob | None:
         known = s.known_H is not None and bool(np.isfinite(np.asarray(s.known_H, float)).all())
         if known:
             self.last_known_seq = seq
@@ -289,5 +295,5 @@ class EstimatorPipeline:
         self.outstanding[job_id] = planned
         content = (self.cfg.identification.content_known_loads if mode == "known_loads"
                    else self.cfg.identification.content_filter_error)
-        return {"job_id": job_id, "mode": mode, "content": content, "applies_from_seq": planned,
-                "alpha": self.alpha.copy(), **w}
+        return IdentJob(job_id=job_id, mode=mode, content=content, applies_from_seq=planned,
+                        alpha=self.alpha.copy(), **w)

@@ -15,12 +15,11 @@ from pathlib import Path
 from typing import Literal
 
 from rsra.config.rig import ConfigError, RigConfig
-from rsra.estimator.atomic import own_temp_pid
+from rsra.daq.runtime.persistence import load_posterior, own_temp_pid
 from rsra.estimator.posterior import (
     PosteriorFileError,
     PosteriorState,
     check_posterior,
-    load_posterior,
     rig_fingerprint,
 )
 
@@ -81,7 +80,7 @@ def load_checked(cfg: RigConfig, path: str | Path, names=None, *,
 
 def remove_own_temp_files(path: str | Path) -> list[Path]:
     """Remove the temporary files a killed writer of ``path`` left beside it — only ours, by
-    their exact name (``.<name>.rsra-tmp.<pid>.<random>.tmp``, estimator.atomic), regular
+    their exact name (``.<name>.rsra-tmp.<pid>.<random>.tmp``, daq.persistence), regular
     files only, and only when the process that made it is gone. Returns what was removed."""
     target = Path(os.path.realpath(path))
     removed = []

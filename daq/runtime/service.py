@@ -1,6 +1,6 @@
 """The service runtime (`rsra run`, `rsra demo`, `rsra replay`): one code path for every source.
 
-    source (live bus │ simulator in lock-step │ recording) ─▶ reader ─▶ samples
+    source (live bus │ simulator in lock-step │ recording: rsra.daq.runtime.sources) ─▶ samples
         ─▶ estimator loop (this thread): pipeline.process(sample) ─▶ publishers
         └▶ identification windows ─▶ worker process ─▶ angles records ─▶ applied from a stated sample
 
@@ -15,12 +15,15 @@
 * Replay: recorded frames through the same reader; the recorded `angles` schedule reproduces
   the live run bit for bit, or `--recompute` runs the identification deterministically.
 
+The kind of source is chosen once (``make_source``) and the service asks it only what it is
+(``deterministic``, ``saves_posterior``, its angle plan); docs/architecture.md "Runtime".
 High-rate records are published inline (Zenoh congestion control DROP never blocks); the
 low-rate ones (angles, health) go through a small bounded queue to a publisher thread, since a
 slow subscriber may block them.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -39,19 +42,12 @@ import numpy as np
 from rsra.config.rig import RigConfig
 from rsra.daq.jsonout import dumps
 from rsra.daq.runtime.pipeline import EstimatorPipeline
+from rsra.daq.runtime.records import AnglesRecord, IdentError, IdentResult, InitialAngles
+from rsra.daq.runtime.sources import SIM_BLOCK, BusOpenError, Source, make_source  # noqa: F401 (re-exported)
 
 log = logging.getLogger("rsra.service")
 
 LOW_RATE_QUEUE = 64
-# the in-process simulator computes its physics in blocks of samples; a block of 1000 takes
-# 7-14 ms, longer than a 5 ms sample period, which in real time made the simulated nodes miss
-# a SYNC every 5 s. 100-sample blocks take ~1 ms. Lock-step uses the same size, so a seed gives
-# the same samples in both modes.
-SIM_BLOCK = 100
-
-
-class BusOpenError(RuntimeError):
-    """The CAN interface could not be opened (no such interface or channel, no driver)."""
 LATENCY_HISTORY = 2000
 ANGLES_HISTORY = 16  # recent angles records kept in memory (~15 kB each with P)
 
@@ -117,40 +113,56 @@ class _LowRatePublisher:
 
 
 class Outputs:
-    """Where the records go: Zenoh, a JSONL file, in-process sinks (tests, the demo view)."""
+    """Where the records go: Zenoh, a JSONL file, in-process sinks (tests, the demo view).
+
+    What it opens (Zenoh session, publisher, low-rate thread) is held by an ExitStack and
+    closed in reverse order by :meth:`close` (or ``with``)."""
 
     def __init__(self, cfg: RigConfig, opts: ServiceOptions):
         self.cfg = cfg
+        self._stack = contextlib.ExitStack()
         self.session = None
         self.telemetry = None
         self.low_rate: _LowRatePublisher | None = None
         self.sinks: list[Callable[[str, dict], None]] = []
         self.counts: dict[str, int] = {}
         if opts.zenoh:
-            import zenoh
+            try:
+                self._open_zenoh(cfg, opts)
+            except BaseException:  # what was opened before the failure is closed
+                self._stack.close()
+                raise
 
-            from rsra.config.rig import ConfigError, zenoh_endpoint_problem
-            from rsra.daq.runtime.telemetry import TelemetryPublisher, zenoh_config
+    def _open_zenoh(self, cfg: RigConfig, opts: ServiceOptions) -> None:
+        import zenoh
 
-            for opt, eps in (("--zenoh-listen", opts.zenoh_listen),
-                             ("--zenoh-connect", opts.zenoh_connect)):
-                for ep in eps or ():
-                    problem = zenoh_endpoint_problem(ep)
-                    if problem:
-                        raise ConfigError(opt, ep, problem, f"e.g. {opt} tcp/127.0.0.1:7447")
-            conf = zenoh_config(cfg.telemetry, listen=opts.zenoh_listen or None,
-                                connect=opts.zenoh_connect or None,
-                                config_file=opts.zenoh_config)
-            self.session = zenoh.open(conf)
-            # state/config tells the endpoints the session really uses (options, config file)
-            effective = cfg.effective()
-            tel = effective.setdefault("telemetry", {})
-            for k in ("listen", "connect"):
-                tel[k] = json.loads(conf.get_json(f"{k}/endpoints"))
-            self.telemetry = TelemetryPublisher(self.session, cfg.telemetry.prefix, effective)
-            self.low_rate = _LowRatePublisher(self.telemetry.publish)
+        from rsra.config.rig import ConfigError, zenoh_endpoint_problem
+        from rsra.daq.runtime.telemetry import TelemetryPublisher, zenoh_config
 
-    def publish(self, key: str, payload: dict) -> None:
+        for opt, eps in (("--zenoh-listen", opts.zenoh_listen),
+                         ("--zenoh-connect", opts.zenoh_connect)):
+            for ep in eps or ():
+                problem = zenoh_endpoint_problem(ep)
+                if problem:
+                    raise ConfigError(opt, ep, problem, f"e.g. {opt} tcp/127.0.0.1:7447")
+        conf = zenoh_config(cfg.telemetry, listen=opts.zenoh_listen or None,
+                            connect=opts.zenoh_connect or None,
+                            config_file=opts.zenoh_config)
+        self.session = zenoh.open(conf)
+        self._stack.callback(self.session.close)
+        # state/config tells the endpoints the session really uses (options, config file)
+        effective = cfg.effective()
+        tel = effective.setdefault("telemetry", {})
+        for k in ("listen", "connect"):
+            tel[k] = json.loads(conf.get_json(f"{k}/endpoints"))
+        self.telemetry = TelemetryPublisher(self.session, cfg.telemetry.prefix, effective)
+        self._stack.callback(self.telemetry.close)
+        self.low_rate = _LowRatePublisher(self.telemetry.publish)
+        self._stack.callback(self.low_rate.close)
+
+    def publish(self, key: str, payload: dict | AnglesRecord) -> None:
+        if not isinstance(payload, dict):  # a typed record: its JSON object (daq.records)
+            payload = payload.to_dict()
         self.counts[key] = self.counts.get(key, 0) + 1
         for sink in self.sinks:
             sink(key, payload)
@@ -162,13 +174,24 @@ class Outputs:
             self.telemetry.publish(key, payload)
 
     def close(self) -> None:
-        if self.low_rate is not None:
-            self.low_rate.close()
-        if self.telemetry is not None:
-            self.telemetry.close()
-        if self.session is not None:
-            self.session.close()
+        self._stack.close()
         self.telemetry = self.session = None
+
+    def __enter__(self) -> Outputs:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _close_logged(stack: contextlib.ExitStack, close: Callable[[], None]) -> None:
+    """Close ``close`` when ``stack`` unwinds; a failure is logged and the rest still close."""
+    def run() -> None:
+        try:
+            close()
+        except Exception as e:  # keep closing the rest
+            log.error("shutdown: %s", e)
+    stack.callback(run)
 
 
 def jsonl_sink(path: str | Path):
@@ -201,67 +224,14 @@ def initial_angles(cfg: RigConfig, state_path: str | None, accept_rig_mismatch: 
     return alpha0, state, warning
 
 
-def read_angles_schedule(folder: Path) -> tuple[dict | None, list[dict]]:
-    """The starting posterior and the recorded angles records of a recording folder."""
-    p = folder / "angles.jsonl"
-    if not p.is_file():
-        return None, []
-    initial, records = None, []
-    with open(p, encoding="utf-8") as f:
-        for n, line in enumerate(f, 1):
-            line = line.strip()
-            if not line:
-                continue
-            try:
-                rec = json.loads(line)
-            except ValueError:
-                log.warning("%s:%d: unreadable angles record skipped (a crash mid-write?)", p, n)
-                continue
-            problem = _schedule_problem(rec)
-            if problem:
-                from rsra.daq.bus.replay import ReplayError
-
-                raise ReplayError(f"{p}:{n}: {problem}; fix: replay with --recompute (runs the "
-                                  "identification again) or repair that line")
-            if rec.get("initial"):
-                initial = rec
-            else:
-                records.append(rec)
-    return initial, records
-
-
-def _finite_numbers(x: Any) -> bool:
-    return isinstance(x, list) and all(
-        isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in x)
-
-
-def _schedule_problem(rec: Any) -> str | None:
-    """What makes a recorded angles record unusable (None: usable)."""
-    if not isinstance(rec, dict):
-        return "an angles record must be a JSON object"
-    if rec.get("initial"):
-        alpha = rec.get("alpha_all", rec.get("alpha"))
-        if not _finite_numbers(alpha) or not alpha:
-            return "the starting record has no finite 'alpha_all' angles"
-        return None
-    seq = rec.get("applies_from_seq")
-    if "applies_from_seq" not in rec:
-        return "angles record without 'applies_from_seq' (the sample it applies from)"
-    if not isinstance(seq, int) or isinstance(seq, bool) or seq < 0:
-        return f"'applies_from_seq' = {seq!r} is not a sample number"
-    if rec.get("accepted"):
-        names, alpha = rec.get("names"), rec.get("alpha")
-        if (not isinstance(names, list) or not all(isinstance(x, str) for x in names)
-                or not _finite_numbers(alpha) or len(names) != len(alpha)):
-            return "an accepted angles record needs 'names' and as many finite 'alpha' values"
-    return None
-
-
 class Service:
     """Builds the sources, the pipeline, the worker and the outputs; `run()` until done."""
 
     def __init__(self, cfg: RigConfig, opts: ServiceOptions):
-        if opts.replay is not None and cfg.identification.state_file:
+        # the kind of source (bus, simulator in real time or lock-step, replay): chosen once
+        # here from the options, asked what it is afterwards (daq.sources)
+        self.source: Source = make_source(cfg, opts)
+        if not self.source.saves_posterior and cfg.identification.state_file:
             # a replay (recomputed or not) saves no posterior: identification.state_file is the
             # live service's output, never one the user named for a replay (cli.md)
             import dataclasses
@@ -275,12 +245,8 @@ class Service:
         self.dt = 1.0 / self.fs
         self.latencies: deque[float] = deque(maxlen=LATENCY_HISTORY)
         self.deadline_misses = 0
-        self.lockstep = opts.replay is None and opts.sim is not None and opts.speed != 1.0
-        self.synchronous_ident = self.lockstep or (opts.replay is not None)
         self.worker = None
         self.ident_errors = 0
-        self.reader = None
-        self.sim = None
         self.outputs: Outputs | None = None
         self.summary: dict[str, Any] = {}
         self.last_seq: int | None = None
@@ -288,7 +254,7 @@ class Service:
         self.last_t: float | None = None
         # the latest angles records (bounded: a record with its P is ~10 kB, one per period
         # for as long as the service runs) and running counts for the summary
-        self.angles_log: deque[dict] = deque(maxlen=ANGLES_HISTORY)
+        self.angles_log: deque[AnglesRecord] = deque(maxlen=ANGLES_HISTORY)
         self.ident_runs = 0
         self.ident_rejected: dict[str, int] = {}
         self.lost = 0
@@ -296,10 +262,23 @@ class Service:
         self.last_health: dict | None = None
         self._extra_sinks: list[Callable[[str, dict], None]] = []
         self.pipeline: EstimatorPipeline | None = None
-        self.recorder = None
         self.warnings: list[str] = []  # start-up problems the service went on with
         self.schedule: dict | None = None  # replay: where the angles come from
         self.worker_initializer = None  # called first in the worker process (tests)
+
+    @property
+    def reader(self):
+        """The source's reader (its health, its recorder), once the source is open."""
+        return self.source.reader
+
+    @property
+    def sim(self):
+        """The in-process simulator, if the source has one."""
+        return self.source.sim
+
+    @property
+    def recorder(self):
+        return self.source.recorder
 
     def add_sink(self, sink: Callable[[str, dict], None]) -> None:
         self._extra_sinks.append(sink)
@@ -321,7 +300,7 @@ class Service:
             p.identification = False
             p.identification_off = True
 
-    def _initial_record(self, alpha0, state) -> dict:
+    def _initial_record(self, alpha0, state) -> InitialAngles:
         names = self.cfg.rig_model().geometry.angle_names
         if state is not None:
             P = state.P.tolist()
@@ -332,8 +311,7 @@ class Service:
             rec_names = list(names)
             theta = alpha0.tolist()
             P = (np.eye(len(names)) * s * s).tolist()
-        return {"initial": True, "names": rec_names, "alpha": theta, "P": P,
-                "alpha_all": alpha0.tolist(), "applies_from_seq": None}
+        return InitialAngles(names=rec_names, alpha=theta, P=P, alpha_all=alpha0.tolist())
 
     def stop(self, *_: Any) -> None:
         self.stop_event.set()
@@ -348,32 +326,10 @@ class Service:
     # -- the run -----------------------------------------------------------------------------
     def run(self) -> dict:
         opts, cfg = self.opts, self.cfg
-        closers: list[Callable[[], None]] = []
-        try:
-            recorded_initial, recorded = (None, [])
-            recompute = opts.recompute
-            if opts.replay is not None:
-                folder = next((Path(p) for p in opts.replay if Path(p).is_dir()), None)
-                schedule = None if folder is None else folder / "angles.jsonl"
-                if not opts.identification:
-                    # the starting angles (the recording's, or --angles) for the whole replay
-                    if folder is not None:
-                        recorded_initial, _ = read_angles_schedule(folder)
-                    self.schedule = {"source": "off"}
-                elif opts.recompute:
-                    self.schedule = {"source": "recomputed", "why": "--recompute"}
-                elif schedule is None or not schedule.is_file():
-                    # a recording from elsewhere (bus.md): the identification is recomputed
-                    recompute = True
-                    self.schedule = {"source": "recomputed", "why": "no angle schedule"}
-                else:
-                    recorded_initial, recorded = read_angles_schedule(folder)
-                    applies = [r.get("applies_from_seq") for r in recorded]
-                    applies = [a for a in applies if isinstance(a, int)]
-                    self.schedule = {"source": "recorded", "file": str(schedule),
-                                     "records": len(recorded),
-                                     "initial": recorded_initial is not None,
-                                     "last_applies_from_seq": max(applies, default=None)}
+        with contextlib.ExitStack() as stack:
+            plan = self.source.angles_plan(opts.identification, opts.recompute)
+            self.schedule = plan.schedule
+            recorded_initial, recorded, folder = plan.recorded_initial, plan.recorded, plan.folder
             if recorded_initial is not None and not opts.angles:
                 alpha0 = np.asarray(recorded_initial.get("alpha_all", recorded_initial["alpha"]),
                                     float)
@@ -391,7 +347,7 @@ class Service:
                 if warning:
                     log.warning("%s", warning)
                     self.warnings.append(warning)
-            use_ident = opts.identification and (opts.replay is None or recompute)
+            use_ident = opts.identification and (self.source.saves_posterior or plan.recompute)
             if use_ident:
                 # the worker saves accepted runs there: only over a posterior of ours
                 # (ConfigError naming the key otherwise, before acquisition starts)
@@ -405,152 +361,22 @@ class Service:
             for rec in recorded:
                 self.pipeline.deliver(rec)
             self.outputs = Outputs(cfg, opts)
-            closers.append(self.outputs.close)
+            _close_logged(stack, self.outputs.close)
             self.outputs.sinks.extend(self._extra_sinks)
             if use_ident:
                 self._setup_identification(alpha0, state)
-                closers.append(self._close_worker)
-            source = self._make_source(closers)
+                _close_logged(stack, self._close_worker)
+            stack.enter_context(self.source)
             if self.recorder is not None:
-                self.recorder.write_angles(self._initial_record(alpha0, state))
-            log.info("service started: %s", self._describe())
-            self._loop(source)
-        finally:
-            for close in reversed(closers):
-                try:
-                    close()
-                except Exception as e:  # keep closing the rest
-                    log.error("shutdown: %s", e)
+                self.recorder.write_angles(self._initial_record(alpha0, state).to_dict())
+            log.info("service started: %s", self.source.describe())
+            self._loop(self.source.items(self.stop_event))
         self.summary = self._summary()
         return self.summary
 
     def _close_worker(self) -> None:
         if self.worker is not None:
             self.worker.close()
-
-    def _describe(self) -> str:
-        o = self.opts
-        if o.replay is not None:
-            return f"replay of {', '.join(o.replay)}"
-        if o.sim:
-            mode = "lock-step, as fast as possible" if o.speed is None else (
-                f"lock-step at {o.speed:g}x real time" if self.lockstep else "real time")
-            return f"simulator {o.sim!r} in process ({mode})"
-        return f"bus {o.interface}:{o.channel}"
-
-    def _make_source(self, closers) -> Iterator:
-        import can
-
-        o, cfg = self.opts, self.cfg
-        from rsra.daq.bus.decoder import DecodeTable
-        from rsra.daq.bus.reader import Reader
-
-        # the EDS files first: one the simulator cannot read either is a ConfigError naming
-        # the key (exit 2), not a traceback from inside the simulator's nodes
-        table = DecodeTable(cfg)
-        if o.replay is not None:
-            from rsra.daq.bus.replay import replay
-
-            reader = Reader.offline(cfg, table=table)
-            self.reader = reader
-            return replay(cfg, o.replay, realtime=o.realtime, reader=reader, finish=True)
-        if o.sim is not None:
-            from rsra.sim_bus.bus_sim import Simulator
-            from rsra.sim_bus.physics import AircraftPhysics
-            from rsra.sim_bus.scenarios import load_scenario
-
-            scenario = load_scenario(o.sim, **o.scenario_variants)
-            channel = o.channel or f"rsra-{id(self):x}"
-            # the truth history (bounded, ~0.5 kB a sample) only when a truth file is wanted
-            keep = bool(o.truth or o.record or o.keep_truth)
-            if self.lockstep:
-                t0 = round(time.time(), 3)  # simulated time reads like UNIX time
-                sim = Simulator(cfg, physics=AircraftPhysics(cfg, scenario, seed=o.seed,
-                                                              block_size=SIM_BLOCK),
-                                seed=o.seed, faults=o.faults, channel=channel, autostart=True,
-                                lockstep=True, threaded=False, t0=t0, keep_samples=keep)
-                bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=True,
-                              preserve_timestamps=True)
-                # the simulator boots and starts its nodes and produces SYNC; the reader
-                # listens, and restarts a node that reboots (bus.md: reconfigured and
-                # restarted without restarting the service), its SDO answered in lock-step
-                try:
-                    reader = Reader(cfg, bus=bus, master=False, restart_nodes=True,
-                                    wall_clock=False, record=o.record, overflow="block",
-                                    table=table)
-                except BaseException:  # e.g. the recording cannot start: close what is open
-                    bus.shutdown()
-                    sim.close()
-                    raise
-                self.sim, self.reader = sim, reader
-                closers.append(bus.shutdown)
-                closers.append(reader.close)
-                closers.append(self._close_sim)
-                reader.start(notifier=False)
-                sim.start()
-                reader.pump()  # the simulator's own boot-ups: seen, not acted upon
-                reader.supervise(peer_pump=sim.pump)
-                self.recorder = reader.recorder
-                return self._lockstep_items()
-            sim = Simulator(cfg, physics=AircraftPhysics(cfg, scenario, seed=o.seed,
-                                                              block_size=SIM_BLOCK),
-                            seed=o.seed, faults=o.faults, channel=channel, autostart=False,
-                            lockstep=False, threaded=True, keep_samples=keep)
-            self.sim = sim
-            closers.append(self._close_sim)
-            sim.start()
-            reader = Reader(cfg, interface="virtual", channel=channel, master=True,
-                            record=o.record, overflow="drop", table=table)
-        else:
-            reader = Reader(cfg, interface=o.interface, channel=o.channel, master=True,
-                            record=o.record, overflow="drop", table=table)
-        self.reader = reader
-        closers.append(reader.close)
-
-        try:
-            reader.start()  # boots the nodes; BootError names node, object and both values
-        except (OSError, ImportError, ValueError, can.CanError) as e:
-            raise BusOpenError(
-                f"cannot open the bus {o.interface or 'virtual'}:{o.channel} ({e}); check "
-                f"--interface/--channel (python-can interfaces: "
-                f"{', '.join(sorted(set(can.VALID_INTERFACES) - {'udp_multicast'}))})") from None
-        self.recorder = reader.recorder
-        return self._live_items()
-
-    def _close_sim(self) -> None:
-        if self.sim is None:
-            return
-        truth = self.opts.truth
-        if truth is None and self.recorder is not None:
-            truth = str(Path(self.recorder.folder) / "truth.npz")
-        self.sim.close()  # first: in real time its threads would still be appending
-        if truth:
-            try:
-                self.sim.write_truth(truth)
-            except Exception as e:
-                log.error("truth not written: %s", e)
-
-    def _lockstep_items(self) -> Iterator:
-        sim, reader = self.sim, self.reader
-        speed = self.opts.speed
-        wall0 = time.monotonic()
-        k = 0
-        while not self.stop_event.is_set():
-            sim.step()
-            reader.pump()
-            reader.service_nodes()  # a node that booted: restarted before time moves on
-            k += 1
-            yield from reader.poll()
-            if speed:  # paced lock-step: simulated time runs at `speed` x the wall clock
-                ahead = k * self.dt / speed - (time.monotonic() - wall0)
-                if ahead > 0:
-                    time.sleep(ahead)
-
-    def _live_items(self) -> Iterator:
-        reader = self.reader
-        while not self.stop_event.is_set():
-            item = reader.get(timeout=0.05)
-            yield item  # None when idle: results are still polled
 
     # -- per item ------------------------------------------------------------------------------
     def _loop(self, source: Iterator) -> None:
@@ -574,21 +400,20 @@ class Service:
                 break
 
     def _poll_results(self) -> None:
-        if self.worker is None or self.synchronous_ident:
+        if self.worker is None or self.source.deterministic:
             return
         arrival = self.last_seq if self.last_seq is not None else 0
         for r in self.worker.poll(self.last_seq):  # (and restarts a dead worker)
             self._deliver(r, arrival)
 
-    def _deliver(self, r: dict, arrival: int | None) -> None:
-        if "error" in r:
+    def _deliver(self, r: IdentResult | IdentError, arrival: int | None) -> None:
+        if isinstance(r, IdentError):
             self.ident_errors += 1
-            log.error("identification: %s", r["error"])
-            job = r.get("job_id")
-            if job is not None:
-                self.pipeline.outstanding.pop(job, None)
+            log.error("identification: %s", r.error)
+            if r.job_id is not None:
+                self.pipeline.outstanding.pop(r.job_id, None)
             return
-        self.pipeline.deliver(r, arrival_seq=arrival)
+        self.pipeline.deliver(r.record, arrival_seq=arrival, job_id=r.job_id)
 
     def _wait_results(self, seq: int) -> None:
         """Lock-step and replay: the result of every window due at this sample first; a dead
@@ -605,12 +430,12 @@ class Service:
 
     def _on_sample(self, s) -> None:
         p = self.pipeline
-        if self.synchronous_ident:
+        if self.source.deterministic:
             self._wait_results(s.seq)
         else:
             self._poll_results()
         publish = self.outputs.publish
-        live = not self.lockstep and self.opts.replay is None
+        live = not self.source.deterministic
 
         def emit(records: list) -> None:
             for key, payload in records:
@@ -623,16 +448,20 @@ class Service:
                 elif key == "angles":
                     self._on_angles(payload)
 
-        # live: the hub loads are published before the rest of the sample is worked on
-        out = p.process(s, early=emit if live else None)
+        if live:  # the hub loads are published before the rest of the sample is worked on
+            stages = p.stages(s)
+            emit(next(stages).records)
+            out = next(stages)
+        else:
+            out = p.process(s)
         emit(out.records)
         if out.job is not None and self.worker is not None:
-            if self.synchronous_ident:
+            if self.source.deterministic:
                 # deterministic: every window runs (unless the worker died meanwhile)
                 if not self.worker.put(out.job, s.seq):
-                    p.outstanding.pop(out.job["job_id"], None)
+                    p.outstanding.pop(out.job.job_id, None)
             elif not self.worker.submit(out.job, s.seq):  # busy, dead or off: logged
-                p.outstanding.pop(out.job["job_id"], None)
+                p.outstanding.pop(out.job.job_id, None)
         self.samples += 1
         self.lost += int(s.lost_before)
         self.last_seq = s.seq
@@ -640,9 +469,9 @@ class Service:
             self.first_t = s.t
         self.last_t = s.t
 
-    def _on_angles(self, rec: dict) -> None:
-        if self.recorder is not None and self.opts.replay is None:
-            self.recorder.write_angles(rec)
+    def _on_angles(self, rec: AnglesRecord) -> None:
+        if self.recorder is not None:  # (a replay records nothing)
+            self.recorder.write_angles(rec.to_dict())
         self.angles_log.append(rec)
         self.ident_runs += 1
         if not rec.get("accepted"):
@@ -719,7 +548,7 @@ class Service:
         if self.angles_log:
             last = self.angles_log[-1]
             out["angles"] = {"names": last.get("names"), "alpha": last.get("alpha"),
-                             "sigma": [math.sqrt(max(last["P"][i][i], 0.0))
+                             "sigma": [math.sqrt(max(last.P[i][i], 0.0))
                                        for i in range(len(last.get("names") or []))]
                              if last.get("P") else None}
         if self.pipeline is not None:

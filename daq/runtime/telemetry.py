@@ -7,6 +7,7 @@ queries go to a channel that a small thread answers from cached bytes.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import threading
@@ -101,26 +102,40 @@ class TelemetryPublisher:
         self.published = dict.fromkeys(HIGH_RATE_KEYS + LOW_RATE_KEYS, 0)
         self.errors = 0
         self._pubs: dict[str, zenoh.Publisher] = {}
+        # every declaration is undeclared on close, in reverse order (errors ignored: a
+        # session already closed)
+        self._declared = contextlib.ExitStack()
+        declared = self._declare
         for key in HIGH_RATE_KEYS:
-            self._pubs[key] = session.declare_publisher(
+            self._pubs[key] = declared(session.declare_publisher(
                 f"{prefix}/{key}", encoding=zenoh.Encoding.APPLICATION_JSON,
                 congestion_control=zenoh.CongestionControl.DROP,
-                priority=zenoh.Priority.REAL_TIME, express=True)
+                priority=zenoh.Priority.REAL_TIME, express=True))
         for key in LOW_RATE_KEYS:
-            self._pubs[key] = session.declare_publisher(
+            self._pubs[key] = declared(session.declare_publisher(
                 f"{prefix}/{key}", encoding=zenoh.Encoding.APPLICATION_JSON,
-                congestion_control=zenoh.CongestionControl.BLOCK)
+                congestion_control=zenoh.CongestionControl.BLOCK))
         self._state: dict[str, bytes] = {}
         self._state_lock = threading.Lock()
         if effective_config is not None:
             self._state["config"] = dumps(redact_secrets(effective_config)).encode()
-        self._token = session.liveliness().declare_token(f"{prefix}/alive")
+        self._token = declared(session.liveliness().declare_token(f"{prefix}/alive"))
         self._state_keys = {n: zenoh.KeyExpr(f"{prefix}/state/{n}") for n in STATE_KEYS}
-        self._queryable = session.declare_queryable(f"{prefix}/state/*")  # FIFO channel
+        self._queryable = declared(session.declare_queryable(f"{prefix}/state/*"))  # FIFO
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._answer_queries, name="rsra-state-queries",
                                         daemon=True)
         self._thread.start()
+
+    def _declare(self, obj: Any) -> Any:
+        """Hold ``obj`` (publisher, token, queryable) for undeclaring on close."""
+        def undeclare() -> None:
+            try:
+                obj.undeclare()
+            except Exception:  # a closed session at shutdown
+                pass
+        self._declared.callback(undeclare)
+        return obj
 
     def publish(self, key: str, payload: dict) -> str:
         """Publish one record; returns the JSON text (for recording or replay output)."""
@@ -166,9 +181,5 @@ class TelemetryPublisher:
     def close(self) -> None:
         self._stop.set()
         self._thread.join(timeout=2.0)
-        for obj in [self._queryable, self._token, *self._pubs.values()]:
-            try:
-                obj.undeclare()
-            except Exception:
-                pass
+        self._declared.close()
         self._pubs.clear()

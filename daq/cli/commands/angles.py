@@ -2,7 +2,7 @@
 prior (cli.md; model.md §7 "sequential posterior").
 
 The state file is what the service saves after every accepted identification run
-(``identification.state_file``, estimator.posterior.save_posterior) and what ``--angles``
+(``identification.state_file``, daq.persistence.save_posterior) and what ``--angles``
 starts from. ``show`` prints the angles in degrees, their σ, how many directions are
 determined (posterior σ ≤ ``identification.sigma_max_deg``) and the condition number;
 ``reset`` rewrites it atomically with the configured prior (initial angles, prior σ), asking
@@ -148,7 +148,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _load(path: str) -> PosteriorState:
     from rsra.daq.cli.options import UsageError
-    from rsra.estimator.posterior import load_posterior
+    from rsra.daq.runtime.persistence import load_posterior
 
     try:
         return load_posterior(path)
@@ -202,8 +202,8 @@ def _show(cfg: RigConfig, args: argparse.Namespace) -> int:
 
 def _reset(cfg: RigConfig, args: argparse.Namespace) -> int:
     from rsra.daq.cli.options import UsageError
+    from rsra.daq.runtime.persistence import save_posterior
     from rsra.daq.runtime.posterior_file import classify
-    from rsra.estimator.posterior import save_posterior
 
     path = Path(args.state)
     state = prior_state(cfg)

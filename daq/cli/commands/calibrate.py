@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rsra.estimator.atomic import write_text_atomic
+from rsra.daq.runtime.persistence import write_text_atomic
 from rsra.estimator.content import KINDS
 
 

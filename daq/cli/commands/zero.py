@@ -13,7 +13,7 @@ import numpy as np
 from rsra.config.rig import RigConfig
 from rsra.daq.bus.decoder import DecodeTable
 from rsra.config.units import FT_LBF_NM, LBF_N
-from rsra.estimator.atomic import write_text_atomic
+from rsra.daq.runtime.persistence import write_text_atomic
 
 from rsra.daq.analysis.tare import (
     acquire,

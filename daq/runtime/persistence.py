@@ -1,4 +1,7 @@
-"""One atomic text write for every file the project saves (posterior, zero offsets,
+"""Files the runtime saves and reads (the shell's side of persistence; estimator/ holds the
+pure (de)serialisation).
+
+One atomic text write for every file the project saves (posterior, zero offsets,
 calibration fragments): a temporary file in the same directory, fsync, rename, then fsync of
 the directory so the rename survives a power cut. A reader sees the old file or the new one,
 never a torn one.
@@ -7,13 +10,22 @@ The temporary file is named ``.<name>.rsra-tmp.<pid>.<random>.tmp`` beside the t
 writer killed mid-write (kill -9, power cut) leaves it behind, and :func:`own_temp_pid`
 recognises exactly that pattern (and nothing a user would name) so the service can remove its
 own leftovers on start (docs/reliability.md). A symbolic link is written through: the file it
-points to is replaced and the link stays."""
+points to is replaced and the link stays.
+
+The posterior: :func:`save_posterior` / :func:`load_posterior` (``identification.state_file``,
+``--angles``), the text made and checked by ``estimator.posterior.posterior_to_json`` /
+``posterior_from_json``."""
 from __future__ import annotations
 
 import os
 import re
 import tempfile
+from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # (imported when used: the tare and calibrate commands need no scipy)
+    from rsra.estimator.posterior import PosteriorState
 
 TEMP_TAG = "rsra-tmp"  # fixed part of every temporary name (with the writer's pid)
 
@@ -59,3 +71,25 @@ def write_text_atomic(path: str | Path, text: str) -> None:
             os.close(dfd)
     except OSError:
         pass
+
+
+def save_posterior(path: str | Path, state: PosteriorState) -> None:
+    """Write atomically (:func:`write_text_atomic`: temporary file, fsync, rename)."""
+    from rsra.estimator.posterior import posterior_to_json
+
+    write_text_atomic(path, posterior_to_json(state))
+
+
+def load_posterior(path: str | Path, names: Sequence[str] | None = None) -> PosteriorState:
+    """Read and check a saved posterior; a missing, corrupt or mismatched file raises
+    :class:`estimator.posterior.PosteriorFileError`."""
+    from rsra.estimator.posterior import PosteriorFileError, posterior_from_json
+
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise PosteriorFileError(path, "no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise PosteriorFileError(path, f"not readable JSON ({exc})") from None
+    return posterior_from_json(text, path, names)
