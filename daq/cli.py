@@ -106,6 +106,7 @@ def zenoh_error_line(e: BaseException) -> str:
 def describe_error(e: BaseException) -> tuple[int, str]:
     """(exit status, one line) for any exception that ends a command: 2 for a usage,
     configuration or bad-input error, 1 for anything else (cli.md)."""
+    from daq.foxglove_out import FoxgloveAddressError
     from daq.master import BootError
     from daq.recorder import RecordingError
     from daq.replay import ReplayError
@@ -116,7 +117,7 @@ def describe_error(e: BaseException) -> tuple[int, str]:
     if isinstance(e, ConfigError):
         return 2, f"configuration error: {_one_line(e)}"
     if isinstance(e, (UsageError, PosteriorFileError, FaultSpecError, RecordingError,
-                      ReplayError, BusOpenError)):
+                      ReplayError, BusOpenError, FoxgloveAddressError)):
         return 2, f"error: {_one_line(e)}"
     if isinstance(e, BootError):
         return 1, f"the nodes could not be started: {_one_line(e)}"

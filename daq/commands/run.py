@@ -91,6 +91,9 @@ def add_service_options(p: argparse.ArgumentParser) -> None:
                    help="Zenoh endpoint to listen on (repeatable; default tcp/127.0.0.1:7447)")
     p.add_argument("--zenoh-connect", action="append", default=[], metavar="EP",
                    help="Zenoh endpoint (router) to connect to (repeatable)")
+    from daq.foxglove_out import add_options as add_foxglove_options
+
+    add_foxglove_options(p)
     p.add_argument("--log-file", metavar="FILE", default=None,
                    help="log to this size-rotated file instead of stderr")
     p.add_argument("--log-level", default="info",
@@ -161,7 +164,8 @@ def options_from_args(args: argparse.Namespace):
         angles=args.angles, accept_rig_mismatch=args.accept_rig_mismatch,
         zenoh_config=args.zenoh_config, zenoh_listen=args.zenoh_listen,
         zenoh_connect=args.zenoh_connect, truth=getattr(args, "truth", None),
-        identification=args.identification)
+        identification=args.identification, foxglove=args.foxglove,
+        foxglove_origins=args.foxglove_allow_origin)
 
 
 def run_service(cfg, opts, quiet: bool = False) -> int:
@@ -235,4 +239,7 @@ def run(args: argparse.Namespace) -> int:
     opts = options_from_args(args)
     cfg = config_for_run(args.config, args.sim)
     check_sim_faults(cfg, args.sim, args.faults, args.speed)
+    from daq.foxglove_out import check_option
+
+    check_option(args)  # a taken port: refused before anything starts
     return run_service(cfg, opts)

@@ -1,0 +1,257 @@
+"""`--foxglove`: the Foxglove WebSocket output, checked with a protocol client (the `websockets`
+library speaking the SDK's subprotocol), not the Foxglove app (not installable offline here).
+
+Every telemetry key advertised with its JSON schema; every message valid against it, equal to
+the JSONL record of the same run (the `--out` sink) and logged at its acquisition time; a web
+page's Origin refused; the server closed and its port released at exit. No timing asserted.
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+import struct
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+from helpers_net import free_tcp_port
+
+pytest.importorskip("foxglove", reason="needs foxglove-sdk (a dependency of rsra)")
+websockets = pytest.importorskip("websockets", reason="needs the websockets library")
+
+from daq import foxglove_out  # noqa: E402
+from daq.config import load_config  # noqa: E402
+from daq.export import FIELDS  # noqa: E402
+from daq.foxglove_out import SUBPROTOCOL, FoxgloveOutput  # noqa: E402
+from daq.service import Service, ServiceOptions, jsonl_sink  # noqa: E402
+
+try:
+    import jsonschema
+except ImportError:  # pragma: no cover - installed with the test extra
+    jsonschema = None
+
+MESSAGE_DATA = 1  # binary opcode of a server message (topic data)
+
+
+def _connect(port: int, **kw):
+    return websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL],
+                              open_timeout=10, max_size=2**24, **kw)
+
+
+async def _hello(ws) -> dict[str, dict]:
+    """serverInfo, then the advertised channels by topic."""
+    info = json.loads(await asyncio.wait_for(ws.recv(), 10))
+    assert info["op"] == "serverInfo"
+    channels: dict[str, dict] = {}
+    while len(channels) < len(FIELDS):
+        msg = json.loads(await asyncio.wait_for(ws.recv(), 10))
+        if msg["op"] == "advertise":
+            channels.update({c["topic"]: c for c in msg["channels"]})
+    return channels
+
+
+async def _subscribe(ws, channels: dict[str, dict]) -> dict[int, str]:
+    subs = {i: topic for i, topic in enumerate(sorted(channels), start=1)}
+    await ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+        {"id": i, "channelId": channels[t]["id"]} for i, t in subs.items()]}))
+    return subs
+
+
+def _decode(frame: bytes) -> tuple[int, int, dict]:
+    op, sub, log_time = struct.unpack_from("<BIQ", frame, 0)
+    assert op == MESSAGE_DATA
+    return sub, log_time, json.loads(frame[13:])
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return load_config()
+
+
+def test_every_key_is_served_with_its_schema_its_record_and_its_acquisition_time(
+        cfg, tmp_path, monkeypatch):
+    """Lock-step run (ground test, 6 s: hub loads, channels, innovations, health, one angles
+    record): the client is subscribed before the first record (a sink holds it), and the
+    backlog is larger than the run, so every record must arrive."""
+    monkeypatch.setattr(foxglove_out, "BACKLOG", 100_000)
+    out = tmp_path / "records.jsonl"
+    opts = ServiceOptions(sim="ground-test", speed=None, duration=6.0, zenoh=False,
+                          foxglove="127.0.0.1:0", foxglove_announce=lambda line: None)
+    svc = Service(cfg, opts)
+    jsink, jclose = jsonl_sink(out)
+    svc.add_sink(jsink)
+    port_known, subscribed = threading.Event(), threading.Event()
+
+    def hold_first(key, payload):
+        if not port_known.is_set():
+            port_known.set()
+            assert subscribed.wait(20)
+
+    svc.add_sink(hold_first)
+    result = {}
+    th = threading.Thread(target=lambda: result.update(svc.run()), daemon=True)
+    th.start()
+    assert port_known.wait(60)
+    fox = svc.outputs.foxglove
+    prefix = cfg.telemetry.prefix
+
+    async def client():
+        got: list[tuple[str, int, dict]] = []
+        async with _connect(fox.port) as ws:
+            channels = await _hello(ws)
+            subs = await _subscribe(ws, channels)
+            for _ in range(500):  # the SDK has taken the subscriptions
+                if all(ch.has_sinks() for ch in fox.channels.values()):
+                    break
+                await asyncio.sleep(0.01)
+            subscribed.set()
+            while True:
+                try:
+                    frame = await asyncio.wait_for(ws.recv(), 30)
+                except websockets.ConnectionClosed:
+                    break  # the service closed the server at its end
+                if isinstance(frame, bytes):
+                    sub, t_ns, msg = _decode(frame)
+                    got.append((subs[sub], t_ns, msg))
+        return channels, got
+
+    channels, got = asyncio.run(client())
+    th.join(60)
+    jclose()
+    assert not th.is_alive()
+    # every key advertised, JSON with the JSON schema of docs/telemetry.md (daq.export)
+    assert set(channels) == {f"{prefix}/{k}" for k in FIELDS}
+    for key in FIELDS:
+        c = channels[f"{prefix}/{key}"]
+        assert (c["encoding"], c["schemaEncoding"], c["schemaName"]) == (
+            "json", "jsonschema", f"rsra.{key}")
+    schemas = {t: json.loads(c["schema"]) for t, c in channels.items()}
+    records: dict[str, list[dict]] = {}
+    for line in out.read_text().splitlines():
+        rec = json.loads(line)
+        records.setdefault(f"{prefix}/{rec.pop('key')}", []).append(rec)
+    received: dict[str, list[tuple[int, dict]]] = {}
+    for topic, t_ns, msg in got:
+        received.setdefault(topic, []).append((t_ns, msg))
+    assert set(records) == {f"{prefix}/{k}" for k in ("hub_loads", "channels", "innovations",
+                                                      "health", "angles")}
+    for topic, recs in records.items():
+        msgs = received.get(topic, [])
+        assert [m for _, m in msgs] == recs, topic  # values equal, none lost, in order
+        assert [t for t, _ in msgs] == [round(r["t"] * 1e9) for r in recs], topic
+        if jsonschema is not None:
+            for _, m in msgs:
+                jsonschema.validate(m, schemas[topic])
+    last = records[f"{prefix}/health"][-1]["foxglove"]
+    assert last["clients"] == 1 and last["refused"] == 0 and last["published"] > 0
+    assert svc.outputs.foxglove is None  # closed with the service
+
+
+def test_a_schema_refuses_a_payload_of_the_wrong_type(cfg):
+    """The schemas can fail: a string where the docs say a number is refused."""
+    if jsonschema is None:
+        pytest.skip("needs jsonschema")
+    from daq.export import json_schema
+
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate({"seq": 1, "t": "noon", "H": [1.0]}, json_schema("hub_loads"))
+
+
+def test_a_web_page_origin_is_refused_and_a_named_one_let_in():
+    fox = FoxgloveOutput("rsra/test", "127.0.0.1", 0, allowed_origins=["https://app.example"],
+                         announce=lambda line: None)
+    try:
+        async def attempts():
+            with pytest.raises(websockets.InvalidStatus) as e:
+                async with _connect(fox.port, origin="https://evil.example"):
+                    pass
+            assert e.value.response.status_code == 403
+            for origin in (None, "https://app.example"):
+                async with _connect(fox.port, origin=origin) as ws:
+                    assert len(await _hello(ws)) == len(FIELDS)
+
+        asyncio.run(attempts())
+        assert fox.gate.refused == 1 and fox.gate.connections == 2
+    finally:
+        fox.close()
+
+
+def test_a_client_that_never_reads_does_not_hold_the_service(cfg):
+    """A subscribed client that reads nothing: the lock-step run still ends (the SDK drops
+    that client's oldest messages; nothing in the service waits for it)."""
+    opts = ServiceOptions(sim="ground-test", speed=None, duration=4.0, zenoh=False,
+                          foxglove="127.0.0.1:0", foxglove_announce=lambda line: None,
+                          identification=False)
+    svc = Service(cfg, opts)
+    started, go = threading.Event(), threading.Event()
+
+    def hold_first(key, payload):
+        if not started.is_set():
+            started.set()
+            assert go.wait(20)
+
+    svc.add_sink(hold_first)
+    th = threading.Thread(target=svc.run, daemon=True)
+    th.start()
+    assert started.wait(60)
+    port = svc.outputs.foxglove.port
+
+    async def stalled():
+        async with _connect(port, max_queue=1) as ws:
+            channels = await _hello(ws)
+            await _subscribe(ws, channels)
+            await asyncio.sleep(0.5)
+            go.set()
+            while th.is_alive():  # never reads: TCP and the relay back up
+                await asyncio.sleep(0.1)
+
+    asyncio.run(asyncio.wait_for(stalled(), 120))
+    th.join(10)
+    assert not th.is_alive()
+    assert svc.summary["samples"] == 800
+
+
+def test_rsra_run_serves_then_closes_its_server_and_releases_the_port(tmp_path):
+    port = free_tcp_port()
+    cmd = [sys.executable, "-m", "daq", "run", "--sim", "ground-test", "--duration", "4",
+           "--zenoh-listen", f"tcp/127.0.0.1:{free_tcp_port()}", "--no-identification",
+           "--log-level", "warning", "--foxglove", f"127.0.0.1:{port}"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        async def client():
+            deadline = time.monotonic() + 60
+            while True:
+                try:
+                    ws = await _connect(port)
+                    break
+                except OSError:
+                    assert proc.poll() is None and time.monotonic() < deadline
+                    await asyncio.sleep(0.2)
+            async with ws:
+                channels = await _hello(ws)
+                subs = await _subscribe(ws, {t: c for t, c in channels.items()
+                                             if t.endswith("/hub_loads")})
+                frame = await asyncio.wait_for(ws.recv(), 30)
+                sub, t_ns, msg = _decode(frame)
+                assert subs[sub].endswith("/hub_loads") and t_ns == round(msg["t"] * 1e9)
+                with pytest.raises(websockets.ConnectionClosed):  # closed at the end
+                    while True:
+                        await asyncio.wait_for(ws.recv(), 60)
+
+        asyncio.run(client())
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    assert f"Foxglove WebSocket on ws://127.0.0.1:{port}" in err
+    with pytest.raises(ConnectionRefusedError):  # nobody listens there any more
+        socket.create_connection(("127.0.0.1", port), timeout=5).close()
+    with socket.socket() as s:  # released: a new server binds it at once (as servers do,
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # past the closed
+        s.bind(("127.0.0.1", port))  # connections' TIME_WAIT)
+        s.listen()
