@@ -254,6 +254,9 @@ FIELDS: dict[str, list[tuple[str, str, str]]] = {
         ("recording.error", "string", ""),
         ("latency_ms.p50", "number", "ms"), ("latency_ms.p99", "number", "ms"),
         ("latency_ms.max", "number", "ms"), ("latency_ms.deadline_misses", "integer", ""),
+        ("foxglove.clients", "integer", ""), ("foxglove.connections", "integer", ""),
+        ("foxglove.refused", "integer", ""), ("foxglove.published", "integer", ""),
+        ("foxglove.errors", "integer", ""),
         ("warnings", "array:string", "")],
 }
 
