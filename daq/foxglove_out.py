@@ -28,7 +28,6 @@ import sys
 import threading
 from collections.abc import Callable, Iterable
 
-
 log = logging.getLogger("rsra.foxglove")
 
 DEFAULT_ADDRESS = "127.0.0.1:8765"

@@ -259,3 +259,24 @@ def test_rsra_run_serves_then_closes_its_server_and_releases_the_port(tmp_path):
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # past the closed
         s.bind(("127.0.0.1", port))  # connections' TIME_WAIT)
         s.listen()
+
+
+def test_the_option_defaults_to_loopback_8765_and_a_wider_bind_says_its_risk():
+    from daq.cli import build_parser
+    from daq.foxglove_out import risk_line
+
+    p = build_parser()
+    assert p.parse_args(["run", "--sim", "ground-test", "--foxglove"]).foxglove \
+        == "127.0.0.1:8765"
+    assert p.parse_args(["replay", "rec", "--foxglove"]).foxglove == "127.0.0.1:8765"
+    assert p.parse_args(["demo"]).foxglove is None  # off unless asked
+    for host in ("127.0.0.1", "127.0.0.2", "::1", "localhost"):
+        assert risk_line(host, 8765) is None
+    for host in ("0.0.0.0", "192.168.1.10", "::"):
+        line = risk_line(host, 8765)
+        assert "not loopback" in line and "no authentication" in line
+    lines = []
+    fox = FoxgloveOutput("rsra/test", "127.0.0.1", 0, announce=lines.append)
+    fox.close()
+    assert lines == [f"Foxglove WebSocket on ws://127.0.0.1:{fox.port} (open it in Foxglove: "
+                     "Open connection → Foxglove WebSocket)"]
