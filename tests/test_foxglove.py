@@ -34,6 +34,8 @@ try:
 except ImportError:  # pragma: no cover - installed with the test extra
     jsonschema = None
 
+pytestmark = pytest.mark.timeout(300)  # a hang (a publish that waits for a client) fails
+
 MESSAGE_DATA = 1  # binary opcode of a server message (topic data)
 
 
@@ -183,39 +185,42 @@ def test_a_web_page_origin_is_refused_and_a_named_one_let_in():
         fox.close()
 
 
-def test_a_client_that_never_reads_does_not_hold_the_service(cfg):
-    """A subscribed client that reads nothing: the lock-step run still ends (the SDK drops
-    that client's oldest messages; nothing in the service waits for it)."""
-    opts = ServiceOptions(sim="ground-test", speed=None, duration=4.0, zenoh=False,
-                          foxglove="127.0.0.1:0", foxglove_announce=lambda line: None,
-                          identification=False)
-    svc = Service(cfg, opts)
-    started, go = threading.Event(), threading.Event()
+def test_a_client_that_stops_reading_never_blocks_publishing_and_loses_the_oldest():
+    """A subscribed client that reads nothing while 240 messages of 100 kB (24 MB, more than
+    every socket buffer on the way) are published: every publish returns, and when the client
+    reads again it gets the newest message and not all of them (the SDK dropped the oldest
+    for it). The relay holds nothing back: it only passes on what the SDK sends."""
+    fox = FoxgloveOutput("rsra/test", "127.0.0.1", 0, backlog=16, announce=lambda line: None)
+    n = 240
+    try:
+        async def stalled():
+            sock = socket.socket()
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+            sock.connect(("127.0.0.1", fox.port))
+            async with _connect(fox.port, sock=sock, max_queue=1) as ws:
+                channels = await _hello(ws)
+                await _subscribe(ws, {t: c for t, c in channels.items()
+                                      if t.endswith("/health")})
+                for _ in range(500):
+                    if fox.channels["health"].has_sinks():
+                        break
+                    await asyncio.sleep(0.01)
+                pad = "x" * 100_000
+                for i in range(n):  # from this thread: it must never wait for the client
+                    fox.publish("health", {"t": 1000.0 + i, "seq": i, "warnings": [pad]})
+                assert fox.published == n
+                seqs = []
+                while not seqs or seqs[-1] != n - 1:
+                    _, t_ns, msg = _decode(await asyncio.wait_for(ws.recv(), 30))
+                    assert t_ns == round(msg["t"] * 1e9)
+                    seqs.append(msg["seq"])
+                return seqs
 
-    def hold_first(key, payload):
-        if not started.is_set():
-            started.set()
-            assert go.wait(20)
-
-    svc.add_sink(hold_first)
-    th = threading.Thread(target=svc.run, daemon=True)
-    th.start()
-    assert started.wait(60)
-    port = svc.outputs.foxglove.port
-
-    async def stalled():
-        async with _connect(port, max_queue=1) as ws:
-            channels = await _hello(ws)
-            await _subscribe(ws, channels)
-            await asyncio.sleep(0.5)
-            go.set()
-            while th.is_alive():  # never reads: TCP and the relay back up
-                await asyncio.sleep(0.1)
-
-    asyncio.run(asyncio.wait_for(stalled(), 120))
-    th.join(10)
-    assert not th.is_alive()
-    assert svc.summary["samples"] == 800
+        seqs = asyncio.run(stalled())
+    finally:
+        fox.close()
+    assert seqs == sorted(seqs) and seqs[-1] == n - 1
+    assert len(seqs) < n  # the oldest were dropped, not queued without bound
 
 
 def test_rsra_run_serves_then_closes_its_server_and_releases_the_port(tmp_path):
