@@ -171,6 +171,7 @@ class OriginGate:
         self._open: dict[int, tuple[socket.socket, ...]] = {}
         self._threads: list[threading.Thread] = []
         self._stop = threading.Event()
+        self._warned: set[str] = set()  # origins refused and logged (once each, bounded)
         self._accept = threading.Thread(target=self._accept_loop, name="rsra-foxglove-gate",
                                         daemon=True)
         self._accept.start()
@@ -201,7 +202,8 @@ class OriginGate:
                 continue
             t = threading.Thread(target=self._serve, args=(n, c), name="rsra-foxglove-relay",
                                  daemon=True)
-            self._threads.append(t)
+            with self._lock:
+                self._threads.append(t)
             t.start()
 
     def _serve(self, n: int, c: socket.socket) -> None:
@@ -218,9 +220,13 @@ class OriginGate:
             origin = _origin(data.split(b"\r\n\r\n", 1)[0])
             if origin is not None and origin.rstrip("/") not in self.allowed:
                 self.refused += 1
-                log.warning("refused a Foxglove WebSocket connection from a web page of origin "
-                            "%r; fix: if that is your Foxglove app, give --foxglove-allow-origin "
-                            "%s", origin, origin)
+                first = origin not in self._warned and len(self._warned) < 32
+                if first:
+                    self._warned.add(origin)
+                log.log(logging.WARNING if first else logging.DEBUG,
+                        "refused a Foxglove WebSocket connection from a web page of origin %r; "
+                        "fix: if that is your Foxglove app, give --foxglove-allow-origin %s",
+                        origin, origin)
                 body = b"Connections from a web page (Origin header) are refused; see rsra " \
                        b"--foxglove-allow-origin.\n"
                 c.sendall(b"HTTP/1.1 403 Forbidden\r\nContent-Type: text/plain\r\n"
