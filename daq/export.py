@@ -18,21 +18,21 @@ from __future__ import annotations
 import json
 import math
 import re
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
 from canopen.objectdictionary import ODVariable
 
-from daq.config import RigConfig
-from daq.decoder import (
+from rsra.config.rig import RigConfig
+from rsra.daq.decoder import (
     MILLI_G,
     PROFILES,
     STATUS_FAULT,
     STATUS_OVERRANGE,
     DecodeTable,
 )
-from daq.units import AXIS_KIND
+from rsra.config.units import AXIS_KIND
 
 AXES = ("X", "Y", "Z", "L", "M", "N")
 AXIS_UNIT = {"force": "N", "moment": "N·m"}
@@ -353,7 +353,7 @@ def write_mcap(records: Iterable[tuple[str, dict]], out, prefix: str,
     acquisition clock. Returns the message count per key."""
     from mcap.writer import Writer
 
-    from daq.jsonout import dumps
+    from rsra.daq.jsonout import dumps
 
     w = Writer(out)
     w.start(profile="", library="rsra")
@@ -571,31 +571,3 @@ def vector_names(cfg: RigConfig) -> dict[str, tuple[str, ...]]:
             "accel": tuple(a.name for a in cfg.accelerometers),
             "drive": tuple(e.name for e in cfg.external_loads)}
 
-
-def replay_to_jsonl(cfg: RigConfig, logs: list[str], out, on_error: Callable[[str], Exception]
-                    ) -> dict:
-    """A recording through the service's replay path (the same as `rsra replay --out`):
-    every published record as a JSON line into the text stream ``out``."""
-    from can.io.blf import BLFParseError
-
-    from daq.config import ConfigError
-    from daq.jsonout import dumps
-    from daq.service import Service, ServiceOptions
-    from estimator.posterior import PosteriorFileError
-
-    service = Service(cfg, ServiceOptions(replay=list(logs), zenoh=False))  # no publishing
-
-    def sink(key: str, payload: dict) -> None:
-        out.write(dumps({"key": key, **payload}) + "\n")
-
-    service.add_sink(sink)
-    try:
-        return service.run()
-    except PosteriorFileError as e:
-        raise on_error(str(e)) from None
-    except ConfigError:
-        raise
-    except (ValueError, OSError, BLFParseError) as e:  # a corrupt or truncated log file
-        why = " ".join(str(e).split())
-        raise on_error(f"cannot read the recording: {why}" + (
-            "" if "fix:" in why else "; fix: give an undamaged recording")) from None

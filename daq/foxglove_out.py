@@ -1,11 +1,11 @@
 """Live telemetry for the Foxglove app (`--foxglove [HOST:PORT]` on run, replay, demo).
 
-* :class:`FoxgloveOutput` — one output of the service (daq.service.Outputs holds it: started
+* :class:`FoxgloveOutput` — one output of the service (rsra.daq.service.Outputs holds it: started
   before acquisition, closed on exit, its port released). It runs the Foxglove SDK's WebSocket
   server (PyPI ``foxglove-sdk``, protocol ``foxglove.sdk.v1``) and logs every telemetry key
   (``hub_loads``, ``channels``, ``innovations``, ``angles``, ``health``) on one channel each:
   topic ``<prefix>/<key>`` (as in `rsra export --mcap`), JSON messages with the JSON Schema of
-  daq.export (derived from docs/telemetry.md), log time = the record's acquisition time ``t``
+  rsra.daq.export (derived from docs/telemetry.md), log time = the record's acquisition time ``t``
   (never the wall clock). Publishing never blocks: a record is handed to the SDK, which keeps
   at most ``backlog`` messages per client and drops the oldest beyond (it does not count
   them); a key nobody subscribes to is not even serialised.
@@ -301,7 +301,7 @@ class FoxgloveOutput:
                  announce: Callable[[str], None] | None = None):
         import foxglove
 
-        from daq.export import FIELDS, json_schema
+        from rsra.daq.export import FIELDS, json_schema
 
         if not log.isEnabledFor(logging.DEBUG):  # the SDK's own start/stop lines
             logging.getLogger("foxglove").setLevel(logging.WARNING)
@@ -371,13 +371,13 @@ class FoxgloveOutput:
 
 
 def _log_time_ns(payload: dict, last: int) -> int:
-    from daq.export import log_time_ns
+    from rsra.daq.export import log_time_ns
 
     return log_time_ns(payload, last)
 
 
 def _dumps(payload: dict) -> str:
-    from daq.jsonout import dumps
+    from rsra.daq.jsonout import dumps
 
     return dumps(payload)
 

@@ -23,11 +23,11 @@ from helpers_net import free_tcp_port
 pytest.importorskip("foxglove", reason="needs foxglove-sdk (a dependency of rsra)")
 websockets = pytest.importorskip("websockets", reason="needs the websockets library")
 
-from daq import foxglove_out  # noqa: E402
-from daq.config import load_config  # noqa: E402
-from daq.export import FIELDS, json_schema  # noqa: E402
-from daq.foxglove_out import SUBPROTOCOL, FoxgloveOutput  # noqa: E402
-from daq.service import Service, ServiceOptions, jsonl_sink  # noqa: E402
+from rsra.daq import foxglove_out  # noqa: E402
+from rsra.config.rig import load_config  # noqa: E402
+from rsra.daq.export import FIELDS, json_schema  # noqa: E402
+from rsra.daq.foxglove_out import SUBPROTOCOL, FoxgloveOutput  # noqa: E402
+from rsra.daq.service import Service, ServiceOptions, jsonl_sink  # noqa: E402
 
 try:
     import jsonschema
@@ -225,7 +225,7 @@ def test_a_client_that_stops_reading_never_blocks_publishing_and_loses_the_oldes
 
 def test_rsra_run_serves_then_closes_its_server_and_releases_the_port(tmp_path):
     port = free_tcp_port()
-    cmd = [sys.executable, "-m", "daq", "run", "--sim", "ground-test", "--duration", "2",
+    cmd = [sys.executable, "-m", "rsra", "run", "--sim", "ground-test", "--duration", "2",
            "--zenoh-listen", f"tcp/127.0.0.1:{free_tcp_port()}", "--no-identification",
            "--log-level", "warning", "--foxglove", f"127.0.0.1:{port}"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -267,8 +267,8 @@ def test_rsra_run_serves_then_closes_its_server_and_releases_the_port(tmp_path):
 
 
 def test_the_option_defaults_to_loopback_8765_and_a_wider_bind_says_its_risk():
-    from daq.cli import build_parser
-    from daq.foxglove_out import risk_line
+    from rsra.daq.cli import build_parser
+    from rsra.daq.foxglove_out import risk_line
 
     p = build_parser()
     assert p.parse_args(["run", "--sim", "ground-test", "--foxglove"]).foxglove \

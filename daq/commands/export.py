@@ -16,7 +16,7 @@ TELEMETRY_SUFFIXES = (".jsonl", ".json")
 
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
-    from daq.cli import common_options
+    from rsra.daq.commands.options import common_options
 
     p = sub.add_parser(
         name, help="write a DBC of the bus, or MCAP / Parquet files of the telemetry",
@@ -92,10 +92,10 @@ class _Staged:
 
 
 def run(args: argparse.Namespace) -> int:
-    from daq.cli import UsageError
-    from daq.config import load_config
-    from daq.export import ExportError
-    from daq.replay import ReplayError, config_for, expand
+    from rsra.daq.commands.options import UsageError
+    from rsra.daq.rigmodel import load_rig
+    from rsra.daq.export import ExportError
+    from rsra.daq.replay import ReplayError, config_for, expand
 
     if not (args.dbc or args.mcap or args.parquet):
         raise UsageError("nothing to write; fix: give --dbc FILE, --mcap FILE or --parquet DIR")
@@ -122,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
     elif args.mcap or args.parquet:
         raise UsageError("--mcap and --parquet need the telemetry to export; fix: give a "
                          "RESULTS.jsonl from `rsra replay --out`, or recordings")
-    cfg = config_for(logs, args.config) if logs else load_config(args.config)
+    cfg = config_for(logs, args.config) if logs else load_rig(args.config)
 
     staged = _Staged()
     done: list[str] = []
@@ -134,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
         if dbc_tmp is not None:
             import cantools
 
-            from daq.export import build_dbc
+            from rsra.daq.export import build_dbc
 
             db = build_dbc(cfg)
             cantools.database.dump_file(db, dbc_tmp, database_format="dbc")
@@ -160,10 +160,37 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _replay(cfg, logs: list[str], scratch, usage) -> None:
-    from daq.export import replay_to_jsonl
-
     replay_to_jsonl(cfg, logs, scratch, usage)
     scratch.flush()
+
+
+def replay_to_jsonl(cfg, logs: list[str], out, on_error: Callable[[str], Exception]
+                    ) -> dict:
+    """A recording through the service's replay path (the same as `rsra replay --out`):
+    every published record as a JSON line into the text stream ``out``."""
+    from can.io.blf import BLFParseError
+
+    from rsra.config.rig import ConfigError
+    from rsra.daq.jsonout import dumps
+    from rsra.daq.service import Service, ServiceOptions
+    from rsra.estimator.posterior import PosteriorFileError
+
+    service = Service(cfg, ServiceOptions(replay=list(logs), zenoh=False))  # no publishing
+
+    def sink(key: str, payload: dict) -> None:
+        out.write(dumps({"key": key, **payload}) + "\n")
+
+    service.add_sink(sink)
+    try:
+        return service.run()
+    except PosteriorFileError as e:
+        raise on_error(str(e)) from None
+    except ConfigError:
+        raise
+    except (ValueError, OSError, BLFParseError) as e:  # a corrupt or truncated log file
+        why = " ".join(str(e).split())
+        raise on_error(f"cannot read the recording: {why}" + (
+            "" if "fix:" in why else "; fix: give an undamaged recording")) from None
 
 
 def _telemetry(cfg, source: Path | None, scratch, args, mcap_tmp: Path | None,
@@ -171,7 +198,7 @@ def _telemetry(cfg, source: Path | None, scratch, args, mcap_tmp: Path | None,
     """Export the telemetry records (from ``source``, or the replayed ``scratch`` stream)."""
     import json
 
-    from daq.export import (
+    from rsra.daq.export import (
         ExportError,
         parquet_schemas,
         read_records,
