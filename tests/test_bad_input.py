@@ -220,6 +220,16 @@ CASES = {
     "sample_rate_hz = 1e9": (rate_1e9, 2, ["rig.sample_rate_hz", "at most"]),
     "listen --duration -1": (listen_bad("--duration", "-1"), 2, ["--duration", "> 0"]),
     "listen --count -1": (listen_bad("--count", "-1"), 2, ["--count", "> 0"]),
+    "run --foxglove nohost": (_sim("run", "--foxglove", "nohost"), 2,
+                              ["--foxglove", "'nohost' is not HOST:PORT", "fix:"]),
+    "demo --foxglove 127.0.0.1:99999": (_sim("demo", "--foxglove", "127.0.0.1:99999"), 2,
+                                        ["--foxglove", "port 99999", "fix:"]),
+    "replay --foxglove 127.0.0.1:x": (
+        lambda tmp, rec: ["replay", str(rec), "--foxglove", "127.0.0.1:x"], 2,
+        ["--foxglove", "'x'", "not a whole number", "fix:"]),
+    "run --foxglove no.such.host.invalid:8765": (
+        _sim("run", "--foxglove", "no.such.host.invalid:8765"), 2,
+        ["--foxglove", "unknown host", "fix:"]),
 }
 
 
@@ -314,6 +324,31 @@ def test_a_zenoh_port_in_use_is_one_line_naming_zenoh_listen(command, tmp_path, 
     assert f"cannot listen on {ep}" in line and "--zenoh-listen" in line and "in use" in line
     assert ".rs:" not in line and ".cargo" not in line
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("command", ["run", "replay", "demo"])
+def test_a_foxglove_port_in_use_is_one_line_exit_2_and_nothing_started(command, tmp_path,
+                                                                       recording, capsys):
+    s, port = _busy_port()
+    addr = f"127.0.0.1:{port}"
+    try:
+        if command == "replay":
+            argv = ["replay", str(recording), "--out", str(tmp_path / "out.jsonl"),
+                    "--foxglove", addr]
+        else:
+            argv = [command, "--sim" if command == "run" else "--scenario", "ground-test",
+                    "--speed", "max", "--duration", "1", "--record", str(tmp_path / "rec"),
+                    "--zenoh-listen", f"tcp/127.0.0.1:{free_tcp_port()}", "--foxglove", addr]
+            if command == "demo":
+                argv += ["--report", str(tmp_path / "report")]
+        rc = main(argv)
+    finally:
+        s.close()
+    line = _one_line(capsys.readouterr().err)
+    assert rc == 2, line
+    assert line.startswith(f"rsra {command}: error: --foxglove {addr}: cannot listen")
+    assert "in use" in line and "fix:" in line
+    assert list(tmp_path.iterdir()) == []  # no recording, --out or report
 
 
 def test_record_on_a_full_disk_is_one_line_exit_1_and_leaves_nothing(tmp_path, capsys):

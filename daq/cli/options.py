@@ -106,6 +106,9 @@ def add_service_options(p: argparse.ArgumentParser) -> None:
                    help="Zenoh endpoint to listen on (repeatable; default tcp/127.0.0.1:7447)")
     p.add_argument("--zenoh-connect", action="append", default=[], metavar="EP",
                    help="Zenoh endpoint (router) to connect to (repeatable)")
+    from rsra.daq.runtime.foxglove_out import add_options as add_foxglove_options
+
+    add_foxglove_options(p)
     p.add_argument("--log-file", metavar="FILE", default=None,
                    help="log to this size-rotated file instead of stderr")
     p.add_argument("--log-level", default="info",

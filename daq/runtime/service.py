@@ -76,6 +76,11 @@ class ServiceOptions:
     replay: list[str] | None = None
     recompute: bool = False
     realtime: bool = False
+    # Foxglove WebSocket output (daq.foxglove_out): "HOST:PORT", browser origins let in, and
+    # where its address is told (default: standard error)
+    foxglove: str | None = None
+    foxglove_origins: list[str] = field(default_factory=list)
+    foxglove_announce: Callable[[str], None] | None = None
 
 
 class _LowRatePublisher:
@@ -126,6 +131,21 @@ class Outputs:
         self.low_rate: _LowRatePublisher | None = None
         self.sinks: list[Callable[[str, dict], None]] = []
         self.counts: dict[str, int] = {}
+        self.foxglove = None
+        if opts.foxglove:  # first: a taken port is refused before Zenoh opens
+            from rsra.daq.runtime.foxglove_out import FoxgloveOutput, parse_address
+
+            host, port = parse_address(opts.foxglove)
+            self.foxglove = FoxgloveOutput(cfg.telemetry.prefix, host, port,
+                                           opts.foxglove_origins,
+                                           announce=opts.foxglove_announce)
+        try:
+            self._open_zenoh(cfg, opts)
+        except BaseException:
+            self.close()
+            raise
+
+    def _open_zenoh(self, cfg: RigConfig, opts: ServiceOptions) -> None:
         if opts.zenoh:
             try:
                 self._open_zenoh(cfg, opts)
@@ -166,6 +186,8 @@ class Outputs:
         self.counts[key] = self.counts.get(key, 0) + 1
         for sink in self.sinks:
             sink(key, payload)
+        if self.foxglove is not None:
+            self.foxglove.publish(key, payload)
         if self.telemetry is None:
             return
         if key in ("angles", "health"):
@@ -176,6 +198,9 @@ class Outputs:
     def close(self) -> None:
         self._stack.close()
         self.telemetry = self.session = None
+        if self.foxglove is not None:
+            self.foxglove.close()
+            self.foxglove = None
 
     def __enter__(self) -> Outputs:
         return self
@@ -509,6 +534,8 @@ class Service:
             queues["publisher"] = {"depth": self.outputs.low_rate.queue.qsize(),
                                    "dropped": self.outputs.low_rate.dropped}
         payload["queues"] = queues
+        if self.outputs is not None and self.outputs.foxglove is not None:
+            payload["foxglove"] = self.outputs.foxglove.health()
         if self.pipeline is not None:  # readings the estimator refused (bad input, counted)
             payload["estimator"] = {"implausible_omega": self.pipeline.implausible_omega,
                                     "design_errors": self.pipeline.design_errors}

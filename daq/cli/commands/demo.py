@@ -45,6 +45,9 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
     p.add_argument("--zenoh-listen", action="append", default=[], metavar="EP",
                    help=f"Zenoh endpoint (default {DEFAULT_ENDPOINT}, or a free loopback port "
                    "when that one is taken)")
+    from rsra.daq.runtime.foxglove_out import add_options as add_foxglove_options
+
+    add_foxglove_options(p)
     p.add_argument("--log-level", default="warning",
                    choices=("debug", "info", "warning", "error"), help="default warning")
     return p
@@ -86,6 +89,9 @@ def run(args: argparse.Namespace) -> int:
         alpha0, _, _ = initial_angles(cfg, args.angles, args.accept_rig_mismatch)
     except PosteriorFileError as e:
         raise UsageError(str(e)) from None
+    from rsra.daq.runtime.foxglove_out import check_option
+
+    check_option(args)  # a taken port: refused before anything starts
     listen, note = _endpoint(args)
     report_jsonl = None
     closers = []
@@ -97,7 +103,8 @@ def run(args: argparse.Namespace) -> int:
                           duration=args.duration, zenoh_listen=listen, record=args.record,
                           angles=args.angles, accept_rig_mismatch=args.accept_rig_mismatch,
                           identification=args.identification,
-                          keep_truth=bool(args.report),
+                          keep_truth=bool(args.report), foxglove=args.foxglove,
+                          foxglove_origins=args.foxglove_allow_origin,
                           truth=str(Path(report_jsonl).parent / "truth.npz") if report_jsonl else None)
     svc = Service(cfg, opts)
     svc.install_signal_handlers()
@@ -123,6 +130,7 @@ def run(args: argparse.Namespace) -> int:
         svc.add_sink(jsink)
         closers.append(jclose)
     console = make_console()
+    opts.foxglove_announce = lambda line: console.print(line, markup=False, highlight=False)
     speed = "as fast as possible (lock-step)" if args.speed is None else (
         "real time" if args.speed == 1.0 else f"{args.speed:g}x real time (lock-step)")
     title = f"{args.scenario}, {speed}"

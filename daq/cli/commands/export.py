@@ -160,10 +160,37 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _replay(cfg, logs: list[str], scratch, usage) -> None:
-    from rsra.daq.analysis.export import replay_to_jsonl
-
     replay_to_jsonl(cfg, logs, scratch, usage)
     scratch.flush()
+
+
+def replay_to_jsonl(cfg, logs: list[str], out, on_error: Callable[[str], Exception]
+                    ) -> dict:
+    """A recording through the service's replay path (the same as `rsra replay --out`):
+    every published record as a JSON line into the text stream ``out``."""
+    from can.io.blf import BLFParseError
+
+    from rsra.config.rig import ConfigError
+    from rsra.daq.jsonout import dumps
+    from rsra.daq.runtime.service import Service, ServiceOptions
+    from rsra.estimator.posterior import PosteriorFileError
+
+    service = Service(cfg, ServiceOptions(replay=list(logs), zenoh=False))  # no publishing
+
+    def sink(key: str, payload: dict) -> None:
+        out.write(dumps({"key": key, **payload}) + "\n")
+
+    service.add_sink(sink)
+    try:
+        return service.run()
+    except PosteriorFileError as e:
+        raise on_error(str(e)) from None
+    except ConfigError:
+        raise
+    except (ValueError, OSError, BLFParseError) as e:  # a corrupt or truncated log file
+        why = " ".join(str(e).split())
+        raise on_error(f"cannot read the recording: {why}" + (
+            "" if "fix:" in why else "; fix: give an undamaged recording")) from None
 
 
 def _telemetry(cfg, source: Path | None, scratch, args, mcap_tmp: Path | None,

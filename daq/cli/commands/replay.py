@@ -35,6 +35,9 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
                    'values); "-" for standard output')
     p.add_argument("--publish", action="store_true",
                    help="also publish every record over Zenoh (as the live service does)")
+    from rsra.daq.runtime.foxglove_out import add_options as add_foxglove_options
+
+    add_foxglove_options(p)
     p.add_argument("--recompute", action="store_true",
                    help="run the identification again (deterministically) instead of using "
                    "the recording's angle schedule")
@@ -74,6 +77,9 @@ def run(args: argparse.Namespace) -> int:
         with contextlib.closing(read_frames([f])) as frames:
             next(frames, None)
     cfg = config_for(args.logs, args.config)
+    from rsra.daq.runtime.foxglove_out import check_option
+
+    check_option(args)  # a taken port: refused before anything starts
     out: _LazyFile | None = None
     if args.out == "-":
         out = sys.stdout
@@ -84,7 +90,8 @@ def run(args: argparse.Namespace) -> int:
                           accept_rig_mismatch=args.accept_rig_mismatch,
                           identification=args.identification,
                           zenoh_config=args.zenoh_config, zenoh_listen=args.zenoh_listen,
-                          zenoh_connect=args.zenoh_connect)
+                          zenoh_connect=args.zenoh_connect, foxglove=args.foxglove,
+                          foxglove_origins=args.foxglove_allow_origin)
     service = Service(cfg, opts)
     service.install_signal_handlers()
     progress = _Progress(enabled=out is not sys.stdout and sys.stderr.isatty())

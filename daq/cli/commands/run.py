@@ -54,7 +54,8 @@ def options_from_args(args: argparse.Namespace):
         angles=args.angles, accept_rig_mismatch=args.accept_rig_mismatch,
         zenoh_config=args.zenoh_config, zenoh_listen=args.zenoh_listen,
         zenoh_connect=args.zenoh_connect, truth=getattr(args, "truth", None),
-        identification=args.identification)
+        identification=args.identification, foxglove=args.foxglove,
+        foxglove_origins=args.foxglove_allow_origin)
 
 
 def run_service(cfg, opts, quiet: bool = False) -> int:
@@ -79,4 +80,7 @@ def run(args: argparse.Namespace) -> int:
     opts = options_from_args(args)
     cfg = config_for_run(args.config, args.sim)
     check_sim_faults(cfg, args.sim, args.faults, args.speed)
+    from rsra.daq.runtime.foxglove_out import check_option
+
+    check_option(args)  # a taken port: refused before anything starts
     return run_service(cfg, opts)
