@@ -243,20 +243,102 @@ def _whitener(model: RigModel, alpha: np.ndarray, moment_floor: float) -> np.nda
     return np.linalg.inv(np.linalg.cholesky(W))  # L⁻¹: L⁻¹ r has unit covariance (n = 1)
 
 
+def _batched(model: RigModel, alpha: np.ndarray, means: np.ndarray, structures: Sequence[str]
+             ) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """r (C, 6), ∂m/∂α (C, 6, 14) and ∂m/∂β (C, 6, p) of every condition at once (the same
+    as :func:`residual`, :func:`angle_jacobian`, :func:`structure_jacobian` per condition)."""
+    g = model.geometry
+    n = g.n_cells
+    X = np.atleast_2d(np.asarray(means, float))
+    z, T, H, q = X[:, :6], X[:, 6:6 + n], X[:, 6 + n:12 + n], X[:, 12 + n:]
+    S = wrench_matrix(g, alpha)
+    dS = wrench_matrix_jacobian(g, alpha)
+    R0 = hub_transfer_matrix(g, "body")
+    r = z - T @ S.T - H @ R0.T
+    if q.shape[1]:
+        r = r - q @ model.external.wrenches.T
+    Ja = np.einsum("kac,nc->nak", dS, T)
+    C = len(X)
+    F, Mo = H[:, :3], H[:, 3:]
+
+    def skews(v):  # (C, 3, 3): −skew(v) · x = x × v … the batched skew(v)
+        o = np.zeros((len(v), 3, 3))
+        o[:, 0, 1], o[:, 0, 2], o[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+        o[:, 1, 0], o[:, 2, 0], o[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+        return o
+
+    Js: dict[str, np.ndarray] = {}
+    for st in structures:
+        if st == "cell_load_angles":
+            cell = np.arange(2 * n) // 2
+            D = dS[np.arange(2 * n), :, cell]  # (14, 6)
+            Js[st] = D.T[None, :, :] * (T[:, cell] ** 2)[:, None, :]
+        elif st == "hub_position":
+            J = np.zeros((C, 6, 3))
+            J[:, 3:] = -skews(F)
+            Js[st] = J
+        elif st == "balance":
+            D = np.zeros((C, 6, 9))
+            D[:, np.arange(6), np.arange(6)] = H
+            D[:, :3, 6:] = -skews(F)
+            D[:, 3:, 6:] = -skews(Mo)
+            Js[st] = np.einsum("ab,nbk->nak", R0, D)
+        elif st == "external_load":
+            J = np.zeros((C, 6, 18))
+            for i in range(6):
+                J[:, i, 3 * i:3 * i + 3] = F
+            Js[st] = J
+        else:
+            raise ValueError(f"unknown structure {st!r}; choose from {STRUCTURES}")
+    return r, Ja, Js
+
+
 def _stack(model: RigModel, alpha: np.ndarray, means: np.ndarray, counts: np.ndarray,
            Li: np.ndarray, structures: Sequence[str]):
-    sw = np.sqrt(np.asarray(counts, float))
-    r = np.concatenate([s * (Li @ residual(model, alpha, x)) for s, x in zip(sw, means)])
-    Ja = np.vstack([s * (Li @ angle_jacobian(model, alpha, x)) for s, x in zip(sw, means)])
-    Js = {st: np.vstack([s * (Li @ structure_jacobian(st, model, alpha, x))
-                         for s, x in zip(sw, means)]) for st in structures}
-    return r, Ja, Js
+    sw = np.sqrt(np.asarray(counts, float))[:, None, None]
+    r, Ja, Js = _batched(model, alpha, means, structures)
+
+    def white(A):  # (C, 6, k) → (6C, k), whitened and weighted by √n
+        return (np.einsum("ab,nbk->nak", Li, A) * sw).reshape(-1, A.shape[2])
+
+    return (white(r[:, :, None])[:, 0], white(Ja), {st: white(J) for st, J in Js.items()})
+
+
+def _white_residual(st: str, model: RigModel, alpha: np.ndarray, beta: np.ndarray,
+                    means: np.ndarray, counts: np.ndarray, Li: np.ndarray) -> np.ndarray:
+    """The whitened, √n-weighted residuals (6C,) of every condition under a structure."""
+    g = model.geometry
+    n = g.n_cells
+    X = np.atleast_2d(np.asarray(means, float))
+    z, T, H, q = X[:, :6], X[:, 6:6 + n], X[:, 6 + n:12 + n], X[:, 12 + n:]
+    R0 = hub_transfer_matrix(g, "body")
+    if st == "cell_load_angles":
+        cell = np.arange(2 * n) // 2
+        ST = np.array([wrench_matrix(g, alpha + beta * Tn[cell]) @ Tn for Tn in T])
+        m = ST + H @ R0.T
+    elif st == "balance":
+        Rp = np.eye(3) + skew(beta[6:9])
+        Ht = np.hstack([(H[:, :3] * (1 + beta[:3])) @ Rp.T, (H[:, 3:] * (1 + beta[3:6])) @ Rp.T])
+        m = T @ wrench_matrix(g, alpha).T + Ht @ R0.T
+    else:
+        m = T @ wrench_matrix(g, alpha).T + H @ structure_matrices(st, beta, model)["R"].T
+    if q.shape[1]:
+        m = m + q @ model.external.wrenches.T
+    r = (z - m) @ Li.T * np.sqrt(np.asarray(counts, float))[:, None]
+    return r.reshape(-1)
+
+
+def _unit_columns(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A with every column scaled to unit length (ranks do not depend on parameter units)."""
+    c = np.linalg.norm(A, axis=0)
+    c = np.where(c > 0, c, 1.0)
+    return A / c, c
 
 
 def _range_basis(A: np.ndarray, tol: float = RANK_TOLERANCE) -> np.ndarray:
     if A.size == 0:
         return np.zeros((A.shape[0], 0))
-    U, s, _ = np.linalg.svd(A, full_matrices=False)
+    U, s, _ = np.linalg.svd(_unit_columns(A)[0], full_matrices=False)
     if not len(s) or s[0] <= 0:
         return np.zeros((A.shape[0], 0))
     return U[:, s > tol * s[0]]
@@ -294,6 +376,7 @@ class StructureFit:
     sigma: np.ndarray  # its standard deviation (inf where not determined)
     determined: bool  # every parameter determined (rank == nominal)
     alpha: np.ndarray | None = None  # the angles of the joint fit (α0 of the structure)
+    P: np.ndarray | None = None  # covariance of the joint fit [α0, β] (pseudo-inverse)
 
     @property
     def rejects_constant(self) -> bool:
@@ -318,7 +401,8 @@ def test_structures(model: RigModel, alpha: np.ndarray, means: np.ndarray, count
     each = level / max(len(structures), 1)
     fits = []
     for st in structures:
-        X = Js[st] - Ua @ (Ua.T @ Js[st])
+        X, cs = _unit_columns(Js[st])  # the rank on unit columns: units do not matter
+        X = X - Ua @ (Ua.T @ X)
         p = X.shape[1]
         U, s, Vt = np.linalg.svd(X, full_matrices=False)
         keep = s > RANK_TOLERANCE * s[0] if len(s) and s[0] > 0 else np.zeros(len(s), bool)
@@ -326,9 +410,9 @@ def test_structures(model: RigModel, alpha: np.ndarray, means: np.ndarray, count
         Uk, sk, Vk = U[:, keep], s[keep], Vt[keep].T
         proj = Uk.T @ e
         q = float(proj @ proj)
-        beta = Vk @ (proj / sk) if rank else np.zeros(p)
+        beta = (Vk @ (proj / sk) if rank else np.zeros(p)) / cs
         var = (Vk**2) @ (1.0 / sk**2) if rank else np.full(p, np.inf)
-        sigma = np.sqrt(var)
+        sigma = np.sqrt(var) / cs
         if rank < p:  # a parameter with a component outside the determined directions
             outside = 1.0 - np.sum(Vk**2, axis=1) if rank else np.ones(p)
             sigma = np.where(outside > 1e-9, np.inf, sigma)
@@ -336,25 +420,27 @@ def test_structures(model: RigModel, alpha: np.ndarray, means: np.ndarray, count
         limit = float(chi2.isf(each, rank)) if rank else math.inf
         mlimit = float(chi2.isf(each, mdof)) if mdof > 0 else math.inf
         a_fit = np.asarray(alpha, float).copy()
+        P_joint = None
         if rank:  # the joint (α, β) fit, exact in β: Gauss–Newton from the linear estimate
             a_j, b_j = np.asarray(alpha, float).copy(), beta.copy()
-            J = np.hstack([Ja, Js[st]])
+            J, cj = _unit_columns(np.hstack([Ja, Js[st]]))
             misfit = total - q
+            rj = _white_residual(st, model, a_j, b_j, means, counts, Li)
             for _ in range(GN_ITERATIONS):
-                rj = np.concatenate([sw * (Li @ structure_residual(st, model, a_j, b_j, x))
-                                     for sw, x in zip(np.sqrt(counts), means)])
                 step, *_ = np.linalg.lstsq(J, rj, rcond=RANK_TOLERANCE)
+                step = step / cj
                 a_j, b_j = a_j + step[:len(a_j)], b_j + step[len(a_j):]
-                rj = np.concatenate([sw * (Li @ structure_residual(st, model, a_j, b_j, x))
-                                     for sw, x in zip(np.sqrt(counts), means)])
+                rj = _white_residual(st, model, a_j, b_j, means, counts, Li)
                 misfit = float(rj @ rj)
                 if np.max(np.abs(step)) < 1e-12:
                     break
             if misfit < total - q:  # keep the better of the linear and the joint fit
                 q, beta, a_fit = total - misfit, b_j, a_j
+            P_joint = (np.linalg.pinv(J.T @ J, rcond=RANK_TOLERANCE**2, hermitian=True)
+                       / cj[:, None] / cj[None, :])
         logp = float(chi2.logsf(q, rank) / math.log(10)) if rank else 0.0
         fits.append(StructureFit(st, rank, p, q, limit, logp, max(total - q, 0.0), mdof, mlimit,
-                                 beta, sigma, rank == p, a_fit))
+                                 beta, sigma, rank == p, a_fit, P_joint))
     info = {"equations": n_eq, "angle_rank": ra, "residual": total,
             "residual_dof": n_eq - ra}
     return fits, info
@@ -520,7 +606,7 @@ class StructureTest:
         others = [f for f in ranked[1:] if f.explains]
         if top.explains and top.determined and all(f.nominal > top.nominal for f in others):
             selected = {"structure": top.structure, "alpha": top.alpha.copy(),
-                        "beta": top.beta.copy(), "sigma": top.sigma.copy()}
+                        "beta": top.beta.copy(), "sigma": top.sigma.copy(), "P": top.P}
         return StructureVerdict("not_constant", cands, selected=selected, **base)
 
     def _candidate(self, f: StructureFit, explaining: list[str]) -> dict:
