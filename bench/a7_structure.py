@@ -162,6 +162,40 @@ def _one_seed_tiny(seed: int) -> list[dict]:
     return one_seed(seed, tiny=True)
 
 
+def _map_with_progress(fn, seeds: list[int]) -> list[list[dict]]:
+    """fn over seeds, one spawned single-threaded process per core; every finished seed is
+    appended to $A7_PROGRESS (JSON lines) when set, so that a cut-short run keeps its seeds."""
+    import json
+    import multiprocessing as mp
+    import os
+
+    from bench.common import BLAS_ENV, jsonable, use_single_thread_blas
+    use_single_thread_blas()
+    progress = os.environ.get("A7_PROGRESS")
+    try:
+        procs = len(os.sched_getaffinity(0))
+    except AttributeError:
+        procs = os.cpu_count() or 1
+    procs = max(1, min(procs, len(seeds)))
+    out = []
+    old = {k: os.environ.get(k) for k in BLAS_ENV}
+    os.environ.update(BLAS_ENV)
+    try:
+        with mp.get_context("spawn").Pool(procs) as pool:
+            for rs in pool.imap_unordered(fn, seeds):
+                out.append(rs)
+                if progress:
+                    with open(progress, "a", encoding="utf-8") as f:
+                        f.write(json.dumps(jsonable(rs)) + "\n")
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     p = arg_parser(__doc__.splitlines()[0])
     p.add_argument("--seeds", type=int, default=N_SEEDS, help=f"seeds (default {N_SEEDS})")
@@ -169,9 +203,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.seeds < 1:
         p.error("--seeds must be at least 1")
     w = writer_from_args(BENCH, args)
-    from bench.a3_known_load import seed_map
     seeds = list(range(1, 3 if args.tiny else args.seeds + 1))
-    res = [r for rs in seed_map(_one_seed_tiny if args.tiny else one_seed, seeds) for r in rs]
+    res = [r for rs in _map_with_progress(_one_seed_tiny if args.tiny else one_seed, seeds)
+           for r in rs]
     S = len(seeds)
     by = {a: [r for r in res if r["arm"] == a] for a in ("constant", "step",
                                                          "constant_calibration",

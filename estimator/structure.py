@@ -421,6 +421,7 @@ def test_structures(model: RigModel, alpha: np.ndarray, means: np.ndarray, count
         mlimit = float(chi2.isf(each, mdof)) if mdof > 0 else math.inf
         a_fit = np.asarray(alpha, float).copy()
         P_joint = None
+        misfit = total - q
         if rank:  # the joint (α, β) fit, exact in β: Gauss–Newton from the linear estimate
             a_j, b_j = np.asarray(alpha, float).copy(), beta.copy()
             J, cj = _unit_columns(np.hstack([Ja, Js[st]]))
@@ -434,12 +435,16 @@ def test_structures(model: RigModel, alpha: np.ndarray, means: np.ndarray, count
                 misfit = float(rj @ rj)
                 if np.max(np.abs(step)) < 1e-12:
                     break
-            if misfit < total - q:  # keep the better of the linear and the joint fit
-                q, beta, a_fit = total - misfit, b_j, a_j
+            if misfit < total - q:  # the joint fit for the estimate and the misfit; the
+                # statistic stays the linearised one (χ² under constant angles, also where
+                # the nonlinear fit could exploit weakly determined angles)
+                beta, a_fit = b_j, a_j
+            else:
+                misfit = total - q
             P_joint = (np.linalg.pinv(J.T @ J, rcond=RANK_TOLERANCE**2, hermitian=True)
                        / cj[:, None] / cj[None, :])
         logp = float(chi2.logsf(q, rank) / math.log(10)) if rank else 0.0
-        fits.append(StructureFit(st, rank, p, q, limit, logp, max(total - q, 0.0), mdof, mlimit,
+        fits.append(StructureFit(st, rank, p, q, limit, logp, max(misfit, 0.0), mdof, mlimit,
                                  beta, sigma, rank == p, a_fit, P_joint))
     info = {"equations": n_eq, "angle_rank": ra, "residual": total,
             "residual_dof": n_eq - ra}
@@ -602,9 +607,12 @@ class StructureTest:
         selected = None
         top = ranked[0]
         # the estimator may use the top structure when it explains the data, every parameter
-        # is determined, and no other explaining structure is as good or smaller
+        # is determined, and every other explaining structure is larger or leaves a misfit
+        # larger by more than χ²₁ at this look's level
         others = [f for f in ranked[1:] if f.explains]
-        if top.explains and top.determined and all(f.nominal > top.nominal for f in others):
+        margin = float(chi2.isf(level, 1))
+        if top.explains and top.determined and all(
+                f.nominal > top.nominal or f.misfit - top.misfit > margin for f in others):
             selected = {"structure": top.structure, "alpha": top.alpha.copy(),
                         "beta": top.beta.copy(), "sigma": top.sigma.copy(), "P": top.P}
         return StructureVerdict("not_constant", cands, selected=selected, **base)

@@ -92,7 +92,7 @@ def test_spending_sums_to_the_overall_rate():
 def test_the_statistic_is_chi2_with_the_rank_as_dof(model):
     """Size, one look: constant angles, ground-test design; q_s/rank has mean 1 and the
     exceedances at a 5 % level per structure stay within a binomial 10⁻³ band over 100 runs.
-    A three-condition design tests with the rank (≤ 5 after the angles), not the nominal
+    A three-condition design tests with the rank (≤ 4 after the 14 angles), not the nominal
     count. Break-checked: without projecting off the angles the means are 10⁴× too large;
     with the nominal count as dof the three-condition mean ratio falls to ≤ 0.3."""
     rng = np.random.default_rng(7)
@@ -112,17 +112,20 @@ def test_the_statistic_is_chi2_with_the_rank_as_dof(model):
     for s in STRUCTURES:
         assert abs(np.mean(q[s]) - 1.0) < 3.3 * se[s] + 0.05, (s, np.mean(q[s]))
         assert exceed[s] <= stats.binom.isf(1e-3, runs, 0.05), (s, exceed[s])
-    # three conditions: 18 equations, ≥ 13 angle directions → at most 5 testable directions
+    # three conditions: 18 equations, 14 angle directions → at most 4 testable directions.
+    # Windows of 1000 samples as in the service: with 40 the one weakly determined angle
+    # direction is too uncertain for the linearisation (measured: mean ratio 1.7 at 40,
+    # 0.84 at 1000)
     q3 = []
-    for _ in range(40):
-        xs = _windows(model, rng, GROUND[[0, 1, 3]], alpha)
+    for _ in range(30):
+        xs = _windows(model, rng, GROUND[[0, 1, 3]], alpha, n=1000)
         means, counts = np.array([x.mean(0) for x in xs]), np.array([len(x) for x in xs], float)
         fits, info = structure_fits(model, fit_constant(model, alpha, means, counts, 100.0),
                                     means, counts, 100.0, 0.05)
         ext = fits[STRUCTURES.index("external_load")]
-        assert 0 < ext.rank <= info["residual_dof"] <= 18 - 13 < ext.nominal
+        assert 0 < ext.rank <= info["residual_dof"] <= 18 - 14 < ext.nominal
         q3.append(ext.statistic / ext.rank)
-    assert abs(np.mean(q3) - 1.0) < 0.35, np.mean(q3)
+    assert abs(np.mean(q3) - 1.0) < 0.4, np.mean(q3)
 
 
 def test_sequential_false_alarms_stay_within_the_overall_rate(model):
