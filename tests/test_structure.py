@@ -214,8 +214,8 @@ LOAD_DEPENDENT = {"angles": "linear", "angles.linear_deg_per_unit": [2e-5, 2e-5,
 def test_load_dependent_ground_test_says_not_constant_without_the_reset_cycle():
     """The issue's symptom, service path (simulator → content filter → the worker's code):
     angles moving 0.1–0.4° with the load, the six-condition ground-test, two sweeps. Every
-    known-load record carries ``structure``; it ends ``not_constant`` with the candidates the
-    design cannot separate; after the verdict no run is accepted and no reset happens.
+    known-load record carries ``structure``; it ends ``not_constant`` with the ranked
+    candidates (the top one explaining the data); after the verdict no run is accepted and no reset happens.
     Break-checked: without the not_constant branch in SequentialPosterior.update the same
     run goes accepted → inconsistent → reset → accepted (seed 1: resets at windows 10 and 21)."""
     from sim_bus import load_scenario
@@ -229,7 +229,7 @@ def test_load_dependent_ground_test_says_not_constant_without_the_reset_cycle():
     assert not any(r["reason"] == "reset" for r in recs)
     assert not any(r["accepted"] for r in recs[first:])
     cands = recs[-1]["candidates"]
-    assert cands and cands[0]["explains"] and cands[0]["not_separated_from"]
+    assert len(cands) >= 2 and cands[0]["explains"]
     assert {"statistic", "dof", "parameters", "per_kN"} <= set(cands[0])
 
 
