@@ -206,7 +206,12 @@ def main(argv: list[str] | None = None) -> int:
     seeds = list(range(1, 3 if args.tiny else args.seeds + 1))
     res = [r for rs in _map_with_progress(_one_seed_tiny if args.tiny else one_seed, seeds)
            for r in rs]
-    S = len(seeds)
+    report(res, len(seeds), w)
+    return 0
+
+
+def report(res: list[dict], S: int, w) -> None:
+    """The decisions of the module docstring over S seeds' arm results, as result lines."""
     by = {a: [r for r in res if r["arm"] == a] for a in ("constant", "step",
                                                          "constant_calibration",
                                                          *STRUCTURE_ARMS)}
@@ -247,7 +252,6 @@ def main(argv: list[str] | None = None) -> int:
               met=bool(he_s) and len(he_s) == S and max(he_s) <= 1.0,
               constant_model=max(he_c), constant_model_median=float(np.median(he_c)),
               **common)
-    return 0
 
 
 if __name__ == "__main__":

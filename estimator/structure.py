@@ -74,10 +74,10 @@ AXES = ("X", "Y", "Z", "L", "M", "N")
 FALSE_ALARM = 1e-3  # over the whole run (alpha spending)
 TIME_LEVEL = 1e-3  # per window: a change in time restarts the accumulation
 RANK_TOLERANCE = 1e-4  # singular values kept, relative to the largest of the structure
-CLUSTER_TOLERANCE = (100.0, 100.0)  # N, N·m: windows at the same load within this pool
+CLUSTER_TOLERANCE = (1000.0, 1000.0)  # N, N·m: windows at the same load within this pool
 MAX_CLUSTERS = 256  # bounded: a new load beyond this joins the nearest cluster
 MAX_PARAMETERS_REPORTED = 6  # per candidate, the most significant first
-GN_ITERATIONS = 4
+GN_ITERATIONS = 8
 
 
 # ------------------------------------------------------------------------------------------
@@ -590,7 +590,10 @@ class StructureTest:
         level = spend(self.look, self.false_alarm)
         means = np.array([c.mean for c in self.clusters])
         counts = np.array([c.n for c in self.clusters], float)
-        a = fit_constant(self.model, alpha, means, counts, self.moment_floor)
+        # from the previous fit (converged on the conditions seen so far), else the angles in
+        # force: Gauss–Newton from 4° away needs more than a few iterations
+        start = alpha if self.alpha is None else self.alpha
+        a = fit_constant(self.model, start, means, counts, self.moment_floor)
         self.alpha = a
         fits, _ = test_structures(self.model, a, means, counts, self.moment_floor, level,
                                   self.structures)
