@@ -356,7 +356,8 @@ def fit_constant(model: RigModel, alpha: np.ndarray, means: np.ndarray, counts: 
         a = a + step
         if np.max(np.abs(step)) < 1e-9:
             break
-    return a
+    # J is 2π-periodic in the angles: the equivalent nearest the start
+    return alpha + np.angle(np.exp(1j * (a - alpha)))
 
 
 @dataclass
@@ -435,6 +436,7 @@ def test_structures(model: RigModel, alpha: np.ndarray, means: np.ndarray, count
                 misfit = float(rj @ rj)
                 if np.max(np.abs(step)) < 1e-12:
                     break
+            a_j = alpha + np.angle(np.exp(1j * (a_j - alpha)))  # nearest the constant fit
             if misfit < total - q:  # the joint fit for the estimate and the misfit; the
                 # statistic stays the linearised one (χ² under constant angles, also where
                 # the nonlinear fit could exploit weakly determined angles)
@@ -590,10 +592,9 @@ class StructureTest:
         level = spend(self.look, self.false_alarm)
         means = np.array([c.mean for c in self.clusters])
         counts = np.array([c.n for c in self.clusters], float)
-        # from the previous fit (converged on the conditions seen so far), else the angles in
-        # force: Gauss–Newton from 4° away needs more than a few iterations
-        start = alpha if self.alpha is None else self.alpha
-        a = fit_constant(self.model, start, means, counts, self.moment_floor)
+        # from the angles in force at every look (a previous fit on fewer conditions can sit
+        # far off in directions they did not determine)
+        a = fit_constant(self.model, alpha, means, counts, self.moment_floor)
         self.alpha = a
         fits, _ = test_structures(self.model, a, means, counts, self.moment_floor, level,
                                   self.structures)
