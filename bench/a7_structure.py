@@ -100,7 +100,7 @@ def run_arm(cfg, arm: str, seed: int, tiny: bool = False) -> dict:
     sc = load_scenario("ground-test", **var)
     n = round((2 if arm in ("constant", "step") else 1) * sc.duration_s * fs)
     if tiny:
-        n = min(n, round(30 * fs))
+        n = min(n, round(20 * fs))
     run = simulate(cfg, sc, seed=seed, n_samples=n)
     cf = ContentFilter("static", fs, cfg.rotor.omega_nominal_rad_s, tuple(cfg.filter.harmonics),
                        25)
@@ -203,7 +203,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.seeds < 1:
         p.error("--seeds must be at least 1")
     w = writer_from_args(BENCH, args)
-    seeds = list(range(1, 3 if args.tiny else args.seeds + 1))
+    seeds = list(range(1, 2 if args.tiny else args.seeds + 1))
     res = [r for rs in _map_with_progress(_one_seed_tiny if args.tiny else one_seed, seeds)
            for r in rs]
     report(res, len(seeds), w)

@@ -41,7 +41,7 @@ BLAS_ENV = {"OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OMP_NUM_THREAD
 # benchmark modules in report order (run_all and the RESULTS.md table follow it)
 MODULES = ("p1_decode", "p2_filter_step", "p3_batch", "p4_identification", "p5_latency",
            "p6_max_rate", "p7_memory", "a1_noise_budget", "a2_filter_accuracy",
-           "a3_known_load", "a4_tracking", "a5_paper", "a6_flight")
+           "a3_known_load", "a4_tracking", "a5_paper", "a6_flight", "a7_structure")
 
 _LIBRARIES = {"numpy": "numpy", "scipy": "scipy", "python-can": "python-can",
               "canopen": "canopen", "zenoh": "eclipse-zenoh", "filterpy": "filterpy",
