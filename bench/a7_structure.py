@@ -241,12 +241,18 @@ def report(res: list[dict], S: int, w) -> None:
               not_constant=said, top=dict(zip(*np.unique([str(r["top"]) for r in rs],
                                                           return_counts=True))),
               first_look_median=float(np.median(firsts)) if firsts else None, **common)
-        w.add(f"estimate_{arm}", max(chis) if chis else None,
+        if not chis:  # no seed selected the structure (e.g. --tiny: too few conditions)
+            w.skip(f"estimate_{arm}", "no seed selected the structure",
+                   target=f"≤ {chi2_limit:.1f} on every seed (10⁻³ over seeds)")
+            w.skip(f"hub_loads_{arm}", "no seed selected the structure",
+                   target="≤ 1 on every axis at every condition, every seed")
+            continue
+        w.add(f"estimate_{arm}", max(chis),
               f"χ²_{dof} of [α0, β] against the fit's covariance (largest over seeds)",
               target=f"≤ {chi2_limit:.1f} on every seed (10⁻³ over seeds)",
               met=bool(chis) and len(chis) == S and max(chis) <= chi2_limit,
               chi2_mean=float(np.mean(chis)) if chis else None, dof=dof, **common)
-        w.add(f"hub_loads_{arm}", max(he_s) if he_s else None,
+        w.add(f"hub_loads_{arm}", max(he_s),
               "largest |Ĥ − H| / static bound over axes and conditions (window means)",
               target="≤ 1 on every axis at every condition, every seed (selected structure)",
               met=bool(he_s) and len(he_s) == S and max(he_s) <= 1.0,
