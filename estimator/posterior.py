@@ -69,13 +69,14 @@ from .identification import (
     scored_mask,
 )
 from .params import RigModel
+from .structure import StructureTest, StructureVerdict
 
 ACCEPTED = None
 REASONS = ("not_converged", "diverged", "not_identifiable", "inconsistent", "reset",
            "stale_input", "out_of_range")
 # the test that decided a run (the record's ``detail``; docs/telemetry.md)
 DETAILS = ("passed", "missing_samples", "convergence", "information_ratio", "own_information",
-           "robust_information", "innovations", "gate", "range")
+           "robust_information", "innovations", "gate", "range", "structure")
 MODES = ("known_loads", "filter_error")
 GATE_PROBABILITY = 0.999  # model §7: accepted when ν ≤ χ²_{d, 0.999}
 GATE_RELATIVE_EIGENVALUE = 1e-6  # directions of D kept by the gate, relative to the largest
@@ -133,13 +134,21 @@ class AnglesRecord:
     innovation: float | None = None  # filter error: q / its model-predicted mean
     innovation_limit: float | None = None  # the 1 − 10⁻³ point of the same ratio
     window_determined: int = 0  # directions the window's own (robust) information determines
+    # known loads: the structure test (estimator.structure; None in filter-error mode)
+    structure: str | None = None  # "constant", "not_constant", "undetermined"
+    candidates: list | None = None  # ranked, with their evidence (not_constant only)
+    structure_verdict: StructureVerdict | None = None
 
     def to_dict(self) -> dict:
         """The telemetry ``angles`` payload (SI: radians)."""
         keys = ("t", "seq", "mode", "content", "accepted", "reason", "detail", "names", "alpha",
                 "P", "sigma_cr", "sigma_cr_corrected", "determined", "window_determined",
                 "information", "nu", "cost", "iterations", "window", "applies_from_seq", "late")
-        return {k: _finite_or_none(getattr(self, k)) for k in keys}
+        out = {k: _finite_or_none(getattr(self, k)) for k in keys}
+        if self.mode == "known_loads":
+            out["structure"] = self.structure
+            out["candidates"] = _finite_or_none(self.candidates or [])
+        return out
 
 
 FORMAT_VERSION = 2  # 2: with the rig fingerprint; 1 (no fingerprint) is still read
@@ -515,9 +524,13 @@ class SequentialPosterior:
                 window: tuple[int, int], t: float | None, result: IdentificationResult | None,
                 information: float | None, nu: float | None, d: int, late: bool = False,
                 detail: str | None = None, checks: "FilterErrorChecks | None" = None,
-                window_determined: int = 0) -> AnglesRecord:
+                window_determined: int = 0,
+                structure: StructureVerdict | None = None) -> AnglesRecord:
         det, U, cond = determined_directions(self.P, self.sigma_max)
         return AnglesRecord(
+            structure=None if structure is None else structure.structure,
+            candidates=None if structure is None else structure.candidates,
+            structure_verdict=structure,
             t=t, seq=int(window[1]), mode=mode, content=content, accepted=accepted,
             reason=reason, names=self.names, alpha=self.theta.copy(), P=self.P.copy(),
             sigma_cr=None if result is None else result.sigma_cr,
@@ -552,6 +565,7 @@ class SequentialPosterior:
         dt: float = 0.0,
         gate: tuple[float, int] | None = None,
         checks: "FilterErrorChecks | None" = None,
+        structure: StructureVerdict | None = None,
     ) -> AnglesRecord:
         """Judge one run whose prior was :meth:`prior` (it is read from ``result``).
 
@@ -561,7 +575,7 @@ class SequentialPosterior:
         run) instead of the linearised ``Δθᵀ D⁺ Δθ``."""
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}")
-        kw = dict(mode=mode, content=content, window=window, t=t)
+        kw = dict(mode=mode, content=content, window=window, t=t, structure=structure)
         if result is None or missing_fraction > self.stale_fraction:
             return self._record(accepted=False, reason="stale_input", result=result,
                                 information=None, nu=None, d=0, detail="missing_samples", **kw)
@@ -580,6 +594,16 @@ class SequentialPosterior:
             self.drop_held()  # the held windows were part of this run
             return self._record(accepted=False, reason="out_of_range", result=result,
                                 information=None, nu=None, d=0, detail="range", **kw)
+        if structure is not None and structure.structure == "not_constant":
+            # the constant-angle model is rejected (estimator.structure): its runs can only
+            # disagree with each other, so none is accepted and none counts towards a reset —
+            # no accepted → inconsistent → reset → accepted cycle (issue 19)
+            self.drop_held()
+            nu = d = None
+            if gate is not None:
+                nu, d = float(gate[0]), int(gate[1])
+            return self._record(accepted=False, reason="inconsistent", result=result,
+                                information=info, nu=nu, d=d or 0, detail="structure", **kw)
         low = info < self.min_information
         if low and not self.gate_low_information:
             self._hold(moments)
@@ -737,6 +761,7 @@ class PeriodicIdentification:
     content_sos: np.ndarray | None = None  # the content filter (filter error: Γ(k) of §7 rule)
     robust_filter_error: bool = True  # False: model §7's decisions only (for comparison)
     false_alarm: float = 1e-3  # the innovation test's
+    structure_test: bool = True  # known loads: test constant angles (estimator.structure)
     filter_state: FilterErrorState | None = field(default=None, init=False)
     _settle_pending: int = field(default=0, init=False)
     _last_end: int | None = field(default=None, init=False)
@@ -749,6 +774,10 @@ class PeriodicIdentification:
         self.par = Parameterisation(self.model, self.posterior.names, self.alpha_base,
                                     moment_floor=self.moment_floor,
                                     known_loads=self.mode == "known_loads")
+        self.structure: StructureTest | None = None
+        if self.mode == "known_loads" and self.structure_test and self.content == "static":
+            # the test compares window means: static content only (docs/identification.md)
+            self.structure = StructureTest(self.model, self.moment_floor)
         self.mark_discontinuity()
 
     def _likelihood_ratio_gate(self, window_prob: Any, res: IdentificationResult,
@@ -832,9 +861,11 @@ class PeriodicIdentification:
         theta_p, P_p = self.posterior.prior(dt)
         missing = 1.0 - float(valid.mean()) if N else 1.0
         window = (seq0, seq1)
+        verdict = None if self.structure is None else self.structure.last
         if missing > self.posterior.stale_fraction:
             return self.posterior.update(None, window=window, mode=self.mode,
-                                         content=self.content, t=t, missing_fraction=missing)
+                                         content=self.content, t=t, missing_fraction=missing,
+                                         structure=verdict)
         max_lag = int(math.ceil(5.0 * self.correlation_time_s * self.fs))
         gap = N + 1 if self.gap_samples is None else self.gap_samples
         # a gap inside the window settles the content filter (and the calibration filter)
@@ -844,6 +875,9 @@ class PeriodicIdentification:
         post = self.posterior
         moments = None
         if self.mode == "known_loads":
+            if self.structure is not None:
+                x = self.par.stack(z, T, H, q)[scored]
+                verdict = self.structure.add_window(x, self.par.alpha(post.theta))
             prob = KnownLoadProblem(self.par, z, T, H, q, scored=scored)
             if post.relinearise and post.G_held is not None:
                 # windows held back as not identifiable on their own count with this one
@@ -894,7 +928,7 @@ class PeriodicIdentification:
                           t=t, missing_fraction=missing,
                           apply_delay_samples=self.apply_delay_samples,
                           arrived_seq=arrived_seq, moments=moments, dt=dt, gate=gate,
-                          checks=checks)
+                          checks=checks, structure=verdict)
         if self.mode == "filter_error" and res.end_state is not None and res.status != "diverged":
             self.filter_state = res.end_state
         if rec.accepted:

@@ -113,6 +113,12 @@ def hub_matrix(hub_position: np.ndarray, tilt_rad: float = 0.0, frame: str = "bo
     return R
 
 
+def skew3(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrix: skew3(a) @ b == a x b."""
+    x, y, z = v
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
 def minimum_strain_energy_split(S: np.ndarray, k: np.ndarray, wrench: np.ndarray) -> np.ndarray:
     """T minimising sum T_i^2 / (2 k_i) subject to S T + wrench = 0 (report Phase II)."""
     K = (S * k) @ S.T
@@ -360,7 +366,18 @@ class AircraftPhysics:
         b = cfg.balance
         fs = np.array([b.full_scale_force_N] * 3 + [b.full_scale_moment_Nm] * 3)
         self.balance_sigma = fs * b.accuracy_fs
-        self.R_body = hub_matrix(cfg.hub_centre_m, cfg.shaft_tilt_rad, "body")
+        rig_err = scenario.rig_errors
+        # the true hub centre (a scenario's rig error moves it off the configured one)
+        self.R_body = hub_matrix(np.asarray(cfg.hub_centre_m) + rig_err.hub_offset_m
+                                 if np.any(rig_err.hub_offset_m) else cfg.hub_centre_m,
+                                 cfg.shaft_tilt_rad, "body")
+        self.balance_read = None  # H_b = balance_read @ H_true when the balance is in error
+        if np.any(rig_err.balance_scale) or np.any(rig_err.balance_align_rad):
+            Rp = np.eye(3) + skew3(rig_err.balance_align_rad)
+            Dm = np.zeros((6, 6))
+            Dm[:3, :3] = Rp @ np.diag(1 + rig_err.balance_scale[:3])
+            Dm[3:, 3:] = Rp @ np.diag(1 + rig_err.balance_scale[3:])
+            self.balance_read = np.linalg.inv(Dm)
         self.D = (np.array([e.wrench_per_unit for e in cfg.external_loads]).T
                   if cfg.external_loads else np.zeros((6, 0)))
         self.drive_sigma = np.array([e.sigma for e in cfg.external_loads])
@@ -426,6 +443,9 @@ class AircraftPhysics:
         self.alpha_gain = lin_signs * ang.linear_rad_per_unit  # (14, 6) rad per N, N·m
         self.drive_phase = rng.uniform(0, 2 * np.pi, self.Q)
         self.drive_order = (self.blades if sc.drive.order == "blades" else int(sc.drive.order))
+        self.cell_gain = np.zeros(14)
+        if ang.mode == "cell_load":  # the last draw of this stream: the others unchanged
+            self.cell_gain = rng.choice([-1.0, 1.0], 14) * ang.cell_gain_rad_per_N
 
     def _build_schedules(self) -> None:
         sc = self.scenario
@@ -623,6 +643,15 @@ class AircraftPhysics:
             d = static_body @ self.alpha_gain.T
             res = ang.resolution_rad
             alpha += res * np.rint(d / res)  # held on a grid: one discretisation per value
+        elif ang.mode == "cell_load":
+            # each angle moves with its own cell's static load: the minimum-strain-energy split
+            # of the static CG wrench at the base angles (S T + R H + W_g = 0 at rest)
+            S = wrench_matrix_true(self.positions, cell_axes_true(self.nominal_axes,
+                                                                  self.alpha_base))
+            T = minimum_strain_energy_split(S, self.k, static_body @ self.R_body.T + self.W_g).T
+            d = T[:, np.arange(14) // 2] * self.cell_gain
+            res = ang.resolution_rad
+            alpha += res * np.rint(d / res)
         return alpha
 
     def _base_motion(self, B: int, n: int):
@@ -707,9 +736,14 @@ class AircraftPhysics:
             T = T_true + r["cell"].standard_normal((B, 7)) * self.cell_sigma
             acc = accel_true + r["acc"].standard_normal((B, K, 3)) * self.acc_sigma[None, :, None]
             Hb = H_true + r["bal"].standard_normal((B, 6)) * self.balance_sigma
+            if self.balance_read is not None:
+                Hb = (H_true @ self.balance_read.T
+                      + (Hb - H_true))  # the balance's reading error, its noise unchanged
             drv = drive_true + r["drive"].standard_normal((B, self.Q)) * self.drive_sigma
         else:
             T, acc, Hb, drv = T_true.copy(), accel_true.copy(), H_true.copy(), drive_true.copy()
+            if self.balance_read is not None:
+                Hb = H_true @ self.balance_read.T
         status = (np.abs(T) > self.cell_fs).astype(np.uint8)  # bit 0: over-range
         az = 2 * np.pi * np.mod(turns[S0], 1.0)
         az[az >= 2 * np.pi] = 0.0

@@ -27,7 +27,7 @@ from rsra.config.rig import ConfigError, Section, config_dir
 from rsra.config.units import LBF_N
 
 AXES = ("X", "Y", "Z", "L", "M", "N")
-ANGLE_MODES = ("constant", "step", "linear")
+ANGLE_MODES = ("constant", "step", "linear", "cell_load")
 LOAD_FRAMES = ("body", "shaft")
 OPTIONAL_NODE_ROLES = ("rotor_speed", "balance", "drive_load")
 SCENARIO_KEYS = ("noise", "seed", "gravity", "quasi_static", "duration_s", "run_s")
@@ -117,6 +117,9 @@ class AngleModel:
     step_at_s: tuple[float, ...]
     linear_rad_per_unit: np.ndarray  # (6,) per N, N·m of static hub load; random sign per angle
     resolution_rad: float  # the linear part is held on this grid (one discretisation per value)
+    # "cell_load": every angle moves with the static load of its own cell (issue 19), by this
+    # much per N, random sign per angle: the estimator's ``cell_load_angles`` structure
+    cell_gain_rad_per_N: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -145,6 +148,24 @@ class UnmodelledLoad:
     roll_Nm_per_N_Y: float
     x_N_per_N_X: float
     phase_rad: float
+
+
+@dataclass(frozen=True)
+class RigErrors:
+    """Errors of the rig the estimator's constant model does not know (issue 19, the competing
+    structures): the true hub centre is off the configured one by ``hub_offset_m``; the
+    reference balance reads with per-axis scale errors and an alignment error — it reads
+    ``H_b`` with ``H_true = [(I + skew φ)(1 + s_F)∘F_b; (I + skew φ)(1 + s_M)∘M_b]``. Zero:
+    none (the default, bit-identical to before)."""
+
+    hub_offset_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    balance_scale: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    balance_align_rad: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    @property
+    def any(self) -> bool:
+        return bool(np.any(self.hub_offset_m) or np.any(self.balance_scale)
+                    or np.any(self.balance_align_rad))
 
 
 @dataclass(frozen=True)
@@ -181,6 +202,7 @@ class Scenario:
     variants: dict = field(default_factory=dict)
     turbulence: Turbulence = field(default_factory=lambda: Turbulence(
         False, np.zeros(6), (0.5, 40.0)))
+    rig_errors: RigErrors = field(default_factory=RigErrors)
 
 
 def scenario_dir() -> Path:
@@ -395,6 +417,8 @@ def parse_scenario(raw: dict, source: str = "<scenario>", variants: dict | None 
         step_at_s=tuple(float(s) for s in steps),
         linear_rad_per_unit=np.radians(_six(an, "linear_deg_per_unit", [0, 0, 1e-5, 0, 0, 0])),
         resolution_rad=math.radians(an.number("resolution_deg", 0.01, positive=True)),
+        cell_gain_rad_per_N=math.radians(an.number("cell_gain_deg_per_kN", 0.0, nonneg=True))
+        / 1000.0,
     )
     if mode == "step" and not angles.step_at_s:
         raise an.error("step_at_s", [], 'mode = "step" needs at least one step time',
@@ -435,6 +459,17 @@ def parse_scenario(raw: dict, source: str = "<scenario>", variants: dict | None 
     )
     um.finish()
 
+    re_ = top.table("rig_errors", {})
+    rig_errors = RigErrors(
+        hub_offset_m=re_.vector("hub_offset_m", 3, [0.0, 0.0, 0.0], unit=" in m"),
+        balance_scale=_six(re_, "balance_scale", [0.0] * 6),
+        balance_align_rad=np.radians(re_.vector("balance_align_deg", 3, [0.0, 0.0, 0.0],
+                                                unit=" in degrees")))
+    if np.any(np.abs(rig_errors.balance_scale) >= 0.5):
+        raise re_.error("balance_scale", rig_errors.balance_scale.tolist(),
+                        "must be fractions within +-0.5", "e.g. balance_scale = [0.01, 0, 0, 0, 0, 0]")
+    re_.finish()
+
     dr = top.table("drive", {})
     drive = DriveLoads(static=dr.number("static", 0.0),
                        amplitude=dr.number("amplitude", 0.0, nonneg=True),
@@ -451,4 +486,4 @@ def parse_scenario(raw: dict, source: str = "<scenario>", variants: dict | None 
                     manoeuvres=tuple(manoeuvres), shaker=shaker, rotor=rotor, angles=angles,
                     base_vibration=base_vibration, unmodelled=unmodelled, drive=drive,
                     rig_overrides=overrides, variants=dict(variants or {}),
-                    turbulence=turbulence)
+                    turbulence=turbulence, rig_errors=rig_errors)

@@ -36,7 +36,8 @@ FIELDS: dict[str, list[tuple[str, str, str]]] = {
         ("information", "number", ""), ("nu", "number", ""), ("cost", "number", ""),
         ("iterations", "integer", ""), ("window", "array:integer", ""),
         ("applies_from_seq", "integer", ""), ("late", "boolean", ""),
-        ("restarted", "boolean", ""), ("condition", "number", "")],
+        ("restarted", "boolean", ""), ("condition", "number", ""),
+        ("structure", "string", ""), ("candidates", "array:object", "")],
     "health": [
         ("t", "number", "s (UNIX)"), ("nodes", "object", ""),
         ("nodes.<node>.state", "string", ""), ("nodes.<node>.heartbeat_age", "number", "s"),

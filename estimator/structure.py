@@ -1,0 +1,643 @@
+"""When the angles are not constant: competing structures of the known-load model and a
+sequential test of the constant-angle model against them (issue 19; docs/identification.md,
+"When the model is wrong: structures").
+
+The known-load balance is ``z = S(α) T + R₀ H (+ E q)``; its residual at the constant-angle
+model is ``r = z − S(α) T − R₀ H − E q``. Each competing structure adds a term that is zero at
+β = 0 and predicts, for the same measured (z, T, H), a model ``m(α, β; T, H)``:
+
+* ``cell_load_angles`` — every angle moves with the load its own cell carries,
+  ``α_k = α0_k + g_k T_c(k)`` (14 gains, rad/N: a compliance-like gain per angle; the rigid-body
+  model has no link length, so this is what a deflecting transmission can be identified as);
+* ``hub_position`` — the hub centre is off by δp (3, m): ``R(p_H + δp)``;
+* ``balance`` — the reference balance has per-axis scale errors s (6) and an alignment error φ
+  (3, rad): the true hub load is ``[(I + skew φ)(1 + s_F)∘F_b; (I + skew φ)(1 + s_M)∘M_b]``;
+* ``external_load`` — an unmodelled load path: a CG wrench linear in the applied hub forces,
+  ``U F`` (6×3, N or N·m per N; the report's Phase I roll torque ∝ Y and x-force ∝ X).
+
+**The interface for the experiment design** (another module chooses the next load conditions):
+everything the structures are is in three pure functions of (model, α, mean data), no state:
+:func:`parameter_names` (names and units), :func:`angle_jacobian` (``∂m/∂α``, 6×14 for one
+condition) and :func:`structure_jacobian` (``∂m/∂β`` at β = 0, 6×p for one condition, given
+the condition's mean ``x̄ = [z, T, H, q]``; T can be predicted for a planned condition by the
+minimum-strain-energy split). The information of a design about (α, β) is
+``Σ_c n_c [J_α J_β]ᵀ W⁻¹ [J_α J_β]`` over its conditions; :func:`design_ranks` gives, per
+structure, the rank of β left after the angles (the testable directions) and which structures
+a design cannot separate.
+
+The test (:class:`StructureTest`): static known-load windows are summarised by their means; a
+window of n scored samples has a mean residual of covariance W(α)/n (W the effective-variance
+weight of model §7; the static content filter has unit gain at DC). Windows at the same load
+(within ``cluster_tolerance``) are pooled: every structure predicts the same residual at the
+same load, so pooling loses nothing. At every look (every known-load window):
+
+1. *a change in time* — the new window's mean residual against its cluster's earlier windows
+   (χ²₆; the same load, so the difference does not depend on any structure): significant at
+   ``time_level`` (10⁻³ per window) restarts the accumulation from this window (a step in the
+   angles, bench A4, is a change in time, not a load dependence);
+2. the constant-angle model is fitted to the cluster means (Gauss–Newton on the 14 angles,
+   pseudo-inverse: directions the design does not determine stay where they are);
+3. for each structure s, its whitened Jacobian is projected off the angles' span; the rank
+   r_s of what is left (singular values above ``RANK_TOLERANCE`` of the largest) is the
+   number of testable directions. The likelihood-ratio statistic of the linearised model,
+   ``q_s = ‖U_sᵀ ê‖²`` (ê the whitened residual of the constant fit, U_s the left singular
+   vectors kept), is χ²_{r_s} under constant angles;
+4. the constant model is rejected at look k when some ``q_s > χ²_{r_s}(1 − a_k/S)``, with the
+   alpha-spending rule ``a_k = A · 6/(π² k²)`` (Σ a_k = A = 10⁻³ over any number of looks;
+   Bonferroni over the S structures): the false-alarm rate of saying ``not_constant`` at any
+   time of the run is at most A, whatever the dependence between looks. Once rejected, the
+   verdict stays ``not_constant`` until a change in time restarts the accumulation.
+
+Candidates are ranked: those whose remaining misfit ``‖ê‖² − q_s`` passes at the same level
+("explains the data") first, then by the p-value of q_s (a smaller structure that explains as
+much ranks before a larger one that contains it). Each carries the fitted parameters (in the
+determined directions; min-norm), their σ, the same per kN of load, and the statistic.
+
+Pure numerics.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+from scipy.stats import chi2
+
+from .balance import measurement_covariance
+from .geometry import hub_transfer_matrix, skew, wrench_matrix, wrench_matrix_jacobian
+from .params import RigModel
+
+STRUCTURES = ("cell_load_angles", "hub_position", "balance", "external_load")
+VERDICTS = ("constant", "not_constant", "undetermined")
+AXES = ("X", "Y", "Z", "L", "M", "N")
+FALSE_ALARM = 1e-3  # over the whole run (alpha spending)
+TIME_LEVEL = 1e-3  # per window: a change in time restarts the accumulation
+RANK_TOLERANCE = 1e-4  # singular values kept, relative to the largest of the structure
+CLUSTER_TOLERANCE = (1000.0, 1000.0)  # N, N·m: windows at the same load within this pool
+MAX_CLUSTERS = 256  # bounded: a new load beyond this joins the nearest cluster
+MAX_PARAMETERS_REPORTED = 6  # per candidate, the most significant first
+GN_ITERATIONS = 8
+
+
+# ------------------------------------------------------------------------------------------
+# The structures: names, units and Jacobians (pure; the experiment design calls these)
+# ------------------------------------------------------------------------------------------
+def parameter_names(structure: str, model: RigModel) -> tuple[str, ...]:
+    """The parameters β of a structure, in order."""
+    g = model.geometry
+    if structure == "cell_load_angles":
+        return tuple(f"g_{a}" for a in g.angle_names)
+    if structure == "hub_position":
+        return ("hub_dx", "hub_dy", "hub_dz")
+    if structure == "balance":
+        return tuple(f"scale_{a}" for a in AXES) + ("align_x", "align_y", "align_z")
+    if structure == "external_load":
+        return tuple(f"ext_{r}_per_{c}" for r in AXES for c in AXES[:3])
+    raise ValueError(f"unknown structure {structure!r}; choose from {STRUCTURES}")
+
+
+def parameter_units(structure: str, model: RigModel) -> tuple[str, ...]:
+    """Unit of each parameter per kN of load (the ``per_kN`` of a candidate)."""
+    names = parameter_names(structure, model)
+    if structure == "cell_load_angles":
+        return ("deg/kN",) * len(names)  # angle change per kN on its own cell
+    if structure == "hub_position":
+        return ("N·m/kN",) * 3  # moment error per kN of hub force (= mm of hub offset)
+    if structure == "balance":
+        return ("N/kN",) * 3 + ("N·m/kN",) * 3 + ("N/kN",) * 3  # error per kN (N·m) read
+    return tuple("N/kN" if n.split("_")[1] in "XYZ" else "N·m/kN" for n in names)
+
+
+def per_kN(structure: str, beta: np.ndarray) -> np.ndarray:
+    """β expressed per kN of load in :func:`parameter_units` (deg/kN for angle gains)."""
+    beta = np.asarray(beta, float)
+    if structure == "cell_load_angles":
+        return np.degrees(beta) * 1e3
+    return beta * 1e3
+
+
+def _split(model: RigModel, xbar: np.ndarray) -> tuple[np.ndarray, ...]:
+    n = model.geometry.n_cells
+    x = np.asarray(xbar, float)
+    return x[:6], x[6:6 + n], x[6 + n:12 + n], x[12 + n:]
+
+
+def residual(model: RigModel, alpha: np.ndarray, xbar: np.ndarray) -> np.ndarray:
+    """r = z − S(α) T − R₀ H − E q of one condition's mean ``x̄ = [z, T, H, q]``."""
+    z, T, H, q = _split(model, xbar)
+    r = z - wrench_matrix(model.geometry, alpha) @ T - hub_transfer_matrix(model.geometry,
+                                                                            "body") @ H
+    if q.size:
+        r = r - model.external.wrenches @ q
+    return r
+
+
+def structure_residual(structure: str | None, model: RigModel, alpha: np.ndarray,
+                       beta: np.ndarray | None, xbar: np.ndarray) -> np.ndarray:
+    """r = z − m(α, β; T, H) of one condition's mean under a structure (exact in β; the
+    cell-load gains act on the mean cell load)."""
+    if structure in (None, "constant"):
+        return residual(model, alpha, xbar)
+    g = model.geometry
+    z, T, H, q = _split(model, xbar)
+    beta = np.asarray(beta, float)
+    R0 = hub_transfer_matrix(g, "body")
+    if structure == "cell_load_angles":
+        a = np.asarray(alpha, float) + beta * T[np.arange(2 * g.n_cells) // 2]
+        m = wrench_matrix(g, a) @ T + R0 @ H
+    elif structure == "balance":
+        Rp = np.eye(3) + skew(beta[6:9])
+        Ht = np.concatenate([Rp @ ((1 + beta[:3]) * H[:3]), Rp @ ((1 + beta[3:6]) * H[3:])])
+        m = wrench_matrix(g, alpha) @ T + R0 @ Ht
+    else:
+        m = wrench_matrix(g, alpha) @ T + structure_matrices(structure, beta, model)["R"] @ H
+    if q.size:
+        m = m + model.external.wrenches @ q
+    return z - m
+
+
+def angle_jacobian(model: RigModel, alpha: np.ndarray, xbar: np.ndarray) -> np.ndarray:
+    """∂m/∂α (6, 14) of one condition: column k is ∂S/∂α_k T."""
+    _, T, _, _ = _split(model, xbar)
+    dS = wrench_matrix_jacobian(model.geometry, alpha)  # (14, 6, 7)
+    return np.einsum("kac,c->ak", dS, T)
+
+
+def structure_jacobian(structure: str, model: RigModel, alpha: np.ndarray,
+                       xbar: np.ndarray) -> np.ndarray:
+    """∂m/∂β (6, p) at β = 0 of one condition (m: the model's prediction of z)."""
+    g = model.geometry
+    z, T, H, q = _split(model, xbar)
+    F, Mo = H[:3], H[3:]
+    if structure == "cell_load_angles":
+        dS = wrench_matrix_jacobian(g, alpha)
+        cell = np.arange(2 * g.n_cells) // 2
+        # α_k = α0_k + g_k T_c(k): ∂(S T)/∂g_k = ∂S/∂α_k[:, c] T_c · T_c
+        return np.stack([dS[k, :, cell[k]] * T[cell[k]] ** 2 for k in range(2 * g.n_cells)],
+                        axis=1)
+    if structure == "hub_position":
+        J = np.zeros((6, 3))
+        J[3:] = -skew(F)  # δp × F
+        return J
+    if structure == "balance":
+        R0 = hub_transfer_matrix(g, "body")
+        D = np.zeros((6, 9))
+        D[:, :6] = np.diag(H)  # scale: (1 + s) ∘ H
+        D[:3, 6:] = -skew(F)  # alignment: φ × F, φ × M
+        D[3:, 6:] = -skew(Mo)
+        return R0 @ D
+    if structure == "external_load":
+        return np.kron(np.eye(6), F[None, :])  # U F, U row-major (6×3)
+    raise ValueError(f"unknown structure {structure!r}; choose from {STRUCTURES}")
+
+
+def structure_matrices(structure: str, beta: np.ndarray, model: RigModel
+                       ) -> dict[str, np.ndarray]:
+    """The exact (not linearised) model pieces of a structure at β, for hub loads."""
+    g = model.geometry
+    beta = np.asarray(beta, float)
+    R0 = hub_transfer_matrix(g, "body")
+    out: dict[str, np.ndarray] = {"R": R0}
+    if structure == "hub_position":
+        R = R0.copy()
+        R[3:, :3] = skew(g.hub_position + beta)
+        out["R"] = R
+    elif structure == "external_load":
+        R = R0.copy()
+        R[:, :3] += beta.reshape(6, 3)
+        out["R"] = R
+    elif structure == "cell_load_angles":
+        out["gain"] = beta
+    return out
+
+
+def hub_loads(structure: str | None, model: RigModel, alpha: np.ndarray, beta: np.ndarray | None,
+              z: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """The static estimate Ĥ (N, 6, body axes) under a structure: ``R(β)⁻¹ (z − S(α(T)) T)``.
+    ``None`` or ``"constant"``: the constant-angle model. A balance error changes only the
+    reference, not the estimate (its α0 is what the estimator uses)."""
+    z, T = np.atleast_2d(np.asarray(z, float)), np.atleast_2d(np.asarray(T, float))
+    g = model.geometry
+    alpha = np.asarray(alpha, float)
+    if structure in (None, "constant", "balance"):
+        S = wrench_matrix(g, alpha)
+        return np.linalg.solve(hub_transfer_matrix(g, "body"), (z - T @ S.T).T).T
+    m = structure_matrices(structure, beta, model)
+    if structure == "cell_load_angles":
+        cell = np.arange(2 * g.n_cells) // 2
+        out = np.empty_like(z)
+        for n in range(len(z)):
+            S = wrench_matrix(g, alpha + m["gain"] * T[n, cell])
+            out[n] = z[n] - S @ T[n]
+        return np.linalg.solve(m["R"], out.T).T
+    S = wrench_matrix(g, alpha)
+    return np.linalg.solve(m["R"], (z - T @ S.T).T).T
+
+
+# ------------------------------------------------------------------------------------------
+# The linearised test on condition means
+# ------------------------------------------------------------------------------------------
+def _whitener(model: RigModel, alpha: np.ndarray, moment_floor: float) -> np.ndarray:
+    W = measurement_covariance(model, alpha, moment_floor, True)
+    return np.linalg.inv(np.linalg.cholesky(W))  # L⁻¹: L⁻¹ r has unit covariance (n = 1)
+
+
+def _batched(model: RigModel, alpha: np.ndarray, means: np.ndarray, structures: Sequence[str]
+             ) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """r (C, 6), ∂m/∂α (C, 6, 14) and ∂m/∂β (C, 6, p) of every condition at once (the same
+    as :func:`residual`, :func:`angle_jacobian`, :func:`structure_jacobian` per condition)."""
+    g = model.geometry
+    n = g.n_cells
+    X = np.atleast_2d(np.asarray(means, float))
+    z, T, H, q = X[:, :6], X[:, 6:6 + n], X[:, 6 + n:12 + n], X[:, 12 + n:]
+    S = wrench_matrix(g, alpha)
+    dS = wrench_matrix_jacobian(g, alpha)
+    R0 = hub_transfer_matrix(g, "body")
+    r = z - T @ S.T - H @ R0.T
+    if q.shape[1]:
+        r = r - q @ model.external.wrenches.T
+    Ja = np.einsum("kac,nc->nak", dS, T)
+    C = len(X)
+    F, Mo = H[:, :3], H[:, 3:]
+
+    def skews(v):  # (C, 3, 3): −skew(v) · x = x × v … the batched skew(v)
+        o = np.zeros((len(v), 3, 3))
+        o[:, 0, 1], o[:, 0, 2], o[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+        o[:, 1, 0], o[:, 2, 0], o[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+        return o
+
+    Js: dict[str, np.ndarray] = {}
+    for st in structures:
+        if st == "cell_load_angles":
+            cell = np.arange(2 * n) // 2
+            D = dS[np.arange(2 * n), :, cell]  # (14, 6)
+            Js[st] = D.T[None, :, :] * (T[:, cell] ** 2)[:, None, :]
+        elif st == "hub_position":
+            J = np.zeros((C, 6, 3))
+            J[:, 3:] = -skews(F)
+            Js[st] = J
+        elif st == "balance":
+            D = np.zeros((C, 6, 9))
+            D[:, np.arange(6), np.arange(6)] = H
+            D[:, :3, 6:] = -skews(F)
+            D[:, 3:, 6:] = -skews(Mo)
+            Js[st] = np.einsum("ab,nbk->nak", R0, D)
+        elif st == "external_load":
+            J = np.zeros((C, 6, 18))
+            for i in range(6):
+                J[:, i, 3 * i:3 * i + 3] = F
+            Js[st] = J
+        else:
+            raise ValueError(f"unknown structure {st!r}; choose from {STRUCTURES}")
+    return r, Ja, Js
+
+
+def _stack(model: RigModel, alpha: np.ndarray, means: np.ndarray, counts: np.ndarray,
+           Li: np.ndarray, structures: Sequence[str]):
+    sw = np.sqrt(np.asarray(counts, float))[:, None, None]
+    r, Ja, Js = _batched(model, alpha, means, structures)
+
+    def white(A):  # (C, 6, k) → (6C, k), whitened and weighted by √n
+        return (np.einsum("ab,nbk->nak", Li, A) * sw).reshape(-1, A.shape[2])
+
+    return (white(r[:, :, None])[:, 0], white(Ja), {st: white(J) for st, J in Js.items()})
+
+
+def _white_residual(st: str, model: RigModel, alpha: np.ndarray, beta: np.ndarray,
+                    means: np.ndarray, counts: np.ndarray, Li: np.ndarray) -> np.ndarray:
+    """The whitened, √n-weighted residuals (6C,) of every condition under a structure."""
+    g = model.geometry
+    n = g.n_cells
+    X = np.atleast_2d(np.asarray(means, float))
+    z, T, H, q = X[:, :6], X[:, 6:6 + n], X[:, 6 + n:12 + n], X[:, 12 + n:]
+    R0 = hub_transfer_matrix(g, "body")
+    if st == "cell_load_angles":
+        cell = np.arange(2 * n) // 2
+        ST = np.array([wrench_matrix(g, alpha + beta * Tn[cell]) @ Tn for Tn in T])
+        m = ST + H @ R0.T
+    elif st == "balance":
+        Rp = np.eye(3) + skew(beta[6:9])
+        Ht = np.hstack([(H[:, :3] * (1 + beta[:3])) @ Rp.T, (H[:, 3:] * (1 + beta[3:6])) @ Rp.T])
+        m = T @ wrench_matrix(g, alpha).T + Ht @ R0.T
+    else:
+        m = T @ wrench_matrix(g, alpha).T + H @ structure_matrices(st, beta, model)["R"].T
+    if q.shape[1]:
+        m = m + q @ model.external.wrenches.T
+    r = (z - m) @ Li.T * np.sqrt(np.asarray(counts, float))[:, None]
+    return r.reshape(-1)
+
+
+def _unit_columns(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A with every column scaled to unit length (ranks do not depend on parameter units)."""
+    c = np.linalg.norm(A, axis=0)
+    c = np.where(c > 0, c, 1.0)
+    return A / c, c
+
+
+def _range_basis(A: np.ndarray, tol: float = RANK_TOLERANCE) -> np.ndarray:
+    if A.size == 0:
+        return np.zeros((A.shape[0], 0))
+    U, s, _ = np.linalg.svd(_unit_columns(A)[0], full_matrices=False)
+    if not len(s) or s[0] <= 0:
+        return np.zeros((A.shape[0], 0))
+    return U[:, s > tol * s[0]]
+
+
+def fit_constant(model: RigModel, alpha: np.ndarray, means: np.ndarray, counts: np.ndarray,
+                 moment_floor: float, iterations: int = GN_ITERATIONS) -> np.ndarray:
+    """The constant-angle fit to condition means: Gauss–Newton with the pseudo-inverse (the
+    directions the conditions do not determine stay at ``alpha``)."""
+    a = np.asarray(alpha, float).copy()
+    Li = _whitener(model, a, moment_floor)
+    for _ in range(iterations):
+        r, Ja, _ = _stack(model, a, means, counts, Li, ())
+        step, *_ = np.linalg.lstsq(Ja, r, rcond=RANK_TOLERANCE)
+        a = a + step
+        if np.max(np.abs(step)) < 1e-9:
+            break
+    # J is 2π-periodic in the angles: the equivalent nearest the start
+    return alpha + np.angle(np.exp(1j * (a - alpha)))
+
+
+@dataclass
+class StructureFit:
+    """One structure against the constant model on the accumulated conditions."""
+
+    structure: str
+    rank: int  # testable directions (determined after the angles)
+    nominal: int  # number of parameters
+    statistic: float  # q_s, χ²_rank under constant angles
+    limit: float  # the rejection limit at this look
+    log10_p: float  # log10 of the p-value of q_s
+    misfit: float  # what is left after the structure
+    misfit_dof: int
+    misfit_limit: float
+    beta: np.ndarray  # min-norm estimate in the determined directions
+    sigma: np.ndarray  # its standard deviation (inf where not determined)
+    determined: bool  # every parameter determined (rank == nominal)
+    alpha: np.ndarray | None = None  # the angles of the joint fit (α0 of the structure)
+    P: np.ndarray | None = None  # covariance of the joint fit [α0, β] (pseudo-inverse)
+
+    @property
+    def rejects_constant(self) -> bool:
+        return self.rank > 0 and self.statistic > self.limit
+
+    @property
+    def explains(self) -> bool:
+        return self.misfit <= self.misfit_limit
+
+
+def test_structures(model: RigModel, alpha: np.ndarray, means: np.ndarray, counts: np.ndarray,
+                    moment_floor: float, level: float,
+                    structures: Sequence[str] = STRUCTURES) -> tuple[list[StructureFit], dict]:
+    """Every structure against the constant-angle model on condition means at α (already the
+    constant fit); ``level``: the false-alarm rate of this look (split over the structures)."""
+    Li = _whitener(model, alpha, moment_floor)
+    r, Ja, Js = _stack(model, alpha, means, counts, Li, structures)
+    Ua = _range_basis(Ja)
+    e = r - Ua @ (Ua.T @ r)  # the whitened residual of the constant fit
+    total = float(e @ e)
+    n_eq, ra = len(r), Ua.shape[1]
+    each = level / max(len(structures), 1)
+    fits = []
+    for st in structures:
+        X, cs = _unit_columns(Js[st])  # the rank on unit columns: units do not matter
+        X = X - Ua @ (Ua.T @ X)
+        p = X.shape[1]
+        U, s, Vt = np.linalg.svd(X, full_matrices=False)
+        keep = s > RANK_TOLERANCE * s[0] if len(s) and s[0] > 0 else np.zeros(len(s), bool)
+        rank = int(keep.sum())
+        Uk, sk, Vk = U[:, keep], s[keep], Vt[keep].T
+        proj = Uk.T @ e
+        q = float(proj @ proj)
+        beta = (Vk @ (proj / sk) if rank else np.zeros(p)) / cs
+        var = (Vk**2) @ (1.0 / sk**2) if rank else np.full(p, np.inf)
+        sigma = np.sqrt(var) / cs
+        if rank < p:  # a parameter with a component outside the determined directions
+            outside = 1.0 - np.sum(Vk**2, axis=1) if rank else np.ones(p)
+            sigma = np.where(outside > 1e-9, np.inf, sigma)
+        mdof = n_eq - ra - rank
+        limit = float(chi2.isf(each, rank)) if rank else math.inf
+        mlimit = float(chi2.isf(each, mdof)) if mdof > 0 else math.inf
+        a_fit = np.asarray(alpha, float).copy()
+        P_joint = None
+        misfit = total - q
+        if rank:  # the joint (α, β) fit, exact in β: Gauss–Newton from the linear estimate
+            a_j, b_j = np.asarray(alpha, float).copy(), beta.copy()
+            J, cj = _unit_columns(np.hstack([Ja, Js[st]]))
+            misfit = total - q
+            rj = _white_residual(st, model, a_j, b_j, means, counts, Li)
+            for _ in range(GN_ITERATIONS):
+                step, *_ = np.linalg.lstsq(J, rj, rcond=RANK_TOLERANCE)
+                step = step / cj
+                a_j, b_j = a_j + step[:len(a_j)], b_j + step[len(a_j):]
+                rj = _white_residual(st, model, a_j, b_j, means, counts, Li)
+                misfit = float(rj @ rj)
+                if np.max(np.abs(step)) < 1e-12:
+                    break
+            a_j = alpha + np.angle(np.exp(1j * (a_j - alpha)))  # nearest the constant fit
+            if misfit < total - q:  # the joint fit for the estimate and the misfit; the
+                # statistic stays the linearised one (χ² under constant angles, also where
+                # the nonlinear fit could exploit weakly determined angles)
+                beta, a_fit = b_j, a_j
+            else:
+                misfit = total - q
+            P_joint = (np.linalg.pinv(J.T @ J, rcond=RANK_TOLERANCE**2, hermitian=True)
+                       / cj[:, None] / cj[None, :])
+        logp = float(chi2.logsf(q, rank) / math.log(10)) if rank else 0.0
+        fits.append(StructureFit(st, rank, p, q, limit, logp, max(misfit, 0.0), mdof, mlimit,
+                                 beta, sigma, rank == p, a_fit, P_joint))
+    info = {"equations": n_eq, "angle_rank": ra, "residual": total,
+            "residual_dof": n_eq - ra}
+    return fits, info
+
+
+def design_ranks(model: RigModel, alpha: np.ndarray, means: np.ndarray,
+                 counts: np.ndarray | None = None, moment_floor: float = 100.0,
+                 structures: Sequence[str] = STRUCTURES) -> dict:
+    """What a design (its condition means) can tell: the rank of the angles, per structure
+    the rank left after the angles, and per pair of structures the rank of their union — a
+    union rank below the sum means directions the design cannot tell apart."""
+    counts = np.ones(len(means)) if counts is None else counts
+    Li = _whitener(model, alpha, moment_floor)
+    _, Ja, Js = _stack(model, alpha, means, counts, Li, structures)
+    Ua = _range_basis(Ja)
+
+    def after(X):
+        return X - Ua @ (Ua.T @ X)
+
+    ranks = {st: _range_basis(after(Js[st])).shape[1] for st in structures}
+    pairs = {}
+    for i, a in enumerate(structures):
+        for b in structures[i + 1:]:
+            u = _range_basis(after(np.hstack([Js[a], Js[b]]))).shape[1]
+            pairs[f"{a}+{b}"] = {"union": u, "shared": ranks[a] + ranks[b] - u}
+    return {"equations": Ja.shape[0], "angle_rank": Ua.shape[1],
+            "nominal": {st: Js[st].shape[1] for st in structures}, "rank": ranks,
+            "pairs": pairs}
+
+
+def spend(look: int, total: float = FALSE_ALARM) -> float:
+    """The alpha-spending rule: the level of look k (1, 2, …), Σ_k = total."""
+    return total * 6.0 / (math.pi**2 * look**2)
+
+
+# ------------------------------------------------------------------------------------------
+# The sequential test
+# ------------------------------------------------------------------------------------------
+@dataclass
+class _Cluster:
+    sum_x: np.ndarray
+    n: int
+    windows: int
+
+    @property
+    def mean(self) -> np.ndarray:
+        return self.sum_x / self.n
+
+
+@dataclass
+class StructureVerdict:
+    """What the ``angles`` record carries (docs/telemetry.md): ``structure`` and
+    ``candidates``, plus the test's own numbers."""
+
+    structure: str  # VERDICTS
+    candidates: list[dict] = field(default_factory=list)
+    look: int = 0
+    conditions: int = 0
+    level: float = 0.0
+    restarted: bool = False  # a change in time restarted the accumulation at this window
+    selected: dict | None = None  # the structure the estimator may use (determined, separable)
+    fits: list[StructureFit] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return {"structure": self.structure, "candidates": self.candidates}
+
+
+class StructureTest:
+    """The sequential test of constant angles against the competing structures (module doc).
+
+    ``add_window(x, alpha)``: x (n, ncol) the window's scored rows ``[z, T, H, q]`` of static
+    known-load content, α the angles in force (the constant fit starts there)."""
+
+    def __init__(self, model: RigModel, moment_floor: float, *, false_alarm: float = FALSE_ALARM,
+                 time_level: float = TIME_LEVEL, structures: Sequence[str] = STRUCTURES,
+                 cluster_tolerance: tuple[float, float] = CLUSTER_TOLERANCE,
+                 max_clusters: int = MAX_CLUSTERS, min_samples: int = 50) -> None:
+        for s in structures:
+            parameter_names(s, model)
+        self.model, self.moment_floor = model, float(moment_floor)
+        self.false_alarm, self.time_level = float(false_alarm), float(time_level)
+        self.structures = tuple(structures)
+        self.tol = np.array([cluster_tolerance[0]] * 3 + [cluster_tolerance[1]] * 3, float)
+        self.max_clusters = int(max_clusters)
+        self.min_samples = int(min_samples)
+        self.look = 0
+        self.rejected = False
+        self.restarts = 0
+        self.clusters: list[_Cluster] = []
+        self.alpha: np.ndarray | None = None
+        self.last = StructureVerdict("undetermined")
+
+    def restart(self) -> None:
+        """Forget the accumulated conditions (a change in time); the looks keep counting."""
+        self.clusters = []
+        self.rejected = False
+        self.restarts += 1
+
+    def _h_slice(self) -> slice:
+        n = self.model.geometry.n_cells
+        return slice(6 + n, 12 + n)
+
+    def _find(self, xbar: np.ndarray) -> int | None:
+        if not self.clusters:
+            return None
+        hs = self._h_slice()
+        d = np.array([np.max(np.abs(c.mean[hs] - xbar[hs]) / self.tol) for c in self.clusters])
+        j = int(np.argmin(d))
+        if d[j] <= 1.0 or len(self.clusters) >= self.max_clusters:
+            return j
+        return None
+
+    def _time_change(self, c: _Cluster, xbar: np.ndarray, n: int, alpha: np.ndarray) -> bool:
+        Li = _whitener(self.model, alpha, self.moment_floor)
+        d = residual(self.model, alpha, xbar) - residual(self.model, alpha, c.mean)
+        w = Li @ d / math.sqrt(1.0 / n + 1.0 / c.n)
+        return float(w @ w) > float(chi2.isf(self.time_level, 6))
+
+    def add_window(self, x: np.ndarray, alpha: np.ndarray) -> StructureVerdict:
+        x = np.asarray(x, float)
+        alpha = np.asarray(alpha, float)
+        if len(x) < self.min_samples:
+            return self.last  # too little of this window to count: nothing new
+        self.look += 1
+        xbar, n = x.mean(axis=0), len(x)
+        restarted = False
+        j = self._find(xbar)
+        if j is not None and self._time_change(self.clusters[j], xbar, n, alpha):
+            self.restart()
+            restarted, j = True, None
+        if j is None:
+            self.clusters.append(_Cluster(x.sum(axis=0), n, 1))
+        else:
+            c = self.clusters[j]
+            c.sum_x += x.sum(axis=0)
+            c.n += n
+            c.windows += 1
+        self.last = self._verdict(alpha, restarted)
+        return self.last
+
+    def _verdict(self, alpha: np.ndarray, restarted: bool) -> StructureVerdict:
+        level = spend(self.look, self.false_alarm)
+        means = np.array([c.mean for c in self.clusters])
+        counts = np.array([c.n for c in self.clusters], float)
+        # from the angles in force at every look (a previous fit on fewer conditions can sit
+        # far off in directions they did not determine)
+        a = fit_constant(self.model, alpha, means, counts, self.moment_floor)
+        self.alpha = a
+        fits, _ = test_structures(self.model, a, means, counts, self.moment_floor, level,
+                                  self.structures)
+        base = dict(look=self.look, conditions=len(self.clusters), level=level,
+                    restarted=restarted, fits=fits)
+        if any(f.rejects_constant for f in fits):
+            self.rejected = True
+        if not self.rejected:
+            testable = any(f.rank > 0 and f.misfit_dof > 0 for f in fits)
+            return StructureVerdict("constant" if testable else "undetermined", **base)
+        ranked = sorted(fits, key=lambda f: (not f.explains, f.log10_p))
+        explaining = [f.structure for f in ranked if f.explains]
+        cands = [self._candidate(f, explaining) for f in ranked if f.rank > 0]
+        selected = None
+        top = ranked[0]
+        # the estimator may use the top structure when it explains the data, every parameter
+        # is determined, and every other explaining structure is larger or leaves a misfit
+        # larger by more than χ²₁ at this look's level
+        others = [f for f in ranked[1:] if f.explains]
+        margin = float(chi2.isf(level, 1))
+        if top.explains and top.determined and all(
+                f.nominal > top.nominal or f.misfit - top.misfit > margin for f in others):
+            selected = {"structure": top.structure, "alpha": top.alpha.copy(),
+                        "beta": top.beta.copy(), "sigma": top.sigma.copy(), "P": top.P}
+        return StructureVerdict("not_constant", cands, selected=selected, **base)
+
+    def _candidate(self, f: StructureFit, explaining: list[str]) -> dict:
+        names = parameter_names(f.structure, self.model)
+        units = parameter_units(f.structure, self.model)
+        pk = per_kN(f.structure, f.beta)
+        pks = per_kN(f.structure, f.sigma)
+        zs = np.where(np.isfinite(f.sigma) & (f.sigma > 0), np.abs(f.beta) / f.sigma, 0.0)
+        order = np.argsort(-zs)[:MAX_PARAMETERS_REPORTED]
+        params = [{"name": names[i], "value": float(f.beta[i]),
+                   "sigma": float(f.sigma[i]) if math.isfinite(f.sigma[i]) else None,
+                   "per_kN": float(pk[i]),
+                   "per_kN_sigma": float(pks[i]) if math.isfinite(pks[i]) else None,
+                   "unit": units[i]} for i in order]
+        return {"structure": f.structure, "parameters": params,
+                "per_kN": {p["name"]: p["per_kN"] for p in params},
+                "statistic": f.statistic, "dof": f.rank, "nominal": f.nominal,
+                "limit": f.limit, "log10_p": f.log10_p, "explains": f.explains,
+                "misfit": f.misfit, "misfit_dof": f.misfit_dof,
+                "determined": f.determined,
+                "not_separated_from": [s for s in explaining if s != f.structure]
+                if f.explains else []}

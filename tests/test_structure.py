@@ -1,0 +1,271 @@
+"""The structure test of constant angles against the competing structures (issue 19;
+estimator/structure.py, docs/identification.md "When the angles are not constant").
+
+Size and power are checked on window means drawn exactly from the balance model (each window's
+samples carry the configured sensor noise, so its mean residual has covariance W/n), which
+runs in milliseconds per window; the service path (simulator → content filter → worker code)
+is checked for the record field and the no-cycle property.
+"""
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from rsra.config.rig import load_config
+from rsra.estimator.balance import accelerometer_covariance
+from rsra.estimator.geometry import hub_transfer_matrix, skew, wrench_matrix
+from rsra.estimator.structure import (
+    STRUCTURES,
+    StructureTest,
+    design_ranks,
+    fit_constant,
+    parameter_names,
+    spend,
+    test_structures as structure_fits,
+)
+
+GROUND = np.array([[0.0, 0.0, -80e3, 0, 0, 0], [10e3, 0, -76e3, 0, 0, 0], [0, 10e3, -84e3, 0, 0, 0],
+                   [0, 0, -78e3, 20e3, 0, 0], [0, 0, -82e3, 0, 20e3, 0],
+                   [0, 0, -80e3, 0, 0, 15e3]])
+
+
+def design17() -> np.ndarray:
+    """2^(6−2) fractional factorial (E = ABC on thrust, F = BCD on yaw) plus a centre point."""
+    rows = [[0.0, 0.0, -80e3, 0.0, 0.0, 0.0]]
+    for a, b, c, d in itertools.product([-1, 1], repeat=4):
+        rows.append([1e4 * a, 1e4 * b, -80e3 - 1e4 * a * b * c, 2e4 * c, 2e4 * d,
+                     1.5e4 * b * c * d])
+    return np.array(rows)
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_config().rig_model()
+
+
+def _windows(model, rng, H_conds, alpha, *, n=40, sweeps=1, truth=None, beta=None):
+    """Window samples [z, T, H] of static conditions: T the minimum-strain split of the true
+    wrench, every channel with its configured noise. ``truth``: a structure in the data."""
+    g = model.geometry
+    R0 = hub_transfer_matrix(g, "body")
+    mass_g = np.concatenate([model.mass.mass * np.array([0, 0, 9.80665]), np.zeros(3)])
+    Sz = accelerometer_covariance(model) + np.diag([0, 0, 0, 1, 1, 1]) * 100.0**2
+    Lz = np.linalg.cholesky(Sz)
+    sT, sH = np.asarray(model.cell_sigma), np.asarray(model.balance_sigma)
+    out = []
+    for _ in range(sweeps):
+        for H in H_conds:
+            Ht, a, R = H.copy(), alpha.copy(), R0.copy()
+            extra = np.zeros(6)
+            if truth == "hub_position":
+                R[3:, :3] = skew(g.hub_position + beta)
+            elif truth == "external_load":
+                extra = beta.reshape(6, 3) @ H[:3]
+            Hb = H.copy()
+            if truth == "balance":  # the balance reads H_b with H_true = D H_b
+                Rp = np.eye(3) + skew(beta[6:])
+                D = np.zeros((6, 6))
+                D[:3, :3], D[3:, 3:] = Rp @ np.diag(1 + beta[:3]), Rp @ np.diag(1 + beta[3:6])
+                Hb = np.linalg.solve(D, H)
+            z = -mass_g  # at rest: z = S T + R H (+ extra)
+            S = wrench_matrix(g, a)
+            T = np.linalg.lstsq(S, z - R @ Ht - extra, rcond=None)[0]
+            if truth == "cell_load_angles":
+                for _ in range(3):  # the angles move with the cell loads they make
+                    a = alpha + beta * T[np.arange(14) // 2]
+                    S = wrench_matrix(g, a)
+                    T = np.linalg.lstsq(S, z - R @ Ht, rcond=None)[0]
+            x = np.hstack([z + rng.standard_normal((n, 6)) @ Lz.T,
+                           T + rng.standard_normal((n, 7)) * sT,
+                           Hb + rng.standard_normal((n, 6)) * sH])
+            out.append(x)
+    return out
+
+
+def test_spending_sums_to_the_overall_rate():
+    assert sum(spend(k) for k in range(1, 200001)) == pytest.approx(1e-3, rel=1e-4)
+
+
+def test_the_statistic_is_chi2_with_the_rank_as_dof(model):
+    """Size, one look: constant angles, ground-test design; q_s/rank has mean 1 and the
+    exceedances at a 5 % level per structure stay within a binomial 10⁻³ band over 100 runs.
+    A three-condition design tests with the rank (≤ 4 after the 14 angles), not the nominal
+    count. The dof claim is structural: rank ≤ residual dof < nominal."""
+    rng = np.random.default_rng(7)
+    alpha = np.radians(rng.uniform(-4, 4, 14))
+    runs = 100
+    q = {s: [] for s in STRUCTURES}
+    exceed = {s: 0 for s in STRUCTURES}
+    for _ in range(runs):
+        xs = _windows(model, rng, GROUND, alpha)
+        means, counts = np.array([x.mean(0) for x in xs]), np.array([len(x) for x in xs], float)
+        a = fit_constant(model, alpha + np.radians(0.05), means, counts, 100.0)
+        fits, _ = structure_fits(model, a, means, counts, 100.0, 0.05 * len(STRUCTURES))
+        for f in fits:
+            q[f.structure].append(f.statistic / f.rank)
+            exceed[f.structure] += f.statistic > f.limit
+    se = {s: np.sqrt(2.0 / max(f.rank, 1) / runs) for s, f in zip(STRUCTURES, fits)}
+    for s in STRUCTURES:
+        assert abs(np.mean(q[s]) - 1.0) < 3.3 * se[s] + 0.05, (s, np.mean(q[s]))
+        assert exceed[s] <= stats.binom.isf(1e-3, runs, 0.05), (s, exceed[s])
+    # three conditions: 18 equations, 14 angle directions → at most 4 testable directions.
+    # Windows of 1000 samples as in the service: with 40 the one weakly determined angle
+    # direction is too uncertain for the linearisation (measured: mean ratio 1.7 at 40,
+    # 0.84 at 1000)
+    q3 = []
+    for _ in range(30):
+        xs = _windows(model, rng, GROUND[[0, 1, 3]], alpha, n=1000)
+        means, counts = np.array([x.mean(0) for x in xs]), np.array([len(x) for x in xs], float)
+        fits, info = structure_fits(model, fit_constant(model, alpha, means, counts, 100.0),
+                                    means, counts, 100.0, 0.05)
+        ext = fits[STRUCTURES.index("external_load")]
+        assert 0 < ext.rank <= info["residual_dof"] <= 18 - 14 < ext.nominal
+        q3.append(ext.statistic / ext.rank)
+    assert abs(np.mean(q3) - 1.0) < 0.4, np.mean(q3)
+
+
+def test_sequential_false_alarms_stay_within_the_overall_rate(model):
+    """The alpha spending over looks: with the overall rate set to 0.2 (to be measurable in
+    60 runs of 12 looks), the runs that ever say not_constant stay below the binomial 10⁻³
+    limit of 0.2."""
+    rng = np.random.default_rng(11)
+    alpha = np.radians(rng.uniform(-4, 4, 14))
+    runs, said = 60, 0
+    for _ in range(runs):
+        st = StructureTest(model, 100.0, false_alarm=0.2, min_samples=10)
+        ever = False
+        for x in _windows(model, rng, GROUND, alpha, sweeps=2):
+            ever |= st.add_window(x, alpha).structure == "not_constant"
+        said += ever
+    assert said <= stats.binom.isf(1e-3, runs, 0.2), said
+
+
+@pytest.mark.parametrize("truth,beta", [
+    ("hub_position", np.array([0.004, -0.004, 0.008])),
+    ("balance", np.array([0.002, -0.002, 0.001, 0.002, 0, -0.002, 0.0005, -0.0005, 0.0005])),
+    ("external_load", np.array([-0.01, 0, 0, 0, 0, 0, 0, 0, 0, 0, -0.02, 0, 0, 0, 0, 0, 0, 0])),
+    ("cell_load_angles", np.radians(0.03e-3) * np.resize([1.0, -1.0, -1.0, 1.0], 14)),
+])
+def test_the_richer_design_selects_the_true_structure(model, truth, beta):
+    """Power: on the 17-condition design every structure is rejected against constant angles
+    and the true one is ranked first, explains the data, and is selected with its parameters
+    near the truth. Break-checked: ranking by the statistic alone (no misfit, no p-value)
+    fails for the hub-position truth."""
+    rng = np.random.default_rng(3)
+    alpha = np.radians(rng.uniform(-4, 4, 14))
+    st = StructureTest(model, 100.0, min_samples=10)
+    for x in _windows(model, rng, design17(), alpha, n=200, truth=truth, beta=beta):
+        v = st.add_window(x, alpha)
+    assert v.structure == "not_constant"
+    assert v.candidates[0]["structure"] == truth and v.candidates[0]["explains"]
+    assert v.selected is not None and v.selected["structure"] == truth
+    err = (v.selected["beta"] - beta) / v.selected["sigma"]
+    assert np.all(np.abs(err) < 5.0), err
+
+
+def test_the_ground_test_design_cannot_separate_hub_position_from_external_load(model):
+    """The six conditions: 36 equations, the angles take 14; every structure has fewer
+    testable directions than in the 17-condition design, and the hub position lies inside
+    the external load's span (union rank = the external load's)."""
+    rng = np.random.default_rng(5)
+    alpha = np.radians(rng.uniform(-4, 4, 14))
+    m6 = np.array([x.mean(0) for x in _windows(model, rng, GROUND, alpha)])
+    m17 = np.array([x.mean(0) for x in _windows(model, rng, design17(), alpha)])
+    r6, r17 = design_ranks(model, alpha, m6), design_ranks(model, alpha, m17)
+    assert r6["angle_rank"] == 14 and r6["equations"] == 36
+    assert r17["rank"] == {s: len(parameter_names(s, model)) for s in STRUCTURES}
+    pair = r6["pairs"]["hub_position+external_load"]
+    assert pair["shared"] == r6["rank"]["hub_position"] == 3
+
+
+def test_a_change_in_time_restarts_the_accumulation_instead_of_rejecting(model):
+    """A 1° step of every angle after one sweep (A4): the windows at loads seen before show it
+    as a change in time; the test restarts and never says not_constant. Break-checked: with
+    the time test off (time_level 0) it says not_constant at the first windows after the
+    step."""
+    rng = np.random.default_rng(9)
+    alpha = np.radians(rng.uniform(-4, 4, 14))
+    step = np.radians(1.0) * rng.choice([-1.0, 1.0], 14)
+    st = StructureTest(model, 100.0, min_samples=10)
+    verdicts = []
+    for a in (alpha, alpha + step):
+        for x in _windows(model, rng, GROUND, a, n=200):
+            verdicts.append(st.add_window(x, alpha).structure)
+    assert "not_constant" not in verdicts
+    assert st.restarts >= 1
+
+
+def _calibration(cfg, sc, seed, sweeps=2):
+    from bench.a3_known_load import run_calibration
+    from rsra.sim_bus import simulate
+    run = simulate(cfg, sc, seed=seed, n_samples=round(sweeps * sc.duration_s * cfg.sample_rate_hz))
+    return [rec for _, rec, _, _ in run_calibration(cfg, run, known_loads=True)]
+
+
+LOAD_DEPENDENT = {"angles": "linear", "angles.linear_deg_per_unit": [2e-5, 2e-5, 1e-5, 1e-5, 1e-5, 1e-5],
+                  "angles.resolution_deg": 0.001}
+
+
+@pytest.mark.slow
+def test_load_dependent_ground_test_four_sweeps_never_resets():
+    """The longer run: four sweeps of the load-dependent ground-test, two seeds."""
+    from rsra.sim_bus import load_scenario
+    cfg = load_config()
+    for seed in (2, 3):
+        recs = _calibration(cfg, load_scenario("ground-test", **LOAD_DEPENDENT), seed, sweeps=4)
+        assert recs[-1]["structure"] == "not_constant"
+        assert not any(r["reason"] == "reset" for r in recs)
+
+
+def test_structure_jacobians_are_the_derivatives_of_the_structure_residuals(model):
+    """∂m/∂β of every structure against central differences of the exact residual."""
+    from rsra.estimator.structure import structure_jacobian, structure_residual
+    rng = np.random.default_rng(4)
+    alpha = np.radians(rng.uniform(-4, 4, 14))
+    x = _windows(model, rng, design17()[5:6], alpha, n=10)[0].mean(0)
+    steps = {"cell_load_angles": 1e-11, "hub_position": 1e-6, "balance": 1e-7,
+             "external_load": 1e-6}
+    for st in STRUCTURES:
+        p = len(parameter_names(st, model))
+        J = structure_jacobian(st, model, alpha, x)
+        h = steps[st]
+        fd = np.stack([-(structure_residual(st, model, alpha, h * e, x)
+                         - structure_residual(st, model, alpha, -h * e, x)) / (2 * h)
+                       for e in np.eye(p)], axis=1)
+        assert np.abs(fd - J).max() < 1e-6 * np.abs(J).max(), st
+
+
+def test_load_dependent_ground_test_says_not_constant_without_the_reset_cycle():
+    """The issue's symptom, service path (simulator → content filter → the worker's code):
+    angles moving 0.1–0.4° with the load, the six-condition ground-test, two sweeps. Every
+    known-load record carries ``structure``; it ends ``not_constant`` with the ranked
+    candidates (the top one explaining the data); after the verdict no run is accepted and no reset happens.
+    Break-checked: without the not_constant branch in SequentialPosterior.update this test
+    fails (and with the structure test off the run goes accepted → inconsistent → reset →
+    accepted: seed 1 resets at windows 10 and 21)."""
+    from rsra.sim_bus import load_scenario
+    cfg = load_config()
+    recs = _calibration(cfg, load_scenario("ground-test", **LOAD_DEPENDENT), seed=1)
+    assert all(r["structure"] in ("constant", "not_constant", "undetermined") for r in recs)
+    kinds = [r["structure"] for r in recs]
+    assert kinds[-1] == "not_constant"
+    first = kinds.index("not_constant")
+    assert all(k == "not_constant" for k in kinds[first:])
+    assert not any(r["reason"] == "reset" for r in recs)
+    assert not any(r["accepted"] for r in recs[first:])
+    cands = recs[-1]["candidates"]
+    assert len(cands) >= 2 and cands[0]["explains"]
+    assert {"statistic", "dof", "parameters", "per_kN"} <= set(cands[0])
+
+
+def test_filter_error_records_carry_no_structure():
+    from rsra.estimator.posterior import AnglesRecord
+    rec = AnglesRecord(t=None, seq=1, mode="filter_error", content="harmonics", accepted=False,
+                       reason="not_identifiable", names=("a",), alpha=np.zeros(1),
+                       P=np.eye(1), sigma_cr=None, sigma_cr_corrected=None, determined=0,
+                       information=None, nu=None, cost=None, iterations=0, window=(0, 1),
+                       applies_from_seq=None)
+    assert "structure" not in rec.to_dict()
