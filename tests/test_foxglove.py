@@ -23,7 +23,7 @@ from helpers_net import free_tcp_port
 pytest.importorskip("foxglove", reason="needs foxglove-sdk (a dependency of rsra)")
 websockets = pytest.importorskip("websockets", reason="needs the websockets library")
 
-from rsra.daq import foxglove_out  # noqa: E402
+from rsra.daq.runtime import foxglove_out  # noqa: E402
 from rsra.config.rig import load_config  # noqa: E402
 from rsra.daq.analysis.export import FIELDS, json_schema  # noqa: E402
 from rsra.daq.runtime.foxglove_out import SUBPROTOCOL, FoxgloveOutput  # noqa: E402
