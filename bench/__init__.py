@@ -1,4 +1,4 @@
-"""Benchmarks against the peers a user would pick instead (spec performance.md).
+"""Benchmarks against the peers a user would pick instead (docs/performance.md).
 
 Every benchmark is a module runnable as ``python -m bench.<module> [--tiny]``; each prints
 and appends JSON lines to ``bench/results/<module>.jsonl`` (``bench.common.write_result``).

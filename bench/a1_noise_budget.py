@@ -1,6 +1,6 @@
 """A1 — the noise budget (model.md §4) on the default config against the report's Table I.
 
-Target (performance.md): reproduce Table I's instrumentation-noise column within 1 % on
+Target (docs/performance.md): reproduce Table I's instrumentation-noise column within 1 % on
 every axis.
 
 What we compare against. Table I of the report is badly garbled in the OCR

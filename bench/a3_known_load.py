@@ -1,4 +1,4 @@
-"""A3 — known-load identification over ≥ 100 seeds of the off-line physics (performance.md).
+"""A3 — known-load identification over ≥ 100 seeds of the off-line physics (docs/performance.md).
 
 Per seed: the ground-test aircraft (constant true angles drawn within ±4°, ``static``
 content, the reference balance on the bus), two sweeps of the six static conditions
@@ -82,7 +82,7 @@ def chi2_of(err: np.ndarray, P: np.ndarray) -> float:
 
 
 def seed_statistics(err: np.ndarray, P: np.ndarray, false_alarm: float = FALSE_ALARM) -> dict:
-    """The decisions of performance.md over seeds: err (S, p) final errors, P (S, p, p) the
+    """The decisions of docs/performance.md over seeds: err (S, p) final errors, P (S, p, p) the
     reported covariances."""
     S, p = err.shape
     sig = np.sqrt(np.einsum("sii->si", P))

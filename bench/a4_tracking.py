@@ -1,4 +1,4 @@
-"""A4 — tracking a step of the true angles over ≥ 100 seeds (performance.md).
+"""A4 — tracking a step of the true angles over ≥ 100 seeds (docs/performance.md).
 
 Per seed: the ground-test aircraft with the ``angles = "step"`` variant (1° on every angle,
 random sign, half-way through the 240 s run: two sweeps of the six conditions before the

@@ -1,4 +1,4 @@
-"""A5 — the report's Phase II set-up with the §4 noise, over ≥ 100 seeds (performance.md).
+"""A5 — the report's Phase II set-up with the model §4 noise, over ≥ 100 seeds (docs/performance.md).
 
 Per seed: the ``paper`` scenario (the two modelled harmonics only, quasi-static, true angles
 0°, no reference balance), the rig with the scenario's overrides (the service starts at

@@ -1,4 +1,4 @@
-"""P1 — PDO decode + sample assembly, frames/s on one core (spec performance.md).
+"""P1 — PDO decode + sample assembly, frames/s on one core (docs/performance.md).
 
 The frames are the simulator's own (``Simulator(lockstep=True, autostart=True)``, the
 ground-test aircraft: boot-ups, SYNC with counter, every TPDO, heartbeats), pre-queued on a

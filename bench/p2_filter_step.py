@@ -1,4 +1,4 @@
-"""P2 — one step of the fixed-gain load filter, 30 states, µs (spec performance.md).
+"""P2 — one step of the fixed-gain load filter, 30 states, µs (docs/performance.md).
 
 The load filter of the default rig (harmonics 1/rev and N_b/rev with the low-frequency
 states: 6 × 5 = 30 states; the report's tuning, τ = 0.1 s) on simulator data (ground-test,

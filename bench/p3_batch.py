@@ -1,4 +1,4 @@
-"""P3 — batch filtering of a replay (no real time), samples/s (spec performance.md).
+"""P3 — batch filtering of a replay (no real time), samples/s (docs/performance.md).
 
 ``estimator.filters.filter_batch`` against the per-sample loop of P2 (``LoadFilter.step``)
 on the same simulator data (ground-test, true angles, every sample measured), for both

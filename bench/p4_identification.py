@@ -1,4 +1,4 @@
-"""P4 — one identification, 14 angles, N = 5000 samples, to convergence (performance.md).
+"""P4 — one identification, 14 angles, N = 5000 samples, to convergence (docs/performance.md).
 
 Data: the off-line simulator's ground-test aircraft with the six static conditions held 4 s
 each (the variant ``loads.hold_s = 4, duration_s = 24``), so that one 5000-sample window

@@ -37,7 +37,7 @@ from rsra.config.units import AXIS_KIND
 AXES = ("X", "Y", "Z", "L", "M", "N")
 AXIS_UNIT = {"force": "N", "moment": "N·m"}
 
-# -- units of the bus channels (the device profiles of bus.md; cf. daq.decoder.PROFILES) ---
+# -- units of the bus channels (the device profiles of docs/bus.md §1; cf. daq.decoder.PROFILES) ---
 # DBC units are plain ASCII (DBC files are read as cp1252/latin-1 by most tools).
 _CHANNEL_UNITS: dict[str, dict[str, str]] = {
     "load_cell": {"force": "N", "status": ""},
@@ -173,7 +173,7 @@ def dbc_text(cfg: RigConfig) -> str:
 # -- telemetry payloads: fields, JSON types and units (docs/telemetry.md) --------------------
 # (path, JSON type, unit) per key, in the order of the docs' tables; "<node>"/"<cell>" stand
 # for any name, "x[]" for the elements of the list x. Types: integer, number, string, boolean,
-# object, or array:<element type>. Every value may also be null (strict JSON, telemetry.md).
+# object, or array:<element type>. Every value may also be null (strict JSON, docs/telemetry.md).
 VEC6 = "N, N·m"
 FIELDS: dict[str, list[tuple[str, str, str]]] = {
     "hub_loads": [

@@ -1,5 +1,5 @@
 """The periodic identification in its own process (a Python thread would hold the GIL for
-milliseconds and stall the estimator thread; performance.md P5).
+milliseconds and stall the estimator thread; docs/performance.md P5).
 
 The worker owns the sequential posterior and the filter-error state, which continue from
 window to window; the estimator thread sends windows and receives `angles` records. Queues
@@ -83,7 +83,7 @@ def build_identification(cfg, initial_state=None):
 
 
 def run_job(cfg, runs: dict, cache, job: dict) -> dict:
-    """One window → one `angles` record (telemetry.md) with the job id attached."""
+    """One window → one `angles` record (docs/telemetry.md §2.4) with the job id attached."""
     mode = job["mode"]
     ident = runs[mode]
     seq = job["seq"]
@@ -466,7 +466,7 @@ class SupervisedIdentification:
         return r
 
     def health(self) -> dict:
-        """The `health` record's ``identification`` object (telemetry.md)."""
+        """The `health` record's ``identification`` object (docs/telemetry.md §2.5)."""
         return {"worker": "off" if self.worker is None else "running",
                 "pid": None if self.worker is None else self.worker.proc.pid,
                 "deaths": self.deaths, "restarts": self.restarts, "last_death": self.last_death,

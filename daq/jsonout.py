@@ -1,4 +1,4 @@
-"""Strict JSON for every payload (telemetry.md): non-finite numbers become null, never NaN."""
+"""Strict JSON for every payload (docs/telemetry.md): non-finite numbers become null, never NaN."""
 from __future__ import annotations
 
 import json
@@ -50,7 +50,7 @@ def _default(obj: Any) -> Any:
 
 
 # One encoder built once: json.dumps with non-default arguments builds a new JSONEncoder on
-# every call, a third of the cost of a hub_loads record (performance.md P5).
+# every call, a third of the cost of a hub_loads record (docs/performance.md P5).
 _FAST = json.JSONEncoder(allow_nan=False, separators=(",", ":"), default=_default)
 _STRICT = json.JSONEncoder(allow_nan=False, separators=(",", ":"))
 

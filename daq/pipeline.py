@@ -1,4 +1,4 @@
-"""The estimator thread's per-sample work (architecture.md data flow), free of I/O:
+"""The estimator thread's per-sample work (docs/architecture.md, the data flow), free of I/O:
 
 sample → stuck-channel test → inertial loads → static estimate → load filter → records;
         └→ calibration branch: content filter → window buffer → identification jobs.
@@ -131,7 +131,7 @@ class EstimatorPipeline:
         self.design_errors = 0  # redesigns that failed: the current design was kept
         # stuck channels (a frozen sensor with a clean status, daq/stuck.py): flagged
         # fault:<cell|accelerometer> and treated like a faulted cell — predict-only (model
-        # §6), H_static null, not ok in the identification window
+        # model §6), H_static null, not ok in the identification window
         self.stuck = StuckMonitor(cfg, table) if cfg.stuck.enabled else None
 
     # --- identification results -------------------------------------------------------
@@ -181,7 +181,7 @@ class EstimatorPipeline:
     def process(self, s, early: Callable[[list], None] | None = None) -> PipelineOutput:
         """One sample. ``early`` (live) receives the records up to and including hub_loads as
         soon as they exist: the channels, innovations and calibration branch come after, off
-        the SYNC → hub-load latency path (performance.md P5)."""
+        the SYNC → hub-load latency path (docs/performance.md P5)."""
         out = PipelineOutput()
         seq = int(s.seq)
         if self.first_seq is None:

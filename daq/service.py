@@ -263,7 +263,7 @@ class Service:
     def __init__(self, cfg: RigConfig, opts: ServiceOptions):
         if opts.replay is not None and cfg.identification.state_file:
             # a replay (recomputed or not) saves no posterior: identification.state_file is the
-            # live service's output, never one the user named for a replay (cli.md)
+            # live service's output, never one the user named for a replay (docs/cli.md §6)
             import dataclasses
 
             cfg = dataclasses.replace(cfg, identification=dataclasses.replace(
@@ -363,7 +363,7 @@ class Service:
                 elif opts.recompute:
                     self.schedule = {"source": "recomputed", "why": "--recompute"}
                 elif schedule is None or not schedule.is_file():
-                    # a recording from elsewhere (bus.md): the identification is recomputed
+                    # a recording from elsewhere (docs/bus.md §5): the identification is recomputed
                     recompute = True
                     self.schedule = {"source": "recomputed", "why": "no angle schedule"}
                 else:
@@ -472,7 +472,7 @@ class Service:
                 bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=True,
                               preserve_timestamps=True)
                 # the simulator boots and starts its nodes and produces SYNC; the reader
-                # listens, and restarts a node that reboots (bus.md: reconfigured and
+                # listens, and restarts a node that reboots (docs/bus.md §3: reconfigured and
                 # restarted without restarting the service), its SDO answered in lock-step
                 try:
                     reader = Reader(cfg, bus=bus, master=False, restart_nodes=True,

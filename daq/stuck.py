@@ -163,7 +163,7 @@ class StuckDetector:
         present = np.isfinite(x)
         same = x == self.value  # NaN equals nothing: a repeat is always a present reading
         new = present ^ same  # present and different: a new run starts at 1
-        # in place (the estimator's per-sample path, performance.md P5)
+        # in place (the estimator's per-sample path, docs/performance.md P5)
         self.run += same
         np.copyto(self.run, 1, where=new)
         np.copyto(self.value, x, where=new)

@@ -137,7 +137,7 @@ def static_run(
     the static conditions held ``condition_s`` each (linear ramps of ``ramp_s`` into each),
     plus shaker harmonics (default: the scenario file's ranges); the body at rest, so the
     accelerometers read −g; the neglected angular inertial load is white with σ = the
-    configured moment floor (the model error that W's floor stands for); §4 sensor noise.
+    configured moment floor (the model error that W's floor stands for); model §4 sensor noise.
     ``step`` adds to the true angles from ``step_time_s`` on."""
     fs = cfg.sample_rate_hz
     geo = TruthGeometry(cfg)
@@ -271,7 +271,7 @@ def harmonic_state(design: SmallDesign, coef: np.ndarray, omega: float,
 
 
 # ------------------------------------------------------------------------------------------
-# The statistical decisions of performance.md (overall false-alarm rate 10⁻³, Bonferroni)
+# The statistical decisions of docs/performance.md (overall false-alarm rate 10⁻³, Bonferroni)
 # ------------------------------------------------------------------------------------------
 FALSE_ALARM = 1e-3
 
@@ -300,7 +300,7 @@ class Decisions:
 
 
 def decisions(errors: np.ndarray, covariances: np.ndarray) -> Decisions:
-    """performance.md: per seed the joint χ²_p of the error against the reported covariance
+    """docs/performance.md: per seed the joint χ²_p of the error against the reported covariance
     ≤ χ²_p(1 − 10⁻³/n) (48.7 for 14 angles and 100 seeds); the mean error of each angle within
     z(10⁻³/2p) standard errors (3.97); the variance of error/σ_CR inside the two-sided χ²_{n−1}
     bounds at 10⁻³/2p per tail."""

@@ -2,7 +2,7 @@
 
 Benchmarks are not tests: nothing here asserts a timing or a target being met — only that
 every benchmark still runs, so none of them can rot, and that its lines carry what
-performance.md asks for (figure, peer, ratio, target, decision, machine, versions).
+docs/performance.md asks for (figure, peer, ratio, target, decision, machine, versions).
 """
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """Maximum-likelihood identification (model.md §7): derivatives, the two residual modes,
-Levenberg–Marquardt, Cramér–Rao bounds, and the Monte Carlo decisions of performance.md A3."""
+Levenberg–Marquardt, Cramér–Rao bounds, and the Monte Carlo decisions of docs/performance.md A3."""
 from __future__ import annotations
 
 import dataclasses

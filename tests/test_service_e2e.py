@@ -11,7 +11,7 @@ from rsra.config.rig import load_config
 from rsra.daq.service import Service, ServiceOptions
 from rsra.estimator.noise_budget import noise_budget
 
-CHI2_14_SINGLE = 36.1  # performance.md: a single run, joint chi2_14 at 1e-3
+CHI2_14_SINGLE = 36.1  # docs/performance.md: a single run, joint chi2_14 at 1e-3
 
 
 def _run(cfg, **kw):

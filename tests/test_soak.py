@@ -1,7 +1,7 @@
 """Soak: the whole service as a user runs it (`rsra run --sim ground-test --speed max
 --record DIR --faults …`: recording on, so the simulator also keeps the truth for
 `truth.npz`), for `RSRA_SOAK_S` seconds of acquisition at 200 samples/s (default 600, the
-10 minutes of performance.md P7), identification running in its process, a fault every few
+10 minutes of docs/performance.md P7), identification running in its process, a fault every few
 seconds — in lock-step (the samples of real time, deterministic, counted against the
 simulator). Nothing is patched out. Deselected by default (`-m soak`); bounded: about 1 s of
 wall time per 5 s of acquisition.
@@ -103,7 +103,7 @@ def test_soak_ten_minutes_with_faults(cfg, tmp_path):
 
     assert (tmp_path / "rec" / "truth.npz").is_file()  # the truth was kept, as for a user
 
-    # memory flat after the warm-up (performance.md P7: growth < 5 MB after the first minute)
+    # memory flat after the warm-up (docs/performance.md P7: growth < 5 MB after the first minute)
     warm = min(60.0, SOAK_S / 3)
     after = [r for r in rss if r[0] >= warm]
     assert len(after) >= (SOAK_S - warm) * 0.9
