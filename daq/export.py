@@ -170,7 +170,7 @@ def dbc_text(cfg: RigConfig) -> str:
     return build_dbc(cfg).as_dbc_string()
 
 
-# -- telemetry payloads: fields, JSON types and units (docs/telemetry.md) --------------------
+# -- telemetry payloads: fields, JSON types and units (docs/telemetry.md §2) -----------------
 # (path, JSON type, unit) per key, in the order of the docs' tables; "<node>"/"<cell>" stand
 # for any name, "x[]" for the elements of the list x. Types: integer, number, string, boolean,
 # object, or array:<element type>. Every value may also be null (strict JSON, docs/telemetry.md).
