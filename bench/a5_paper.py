@@ -5,7 +5,7 @@ Per seed: the ``paper`` scenario (the two modelled harmonics only, quasi-static,
 4°), identified as the service does (``bench.a3_known_load.run_calibration`` in
 filter-error mode with the configured ``harmonics`` content: the report's method). With
 unknown loads carrying only the modelled harmonics the innovations hold no information
-about the angles once the start-up transient is gone (model.md §7, identifiability), so
+about the angles once the start-up transient is gone (model.md §7.5, identifiability), so
 a correct service must refuse to learn anything from these runs.
 
 Target: every run rejected (``not_identifiable`` or ``inconsistent``; a ``reset`` — the

@@ -131,7 +131,7 @@ class EstimatorPipeline:
         self.design_errors = 0  # redesigns that failed: the current design was kept
         # stuck channels (a frozen sensor with a clean status, daq/stuck.py): flagged
         # fault:<cell|accelerometer> and treated like a faulted cell — predict-only (model
-        # model §6), H_static null, not ok in the identification window
+        # §6), H_static null, not ok in the identification window
         self.stuck = StuckMonitor(cfg, table) if cfg.stuck.enabled else None
 
     # --- identification results -------------------------------------------------------

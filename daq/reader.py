@@ -10,7 +10,7 @@
     SampleAssembler / 1 Hz health ─▶ bounded queue ─▶ consumer (``Reader.get``)
 
 The FrameTap replaces canopen's own MessageListener (one listener, one dispatch per frame):
-it keeps the ONE acquisition clock (model.md §8: the frame timestamps — simulated time in
+it keeps the ONE acquisition clock (model.md §8.3: the frame timestamps — simulated time in
 lock-step, recorded time in replay, the wall clock live — made monotone and quantised to
 1 µs; the frame is re-stamped with it before the recorder sees it), counts frames, error
 frames, bus-off and unknown COB-IDs, and dispatches through canopen's

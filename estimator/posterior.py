@@ -101,7 +101,8 @@ def _finite_or_none(x: Any) -> Any:
 
 @dataclass
 class AnglesRecord:
-    """Everything the ``angles`` record of docs/telemetry.md §2.4 carries, plus the run's own estimate."""
+    """Everything the ``angles`` record (docs/telemetry.md §2.4) carries, plus the run's own
+    estimate."""
 
     t: float | None
     seq: int | None
@@ -737,7 +738,8 @@ class PeriodicIdentification:
     gap_samples: int | None = None
     design: Any = None
     alpha_base: np.ndarray | None = None
-    content_sos: np.ndarray | None = None  # the content filter (filter error: Γ(k) of the information rule, docs/identification.md)
+    # the content filter (filter error: Γ(k) of the information rule, docs/identification.md)
+    content_sos: np.ndarray | None = None
     robust_filter_error: bool = True  # False: model §7's decisions only (for comparison)
     false_alarm: float = 1e-3  # the innovation test's
     filter_state: FilterErrorState | None = field(default=None, init=False)

@@ -1,4 +1,5 @@
-"""`rsra nodes`: a bus check that starts nothing (docs/cli.md §10; docs/bus.md §1 "Nodes", §3 "Boot and supervision").
+"""`rsra nodes`: a bus check that starts nothing (docs/cli.md §10; docs/bus.md §1 "Nodes",
+§3 "Boot and supervision").
 
 For every configured node: was it heard (boot-up or heartbeat, through the same passive
 :class:`daq.master.Supervisor` the service runs), its NMT state by its last heartbeat, and

@@ -1,4 +1,5 @@
-"""`rsra zero`: tare with the rotor stopped and no applied load (docs/cli.md §11; docs/bus.md §1; model.md §3).
+"""`rsra zero`: tare with the rotor stopped and no applied load (docs/cli.md §11;
+docs/bus.md §1; model.md §3).
 
 Boots the nodes like the service (normal master), averages every calibrated channel over
 ``--seconds`` of acquisition time and writes new zero offsets as a ``[calibration]`` TOML
