@@ -10,7 +10,10 @@
   optional fields show — appears in that key's section of telemetry.md, and so does every
   flag, rejection reason, mode, content and node state the code can produce;
 * the Python subscriber in telemetry.md is extracted and run, in another process, against a
-  live publisher; what it prints is checked against what was published.
+  live publisher; what it prints is checked against what was published;
+* every citation in the code (`model §6`, `docs/bus.md §3 "Boot and supervision"`,
+  `reliability.md "Soak"`) names a numbered section, heading or page that exists in docs/, and
+  every relative link of every page resolves.
 """
 from __future__ import annotations
 
