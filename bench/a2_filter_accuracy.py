@@ -1,11 +1,11 @@
-"""A2 — hub-load error of the load filter at the modelled harmonics vs the §4 static bound.
+"""A2 — hub-load error of the load filter at the modelled harmonics vs the model §4 static bound.
 
 Data: the off-line simulator (``sim_bus.simulate``), ``ground-test`` aircraft — the six static
 conditions plus shaker harmonics at 1/rev and N_b/rev (the filter's modelled content), the
-§4 sensor noise, constant true angles — over several seeds. Estimators, both with the TRUE
+model §4 sensor noise, constant true angles — over several seeds. Estimators, both with the TRUE
 angles (so only noise and filter dynamics make errors):
 
-* the static estimate (model.md §3, report Eq 1.2), which sits at the §4 bound;
+* the static estimate (model.md §3, report Eq 1.2), which sits at the model §4 bound;
 * the load filter of the default rig (harmonics 1 and 5, low-frequency states, the report's
   time-constant tuning) at τ = 0.1 s (the report's, the target), 0.3 s and 1 s, run with
   ``filter_batch`` (bit-equivalent to the per-sample path, P3).

@@ -1,11 +1,11 @@
-"""A5 — the report's Phase II set-up with the §4 noise, over ≥ 100 seeds (docs/performance.md).
+"""A5 — the report's Phase II set-up with the model §4 noise, over ≥ 100 seeds (docs/performance.md).
 
 Per seed: the ``paper`` scenario (the two modelled harmonics only, quasi-static, true angles
 0°, no reference balance), the rig with the scenario's overrides (the service starts at
 4°), identified as the service does (``bench.a3_known_load.run_calibration`` in
 filter-error mode with the configured ``harmonics`` content: the report's method). With
 unknown loads carrying only the modelled harmonics the innovations hold no information
-about the angles once the start-up transient is gone (model.md §7, identifiability), so
+about the angles once the start-up transient is gone (model.md §7.5, identifiability), so
 a correct service must refuse to learn anything from these runs.
 
 Target: every run rejected (``not_identifiable`` or ``inconsistent``; a ``reset`` — the

@@ -18,7 +18,7 @@ simulator answered after the next SYNC, or two SYNCs came back to back) against 
 missing ones, and the SYNC rate actually achieved.
 
 Peer: the 1 Mbit/s bus with worst-case bit stuffing for these frames (SYNC with counter,
-the default nodes' TPDOs): bus.md's ≈ 1 090 samples/s. Target: ≥ 1× the bus limit.
+the default nodes' TPDOs): docs/bus.md §4: ≈ 1 093 samples/s. Target: ≥ 1× the bus limit.
 """
 from __future__ import annotations
 

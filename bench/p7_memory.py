@@ -8,7 +8,7 @@ service process and of the identification worker (``/proc/<pid>/statm``) every
 ``EVERY_S`` of acquisition time.
 
 Lock-step (``--speed max``): the same 120 000 samples, frames and identification windows as
-10 minutes in real time (model.md §8: simulated time is the one clock), in about 3 minutes
+10 minutes in real time (model.md §8.3: simulated time is the one clock), in about 3 minutes
 of wall time, so that ``python -m bench.run_all`` stays within its budget. Anything the
 service keeps grows per sample or per window, which this covers; wall-clock-driven growth
 (none is known) would not show.

@@ -1,4 +1,4 @@
-"""Strict JSON for every payload (telemetry.md): non-finite numbers become null, never NaN."""
+"""Strict JSON for every payload (docs/telemetry.md): non-finite numbers become null, never NaN."""
 from __future__ import annotations
 
 import json

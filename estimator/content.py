@@ -1,4 +1,4 @@
-"""Content filters of the identification (model.md §7, "What content to identify from").
+"""Content filters of the identification (model.md §7.3 "What content to identify from").
 
 One causal filter, applied alike to the load cells T, the inertial loads z and any known
 loads, so that the balance I = S T + R H (+ D q) still holds exactly in the filtered data.

@@ -127,7 +127,7 @@ def hub_load_dynamics(
     low_frequency: bool,
     psd: np.ndarray | None = None,
 ) -> HubLoadDynamics:
-    """The model of §5 at rotor speed ``omega`` (rad/s) and sample period ``dt`` (s).
+    """The model of model §5 at rotor speed ``omega`` (rad/s) and sample period ``dt`` (s).
 
     ``psd``: (6,) per-component amplitude diffusion rates (module doc); None → Qd = 0.
     ``harmonics`` may be empty (stopped rotor: only the random walks).

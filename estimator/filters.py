@@ -41,7 +41,7 @@ from .params import Geometry, RigModel
 
 TUNINGS = ("time_constant", "noise")
 
-# Flags of the published hub loads (telemetry.md vocabulary).
+# Flags of the published hub loads (the vocabulary of docs/telemetry.md §2.1).
 PREDICT_ONLY = "predict_only"
 INVALID = "invalid"
 LOST_BEFORE = "lost_before"
@@ -119,7 +119,7 @@ def _riccati_gain_1(Phi_c: np.ndarray, C_c: np.ndarray, Q: np.ndarray) -> np.nda
 
 def auto_psd_ratio(Phi_c: np.ndarray, C_c: np.ndarray, Qd_unit: np.ndarray,
                    time_constant_s: float, dt: float) -> float:
-    """q/r such that the Riccati gain of one component has τ as slowest time constant (§6).
+    """q/r such that the Riccati gain of one component has τ as slowest time constant (model §6).
 
     The steady gain depends on q and r only through q/r, and the slowest time constant falls
     monotonically as q/r grows, so a bracketed 1-D root search in log(q/r) is enough.
@@ -432,7 +432,7 @@ def _wrench(geometry: Geometry | None, alpha: np.ndarray) -> np.ndarray:
 
 
 def map_state(old: FilterDesign, new: FilterDesign, x: np.ndarray) -> np.ndarray:
-    """Carry the state over a redesign (an Ω redesign is no discontinuity, §7).
+    """Carry the state over a redesign (an Ω redesign is no discontinuity, model §5).
 
     States with the same label (harmonic, component, derivative) carry over unchanged —
     they are physical loads and load rates, valid at any Ω. When the new design has the

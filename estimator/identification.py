@@ -7,7 +7,7 @@ Two residuals, one likelihood:
 * filter-error mode: ``e`` are the innovations of the fixed-gain calibration filter, with the
   sensitivity recursion of Eq 2.22–2.24 (gain fixed, because J = R C does not depend on θ).
 
-The likelihood is the effective-variance one of §7 (errors in variables: load-cell noise is in
+The likelihood is the effective-variance one of model §7.2 (errors in variables: load-cell noise is in
 the regressors too), ``V(θ) = ½ Σ eᵀ W(θ)⁻¹ e`` with ``W(θ) = Σ_z + S Σ_T Sᵀ (+ R₀ Σ_H R₀ᵀ)``
 from the configured sensor accuracies — never the residual covariance of Eq 2.19 (the report's
 relaxation, biased here; :func:`relaxation_estimate` keeps it for the documented comparison).
@@ -31,7 +31,7 @@ from .balance import measurement_covariance
 from .geometry import hub_transfer_matrix, wrench_matrix, wrench_matrix_jacobian
 from .params import RigModel
 
-# Non-angle parameters that can be calibrated (model.md §2–§3: "any subset of parameters"),
+# Non-angle parameters that can be calibrated (model.md §2.2: "any subset of parameters"),
 # through central finite differences (checked against a halved step by check_derivatives).
 _AXES3 = ("x", "y", "z")
 _INERTIA = ("I_xx", "I_yy", "I_zz")

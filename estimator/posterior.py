@@ -74,13 +74,13 @@ from .structure import StructureTest, StructureVerdict
 ACCEPTED = None
 REASONS = ("not_converged", "diverged", "not_identifiable", "inconsistent", "reset",
            "stale_input", "out_of_range")
-# the test that decided a run (the record's ``detail``; docs/telemetry.md)
+# the test that decided a run (the record's ``detail``; docs/telemetry.md §2.4)
 DETAILS = ("passed", "missing_samples", "convergence", "information_ratio", "own_information",
            "robust_information", "innovations", "gate", "range", "structure")
 MODES = ("known_loads", "filter_error")
 GATE_PROBABILITY = 0.999  # model §7: accepted when ν ≤ χ²_{d, 0.999}
 GATE_RELATIVE_EIGENVALUE = 1e-6  # directions of D kept by the gate, relative to the largest
-SIGMA_MAX_OTHER_FRACTION = 0.04  # non-angle parameters: determined at 0.04 × prior σ (§7)
+SIGMA_MAX_OTHER_FRACTION = 0.04  # non-angle parameters: determined at 0.04 × prior σ (model §7.4)
 MAX_ACCUMULATED_WINDOWS = 64  # re-linearisation: fold at the latest after this many windows
 MAX_HELD_WINDOWS = 12  # not-identifiable windows held for the next run (one sweep of 60 s)
 
@@ -102,7 +102,8 @@ def _finite_or_none(x: Any) -> Any:
 
 @dataclass
 class AnglesRecord:
-    """Everything telemetry.md's ``angles`` record carries, plus the run's own estimate."""
+    """Everything the ``angles`` record (docs/telemetry.md §2.4) carries, plus the run's own
+    estimate."""
 
     t: float | None
     seq: int | None
@@ -130,7 +131,7 @@ class AnglesRecord:
     run_P: np.ndarray | None = None  # the run's (M + P_p⁻¹)⁻¹
     status: str | None = None  # LM status
     undetermined: np.ndarray | None = None  # (p, k) directions with σ > sigma_max
-    detail: str | None = None  # the test that decided (telemetry.md; DETAILS)
+    detail: str | None = None  # the test that decided (docs/telemetry.md §2.4; DETAILS)
     innovation: float | None = None  # filter error: q / its model-predicted mean
     innovation_limit: float | None = None  # the 1 − 10⁻³ point of the same ratio
     window_determined: int = 0  # directions the window's own (robust) information determines
@@ -691,7 +692,7 @@ class SequentialPosterior:
         theta_new = s * phi
         P_new = P_new_s * s[:, None] * s[None, :]
         wd = int(keep.sum())
-        if out_of_range(theta_new, self.limit):  # the physical range (identification.md)
+        if out_of_range(theta_new, self.limit):  # the physical range (docs/identification.md)
             return self._record(accepted=False, reason="out_of_range", nu=None, d=0,
                                 detail="range", window_determined=wd, **base)
         nu, d, ok = consistency_gate(theta_new - theta_p, P_p, P_new, self.gate_probability)
@@ -758,7 +759,8 @@ class PeriodicIdentification:
     gap_samples: int | None = None
     design: Any = None
     alpha_base: np.ndarray | None = None
-    content_sos: np.ndarray | None = None  # the content filter (filter error: Γ(k) of §7 rule)
+    # the content filter (filter error: Γ(k) of the information rule, docs/identification.md)
+    content_sos: np.ndarray | None = None
     robust_filter_error: bool = True  # False: model §7's decisions only (for comparison)
     false_alarm: float = 1e-3  # the innovation test's
     structure_test: bool = True  # known loads: test constant angles (estimator.structure)

@@ -1,5 +1,5 @@
 """The simulated aircraft on a CAN bus: every configured CANopen node fed by the physics, one
-sample per SYNC (spec bus.md; model.md §8 "Time").
+sample per SYNC (docs/bus.md §2; model.md §8.3 "Time").
 
 Modes
 -----
@@ -83,8 +83,8 @@ log = logging.getLogger(__name__)
 
 RECENT_SAMPLES = 512  # the last samples' truth, whatever keep_samples says (live views)
 MAX_TRUTH_SAMPLES = 720_000  # one hour at 200 samples/s: the truth history is bounded
-FRAME_OVERHEAD_BITS = 47  # 11-bit identifier frame without data, before stuffing (bus.md)
-DEFAULT_BITRATE = 1_000_000  # bus.md: 1 Mbit/s on the aircraft, when no EDS says otherwise
+FRAME_OVERHEAD_BITS = 47  # 11-bit identifier frame without data, before stuffing (docs/bus.md §4)
+DEFAULT_BITRATE = 1_000_000  # docs/bus.md: 1 Mbit/s on the aircraft, when no EDS says otherwise
 COB_TIME, COB_LSS_MASTER, COB_LSS_SLAVE = 0x100, 0x7E5, 0x7E4
 _ENCODED = ("force", "status", "accel_counts", "omega", "azimuth_counts", "balance", "drive")
 # (status bit, EMCY code) pairs the load-cell status drives
@@ -331,7 +331,7 @@ class _NodeFeed:
     full_scale: float | None  # load cell: the force an over-range reads (config)
 
 
-# The data types sim_bus.offline.ChannelCodec encodes to (bus.md "Nodes"): the EDS must agree.
+# The data types sim_bus.offline.ChannelCodec encodes to (docs/bus.md §1 "Nodes"): the EDS must agree.
 _CODEC_TYPES = {
     ("load_cell", "force"): od_types.REAL32, ("load_cell", "status"): od_types.UNSIGNED8,
     ("accelerometer", "x"): od_types.INTEGER16, ("accelerometer", "y"): od_types.INTEGER16,
@@ -498,7 +498,7 @@ class Simulator:
                     raise ValueError(
                         f"node {f.node.name!r} ({f.node.eds.name}): channel {ch!r} is mapped to "
                         f"0x{var.index:04X}:{var.subindex} of data type 0x{var.data_type:04X}, "
-                        f"the bus contract (bus.md) says 0x{want:04X}; fix the EDS")
+                        f"the bus contract (docs/bus.md §1) says 0x{want:04X}; fix the EDS")
         # bus order: feed in the config's node order
         return [feeds[n.name] for n in self.nodes if n.name in feeds]
 
@@ -575,11 +575,11 @@ class Simulator:
     # ------------------------------------------------------------------------------------------
     # the acquisition clock
     def now(self) -> float:
-        """Simulated time in lock-step, the wall clock live (model §8 "Time")."""
+        """Simulated time in lock-step, the wall clock live (model §8.3 "Time")."""
         return self._sim_t if self.lockstep else time.time()
 
     def _guard(self, fn: Callable) -> Callable:
-        """canopen only logs exceptions in callbacks (bus.md pitfalls): keep the first one and
+        """canopen only logs exceptions in callbacks (docs/bus.md §6 "Library pitfalls"): keep the first one and
         re-raise it in the caller's thread at the next check()."""
         def wrapped(*a, **kw):
             try:

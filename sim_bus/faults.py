@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 # EMCY error codes (CiA 301 table 21 classes) the simulated nodes raise.
 EMCY_OVER_RANGE = 0xFF01  # device specific: input over range (status bit 0)
 EMCY_SENSOR_FAULT = 0x5000  # device hardware: sensor fault (status bit 1)
-STATUS_OVER_RANGE = 0x01  # load-cell status bits (bus.md: 0x6150:1)
+STATUS_OVER_RANGE = 0x01  # load-cell status bits (docs/bus.md §1: 0x6150:1)
 STATUS_SENSOR_FAULT = 0x02
 
 NODE_KINDS = ("drop", "malformed", "stuck", "overrange", "sensor", "silent", "reboot")

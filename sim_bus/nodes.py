@@ -1,7 +1,7 @@
-"""Simulated CANopen slave nodes of the aircraft (spec bus.md "Nodes"), built on canopen's LocalNode.
+"""Simulated CANopen slave nodes of the aircraft (docs/bus.md §1 "Nodes"), built on canopen's LocalNode.
 
 canopen's ``LocalNode`` gives us the object dictionary parsed from the node's EDS and a
-working SDO server. Everything else it does badly (bus.md "Library pitfalls", measured with
+working SDO server. Everything else it does badly (docs/bus.md §6 "Library pitfalls", measured with
 canopen 2.4.1) is replaced here:
 
 * NMT: LocalNode stays in INITIALISING after a reset. ``SimNode`` runs its own CiA 301 state
@@ -10,7 +10,7 @@ canopen 2.4.1) is replaced here:
   whole dictionary) and keeps LocalNode's ``nmt`` state in step with it.
 * Heartbeat: LocalNode produces it with python-can's wall-clock periodic send and restarts
   that task on every write to 0x1017. ``SimNode`` instead reports the heartbeats that are
-  due at the acquisition clock's time (model §8 "Time"): simulated time in lock-step, the
+  due at the acquisition clock's time (model §8.3 "Time"): simulated time in lock-step, the
   wall clock live. A write to 0x1017 re-arms that schedule.
 * TPDOs: LocalNode sends none on SYNC and does not share TPDO values with its SDO server.
   ``SimNode.sync`` encodes every valid TPDO from the mapping *currently in its dictionary*
@@ -45,7 +45,7 @@ from rsra.config.rig import G0
 
 log = logging.getLogger(__name__)
 
-# The channels of each node role, in the order of the node's TPDO mapping entries (bus.md
+# The channels of each node role, in the order of the node's TPDO mapping entries (docs/bus.md §1
 # "Nodes" table). The OD objects that carry them come from the EDS mapping, never from here.
 ROLE_CHANNELS: dict[str, tuple[str, ...]] = {
     "load_cell": ("force", "status"),
@@ -55,7 +55,7 @@ ROLE_CHANNELS: dict[str, tuple[str, ...]] = {
     "drive_load": ("torque",),
 }
 
-# Engineering unit -> bus count conversions that are part of the bus contract (bus.md):
+# Engineering unit -> bus count conversions that are part of the bus contract (docs/bus.md §1):
 # accelerometers send 1 count = 1 mg; the azimuth spans the whole unsigned range over 2π.
 MG_PER_M_S2 = 1.0 / (G0 * 1e-3)
 
@@ -131,7 +131,7 @@ def _int_range(var: ODVariable) -> tuple[int, int]:
 
 
 def encode_channel(role: str, channel: str, value: float, var: ODVariable) -> int | float:
-    """Engineering value -> the raw value of OD variable ``var`` (bus.md units).
+    """Engineering value -> the raw value of OD variable ``var`` (docs/bus.md §1 units).
 
     Accelerometer axes: m/s² -> mg counts, rounded half-to-even and saturated to the data
     type. Azimuth: rad -> 0…2^bits over 0…2π, wrapped. Integers elsewhere: rounded and

@@ -2,7 +2,7 @@
 
 `simulate()` runs `AircraftPhysics` block by block and returns a `SimRun`: every SimSample
 field stacked over samples, with the channel values quantised exactly as the bus encodes them
-(bus.md): REAL32 forces, rotor speed, balance and drive loads; INTEGER16 accelerometer counts
+(docs/bus.md §1): REAL32 forces, rotor speed, balance and drive loads; INTEGER16 accelerometer counts
 of 1 mg, saturated at the sensor's full scale; UNSIGNED16 azimuth, 0…65535 ↔ 0…2π. So an
 off-line run equals what a reader decodes from the simulator's frames. `ChannelCodec` is the
 one encoder both use: the CAN nodes put `ChannelCodec.encode()` values into their TPDOs.
@@ -20,7 +20,7 @@ from rsra.config.rig import G0, RigConfig
 from .physics import BLOCK_SIZE, SAMPLE_FIELDS, AircraftPhysics, SimSample
 from .scenarios import Scenario, load_scenario
 
-# bus.md: accelerometer TPDO "x, y, z INTEGER16, 1 count = 1 mg"; azimuth "UNSIGNED16
+# docs/bus.md §1: accelerometer TPDO x, y, z INTEGER16, 1 count = 1 mg; azimuth "UNSIGNED16
 # (0…65535 ↔ 0…2π)". The EDS data types (0x0003 INTEGER16, 0x0006 UNSIGNED16, 0x0008 REAL32)
 # match; the EDS has no scale object, so the scales of the contract live here, once.
 ACCEL_M_S2_PER_COUNT = G0 * 1e-3

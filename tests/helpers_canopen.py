@@ -2,7 +2,7 @@
 LocalNode slaves, and lock-step rigs around the bus simulator.
 
 Frames here are built independently of daq.decoder (struct formats written out from the EDS
-tables of bus.md), so decoder tests can fail.
+tables of docs/bus.md §1), so decoder tests can fail.
 """
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ import canopen
 T0 = 1_700_000_000.0  # acquisition time origin of the tests (UNIX-like: BLF needs it)
 _chan = itertools.count()
 
-# bus.md "Nodes": TPDO layouts (little-endian, CiA 301)
+# docs/bus.md §1 "Nodes": TPDO layouts (little-endian, CiA 301)
 CELL = struct.Struct("<fB")  # force REAL32 N, status UNSIGNED8
 ACCEL = struct.Struct("<hhh")  # x y z INTEGER16, 1 count = 1 mg
 ROTOR = struct.Struct("<fH")  # omega REAL32 rad/s, azimuth UNSIGNED16 (0…65535 ↔ 0…2π)
@@ -101,7 +101,7 @@ def wait_until(cond, timeout: float = 5.0, what: str = "condition") -> None:
 class LocalSlaves:
     """The configured nodes as canopen LocalNodes on one canopen Network (their own virtual
     bus instance): LocalNode answers SDO; NMT is done here (LocalNode stays INITIALISING
-    after a reset: bus.md pitfalls): reset → boot-up frame + pre-operational, start →
+    after a reset: docs/bus.md §6 "Library pitfalls"): reset → boot-up frame + pre-operational, start →
     operational. ``absent`` nodes are not created; ``overrides`` {(node, index, sub): bytes}
     replace object values (a wrong identity or mapping)."""
 

@@ -137,7 +137,7 @@ def static_run(
     the static conditions held ``condition_s`` each (linear ramps of ``ramp_s`` into each),
     plus shaker harmonics (default: the scenario file's ranges); the body at rest, so the
     accelerometers read −g; the neglected angular inertial load is white with σ = the
-    configured moment floor (the model error that W's floor stands for); §4 sensor noise.
+    configured moment floor (the model error that W's floor stands for); model §4 sensor noise.
     ``step`` adds to the true angles from ``step_time_s`` on."""
     fs = cfg.sample_rate_hz
     geo = TruthGeometry(cfg)

@@ -2,7 +2,7 @@
 counted where health shows it.
 
 * A Zenoh subscriber that stops consuming for a whole run: high-rate keys are published with
-  congestion control DROP (telemetry.md), so the service acquires every sample while the
+  congestion control DROP (docs/telemetry.md §1), so the service acquires every sample while the
   viewer is blocked; what did not fit in the buffers on the way is dropped, and the viewer
   sees it as gaps in `seq` (with BLOCK, Zenoh stalls `put()` for up to 5 s per put).
 * A stalled disk: live, the recorder writes through a bounded queue on its own thread, so the

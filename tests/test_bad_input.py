@@ -1,6 +1,6 @@
 """Every bad input: one line naming the input and the fix, no traceback, exit 2 (1 for what is
 not the input's fault: a full disk, a port in use), and nothing left behind by an input refused
-before acquisition starts (cli.md; issue 13). The probe table of docs/reliability.md "Bad input
+before acquisition starts (docs/cli.md §16; issue 13). The probe table of docs/reliability.md "Bad input
 at the command line" is this file's table."""
 from __future__ import annotations
 
@@ -272,7 +272,7 @@ def test_replay_out_is_created_only_by_a_record_and_a_damaged_tail_keeps_what_ca
     capsys.readouterr()
     assert out.read_text() == "kept\n"  # an existing file is left as it was
     # a recording whose last part is damaged: the records before the bad line are written,
-    # and the one line says so (bus.md: what was replayed is not thrown away)
+    # and the one line says so (docs/bus.md §5: what was replayed is not thrown away)
     lines = (recording / "frames.log").read_text().splitlines(keepends=True)
     bad = tmp_path / "bad.log"
     bad.write_text("".join(lines[:1000]) + "garbage line\n" + "".join(lines[1000:]))

@@ -37,7 +37,7 @@ SWEEP_S = 60.0  # one sweep of the six static conditions (config/scenarios/groun
 FALSE_ALARM = 1e-3
 CHI2_14 = chi2.ppf(1 - FALSE_ALARM, 14)  # 36.1
 CHI2_2 = chi2.ppf(1 - FALSE_ALARM, 2)  # 13.8
-SIGMA_MAX_DEG = 0.2  # model §7: two sweeps determine every angle to about 0.1–0.14°
+SIGMA_MAX_DEG = 0.2  # model §7.3: two sweeps determine every angle within model §7.4's σ_max
 
 
 def _record(cfg, folder, seconds: float, seed: int, channel: str, nodes=None) -> tuple:

@@ -1,4 +1,4 @@
-"""The bench-rig commands `rsra nodes`, `rsra zero` and `rsra angles show|reset` (cli.md).
+"""The bench-rig commands `rsra nodes`, `rsra zero` and `rsra angles show|reset` (docs/cli.md §10–§12).
 
 Bus tests run the simulator's CANopen nodes on python-can's virtual bus (real threads: the
 commands talk SDO to them; each test its own channel). Nothing waits for a fixed time: the

@@ -296,7 +296,7 @@ def _documented_fields() -> dict[str, list[tuple[str, str]]]:
     key = None
     fields_table = False
     for line in text.splitlines():
-        m = re.match(r"### `<prefix>/(\w+)`$", line)
+        m = re.match(r"### (?:\d+\.\d+ )?`<prefix>/(\w+)`$", line)  # "### 2.1 `<prefix>/…`"
         if m:
             key = m.group(1)
             out[key] = []

@@ -144,13 +144,13 @@ def stuck_k(run, node: str, channel: str | None) -> int:
 
 
 def stuck_flag(cfg, node: str) -> str:
-    """fault:<cell>, or fault:<accelerometer> (telemetry.md)."""
+    """fault:<cell>, or fault:<accelerometer> (docs/telemetry.md §2.1)."""
     names = {c.node: c.name for c in (*cfg.cells, *cfg.accelerometers)}
     return f"fault:{names[node]}"
 
 
 def expected_flags(cfg, run) -> dict[int, set[str]]:
-    """Per sample, the node/cell flags the fault log implies (telemetry.md vocabulary)."""
+    """Per sample, the node/cell flags the fault log implies (the vocabulary of docs/telemetry.md §2.1)."""
     cell_of = {c.node: c.name for c in cfg.cells}
     exp: dict[int, set[str]] = defaultdict(set)
     for e in run.log:

@@ -1,7 +1,7 @@
 """Hub-load dynamics, fixed-gain Kalman filter designs, the per-sample and batch paths
 (model.md §5–§6, docs/performance.md A2). The synthetic data are generated here, independently
 of the filter: hub loads of a static part plus harmonics with slowly varying amplitude,
-translational accelerations, load cells from the exact balance, §4 noise."""
+translational accelerations, load cells from the exact balance, model §4 noise."""
 from __future__ import annotations
 
 import dataclasses
@@ -44,7 +44,7 @@ def synthetic_run(alpha, n, rng, *, omega=OMEGA, harmonics=HARMONICS, noise=True
                   mod_depth=0.1, mod_hz=0.1, omega_of_t=None):
     """(t, H, T, z): static + harmonic hub loads with amplitude modulation, phase-continuous
     in the rotor azimuth; inertial loads of a translational motion (no angular, as the
-    default rig neglects); T from the exact balance I = S T + R H; §4 noise."""
+    default rig neglects); T from the exact balance I = S T + R H; model §4 noise."""
     t = np.arange(n) * DT
     om = np.full(n, omega) if omega_of_t is None else omega_of_t(t)
     azimuth = np.concatenate([[0.0], np.cumsum(0.5 * (om[1:] + om[:-1]) * DT)])
@@ -92,7 +92,7 @@ def _cache(**kw):
     return DesignCache(MODEL, **base)
 
 
-# ---------------------------------------------------------------------------- dynamics §5
+# ---------------------------------------------------------------------------- dynamics model §5
 def test_dynamics_phi_and_van_loan_match_closed_forms():
     q = np.array([1.0, 2.0, 3.0, 4.0, 5.0, 6.0]) * 1e4
     dyn = hub_load_dynamics((1, 5), OMEGA, DT, True, psd=q)
@@ -124,7 +124,7 @@ def test_dynamics_phi_and_van_loan_match_closed_forms():
     assert dyn.C[2, low_frequency_states((1, 5))[2]] == 1.0
 
 
-# ------------------------------------------------------------------------- designs §6
+# ------------------------------------------------------------------------- designs model §6
 @pytest.mark.parametrize("harmonics,low_frequency,omega", [
     ((1, 5), True, OMEGA), ((1, 5), False, OMEGA), ((1, 5, 10), True, OMEGA * 1.03),
     ((1, 5), True, None),
@@ -185,7 +185,7 @@ def test_noise_tuning_solves_the_riccati_equation_with_tau_by_default(low_freque
 
 
 def test_auto_psd_gives_each_component_tau_alone():
-    """The per-component search of §6: a component's own Riccati gain (its whitened noise
+    """The per-component search of model §6: a component's own Riccati gain (its whitened noise
     variance alone) has τ as slowest time constant."""
     from rsra.estimator.filters import _closed_loop_time_constants, _riccati_gain_1
 
@@ -339,7 +339,7 @@ def test_set_alpha_rebuilds_the_wrench_matrix():
 
 # --------------------------------------------------------------- accuracy (A2)
 def test_load_filter_beats_the_static_bound_at_the_harmonics():
-    """docs/performance.md A2: true angles, τ = 0.1 s, RMS error ≤ 0.8 × the §4 static bound on
+    """docs/performance.md A2: true angles, τ = 0.1 s, RMS error ≤ 0.8 × the model §4 static bound on
     every axis; the static estimate itself sits at the bound (checks the generator)."""
     alpha = _alpha()
     bound = noise_budget(MODEL, alpha).total
@@ -356,7 +356,7 @@ def test_load_filter_beats_the_static_bound_at_the_harmonics():
         assert np.all(ratio <= 0.8), (tuning, ratio)
 
 
-# ------------------------------------------------------------------ Ω redesign §5
+# ------------------------------------------------------------------ Ω redesign model §5
 def test_design_cache_band_and_rounding():
     cache = _cache()
     d0 = cache.design_for(OMEGA)

@@ -192,5 +192,5 @@ def test_a_full_disk_stops_the_recording_loudly_and_acquisition_goes_on(cfg, tmp
     assert any("No space left on device" in r.getMessage() for r in caplog.records)
     st = svc.reader.recorder.status()
     assert st["frames"] == 3000 and st["frames"] + st["dropped"] == svc.reader.tap.frames
-    # the angle schedule is still written after the frames stopped (bus.md: never lost)
+    # the angle schedule is still written after the frames stopped (docs/bus.md §5: never lost)
     assert json.loads((rec / "angles.jsonl").read_text().splitlines()[0])["initial"]

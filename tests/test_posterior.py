@@ -309,11 +309,11 @@ def test_periodic_windows_converge_to_the_batch_result(cfg, model, seed):
     starting 0, σ 5°).
 
     Known-load runs re-solve the exact likelihood of every window since the last fold
-    (docs/identification.md, "Re-linearisation"), and windows not identifiable on their own
+    (docs/identification.md "Findings that bear on the spec", Re-linearisation), and windows not identifiable on their own
     are held for the next run, so with the default ``min_information`` the sequential
     posterior is the batch one too: the joint χ² of the difference against the batch
     covariance ≤ 36.1, and against the truth ≤ 36.1. (Without re-linearisation — the plain
-    Gaussian summaries of §7 — the first one-condition windows are summarised 4° from the
+    Gaussian summaries of model §7.4 — the first one-condition windows are summarised 4° from the
     truth and 11 of 288 runs over 12 seeds were rejected `inconsistent` with constant
     angles: docs/identification.md.)"""
     run, X, settle, _ = _ground(cfg, model, seed, sweeps=2)

@@ -214,7 +214,7 @@ def _replay(cfg, src, capsys=None):
 
 def test_replay_recomputes_without_a_schedule_and_says_what_a_partial_one_holds(
         cfg, tmp_path, capsys):
-    """bus.md: a replay without an angle schedule (a frame file from elsewhere, a folder with
+    """docs/bus.md §5: a replay without an angle schedule (a frame file from elsewhere, a folder with
     no angles.jsonl) runs the identification itself; an empty or partial schedule is used as
     it is, and the replay says so (issue 13)."""
     import shutil

@@ -97,7 +97,7 @@ def eds_decoders(cfg) -> dict[int, tuple[str, str, struct.Struct, list[str]]]:
 
 def to_engineering(role: str, ch: str, raw: float) -> float:
     if role == "accelerometer":
-        return raw * 9.80665e-3  # 1 count = 1 mg (bus.md)
+        return raw * 9.80665e-3  # 1 count = 1 mg (docs/bus.md §1)
     if ch == "azimuth":
         return raw / 65536.0 * 2 * math.pi
     return float(raw)

@@ -1,6 +1,6 @@
 """The simulated aircraft's physics (model.md §8), checked against independent computations:
 the estimator's S and R, a KKT solve of the minimum-strain-energy split, the analytic
-frequency response of the mounts, and the bus encodings of bus.md."""
+frequency response of the mounts, and the bus encodings of docs/bus.md §1."""
 from __future__ import annotations
 
 import math
@@ -109,7 +109,7 @@ def test_simulator_S_and_R_agree_with_estimator(model, cfg, rng):
 
 
 def test_mount_modes_clear_of_rotor_harmonics(cfg):
-    """§8: six mount modes between about 35 and 155 Hz, clear of 1/rev and N_b/rev."""
+    """model §8.2: six mount modes between about 35 and 155 Hz, clear of 1/rev and N_b/rev."""
     f = AircraftPhysics(cfg, "ground-test").mode_frequencies_hz()
     f_rev = cfg.rotor.omega_nominal_rad_s / (2 * np.pi)
     assert len(f) == 6 and 30.0 < f.min() and f.max() < 170.0
@@ -126,7 +126,7 @@ def test_paper_split_is_minimum_strain_energy_every_sample(cfg, model):
     T_ref = kkt_split(S, k, run.H_true @ R.T)
     scale = np.abs(T_ref).max()
     assert np.abs(run.T_true - T_ref).max() < 1e-9 * scale
-    # no inertia, no gravity: the accelerometers read zero (§8 paper)
+    # no inertia, no gravity: the accelerometers read zero (model §8.4, `paper`)
     assert np.all(run.accel_true == 0.0) and np.all(run.I_true == 0.0)
     np.testing.assert_array_equal(run.alpha_true, 0.0)
 

@@ -1,4 +1,4 @@
-"""Zenoh security and deployment (telemetry.md "Security and deployment").
+"""Zenoh security and deployment (docs/deployment.md, docs/telemetry.md §1).
 
 * The shipped example (config/zenoh/{router,rig,viewer}.json5, certificates from
   config/zenoh/make-certs.sh) works as docs/deployment.md says: a router (a Python session in

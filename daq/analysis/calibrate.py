@@ -1,12 +1,12 @@
 """Off-line known-load calibration from recordings (report Phase I and Appendix C; model.md §7
-known-load mode; spec cli.md ``rsra calibrate``).
+known-load mode; docs/cli.md §9 ``rsra calibrate``).
 
 Recordings made with the reference balance on the bus are read through the same reader as the
 live service (:func:`daq.replay.replay`), the samples whose load cells, accelerometers and
 balance are present and unflagged are kept, the configured content filter runs alike on
 ``x = [z, T, H, q]`` (so the balance ``I = S T + R₀ H + D q`` of Eq 1.1 still holds in the
 filtered data), its start-up transient is not scored, and one batch identification minimises
-the effective-variance likelihood of §7 with a weak prior from the configured (or a saved)
+the effective-variance likelihood of model §7 with a weak prior from the configured (or a saved)
 starting values. The result carries the estimates, their Cramér–Rao bounds (conventional and
 coloured-residual corrected), the residuals against what the sensor noise explains, the
 information (determined and undetermined directions, condition number), a physical-plausibility

@@ -37,7 +37,7 @@ from rsra.daq.runtime.schema import FIELDS, VEC6, json_schema, log_time_ns  # no
 AXES = ("X", "Y", "Z", "L", "M", "N")
 AXIS_UNIT = {"force": "N", "moment": "N·m"}
 
-# -- units of the bus channels (the device profiles of bus.md; cf. daq.decoder.PROFILES) ---
+# -- units of the bus channels (the device profiles of docs/bus.md §1; cf. daq.decoder.PROFILES) ---
 # DBC units are plain ASCII (DBC files are read as cp1252/latin-1 by most tools).
 _CHANNEL_UNITS: dict[str, dict[str, str]] = {
     "load_cell": {"force": "N", "status": ""},

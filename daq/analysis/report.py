@@ -1,5 +1,5 @@
 """Plots and a summary from published records (JSONL) and, where it exists, the simulator's
-truth (cli.md `rsra report`; telemetry.md payloads; model.md §4, §6, §7).
+truth (docs/cli.md §7 `rsra report`; docs/telemetry.md §2 payloads; model.md §4, §6, §7).
 
 * load: one JSON object per line, ``{"key": "<key>", …payload}`` (``rsra replay --out``, the
   service's JSONL sink); keys ``hub_loads``, ``channels``, ``angles``, ``innovations``,
@@ -124,7 +124,7 @@ def load_records(path: str | Path) -> Records:
                     health.append(rec)
             except (KeyError, TypeError, ValueError) as e:
                 raise ReportError(f"{p} line {n}: a {key!r} record without a valid {e} field "
-                                  "(telemetry.md payload)") from None
+                                  "(docs/telemetry.md §2 payload)") from None
     if not counts:
         raise ReportError(f"{p}: no records (empty file)")
     if len(frames) > 1:

@@ -1,4 +1,5 @@
-"""The tare with the rotor stopped and no applied load (`rsra zero`; cli.md; bus.md; model.md §3).
+"""The tare with the rotor stopped and no applied load (`rsra zero`; docs/cli.md §11;
+docs/bus.md §1; model.md §3).
 
 The command (:mod:`rsra.daq.cli.commands.zero`) boots the nodes like the service (normal master); this
 module averages every calibrated channel over
@@ -8,7 +9,7 @@ fragment (``"<node>.<channel>" = { gain = …, offset = … }``, the table rsra.
 What each channel reads at rest after the tare (its *target*):
 
 * accelerometers: the gravity vector in body axes, ``f = a − g = (0, 0, −g)`` (z down;
-  bus.md: "at rest the z axis reads −1000 mg"). Gravity stays in the readings because the
+  docs/bus.md §1: at rest, level, z reads −1000 mg). Gravity stays in the readings because the
   balance ``I = S T + R H`` (model §3, report Eq 1.1) carries it on both sides: the
   inertial load ``I = m f`` of the resting transmission is its weight. Assumes a level rig.
 * load cells: their dead-weight reactions, NOT zero. At rest the cells carry the weight, so
@@ -113,7 +114,7 @@ def channel_specs(cfg: RigConfig, table: DecodeTable,
         if not table.has_channel(key):
             from rsra.config.rig import ConfigError
             raise ConfigError("nodes", key.split(".")[0], f"the EDS maps no channel {key!r}",
-                              "use the EDS of the role's device profile (bus.md)")
+                              "use the EDS of the role's device profile (docs/bus.md §1)")
         node = cfg.node(key.split(".")[0])
         gain, offset = cfg.calibration.get(key, (1.0, 0.0))
         specs.append(ChannelSpec(key, kind, quantity, bool(node and node.required), sigma,

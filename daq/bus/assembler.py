@@ -1,4 +1,4 @@
-"""Sample assembly by frame order alone (spec bus.md "SYNC and samples").
+"""Sample assembly by frame order alone (docs/bus.md §2 "SYNC and samples").
 
 A sample is every TPDO that follows SYNC k and precedes SYNC k+1, stamped with SYNC k's
 receive time rounded to 1 µs (the resolution of the recordings) and its counter. It is
@@ -207,7 +207,7 @@ class Sample:
 
 def channels_payload(s: Sample, I: np.ndarray | None = None,
                      status: dict | None = None) -> dict:
-    """The one builder of the telemetry ``channels`` payload (docs/telemetry.md) of sample
+    """The one builder of the telemetry ``channels`` payload (docs/telemetry.md §2.2) of sample
     ``s``: ``I`` (the inertial loads) when the estimator computed them, ``status`` when the
     cells' status is not already a dict by name. Values as they are (numpy arrays, NaN): the
     encoder (:func:`rsra.daq.jsonout.dumps`) makes it strict JSON."""

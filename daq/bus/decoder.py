@@ -1,4 +1,4 @@
-"""PDO decode tables built from the EDS mapping (spec bus.md "Nodes", "SYNC and samples").
+"""PDO decode tables built from the EDS mapping (docs/bus.md §1 "Nodes", §2 "SYNC and samples").
 
 Nothing here is hard-coded per rig: every COB-ID, frame layout and data type comes from the
 EDS default of each node's TPDO communication (0x1800+n) and mapping (0x1A00+n) parameters,
@@ -34,7 +34,7 @@ _STRUCT_CODE = {
 }
 _UNSIGNED = (datatypes.UNSIGNED8, datatypes.UNSIGNED16, datatypes.UNSIGNED32, datatypes.UNSIGNED64)
 
-# Unit conversions of the device profiles (bus.md "Nodes").
+# Unit conversions of the device profiles (docs/bus.md §1 "Nodes").
 MILLI_G = 1.0e-3 * G0  # accelerometers: 1 count = 1 mg of specific force, in m/s^2
 TURN = "turn"  # marker: an unsigned angle that spans one turn (0 … 2^bits ↔ 0 … 2π)
 
@@ -53,7 +53,7 @@ REQUIRED_CHANNELS = {
     "load_cell": ("force", "status"), "accelerometer": ("x", "y", "z"),
     "rotor_speed": ("omega", "azimuth"), "balance": tuple("XYZLMN"), "drive_load": (),
 }
-# Status bits of a load cell (bus.md: 0x6150:1 bit 0 over-range, bit 1 sensor fault).
+# Status bits of a load cell (docs/bus.md §1: 0x6150:1 bit 0 over-range, bit 1 sensor fault).
 STATUS_OVERRANGE = 0x01
 STATUS_FAULT = 0x02
 
@@ -216,7 +216,7 @@ class DecodeTable:
                     ttype = _default(od, TPDO_COMM + n - 1, 2)
                     if ttype != 1:
                         raise ConfigError(f"eds[{nc.name}] 0x{TPDO_COMM + n - 1:04X}:2", ttype,
-                                          "samples are assembled per SYNC (bus.md): every TPDO must "
+                                          "samples are assembled per SYNC (docs/bus.md §2): every TPDO must "
                                           "have transmission type 1", "set the default to 1")
                     count = _default(od, TPDO_MAP + n - 1, 0) or 0
                     entries = [_default(od, TPDO_MAP + n - 1, s) or 0 for s in range(1, count + 1)]
@@ -273,7 +273,7 @@ class DecodeTable:
                     if need not in names:
                         raise ConfigError(f"nodes[{ni}].eds", str(nc.eds),
                                           f"no TPDO maps the {nc.role} channel {need!r}",
-                                          "use the EDS of the role's device profile (bus.md)")
+                                          "use the EDS of the role's device profile (docs/bus.md §1)")
                 identity = {s: _default(od, 0x1018, s) for s in (1, 2, 3, 4)}
                 nodes.append(NodeLayout(
                     name=nc.name, role=nc.role, node_id=nc.node_id, required=nc.required,

@@ -1,4 +1,4 @@
-"""The CANopen master: boot, verification, supervision (spec bus.md "Boot and supervision").
+"""The CANopen master: boot, verification, supervision (docs/bus.md §3 "Boot and supervision").
 
 Two parts:
 
@@ -199,7 +199,7 @@ class SyncProducer:
 
     python-can's thread-based fallback catches up a late SYNC by sending the missed ones back
     to back: two SYNCs with no time between them for the nodes to answer, i.e. a sample with
-    no TPDO at all (bus.md: samples are assembled by frame order). Here a late SYNC goes out
+    no TPDO at all (docs/bus.md §2: samples are assembled by frame order). Here a late SYNC goes out
     at once and the next one keeps at least half a period from it; the counter still counts
     every SYNC sent (CiA 301), so no sample is lost — but the sample slots skipped are never
     taken: ``periods_not_taken`` counts them (health ``sync.periods_not_taken``)."""
@@ -285,7 +285,7 @@ class CanopenMaster:
 
     # -- boot ------------------------------------------------------------------------------
     def boot(self) -> None:
-        """bus.md steps 1–3. Raises BootError naming node/object/values on any mismatch and
+        """docs/bus.md §3, steps 1–3. Raises BootError naming node/object/values on any mismatch and
         when a required node does not answer; optional absent nodes are reported missing."""
         sup = self.supervisor
         for nl in self.table.nodes:
@@ -317,7 +317,7 @@ class CanopenMaster:
 
     def supervise(self) -> None:
         """From now on restart every node that boots (boot-up seen) or reports a state other
-        than operational: reconfigure over SDO, then NMT start (bus.md "Boot and
+        than operational: reconfigure over SDO, then NMT start (docs/bus.md §3 "Boot and
         supervision"). Called by boot(); alone where another party booted the nodes (the
         simulator in lock-step)."""
         if self.running:

@@ -1,4 +1,4 @@
-"""One node verifier for boot and ``rsra nodes`` (docs/bus.md's boot step 2, without writes).
+"""One node verifier for boot and ``rsra nodes`` (docs/bus.md §3, boot step 2, without writes).
 
 Over SDO: 0x1000 (device type), 0x1018 (vendor, product, revision compared; the serial number
 identifies one physical unit and is reported, never compared) and every TPDO's COB-ID,

@@ -1,4 +1,4 @@
-"""The reader: bus → decode → samples, on any python-can interface (spec bus.md, telemetry.md).
+"""The reader: bus → decode → samples, on any python-can interface (docs/bus.md, docs/telemetry.md).
 
 ::
 
@@ -10,7 +10,7 @@
     SampleAssembler / 1 Hz health ─▶ bounded queue ─▶ consumer (``Reader.get``)
 
 The FrameTap replaces canopen's own MessageListener (one listener, one dispatch per frame):
-it keeps the ONE acquisition clock (model.md §8: the frame timestamps — simulated time in
+it keeps the ONE acquisition clock (model.md §8.3: the frame timestamps — simulated time in
 lock-step, recorded time in replay, the wall clock live — made monotone and quantised to
 1 µs; the frame is re-stamped with it before the recorder sees it), counts frames, error
 frames, bus-off and unknown COB-IDs, and dispatches through canopen's
@@ -259,7 +259,7 @@ class Reader:
     bus whose nodes start by themselves, lock-step runs where the simulator owns the nodes.
     ``restart_nodes=True`` with ``master=False`` (lock-step): the nodes were booted by someone
     else, but once :meth:`supervise` is called a node that reboots is reconfigured over SDO
-    and started by this reader's master thread, as the live master does (bus.md "Boot and
+    and started by this reader's master thread, as the live master does (docs/bus.md §3 "Boot and
     supervision"); a lock-step driver (sim_bus.drivers) holds time while :meth:`busy`.
     ``overflow="drop"`` (live) never blocks the bus thread: a full queue drops the item and
     counts it; ``"block"`` (lock-step) makes the bus thread wait and counts the waits.
@@ -540,7 +540,7 @@ class Reader:
 
     # -- health ---------------------------------------------------------------------------
     def health(self, t: float | None = None) -> dict:
-        """A snapshot shaped like telemetry.md's ``health`` payload."""
+        """A snapshot shaped like the ``health`` payload of docs/telemetry.md §2.5."""
         t = self.tap.now if t is None else t
         tap, asm = self.tap, self.assembler
         bus = {"frames": tap.frames, "errors": tap.errors, "bus_off": tap.bus_off,
@@ -562,7 +562,7 @@ class Reader:
         payload["sync"] = self.sync_health(t)
         return payload
 
-    # -- health: SYNC counts and times (one section: docs/telemetry.md "sync.*") -----------
+    # -- health: SYNC counts and times (one section: docs/telemetry.md §2.5, ``sync.*``) -----------
     def sync_health(self, t: float) -> dict:
         """Duplicated SYNCs, bad timestamps (docs/reliability.md), late SYNCs of our own
         producer and the sample rate over the last ``RATE_WINDOW`` health periods."""

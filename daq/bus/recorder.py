@@ -1,4 +1,4 @@
-"""Recording of every frame seen on the bus (spec bus.md "Recording and replay").
+"""Recording of every frame seen on the bus (docs/bus.md §5 "Recording and replay").
 
 A recording folder holds:
 

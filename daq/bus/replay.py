@@ -1,4 +1,4 @@
-"""Replay of recordings through the reader (spec bus.md "Recording and replay", cli.md).
+"""Replay of recordings through the reader (docs/bus.md §5 "Recording and replay", docs/cli.md §6).
 
 Recordings are read with python-can's :class:`can.LogReader` (candump ``.log``, ``.blf``,
 ``.asc``, …), either

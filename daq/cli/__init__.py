@@ -1,4 +1,4 @@
-"""The `rsra` command line: a thin table of commands over the library (spec: cli.md).
+"""The `rsra` command line: a thin table of commands over the library (docs/cli.md).
 
 Exit status: 0 success, 2 usage or configuration error, 1 anything else.
 """
@@ -70,7 +70,7 @@ def _main(argv: list[str] | None) -> int:
         return 130
     except BrokenPipeError:
         return 0
-    except Exception as e:  # the one error path: every failure is one line (cli.md)
+    except Exception as e:  # the one error path: every failure is one line (docs/cli.md §16)
         if os.environ.get("RSRA_DEBUG"):
             raise
         status, line = describe_error(e)
@@ -95,7 +95,7 @@ def zenoh_error_line(e: BaseException) -> str:
 
 def describe_error(e: BaseException) -> tuple[int, str]:
     """(exit status, one line) for any exception that ends a command: 2 for a usage,
-    configuration or bad-input error, 1 for anything else (cli.md)."""
+    configuration or bad-input error, 1 for anything else (docs/cli.md §16)."""
     from rsra.daq.bus.master import BootError
     from rsra.daq.bus.recorder import RecordingError
     from rsra.daq.bus.replay import ReplayError

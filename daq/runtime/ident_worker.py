@@ -87,7 +87,7 @@ def build_identification(cfg, initial_state=None):
 
 def run_job(cfg, runs: dict, cache, job: dict) -> dict:
     """One window (``IdentJob.as_mapping()``) → the `angles` record's JSON object
-    (telemetry.md) with the job id attached (the numerics; :func:`handle_job` types it)."""
+    (docs/telemetry.md §2.4) with the job id attached (the numerics; :func:`handle_job` types it)."""
     mode = job["mode"]
     ident = runs[mode]
     seq = job["seq"]
@@ -479,7 +479,7 @@ class SupervisedIdentification:
         return r
 
     def health(self) -> dict:
-        """The `health` record's ``identification`` object (telemetry.md)."""
+        """The `health` record's ``identification`` object (docs/telemetry.md §2.5)."""
         return {"worker": "off" if self.worker is None else "running",
                 "pid": None if self.worker is None else self.worker.proc.pid,
                 "deaths": self.deaths, "restarts": self.restarts, "last_death": self.last_death,

@@ -1,4 +1,4 @@
-"""The estimator thread's per-sample work (architecture.md data flow), free of I/O:
+"""The estimator thread's per-sample work (docs/architecture.md, the data flow), free of I/O:
 
 sample → stuck-channel test → inertial loads → static estimate → load filter → records;
         └→ calibration branch: content filter → window buffer → identification jobs.

@@ -160,5 +160,5 @@ ACCEPT_HELP = ("use a posterior saved on a rig of another geometry (its fingerpr
 
 
 def add_accept_option(p) -> None:
-    """``--accept-rig-mismatch`` on every command that loads a posterior (cli.md)."""
+    """``--accept-rig-mismatch`` on every command that loads a posterior (docs/cli.md)."""
     p.add_argument("--accept-rig-mismatch", action="store_true", help=ACCEPT_HELP)

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 
-# -- telemetry payloads: fields, JSON types and units (docs/telemetry.md) --------------------
+# -- telemetry payloads: fields, JSON types and units (docs/telemetry.md §2) -----------------
 # (path, JSON type, unit) per key, in the order of the docs' tables; "<node>"/"<cell>" stand
 # for any name, "x[]" for the elements of the list x. Types: integer, number, string, boolean,
 # object, or array:<element type>. Every value may also be null (strict JSON, telemetry.md).

@@ -258,7 +258,7 @@ class Service:
         self.source: Source = make_source(cfg, opts)
         if not self.source.saves_posterior and cfg.identification.state_file:
             # a replay (recomputed or not) saves no posterior: identification.state_file is the
-            # live service's output, never one the user named for a replay (cli.md)
+            # live service's output, never one the user named for a replay (docs/cli.md §6)
             import dataclasses
 
             cfg = dataclasses.replace(cfg, identification=dataclasses.replace(

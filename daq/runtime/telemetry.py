@@ -1,4 +1,4 @@
-"""Zenoh telemetry (telemetry.md): keys, strict-JSON payloads, queryables, liveliness.
+"""Zenoh telemetry (docs/telemetry.md): keys, strict-JSON payloads, queryables, liveliness.
 
 Telemetry is read-only: the service declares no subscriber, and no queryable but
 `state/*`. High-rate keys use congestion control DROP (a slow viewer never stalls

@@ -1,5 +1,5 @@
 """`rsra angles show|reset STATE`: inspect a saved posterior, or reset it to the configured
-prior (cli.md; model.md §7 "sequential posterior").
+prior (docs/cli.md §12; model.md §7.4 "sequential posterior").
 
 The state file is what the service saves after every accepted identification run
 (``identification.state_file``, daq.persistence.save_posterior) and what ``--angles``

@@ -1,4 +1,4 @@
-"""`rsra calibrate`: off-line known-load calibration from recordings (cli.md; model.md §7
+"""`rsra calibrate`: off-line known-load calibration from recordings (docs/cli.md §9; model.md §7
 known-load mode; report Phase I and Appendix C). The work is in :mod:`daq.calibrate`."""
 from __future__ import annotations
 

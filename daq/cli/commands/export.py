@@ -1,4 +1,4 @@
-"""`rsra export`: files other tools open (cli.md) — a DBC of the bus, MCAP and Parquet of the
+"""`rsra export`: files other tools open (docs/cli.md §14) — a DBC of the bus, MCAP and Parquet of the
 telemetry (daq.export).
 
 Outputs are written under a temporary name beside the target and renamed only when complete:

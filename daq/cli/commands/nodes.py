@@ -1,4 +1,5 @@
-"""`rsra nodes`: a bus check that starts nothing (cli.md; bus.md "Nodes", "Boot and supervision").
+"""`rsra nodes`: a bus check that starts nothing (docs/cli.md §10; docs/bus.md §1 "Nodes",
+§3 "Boot and supervision").
 
 For every configured node: was it heard (boot-up or heartbeat, through the same passive
 :class:`daq.master.Supervisor` the service runs), its NMT state by its last heartbeat, and
@@ -57,7 +58,7 @@ class NodeReport:
 
     @property
     def ok(self) -> bool:
-        """Fine for a start: matches, or optional and absent (bus.md: its features stay off)."""
+        """Fine for a start: matches, or optional and absent (docs/bus.md §3: its features stay off)."""
         return self.status == "ok" or (self.status == "missing" and not self.required)
 
     def to_dict(self) -> dict:

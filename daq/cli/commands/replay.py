@@ -1,4 +1,5 @@
-"""`rsra replay`: recordings through the same reader as the live service (cli.md, bus.md).
+"""`rsra replay`: recordings through the same reader as the live service (docs/cli.md §6,
+docs/bus.md §5).
 
 Writes one JSON object per published message with ``--out`` (``{"key": "channels", …}``,
 ``{"key": "health", …}``, in order, strict JSON), else prints a summary.

@@ -1,4 +1,4 @@
-"""`rsra report`: plots and a summary from a replay's or a run's JSONL (cli.md; daq/analysis/report.py)."""
+"""`rsra report`: plots and a summary from a replay's or a run's JSONL (docs/cli.md §7; daq/analysis/report.py)."""
 from __future__ import annotations
 
 import argparse

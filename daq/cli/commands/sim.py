@@ -1,4 +1,4 @@
-"""`rsra sim`: the simulated aircraft alone on a bus (cli.md; bus.md; model.md §8).
+"""`rsra sim`: the simulated aircraft alone on a bus (docs/cli.md §3; docs/bus.md; model.md §8).
 
 CANopen nodes that wait for a master's NMT start and follow its SYNC, or with --autostart
 start by themselves while the simulator produces SYNC at the sample rate. --record writes

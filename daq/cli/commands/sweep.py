@@ -1,4 +1,4 @@
-"""`rsra sweep`: the report's frequency-domain evaluation of a shake-test sweep (cli.md;
+"""`rsra sweep`: the report's frequency-domain evaluation of a shake-test sweep (docs/cli.md §8;
 report Phase I, Eq 1.3–1.5, Table I, Figures 4–18; daq/analysis/sweep.py)."""
 from __future__ import annotations
 

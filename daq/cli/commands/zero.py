@@ -1,4 +1,5 @@
-"""`rsra zero`: the command line of the tare (the work is in :mod:`rsra.daq.analysis.tare`; cli.md)."""
+"""`rsra zero`: the command line of the tare (the work is in :mod:`rsra.daq.analysis.tare`;
+docs/cli.md §11)."""
 from __future__ import annotations
 
 import argparse
