@@ -1,6 +1,6 @@
 """When the angles are not constant: competing structures of the known-load model and a
 sequential test of the constant-angle model against them (issue 19; docs/identification.md,
-"When the model is wrong: structures").
+"When the angles are not constant: the structure test").
 
 The known-load balance is ``z = S(α) T + R₀ H (+ E q)``; its residual at the constant-angle
 model is ``r = z − S(α) T − R₀ H − E q``. Each competing structure adds a term that is zero at

@@ -6,7 +6,7 @@ Pure: no I/O. One *measurement* is one Open MCT telemetry object (one series): a
 a datum is ``{"utc": ms, "value": …, …}`` and carries ``"lim"`` (``"yellow"``/``"red"``) when
 it is outside its limits, so the browser only maps that to Open MCT's limit classes.
 
-Limits, from what rsra knows (docs/web.md):
+Limits, from what rsra knows (docs/cli.md §15):
 
 * hub loads: the static estimate against the filter estimate, per axis, in units of the
   static-estimate noise σ of the noise budget (model §4): yellow beyond the two-sided 10⁻³
