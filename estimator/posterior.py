@@ -40,7 +40,8 @@ A rejected run leaves the posterior as it was. :class:`PeriodicIdentification` t
 of (content-filtered) data, the identification of ``estimator.identification`` and this
 posterior together, carrying the filter-error state and its sensitivities from window to
 window. Pure numerics; the posterior's JSON text is made and checked here
-(:func:`posterior_to_json`, :func:`posterior_from_json`), the files are daq.persistence's.
+(:meth:`PosteriorState.to_dict`, :func:`posterior_from_json`); the files and their text are
+daq.runtime.persistence's.
 """
 from __future__ import annotations
 
@@ -85,21 +86,6 @@ MAX_ACCUMULATED_WINDOWS = 64  # re-linearisation: fold at the latest after this 
 MAX_HELD_WINDOWS = 12  # not-identifiable windows held for the next run (one sweep of 60 s)
 
 
-def _finite_or_none(x: Any) -> Any:
-    """JSON-safe: arrays to lists, non-finite numbers to None (telemetry: allow_nan=False)."""
-    if isinstance(x, np.ndarray):
-        return [_finite_or_none(v) for v in x.tolist()]
-    if isinstance(x, (list, tuple)):
-        return [_finite_or_none(v) for v in x]
-    if isinstance(x, (float, np.floating)):
-        return float(x) if math.isfinite(x) else None
-    if isinstance(x, (np.integer,)):
-        return int(x)
-    if isinstance(x, np.bool_):
-        return bool(x)
-    return x
-
-
 @dataclass
 class AnglesRecord:
     """Everything the ``angles`` record (docs/telemetry.md §2.4) carries, plus the run's own
@@ -141,14 +127,16 @@ class AnglesRecord:
     structure_verdict: StructureVerdict | None = None
 
     def to_dict(self) -> dict:
-        """The telemetry ``angles`` payload (SI: radians)."""
+        """The telemetry ``angles`` payload (SI: radians), values as computed (numpy arrays,
+        NaN): the shell makes it strict JSON (``rsra.daq.jsonout.sanitise``, the one
+        converter)."""
         keys = ("t", "seq", "mode", "content", "accepted", "reason", "detail", "names", "alpha",
                 "P", "sigma_cr", "sigma_cr_corrected", "determined", "window_determined",
                 "information", "nu", "cost", "iterations", "window", "applies_from_seq", "late")
-        out = {k: _finite_or_none(getattr(self, k)) for k in keys}
+        out = {k: getattr(self, k) for k in keys}
         if self.mode == "known_loads":
             out["structure"] = self.structure
-            out["candidates"] = _finite_or_none(self.candidates or [])
+            out["candidates"] = self.candidates or []
         return out
 
 
@@ -273,11 +261,6 @@ def check_posterior(state: PosteriorState, path: str | Path, *, rig: Mapping[str
                 "(--accept-rig-mismatch)")
     raise PosteriorFileError(path, f"its angles belong to another rig: {diff}",
                              "check --config, or pass --accept-rig-mismatch to use it anyway")
-
-
-def posterior_to_json(state: PosteriorState) -> str:
-    """The saved posterior's text (strict JSON; daq.persistence writes it atomically)."""
-    return json.dumps(_finite_or_none(state.to_dict()), allow_nan=False, indent=1)
 
 
 def posterior_from_json(text: str, path: str | Path,

@@ -10,6 +10,7 @@ import pytest
 from scipy.stats import chi2
 from synthetic import TruthGeometry, harmonic_state, paper_run, static_run
 
+from rsra.daq.jsonout import sanitise
 from rsra.daq.runtime.persistence import load_posterior, save_posterior
 from rsra.estimator.balance import inertial_loads, measurement_covariance
 from rsra.estimator.content import ContentFilter
@@ -214,7 +215,7 @@ def test_determined_directions_late_results_and_strict_json(cfg, model):
                 "iterations", "window", "applies_from_seq", "late"):
         assert key in d
     rec.nu = float("nan")
-    text = json.dumps(rec.to_dict(), allow_nan=False)
+    text = json.dumps(sanitise(rec.to_dict()), allow_nan=False)  # the shell's one converter
     assert json.loads(text)["nu"] is None and json.loads(text)["window"] == [1000, 1999]
 
 

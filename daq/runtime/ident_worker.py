@@ -29,6 +29,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from rsra.daq.jsonout import sanitise
 from rsra.daq.runtime.records import ABSENT, AnglesRecord, IdentError, IdentJob, IdentResult
 
 log = logging.getLogger("rsra.identification")
@@ -112,7 +113,7 @@ def run_job(cfg, runs: dict, cache, job: dict) -> dict:
         for other in runs.values():
             if other is not ident:
                 other.mark_discontinuity()
-    out = rec.to_dict()
+    out = sanitise(rec.to_dict())  # strict JSON values, as they cross the process boundary
     out["applies_from_seq"] = int(job["applies_from_seq"])
     out["late"] = False
     out["restarted"] = False

@@ -13,16 +13,19 @@ own leftovers on start (docs/reliability.md). A symbolic link is written through
 points to is replaced and the link stays.
 
 The posterior: :func:`save_posterior` / :func:`load_posterior` (``identification.state_file``,
-``--angles``), the text made and checked by ``estimator.posterior.posterior_to_json`` /
+``--angles``), the text made by :func:`posterior_to_json` and checked by
 ``posterior_from_json``."""
 from __future__ import annotations
 
+import json
 import os
 import re
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+from rsra.daq.jsonout import sanitise
 
 if TYPE_CHECKING:  # (imported when used: the tare and calibrate commands need no scipy)
     from rsra.estimator.posterior import PosteriorState
@@ -75,9 +78,13 @@ def write_text_atomic(path: str | Path, text: str) -> None:
 
 def save_posterior(path: str | Path, state: PosteriorState) -> None:
     """Write atomically (:func:`write_text_atomic`: temporary file, fsync, rename)."""
-    from rsra.estimator.posterior import posterior_to_json
 
     write_text_atomic(path, posterior_to_json(state))
+
+
+def posterior_to_json(state) -> str:
+    """The saved posterior's text: strict JSON (the one converter, jsonout.sanitise)."""
+    return json.dumps(sanitise(state.to_dict()), allow_nan=False, indent=1)
 
 
 def load_posterior(path: str | Path, names: Sequence[str] | None = None) -> PosteriorState:
