@@ -22,6 +22,7 @@ from estimator.balance import inertial_load_matrix
 from estimator.content import ContentFilter
 from estimator.filters import DesignCache, LoadFilter
 from estimator.geometry import hub_transfer_matrix, wrench_matrix
+from estimator.transient import TIME_CONSTANT_FRACTION, TRANSIENT, TransientDetector
 
 log = logging.getLogger("rsra.pipeline")
 
@@ -105,6 +106,8 @@ class EstimatorPipeline:
                 f"rotor.omega_nominal_rad_s = {w0:g} ({why})",
                 "use fewer or lower harmonics, a longer time_constant_s or a higher sample rate",
                 cfg.source) from None
+        # the filter's lag behind a moving static load: flag `transient` (estimator/transient.py)
+        self.transient = TransientDetector(dt, TIME_CONSTANT_FRACTION * f.time_constant_s)
         self.cell_names = [c.name for c in cfg.cells]
         self.innov_every = max(1, int(round(self.fs / cfg.telemetry.innovations_hz)))
         # calibration branch
@@ -253,6 +256,8 @@ class EstimatorPipeline:
         for fl in res.flags:
             if fl not in flags:
                 flags.append(fl)
+        if res.e is not None and self.transient.update(self.load_filter.design, res.e):
+            flags.append(TRANSIENT)
         if self.identification_off:
             flags.append("identification_off")
         omega_pub = omega if omega is not None else (
