@@ -51,7 +51,11 @@ def smoothed_innovation_covariance(design, beta: float) -> np.ndarray:
 
 
 class TransientDetector:
-    """Per-sample `transient` decision from the load filter's innovations (module doc)."""
+    """Per-sample `transient` decision from the load filter's innovations (module doc).
+
+    The smoother is kept as v = Σ_s^-½ L⁻¹ s_e with s_e' = (1 − β) s_e + β e (the raw
+    innovations; a redesign converts v through s_e), so q = |v|²: one 6×6 product and two
+    small in-place updates per sample."""
 
     def __init__(self, dt: float, time_constant_s: float, false_alarm: float = FALSE_ALARM):
         if not (time_constant_s > 0 and dt > 0):
@@ -59,20 +63,21 @@ class TransientDetector:
         self.beta = min(1.0, float(dt) / float(time_constant_s))
         self.threshold = float(chi2.isf(false_alarm, 6))
         self._s = np.zeros(6)
-        self._consts: dict[int, tuple[object, np.ndarray, np.ndarray]] = {}
+        self._consts: dict[int, tuple[object, np.ndarray]] = {}
+        self._design = None
+        self._M = self._Mb = np.zeros((6, 6))
         self.q = 0.0
 
-    def _constants(self, design) -> tuple[np.ndarray, np.ndarray]:
+    def _matrix(self, design) -> np.ndarray:
         c = self._consts.get(id(design))
         if c is None or c[0] is not design:
             if len(self._consts) >= MAX_DESIGNS:
                 self._consts.clear()
             Linv = np.linalg.inv(np.linalg.cholesky(design.B))
             S = smoothed_innovation_covariance(design, self.beta)
-            Sinv_half = np.linalg.inv(np.linalg.cholesky(S))  # q = |S^-½ s|²
-            c = (design, Linv, Sinv_half)
+            c = (design, np.linalg.inv(np.linalg.cholesky(S)) @ Linv)
             self._consts[id(design)] = c
-        return c[1], c[2]
+        return c[1]
 
     def reset(self) -> None:
         self._s[:] = 0.0
@@ -82,9 +87,13 @@ class TransientDetector:
         """One sample's innovation ``e`` (None: predict-only — the state is kept, no flag)."""
         if e is None:
             return False
-        Linv, Sh = self._constants(design)
-        self._s *= 1.0 - self.beta
-        self._s += self.beta * Linv.dot(e)
-        v = Sh.dot(self._s)
-        self.q = float(v.dot(v))
-        return self.q > self.threshold
+        if design is not self._design:
+            M = self._matrix(design)
+            if self._design is not None:  # carry the smoothed innovation over: v = M s_e
+                self._s[:] = M.dot(np.linalg.solve(self._M, self._s))
+            self._M, self._Mb, self._design = M, self.beta * M, design
+        v = self._s  # = Σ_s^-½ L⁻¹ s_e
+        v *= 1.0 - self.beta
+        v += self._Mb.dot(e)
+        self.q = q = float(v.dot(v))
+        return q > self.threshold

@@ -184,3 +184,18 @@ def test_nis_consistency_verdicts():
     assert nis_consistency(1.15 * rng.chisquare(6, 20_000), lo, hi)["verdict"] == "inconsistent"
     assert nis_consistency(0.6 * rng.chisquare(6, 20_000), lo, hi)["verdict"] == "conservative"
     assert nis_consistency(np.array([]), lo, hi)["verdict"] == "no data"
+
+
+def test_a_redesign_carries_the_smoothed_innovation_over(cfg, design):
+    """A redesign (another Ω) keeps the smoothed raw innovation: q after it equals that of a
+    detector that had the new design all along."""
+    other = load_filter_cache(cfg).design_for(cfg.rotor.omega_nominal_rad_s * 1.02)
+    assert other is not design
+    dt, tau = 1.0 / cfg.sample_rate_hz, TIME_CONSTANT_FRACTION * cfg.filter.time_constant_s
+    e = np.array([3e3, -2e3, 1e3, 4e3, -5e3, 2e3])
+    a, b = TransientDetector(dt, tau), TransientDetector(dt, tau)
+    a.update(design, e)
+    a.update(other, np.zeros(6))
+    b.update(other, e)
+    b.update(other, np.zeros(6))
+    assert a.q == pytest.approx(b.q, rel=1e-9)
