@@ -30,9 +30,18 @@ bench: $(STAMP)
 	$(PIP_INSTALL) -e '.[bench]'
 	$(BIN)/python -m bench.run_all
 
-lint: $(STAMP)
-	$(BIN)/pip install -q ruff
-	$(BIN)/ruff check daq estimator sim_bus tests
+# ruff and import-linter at the versions pinned in the `dev` extra; the import contracts
+# (pyproject.toml) are checked on the distribution as installed, where the folders are rsra.*
+LINT_STAMP := $(VENV)/.lint-installed
+$(LINT_STAMP): pyproject.toml $(STAMP)
+	$(PIP_INSTALL) -e '.[dev]'
+	touch $(LINT_STAMP)
+
+lint: $(LINT_STAMP)
+	$(BIN)/ruff check daq estimator sim_bus config rsra tests bench
+	rm -rf build/lint
+	$(BIN)/pip install -q --no-deps --no-compile --target build/lint . 2>&1 | grep -v "^WARNING: Location" || true
+	cd build/lint && PYTHONPATH=. ../../$(BIN)/lint-imports --no-cache ../../pyproject.toml
 
 clean:
 	rm -rf $(VENV) build *.egg-info

@@ -24,9 +24,9 @@ from __future__ import annotations
 import numpy as np
 
 from bench.common import arg_parser, writer_from_args
-from daq.config import load_config
-from daq.units import to_units
-from estimator.noise_budget import AXES, noise_budget
+from rsra.config.rig import load_config
+from rsra.config.units import to_units
+from rsra.estimator.noise_budget import AXES, noise_budget
 
 BENCH = "a1_noise_budget"
 TOLERANCE = 0.01

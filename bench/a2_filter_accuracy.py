@@ -22,11 +22,11 @@ import numpy as np
 
 from bench.common import arg_parser, ratio, writer_from_args
 from bench.p2_filter_step import load_filter_cache
-from daq.config import load_config
-from estimator.balance import inertial_loads, static_estimate
-from estimator.filters import filter_batch
-from estimator.noise_budget import AXES, noise_budget
-from sim_bus import load_scenario, simulate
+from rsra.config.rig import load_config
+from rsra.estimator.balance import inertial_loads, static_estimate
+from rsra.estimator.filters import filter_batch
+from rsra.estimator.noise_budget import AXES, noise_budget
+from rsra.sim_bus import load_scenario, simulate
 
 BENCH = "a2_filter_accuracy"
 TAUS = (0.1, 0.3, 1.0)

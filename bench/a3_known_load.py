@@ -47,9 +47,9 @@ def run_calibration(cfg, run, *, known_loads: bool, initial_state=None
     """The service's calibration branch over an off-line run: yields, per window,
     (last sample, the angles record, posterior θ, posterior P) in window order.
     ``initial_state``: a saved posterior to start from (``--angles``)."""
-    from daq.ident_worker import build_identification, run_job
-    from estimator.balance import inertial_loads
-    from estimator.content import ContentFilter
+    from rsra.daq.ident_worker import build_identification, run_job
+    from rsra.estimator.balance import inertial_loads
+    from rsra.estimator.content import ContentFilter
 
     model = cfg.rig_model()
     idc, fs = cfg.identification, cfg.sample_rate_hz
@@ -137,8 +137,8 @@ _TINY_SAMPLES = 2000
 
 
 def one_seed(seed: int, tiny: bool = False) -> dict:
-    from daq.config import load_config
-    from sim_bus import load_scenario, simulate
+    from rsra.config.rig import load_config
+    from rsra.sim_bus import load_scenario, simulate
 
     cfg = load_config()
     sc = load_scenario("ground-test")
@@ -167,7 +167,7 @@ def _one_seed_tiny(seed: int) -> dict:
 def main(argv: list[str] | None = None) -> int:
     args = arg_parser(__doc__.splitlines()[0]).parse_args(argv)
     w = writer_from_args(BENCH, args)
-    from daq.config import load_config
+    from rsra.config.rig import load_config
     cfg = load_config()
     sigma_max = float(np.rad2deg(cfg.identification.sigma_max_rad))
     seeds = list(range(1, 3 if args.tiny else N_SEEDS + 1))
@@ -185,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
         "median_per_angle": np.median(np.array(corr), axis=0).round(3),
         "max": float(np.max(corr))}
     names = cfg.rig_model().geometry.angle_names
-    from sim_bus import load_scenario
+    from rsra.sim_bus import load_scenario
     n_seed = _TINY_SAMPLES if args.tiny else round(
         SWEEPS * load_scenario("ground-test").duration_s * cfg.sample_rate_hz)
     common = {"seeds": len(seeds), "scenario": "ground-test", "sweeps": None if args.tiny else SWEEPS,

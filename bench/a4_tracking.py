@@ -41,8 +41,8 @@ _TINY_STEP_S = 5.0
 
 
 def one_seed(seed: int, tiny: bool = False) -> dict:
-    from daq.config import load_config
-    from sim_bus import load_scenario, simulate
+    from rsra.config.rig import load_config
+    from rsra.sim_bus import load_scenario, simulate
 
     cfg = load_config()
     fs = cfg.sample_rate_hz

@@ -27,8 +27,8 @@ _TINY_SAMPLES = 2000
 
 
 def one_seed(seed: int, tiny: bool = False) -> dict:
-    from daq.config import load_config
-    from sim_bus import load_scenario, simulate
+    from rsra.config.rig import load_config
+    from rsra.sim_bus import load_scenario, simulate
 
     sc = load_scenario("paper")
     cfg = load_config(overrides=sc.rig_overrides)

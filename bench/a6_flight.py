@@ -55,7 +55,7 @@ def power_rig() -> dict:
     """Rig overrides of the power arm: the default rig's accelerometer, three times."""
     import tomllib
 
-    from daq.config import default_config_path
+    from rsra.config.rig import default_config_path
 
     raw = tomllib.loads(default_config_path().read_text(encoding="utf-8"))
     acc0 = raw["accelerometers"][0]
@@ -70,14 +70,14 @@ def power_rig() -> dict:
 
 
 def _scenario(arm: str):
-    from sim_bus import load_scenario
+    from rsra.sim_bus import load_scenario
 
     if arm == "turbulence":
         return load_scenario("flight", turbulence=True)
     if arm == "power":  # no manoeuvres, constant rotor speed
         import tomllib
 
-        from sim_bus.scenarios import parse_scenario, scenario_dir
+        from rsra.sim_bus.scenarios import parse_scenario, scenario_dir
         raw = tomllib.loads((scenario_dir() / "flight.toml").read_text(encoding="utf-8"))
         raw.pop("manoeuvres", None)
         raw["rotor"]["omega_variation"] = 0.0
@@ -90,18 +90,12 @@ def hub_load_rms(cfg, run, schedule: list[tuple[int, np.ndarray]], alpha0: np.nd
     """RMS error (6,) of the service's load filter over the run against the true hub loads,
     the angles switching at the given samples (one design at the nominal rotor speed, the
     state carried across switches)."""
-    from estimator.balance import inertial_loads
-    from estimator.filters import DesignCache, filter_batch
+    from rsra.estimator.balance import inertial_loads
+    from rsra.daq.rigmodel import design_cache
+    from rsra.estimator.filters import filter_batch
 
     model = cfg.rig_model()
-    f = cfg.filter
-    cache = DesignCache(
-        model, harmonics=tuple(f.harmonics), dt=1.0 / cfg.sample_rate_hz, tuning=f.tuning,
-        time_constant_s=f.time_constant_s, low_frequency=f.low_frequency_states,
-        psd=f.process_noise_psd, alpha=cfg.identification.initial_angles_rad,
-        moment_floor=cfg.identification.moment_floor_Nm, frame=None,
-        redesign_band=cfg.rotor.redesign_band, cache_resolution=cfg.rotor.cache_resolution,
-        omega_min=0.0, omega_default=cfg.rotor.omega_nominal_rad_s)
+    cache = design_cache(cfg, model=model, omega_min=0.0)
     design = cache.design_for(cfg.rotor.omega_nominal_rad_s)
     z = inertial_loads(model, run.accel)
     n = len(z)
@@ -117,9 +111,9 @@ def hub_load_rms(cfg, run, schedule: list[tuple[int, np.ndarray]], alpha0: np.nd
 
 
 def one_arm(seed: int, arm: str, tiny: bool = False) -> dict:
-    from daq.config import load_config
-    from estimator.posterior import PosteriorState
-    from sim_bus import load_scenario, simulate
+    from rsra.config.rig import load_config
+    from rsra.estimator.posterior import PosteriorState
+    from rsra.sim_bus import load_scenario, simulate
 
     power = arm == "power"
     base_cfg = load_config(overrides=power_rig() if power else None)

@@ -19,10 +19,11 @@ import time
 import numpy as np
 
 from bench.common import arg_parser, interleaved, ratio, writer_from_args
-from daq.config import RigConfig, load_config
-from estimator.balance import inertial_loads
-from estimator.filters import DesignCache, LoadFilter
-from estimator.geometry import wrench_matrix
+from rsra.config.rig import RigConfig, load_config
+from rsra.daq.rigmodel import design_cache
+from rsra.estimator.balance import inertial_loads
+from rsra.estimator.filters import DesignCache, LoadFilter
+from rsra.estimator.geometry import wrench_matrix
 
 BENCH = "p2_filter_step"
 
@@ -32,22 +33,12 @@ def load_filter_cache(cfg: RigConfig, *, tuning: str | None = None,
                       alpha: np.ndarray | None = None) -> DesignCache:
     """The load filter's design cache as the service builds it (daq.pipeline), with an
     optional other tuning or time constant."""
-    f = cfg.filter
-    return DesignCache(
-        cfg.rig_model(), harmonics=tuple(f.harmonics), dt=cfg.sample_period_s,
-        tuning=tuning or f.tuning,
-        time_constant_s=f.time_constant_s if time_constant_s is None else time_constant_s,
-        low_frequency=f.low_frequency_states, psd=f.process_noise_psd,
-        alpha=cfg.identification.initial_angles_rad if alpha is None else alpha,
-        moment_floor=cfg.identification.moment_floor_Nm, frame=None,
-        redesign_band=cfg.rotor.redesign_band, cache_resolution=cfg.rotor.cache_resolution,
-        omega_min=cfg.rotor.omega_min_fraction * cfg.rotor.omega_nominal_rad_s,
-        omega_default=None if cfg.rotor.stopped else cfg.rotor.omega_nominal_rad_s)
+    return design_cache(cfg, tuning=tuning or None, time_constant_s=time_constant_s, alpha=alpha)
 
 
 def filter_inputs(cfg: RigConfig, n: int, scenario: str = "ground-test", seed: int = 1):
     """(T (n, 7), z (n, 6), run): load cells and inertial loads as the bus delivers them."""
-    from sim_bus import simulate
+    from rsra.sim_bus import simulate
     run = simulate(cfg, scenario, seed=seed, n_samples=n)
     z = inertial_loads(cfg.rig_model(), run.accel)
     return np.ascontiguousarray(run.T), np.ascontiguousarray(z), run

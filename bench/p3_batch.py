@@ -21,8 +21,8 @@ import numpy as np
 
 from bench.common import arg_parser, interleaved, ratio, writer_from_args
 from bench.p2_filter_step import filter_inputs, load_filter_cache
-from daq.config import load_config
-from estimator.filters import TUNINGS, LoadFilter, filter_batch
+from rsra.config.rig import load_config
+from rsra.estimator.filters import TUNINGS, LoadFilter, filter_batch
 
 BENCH = "p3_batch"
 TARGET_RATE = 1_000_000.0

@@ -27,13 +27,13 @@ import warnings
 import numpy as np
 
 from bench.common import arg_parser, interleaved, ratio, writer_from_args
-from daq.config import RigConfig, load_config
-from estimator.balance import inertial_loads, measurement_covariance
-from estimator.content import ContentFilter
-from estimator.geometry import hub_transfer_matrix, wrench_matrix
-from estimator.identification import KnownLoadProblem, Parameterisation, levenberg_marquardt
-from estimator.params import RigModel
-from sim_bus import load_scenario, simulate
+from rsra.config.rig import RigConfig, load_config
+from rsra.estimator.balance import inertial_loads, measurement_covariance
+from rsra.estimator.content import ContentFilter
+from rsra.estimator.geometry import hub_transfer_matrix, wrench_matrix
+from rsra.estimator.identification import KnownLoadProblem, Parameterisation, levenberg_marquardt
+from rsra.estimator.params import RigModel
+from rsra.sim_bus import load_scenario, simulate
 
 BENCH = "p4_identification"
 START_DEG = 4.0

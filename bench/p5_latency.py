@@ -1,7 +1,7 @@
 """P5 — end-to-end latency: SYNC → hub-load sample at a Zenoh subscriber in another process.
 
 The service runs as its own process exactly as a user starts it, in real time with the
-simulated aircraft on the virtual bus (``python -m daq run --sim ground-test --speed 1``:
+simulated aircraft on the virtual bus (``python -m rsra run --sim ground-test --speed 1``:
 the service is the CANopen master and produces SYNC at 200 samples/s; the periodic
 identification runs in its own worker process). This benchmark process subscribes to
 ``<prefix>/hub_loads`` over Zenoh (loopback TCP, scouting off) and takes, per sample,
@@ -61,7 +61,7 @@ class Receiver:
     def __init__(self, endpoint: str, key: str, capacity: int) -> None:
         import zenoh
 
-        from daq.telemetry import viewer_config
+        from rsra.daq.telemetry import viewer_config
 
         self.stamps = np.zeros(capacity)
         self.payloads: list[bytes] = []
@@ -145,14 +145,14 @@ def measure_floor(n: int, period: float, size: int) -> np.ndarray:
 def main(argv: list[str] | None = None) -> int:
     args = arg_parser(__doc__.splitlines()[0]).parse_args(argv)
     w = writer_from_args(BENCH, args)
-    from daq.config import load_config
+    from rsra.config.rig import load_config
     cfg = load_config()
     warmup, scored = (1.0, 1.0) if args.tiny else (WARMUP_S, SCORED_S)
     fs, dt = cfg.sample_rate_hz, cfg.sample_period_s
     port = free_tcp_port()
     ep = f"tcp/127.0.0.1:{port}"
     duration = warmup + scored + 1.0
-    cmd = [sys.executable, "-m", "daq", "run", "--sim", "ground-test", "--speed", "1",
+    cmd = [sys.executable, "-m", "rsra", "run", "--sim", "ground-test", "--speed", "1",
            "--seed", "1", "--duration", f"{duration:g}", "--zenoh-listen", ep,
            "--log-level", "warning"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,

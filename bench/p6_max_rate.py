@@ -45,7 +45,7 @@ def frame_bits_worst(nbytes: int) -> int:
 
 def bus_limit_samples_per_s(cfg, bitrate: float = 1_000_000.0) -> tuple[float, int]:
     """Samples/s the bus carries for the required nodes' TPDOs + SYNC, worst-case stuffing."""
-    from daq.decoder import DecodeTable
+    from rsra.daq.decoder import DecodeTable
 
     table = DecodeTable(cfg)
     bits = frame_bits_worst(1 if cfg.sync.counter_overflow else 0)
@@ -59,8 +59,8 @@ def trial(rate: float, duration: float) -> dict:
     """One rate in this process: the service + simulator in real time. Returns the tally."""
     import socket
 
-    from daq.config import load_config
-    from daq.service import Service, ServiceOptions
+    from rsra.config.rig import load_config
+    from rsra.daq.service import Service, ServiceOptions
 
     cfg = load_config(overrides={"rig": {"sample_rate_hz": float(rate)}})
     with socket.socket() as s:
@@ -169,7 +169,7 @@ def attempt(rate: float, duration: float, tries: int, trials: list[dict]) -> boo
 def main(argv: list[str] | None = None) -> int:
     args = arg_parser(__doc__.splitlines()[0]).parse_args(argv)
     w = writer_from_args(BENCH, args)
-    from daq.config import load_config
+    from rsra.config.rig import load_config
     cfg = load_config()
     limit, bits = bus_limit_samples_per_s(cfg)
     duration = 1.5 if args.tiny else TRIAL_S

@@ -51,8 +51,8 @@ def rss_mb(pid: int | str = "self") -> float | None:
 def run_service(duration: float, every_s: float, record_dir: str) -> dict:
     import socket
 
-    from daq.config import load_config
-    from daq.service import Service, ServiceOptions
+    from rsra.config.rig import load_config
+    from rsra.daq.service import Service, ServiceOptions
 
     cfg = load_config()
     with socket.socket() as s:

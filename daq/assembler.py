@@ -21,8 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from daq.config import RigConfig
-from daq.decoder import STATUS_FAULT, STATUS_OVERRANGE, DecodeTable
+from rsra.config.rig import RigConfig
+from rsra.daq.decoder import STATUS_FAULT, STATUS_OVERRANGE, DecodeTable
+from rsra.daq.jsonout import sanitise
 
 FrameCallback = Callable[[int, Any, float], None]
 _CACHE_MAX = 256  # distinct (reported, expected) patterns remembered (bounded)
@@ -184,15 +185,8 @@ class Sample:
     complete: bool = field(default=True)
 
     def channels_payload(self) -> dict:
-        """The telemetry ``channels`` payload (strict JSON: non-finite -> None)."""
-        return {
-            "seq": self.seq, "t": self.t, "T": _json_list(self.T),
-            "accel": [_json_list(a) for a in self.accel],
-            "omega": _json_num(self.omega), "azimuth": _json_num(self.azimuth),
-            "known_H": None if self.known_H is None else _json_list(self.known_H),
-            "drive": None if self.drive is None else _json_list(self.drive),
-            "status": dict(self.cell_status),
-        }
+        """The telemetry ``channels`` payload, strict JSON (non-finite -> None)."""
+        return sanitise(channels_payload(self))
 
     def same_as(self, other: Sample) -> bool:
         """Bit-for-bit equality of every field (nan equal to nan): replay == live."""
@@ -210,12 +204,19 @@ class Sample:
         return True
 
 
-def _json_num(x: float | None) -> float | None:
-    return x if x is not None and math.isfinite(x) else None
-
-
-def _json_list(a: np.ndarray) -> list:
-    return [float(v) if math.isfinite(v) else None for v in a.tolist()]
+def channels_payload(s: Sample, I: np.ndarray | None = None,
+                     status: dict | None = None) -> dict:
+    """The one builder of the telemetry ``channels`` payload (docs/telemetry.md) of sample
+    ``s``: ``I`` (the inertial loads) when the estimator computed them, ``status`` when the
+    cells' status is not already a dict by name. Values as they are (numpy arrays, NaN): the
+    encoder (:func:`rsra.daq.jsonout.dumps`) makes it strict JSON."""
+    out = {"seq": s.seq, "t": float(s.t), "T": s.T,
+           "accel": np.asarray(s.accel, float).reshape(-1, 3)}
+    if I is not None:
+        out["I"] = I
+    out.update({"omega": s.omega, "azimuth": s.azimuth, "known_H": s.known_H, "drive": s.drive,
+                "status": dict(s.cell_status) if status is None else status})
+    return out
 
 
 class SampleAssembler:
@@ -307,7 +308,7 @@ class SampleAssembler:
             nl = table.node(e.node)
             values = [i for i in range(nl.start, nl.stop) if not table.channels[i].is_status]
             if len(values) != 1:
-                from daq.config import ConfigError
+                from rsra.config.rig import ConfigError
                 raise ConfigError(f"external_loads[{e.name}].node", e.node,
                                   f"the node maps {len(values)} values; an external load needs one",
                                   "map exactly one value in the drive-load node's TPDOs")

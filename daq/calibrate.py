@@ -26,11 +26,11 @@ from pathlib import Path
 import numpy as np
 from scipy.signal import sosfilt
 
-from daq.assembler import Sample
-from daq.config import RigConfig
-from estimator.balance import inertial_load_matrix
-from estimator.content import KINDS, ContentFilter
-from estimator.identification import (
+from rsra.daq.assembler import Sample
+from rsra.config.rig import RigConfig
+from rsra.estimator.balance import inertial_load_matrix
+from rsra.estimator.content import KINDS, ContentFilter
+from rsra.estimator.identification import (
     IdentificationResult,
     KnownLoadProblem,
     Parameterisation,
@@ -38,8 +38,8 @@ from estimator.identification import (
     parameter_names,
     scored_mask,
 )
-from estimator.noise_budget import AXES
-from estimator.posterior import SIGMA_MAX_OTHER_FRACTION, determined_directions
+from rsra.estimator.noise_budget import AXES
+from rsra.estimator.posterior import SIGMA_MAX_OTHER_FRACTION, determined_directions
 
 # Weak priors of the non-angle parameters (the angles take identification.prior_sigma_deg):
 # half the plausibility windows below, so the prior alone never pulls an estimate back inside
@@ -218,8 +218,8 @@ def load_known_load_data(
     hold no usable sample with known loads. ``progress(recorded_seconds, samples)`` is called
     every ``progress_every`` samples.
     """
-    from daq.reader import Reader
-    from daq.replay import ReplayError, expand, replay
+    from rsra.daq.reader import Reader
+    from rsra.daq.replay import ReplayError, expand, replay
 
     kind = content or cfg.identification.content_known_loads
     if kind not in KINDS:
@@ -297,7 +297,7 @@ def load_known_load_data(
                 parts = [z, T, H] + ([q[:Q]] if Q else [])
                 seg.put(np.concatenate(parts))
         except (ValueError, OSError) as e:  # a corrupt or truncated log file
-            from daq.replay import ReplayError
+            from rsra.daq.replay import ReplayError
 
             if isinstance(e, ReplayError):  # names the file (and line) already
                 raise CalibrationError(str(e)) from None
@@ -665,8 +665,3 @@ def fragment_toml(cfg: RigConfig, result: CalibrationResult) -> str:
     return "\n".join(lines).rstrip() + "\n"
 
 
-def fragment_overrides(text: str) -> dict:
-    """The fragment as the dict ``load_config(overrides=…)`` takes."""
-    import tomllib
-
-    return tomllib.loads(text)

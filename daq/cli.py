@@ -11,7 +11,8 @@ import os
 import re
 import sys
 
-from daq.config import ConfigError
+from rsra.config.rig import ConfigError
+from rsra.daq.commands.options import UsageError
 
 # name -> module under daq.commands; each module has add_parser(sub) and run(args).
 COMMANDS = {
@@ -32,21 +33,9 @@ COMMANDS = {
 }
 
 
-class UsageError(Exception):
-    """A user mistake on the command line: one line, exit 2."""
-
-
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # one line, exit 2
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
-
-
-def common_options(p: argparse.ArgumentParser, units: bool = True) -> None:
-    p.add_argument("--config", metavar="PATH", default=None,
-                   help="rig TOML (default: the packaged default rig)")
-    if units:
-        p.add_argument("--units", choices=("si", "us"), default="si",
-                       help="display units: si (N, N·m) or us (lbf, ft·lbf); default si")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -55,7 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
         "fixed-gain Kalman filter, on-line calibration of the load-cell angles, Zenoh telemetry."))
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for name, module in COMMANDS.items():
-        mod = importlib.import_module(f"daq.commands.{module}")
+        mod = importlib.import_module(f"rsra.daq.commands.{module}")
         p = mod.add_parser(sub, name)
         p.set_defaults(_run=mod.run)
     return parser
@@ -106,12 +95,12 @@ def zenoh_error_line(e: BaseException) -> str:
 def describe_error(e: BaseException) -> tuple[int, str]:
     """(exit status, one line) for any exception that ends a command: 2 for a usage,
     configuration or bad-input error, 1 for anything else (cli.md)."""
-    from daq.master import BootError
-    from daq.recorder import RecordingError
-    from daq.replay import ReplayError
-    from daq.service import BusOpenError
-    from estimator.posterior import PosteriorFileError
-    from sim_bus.faults import FaultSpecError
+    from rsra.daq.master import BootError
+    from rsra.daq.recorder import RecordingError
+    from rsra.daq.replay import ReplayError
+    from rsra.daq.service import BusOpenError
+    from rsra.estimator.posterior import PosteriorFileError
+    from rsra.sim_bus.faults import FaultSpecError
 
     if isinstance(e, ConfigError):
         return 2, f"configuration error: {_one_line(e)}"

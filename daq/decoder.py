@@ -22,7 +22,7 @@ import canopen
 import numpy as np
 from canopen.objectdictionary import ODVariable, datatypes
 
-from daq.config import G0, ConfigError, RigConfig, predefined_cob_ids
+from rsra.config.rig import G0, ConfigError, RigConfig, predefined_cob_ids
 
 # CANopen basic data types -> struct codes (CiA 301 §7.1.4); the bit length in the mapping
 # entry must agree with the type.
@@ -370,6 +370,3 @@ def _int_range(code: str) -> tuple[int, int]:
     return 0, 2**bits - 1
 
 
-def build_decode_table(cfg: RigConfig) -> DecodeTable:
-    """The decode table of a rig (raises ConfigError naming the EDS key on any problem)."""
-    return DecodeTable(cfg)

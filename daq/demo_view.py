@@ -11,7 +11,7 @@ from collections import deque
 
 import numpy as np
 
-from daq.units import axis_units, to_units
+from rsra.config.units import axis_units, to_units
 
 AXES = ("X", "Y", "Z", "L", "M", "N")
 HELD_FRACTION = 0.1  # a load is "held" when its revolution mean moved less than this × bound

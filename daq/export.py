@@ -24,15 +24,15 @@ from typing import Any
 
 from canopen.objectdictionary import ODVariable
 
-from daq.config import RigConfig
-from daq.decoder import (
+from rsra.config.rig import RigConfig
+from rsra.daq.decoder import (
     MILLI_G,
     PROFILES,
     STATUS_FAULT,
     STATUS_OVERRANGE,
     DecodeTable,
 )
-from daq.units import AXIS_KIND
+from rsra.config.units import AXIS_KIND
 
 AXES = ("X", "Y", "Z", "L", "M", "N")
 AXIS_UNIT = {"force": "N", "moment": "N·m"}
@@ -355,7 +355,7 @@ def write_mcap(records: Iterable[tuple[str, dict]], out, prefix: str,
     acquisition clock. Returns the message count per key."""
     from mcap.writer import Writer
 
-    from daq.jsonout import dumps
+    from rsra.daq.jsonout import dumps
 
     w = Writer(out)
     w.start(profile="", library="rsra")
@@ -580,10 +580,10 @@ def replay_to_jsonl(cfg: RigConfig, logs: list[str], out, on_error: Callable[[st
     every published record as a JSON line into the text stream ``out``."""
     from can.io.blf import BLFParseError
 
-    from daq.config import ConfigError
-    from daq.jsonout import dumps
-    from daq.service import Service, ServiceOptions
-    from estimator.posterior import PosteriorFileError
+    from rsra.config.rig import ConfigError
+    from rsra.daq.jsonout import dumps
+    from rsra.daq.service import Service, ServiceOptions
+    from rsra.estimator.posterior import PosteriorFileError
 
     service = Service(cfg, ServiceOptions(replay=list(logs), zenoh=False))  # no publishing
 

@@ -25,7 +25,6 @@ import threading
 import time
 import traceback
 from collections import deque
-from typing import Any
 
 import numpy as np
 
@@ -40,8 +39,8 @@ CHECK_INTERVAL_S = 0.2  # real time: how often the worker's liveness is checked 
 
 def build_identification(cfg, initial_state=None):
     """The two periodic identifications (known loads, filter error) over one posterior."""
-    from estimator.filters import DesignCache
-    from estimator.posterior import PeriodicIdentification, SequentialPosterior, rig_fingerprint
+    from rsra.daq.rigmodel import design_cache
+    from rsra.estimator.posterior import PeriodicIdentification, SequentialPosterior, rig_fingerprint
 
     model = cfg.rig_model()
     idc = cfg.identification
@@ -60,14 +59,8 @@ def build_identification(cfg, initial_state=None):
                   correlation_time_s=cfg.filter.time_constant_s,
                   alpha_base=idc.initial_angles_rad)
     f = cfg.filter
-    cache = DesignCache(
-        model, harmonics=tuple(f.harmonics), dt=1.0 / fs, tuning=f.tuning,
-        time_constant_s=f.time_constant_s, low_frequency=False, psd=f.process_noise_psd,
-        alpha=idc.initial_angles_rad, moment_floor=idc.moment_floor_Nm, frame=None,
-        redesign_band=cfg.rotor.redesign_band, cache_resolution=cfg.rotor.cache_resolution,
-        omega_min=cfg.rotor.omega_min_fraction * cfg.rotor.omega_nominal_rad_s,
-        omega_default=None if cfg.rotor.stopped else cfg.rotor.omega_nominal_rad_s)
-    from estimator.content import ContentFilter
+    cache = design_cache(cfg, model=model, low_frequency=False)  # the filter-error model's
+    from rsra.estimator.content import ContentFilter
 
     w0, harm = cfg.rotor.omega_nominal_rad_s, tuple(f.harmonics)
 
@@ -140,7 +133,7 @@ def save_state(post, rec: dict, state_file: str) -> str | None:
     """Save the posterior after an accepted run; the error text if that failed (the result
     stands: it is applied and published, and the next accepted run saves again)."""
     try:
-        from estimator.posterior import save_posterior
+        from rsra.estimator.posterior import save_posterior
 
         st = post.state()
         st.applies_from_seq = rec["applies_from_seq"]
@@ -234,7 +227,6 @@ class IdentificationWorker:
             signal.pthread_sigmask(signal.SIG_SETMASK, old)
         self.submitted = 0
         self.dropped = 0
-        self.errors = 0
 
     def submit(self, job: dict) -> bool:
         try:
@@ -478,7 +470,7 @@ class SupervisedIdentification:
                 log.warning("posterior saved again (%s)", self.cfg.identification.state_file)
             self.save_error = err
         if r.get("accepted") and "error" not in r:
-            from estimator.posterior import PosteriorState
+            from rsra.estimator.posterior import PosteriorState
 
             self.state = PosteriorState(tuple(r["names"]), np.asarray(r["alpha"], float),
                                         np.asarray(r["P"], float), r.get("applies_from_seq"),
@@ -498,8 +490,3 @@ class SupervisedIdentification:
             self.worker.close()
 
 
-def queue_stats(worker: IdentificationWorker | None) -> dict[str, Any]:
-    if worker is None:
-        return {}
-    return {"identification": {"submitted": worker.submitted, "dropped": worker.dropped,
-                               "errors": worker.errors}}

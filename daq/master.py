@@ -30,8 +30,9 @@ from typing import Any
 import can
 import canopen
 
-from daq.config import RigConfig
-from daq.decoder import COB_MASK_11BIT, TPDO_COMM, TPDO_MAP, DecodeTable, NodeLayout
+from rsra.config.rig import RigConfig
+from rsra.daq.decoder import COB_MASK_11BIT, DecodeTable, NodeLayout
+from rsra.daq.nodecheck import fmt_value, verify_node
 
 log = logging.getLogger(__name__)
 
@@ -46,14 +47,10 @@ NMT_RESET_COMMUNICATION = 0x82
 HB_BOOTUP, HB_STOPPED, HB_OPERATIONAL, HB_PRE_OPERATIONAL = 0x00, 0x04, 0x05, 0x7F
 NMT_STATE_NAMES = {HB_BOOTUP: "booting", HB_STOPPED: "stopped", HB_OPERATIONAL: "operational",
                    HB_PRE_OPERATIONAL: "pre-operational"}
-COB_RTR_NOT_ALLOWED = 1 << 30  # a device may report it in 0x18xx:1; not part of the contract
 EMCY_FRAME = struct.Struct("<HB5s")
 EMCY_HISTORY = 16  # per node (bounded)
 EVENT_QUEUE = 64  # reconfiguration requests (bounded)
 
-IDENTITY_NAMES = {1: "vendor-ID", 2: "product code", 3: "revision number", 4: "serial number"}
-# The serial number identifies one physical unit: reported, never compared with the EDS.
-IDENTITY_COMPARED = (1, 2, 3)
 
 
 class BootError(RuntimeError):
@@ -63,12 +60,9 @@ class BootError(RuntimeError):
                  problem: str = ""):
         self.node, self.obj, self.expected, self.actual = node, obj, expected, actual
         if not problem:
-            problem = f"reads {_fmt(actual)}, the EDS says {_fmt(expected)}"
+            problem = f"reads {fmt_value(actual)}, the EDS says {fmt_value(expected)}"
         super().__init__(f"node {node}: {obj} {problem}")
 
-
-def _fmt(v: Any) -> str:
-    return f"0x{v:08X}" if isinstance(v, int) else repr(v)
 
 
 @dataclass
@@ -337,23 +331,16 @@ class CanopenMaster:
             self._worker.start()
 
     def configure(self, nl: NodeLayout) -> None:
-        """Step 2 for one node: identity and TPDO parameters against the EDS, then 0x1017."""
+        """Step 2 for one node: identity and TPDO parameters against the EDS (the verifier
+        ``rsra nodes`` runs, stopping at the first mismatch), then 0x1017."""
         node = self.remote[nl.name]
         ns = self.supervisor.nodes[nl.name]
         try:
-            dev = self._read(nl, node, 0x1000, 0, "0x1000 (device type)")
-            if dev != nl.device_type:
-                raise BootError(nl.name, "0x1000 (device type)", nl.device_type, dev)
-            ident = {}
-            for sub, expected in nl.identity.items():
-                name = f"0x1018:{sub} ({IDENTITY_NAMES.get(sub, 'identity')})"
-                value = self._read(nl, node, 0x1018, sub, name)
-                ident[IDENTITY_NAMES.get(sub, str(sub))] = value
-                if sub in IDENTITY_COMPARED and value != expected:
-                    raise BootError(nl.name, name, expected, value)
-            ns.identity = ident
-            for index in sorted(i for i in nl.od.indices if TPDO_COMM <= i < TPDO_COMM + 512):
-                self._verify_tpdo(nl, node, index - TPDO_COMM)
+            facts = verify_node(nl, node, first_only=True)
+            if facts.mismatches:
+                m = facts.mismatches[0]
+                raise BootError(nl.name, m.object, m.expected, m.actual, problem=m.problem)
+            ns.identity = facts.identity
             node.sdo.download(0x1017, 0, struct.pack("<H", self.cfg.heartbeat.producer_ms))
         except BootError as e:
             ns.state = "error"
@@ -363,42 +350,6 @@ class CanopenMaster:
             ns.state = "error"
             ns.error = f"SDO failed: {e}"
             raise BootError(nl.name, "SDO", problem=f"failed: {e}") from None
-
-    def _read(self, nl: NodeLayout, node: canopen.RemoteNode, index: int, sub: int,
-              name: str) -> int:
-        try:
-            data = node.sdo.upload(index, sub)
-        except canopen.SdoAbortedError as e:
-            raise BootError(nl.name, name, problem=f"cannot be read: SDO abort {e}") from None
-        except canopen.SdoCommunicationError as e:
-            raise BootError(nl.name, name, problem=f"cannot be read: {e}") from None
-        obj = nl.od[index]
-        var = obj if sub == 0 and not hasattr(obj, "subindices") else obj[sub]
-        return int(var.decode_raw(data))
-
-    def _verify_tpdo(self, nl: NodeLayout, node: canopen.RemoteNode, k: int) -> None:
-        comm, mapping = nl.od[TPDO_COMM + k], nl.od[TPDO_MAP + k]
-        n = k + 1
-        for sub, what in ((1, "COB-ID"), (2, "transmission type")):
-            if sub not in comm:
-                continue
-            name = f"0x{TPDO_COMM + k:04X}:{sub} (TPDO{n} {what})"
-            value = self._read(nl, node, TPDO_COMM + k, sub, name)
-            expected = comm[sub].default
-            if sub == 1:
-                value &= ~COB_RTR_NOT_ALLOWED
-                expected &= ~COB_RTR_NOT_ALLOWED
-            if value != expected:
-                raise BootError(nl.name, name, expected, value)
-        count_name = f"0x{TPDO_MAP + k:04X}:0 (TPDO{n} number of mapped objects)"
-        count = self._read(nl, node, TPDO_MAP + k, 0, count_name)
-        if count != mapping[0].default:
-            raise BootError(nl.name, count_name, mapping[0].default, count)
-        for s in range(1, count + 1):
-            name = f"0x{TPDO_MAP + k:04X}:{s} (TPDO{n} mapped object {s})"
-            value = self._read(nl, node, TPDO_MAP + k, s, name)
-            if value != mapping[s].default:
-                raise BootError(nl.name, name, mapping[s].default, value)
 
     # -- SYNC --------------------------------------------------------------------------------
     def start_sync(self) -> None:

@@ -15,14 +15,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from daq.config import DESIGN_BAND, ConfigError, RigConfig
-from daq.decoder import DecodeTable
-from daq.stuck import StuckMonitor
-from estimator.balance import inertial_load_matrix
-from estimator.content import ContentFilter
-from estimator.filters import DesignCache, LoadFilter
-from estimator.geometry import hub_transfer_matrix, wrench_matrix
-from estimator.transient import TIME_CONSTANT_FRACTION, TRANSIENT, TransientDetector
+from rsra.config.rig import DESIGN_BAND, ConfigError, RigConfig
+from rsra.daq.assembler import channels_payload
+from rsra.daq.decoder import DecodeTable
+from rsra.daq.stuck import StuckMonitor
+from rsra.estimator.balance import inertial_load_matrix
+from rsra.estimator.content import ContentFilter
+from rsra.daq.rigmodel import design_cache
+from rsra.estimator.filters import LoadFilter
+from rsra.estimator.geometry import hub_transfer_matrix, wrench_matrix
+from rsra.estimator.transient import TIME_CONSTANT_FRACTION, TRANSIENT, TransientDetector
 
 log = logging.getLogger("rsra.pipeline")
 
@@ -73,7 +75,6 @@ class EstimatorPipeline:
         self.cfg = cfg
         self.model = cfg.rig_model()
         self.fs = cfg.sample_rate_hz
-        dt = 1.0 / self.fs
         self.frame = cfg.hub_frame
         self.alpha = np.asarray(alpha0, float).copy()
         self._S = wrench_matrix(self.model.geometry, self.alpha)
@@ -81,15 +82,7 @@ class EstimatorPipeline:
         self._Mf = inertial_load_matrix(self.model)
         self._D = self.model.external.wrenches
         f = cfg.filter
-        omega_min = cfg.rotor.omega_min_fraction * cfg.rotor.omega_nominal_rad_s
-        self.cache = DesignCache(
-            self.model, harmonics=tuple(k for k in f.harmonics), dt=dt, tuning=f.tuning,
-            time_constant_s=f.time_constant_s, low_frequency=f.low_frequency_states,
-            psd=f.process_noise_psd, alpha=cfg.identification.initial_angles_rad,
-            moment_floor=cfg.identification.moment_floor_Nm, frame=None,
-            redesign_band=cfg.rotor.redesign_band, cache_resolution=cfg.rotor.cache_resolution,
-            omega_min=omega_min,
-            omega_default=None if cfg.rotor.stopped else cfg.rotor.omega_nominal_rad_s)
+        self.cache = design_cache(cfg, model=self.model)
         # a redesign takes 10-60 ms, longer than a sample: design the expected band now
         w0 = cfg.rotor.omega_nominal_rad_s
         try:
@@ -132,8 +125,6 @@ class EstimatorPipeline:
         self.pending: list[dict] = []  # results waiting for their apply sample
         self.outstanding: dict[int, int] = {}  # job id -> planned apply seq
         self.next_job_id = 0
-        self.last_angles: dict | None = None
-        self.samples_processed = 0
         # a rotor speed whose highest modelled harmonic is at or above Nyquist cannot be
         # designed for (and no rotor gives one): such a reading is not used (model §5)
         self.omega_max = math.pi * self.fs / max(cfg.filter.harmonics)
@@ -182,7 +173,6 @@ class EstimatorPipeline:
                     if n in angle_names:
                         alpha[angle_names.index(n)] = v
                 self.set_alpha(alpha)
-            self.last_angles = rec
             out.records.append(("angles", rec))
 
     def set_alpha(self, alpha: np.ndarray) -> None:
@@ -272,14 +262,10 @@ class EstimatorPipeline:
         status = s.cell_status
         if not isinstance(status, dict):
             status = {n: int(b) for n, b in zip(self.cell_names, status)}
-        out.records.append(("channels", {
-            "seq": seq, "t": float(s.t), "T": T, "accel": np.asarray(s.accel, float).reshape(-1, 3),
-            "I": I, "omega": s.omega, "azimuth": s.azimuth, "known_H": s.known_H,
-            "drive": s.drive, "status": status}))
+        out.records.append(("channels", channels_payload(s, I=I, status=status)))
         if (seq - self.first_seq) % self.innov_every == 0:
             out.records.append(("innovations", {"seq": seq, "t": float(s.t), "e": res.e,
                                                 "nis": res.nis}))
-        self.samples_processed += 1
         if self.identification:
             out.job = self._calibration_branch(s, seq, T, z, measured)
         return out

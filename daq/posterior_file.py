@@ -14,9 +14,9 @@ import stat
 from pathlib import Path
 from typing import Literal
 
-from daq.config import ConfigError, RigConfig
-from estimator.atomic import own_temp_pid
-from estimator.posterior import (
+from rsra.config.rig import ConfigError, RigConfig
+from rsra.estimator.atomic import own_temp_pid
+from rsra.estimator.posterior import (
     PosteriorFileError,
     PosteriorState,
     check_posterior,

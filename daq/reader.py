@@ -37,10 +37,10 @@ from typing import Any
 import can
 import canopen
 
-from daq.assembler import Sample, SampleAssembler
-from daq.config import RigConfig
-from daq.decoder import DecodeTable
-from daq.master import (
+from rsra.daq.assembler import Sample, SampleAssembler
+from rsra.config.rig import RigConfig
+from rsra.daq.decoder import DecodeTable
+from rsra.daq.master import (
     COB_EMCY,
     COB_HEARTBEAT,
     COB_NMT,
@@ -49,8 +49,8 @@ from daq.master import (
     CanopenMaster,
     Supervisor,
 )
-from daq.recorder import Recorder
-from daq.sharedbus import shutdown_bus
+from rsra.daq.recorder import Recorder
+from rsra.canbus import shutdown_bus
 
 log = logging.getLogger(__name__)
 
@@ -493,11 +493,6 @@ class Reader:
     def master_idle(self) -> bool:
         """True when the master has no node reconfiguration pending or running."""
         return self.master is None or self.master.idle()
-
-    def record_to(self, folder: str | Path, fmt: str | None = None) -> Recorder:
-        """Offline readers: record the frames fed (tests, format conversion)."""
-        self.recorder = Recorder(folder, self.cfg, fmt=fmt)
-        return self.recorder
 
     # -- items out -------------------------------------------------------------------------------
     def _put(self, item: Sample | HealthReport) -> None:

@@ -25,17 +25,16 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import queue
 import re
 import shutil
 import threading
 from pathlib import Path
-from typing import Any
 
 import can
 
-from daq.config import RigConfig
+from rsra.config.rig import RigConfig
+from rsra.daq.jsonout import sanitise
 
 log = logging.getLogger(__name__)
 
@@ -66,19 +65,6 @@ def frame_files(folder: Path) -> list[Path]:
         elif p.stem == FRAMES_STEM and p.suffix.lstrip(".") in FORMATS + ("mf4",):
             current.append(p)
     return [p for _, p in sorted(rotated)] + sorted(current)
-
-
-def _json_safe(x: Any) -> Any:
-    """Strict JSON: non-finite floats become null, numpy values plain Python."""
-    if isinstance(x, dict):
-        return {str(k): _json_safe(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_json_safe(v) for v in x]
-    if hasattr(x, "tolist"):
-        return _json_safe(x.tolist())
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
 
 
 class Recorder(can.Listener):
@@ -190,7 +176,7 @@ class Recorder(can.Listener):
         if nodes:
             eff["nodes"] = nodes
         with open(self._new(self.folder / CONFIG_FILE), "w", encoding="utf-8") as f:
-            json.dump(_json_safe(eff), f, indent=1, allow_nan=False)
+            json.dump(sanitise(eff), f, indent=1, allow_nan=False)
 
     def _name_rotated(self, default_name: str) -> str:
         # deterministic, sortable names (python-can's default uses the wall-clock date)
@@ -341,7 +327,7 @@ class Recorder(can.Listener):
 
         Written even after the frame recording hit its cap (a few hundred bytes per run),
         so the angle schedule of the recorded frames is never lost."""
-        line = json.dumps(_json_safe(record), allow_nan=False, separators=(",", ":"))
+        line = json.dumps(sanitise(record), allow_nan=False, separators=(",", ":"))
         with self._lock:
             if self._angles.closed:
                 return
@@ -390,7 +376,7 @@ class Recorder(can.Listener):
 
 def recorded_config_raw(folder: str | Path) -> dict | None:
     """The effective configuration a recording folder holds (None if it has none)."""
-    from daq.config import ConfigError
+    from rsra.config.rig import ConfigError
 
     p = Path(folder) / CONFIG_FILE
     if not p.is_file():
@@ -410,14 +396,11 @@ def recorded_config_raw(folder: str | Path) -> dict | None:
 
 def recorded_config(folder: str | Path) -> RigConfig | None:
     """The recording's configuration as a RigConfig (EDS paths relative to the folder)."""
-    from daq.config import parse_config
+    from rsra.daq.rigmodel import parse_rig
 
     raw = recorded_config_raw(folder)
     if raw is None:
         return None
-    return parse_config(raw, source=str(Path(folder) / CONFIG_FILE), base_dir=Path(folder))
+    return parse_rig(raw, source=str(Path(folder) / CONFIG_FILE), base_dir=Path(folder))
 
-
-def folder_size(folder: str | Path) -> int:
-    return sum(p.stat().st_size for p in Path(folder).iterdir() if p.is_file())
 

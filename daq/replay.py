@@ -22,10 +22,11 @@ from pathlib import Path
 
 import can
 
-from daq.assembler import Sample
-from daq.config import RigConfig, load_config
-from daq.reader import HealthReport, Reader
-from daq.recorder import frame_files, recorded_config
+from rsra.daq.assembler import Sample
+from rsra.config.rig import RigConfig
+from rsra.daq.rigmodel import load_rig
+from rsra.daq.reader import HealthReport, Reader
+from rsra.daq.recorder import frame_files, recorded_config
 
 LOG_SUFFIXES = (".log", ".blf", ".asc", ".trc", ".csv", ".mf4")
 log = logging.getLogger(__name__)
@@ -137,13 +138,13 @@ def config_for(paths: Sequence[str | Path], config: str | Path | None = None) ->
     """An explicit ``--config`` wins; else a recording folder's own effective configuration;
     else the packaged default rig."""
     if config is not None:
-        return load_config(config)
+        return load_rig(config)
     for p in map(Path, paths):
         if p.is_dir():
             cfg = recorded_config(p)
             if cfg is not None:
                 return cfg
-    return load_config()
+    return load_rig()
 
 
 def replay(cfg: RigConfig, paths: Sequence[str | Path] | None = None, *,

@@ -17,17 +17,18 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from scipy import signal, stats
 
-from daq.config import RigConfig
-from daq.jsonout import dumps
-from daq.units import axis_units, to_units
-from estimator.geometry import shaft_rotation
-from estimator.noise_budget import AXES, noise_budget
+from rsra.config.rig import RigConfig
+from rsra.daq.jsonout import dumps
+from rsra.config.units import axis_units, to_units
+from rsra.estimator.geometry import shaft_rotation
+from rsra.estimator.noise_budget import AXES, noise_budget
 
 FALSE_ALARM = 1e-3  # two-sided bands and consistency thresholds (team standard)
 MIN_UNIFORM_FRACTION = 0.8  # spectra need at least this share of the samples present
@@ -150,9 +151,9 @@ def load_records(path: str | Path) -> Records:
 # truth and alignment
 
 
-def load_truth(path: str | Path) -> dict:
-    from sim_bus.truth import read_truth
-
+def load_truth(path: str | Path, read_truth: Callable[[Path], dict]) -> dict:
+    """The simulator's truth file, read by ``read_truth`` (``rsra.sim_bus.truth.read_truth``,
+    given by the command line: the report does not import the simulator), checked."""
     p = Path(path)
     if not p.is_file():
         raise ReportError(f"--truth {p}: no such file; give the .npz written by `rsra sim "
@@ -997,8 +998,9 @@ def build_report(cfg: RigConfig, rec: Records, truth: dict | None, out: str | Pa
 
 
 def write_report(cfg: RigConfig, results: str | Path, truth: str | Path | None,
-                 out: str | Path, units: str = "si") -> Report:
-    """`rsra report`: load, align, compute, plot, summarise."""
+                 out: str | Path, units: str = "si",
+                 read_truth: Callable[[Path], dict] | None = None) -> Report:
+    """`rsra report`: load, align, compute, plot, summarise. ``truth`` needs ``read_truth``."""
     rec = load_records(results)
-    tr = load_truth(truth) if truth else None
+    tr = load_truth(truth, read_truth) if truth else None
     return build_report(cfg, rec, tr, out, units, truth_name=str(truth) if truth else None)

@@ -36,9 +36,9 @@ from typing import Any
 
 import numpy as np
 
-from daq.config import RigConfig
-from daq.jsonout import dumps
-from daq.pipeline import EstimatorPipeline
+from rsra.config.rig import RigConfig
+from rsra.daq.jsonout import dumps
+from rsra.daq.pipeline import EstimatorPipeline
 
 log = logging.getLogger("rsra.service")
 
@@ -129,8 +129,8 @@ class Outputs:
         if opts.zenoh:
             import zenoh
 
-            from daq.config import ConfigError, zenoh_endpoint_problem
-            from daq.telemetry import TelemetryPublisher, zenoh_config
+            from rsra.config.rig import ConfigError, zenoh_endpoint_problem
+            from rsra.daq.telemetry import TelemetryPublisher, zenoh_config
 
             for opt, eps in (("--zenoh-listen", opts.zenoh_listen),
                              ("--zenoh-connect", opts.zenoh_connect)):
@@ -187,7 +187,7 @@ def initial_angles(cfg: RigConfig, state_path: str | None, accept_rig_mismatch: 
     alpha0 = np.asarray(cfg.identification.initial_angles_rad, float).copy()
     if not state_path:
         return alpha0, None, None
-    from daq.posterior_file import load_checked
+    from rsra.daq.posterior_file import load_checked
 
     names = cfg.rig_model().geometry.angle_names
     idc = cfg.identification
@@ -219,7 +219,7 @@ def read_angles_schedule(folder: Path) -> tuple[dict | None, list[dict]]:
                 continue
             problem = _schedule_problem(rec)
             if problem:
-                from daq.replay import ReplayError
+                from rsra.daq.replay import ReplayError
 
                 raise ReplayError(f"{p}:{n}: {problem}; fix: replay with --recompute (runs the "
                                   "identification again) or repair that line")
@@ -306,7 +306,7 @@ class Service:
 
     # -- set-up ----------------------------------------------------------------------------
     def _setup_identification(self, alpha0, state) -> None:
-        from daq.ident_worker import SupervisedIdentification
+        from rsra.daq.ident_worker import SupervisedIdentification
 
         self.worker = SupervisedIdentification(self.cfg, state, on_restart=self._worker_lost,
                                                initializer=self.worker_initializer)
@@ -379,7 +379,7 @@ class Service:
                                     float)
                 n_angles = len(cfg.rig_model().geometry.angle_names)
                 if alpha0.shape != (n_angles,):
-                    from daq.replay import ReplayError
+                    from rsra.daq.replay import ReplayError
 
                     raise ReplayError(f"{folder / 'angles.jsonl'}: the starting record holds "
                                       f"{alpha0.size} angles, the rig has {n_angles}; fix: "
@@ -395,7 +395,7 @@ class Service:
             if use_ident:
                 # the worker saves accepted runs there: only over a posterior of ours
                 # (ConfigError naming the key otherwise, before acquisition starts)
-                from daq.posterior_file import prepare_state_file
+                from rsra.daq.posterior_file import prepare_state_file
 
                 for warning in prepare_state_file(
                         cfg, accept_rig_mismatch=opts.accept_rig_mismatch):
@@ -442,22 +442,22 @@ class Service:
         import can
 
         o, cfg = self.opts, self.cfg
-        from daq.decoder import DecodeTable
-        from daq.reader import Reader
+        from rsra.daq.decoder import DecodeTable
+        from rsra.daq.reader import Reader
 
         # the EDS files first: one the simulator cannot read either is a ConfigError naming
         # the key (exit 2), not a traceback from inside the simulator's nodes
         table = DecodeTable(cfg)
         if o.replay is not None:
-            from daq.replay import replay
+            from rsra.daq.replay import replay
 
             reader = Reader.offline(cfg, table=table)
             self.reader = reader
             return replay(cfg, o.replay, realtime=o.realtime, reader=reader, finish=True)
         if o.sim is not None:
-            from sim_bus.bus_sim import Simulator
-            from sim_bus.physics import AircraftPhysics
-            from sim_bus.scenarios import load_scenario
+            from rsra.sim_bus.bus_sim import Simulator
+            from rsra.sim_bus.physics import AircraftPhysics
+            from rsra.sim_bus.scenarios import load_scenario
 
             scenario = load_scenario(o.sim, **o.scenario_variants)
             channel = o.channel or f"rsra-{id(self):x}"
@@ -506,12 +506,9 @@ class Service:
                             record=o.record, overflow="drop", table=table)
         self.reader = reader
         closers.append(reader.close)
-        from daq.master import BootError
 
         try:
             reader.start()  # boots the nodes; BootError names node, object and both values
-        except BootError:
-            raise
         except (OSError, ImportError, ValueError, can.CanError) as e:
             raise BusOpenError(
                 f"cannot open the bus {o.interface or 'virtual'}:{o.channel} ({e}); check "
@@ -557,7 +554,7 @@ class Service:
 
     # -- per item ------------------------------------------------------------------------------
     def _loop(self, source: Iterator) -> None:
-        from daq.reader import HealthReport
+        from rsra.daq.reader import HealthReport
 
         # --duration counts samples of acquisition time (lost ones included: they keep seq)
         n_max = None if self.opts.duration is None else max(1, round(self.opts.duration * self.fs))

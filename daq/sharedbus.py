@@ -7,9 +7,9 @@ between processes"): python-can-remote's server, wrapped — never re-implemente
   ``Origin`` header: browsers always send one, python-can-remote's client never does, and the
   server has no authentication — a web page could otherwise open ``ws://127.0.0.1:PORT/``
   and send NMT commands to the rig.
-* :func:`shutdown_bus` closes any python-can bus once: python-can-remote's client raises from
-  ``shutdown`` when the server already closed the connection, and then again from ``__del__``
-  (``ValueError: file descriptor cannot be a negative integer``).
+* Closing any python-can bus once (python-can-remote's client raises from ``shutdown`` when
+  the server already closed the connection, and again from ``__del__``) is
+  :func:`rsra.canbus.shutdown_bus`, shared with the simulator.
 """
 from __future__ import annotations
 
@@ -17,7 +17,6 @@ import ipaddress
 import logging
 import threading
 
-import can
 
 log = logging.getLogger(__name__)
 
@@ -32,17 +31,6 @@ def is_loopback(host: str) -> bool:
         return ipaddress.ip_address(host).is_loopback
     except ValueError:
         return False
-
-
-def shutdown_bus(bus: can.BusABC) -> None:
-    """``bus.shutdown()`` once: an interface whose own shutdown fails (its connection already
-    gone) is logged and marked shut down by python-can's base class, so ``__del__`` does not
-    try again."""
-    try:
-        bus.shutdown()
-    except Exception as e:  # noqa: BLE001 - any interface's failure to close
-        log.debug("bus shutdown: %s: %s", type(e).__name__, e)
-        can.BusABC.shutdown(bus)  # the base class's part: periodic tasks stopped, flag set
 
 
 def _handler_class():

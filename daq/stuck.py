@@ -36,8 +36,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import ndtr
 
-from daq.config import RigConfig
-from daq.decoder import DecodeTable
+from rsra.config.rig import RigConfig
+from rsra.daq.decoder import DecodeTable
 
 SECONDS_PER_HOUR = 3600.0
 ASYMPTOTIC_RATIO = 50.0  # σ/q above which the Riemann-sum limit is used (exact sum costs ~σ/q)
@@ -129,7 +129,7 @@ def plan(cfg: RigConfig, table: DecodeTable | None = None) -> tuple[StuckChannel
 
     for c in cfg.cells:
         add(f"{c.node}.force", f"fault:{c.name}", c.sigma_N, c.full_scale_N)
-    from daq.config import G0
+    from rsra.config.rig import G0
 
     for a in cfg.accelerometers:
         for axis in "xyz":

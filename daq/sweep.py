@@ -29,11 +29,11 @@ from pathlib import Path
 import numpy as np
 from scipy import signal
 
-from daq.config import RigConfig
-from daq.units import LBF_N, axis_units, to_units
-from estimator.balance import inertial_load_matrix
-from estimator.geometry import hub_transfer_matrix, wrench_matrix
-from estimator.noise_budget import AXES, NoiseBudget, noise_budget
+from rsra.config.rig import RigConfig
+from rsra.config.units import axis_units, to_units
+from rsra.estimator.balance import inertial_load_matrix
+from rsra.estimator.geometry import hub_transfer_matrix, wrench_matrix
+from rsra.estimator.noise_budget import AXES, NoiseBudget, noise_budget
 
 # A coherent error (or unmodelled-load gain) is "significant" when its magnitude exceeds its
 # random error (σ per real/imaginary part) by the Rayleigh quantile of a 1e-3 false-alarm rate:
@@ -140,8 +140,8 @@ def sweep_data_from_samples(cfg: RigConfig, samples: Sequence, sources: Sequence
 
 def load_sweep_data(cfg: RigConfig, paths: Sequence[str | Path]) -> SweepData:
     """Replay recordings (files or recording folders) through the reader; see daq.replay."""
-    from daq.reader import HealthReport
-    from daq.replay import expand, replay
+    from rsra.daq.reader import HealthReport
+    from rsra.daq.replay import expand, replay
 
     files = expand(paths)
     samples = [s for s in replay(cfg, paths) if not isinstance(s, HealthReport)]
@@ -391,10 +391,6 @@ def analyse_sweep(cfg: RigConfig, data: SweepData, alpha: np.ndarray | None = No
 def phase_deg(z: complex | np.ndarray) -> np.ndarray:
     """Phase in [0, 360) degrees (so that 180°, elastic, sits mid-range)."""
     return np.mod(np.degrees(np.angle(z)), 360.0)
-
-
-def _force_scale(units: str) -> float:
-    return 1.0 if units == "si" else 1.0 / LBF_N
 
 
 def gain_units(component: int, excitation: int, units: str) -> str:

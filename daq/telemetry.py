@@ -15,8 +15,8 @@ from typing import Any
 
 import zenoh
 
-from daq.config import TelemetryConfig
-from daq.jsonout import dumps
+from rsra.config.rig import TelemetryConfig
+from rsra.daq.jsonout import dumps
 
 log = logging.getLogger("rsra.telemetry")
 
@@ -59,7 +59,7 @@ def zenoh_config(
         try:
             conf = zenoh.Config.from_file(path)
         except Exception as e:  # zenoh raises ZError with the parser's message
-            from daq.config import ConfigError
+            from rsra.config.rig import ConfigError
 
             raise ConfigError("telemetry.zenoh_config", str(path), f"cannot load ({e})",
                               "give a valid Zenoh JSON5 config file") from None

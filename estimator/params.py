@@ -1,6 +1,6 @@
 """Parameter dataclasses of the rigid-body load-cell model (model.md §1–§4).
 
-These are plain values: the shell (daq.config) builds them from the rig TOML.
+These are plain values: the shell (rsra.config.rig) builds them from the rig TOML.
 """
 from __future__ import annotations
 

@@ -50,9 +50,9 @@ import canopen
 import numpy as np
 from canopen.objectdictionary import datatypes as od_types
 
-from daq.config import RigConfig
-from daq.sharedbus import shutdown_bus
-from sim_bus.faults import (
+from rsra.config.rig import RigConfig
+from rsra.canbus import shutdown_bus
+from rsra.sim_bus.faults import (
     EMCY_OVER_RANGE,
     EMCY_SENSOR_FAULT,
     STATUS_OVER_RANGE,
@@ -64,7 +64,7 @@ from sim_bus.faults import (
     parse_faults,
     validate_faults,
 )
-from sim_bus.nodes import (
+from rsra.sim_bus.nodes import (
     COB_EMCY_BASE,
     COB_HEARTBEAT,
     COB_NMT,
@@ -77,7 +77,7 @@ from sim_bus.nodes import (
     Frame,
     SimNode,
 )
-from sim_bus.offline import ChannelCodec
+from rsra.sim_bus.offline import ChannelCodec
 
 log = logging.getLogger(__name__)
 
@@ -383,9 +383,9 @@ class Simulator:
         self.keep_samples = keep_samples
         self.t0 = float(t0)
         if physics is None:
-            from sim_bus.physics import AircraftPhysics
+            from rsra.sim_bus.physics import AircraftPhysics
             if scenario is None or isinstance(scenario, str):
-                from sim_bus.scenarios import load_scenario
+                from rsra.sim_bus.scenarios import load_scenario
                 scenario = load_scenario(scenario or "ground-test")
             physics = AircraftPhysics(cfg, scenario, seed=seed)
         self.physics = physics
@@ -1189,8 +1189,8 @@ class Simulator:
 
     def write_truth(self, path: str | Path, meta: dict | None = None) -> Path:
         """Write the truth file (sim_bus.truth format) with the injected faults."""
-        from sim_bus.offline import run_meta
-        from sim_bus.truth import write_truth
+        from rsra.sim_bus.offline import run_meta
+        from rsra.sim_bus.truth import write_truth
 
         full = {}
         if hasattr(self.physics, "scenario"):

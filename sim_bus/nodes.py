@@ -41,7 +41,7 @@ from canopen import objectdictionary as od_mod
 from canopen.objectdictionary import ODVariable
 from canopen.sdo import SdoAbortedError
 
-from daq.config import G0
+from rsra.config.rig import G0
 
 log = logging.getLogger(__name__)
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from daq.config import G0, RigConfig
+from rsra.config.rig import G0, RigConfig
 
 from .physics import BLOCK_SIZE, SAMPLE_FIELDS, AircraftPhysics, SimSample
 from .scenarios import Scenario, load_scenario

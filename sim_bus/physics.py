@@ -39,7 +39,7 @@ import numpy as np
 from scipy import linalg, signal
 from scipy.spatial.transform import Rotation
 
-from daq.config import G0, RigConfig
+from rsra.config.rig import G0, RigConfig
 
 from .scenarios import Scenario, load_scenario
 

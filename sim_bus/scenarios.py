@@ -23,8 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from daq.config import ConfigError, _Section, config_dir
-from daq.units import LBF_N
+from rsra.config.rig import ConfigError, Section, config_dir
+from rsra.config.units import LBF_N
 
 AXES = ("X", "Y", "Z", "L", "M", "N")
 ANGLE_MODES = ("constant", "step", "linear")
@@ -246,12 +246,12 @@ def _apply_variants(raw: dict, variants: dict, source: str) -> dict:
     return raw
 
 
-def _six(sec: _Section, name: str, default: Any = None) -> np.ndarray:
+def _six(sec: Section, name: str, default: Any = None) -> np.ndarray:
     args = () if default is None else (default,)
     return sec.vector(name, 6, *args, unit=" [X, Y, Z, L, M, N] in N and N·m")
 
 
-def _order(sec: _Section, name: str, default: Any) -> int | str:
+def _order(sec: Section, name: str, default: Any) -> int | str:
     v = sec.get(name, default)
     if v == "blades" or (isinstance(v, int) and not isinstance(v, bool) and v > 0):
         return v
@@ -260,7 +260,7 @@ def _order(sec: _Section, name: str, default: Any) -> int | str:
 
 
 def parse_scenario(raw: dict, source: str = "<scenario>", variants: dict | None = None) -> Scenario:
-    top = _Section(raw, "", source)
+    top = Section(raw, "", source)
 
     sc = top.table("scenario")
     name = sc.string("name")

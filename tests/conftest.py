@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from daq.config import load_config
+from rsra.config.rig import load_config
 
 
 @pytest.fixture(scope="session")

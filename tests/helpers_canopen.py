@@ -151,9 +151,9 @@ class LocalSlaves:
 # lock-step rigs around the simulator
 
 def make_sim(cfg, channel: str, *, seed: int = 3, scenario: str = "ground-test", **kw):
-    from sim_bus.bus_sim import Simulator
-    from sim_bus.physics import AircraftPhysics
-    from sim_bus.scenarios import load_scenario
+    from rsra.sim_bus.bus_sim import Simulator
+    from rsra.sim_bus.physics import AircraftPhysics
+    from rsra.sim_bus.scenarios import load_scenario
 
     return Simulator(cfg, physics=AircraftPhysics(cfg, load_scenario(scenario), seed=seed),
                      seed=seed, channel=channel, t0=T0, **kw)
@@ -166,7 +166,7 @@ class LockstepRig:
 
     def __init__(self, cfg, *, faults: str = "", seed: int = 3, record: Path | None = None,
                  record_format: str | None = None, scenario: str = "ground-test", **reader_kw):
-        from daq.reader import Reader
+        from rsra.daq.reader import Reader
 
         self.cfg = cfg
         ch = channel_name("lockstep")
@@ -202,7 +202,7 @@ class MasterRig:
 
     def __init__(self, cfg, *, faults: str = "", seed: int = 3, sim_cfg=None,
                  record: Path | None = None, nodes_present=None, **reader_kw):
-        from daq.reader import Reader
+        from rsra.daq.reader import Reader
 
         ch = channel_name("master")
         self.cfg = cfg

@@ -17,7 +17,7 @@ import scipy.signal
 from scipy.constants import g as STANDARD_GRAVITY
 from scipy.spatial.transform import Rotation
 
-from daq.config import RigConfig, config_dir
+from rsra.config.rig import RigConfig, config_dir
 
 
 def scenario(name: str) -> dict:

@@ -17,8 +17,8 @@ import pytest
 from helpers_canopen import LockstepRig
 from helpers_net import free_tcp_port
 
-from daq.cli import main
-from daq.config import ConfigError, config_dir, load_config
+from rsra.daq.cli import main
+from rsra.config.rig import ConfigError, config_dir, load_config
 
 RIG = (config_dir() / "rig.toml").read_text(encoding="utf-8")
 GROUND = (config_dir() / "scenarios" / "ground-test.toml").read_text(encoding="utf-8")
@@ -333,7 +333,7 @@ def test_record_on_a_full_disk_is_one_line_exit_1_and_leaves_nothing(tmp_path, c
 
 
 def test_a_recording_that_cannot_start_removes_only_what_it_created(cfg, tmp_path, monkeypatch):
-    from daq import recorder as rec_mod
+    from rsra.daq import recorder as rec_mod
 
     def full(*a, **k):
         raise OSError(errno.ENOSPC, "No space left on device")
@@ -354,7 +354,7 @@ def test_a_recording_that_cannot_start_removes_only_what_it_created(cfg, tmp_pat
 def test_a_sync_cob_id_on_an_eds_tpdo_is_refused_by_the_decode_table(cfg):
     # the config check covers the predefined connection set; a TPDO COB-ID an EDS moves
     # elsewhere is checked by the decode table, before any bus is opened
-    from daq.decoder import DecodeTable
+    from rsra.daq.decoder import DecodeTable
 
     bad = dataclasses.replace(cfg, sync=dataclasses.replace(cfg.sync, cob_id=0x191))
     with pytest.raises(ConfigError, match=r"sync\.cob_id.*cell_A TPDO1 COB-ID 0x191.*SYNC"):
@@ -365,7 +365,7 @@ def test_a_filter_that_cannot_be_designed_is_a_config_error(tmp_path):
     # below Nyquist with its design band, but 34 Hz is too slow for tau = 0.1 s
     import math
 
-    from daq.pipeline import EstimatorPipeline
+    from rsra.daq.pipeline import EstimatorPipeline
 
     fs = 5 * 19.4 / (math.pi * 0.9)
     cfg = load_config(_rig(tmp_path, "sample_rate_hz = 200.0", f"sample_rate_hz = {fs!r}"))
@@ -374,7 +374,7 @@ def test_a_filter_that_cannot_be_designed_is_a_config_error(tmp_path):
 
 
 def test_an_unexpected_error_is_one_line_exit_1():
-    from daq.cli import describe_error
+    from rsra.daq.cli import describe_error
 
     assert describe_error(RuntimeError("boom\nsecond line")) == (
         1, "internal error: RuntimeError: boom second line (please report it; RSRA_DEBUG=1 "

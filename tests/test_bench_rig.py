@@ -19,7 +19,7 @@ import pytest
 pytest.importorskip("can_remote", reason="python-can-remote (the shared bus) is not installed")
 zenoh = pytest.importorskip("zenoh", reason="eclipse-zenoh is not installed")
 
-from daq.telemetry import viewer_config  # noqa: E402
+from rsra.daq.telemetry import viewer_config  # noqa: E402
 from tests.helpers_net import free_tcp_port  # noqa: E402
 
 RUN_S = 6.0  # samples of acquisition time the service runs for
@@ -38,7 +38,7 @@ def _die_with_parent() -> None:  # a child process dies with the test (Linux)
 def _spawn(args, **kw) -> subprocess.Popen:
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     pre = _die_with_parent if sys.platform.startswith("linux") else None
-    return subprocess.Popen([sys.executable, "-m", "daq", *args], env=env, preexec_fn=pre,
+    return subprocess.Popen([sys.executable, "-m", "rsra", *args], env=env, preexec_fn=pre,
                             text=True, **kw)
 
 
@@ -108,7 +108,7 @@ def test_bench_rig_across_processes_on_the_shared_bus(cfg, tmp_path):
         nodes = None
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline:
-            r = subprocess.run([sys.executable, "-m", "daq", "nodes", "--interface", "remote",
+            r = subprocess.run([sys.executable, "-m", "rsra", "nodes", "--interface", "remote",
                                 "--channel", url, "--json"], capture_output=True, text=True,
                                timeout=120, preexec_fn=_die_with_parent)
             if r.returncode == 0:

@@ -18,19 +18,19 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from daq.calibrate import (
+from rsra.daq.calibrate import (
     CalibrationError,
     content_noise_gain,
     parse_params,
     plausibility,
     start_values,
 )
-from daq.cli import build_parser, main
-from daq.config import load_config
-from estimator.content import ContentFilter
-from estimator.posterior import PosteriorState, save_posterior
-from sim_bus.bus_sim import Simulator
-from sim_bus.truth import read_truth
+from rsra.daq.cli import build_parser, main
+from rsra.config.rig import load_config
+from rsra.estimator.content import ContentFilter
+from rsra.estimator.posterior import PosteriorState, save_posterior
+from rsra.sim_bus.bus_sim import Simulator
+from rsra.sim_bus.truth import read_truth
 
 SWEEP_S = 60.0  # one sweep of the six static conditions (config/scenarios/ground-test.toml)
 FALSE_ALARM = 1e-3
@@ -243,8 +243,8 @@ def test_plausibility_flags_each_kind_of_implausible_value_and_nothing_else(cfg)
 
 def test_fragment_for_geometry_and_mass_parameters_loads_with_the_estimates(cfg):
     """The [geometry], [mass] and complete [[cells]] blocks merge into the packaged config."""
-    from daq.calibrate import CalibrationData, CalibrationResult, fragment_toml
-    from estimator.identification import IdentificationResult
+    from rsra.daq.calibrate import CalibrationData, CalibrationResult, fragment_toml
+    from rsra.estimator.identification import IdentificationResult
 
     names = ("theta_B", "x_C", "hub_z", "m_y", "I_xx")
     _, start = start_values(cfg, names)

@@ -7,7 +7,8 @@ import tomllib
 import numpy as np
 import pytest
 
-from daq.config import ConfigError, default_config_path, load_config, parse_config
+from rsra.config.rig import ConfigError, default_config_path, load_config
+from rsra.daq.rigmodel import parse_rig
 
 
 @pytest.fixture(scope="module")
@@ -18,8 +19,8 @@ def raw():
 def bad(raw, mutate):
     r = copy.deepcopy(raw)
     mutate(r)
-    with pytest.raises(ConfigError) as ei:
-        parse_config(r, source="rig.toml", base_dir=default_config_path().parent)
+    with pytest.raises(ConfigError) as ei:  # as the commands load a rig: parsed, then checked
+        parse_rig(r, source="rig.toml", base_dir=default_config_path().parent)
     return ei.value
 
 
@@ -33,7 +34,7 @@ def test_default_loads(cfg):
 
 
 def test_packaged_config_is_found_outside_the_repo(tmp_path):
-    out = subprocess.run([sys.executable, "-c", "from daq.config import load_config; "
+    out = subprocess.run([sys.executable, "-c", "from rsra.config.rig import load_config; "
                           "print(load_config().rig_name)"], cwd=tmp_path, capture_output=True,
                          text=True, check=True)
     assert out.stdout.strip() == "bench"
@@ -94,7 +95,7 @@ def test_cli_config_error_is_one_line_exit_2(tmp_path):
     p = tmp_path / "rig.toml"
     text = default_config_path().read_text().replace("effective_mass_kg = [1995.8,", "effective_mass_kg = [0.0,")
     p.write_text(text.replace('eds = "eds/', f'eds = "{default_config_path().parent}/eds/'))
-    r = subprocess.run([sys.executable, "-m", "daq", "noise-budget", "--config", str(p)],
+    r = subprocess.run([sys.executable, "-m", "rsra", "noise-budget", "--config", str(p)],
                        capture_output=True, text=True)
     assert r.returncode == 2
     assert r.stderr.count("\n") == 1 and "mass.effective_mass_kg[0]" in r.stderr

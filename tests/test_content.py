@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy.signal import freqz, iirpeak, sosfreqz
 
-from daq.config import load_config
-from estimator.content import KINDS, ContentFilter, design_content_filter
-from estimator.geometry import hub_transfer_matrix, wrench_matrix
+from rsra.config.rig import load_config
+from rsra.estimator.content import KINDS, ContentFilter, design_content_filter
+from rsra.estimator.geometry import hub_transfer_matrix, wrench_matrix
 
 CFG = load_config()
 FS = 1.0 / CFG.sample_period_s

@@ -14,9 +14,9 @@ from helpers_canopen import ACCEL, CELL, PAIR, ROTOR
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from daq.config import G0, ConfigError, config_dir, load_config, parse_config
-from daq.decoder import DecodeTable
-from daq.reader import quantise_us
+from rsra.config.rig import G0, ConfigError, config_dir, load_config, parse_config
+from rsra.daq.decoder import DecodeTable
+from rsra.daq.reader import quantise_us
 
 EDS_DIR = config_dir() / "eds"
 

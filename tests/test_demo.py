@@ -9,7 +9,7 @@ from tests.helpers_net import free_tcp_port
 
 def test_demo_runs_and_summarises(tmp_path):
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    r = subprocess.run([sys.executable, "-m", "daq", "demo", "--speed", "max", "--duration", "6",
+    r = subprocess.run([sys.executable, "-m", "rsra", "demo", "--speed", "max", "--duration", "6",
                         "--zenoh-listen", ep, "--report", str(tmp_path / "rep")],
                        capture_output=True, text=True, timeout=300, stdin=subprocess.DEVNULL)
     assert r.returncode == 0, r.stderr[-2000:]
@@ -29,7 +29,7 @@ def test_demo_runs_and_summarises(tmp_path):
 
 
 def test_demo_bad_argument_is_one_line_exit_2():
-    r = subprocess.run([sys.executable, "-m", "daq", "demo", "--scenario", "nosuch"],
+    r = subprocess.run([sys.executable, "-m", "rsra", "demo", "--scenario", "nosuch"],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and r.stderr.count("\n") == 1
 
@@ -39,7 +39,7 @@ def test_a_console_on_a_pipe_or_file_wraps_nothing():
 
     from rich.table import Table
 
-    from daq.console import make_console
+    from rsra.daq.console import make_console
 
     c = make_console(file=io.StringIO())
     assert not c.is_terminal
@@ -55,8 +55,8 @@ def test_a_console_on_a_pipe_or_file_wraps_nothing():
 
 def _posterior_at(tmp_path, deg: float):
     """A saved posterior (through `rsra angles reset`) with every angle at `deg`."""
-    from daq.cli import main
-    from daq.config import default_config_path
+    from rsra.daq.cli import main
+    from rsra.config.rig import default_config_path
 
     conf = tmp_path / "rig.toml"
     text = default_config_path().read_text(encoding="utf-8")
@@ -75,7 +75,7 @@ def test_demo_flies_from_a_saved_posterior_with_identification_off(tmp_path):
 
     post = _posterior_at(tmp_path, 2.0)
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    r = subprocess.run([sys.executable, "-m", "daq", "demo", "--scenario", "flight", "--seed",
+    r = subprocess.run([sys.executable, "-m", "rsra", "demo", "--scenario", "flight", "--seed",
                         "7", "--speed", "max", "--duration", "6", "--angles", str(post),
                         "--no-identification", "--zenoh-listen", ep],
                        capture_output=True, text=True, timeout=300, stdin=subprocess.DEVNULL,
@@ -92,7 +92,7 @@ def test_demo_refuses_a_bad_angles_file_in_one_line_before_starting(tmp_path):
     bad = tmp_path / "bad.json"
     bad.write_text("{not json")
     rep = tmp_path / "rep"
-    r = subprocess.run([sys.executable, "-m", "daq", "demo", "--angles", str(bad), "--report",
+    r = subprocess.run([sys.executable, "-m", "rsra", "demo", "--angles", str(bad), "--report",
                         str(rep)], capture_output=True, text=True, timeout=60, check=False)
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and str(bad) in r.stderr
     assert r.stdout == "" and not rep.exists()

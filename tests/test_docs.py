@@ -1,7 +1,7 @@
 """The user documentation stays honest (docs/configuration.md, docs/cli.md, docs/telemetry.md).
 
 * every key of the packaged rig TOML, and every key the loader reads (traced through
-  `daq.config._Section.get` while loading configs that use every optional section, and every
+  `rsra.config.rig.Section.get` while loading configs that use every optional section, and every
   literal key name in daq/config.py), is documented in its section of configuration.md;
 * every `rsra` command, and every option, positional argument and choice of its argparse
   parser, appears in that command's section of cli.md;
@@ -26,7 +26,7 @@ from pathlib import Path
 
 import pytest
 
-from daq.config import CONTENTS, ROLES, _Section, config_dir, load_config, parse_config
+from rsra.config.rig import CONTENTS, ROLES, Section, config_dir, load_config, parse_config
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
@@ -104,18 +104,18 @@ def _full_raw() -> dict:
 def _traced_reads(raws: list[dict]) -> set[tuple[str, str]]:
     """(table, key) of every key the loader reads — present in the file or defaulted."""
     seen: list[tuple[str, str]] = []
-    original = _Section.get
+    original = Section.get
 
     def get(self, name, *a, **kw):
         seen.append((self.path, name))
         return original(self, name, *a, **kw)
 
-    _Section.get = get
+    Section.get = get
     try:
         for raw in raws:
             parse_config(copy.deepcopy(raw), base_dir=config_dir())
     finally:
-        _Section.get = original
+        Section.get = original
     out = set()
     for path, name in seen:
         if path == "":
@@ -145,7 +145,7 @@ def test_every_config_key_is_documented_in_its_section():
 def test_every_key_name_the_loader_knows_is_documented():
     """Literal names passed to the typed readers in daq/config.py (also keys of code paths
     the configs above do not take)."""
-    tree = ast.parse((ROOT / "daq" / "config.py").read_text(encoding="utf-8"))
+    tree = ast.parse((ROOT / "config" / "rig.py").read_text(encoding="utf-8"))
     readers = {"get", "number", "string", "boolean", "vector", "table", "tables"}
     names = {node.args[0].value for node in ast.walk(tree)
              if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
@@ -163,7 +163,7 @@ def test_config_doc_names_every_role_choice_and_channel():
     names = code_names(doc)
     assert set(ROLES) <= {n.strip('"') for n in names}
     assert {f'"{c}"' for c in CONTENTS} <= names
-    from daq.decoder import PROFILES
+    from rsra.daq.decoder import PROFILES
 
     for role, profile in PROFILES.items():
         for channel, scale in profile.values():
@@ -212,7 +212,7 @@ def _check_parser(p: argparse.ArgumentParser, body: str, where: str, problems: l
 
 
 def test_every_command_and_option_is_in_cli_md():
-    from daq.cli import COMMANDS, build_parser
+    from rsra.daq.cli import COMMANDS, build_parser
 
     doc = _read("cli.md")
     commands = _subparsers(build_parser())
@@ -229,7 +229,7 @@ def test_every_command_and_option_is_in_cli_md():
 
 
 def test_cli_md_exit_status_table_matches_the_code():
-    from daq.cli import main
+    from rsra.daq.cli import main
 
     body = section(_read("cli.md"), "Exit status")
     rows = dict(re.findall(r"^\|\s*`(\d+)`\s*\|(.*)\|\s*$", body, re.MULTILINE))
@@ -245,8 +245,8 @@ def test_cli_md_exit_status_table_matches_the_code():
 
 @pytest.fixture(scope="module")
 def published(tmp_path_factory):
-    from daq.jsonout import dumps
-    from daq.service import Service, ServiceOptions
+    from rsra.daq.jsonout import dumps
+    from rsra.daq.service import Service, ServiceOptions
 
     cfg = load_config()
     rec = tmp_path_factory.mktemp("docs") / "rec"
@@ -282,14 +282,14 @@ def leaf_paths(key: str, obj: dict, prefix: str = "") -> set[str]:
 
 
 def test_the_run_published_every_key(published):
-    from daq.telemetry import HIGH_RATE_KEYS, LOW_RATE_KEYS
+    from rsra.daq.telemetry import HIGH_RATE_KEYS, LOW_RATE_KEYS
 
     keys = {k for k, _ in published}
     assert keys == set(HIGH_RATE_KEYS + LOW_RATE_KEYS)
 
 
 def test_every_key_and_payload_field_is_in_telemetry_md(published):
-    from daq.telemetry import STATE_KEYS
+    from rsra.daq.telemetry import STATE_KEYS
 
     doc = _read("telemetry.md")
     key_table = doc.split("\n## ")[0]  # the introduction, with its table of keys
@@ -318,9 +318,9 @@ def test_every_key_and_payload_field_is_in_telemetry_md(published):
 
 
 def test_every_flag_reason_mode_and_state_is_in_telemetry_md(published):
-    from daq.master import NMT_STATE_NAMES
-    from estimator.filters import INVALID, LOST_BEFORE, PREDICT_ONLY, ROTOR_STOPPED
-    from estimator.posterior import MODES, REASONS
+    from rsra.daq.master import NMT_STATE_NAMES
+    from rsra.estimator.filters import INVALID, LOST_BEFORE, PREDICT_ONLY, ROTOR_STOPPED
+    from rsra.estimator.posterior import MODES, REASONS
 
     doc = _read("telemetry.md")
     hub = code_names(section(doc, "`<prefix>/hub_loads`"))
@@ -354,7 +354,7 @@ def _example() -> str:
 def test_the_python_subscriber_in_telemetry_md_runs_against_a_live_publisher(published):
     import zenoh
 
-    from daq.telemetry import TelemetryPublisher, zenoh_config
+    from rsra.daq.telemetry import TelemetryPublisher, zenoh_config
     from tests.helpers_net import free_tcp_port
 
     cfg = load_config()

@@ -13,9 +13,9 @@ import tomllib
 import pytest
 import zenoh
 
-from daq.config import ConfigError, default_config_path, load_config, parse_config
-from daq.service import Outputs, ServiceOptions
-from daq.telemetry import viewer_config
+from rsra.config.rig import ConfigError, default_config_path, load_config, parse_config
+from rsra.daq.service import Outputs, ServiceOptions
+from rsra.daq.telemetry import viewer_config
 from tests.helpers_net import free_tcp_port
 
 RAW = tomllib.loads(default_config_path().read_text())
@@ -44,7 +44,7 @@ def test_good_endpoints_are_accepted(ep):
 
 
 def _rsra(*args, timeout=120):
-    return subprocess.run([sys.executable, "-m", "daq", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "rsra", *args], capture_output=True, text=True,
                           timeout=timeout, check=False,
                           env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
 

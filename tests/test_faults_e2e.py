@@ -36,14 +36,14 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from daq.config import ConfigError, load_config
-from daq.jsonout import dumps
-from daq.pipeline import EstimatorPipeline
-from daq.service import Service, ServiceOptions
-from estimator.noise_budget import noise_budget
-from sim_bus.faults import EMCY_OVER_RANGE, EMCY_SENSOR_FAULT
-from sim_bus.physics import AircraftPhysics
-from sim_bus.scenarios import load_scenario
+from rsra.config.rig import ConfigError, load_config
+from rsra.daq.jsonout import dumps
+from rsra.daq.pipeline import EstimatorPipeline
+from rsra.daq.service import Service, ServiceOptions
+from rsra.estimator.noise_budget import noise_budget
+from rsra.sim_bus.faults import EMCY_OVER_RANGE, EMCY_SENSOR_FAULT
+from rsra.sim_bus.physics import AircraftPhysics
+from rsra.sim_bus.scenarios import load_scenario
 
 SEED = 7
 DURATION_S = 39.0
@@ -340,8 +340,8 @@ def test_a_stuck_channel_is_flagged_and_treated_as_missing(true_cfg, runs):
     detector (the same recording, detector off) the frozen cell biased Ĥ by many σ."""
     cfg, alpha = true_cfg
     faulted, clean, rec = runs
-    from daq.reader import HealthReport
-    from daq.replay import replay
+    from rsra.daq.reader import HealthReport
+    from rsra.daq.replay import replay
 
     samples = [s for s in replay(cfg, [str(rec)]) if not isinstance(s, HealthReport)]
     samples = [s for s in samples if s.seq < faulted.n]
@@ -451,7 +451,7 @@ def test_a_rebooted_node_is_restarted_and_the_estimate_returns(cfg):
     sigma = noise_budget(cfg.rig_model(), alpha_true).total
     # started at the configured (0°) angles, not the true ones: the angle error adds a bias
     # of |R⁻¹ (S(α) − S(α_true)) T|, bounded here by the same expression on truth
-    from estimator.geometry import hub_transfer_matrix, wrench_matrix
+    from rsra.estimator.geometry import hub_transfer_matrix, wrench_matrix
 
     geo = cfg.rig_model().geometry
     Rinv = np.linalg.inv(hub_transfer_matrix(geo))
@@ -469,7 +469,7 @@ def window_job(cfg):
     simulator through the reader and the pipeline's calibration branch, and the pipeline."""
     from helpers_canopen import LockstepRig
 
-    from daq.reader import HealthReport
+    from rsra.daq.reader import HealthReport
 
     rig = LockstepRig(cfg, seed=SEED)
     pipe = EstimatorPipeline(cfg, cfg.identification.initial_angles_rad)
@@ -500,7 +500,7 @@ def _copy(job):
     (lambda j: j["known"].__setitem__(slice(500, 600), False), {"stale_input"}),
 ], ids=["nan", "inf", "huge", "wrong-known-loads", "stale-channels", "stale-balance"])
 def test_a_bad_window_never_replaces_the_angles(cfg, window_job, corrupt, reasons):
-    from daq.ident_worker import build_identification, run_job
+    from rsra.daq.ident_worker import build_identification, run_job
 
     job, _ = window_job
     post, runs, cache = build_identification(cfg)
@@ -516,7 +516,7 @@ def test_a_bad_window_never_replaces_the_angles(cfg, window_job, corrupt, reason
     np.testing.assert_array_equal(post.P, P0)
     assert json.loads(dumps(rec))["reason"] == rec["reason"]  # strict JSON, publishable
     # delivered to the estimator: published at its sample, angles in force unchanged
-    from daq.pipeline import PipelineOutput
+    from rsra.daq.pipeline import PipelineOutput
 
     pipe = window_job[1]
     alpha = pipe.alpha.copy()
@@ -548,7 +548,7 @@ def test_a_corrupt_saved_posterior_is_refused_by_rsra_run(tmp_path):
 
     bad = tmp_path / "state.json"
     bad.write_text('{"format": "rsra-posterior", "version": 1, "names": ["x"], "theta": [1')
-    r = subprocess.run([sys.executable, "-m", "daq", "run", "--sim", "ground-test", "--speed",
+    r = subprocess.run([sys.executable, "-m", "rsra", "run", "--sim", "ground-test", "--speed",
                         "max", "--duration", "1", "--angles", str(bad)],
                        capture_output=True, text=True, timeout=120, check=False,
                        env={**__import__("os").environ, "OPENBLAS_NUM_THREADS": "1"})

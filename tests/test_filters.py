@@ -11,10 +11,10 @@ import pytest
 from scipy import stats
 from scipy.integrate import quad
 
-from daq.config import load_config
-from estimator.balance import inertial_loads, static_estimate
-from estimator.dynamics import component_states, hub_load_dynamics, low_frequency_states
-from estimator.filters import (
+from rsra.config.rig import load_config
+from rsra.estimator.balance import inertial_loads, static_estimate
+from rsra.estimator.dynamics import component_states, hub_load_dynamics, low_frequency_states
+from rsra.estimator.filters import (
     INVALID,
     LOST_BEFORE,
     PREDICT_ONLY,
@@ -24,8 +24,8 @@ from estimator.filters import (
     design_filter,
     filter_batch,
 )
-from estimator.geometry import hub_transfer_matrix, wrench_matrix
-from estimator.noise_budget import noise_budget
+from rsra.estimator.geometry import hub_transfer_matrix, wrench_matrix
+from rsra.estimator.noise_budget import noise_budget
 
 CFG = load_config()
 MODEL = CFG.rig_model()
@@ -187,7 +187,7 @@ def test_noise_tuning_solves_the_riccati_equation_with_tau_by_default(low_freque
 def test_auto_psd_gives_each_component_tau_alone():
     """The per-component search of §6: a component's own Riccati gain (its whitened noise
     variance alone) has τ as slowest time constant."""
-    from estimator.filters import _closed_loop_time_constants, _riccati_gain_1
+    from rsra.estimator.filters import _closed_loop_time_constants, _riccati_gain_1
 
     d = design_filter(MODEL, harmonics=HARMONICS, omega=OMEGA, dt=DT, time_constant_s=0.3)
     Rinv = np.linalg.inv(d.R)
@@ -491,8 +491,8 @@ def test_stopped_configured_without_rotor_speed():
 def test_new_angles_move_the_estimate_at_once_without_a_transient(cfg, model):
     """set_alpha: Ĥ jumps by exactly the static estimate's change, R⁻¹ (S_old − S_new) T, and
     the innovations after it show no step (a filter left alone would ring for ~5 τ)."""
-    from estimator.balance import static_estimate
-    from estimator.filters import DesignCache, LoadFilter
+    from rsra.estimator.balance import static_estimate
+    from rsra.estimator.filters import DesignCache, LoadFilter
 
     cache = DesignCache(model, harmonics=(1, 5), dt=0.005, tuning="time_constant",
                         time_constant_s=0.1, low_frequency=True, psd="auto",

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from daq.config import load_config
-from daq.service import Service, ServiceOptions
+from rsra.config.rig import load_config
+from rsra.daq.service import Service, ServiceOptions
 
 
 def _flight_service(duration: float, seed: int | None = None):
@@ -90,8 +90,8 @@ def test_innovation_spectrum_test_false_alarm_rate_by_monte_carlo():
     """Windows of innovations drawn from the calibration filter's own model (hub-load states
     driven by Q_d, measurement noise W through the content filter, the fixed gain) fail the
     spectrum test at most at its 10⁻³ rate: 2000 windows, Poisson(2) has P(≥ 8) = 1.1e-3."""
-    from daq.ident_worker import build_identification
-    from estimator.identification import (expected_welch_spectrum, innovation_autocovariance,
+    from rsra.daq.ident_worker import build_identification
+    from rsra.estimator.identification import (expected_welch_spectrum, innovation_autocovariance,
                                           innovation_model, innovation_spectrum_test)
 
     cfg = load_config()

@@ -22,11 +22,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from daq.config import ConfigError, config_dir, default_config_path, load_config, parse_config
-from daq.decoder import DecodeTable
-from daq.jsonout import dumps
-from daq.pipeline import EstimatorPipeline
-from daq.reader import HealthReport, Reader
+from rsra.config.rig import ConfigError, config_dir, default_config_path, load_config, parse_config
+from rsra.daq.decoder import DecodeTable
+from rsra.daq.jsonout import dumps
+from rsra.daq.pipeline import EstimatorPipeline
+from rsra.daq.reader import HealthReport, Reader
 
 EXAMPLES = int(os.environ.get("RSRA_FUZZ_EXAMPLES", "100"))
 FUZZ = settings(max_examples=EXAMPLES, deadline=None, derandomize=False,
@@ -332,7 +332,7 @@ def test_the_service_refuses_a_bad_eds_before_starting_the_simulator(tmp_path):
         (folder / "eds" / p.name).write_bytes(p.read_bytes())
     (folder / "eds" / "load_cell.eds").write_text("garbage [[[ not an eds\n")
     (folder / "rig.toml").write_text(default_config_path().read_text())
-    r = subprocess.run([sys.executable, "-m", "daq", "run", "--config", str(folder / "rig.toml"),
+    r = subprocess.run([sys.executable, "-m", "rsra", "run", "--config", str(folder / "rig.toml"),
                         "--sim", "ground-test", "--speed", "max", "--duration", "1"],
                        capture_output=True, text=True, timeout=120, check=False,
                        env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})

@@ -3,20 +3,20 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from estimator.balance import (
+from rsra.estimator.balance import (
     accel_solution_matrix,
     balance_residual,
     inertial_loads,
     static_estimate,
 )
-from estimator.geometry import (
+from rsra.estimator.geometry import (
     cell_axes,
     hub_transfer_matrix,
     shaft_rotation,
     wrench_matrix,
     wrench_matrix_jacobian,
 )
-from estimator.params import Accelerometers
+from rsra.estimator.params import Accelerometers
 
 
 def test_angle_order_is_the_contract(model):

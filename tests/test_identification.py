@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from estimator.balance import inertial_loads, measurement_covariance
-from estimator.content import ContentFilter
-from estimator.filters import design_filter
-from estimator.geometry import hub_transfer_matrix, wrench_matrix
-from estimator.identification import (
+from rsra.estimator.balance import inertial_loads, measurement_covariance
+from rsra.estimator.content import ContentFilter
+from rsra.estimator.filters import design_filter
+from rsra.estimator.geometry import hub_transfer_matrix, wrench_matrix
+from rsra.estimator.identification import (
     FilterErrorProblem,
     FilterErrorState,
     KnownLoadProblem,

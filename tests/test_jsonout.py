@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from daq.jsonout import dumps, sanitise
+from rsra.daq.jsonout import dumps, sanitise
 
 
 def reference(obj) -> str:

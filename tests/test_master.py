@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from helpers_canopen import T0, LocalSlaves, LockstepRig, MasterRig, channel_name, wait_until
 
-from daq.config import G0, config_dir, load_config, parse_config
-from daq.master import BootError
-from daq.reader import HealthReport, Reader
+from rsra.config.rig import G0, config_dir, load_config, parse_config
+from rsra.daq.master import BootError
+from rsra.daq.reader import HealthReport, Reader
 
 EDS = config_dir() / "eds"
 
@@ -120,7 +120,7 @@ def test_an_optional_node_missing_is_reported_and_the_start_goes_on():
                    what="NMT start")
         nodes = r.health()["nodes"]
         assert nodes["balance"]["state"] == "missing" and not nodes["balance"]["required"]
-        assert all(d["state"] == "booting" for n, d in nodes.items() if n != "balance")
+        assert all(d["state"] == "booting" for n, d in nodes.items() if n != "balance"), nodes
     finally:
         r.close()
         slaves.close()

@@ -5,9 +5,9 @@ import sys
 
 import numpy as np
 
-from estimator.balance import inertial_loads, static_estimate
-from estimator.geometry import hub_transfer_matrix, wrench_matrix
-from estimator.noise_budget import noise_budget
+from rsra.estimator.balance import inertial_loads, static_estimate
+from rsra.estimator.geometry import hub_transfer_matrix, wrench_matrix
+from rsra.estimator.noise_budget import noise_budget
 
 
 def test_monte_carlo_matches_budget(model):
@@ -34,13 +34,13 @@ def test_monte_carlo_matches_budget(model):
 
 
 def test_cli_json_contract():
-    out = subprocess.run([sys.executable, "-m", "daq", "noise-budget", "--json"],
+    out = subprocess.run([sys.executable, "-m", "rsra", "noise-budget", "--json"],
                          capture_output=True, text=True, check=True).stdout
     d = json.loads(out)
     assert set(d) == {"units", "axes", "total", "load_cells", "accelerometers"}
     assert d["axes"] == ["X", "Y", "Z", "L", "M", "N"]
     assert d["units"][:3] == ["N"] * 3
-    us = json.loads(subprocess.run([sys.executable, "-m", "daq", "noise-budget", "--json",
+    us = json.loads(subprocess.run([sys.executable, "-m", "rsra", "noise-budget", "--json",
                                     "--units", "us"], capture_output=True, text=True,
                                    check=True).stdout)
     np.testing.assert_allclose(np.array(us["total"][:3]) * 4.4482216152605, d["total"][:3])
@@ -48,7 +48,7 @@ def test_cli_json_contract():
 
 
 def test_cli_table_names_every_axis():
-    out = subprocess.run([sys.executable, "-m", "daq", "noise-budget"], capture_output=True,
+    out = subprocess.run([sys.executable, "-m", "rsra", "noise-budget"], capture_output=True,
                          text=True, check=True, env={"COLUMNS": "120", "PATH": ""}).stdout
     for ax in "XYZLMN":
         assert f" {ax} " in out

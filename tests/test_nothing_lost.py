@@ -21,11 +21,11 @@ import can
 import zenoh
 from helpers_net import free_tcp_port
 
-from daq.config import load_config
-from daq.jsonout import dumps
-from daq.replay import read_frames
-from daq.service import Service, ServiceOptions
-from daq.telemetry import viewer_config
+from rsra.config.rig import load_config
+from rsra.daq.jsonout import dumps
+from rsra.daq.replay import read_frames
+from rsra.daq.service import Service, ServiceOptions
+from rsra.daq.telemetry import viewer_config
 
 ENV = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
 KILL_AFTER_S = 12.0  # acquisition time before the kill: two identification runs applied
@@ -57,7 +57,7 @@ def test_a_recording_survives_kill_9_and_replays_to_what_was_published(cfg, tmp_
     with zenoh.open(viewer_config([], listen=[ep])) as z:
         sub = z.declare_subscriber(f"{cfg.telemetry.prefix}/hub_loads", on_sample)
         proc = subprocess.Popen(
-            [sys.executable, "-m", "daq", "run", "--sim", "ground-test", "--speed", "max",
+            [sys.executable, "-m", "rsra", "run", "--sim", "ground-test", "--speed", "max",
              "--duration", "3600", "--seed", "4", "--record", str(rec), "--zenoh-listen",
              f"tcp/127.0.0.1:{free_tcp_port()}", "--zenoh-connect", ep,
              "--log-level", "warning"],
@@ -109,7 +109,7 @@ def test_a_recording_survives_kill_9_and_replays_to_what_was_published(cfg, tmp_
 
     # the surviving folder replays, and reproduces what the service published, bit for bit
     out = tmp_path / "replay.jsonl"
-    r = subprocess.run([sys.executable, "-m", "daq", "replay", str(rec), "--out", str(out)],
+    r = subprocess.run([sys.executable, "-m", "rsra", "replay", str(rec), "--out", str(out)],
                        capture_output=True, text=True, timeout=600, env=ENV, check=False)
     assert r.returncode == 0, r.stderr
     replayed = {}

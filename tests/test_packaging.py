@@ -1,4 +1,5 @@
 """A plain, non-editable install carries the packages, the default config, EDS and scenarios."""
+import os
 import subprocess
 import sys
 import zipfile
@@ -8,24 +9,40 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_wheel_installs_and_runs_outside_the_repo(tmp_path):
+    """One import namespace (issue 15): the wheel's only top-level package is `rsra`; the
+    packaged rig, EDS and scenarios come with it; `python -m rsra --help` runs outside the repo
+    and no generic name (`daq`, `estimator`, `sim_bus`, `rsra_config`, `config`) is importable."""
     wheel_dir = tmp_path / "wheel"
     subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps",
                     "-w", str(wheel_dir), str(ROOT)], check=True, capture_output=True)
     wheel = next(wheel_dir.glob("rsra-*.whl"))
     names = zipfile.ZipFile(wheel).namelist()
-    assert "rsra_config/rig.toml" in names
-    assert "rsra_config/eds/load_cell.eds" in names
+    assert "rsra/config/rig.toml" in names
+    assert "rsra/config/eds/load_cell.eds" in names
+    assert "rsra/config/scenarios/ground-test.toml" in names
+    top = {n.split("/")[0] for n in names if not n.split("/")[0].endswith((".dist-info", ".data"))}
+    assert top == {"rsra"}, top
     target = tmp_path / "site"
     subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target",
                     str(target), str(wheel)], check=True, capture_output=True)
-    code = ("import estimator, daq.config as c; assert estimator.__file__.startswith(%r), "
-            "estimator.__file__; cfg = c.load_config(); print(cfg.nodes[0].eds.is_file())"
-            % str(target))
-    out = subprocess.run([sys.executable, "-I", "-c",
-                          f"import sys; sys.path.insert(0, {str(target)!r}); {code}"],
-                         cwd=tmp_path, capture_output=True, text=True)
+    assert sorted(p.name for p in target.iterdir() if not p.name.endswith(".dist-info")
+                  and p.name != "bin") == ["rsra"]
+    code = ("import rsra.estimator as e, rsra.config.rig as c; "
+            "assert e.__file__.startswith(%r), e.__file__; cfg = c.load_config(); "
+            "print(cfg.nodes[0].eds.is_file())" % str(target))
+    env = {"PATH": os.environ.get("PATH", ""), "PYTHONPATH": str(target)}
+    out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True,
+                         text=True, env=env)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "True"
+    helped = subprocess.run([sys.executable, "-m", "rsra", "--help"], cwd=tmp_path,
+                            capture_output=True, text=True, env=env)
+    assert helped.returncode == 0, helped.stderr
+    assert "usage: rsra" in helped.stdout
+    for generic in ("daq", "estimator", "sim_bus", "rsra_config", "config"):
+        probe = subprocess.run([sys.executable, "-c", f"import {generic}"], cwd=tmp_path,
+                               capture_output=True, text=True, env=env)
+        assert probe.returncode != 0 and "No module named" in probe.stderr, generic
 
 
 def _backend_warnings(stderr: str) -> list[str]:

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from estimator.balance import inertial_loads, measurement_covariance
-from estimator.content import ContentFilter
-from estimator.filters import design_filter
-from estimator.identification import (
+from rsra.estimator.balance import inertial_loads, measurement_covariance
+from rsra.estimator.content import ContentFilter
+from rsra.estimator.filters import design_filter
+from rsra.estimator.identification import (
     FilterErrorProblem,
     FilterErrorState,
     IdentificationResult,
@@ -20,7 +20,7 @@ from estimator.identification import (
     Parameterisation,
     levenberg_marquardt,
 )
-from estimator.posterior import (
+from rsra.estimator.posterior import (
     PeriodicIdentification,
     PosteriorFileError,
     PosteriorState,

@@ -15,13 +15,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daq.cli import main
-from daq.config import ConfigError, load_config
-from daq.posterior_file import classify, load_checked, prepare_state_file
-from daq.service import Service, ServiceOptions
-from estimator.atomic import own_temp_pid, temp_prefix
-from estimator.identification import IdentificationResult
-from estimator.posterior import (
+from rsra.daq.cli import main
+from rsra.config.rig import ConfigError, load_config
+from rsra.daq.posterior_file import classify, load_checked, prepare_state_file
+from rsra.daq.service import Service, ServiceOptions
+from rsra.estimator.atomic import own_temp_pid, temp_prefix
+from rsra.estimator.identification import IdentificationResult
+from rsra.estimator.posterior import (
     PosteriorFileError,
     PosteriorState,
     SequentialPosterior,
@@ -94,7 +94,7 @@ def test_a_state_file_naming_a_folder_is_a_config_error_and_the_folder_is_untouc
     (folder / "sub" / "x.bin").write_bytes(b"\x00\x01")
     conf = _config_file(tmp_path, str(folder))
     before = _snapshot(work)
-    r = subprocess.run([sys.executable, "-m", "daq", "run", "--config", str(conf), "--sim",
+    r = subprocess.run([sys.executable, "-m", "rsra", "run", "--config", str(conf), "--sim",
                         "ground-test", "--speed", "max", "--duration", "1", *_listen()],
                        capture_output=True, text=True, timeout=120, check=False, env=ENV,
                        cwd=tmp_path)
@@ -168,7 +168,7 @@ def test_classify_is_the_rule_angles_reset_applies(cfg, tmp_path, capsys):
 
 KILLED_WRITER = """
 import sys, time
-import estimator.atomic as a
+import rsra.estimator.atomic as a
 def stall(fd):
     print("writing", flush=True)
     time.sleep(60)
@@ -215,7 +215,7 @@ def test_a_killed_save_leaves_a_temp_file_that_the_next_start_removes_and_nothin
 
 
 def test_the_worker_saves_version_2_with_the_rig_fingerprint(cfg, tmp_path):
-    from daq.ident_worker import build_identification
+    from rsra.daq.ident_worker import build_identification
 
     post, _, _ = build_identification(cfg)
     path = tmp_path / "p.json"

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from helpers_canopen import T0, LockstepRig, MasterRig, channel_name, period_frames, wait_until
 
-from daq.cli import main as cli_main
-from daq.config import load_config
-from daq.reader import HealthReport, Reader
-from daq.recorder import (
+from rsra.daq.cli import main as cli_main
+from rsra.config.rig import load_config
+from rsra.daq.reader import HealthReport, Reader
+from rsra.daq.recorder import (
     ANGLES_FILE,
     CONFIG_FILE,
     Recorder,
@@ -23,7 +23,7 @@ from daq.recorder import (
     frame_files,
     recorded_config,
 )
-from daq.replay import config_for, read_frames, replay, replay_to_bus
+from rsra.daq.replay import config_for, read_frames, replay, replay_to_bus
 
 
 def samples(items) -> list:
@@ -87,7 +87,7 @@ def test_rotation_by_size_keeps_every_frame_in_order(cfg, tmp_path):
     folder = tmp_path / "rot"
     raw = dict(cfg.raw)
     raw["recording"] = {**cfg.raw.get("recording", {}), "rotate_mb": 0.02}
-    from daq.config import config_dir, parse_config
+    from rsra.config.rig import config_dir, parse_config
 
     cfg_r = parse_config(raw, base_dir=config_dir())
     rig = LockstepRig(cfg_r, record=folder)

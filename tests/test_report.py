@@ -19,8 +19,9 @@ import os
 import numpy as np
 import pytest
 
-from daq.cli import main
-from daq.jsonout import dumps
+from rsra.daq.cli import main
+from rsra.daq.jsonout import dumps
+from rsra.sim_bus.truth import read_truth
 
 _chan = itertools.count()
 E2E_SECONDS = 6.0  # one identification window (5 s) plus its settling
@@ -40,9 +41,9 @@ def _png_ok(path) -> tuple[int, int]:
 @pytest.fixture(scope="module")
 def e2e(tmp_path_factory, cfg):
     """A short lock-step ground-test recording, its truth, and the replay's records."""
-    from sim_bus.bus_sim import Simulator
-    from sim_bus.physics import AircraftPhysics
-    from sim_bus.scenarios import load_scenario
+    from rsra.sim_bus.bus_sim import Simulator
+    from rsra.sim_bus.physics import AircraftPhysics
+    from rsra.sim_bus.scenarios import load_scenario
 
     d = tmp_path_factory.mktemp("report")
     sim = Simulator(cfg, physics=AircraftPhysics(cfg, load_scenario("ground-test"), seed=5),
@@ -118,7 +119,7 @@ K_FILTER = 0.5  # the synthetic "filter" error is this fraction of the static σ
 
 @pytest.fixture(scope="module")
 def synth_truth(tmp_path_factory, cfg):
-    from sim_bus import simulate, write_truth
+    from rsra.sim_bus import simulate, write_truth
 
     d = tmp_path_factory.mktemp("synth")
     run = simulate(cfg, "ground-test", seed=11, n_samples=N)
@@ -128,7 +129,7 @@ def synth_truth(tmp_path_factory, cfg):
 def _synthetic_records(cfg, truth, *, t_offset=0.0, shift=0, first=0):
     """Records for truth samples first… (seq from 0), with times t + t_offset, and the truth
     they claim shifted by ``shift`` samples. Returns (lines, expected dict)."""
-    from estimator.noise_budget import noise_budget
+    from rsra.estimator.noise_budget import noise_budget
 
     rng = np.random.default_rng(2024)
     sig = noise_budget(cfg.rig_model(), cfg.identification.initial_angles_rad, "body").total
@@ -174,9 +175,9 @@ def _synthetic_records(cfg, truth, *, t_offset=0.0, shift=0, first=0):
 
 
 def _summary(cfg, tmp_path, truth_path, **kw):
-    from daq.report import load_records, load_truth, summarise
+    from rsra.daq.report import load_records, load_truth, summarise
 
-    tr = load_truth(truth_path)
+    tr = load_truth(truth_path, read_truth)
     lines, exp = _synthetic_records(cfg, tr, **kw)
     p = tmp_path / "synthetic.jsonl"
     p.write_text("\n".join(lines) + "\n")
@@ -237,10 +238,10 @@ def test_one_sample_misalignment_shows(synth_truth, cfg, tmp_path):
 def test_us_units_and_shaft_frame(synth_truth, cfg, tmp_path):
     """US units scale the numbers; records in shaft axes are compared with the truth turned
     into shaft axes (C_sᵀ), so the errors stay at their σ."""
-    from daq.report import load_records, load_truth, summarise
-    from daq.units import FT_LBF_NM, LBF_N
+    from rsra.daq.report import load_records, load_truth, summarise
+    from rsra.config.units import FT_LBF_NM, LBF_N
 
-    tr = load_truth(synth_truth)
+    tr = load_truth(synth_truth, read_truth)
     lines, exp = _synthetic_records(cfg, tr)
     p = tmp_path / "a.jsonl"
     p.write_text("\n".join(lines) + "\n")
@@ -251,7 +252,7 @@ def test_us_units_and_shaft_frame(synth_truth, cfg, tmp_path):
                                np.array(si["hub_loads"]["errors"]["H"]["rms_error"]) * scale)
     assert us["units"] == ["lbf"] * 3 + ["ft·lbf"] * 3
     # the same estimates re-expressed in shaft axes
-    from estimator.geometry import shaft_rotation
+    from rsra.estimator.geometry import shaft_rotation
 
     C = shaft_rotation(cfg.rig_model().geometry, "shaft")
     shaft = []

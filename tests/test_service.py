@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from daq.jsonout import dumps
-from daq.service import Service, ServiceOptions
-from daq.telemetry import viewer_config
+from rsra.daq.jsonout import dumps
+from rsra.daq.service import Service, ServiceOptions
+from rsra.daq.telemetry import viewer_config
 from tests.helpers_net import free_tcp_port
 
 HUB_KEYS = {"seq", "sync", "t", "frame", "H", "H_static", "omega", "flags"}
@@ -95,7 +95,7 @@ def test_subscriber_in_another_process_and_queryables(cfg, tmp_path):
     out_path = tmp_path / "listen.jsonl"
     out_file = open(out_path, "w")  # a file, not a pipe: a full pipe would stall the listener
     listener = subprocess.Popen(
-        [sys.executable, "-m", "daq", "listen", "--json", "--key", "hub_loads",
+        [sys.executable, "-m", "rsra", "listen", "--json", "--key", "hub_loads",
          "--zenoh-connect", ep, "--duration", "120"],
         stdout=out_file, stderr=subprocess.PIPE, text=True)
     replies = {}
@@ -146,7 +146,7 @@ def test_service_exits_cleanly_with_a_subscriber_attached(cfg, tmp_path):
     with zenoh.open(viewer_config([ep])) as v:
         sub = v.declare_subscriber("rsra/bench/**", zenoh.handlers.RingChannel(16))
         # (a hang shows as the subprocess timeout, not as a timing assertion)
-        r = subprocess.run([sys.executable, "-m", "daq", "run", "--sim", "ground-test",
+        r = subprocess.run([sys.executable, "-m", "rsra", "run", "--sim", "ground-test",
                             "--speed", "max", "--duration", "3", "--zenoh-listen", ep,
                             "--log-level", "warning"], capture_output=True, text=True,
                            timeout=120)
@@ -164,7 +164,7 @@ def test_identification_runs_on_a_rig_with_measured_external_loads(cfg, tmp_path
     loads: pass q")."""
     import copy
 
-    from daq.config import config_dir, parse_config
+    from rsra.config.rig import config_dir, parse_config
 
     raw = copy.deepcopy(cfg.raw)
     raw["nodes"].append({"name": "drive", "role": "drive_load", "node_id": 0x51,
@@ -173,7 +173,7 @@ def test_identification_runs_on_a_rig_with_measured_external_loads(cfg, tmp_path
                               "wrench_per_unit": [0.0, 0.0, 0.0, 0.0, 0.0, 1.0]}]
     ext_cfg = parse_config(raw, base_dir=config_dir())
     # the ground-test aircraft with a drive-load node carrying a steady 2 kN·m torque (N)
-    from sim_bus.scenarios import scenario_dir
+    from rsra.sim_bus.scenarios import scenario_dir
 
     text = (scenario_dir() / "ground-test.toml").read_text(encoding="utf-8")
     text = text.replace('nodes_present = ["rotor_speed", "balance"]',
@@ -196,10 +196,10 @@ def test_identification_runs_on_a_rig_with_measured_external_loads(cfg, tmp_path
 def _replay(cfg, src, capsys=None):
     """(the replay's note on its angles, its angles records as JSON text); through the
     command when capsys is given, else through the Service."""
-    from daq.commands.replay import schedule_note
+    from rsra.daq.commands.replay import schedule_note
 
     if capsys is not None:
-        from daq.cli import main
+        from rsra.daq.cli import main
 
         assert main(["replay", str(src), "--out", str(src) + ".jsonl"]) == 0
         note = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("angles: "))
@@ -219,7 +219,7 @@ def test_replay_recomputes_without_a_schedule_and_says_what_a_partial_one_holds(
     it is, and the replay says so (issue 13)."""
     import shutil
 
-    from daq.commands.replay import schedule_note
+    from rsra.daq.commands.replay import schedule_note
 
     rec = tmp_path / "rec"
     _, live, _ = run_lockstep(cfg, tmp_path, 16.0, record=str(rec), seed=7)

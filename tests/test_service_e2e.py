@@ -6,10 +6,10 @@ import json
 import numpy as np
 import pytest
 
-from daq.commands.run import config_for_run
-from daq.config import load_config
-from daq.service import Service, ServiceOptions
-from estimator.noise_budget import noise_budget
+from rsra.daq.commands.options import config_for_run
+from rsra.config.rig import load_config
+from rsra.daq.service import Service, ServiceOptions
+from rsra.estimator.noise_budget import noise_budget
 
 CHI2_14_SINGLE = 36.1  # performance.md: a single run, joint chi2_14 at 1e-3
 
@@ -58,7 +58,7 @@ def test_ground_test_converges_from_4_degrees_and_beats_the_static_bound():
     # conditions (the last 0.5 s of each slot) with a lag of about τ = 0.1 s (3 kN·m on a
     # 15 kN·m yaw ramp): the static bound is for held loads, so the ramp and the second after
     # it are not scored
-    from sim_bus.scenarios import load_scenario
+    from rsra.sim_bus.scenarios import load_scenario
 
     hold = load_scenario("ground-test").loads.hold_s
     fs = cfg.sample_rate_hz

@@ -11,7 +11,8 @@ import pytest
 
 pytest.importorskip("can_remote", reason="python-can-remote (the shared bus) is not installed")
 
-from daq.sharedbus import BusServer, is_loopback, shutdown_bus  # noqa: E402
+from rsra.canbus import shutdown_bus  # noqa: E402
+from rsra.daq.sharedbus import BusServer, is_loopback  # noqa: E402
 
 
 def _upgrade(port: int, origin: str | None) -> int:
@@ -72,7 +73,7 @@ def test_loopback_addresses():
 @pytest.mark.parametrize("argv, word", [(["--port", "70000"], "--port"),
                                         (["--interface", "nosuch", "--port", "0"], "nosuch")])
 def test_rsra_bus_bad_input_is_one_line_exit_2(capsys, argv, word):
-    from daq.cli import main
+    from rsra.daq.cli import main
 
     assert main(["bus", *argv]) == 2
     err = capsys.readouterr().err.strip()

@@ -21,9 +21,9 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from daq.cli import main as cli_main
-from sim_bus.bus_sim import Simulator
-from sim_bus.faults import FaultSpecError, parse_faults
+from rsra.daq.cli import main as cli_main
+from rsra.sim_bus.bus_sim import Simulator
+from rsra.sim_bus.faults import FaultSpecError, parse_faults
 from test_sim_nodes import channel_name, make_physics
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -258,7 +258,7 @@ def check_record_against_truth(cfg, frames: list[tuple[float, int, bytes]], trut
 
 
 def test_record_decodes_back_to_the_truth_channels(cfg, tmp_path):
-    from sim_bus.truth import read_truth
+    from rsra.sim_bus.truth import read_truth
 
     path = tmp_path / "run.log"
     with lockstep(cfg, seed=3, record=path) as sim:
@@ -474,7 +474,7 @@ def test_fault_spec_parses_units_and_windows():
 # rsra sim
 
 def test_cli_sim_autostart_records_and_writes_truth(cfg, tmp_path, capsys):
-    from sim_bus.truth import read_truth
+    from rsra.sim_bus.truth import read_truth
 
     rec, truth_path = tmp_path / "run.log", tmp_path / "truth.npz"
     rc = cli_main(["sim", "--scenario", "ground-test", "--autostart", "--duration", "0.5",
@@ -500,7 +500,7 @@ def test_cli_sim_bad_faults_exit_2(capsys):
 @pytest.mark.timeout(60)
 def test_cli_sim_ctrl_c_is_clean(tmp_path):
     rec = tmp_path / "run.log"
-    p = subprocess.Popen([sys.executable, "-m", "daq", "sim", "--scenario", "ground-test",
+    p = subprocess.Popen([sys.executable, "-m", "rsra", "sim", "--scenario", "ground-test",
                           "--autostart", "--record", str(rec)], cwd=ROOT,
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from test_sim_bus import lockstep, run_steps
 
-from sim_bus.bus_sim import RECENT_SAMPLES, SyncLog, TruthBuffer
+from rsra.sim_bus.bus_sim import RECENT_SAMPLES, SyncLog, TruthBuffer
 
 
 def test_a_sync_log_without_truth_keeps_only_the_recent_cycles():
@@ -78,7 +78,7 @@ def test_the_simulator_bookkeeping_stops_growing(cfg, keep):
 
 
 def test_the_fault_log_is_bounded_and_complete_for_a_truth_file():
-    from sim_bus.faults import FaultInjector, FaultLog, parse_faults
+    from rsra.sim_bus.faults import FaultInjector, FaultLog, parse_faults
 
     fi = FaultInjector(parse_faults("jitter:0.3ms"), seed=1)
     fi.log = FaultLog(keep=True, chunk=100)

@@ -21,8 +21,8 @@ import numpy as np
 import pytest
 from canopen.sdo import SdoAbortedError
 
-from sim_bus.bus_sim import Simulator
-from sim_bus.nodes import (
+from rsra.sim_bus.bus_sim import Simulator
+from rsra.sim_bus.nodes import (
     NMT_PRE_OPERATIONAL,
     NMT_RESET_COMM,
     NMT_RESET_NODE,
@@ -91,8 +91,8 @@ class StandInPhysics:
 def make_physics(cfg, seed: int = 7):
     """AircraftPhysics on ground-test when sim_bus.physics exists, else the stand-in."""
     try:
-        from sim_bus.physics import AircraftPhysics
-        from sim_bus.scenarios import load_scenario
+        from rsra.sim_bus.physics import AircraftPhysics
+        from rsra.sim_bus.scenarios import load_scenario
     except ImportError:
         return StandInPhysics(cfg, seed)
     return AircraftPhysics(cfg, load_scenario("ground-test"), seed=seed)
@@ -375,7 +375,7 @@ def test_node_codec_agrees_with_the_shared_channel_codec(cfg):
     """SimNode's generic EDS-typed encoder and sim_bus.offline.ChannelCodec (what the simulator
     feeds its nodes, shared with the off-line API) give the same raw values inside the sensor
     range; the generic one decodes back within half a count."""
-    from sim_bus.offline import ChannelCodec
+    from rsra.sim_bus.offline import ChannelCodec
 
     rng = np.random.default_rng(3)
     codec = ChannelCodec(cfg)

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from scipy import signal, stats
 
-from daq.config import G0, ConfigError
-from estimator.geometry import hub_transfer_matrix, wrench_matrix
-from sim_bus import (
+from rsra.config.rig import G0, ConfigError
+from rsra.estimator.geometry import hub_transfer_matrix, wrench_matrix
+from rsra.sim_bus import (
     AircraftPhysics,
     ChannelCodec,
     list_scenarios,
@@ -23,8 +23,8 @@ from sim_bus import (
     simulate,
     write_truth,
 )
-from sim_bus.physics import SAMPLE_FIELDS, cell_axes_true, hub_matrix, wrench_matrix_true
-from sim_bus.scenarios import scenario_dir
+from rsra.sim_bus.physics import SAMPLE_FIELDS, cell_axes_true, hub_matrix, wrench_matrix_true
+from rsra.sim_bus.scenarios import scenario_dir
 
 pytestmark = pytest.mark.filterwarnings("ignore::scipy.linalg.LinAlgWarning")
 
@@ -334,7 +334,7 @@ def test_ground_test_and_flight_fly_the_same_aircraft_for_a_seed(cfg):
     """Calibrate on the ground, fly with that posterior (issue 14): for a given seed every
     scenario with random base angles has the same base angles, whatever else it draws (here a
     flight with a third harmonic and no manoeuvres draws other parameters in between)."""
-    from sim_bus.scenarios import parse_scenario
+    from rsra.sim_bus.scenarios import parse_scenario
 
     raw = tomllib.loads((scenario_dir() / "flight.toml").read_text())
     raw["harmonics"].append(dict(raw["harmonics"][0], order=2))

@@ -9,10 +9,10 @@ import can
 import pytest
 from test_sim_nodes import channel_name
 
-from daq.config import load_config
-from sim_bus.bus_sim import Simulator
-from sim_bus.physics import AircraftPhysics
-from sim_bus.scenarios import load_scenario
+from rsra.config.rig import load_config
+from rsra.sim_bus.bus_sim import Simulator
+from rsra.sim_bus.physics import AircraftPhysics
+from rsra.sim_bus.scenarios import load_scenario
 
 BLOCK = 5  # samples per physics block
 RATE = 50.0  # samples/s: the block is computed 10 ms after a SYNC, 10 ms before the next one

@@ -14,15 +14,14 @@ import numpy as np
 import pytest
 from scipy.stats import norm, poisson
 
-from daq.config import ConfigError, load_config
-from daq.decoder import MILLI_G
-from daq.stuck import (
+from rsra.config.rig import ConfigError, load_config
+from rsra.daq.decoder import MILLI_G
+from rsra.daq.stuck import (
     SECONDS_PER_HOUR,
     StuckDetector,
     StuckMonitor,
     plan,
     quantum,
-    run_length,
     run_probability,
 )
 
@@ -52,7 +51,7 @@ def test_run_probability_is_the_worst_offset_of_the_exact_sum(ratio, k):
 
 @pytest.mark.parametrize("k", [2, 3, 4, 7])
 def test_the_asymptotic_form_agrees_with_the_exact_sum_where_it_takes_over(k):
-    from daq import stuck
+    from rsra.daq import stuck
 
     r = stuck.ASYMPTOTIC_RATIO
     exact = float(np.max(stuck._exact_runs(r, 1.0, k)))
@@ -232,8 +231,8 @@ def test_a_stuck_cell_is_predict_only_and_out_of_the_identification_window(cfg):
     the calibration window — as a faulted cell's are."""
     from helpers_canopen import LockstepRig
 
-    from daq.pipeline import EstimatorPipeline
-    from daq.reader import HealthReport
+    from rsra.daq.pipeline import EstimatorPipeline
+    from rsra.daq.reader import HealthReport
 
     rig = LockstepRig(cfg, faults="stuck:cell_C@0.5-1.0", seed=4)
     pipe = EstimatorPipeline(cfg, cfg.identification.initial_angles_rad, identification=True)

@@ -15,10 +15,10 @@ import time
 
 import numpy as np
 
-import daq.ident_worker as ident_worker
-from daq.config import load_config
-from daq.jsonout import dumps
-from daq.service import Service, ServiceOptions
+import rsra.daq.ident_worker as ident_worker
+from rsra.config.rig import load_config
+from rsra.daq.jsonout import dumps
+from rsra.daq.service import Service, ServiceOptions
 from tests.helpers_net import free_tcp_port
 
 # two identification periods in 4.6 s of acquisition time (windows end at samples 399 and
@@ -165,7 +165,7 @@ def _running(pid: int) -> bool:
 
 
 def _start_service(extra=()):
-    cmd = [sys.executable, "-m", "daq", "run", "--sim", "ground-test", "--zenoh-listen",
+    cmd = [sys.executable, "-m", "rsra", "run", "--sim", "ground-test", "--zenoh-listen",
            f"tcp/127.0.0.1:{free_tcp_port()}", "--log-level", "warning", *extra]
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             start_new_session=True)
@@ -231,7 +231,7 @@ def test_ctrl_c_stops_the_service_cleanly_without_a_traceback():
 def disk_full_once() -> None:
     """Worker initializer (runs in the worker process): its first posterior save fails with
     ENOSPC, as on a full disk; the later ones write."""
-    import estimator.posterior as posterior
+    import rsra.estimator.posterior as posterior
 
     real, calls = posterior.save_posterior, []
 
@@ -245,7 +245,7 @@ def disk_full_once() -> None:
 
 
 def test_a_failed_posterior_save_keeps_the_result_and_is_retried(tmp_path, caplog):
-    from estimator.posterior import load_posterior
+    from rsra.estimator.posterior import load_posterior
 
     caplog.set_level(logging.INFO)
     state_file = tmp_path / "posterior.json"
@@ -287,14 +287,14 @@ def test_a_failed_posterior_save_keeps_the_result_and_is_retried(tmp_path, caplo
 def test_a_failed_save_is_reported_with_the_record_in_the_worker(monkeypatch):
     """The worker's own step: the save raising OSError(ENOSPC) gives the record, with the
     error attached, not an error record in its place."""
-    monkeypatch.setattr("estimator.posterior.save_posterior",
+    monkeypatch.setattr("rsra.estimator.posterior.save_posterior",
                         lambda path, st: (_ for _ in ()).throw(
                             OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))))
     rec = {"accepted": True, "applies_from_seq": 10}
 
     class Post:
         def state(self):
-            from estimator.posterior import PosteriorState
+            from rsra.estimator.posterior import PosteriorState
             return PosteriorState(("a",), np.zeros(1), np.eye(1))
 
     err = ident_worker.save_state(Post(), rec, "/nowhere/posterior.json")

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from scipy.signal import hilbert
 
-from daq.cli import main
-from daq.units import FT_LBF_NM, LBF_N
+from rsra.daq.cli import main
+from rsra.config.units import FT_LBF_NM, LBF_N
 
 _chan = itertools.count()
 LEVELS_LBF = [600.0, 800.0]
@@ -23,8 +23,8 @@ SWEEP_S = 20.0  # the report's sweep time: the x-force (0.24 noise σ) needs it 
 
 def _record(cfg, scenario, seconds: float, path, truth=None) -> None:
     """Lock-step recording (candump .log) of a scenario, no wall clock involved."""
-    from sim_bus.bus_sim import Simulator
-    from sim_bus.physics import AircraftPhysics
+    from rsra.sim_bus.bus_sim import Simulator
+    from rsra.sim_bus.physics import AircraftPhysics
 
     sim = Simulator(cfg, physics=AircraftPhysics(cfg, scenario), autostart=True, lockstep=True,
                     channel=f"test-sweep-{os.getpid()}-{next(_chan)}", record=str(path),
@@ -39,7 +39,7 @@ def _record(cfg, scenario, seconds: float, path, truth=None) -> None:
 
 
 def _short_sweep(**extra):
-    from sim_bus.scenarios import load_scenario
+    from rsra.sim_bus.scenarios import load_scenario
 
     axes = extra.pop("axes", ["X", "Y", "Z"])
     levels = extra.pop("levels", LEVELS_LBF)
@@ -73,7 +73,7 @@ def _angle_diff(a: float, b: float) -> float:
 
 
 def test_segments_found_in_the_balance_data(sweep_rec, cfg):
-    from daq.sweep import detect_segments, load_sweep_data
+    from rsra.daq.sweep import detect_segments, load_sweep_data
 
     data = load_sweep_data(cfg, [sweep_rec / "sweep.log"])
     segs = detect_segments(data.known_H, data.fs, cfg.balance.sigma)
@@ -86,7 +86,7 @@ def test_segments_found_in_the_balance_data(sweep_rec, cfg):
 
 
 def test_sweep_recovers_unmodelled_loads_and_table(sweep_rec, cfg, capsys):
-    from sim_bus.truth import read_truth
+    from rsra.sim_bus.truth import read_truth
 
     out = sweep_rec / "out"
     assert main(["sweep", str(sweep_rec / "sweep.log"), "--out", str(out)]) == 0
@@ -136,7 +136,7 @@ def test_non_default_phase_and_us_units(tmp_path, cfg, capsys):
     """A phase other than 180° is recovered too (nothing hard-coded), shown in US units."""
     sc, dur = _short_sweep(axes=["Y"], levels=[800.0], **{"unmodelled.phase_deg": 135.0})
     _record(cfg, sc, dur, tmp_path / "y.log", tmp_path / "t.npz")
-    from sim_bus.truth import read_truth
+    from rsra.sim_bus.truth import read_truth
 
     g = _truth_gain(read_truth(tmp_path / "t.npz"), 1, 3)
     assert math.degrees(np.angle(g)) % 360 == pytest.approx(135.0, abs=0.5)
@@ -154,7 +154,7 @@ def test_non_default_phase_and_us_units(tmp_path, cfg, capsys):
 
 
 def test_recording_without_balance_is_a_usage_error(tmp_path, cfg, capsys):
-    from sim_bus.scenarios import load_scenario
+    from rsra.sim_bus.scenarios import load_scenario
 
     _record(cfg, load_scenario("flight"), 1.0, tmp_path / "flight.log")
     assert main(["sweep", str(tmp_path / "flight.log"), "--out", str(tmp_path / "o")]) == 2
@@ -165,7 +165,7 @@ def test_recording_without_balance_is_a_usage_error(tmp_path, cfg, capsys):
 def test_a_recording_that_holds_no_sweep_says_so(tmp_path, cfg, capsys):
     """A ground test (rotor harmonics on every axis, balance on the bus) is not a shake test:
     one line saying so, exit 2, no output folder left behind (issue 13)."""
-    from sim_bus.scenarios import load_scenario
+    from rsra.sim_bus.scenarios import load_scenario
 
     _record(cfg, load_scenario("ground-test"), 4.0, tmp_path / "ground.log")
     out = tmp_path / "o"

@@ -9,9 +9,9 @@ from helpers_canopen import T0, period_frames
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from daq.reader import HealthReport, Reader
-from daq.recorder import Recorder, frame_files
-from daq.replay import replay
+from rsra.daq.reader import HealthReport, Reader
+from rsra.daq.recorder import Recorder, frame_files
+from rsra.daq.replay import replay
 
 DT = 0.005
 

@@ -7,8 +7,8 @@ import time
 
 import zenoh
 
-from daq.config import load_config
-from daq.telemetry import TelemetryPublisher, viewer_config, zenoh_config
+from rsra.config.rig import load_config
+from rsra.daq.telemetry import TelemetryPublisher, viewer_config, zenoh_config
 from tests.helpers_net import free_tcp_port
 
 
@@ -20,7 +20,7 @@ def test_publish_query_and_listen_subprocess(tmp_path):
                                                   "telemetry": {"zenoh_config": "<removed>"}})
         try:
             proc = subprocess.Popen(
-                [sys.executable, "-m", "daq", "listen", "--prefix", "rsra/test", "--json",
+                [sys.executable, "-m", "rsra", "listen", "--prefix", "rsra/test", "--json",
                  "--zenoh-connect", ep, "--count", "5", "--duration", "30"],
                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
             # the subscriber announces itself; publish until it has its five messages

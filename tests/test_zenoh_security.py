@@ -30,8 +30,8 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from daq.config import load_config
-from daq.telemetry import STATE_KEYS, TelemetryPublisher, viewer_config, zenoh_config
+from rsra.config.rig import load_config
+from rsra.daq.telemetry import STATE_KEYS, TelemetryPublisher, viewer_config, zenoh_config
 from tests.helpers_net import free_tcp_port
 
 ZENOH_DIR = Path(__file__).resolve().parents[1] / "config" / "zenoh"
@@ -229,7 +229,7 @@ def test_rsra_listen_with_viewer_config_through_router(deployment):
     with zenoh.open(deployment.client("rig.json5", "rig-bench")) as rig:
         pub = TelemetryPublisher(rig, RIG_PREFIX, {"rig": {"name": "bench"}})
         proc = subprocess.Popen(
-            [sys.executable, "-m", "daq", "listen", "--prefix", RIG_PREFIX, "--json",
+            [sys.executable, "-m", "rsra", "listen", "--prefix", RIG_PREFIX, "--json",
              "--zenoh-config", path, "--count", "3", "--duration", "30"],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
@@ -256,7 +256,7 @@ def test_rsra_run_with_rig_config_through_router(deployment):
     with zenoh.open(deployment.client("viewer.json5", "viewer-1")) as viewer:
         sub = viewer.declare_subscriber(f"{RIG_PREFIX}/**", zenoh.handlers.FifoChannel(1 << 16))
         proc = subprocess.run(
-            [sys.executable, "-m", "daq", "run", "--sim", "ground-test", "--speed", "max",
+            [sys.executable, "-m", "rsra", "run", "--sim", "ground-test", "--speed", "max",
              "--duration", "1", "--zenoh-config", path, "--log-level", "warning"],
             capture_output=True, text=True, timeout=120)
         assert proc.returncode == 0, proc.stderr[-2000:]

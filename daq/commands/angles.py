@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from daq.config import RigConfig
-from estimator.posterior import PosteriorFileError, PosteriorState, determined_directions
+from rsra.config.rig import RigConfig
+from rsra.estimator.posterior import PosteriorFileError, PosteriorState, determined_directions
 
 DIRECTION_COMPONENT_MIN = 0.1  # components of an undetermined direction worth naming
 SHOW_DIRECTIONS = 5  # undetermined directions listed in the table view (largest σ first)
@@ -32,7 +32,7 @@ def _configured_names(cfg: RigConfig) -> tuple[tuple[str, ...], tuple[str, ...]]
 
 def describe(state: PosteriorState, cfg: RigConfig) -> dict:
     """Everything `show` prints, as JSON-ready values (degrees)."""
-    from daq.cli import UsageError
+    from rsra.daq.commands.options import UsageError
 
     configured, angle_names = _configured_names(cfg)
     others = [n for n in state.names if n not in angle_names]
@@ -73,7 +73,7 @@ def describe(state: PosteriorState, cfg: RigConfig) -> dict:
 def _rig_difference(state: PosteriorState, cfg: RigConfig) -> str | None:
     """The first item in which the file's rig fingerprint differs from the configured rig
     (None: the same rig, or a version-1 file without a fingerprint)."""
-    from estimator.posterior import rig_difference, rig_fingerprint
+    from rsra.estimator.posterior import rig_difference, rig_fingerprint
 
     if state.rig is None:
         return None
@@ -82,11 +82,11 @@ def _rig_difference(state: PosteriorState, cfg: RigConfig) -> str | None:
 
 def prior_state(cfg: RigConfig) -> PosteriorState:
     """The configured prior: initial angles, covariance diag(prior σ²)."""
-    from daq.cli import UsageError
-    from estimator.posterior import SequentialPosterior
+    from rsra.daq.commands.options import UsageError
+    from rsra.estimator.posterior import SequentialPosterior
 
     names, angle_names = _configured_names(cfg)
-    from estimator.posterior import rig_fingerprint
+    from rsra.estimator.posterior import rig_fingerprint
 
     try:
         post = SequentialPosterior.from_config(cfg.identification, names, angle_names,
@@ -101,7 +101,7 @@ def prior_state(cfg: RigConfig) -> PosteriorState:
 # command line
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
-    from daq.cli import common_options
+    from rsra.daq.commands.options import common_options
 
     p = sub.add_parser(
         name, help="inspect a saved posterior (show) or reset it to the configured prior",
@@ -138,17 +138,17 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from daq.config import load_config
+    from rsra.daq.rigmodel import load_rig
 
-    cfg = load_config(args.config)
+    cfg = load_rig(args.config)
     if args.action == "show":
         return _show(cfg, args)
     return _reset(cfg, args)
 
 
 def _load(path: str) -> PosteriorState:
-    from daq.cli import UsageError
-    from estimator.posterior import load_posterior
+    from rsra.daq.commands.options import UsageError
+    from rsra.estimator.posterior import load_posterior
 
     try:
         return load_posterior(path)
@@ -164,7 +164,7 @@ def _show(cfg: RigConfig, args: argparse.Namespace) -> int:
         return 0
     from rich.table import Table
 
-    from daq.console import make_console
+    from rsra.daq.console import make_console
 
     console = make_console()
     smax = d["sigma_max_deg"]
@@ -201,9 +201,9 @@ def _show(cfg: RigConfig, args: argparse.Namespace) -> int:
 
 
 def _reset(cfg: RigConfig, args: argparse.Namespace) -> int:
-    from daq.cli import UsageError
-    from daq.posterior_file import classify
-    from estimator.posterior import save_posterior
+    from rsra.daq.commands.options import UsageError
+    from rsra.daq.posterior_file import classify
+    from rsra.estimator.posterior import save_posterior
 
     path = Path(args.state)
     state = prior_state(cfg)

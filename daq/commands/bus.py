@@ -9,7 +9,7 @@ import threading
 
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
-    from daq.sharedbus import DEFAULT_PORT
+    from rsra.daq.sharedbus import DEFAULT_PORT
 
     p = sub.add_parser(
         name, help="share a CAN bus between processes (loopback WebSocket)",
@@ -32,8 +32,8 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from daq.cli import UsageError
-    from daq.sharedbus import BusServer, is_loopback
+    from rsra.daq.commands.options import UsageError
+    from rsra.daq.sharedbus import BusServer, is_loopback
 
     if not 0 <= args.port <= 65535:
         raise UsageError(f"--port {args.port}: give a TCP port 0–65535")

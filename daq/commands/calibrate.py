@@ -10,12 +10,12 @@ from pathlib import Path
 
 import numpy as np
 
-from estimator.atomic import write_text_atomic
-from estimator.content import KINDS
+from rsra.estimator.atomic import write_text_atomic
+from rsra.estimator.content import KINDS
 
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
-    from daq.cli import common_options
+    from rsra.daq.commands.options import common_options
 
     p = sub.add_parser(
         name, help="off-line calibration of the load-cell angles (or other parameters) from "
@@ -63,7 +63,7 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
     p.add_argument("--angles", metavar="STATE", default=None,
                    help="start from the angles of a saved posterior (rsra angles show) instead of "
                    "identification.initial_angles_deg")
-    from daq.posterior_file import add_accept_option
+    from rsra.daq.posterior_file import add_accept_option
 
     add_accept_option(p)
     p.add_argument("--prior-sigma-deg", type=float, default=None, metavar="DEG",
@@ -104,18 +104,18 @@ class _Progress:
 
 
 def run(args: argparse.Namespace) -> int:
-    from daq.calibrate import (
+    from rsra.daq.calibrate import (
         CalibrationError,
         calibrate,
         fragment_toml,
         load_known_load_data,
         parse_params,
     )
-    from daq.cli import UsageError
-    from daq.jsonout import dumps
-    from daq.replay import ReplayError, config_for, expand
-    from daq.posterior_file import load_checked
-    from estimator.posterior import PosteriorFileError
+    from rsra.daq.commands.options import UsageError
+    from rsra.daq.jsonout import dumps
+    from rsra.daq.replay import ReplayError, config_for, expand
+    from rsra.daq.posterior_file import load_checked
+    from rsra.estimator.posterior import PosteriorFileError
 
     if args.prior_sigma_deg is not None and not (math.isfinite(args.prior_sigma_deg)
                                                  and args.prior_sigma_deg > 0):
@@ -193,7 +193,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _notes(cfg, result) -> list[str]:
     """What the user should know beyond the numbers (model §7's warnings)."""
-    from daq.calibrate import RESIDUAL_RATIO_FLAG
+    from rsra.daq.calibrate import RESIDUAL_RATIO_FLAG
 
     notes = []
     if result.data.content != "static" and cfg.angular == "neglect":
@@ -231,9 +231,9 @@ def _print_tables(cfg, result, units: str, notes: list[str], wrote: str | None,
                   nxt: list[dict] | None = None) -> None:
     from rich.table import Table
 
-    from daq.calibrate import parameter_unit
-    from daq.console import make_console
-    from daq.units import axis_units, to_units
+    from rsra.daq.calibrate import parameter_unit
+    from rsra.daq.console import make_console
+    from rsra.config.units import axis_units, to_units
 
     # a pipe gets the full table (rich assumes 80 columns there and would cut the numbers)
     con = make_console()
@@ -291,4 +291,4 @@ def _print_tables(cfg, result, units: str, notes: list[str], wrote: str | None,
         for k, c in enumerate(nxt, 1):
             con.print(f"  {k}. {describe(c['H'], c['information_gain'])}")
     if wrote:
-        con.print(f"wrote {wrote}: merge it into the rig config (or load_config(overrides=…))")
+        con.print(f"wrote {wrote}: merge it into the rig config (or load_rig(overrides=…))")

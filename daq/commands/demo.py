@@ -15,8 +15,8 @@ DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
-    from daq.cli import common_options
-    from daq.commands.run import add_no_identification, add_sim_options
+    from rsra.daq.commands.options import common_options
+    from rsra.daq.commands.options import add_no_identification, add_sim_options
 
     p = sub.add_parser(name, help="the simulator and the service in one process, with a live view",
                        description="The main job on the embedded default: the simulated "
@@ -38,7 +38,7 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
     p.add_argument("--angles", metavar="STATE", default=None,
                    help="start from a saved posterior (e.g. a ground test's "
                    "identification.state_file) instead of the configured initial angles")
-    from daq.posterior_file import add_accept_option
+    from rsra.daq.posterior_file import add_accept_option
 
     add_accept_option(p)
     add_no_identification(p)
@@ -71,13 +71,13 @@ def _endpoint(args) -> tuple[list[str], str | None]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from daq.cli import UsageError
-    from daq.commands.run import check_sim_faults, config_for_run, setup_logging
-    from daq.console import make_console
-    from daq.demo_view import DemoState, render
-    from daq.service import Service, ServiceOptions, initial_angles
-    from estimator.noise_budget import noise_budget
-    from estimator.posterior import PosteriorFileError
+    from rsra.daq.commands.options import UsageError
+    from rsra.daq.commands.options import check_sim_faults, config_for_run, setup_logging
+    from rsra.daq.console import make_console
+    from rsra.daq.demo_view import DemoState, render
+    from rsra.daq.service import Service, ServiceOptions, initial_angles
+    from rsra.estimator.noise_budget import noise_budget
+    from rsra.estimator.posterior import PosteriorFileError
 
     setup_logging(args.log_level, None)
     cfg = config_for_run(args.config, args.scenario)
@@ -117,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
 
     svc.add_sink(sink)
     if report_jsonl is not None:
-        from daq.service import jsonl_sink
+        from rsra.daq.service import jsonl_sink
 
         jsink, jclose = jsonl_sink(report_jsonl)
         svc.add_sink(jsink)
@@ -173,10 +173,11 @@ def run(args: argparse.Namespace) -> int:
     summary = result.get("summary", {})
     _print_summary(console, summary, state)
     if args.report:
-        from daq.report import write_report
+        from rsra.daq.report import write_report
+        from rsra.sim_bus.truth import read_truth
 
         rep = write_report(cfg, report_jsonl, opts.truth if Path(opts.truth).exists() else None,
-                           args.report, units=args.units)
+                           args.report, units=args.units, read_truth=read_truth)
         console.print(f"report written to {args.report}: "
                       + ", ".join(p.name for p in rep.plots) + ", summary.md, summary.json")
     return 0

@@ -16,7 +16,7 @@ TELEMETRY_SUFFIXES = (".jsonl", ".json")
 
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
-    from daq.cli import common_options
+    from rsra.daq.commands.options import common_options
 
     p = sub.add_parser(
         name, help="write a DBC of the bus, or MCAP / Parquet files of the telemetry",
@@ -92,10 +92,10 @@ class _Staged:
 
 
 def run(args: argparse.Namespace) -> int:
-    from daq.cli import UsageError
-    from daq.config import load_config
-    from daq.export import ExportError
-    from daq.replay import ReplayError, config_for, expand
+    from rsra.daq.commands.options import UsageError
+    from rsra.daq.rigmodel import load_rig
+    from rsra.daq.export import ExportError
+    from rsra.daq.replay import ReplayError, config_for, expand
 
     if not (args.dbc or args.mcap or args.parquet):
         raise UsageError("nothing to write; fix: give --dbc FILE, --mcap FILE or --parquet DIR")
@@ -122,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
     elif args.mcap or args.parquet:
         raise UsageError("--mcap and --parquet need the telemetry to export; fix: give a "
                          "RESULTS.jsonl from `rsra replay --out`, or recordings")
-    cfg = config_for(logs, args.config) if logs else load_config(args.config)
+    cfg = config_for(logs, args.config) if logs else load_rig(args.config)
 
     staged = _Staged()
     done: list[str] = []
@@ -134,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
         if dbc_tmp is not None:
             import cantools
 
-            from daq.export import build_dbc
+            from rsra.daq.export import build_dbc
 
             db = build_dbc(cfg)
             cantools.database.dump_file(db, dbc_tmp, database_format="dbc")
@@ -160,7 +160,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _replay(cfg, logs: list[str], scratch, usage) -> None:
-    from daq.export import replay_to_jsonl
+    from rsra.daq.export import replay_to_jsonl
 
     replay_to_jsonl(cfg, logs, scratch, usage)
     scratch.flush()
@@ -171,7 +171,7 @@ def _telemetry(cfg, source: Path | None, scratch, args, mcap_tmp: Path | None,
     """Export the telemetry records (from ``source``, or the replayed ``scratch`` stream)."""
     import json
 
-    from daq.export import (
+    from rsra.daq.export import (
         ExportError,
         parquet_schemas,
         read_records,

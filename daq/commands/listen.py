@@ -14,13 +14,13 @@ from collections import deque
 
 import numpy as np
 
-from daq.units import axis_units, to_units
+from rsra.config.units import axis_units, to_units
 
 AXES = ("X", "Y", "Z", "L", "M", "N")
 
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
-    from daq.cli import common_options
+    from rsra.daq.commands.options import common_options
 
     p = sub.add_parser(name, help="live view of a rig's telemetry (or JSON lines)",
                        description="Subscribe to <prefix>/** and show the latest values, rates, "
@@ -34,7 +34,7 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
                    help="endpoint to connect to (default: the config's listen endpoints)")
     p.add_argument("--zenoh-config", default=None, metavar="FILE",
                    help="a Zenoh config file (TLS, user/password) instead of --zenoh-connect")
-    from daq.commands.run import positive_float, positive_int
+    from rsra.daq.commands.options import positive_float, positive_int
 
     p.add_argument("--duration", type=positive_float, default=None, metavar="S",
                    help="stop after S seconds (exit 0)")
@@ -172,7 +172,7 @@ def render(stats: dict[str, KeyStats], prefix: str, units: str, now: float):
             f"unknown {bus.get('unknown')} malformed {bus.get('malformed')} | samples: complete "
             f"{smp.get('complete')} incomplete {smp.get('incomplete')} lost {smp.get('lost')} | "
             f"latency p50 {lat.get('p50')} ms p99 {lat.get('p99')} ms")
-        from daq.demo_view import sync_text
+        from rsra.daq.demo_view import sync_text
 
         parts.append("sync: " + sync_text(h))
     return Group(*parts)
@@ -181,10 +181,10 @@ def render(stats: dict[str, KeyStats], prefix: str, units: str, now: float):
 def run(args: argparse.Namespace) -> int:
     import zenoh
 
-    from daq.config import load_config
-    from daq.telemetry import viewer_config, zenoh_config
+    from rsra.daq.rigmodel import load_rig
+    from rsra.daq.telemetry import viewer_config, zenoh_config
 
-    cfg = load_config(args.config)
+    cfg = load_rig(args.config)
     prefix = args.prefix or cfg.telemetry.prefix
     if args.zenoh_config:
         conf = zenoh_config(cfg.telemetry, config_file=args.zenoh_config)
@@ -202,7 +202,7 @@ def run(args: argparse.Namespace) -> int:
         if not args.json:
             from rich.live import Live
 
-            from daq.console import make_console
+            from rsra.daq.console import make_console
 
             live = Live(render(stats, prefix, args.units, time.monotonic()),
                         console=make_console(), refresh_per_second=4, transient=False)

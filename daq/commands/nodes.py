@@ -3,8 +3,8 @@
 For every configured node: was it heard (boot-up or heartbeat, through the same passive
 :class:`daq.master.Supervisor` the service runs), its NMT state by its last heartbeat, and
 over SDO its 0x1000, 0x1018 and TPDO communication / mapping parameters against its EDS —
-the checks of the master's boot step 2, but collecting *every* mismatch instead of stopping
-at the first. Nothing is written: no NMT command, no SYNC, no SDO download (0x1017 is left
+the checks of the master's boot step 2 (one verifier, :mod:`rsra.daq.nodecheck`), but
+collecting *every* mismatch instead of stopping at the first. Nothing is written: no NMT command, no SYNC, no SDO download (0x1017 is left
 as it is), so it is safe beside a running service.
 """
 from __future__ import annotations
@@ -18,37 +18,13 @@ from typing import Any
 
 import canopen
 
-from daq.config import RigConfig
-from daq.decoder import TPDO_COMM, TPDO_MAP, DecodeTable, NodeLayout
-from daq.master import (
-    COB_EMCY,
-    COB_RTR_NOT_ALLOWED,
-    IDENTITY_COMPARED,
-    IDENTITY_NAMES,
-    Supervisor,
-)
+from rsra.config.rig import RigConfig
+from rsra.daq.decoder import DecodeTable
+from rsra.daq.master import COB_EMCY, Supervisor
+from rsra.daq.nodecheck import IDENTITY_NAMES, Mismatch, verify_node
 
 # canopen's default SDO response timeout (one retry): a node that is there answers in ms
 SDO_TIMEOUT_S = 0.3
-
-
-@dataclass(frozen=True)
-class Mismatch:
-    """One object that does not agree with the EDS (or cannot be read)."""
-
-    object: str
-    expected: Any = None
-    actual: Any = None
-    problem: str = ""
-
-    def text(self) -> str:
-        if self.problem:
-            return f"{self.object} {self.problem}"
-        return f"{self.object} reads {_fmt(self.actual)}, the EDS says {_fmt(self.expected)}"
-
-    def to_dict(self) -> dict:
-        return {"object": self.object, "expected": self.expected, "actual": self.actual,
-                "problem": self.problem or None, "text": self.text()}
 
 
 @dataclass
@@ -92,99 +68,6 @@ class NodeReport:
                 "emcy": self.emcy, "mismatches": [m.to_dict() for m in self.mismatches]}
 
 
-def _fmt(v: Any) -> str:
-    return f"0x{v:08X}" if isinstance(v, int) else repr(v)
-
-
-class _Unreadable(Exception):
-    def __init__(self, mismatch: Mismatch, timeout: bool):
-        self.mismatch, self.timeout = mismatch, timeout
-
-
-def _read(nl: NodeLayout, node: canopen.RemoteNode, index: int, sub: int, name: str) -> int:
-    """One SDO upload decoded with the EDS data type (as daq.master reads it)."""
-    try:
-        data = node.sdo.upload(index, sub)
-    except canopen.SdoAbortedError as e:
-        raise _Unreadable(Mismatch(name, problem=f"cannot be read: SDO abort {e}"), False) from None
-    except canopen.SdoCommunicationError as e:
-        raise _Unreadable(Mismatch(name, problem=f"cannot be read: {e}"), True) from None
-    obj = nl.od[index]
-    var = obj if sub == 0 and not hasattr(obj, "subindices") else obj[sub]
-    return int(var.decode_raw(data))
-
-
-def _compare(nl: NodeLayout, node: canopen.RemoteNode, index: int, sub: int, name: str,
-             expected: int, out: list[Mismatch], mask: int = ~0) -> int | None:
-    try:
-        value = _read(nl, node, index, sub, name)
-    except _Unreadable as e:
-        out.append(e.mismatch)
-        return None
-    if value & mask != expected & mask:
-        out.append(Mismatch(name, expected, value))
-    return value
-
-
-def verify_node(nl: NodeLayout, node: canopen.RemoteNode, report: NodeReport) -> None:
-    """bus.md boot step 2 without the write: 0x1000, 0x1018 (vendor, product, revision; the
-    serial number is reported, never compared) and every TPDO's COB-ID, transmission type
-    and mapping against the EDS defaults. Fills ``report``."""
-    out = report.mismatches
-    try:
-        dev = _read(nl, node, 0x1000, 0, "0x1000 (device type)")
-    except _Unreadable as e:
-        if e.timeout:  # silent over SDO: nothing else will answer either
-            if report.heard:
-                out.append(Mismatch("SDO", problem="no answer (the node sends heartbeats but "
-                                    "its SDO server does not reply: check its node id)"))
-            return
-        out.append(e.mismatch)
-        dev = None
-    report.sdo = True
-    report.device_type = dev
-    if dev is not None and dev != nl.device_type:
-        out.append(Mismatch("0x1000 (device type)", nl.device_type, dev))
-    ident: dict[str, int] = {}
-    for sub, expected in nl.identity.items():
-        label = IDENTITY_NAMES.get(sub, str(sub))
-        name = f"0x1018:{sub} ({label})"
-        if sub in IDENTITY_COMPARED:
-            value = _compare(nl, node, 0x1018, sub, name, expected, out)
-        else:
-            try:
-                value = _read(nl, node, 0x1018, sub, name)
-            except _Unreadable as e:
-                out.append(e.mismatch)
-                value = None
-        if value is not None:
-            ident[label] = value
-    report.identity = ident
-    for index in sorted(i for i in nl.od.indices if TPDO_COMM <= i < TPDO_COMM + 512):
-        _verify_tpdo(nl, node, index - TPDO_COMM, out)
-
-
-def _verify_tpdo(nl: NodeLayout, node: canopen.RemoteNode, k: int, out: list[Mismatch]) -> None:
-    comm = nl.od[TPDO_COMM + k]
-    n = k + 1
-    for sub, what in ((1, "COB-ID"), (2, "transmission type")):
-        if sub in comm:
-            mask = ~COB_RTR_NOT_ALLOWED if sub == 1 else ~0  # bit 30 is the device's business
-            _compare(nl, node, TPDO_COMM + k, sub, f"0x{TPDO_COMM + k:04X}:{sub} (TPDO{n} {what})",
-                     comm[sub].default, out, mask)
-    if TPDO_MAP + k not in nl.od:
-        return
-    mapping = nl.od[TPDO_MAP + k]
-    count = _compare(nl, node, TPDO_MAP + k, 0,
-                     f"0x{TPDO_MAP + k:04X}:0 (TPDO{n} number of mapped objects)",
-                     mapping[0].default, out)
-    if count != mapping[0].default:
-        return  # entries of a different mapping cannot be compared one by one
-    for s in range(1, count + 1):
-        _compare(nl, node, TPDO_MAP + k, s, f"0x{TPDO_MAP + k:04X}:{s} (TPDO{n} mapped object {s})",
-                 mapping[s].default, out)
-
-
 def check_network(cfg: RigConfig, network: canopen.Network, timeout_s: float,
                   table: DecodeTable | None = None) -> list[NodeReport]:
     """Check every configured node on a connected canopen ``network`` (read only; the
@@ -214,7 +97,14 @@ def check_network(cfg: RigConfig, network: canopen.Network, timeout_s: float,
         heard = ns.heard.is_set()
         rep = NodeReport(nl.name, nl.node_id, nl.role, nl.required, heard=heard,
                          state=ns.state if heard else None)
-        verify_node(nl, remote[nl.name], rep)
+        facts = verify_node(nl, remote[nl.name])
+        rep.sdo, rep.device_type = facts.sdo, facts.device_type
+        rep.identity = facts.identity if facts.sdo else None
+        if facts.sdo:
+            rep.mismatches = facts.mismatches
+        elif heard:  # silent over SDO: nothing else will answer either
+            rep.mismatches = [Mismatch("SDO", problem="no answer (the node sends heartbeats "
+                                       "but its SDO server does not reply: check its node id)")]
         rep.emcy = ns.emcy_count
         reports.append(rep)
     return reports
@@ -224,7 +114,7 @@ def check_network(cfg: RigConfig, network: canopen.Network, timeout_s: float,
 # command line
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
-    from daq.cli import common_options
+    from rsra.daq.commands.options import common_options
 
     p = sub.add_parser(
         name, help="bus check: which configured nodes answer, their state, identity and mapping",
@@ -256,15 +146,15 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     import can
 
-    from daq.cli import UsageError
-    from daq.config import load_config
+    from rsra.daq.commands.options import UsageError
+    from rsra.daq.rigmodel import load_rig
 
     if args.interface is None:
         raise UsageError("give the bus: --interface I [--channel C], e.g. --interface socketcan "
                          "--channel vcan0")
     if args.timeout is not None and not args.timeout > 0:
         raise UsageError(f"--timeout {args.timeout}: must be a positive number of seconds")
-    cfg = load_config(args.config)
+    cfg = load_rig(args.config)
     table = DecodeTable(cfg)
     timeout = (args.timeout if args.timeout is not None
                else cfg.heartbeat.timeout_factor * cfg.heartbeat.producer_ms / 1000.0)
@@ -290,7 +180,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             network.disconnect()
         except Exception:  # the interface's own shutdown failed: closed once, quietly
-            from daq.sharedbus import shutdown_bus
+            from rsra.canbus import shutdown_bus
 
             shutdown_bus(bus)
     ok = all(r.ok for r in reports)
@@ -306,7 +196,7 @@ def _print_table(cfg: RigConfig, reports: list[NodeReport], args: argparse.Names
                  ok: bool) -> None:
     from rich.table import Table
 
-    from daq.console import make_console
+    from rsra.daq.console import make_console
 
     console = make_console()
     if not console.is_terminal:

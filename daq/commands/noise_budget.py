@@ -4,13 +4,13 @@ from __future__ import annotations
 import argparse
 import json
 
-from daq.config import load_config
-from daq.units import axis_units, to_units
-from estimator.noise_budget import AXES, noise_budget
+from rsra.daq.rigmodel import load_rig
+from rsra.config.units import axis_units, to_units
+from rsra.estimator.noise_budget import AXES, noise_budget
 
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
-    from daq.cli import common_options
+    from rsra.daq.commands.options import common_options
 
     p = sub.add_parser(name, help="per-axis noise budget of the static hub-load estimate",
                        description="The lower bound on static accuracy without statistical "
@@ -23,7 +23,7 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    cfg = load_config(args.config)
+    cfg = load_rig(args.config)
     nb = noise_budget(cfg.rig_model(), cfg.identification.initial_angles_rad)
     units = axis_units(args.units)
     total, cells, acc = (to_units(v, args.units) for v in (nb.total, nb.load_cells, nb.accelerometers))
@@ -34,7 +34,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     from rich.table import Table
 
-    from daq.console import make_console
+    from rsra.daq.console import make_console
 
     t = Table(title=f"Static-estimate noise budget, rig {cfg.rig_name!r}, {cfg.hub_frame} axes")
     for col in ("axis", "unit", "total σ", "load cells", "accelerometers"):

@@ -9,16 +9,13 @@ import argparse
 import contextlib
 import os
 import sys
-from collections.abc import Iterator
 from pathlib import Path
 
-from daq.config import RigConfig
-from daq.reader import Reader
 
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
-    from daq.cli import common_options
-    from daq.commands.run import add_no_identification
+    from rsra.daq.commands.options import common_options
+    from rsra.daq.commands.options import add_no_identification
 
     p = sub.add_parser(
         name, help="feed recordings through the reader and the estimator (and write every record)",
@@ -43,7 +40,7 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
                    "the recording's angle schedule")
     p.add_argument("--angles", metavar="STATE", default=None,
                    help="start from a saved posterior instead of the recording's")
-    from daq.posterior_file import add_accept_option
+    from rsra.daq.posterior_file import add_accept_option
 
     add_accept_option(p)
     add_no_identification(p, help="neither the recorded angle schedule nor a recomputed "
@@ -59,26 +56,12 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
     return p
 
 
-def replay_records(cfg: RigConfig, logs: list[str], realtime: bool = False,
-                   reader: Reader | None = None) -> Iterator[tuple[str, dict]]:
-    """(key, payload) of the reader's records only (channels per sample, health once a
-    second of recorded time) — without the estimator; see daq.service for the full replay."""
-    from daq.reader import HealthReport
-    from daq.replay import replay
-
-    for item in replay(cfg, logs, realtime=realtime, reader=reader):
-        if isinstance(item, HealthReport):
-            yield "health", item.payload
-        else:
-            yield "channels", item.channels_payload()
-
-
 def run(args: argparse.Namespace) -> int:
-    from daq.cli import UsageError
-    from daq.commands.run import setup_logging
-    from daq.jsonout import dumps
-    from daq.replay import ReplayError, config_for, expand, read_frames
-    from daq.service import Service, ServiceOptions
+    from rsra.daq.commands.options import UsageError
+    from rsra.daq.commands.options import setup_logging
+    from rsra.daq.jsonout import dumps
+    from rsra.daq.replay import ReplayError, config_for, expand, read_frames
+    from rsra.daq.service import Service, ServiceOptions
 
     setup_logging(args.log_level, None)
     if args.recompute and not args.identification:
@@ -145,7 +128,7 @@ class _LazyFile:
     leaves an existing one as it was. Where it cannot be written is checked at once."""
 
     def __init__(self, path: Path):
-        from daq.cli import UsageError
+        from rsra.daq.commands.options import UsageError
 
         self.path = path
         self.file = None

@@ -6,7 +6,7 @@ from pathlib import Path
 
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
-    from daq.cli import common_options
+    from rsra.daq.commands.options import common_options
 
     p = sub.add_parser(
         name, help="plots and a summary from published records (JSONL), with truth if any",
@@ -32,15 +32,17 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from daq.cli import UsageError
-    from daq.config import load_config
-    from daq.report import ReportError, write_report
+    from rsra.daq.commands.options import UsageError
+    from rsra.daq.rigmodel import load_rig
+    from rsra.daq.report import ReportError, write_report
+    from rsra.sim_bus.truth import read_truth
 
     results = Path(args.results)
     out = Path(args.out) if args.out else results.parent / f"{results.stem}-report"
-    cfg = load_config(args.config)
+    cfg = load_rig(args.config)
     try:
-        rep = write_report(cfg, results, args.truth, out, units=args.units)
+        rep = write_report(cfg, results, args.truth, out, units=args.units,
+                           read_truth=read_truth)
     except ReportError as e:
         raise UsageError(str(e)) from None
     print(rep.markdown_brief())

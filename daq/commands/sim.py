@@ -22,8 +22,8 @@ FAULT_HELP = (
 
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
-    from daq.cli import common_options
-    from daq.commands.run import positive_float, seed
+    from rsra.daq.commands.options import common_options
+    from rsra.daq.commands.options import positive_float, seed
 
     p = sub.add_parser(
         name, help="the simulated aircraft alone on a bus",
@@ -59,22 +59,22 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     import can
 
-    from daq.cli import UsageError
-    from daq.config import load_config
-    from daq.console import make_console
-    from sim_bus.bus_sim import RecordError, Simulator
-    from sim_bus.faults import FaultSpecError
-    from sim_bus.physics import AircraftPhysics
-    from sim_bus.scenarios import load_scenario
+    from rsra.daq.commands.options import UsageError
+    from rsra.daq.rigmodel import load_rig
+    from rsra.daq.console import make_console
+    from rsra.sim_bus.bus_sim import RecordError, Simulator
+    from rsra.sim_bus.faults import FaultSpecError
+    from rsra.sim_bus.physics import AircraftPhysics
+    from rsra.sim_bus.scenarios import load_scenario
 
     if args.duration is not None and not args.duration > 0:
         raise UsageError(f"--duration {args.duration}: must be a positive number of seconds")
     if args.truth:  # found out now, not after the run
-        from daq.commands.run import check_output_file
+        from rsra.daq.commands.options import check_output_file
 
         check_output_file("--truth", args.truth)
-    cfg = load_config(args.config)
-    from daq.decoder import DecodeTable
+    cfg = load_rig(args.config)
+    from rsra.daq.decoder import DecodeTable
 
     DecodeTable(cfg)  # an EDS canopen cannot read: a ConfigError naming the node (exit 2)
     scenario = load_scenario(args.scenario)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
-    from daq.cli import common_options
+    from rsra.daq.commands.options import common_options
 
     p = sub.add_parser(
         name, help="frequency-domain evaluation of a shake-test sweep (report Phase I)",
@@ -38,7 +38,7 @@ def _default_out(first: str) -> Path:
 
 
 def _check_writable(out: Path) -> None:
-    from daq.cli import UsageError
+    from rsra.daq.commands.options import UsageError
 
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out {out}: is a file; give a folder")
@@ -51,10 +51,10 @@ def _check_writable(out: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from daq.cli import UsageError
-    from daq.jsonout import dumps
-    from daq.replay import ReplayError, config_for, expand
-    from daq.sweep import (SweepError, analyse_sweep, load_sweep_data, plot_sweep, sweep_json,
+    from rsra.daq.commands.options import UsageError
+    from rsra.daq.jsonout import dumps
+    from rsra.daq.replay import ReplayError, config_for, expand
+    from rsra.daq.sweep import (SweepError, analyse_sweep, load_sweep_data, plot_sweep, sweep_json,
                            sweep_table)
 
     try:

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from estimator.params import (
+from rsra.estimator.params import (
     Accelerometers,
     ExternalLoads,
     Geometry,
@@ -85,7 +85,7 @@ def predefined_cob_ids(node_id: int) -> dict[int, str]:
     return ids
 
 
-class _Section:
+class Section:
     """Typed access to one TOML table, tracking the dotted key path and unknown keys."""
 
     def __init__(self, data: dict, path: str, source: str):
@@ -161,14 +161,14 @@ class _Section:
                                   f"give a positive value{unit}", self.source)
         return a
 
-    def table(self, name: str, default: Any = _MISSING) -> "_Section":
-        return _Section(self.get(name, default), self.key(name), self.source)
+    def table(self, name: str, default: Any = _MISSING) -> "Section":
+        return Section(self.get(name, default), self.key(name), self.source)
 
-    def tables(self, name: str, default: Any = _MISSING) -> list["_Section"]:
+    def tables(self, name: str, default: Any = _MISSING) -> list["Section"]:
         v = self.get(name, default)
         if not isinstance(v, list):
             raise self.error(name, v, "must be an array of tables", f"write [[{self.key(name)}]] blocks")
-        return [_Section(t, f"{self.key(name)}[{i}]", self.source) for i, t in enumerate(v)]
+        return [Section(t, f"{self.key(name)}[{i}]", self.source) for i, t in enumerate(v)]
 
     def finish(self) -> None:
         """Refuse keys nobody read: almost always a typo."""
@@ -384,11 +384,11 @@ class RigConfig:
 
 
 def default_config_path() -> Path:
-    return Path(str(resources.files("rsra_config").joinpath("rig.toml")))
+    return Path(str(resources.files("rsra.config").joinpath("rig.toml")))
 
 
 def config_dir() -> Path:
-    return Path(str(resources.files("rsra_config")))
+    return Path(str(resources.files("rsra.config")))
 
 
 def build_rig_model(cfg: RigConfig) -> RigModel:
@@ -451,7 +451,7 @@ def _merge(a: dict, b: dict) -> dict:
 
 def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = None) -> RigConfig:
     base_dir = base_dir or config_dir()
-    top = _Section(raw, "", source)
+    top = Section(raw, "", source)
 
     rig = top.table("rig", {})
     rig_name = rig.string("name", "bench")
@@ -815,40 +815,4 @@ def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = No
         sync=sync, heartbeat=heartbeat, nodes=tuple(nodes), calibration=calibration,
         telemetry=telemetry, recording=recording, simulator=simulator, stuck=stuck, raw=raw,
     )
-    _check_model(cfg)
     return cfg
-
-
-def _check_model(cfg: RigConfig) -> None:
-    """Refuse a rig whose balance cannot be solved: singular S at the starting angles, or R."""
-    from estimator.balance import accel_solution_matrix
-    from estimator.geometry import hub_transfer_matrix, wrench_matrix
-
-    model = build_rig_model(cfg)
-    S = wrench_matrix(model.geometry, cfg.identification.initial_angles_rad)
-    sv = np.linalg.svd(S, compute_uv=False)
-    if sv[-1] < 1e-9 * sv[0]:
-        raise ConfigError("cells", "positions/nominal_axis",
-                          f"S is singular at the starting angles (condition {sv[0] / max(sv[-1], 1e-300):.3g}): "
-                          "the seven cells do not resist all six loads",
-                          "check the cell positions and nominal axes", cfg.source)
-    names = model.geometry.angle_names
-    params = cfg.identification.parameters
-    if params != "angles":
-        bad = [n for n in params if n not in names]
-        if bad:
-            near = difflib.get_close_matches(bad[0], names, n=1)
-            hint = f' (did you mean "{near[0]}"?)' if near else ""
-            raise ConfigError("identification.parameters", bad[0],
-                              f"the service identifies load-cell angles only{hint}",
-                              "name angles such as delta_A, theta_A, …; calibrate geometry and "
-                              "masses off-line with `rsra calibrate --params`", cfg.source)
-    R = hub_transfer_matrix(model.geometry)
-    if abs(np.linalg.det(R)) < 1e-12:
-        raise ConfigError("geometry", "hub_centre_m/shaft_tilt_deg", "R is not invertible",
-                          "check the hub centre and shaft tilt", cfg.source)
-    try:
-        accel_solution_matrix(model.accelerometers)
-    except ValueError as e:
-        raise ConfigError("inertial.angular", cfg.angular, str(e).split(";")[0],
-                          'use angular = "neglect" or add accelerometers', cfg.source) from None

@@ -1,3 +1,0 @@
-from daq.cli import main
-
-raise SystemExit(main())

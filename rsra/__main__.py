@@ -1,0 +1,4 @@
+"""``python -m rsra`` runs the ``rsra`` command."""
+from rsra.daq.cli import main
+
+raise SystemExit(main())
