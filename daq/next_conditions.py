@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from estimator.design import (
+from rsra.estimator.design import (
     DEFAULT_COUNT,
     ConditionTracker,
     Structure,

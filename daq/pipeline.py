@@ -100,7 +100,8 @@ class EstimatorPipeline:
                 "use fewer or lower harmonics, a longer time_constant_s or a higher sample rate",
                 cfg.source) from None
         # the filter's lag behind a moving static load: flag `transient` (estimator/transient.py)
-        self.transient = TransientDetector(dt, TIME_CONSTANT_FRACTION * f.time_constant_s)
+        self.transient = TransientDetector(1.0 / self.fs,
+                                           TIME_CONSTANT_FRACTION * f.time_constant_s)
         self.cell_names = [c.name for c in cfg.cells]
         self.innov_every = max(1, int(round(self.fs / cfg.telemetry.innovations_hz)))
         # calibration branch

@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from daq.config import load_config
-from estimator.design import (
+from rsra.config.rig import load_config
+from rsra.estimator.design import (
     cell_gain_prior,
     cell_gain_structure,
     cell_loads,
@@ -20,9 +20,9 @@ from estimator.design import (
     next_conditions,
     rest_inertial_loads,
 )
-from estimator.geometry import hub_transfer_matrix, wrench_matrix
-from estimator.identification import KnownLoadProblem, Parameterisation
-from sim_bus import load_scenario
+from rsra.estimator.geometry import hub_transfer_matrix, wrench_matrix
+from rsra.estimator.identification import KnownLoadProblem, Parameterisation
+from rsra.sim_bus import load_scenario
 
 N_SAMPLES = 1000.0
 FLOOR = 100.0
@@ -89,7 +89,7 @@ def test_information_function_equals_the_identifications_information(rig):
 def test_cell_gain_information_by_finite_differences(rig):
     """∂e/∂κ of the load-gain structure against a finite difference of the residual with
     α_j → α_j + κ_j T_cell(j)."""
-    from estimator.design import cell_gain_jacobian
+    from rsra.estimator.design import cell_gain_jacobian
 
     _, model, alpha = rig
     H = load_scenario("calibration").loads.conditions[5]
@@ -141,13 +141,13 @@ def test_ground_test_cannot_determine_load_gains_and_the_recommendation_moves_th
     from dataclasses import replace
     structures = [replace(const, M0=np.linalg.inv(P_const)), replace(gain, M0=M_gain)]
     fs = np.array([c.full_scale_N for c in cfg.cells])
-    from estimator.design import candidate_grid
+    from rsra.estimator.design import candidate_grid
     grid = candidate_grid([200e3] * 3 + [50e3] * 3)
     grid = grid[feasible(model, alpha, grid, cell_full_scale=fs, force_limit=200e3,
                          moment_limit=50e3)]
     recs = next_conditions(structures, grid, 3)
     assert len(recs) == 3
-    from estimator.design import information_gains
+    from rsra.estimator.design import information_gains
     assert recs[0].information_gain == pytest.approx(
         information_gains(structures, grid).sum(1).max(), rel=1e-12)
     first = recs[0]
@@ -165,7 +165,7 @@ def test_live_known_load_records_carry_next_conditions():
     """The identification worker's known-load records carry `next_conditions` (a list of
     {H, information_gain, by_structure}), filter-error records do not."""
     from bench.a3_known_load import run_calibration
-    from sim_bus import simulate
+    from rsra.sim_bus import simulate
 
     cfg = load_config()
     run = simulate(cfg, "ground-test", seed=3, duration_s=15.0)
@@ -179,5 +179,5 @@ def test_live_known_load_records_carry_next_conditions():
             assert c["information_gain"] > 0 and set(c["by_structure"]) == {"constant",
                                                                              "cell_gain"}
     # the record is JSON-safe
-    from daq.jsonout import dumps
+    from rsra.daq.jsonout import dumps
     dumps(recs[-1])

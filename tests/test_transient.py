@@ -8,12 +8,12 @@ import pytest
 from scipy import stats
 
 from bench.p2_filter_step import load_filter_cache
-from daq.config import load_config
-from daq.report import nis_consistency
-from estimator.balance import inertial_loads
-from estimator.filters import LoadFilter
-from estimator.identification import innovation_model
-from estimator.transient import (
+from rsra.config.rig import load_config
+from rsra.daq.report import nis_consistency
+from rsra.estimator.balance import inertial_loads
+from rsra.estimator.filters import LoadFilter
+from rsra.estimator.identification import innovation_model
+from rsra.estimator.transient import (
     TIME_CONSTANT_FRACTION,
     TRANSIENT,
     TransientDetector,
@@ -82,8 +82,8 @@ def test_smoothed_covariance_is_not_the_white_one(cfg, design):
 
 
 def _ground_test(cfg, seconds: float, seed: int, scenario: str = "ground-test"):
-    from sim_bus import load_scenario, simulate
-    from sim_bus.physics import AircraftPhysics
+    from rsra.sim_bus import load_scenario, simulate
+    from rsra.sim_bus.physics import AircraftPhysics
 
     sc = load_scenario(scenario)
     run = simulate(cfg, sc, seed=seed, duration_s=seconds)
@@ -97,8 +97,8 @@ def test_ramps_are_flagged_and_held_loads_are_consistent(cfg):
     flagged have no more NIS above the χ²₆ band than a consistent filter gives (binomial at
     10⁻³); their hub-load error is within the held σ (≤ 0.5 of the static bound); on the
     flagged samples H_static is at its static bound (the σ that holds) while H lags."""
-    from estimator.balance import static_estimate
-    from estimator.noise_budget import noise_budget
+    from rsra.estimator.balance import static_estimate
+    from rsra.estimator.noise_budget import noise_budget
 
     model = cfg.rig_model()
     sc, run, moving = _ground_test(cfg, 120.0, seed=11)
@@ -153,7 +153,7 @@ def test_ramps_are_flagged_and_held_loads_are_consistent(cfg):
 def test_pipeline_flags_transient_in_hub_loads(cfg):
     """The service's pipeline puts the flag in hub_loads, on the ramp and not on the hold
     (the `calibration` scenario: its first ramp moves L, M and N)."""
-    from daq.pipeline import EstimatorPipeline
+    from rsra.daq.pipeline import EstimatorPipeline
     from types import SimpleNamespace
 
     sc, run, moving = _ground_test(cfg, 10.5, seed=2, scenario="calibration")
