@@ -39,7 +39,7 @@ $(LINT_STAMP): pyproject.toml $(STAMP)
 
 lint: $(LINT_STAMP)
 	$(BIN)/ruff check daq estimator sim_bus config rsra tests bench
-	rm -rf build/lint
+	rm -rf build/lint build/lib  # setuptools keeps stale modules in build/lib
 	$(BIN)/pip install -q --no-deps --no-compile --target build/lint . 2>&1 | grep -v "^WARNING: Location" || true
 	cd build/lint && PYTHONPATH=. ../../$(BIN)/lint-imports --no-cache ../../pyproject.toml
 

@@ -47,7 +47,7 @@ def run_calibration(cfg, run, *, known_loads: bool, initial_state=None
     """The service's calibration branch over an off-line run: yields, per window,
     (last sample, the angles record, posterior θ, posterior P) in window order.
     ``initial_state``: a saved posterior to start from (``--angles``)."""
-    from rsra.daq.ident_worker import build_identification, run_job
+    from rsra.daq.runtime.ident_worker import build_identification, run_job
     from rsra.estimator.balance import inertial_loads
     from rsra.estimator.content import ContentFilter
 

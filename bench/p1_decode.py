@@ -26,9 +26,9 @@ import can
 import canopen
 
 from bench.common import arg_parser, interleaved, ratio, writer_from_args
-from rsra.daq.assembler import Sample
+from rsra.daq.bus.assembler import Sample
 from rsra.config.rig import RigConfig, load_config
-from rsra.daq.reader import Reader
+from rsra.daq.bus.reader import Reader
 from rsra.sim_bus.bus_sim import FRAME_OVERHEAD_BITS, Simulator
 
 BENCH = "p1_decode"
@@ -195,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
     cfg = load_config()
     n_samples, rounds = (200, 1) if args.tiny else (12000, 3)
     frames, bitrate = simulator_frames(cfg, n_samples)
-    from rsra.daq.decoder import DecodeTable
+    from rsra.daq.bus.decoder import DecodeTable
     last = _last_tpdo(frames, set(DecodeTable(cfg).tpdos))
     counters: dict = {}
 

@@ -61,7 +61,7 @@ class Receiver:
     def __init__(self, endpoint: str, key: str, capacity: int) -> None:
         import zenoh
 
-        from rsra.daq.telemetry import viewer_config
+        from rsra.daq.runtime.telemetry import viewer_config
 
         self.stamps = np.zeros(capacity)
         self.payloads: list[bytes] = []

@@ -45,7 +45,7 @@ def frame_bits_worst(nbytes: int) -> int:
 
 def bus_limit_samples_per_s(cfg, bitrate: float = 1_000_000.0) -> tuple[float, int]:
     """Samples/s the bus carries for the required nodes' TPDOs + SYNC, worst-case stuffing."""
-    from rsra.daq.decoder import DecodeTable
+    from rsra.daq.bus.decoder import DecodeTable
 
     table = DecodeTable(cfg)
     bits = frame_bits_worst(1 if cfg.sync.counter_overflow else 0)
@@ -60,7 +60,7 @@ def trial(rate: float, duration: float) -> dict:
     import socket
 
     from rsra.config.rig import load_config
-    from rsra.daq.service import Service, ServiceOptions
+    from rsra.daq.runtime.service import Service, ServiceOptions
 
     cfg = load_config(overrides={"rig": {"sample_rate_hz": float(rate)}})
     with socket.socket() as s:

@@ -52,7 +52,7 @@ def run_service(duration: float, every_s: float, record_dir: str) -> dict:
     import socket
 
     from rsra.config.rig import load_config
-    from rsra.daq.service import Service, ServiceOptions
+    from rsra.daq.runtime.service import Service, ServiceOptions
 
     cfg = load_config()
     with socket.socket() as s:

@@ -325,7 +325,7 @@ class SimulatorConfig:
 
 @dataclass(frozen=True)
 class StuckConfig:
-    """Stuck-channel detection (daq/stuck.py): a run of exactly equal readings."""
+    """Stuck-channel detection (daq/runtime/stuck.py): a run of exactly equal readings."""
 
     enabled: bool = True
     false_alarm_per_hour: float = 1.0e-6  # per channel, honest channel at rest

@@ -166,7 +166,7 @@ class LockstepRig:
 
     def __init__(self, cfg, *, faults: str = "", seed: int = 3, record: Path | None = None,
                  record_format: str | None = None, scenario: str = "ground-test", **reader_kw):
-        from rsra.daq.reader import Reader
+        from rsra.daq.bus.reader import Reader
 
         self.cfg = cfg
         ch = channel_name("lockstep")
@@ -202,7 +202,7 @@ class MasterRig:
 
     def __init__(self, cfg, *, faults: str = "", seed: int = 3, sim_cfg=None,
                  record: Path | None = None, nodes_present=None, **reader_kw):
-        from rsra.daq.reader import Reader
+        from rsra.daq.bus.reader import Reader
 
         ch = channel_name("master")
         self.cfg = cfg

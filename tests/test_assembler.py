@@ -10,8 +10,8 @@ import pytest
 from helpers_canopen import ACCEL, CELL, T0, accel, cell, heartbeat, msg, period_frames, rotor, sync
 
 from rsra.config.rig import G0, load_config
-from rsra.daq.master import EMCY_HISTORY
-from rsra.daq.reader import HealthReport, Reader
+from rsra.daq.bus.master import EMCY_HISTORY
+from rsra.daq.bus.reader import HealthReport, Reader
 
 DT = 0.005
 
@@ -324,7 +324,7 @@ def test_samples_match_a_per_frame_reference_on_messy_traffic(cfg, seed, calibra
     a node counts when all its TPDOs came and every value is finite) must give the same
     samples bit for bit, under drops, duplicates, wrong lengths, NaN/inf, status bits, SYNC
     counters skipped and TPDOs in any order."""
-    from rsra.daq.decoder import DecodeTable
+    from rsra.daq.bus.decoder import DecodeTable
 
     if calibrated:
         cfg = load_config(overrides=CALIBRATED)

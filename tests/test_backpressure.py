@@ -25,11 +25,11 @@ import zenoh
 from helpers_canopen import channel_name, period_frames, wait_until
 from helpers_net import free_tcp_port
 
-from rsra.daq.pipeline import EstimatorPipeline
-from rsra.daq.reader import HealthReport, Reader
-from rsra.daq.replay import read_frames
-from rsra.daq.service import Service, ServiceOptions
-from rsra.daq.telemetry import viewer_config
+from rsra.daq.runtime.pipeline import EstimatorPipeline
+from rsra.daq.bus.reader import HealthReport, Reader
+from rsra.daq.bus.replay import read_frames
+from rsra.daq.runtime.service import Service, ServiceOptions
+from rsra.daq.runtime.telemetry import viewer_config
 
 T0 = 1_700_000_000.0
 
@@ -80,7 +80,7 @@ def test_a_high_rate_put_never_waits_for_a_stalled_subscriber(cfg):
     (5 s by default), after which a BLOCK put returns too — enough for a BLOCK publisher to pass
     the test above. Here the publisher's session waits 10 min before closing, so a BLOCK put
     stays in `put()` for as long as the subscriber does not move."""
-    from rsra.daq.telemetry import HIGH_RATE_KEYS, TelemetryPublisher, zenoh_config
+    from rsra.daq.runtime.telemetry import HIGH_RATE_KEYS, TelemetryPublisher, zenoh_config
 
     n = 600  # × 3 keys × ~16 kB = ~30 MB: more than every buffer on the way
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"

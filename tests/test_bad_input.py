@@ -354,7 +354,7 @@ def test_a_recording_that_cannot_start_removes_only_what_it_created(cfg, tmp_pat
 def test_a_sync_cob_id_on_an_eds_tpdo_is_refused_by_the_decode_table(cfg):
     # the config check covers the predefined connection set; a TPDO COB-ID an EDS moves
     # elsewhere is checked by the decode table, before any bus is opened
-    from rsra.daq.decoder import DecodeTable
+    from rsra.daq.bus.decoder import DecodeTable
 
     bad = dataclasses.replace(cfg, sync=dataclasses.replace(cfg.sync, cob_id=0x191))
     with pytest.raises(ConfigError, match=r"sync\.cob_id.*cell_A TPDO1 COB-ID 0x191.*SYNC"):
@@ -365,7 +365,7 @@ def test_a_filter_that_cannot_be_designed_is_a_config_error(tmp_path):
     # below Nyquist with its design band, but 34 Hz is too slow for tau = 0.1 s
     import math
 
-    from rsra.daq.pipeline import EstimatorPipeline
+    from rsra.daq.runtime.pipeline import EstimatorPipeline
 
     fs = 5 * 19.4 / (math.pi * 0.9)
     cfg = load_config(_rig(tmp_path, "sample_rate_hz = 200.0", f"sample_rate_hz = {fs!r}"))

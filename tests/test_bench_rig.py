@@ -19,7 +19,7 @@ import pytest
 pytest.importorskip("can_remote", reason="python-can-remote (the shared bus) is not installed")
 zenoh = pytest.importorskip("zenoh", reason="eclipse-zenoh is not installed")
 
-from rsra.daq.telemetry import viewer_config  # noqa: E402
+from rsra.daq.runtime.telemetry import viewer_config  # noqa: E402
 from tests.helpers_net import free_tcp_port  # noqa: E402
 
 RUN_S = 6.0  # samples of acquisition time the service runs for

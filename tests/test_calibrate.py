@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from rsra.daq.calibrate import (
+from rsra.daq.analysis.calibrate import (
     CalibrationError,
     content_noise_gain,
     parse_params,
@@ -243,7 +243,7 @@ def test_plausibility_flags_each_kind_of_implausible_value_and_nothing_else(cfg)
 
 def test_fragment_for_geometry_and_mass_parameters_loads_with_the_estimates(cfg):
     """The [geometry], [mass] and complete [[cells]] blocks merge into the packaged config."""
-    from rsra.daq.calibrate import CalibrationData, CalibrationResult, fragment_toml
+    from rsra.daq.analysis.calibrate import CalibrationData, CalibrationResult, fragment_toml
     from rsra.estimator.identification import IdentificationResult
 
     names = ("theta_B", "x_C", "hub_z", "m_y", "I_xx")

@@ -231,8 +231,8 @@ def test_nodes_a_required_node_at_another_id_is_missing_and_exits_1(cfg, tmp_pat
 def _rest_channels(cfg, rng, n: int, offsets: dict[str, float], cell_noise=None):
     """Synthetic rest readings in channel_specs order: truth satisfies S T = I with f = −g
     (min-norm reactions plus a self-stress), plus offsets and white noise at the config σ."""
-    from rsra.daq.tare import channel_specs
-    from rsra.daq.decoder import DecodeTable
+    from rsra.daq.analysis.tare import channel_specs
+    from rsra.daq.bus.decoder import DecodeTable
     from rsra.estimator.balance import inertial_load_matrix
 
     specs = channel_specs(cfg, DecodeTable(cfg))
@@ -253,7 +253,7 @@ def _rest_channels(cfg, rng, n: int, offsets: dict[str, float], cell_noise=None)
 
 
 def test_tare_targets_make_the_static_estimate_zero_and_recover_the_offsets(cfg, rng):
-    from rsra.daq.tare import tare
+    from rsra.daq.analysis.tare import tare
 
     n = 2000
     offsets = {"cell_A.force": 800.0, "cell_E.force": -300.0, "cell_G.force": 120.0,
@@ -288,7 +288,7 @@ def test_tare_targets_make_the_static_estimate_zero_and_recover_the_offsets(cfg,
 
 def test_tare_sigma_test_has_the_false_alarm_rate_it_claims(rng):
     """(n−1)s²/σ² ~ χ²(n−1): the fraction of white-noise records refused ≈ the rate asked."""
-    from rsra.daq.tare import _sigma_factor
+    from rsra.daq.analysis.tare import _sigma_factor
 
     trials, n, alpha = 4000, 200, 0.05
     s = rng.standard_normal((trials, n)).std(axis=1, ddof=1)
@@ -297,7 +297,7 @@ def test_tare_sigma_test_has_the_false_alarm_rate_it_claims(rng):
 
 
 def test_tare_refuses_a_varying_load_a_big_shift_a_status_bit_and_few_samples(cfg, rng):
-    from rsra.daq.tare import tare
+    from rsra.daq.analysis.tare import tare
 
     n = 1000
     t = np.arange(n) / cfg.sample_rate_hz
@@ -496,7 +496,7 @@ def test_angles_a_corrupt_file_is_a_one_line_error(cfg, rng, tmp_path, capsys):
 def test_no_identification_reaches_the_service_from_run_demo_and_replay(tmp_path, capsys):
     """Issue 14: `--no-identification` on `run`, `demo` and `replay` (and `--angles` on
     `demo`); replay refuses it with `--recompute`."""
-    from rsra.daq.commands.run import options_from_args
+    from rsra.daq.cli.commands.run import options_from_args
 
     p = build_parser()
     args = p.parse_args(["run", "--sim", "flight", "--no-identification", "--angles", "a.json"])

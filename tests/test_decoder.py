@@ -15,8 +15,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from rsra.config.rig import G0, ConfigError, config_dir, load_config, parse_config
-from rsra.daq.decoder import DecodeTable
-from rsra.daq.reader import quantise_us
+from rsra.daq.bus.decoder import DecodeTable
+from rsra.daq.bus.reader import quantise_us
 
 EDS_DIR = config_dir() / "eds"
 

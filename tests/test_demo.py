@@ -39,7 +39,7 @@ def test_a_console_on_a_pipe_or_file_wraps_nothing():
 
     from rich.table import Table
 
-    from rsra.daq.console import make_console
+    from rsra.daq.cli.console import make_console
 
     c = make_console(file=io.StringIO())
     assert not c.is_terminal

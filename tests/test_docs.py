@@ -163,7 +163,7 @@ def test_config_doc_names_every_role_choice_and_channel():
     names = code_names(doc)
     assert set(ROLES) <= {n.strip('"') for n in names}
     assert {f'"{c}"' for c in CONTENTS} <= names
-    from rsra.daq.decoder import PROFILES
+    from rsra.daq.bus.decoder import PROFILES
 
     for role, profile in PROFILES.items():
         for channel, scale in profile.values():
@@ -246,7 +246,7 @@ def test_cli_md_exit_status_table_matches_the_code():
 @pytest.fixture(scope="module")
 def published(tmp_path_factory):
     from rsra.daq.jsonout import dumps
-    from rsra.daq.service import Service, ServiceOptions
+    from rsra.daq.runtime.service import Service, ServiceOptions
 
     cfg = load_config()
     rec = tmp_path_factory.mktemp("docs") / "rec"
@@ -282,14 +282,14 @@ def leaf_paths(key: str, obj: dict, prefix: str = "") -> set[str]:
 
 
 def test_the_run_published_every_key(published):
-    from rsra.daq.telemetry import HIGH_RATE_KEYS, LOW_RATE_KEYS
+    from rsra.daq.runtime.telemetry import HIGH_RATE_KEYS, LOW_RATE_KEYS
 
     keys = {k for k, _ in published}
     assert keys == set(HIGH_RATE_KEYS + LOW_RATE_KEYS)
 
 
 def test_every_key_and_payload_field_is_in_telemetry_md(published):
-    from rsra.daq.telemetry import STATE_KEYS
+    from rsra.daq.runtime.telemetry import STATE_KEYS
 
     doc = _read("telemetry.md")
     key_table = doc.split("\n## ")[0]  # the introduction, with its table of keys
@@ -318,7 +318,7 @@ def test_every_key_and_payload_field_is_in_telemetry_md(published):
 
 
 def test_every_flag_reason_mode_and_state_is_in_telemetry_md(published):
-    from rsra.daq.master import NMT_STATE_NAMES
+    from rsra.daq.bus.master import NMT_STATE_NAMES
     from rsra.estimator.filters import INVALID, LOST_BEFORE, PREDICT_ONLY, ROTOR_STOPPED
     from rsra.estimator.posterior import MODES, REASONS
 
@@ -354,7 +354,7 @@ def _example() -> str:
 def test_the_python_subscriber_in_telemetry_md_runs_against_a_live_publisher(published):
     import zenoh
 
-    from rsra.daq.telemetry import TelemetryPublisher, zenoh_config
+    from rsra.daq.runtime.telemetry import TelemetryPublisher, zenoh_config
     from tests.helpers_net import free_tcp_port
 
     cfg = load_config()

@@ -14,8 +14,8 @@ import pytest
 import zenoh
 
 from rsra.config.rig import ConfigError, default_config_path, load_config, parse_config
-from rsra.daq.service import Outputs, ServiceOptions
-from rsra.daq.telemetry import viewer_config
+from rsra.daq.runtime.service import Outputs, ServiceOptions
+from rsra.daq.runtime.telemetry import viewer_config
 from tests.helpers_net import free_tcp_port
 
 RAW = tomllib.loads(default_config_path().read_text())

@@ -21,8 +21,8 @@ from helpers_canopen import LockstepRig
 from mcap.reader import make_reader
 
 from rsra.daq.cli import main as cli_main
-from rsra.daq.reader import HealthReport
-from rsra.daq.replay import read_frames, replay
+from rsra.daq.bus.reader import HealthReport
+from rsra.daq.bus.replay import read_frames, replay
 
 ROOT = Path(__file__).resolve().parents[1]
 EDS_DIR = ROOT / "config" / "eds"
@@ -120,8 +120,8 @@ def test_the_dbc_marks_real32_values_as_float_signals_with_units(cfg, tmp_path):
 def test_the_dbc_carries_the_calibration_of_every_channel(rng):
     """Every TPDO of a calibrated rig: cantools' value == the decode table's, any frame."""
     from rsra.config.rig import load_config
-    from rsra.daq.decoder import DecodeTable
-    from rsra.daq.export import build_dbc
+    from rsra.daq.bus.decoder import DecodeTable
+    from rsra.daq.analysis.export import build_dbc
 
     cfg = load_config(overrides={"calibration": {
         "cell_B.force": {"gain": 1.01, "offset": -50.0},
@@ -145,7 +145,7 @@ def test_the_dbc_carries_the_calibration_of_every_channel(rng):
 def test_the_eds_unit_objects_say_what_the_decoder_assumes(cfg):
     import canopen
 
-    from rsra.daq.export import _CHANNEL_UNITS, eds_unit
+    from rsra.daq.analysis.export import _CHANNEL_UNITS, eds_unit
 
     od = canopen.import_od(str(EDS_DIR / "load_cell.eds"), 0x11)
     assert od[0x6131][1].default == 0x00210000  # CiA 303-2: newton, 10^0
@@ -314,7 +314,7 @@ def _documented_fields() -> dict[str, list[tuple[str, str]]]:
 
 
 def test_the_export_schemas_are_the_documented_payloads():
-    from rsra.daq.export import FIELDS
+    from rsra.daq.analysis.export import FIELDS
 
     assert {k: [(p, u) for p, _, u in v] for k, v in FIELDS.items()} == _documented_fields()
 

@@ -16,7 +16,7 @@ against truth. What is checked, sample by sample against the simulator's fault l
 * the recording of the faulted run replays bit for bit.
 
 Stuck channels: the simulated sensor keeps a clean status; the estimator's detector
-(daq/stuck.py) flags a run of k exactly equal readings — `fault:<cell>` for a cell,
+(daq/runtime/stuck.py) flags a run of k exactly equal readings — `fault:<cell>` for a cell,
 `missing:<node>` for an accelerometer axis — from the k-th sample of the window to its end,
 and the sample is predict-only like any faulted cell.
 
@@ -38,8 +38,8 @@ import pytest
 
 from rsra.config.rig import ConfigError, load_config
 from rsra.daq.jsonout import dumps
-from rsra.daq.pipeline import EstimatorPipeline
-from rsra.daq.service import Service, ServiceOptions
+from rsra.daq.runtime.pipeline import EstimatorPipeline
+from rsra.daq.runtime.service import Service, ServiceOptions
 from rsra.estimator.noise_budget import noise_budget
 from rsra.sim_bus.faults import EMCY_OVER_RANGE, EMCY_SENSOR_FAULT
 from rsra.sim_bus.physics import AircraftPhysics
@@ -134,7 +134,7 @@ def _windows(log, kind):
 
 
 def stuck_k(run, node: str, channel: str | None) -> int:
-    """The run length that flags a stuck channel (daq/stuck.py); when every channel of the
+    """The run length that flags a stuck channel (daq/runtime/stuck.py); when every channel of the
     node is frozen, the first to reach its k flags it: the smallest."""
     chans = run.service.pipeline.stuck.channels
     ks = [c.k for c in chans if c.key.split(".")[0] == node
@@ -340,8 +340,8 @@ def test_a_stuck_channel_is_flagged_and_treated_as_missing(true_cfg, runs):
     detector (the same recording, detector off) the frozen cell biased Ĥ by many σ."""
     cfg, alpha = true_cfg
     faulted, clean, rec = runs
-    from rsra.daq.reader import HealthReport
-    from rsra.daq.replay import replay
+    from rsra.daq.bus.reader import HealthReport
+    from rsra.daq.bus.replay import replay
 
     samples = [s for s in replay(cfg, [str(rec)]) if not isinstance(s, HealthReport)]
     samples = [s for s in samples if s.seq < faulted.n]
@@ -469,7 +469,7 @@ def window_job(cfg):
     simulator through the reader and the pipeline's calibration branch, and the pipeline."""
     from helpers_canopen import LockstepRig
 
-    from rsra.daq.reader import HealthReport
+    from rsra.daq.bus.reader import HealthReport
 
     rig = LockstepRig(cfg, seed=SEED)
     pipe = EstimatorPipeline(cfg, cfg.identification.initial_angles_rad)
@@ -500,7 +500,7 @@ def _copy(job):
     (lambda j: j["known"].__setitem__(slice(500, 600), False), {"stale_input"}),
 ], ids=["nan", "inf", "huge", "wrong-known-loads", "stale-channels", "stale-balance"])
 def test_a_bad_window_never_replaces_the_angles(cfg, window_job, corrupt, reasons):
-    from rsra.daq.ident_worker import build_identification, run_job
+    from rsra.daq.runtime.ident_worker import build_identification, run_job
 
     job, _ = window_job
     post, runs, cache = build_identification(cfg)
@@ -516,7 +516,7 @@ def test_a_bad_window_never_replaces_the_angles(cfg, window_job, corrupt, reason
     np.testing.assert_array_equal(post.P, P0)
     assert json.loads(dumps(rec))["reason"] == rec["reason"]  # strict JSON, publishable
     # delivered to the estimator: published at its sample, angles in force unchanged
-    from rsra.daq.pipeline import PipelineOutput
+    from rsra.daq.runtime.pipeline import PipelineOutput
 
     pipe = window_job[1]
     alpha = pipe.alpha.copy()

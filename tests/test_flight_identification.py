@@ -7,7 +7,7 @@ import pytest
 from scipy import stats
 
 from rsra.config.rig import load_config
-from rsra.daq.service import Service, ServiceOptions
+from rsra.daq.runtime.service import Service, ServiceOptions
 
 
 def _flight_service(duration: float, seed: int | None = None):
@@ -90,7 +90,7 @@ def test_innovation_spectrum_test_false_alarm_rate_by_monte_carlo():
     """Windows of innovations drawn from the calibration filter's own model (hub-load states
     driven by Q_d, measurement noise W through the content filter, the fixed gain) fail the
     spectrum test at most at its 10⁻³ rate: 2000 windows, Poisson(2) has P(≥ 8) = 1.1e-3."""
-    from rsra.daq.ident_worker import build_identification
+    from rsra.daq.runtime.ident_worker import build_identification
     from rsra.estimator.identification import (expected_welch_spectrum, innovation_autocovariance,
                                           innovation_model, innovation_spectrum_test)
 

@@ -23,10 +23,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from rsra.config.rig import ConfigError, config_dir, default_config_path, load_config, parse_config
-from rsra.daq.decoder import DecodeTable
+from rsra.daq.bus.decoder import DecodeTable
 from rsra.daq.jsonout import dumps
-from rsra.daq.pipeline import EstimatorPipeline
-from rsra.daq.reader import HealthReport, Reader
+from rsra.daq.runtime.pipeline import EstimatorPipeline
+from rsra.daq.bus.reader import HealthReport, Reader
 
 EXAMPLES = int(os.environ.get("RSRA_FUZZ_EXAMPLES", "100"))
 FUZZ = settings(max_examples=EXAMPLES, deadline=None, derandomize=False,

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rsra.daq.commands.listen import KeyStats, render
+from rsra.daq.cli.commands.listen import KeyStats, render
 
 
 def feed(key: str, seqs) -> KeyStats:

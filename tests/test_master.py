@@ -13,8 +13,8 @@ import pytest
 from helpers_canopen import T0, LocalSlaves, LockstepRig, MasterRig, channel_name, wait_until
 
 from rsra.config.rig import G0, config_dir, load_config, parse_config
-from rsra.daq.master import BootError
-from rsra.daq.reader import HealthReport, Reader
+from rsra.daq.bus.master import BootError
+from rsra.daq.bus.reader import HealthReport, Reader
 
 EDS = config_dir() / "eds"
 

@@ -23,9 +23,9 @@ from helpers_net import free_tcp_port
 
 from rsra.config.rig import load_config
 from rsra.daq.jsonout import dumps
-from rsra.daq.replay import read_frames
-from rsra.daq.service import Service, ServiceOptions
-from rsra.daq.telemetry import viewer_config
+from rsra.daq.bus.replay import read_frames
+from rsra.daq.runtime.service import Service, ServiceOptions
+from rsra.daq.runtime.telemetry import viewer_config
 
 ENV = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
 KILL_AFTER_S = 12.0  # acquisition time before the kill: two identification runs applied

@@ -17,8 +17,8 @@ import pytest
 
 from rsra.daq.cli import main
 from rsra.config.rig import ConfigError, load_config
-from rsra.daq.posterior_file import classify, load_checked, prepare_state_file
-from rsra.daq.service import Service, ServiceOptions
+from rsra.daq.runtime.posterior_file import classify, load_checked, prepare_state_file
+from rsra.daq.runtime.service import Service, ServiceOptions
 from rsra.estimator.atomic import own_temp_pid, temp_prefix
 from rsra.estimator.identification import IdentificationResult
 from rsra.estimator.posterior import (
@@ -215,7 +215,7 @@ def test_a_killed_save_leaves_a_temp_file_that_the_next_start_removes_and_nothin
 
 
 def test_the_worker_saves_version_2_with_the_rig_fingerprint(cfg, tmp_path):
-    from rsra.daq.ident_worker import build_identification
+    from rsra.daq.runtime.ident_worker import build_identification
 
     post, _, _ = build_identification(cfg)
     path = tmp_path / "p.json"

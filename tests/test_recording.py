@@ -14,8 +14,8 @@ from helpers_canopen import T0, LockstepRig, MasterRig, channel_name, period_fra
 
 from rsra.daq.cli import main as cli_main
 from rsra.config.rig import load_config
-from rsra.daq.reader import HealthReport, Reader
-from rsra.daq.recorder import (
+from rsra.daq.bus.reader import HealthReport, Reader
+from rsra.daq.bus.recorder import (
     ANGLES_FILE,
     CONFIG_FILE,
     Recorder,
@@ -23,7 +23,7 @@ from rsra.daq.recorder import (
     frame_files,
     recorded_config,
 )
-from rsra.daq.replay import config_for, read_frames, replay, replay_to_bus
+from rsra.daq.bus.replay import config_for, read_frames, replay, replay_to_bus
 
 
 def samples(items) -> list:

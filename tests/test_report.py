@@ -175,7 +175,7 @@ def _synthetic_records(cfg, truth, *, t_offset=0.0, shift=0, first=0):
 
 
 def _summary(cfg, tmp_path, truth_path, **kw):
-    from rsra.daq.report import load_records, load_truth, summarise
+    from rsra.daq.analysis.report import load_records, load_truth, summarise
 
     tr = load_truth(truth_path, read_truth)
     lines, exp = _synthetic_records(cfg, tr, **kw)
@@ -238,7 +238,7 @@ def test_one_sample_misalignment_shows(synth_truth, cfg, tmp_path):
 def test_us_units_and_shaft_frame(synth_truth, cfg, tmp_path):
     """US units scale the numbers; records in shaft axes are compared with the truth turned
     into shaft axes (C_sᵀ), so the errors stay at their σ."""
-    from rsra.daq.report import load_records, load_truth, summarise
+    from rsra.daq.analysis.report import load_records, load_truth, summarise
     from rsra.config.units import FT_LBF_NM, LBF_N
 
     tr = load_truth(synth_truth, read_truth)

@@ -9,8 +9,8 @@ import numpy as np
 import zenoh
 
 from rsra.daq.jsonout import dumps
-from rsra.daq.service import Service, ServiceOptions
-from rsra.daq.telemetry import viewer_config
+from rsra.daq.runtime.service import Service, ServiceOptions
+from rsra.daq.runtime.telemetry import viewer_config
 from tests.helpers_net import free_tcp_port
 
 HUB_KEYS = {"seq", "sync", "t", "frame", "H", "H_static", "omega", "flags"}
@@ -196,7 +196,7 @@ def test_identification_runs_on_a_rig_with_measured_external_loads(cfg, tmp_path
 def _replay(cfg, src, capsys=None):
     """(the replay's note on its angles, its angles records as JSON text); through the
     command when capsys is given, else through the Service."""
-    from rsra.daq.commands.replay import schedule_note
+    from rsra.daq.cli.commands.replay import schedule_note
 
     if capsys is not None:
         from rsra.daq.cli import main
@@ -219,7 +219,7 @@ def test_replay_recomputes_without_a_schedule_and_says_what_a_partial_one_holds(
     it is, and the replay says so (issue 13)."""
     import shutil
 
-    from rsra.daq.commands.replay import schedule_note
+    from rsra.daq.cli.commands.replay import schedule_note
 
     rec = tmp_path / "rec"
     _, live, _ = run_lockstep(cfg, tmp_path, 16.0, record=str(rec), seed=7)

@@ -6,9 +6,9 @@ import json
 import numpy as np
 import pytest
 
-from rsra.daq.commands.options import config_for_run
+from rsra.daq.cli.options import config_for_run
 from rsra.config.rig import load_config
-from rsra.daq.service import Service, ServiceOptions
+from rsra.daq.runtime.service import Service, ServiceOptions
 from rsra.estimator.noise_budget import noise_budget
 
 CHI2_14_SINGLE = 36.1  # performance.md: a single run, joint chi2_14 at 1e-3

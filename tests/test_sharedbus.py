@@ -12,7 +12,7 @@ import pytest
 pytest.importorskip("can_remote", reason="python-can-remote (the shared bus) is not installed")
 
 from rsra.canbus import shutdown_bus  # noqa: E402
-from rsra.daq.sharedbus import BusServer, is_loopback  # noqa: E402
+from rsra.daq.bus.sharedbus import BusServer, is_loopback  # noqa: E402
 
 
 def _upgrade(port: int, origin: str | None) -> int:

@@ -18,7 +18,7 @@ from collections import Counter
 
 import pytest
 
-from rsra.daq.service import Service, ServiceOptions
+from rsra.daq.runtime.service import Service, ServiceOptions
 
 SOAK_S = float(os.environ.get("RSRA_SOAK_S", "600"))
 PAGE = os.sysconf("SC_PAGE_SIZE")

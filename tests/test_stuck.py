@@ -1,4 +1,4 @@
-"""Stuck-channel detection (daq/stuck.py): the false-alarm arithmetic against Monte Carlo,
+"""Stuck-channel detection (daq/runtime/stuck.py): the false-alarm arithmetic against Monte Carlo,
 the run lengths of the default rig against an independent computation, the detector's
 flags sample by sample, untestable channels, and the pipeline treating a stuck cell as a
 faulted one (predict-only, out of the identification window).
@@ -15,8 +15,8 @@ import pytest
 from scipy.stats import norm, poisson
 
 from rsra.config.rig import ConfigError, load_config
-from rsra.daq.decoder import MILLI_G
-from rsra.daq.stuck import (
+from rsra.daq.bus.decoder import MILLI_G
+from rsra.daq.runtime.stuck import (
     SECONDS_PER_HOUR,
     StuckDetector,
     StuckMonitor,
@@ -51,7 +51,7 @@ def test_run_probability_is_the_worst_offset_of_the_exact_sum(ratio, k):
 
 @pytest.mark.parametrize("k", [2, 3, 4, 7])
 def test_the_asymptotic_form_agrees_with_the_exact_sum_where_it_takes_over(k):
-    from rsra.daq import stuck
+    from rsra.daq.runtime import stuck
 
     r = stuck.ASYMPTOTIC_RATIO
     exact = float(np.max(stuck._exact_runs(r, 1.0, k)))
@@ -231,8 +231,8 @@ def test_a_stuck_cell_is_predict_only_and_out_of_the_identification_window(cfg):
     the calibration window — as a faulted cell's are."""
     from helpers_canopen import LockstepRig
 
-    from rsra.daq.pipeline import EstimatorPipeline
-    from rsra.daq.reader import HealthReport
+    from rsra.daq.runtime.pipeline import EstimatorPipeline
+    from rsra.daq.bus.reader import HealthReport
 
     rig = LockstepRig(cfg, faults="stuck:cell_C@0.5-1.0", seed=4)
     pipe = EstimatorPipeline(cfg, cfg.identification.initial_angles_rad, identification=True)

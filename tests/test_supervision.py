@@ -15,10 +15,10 @@ import time
 
 import numpy as np
 
-import rsra.daq.ident_worker as ident_worker
+import rsra.daq.runtime.ident_worker as ident_worker
 from rsra.config.rig import load_config
 from rsra.daq.jsonout import dumps
-from rsra.daq.service import Service, ServiceOptions
+from rsra.daq.runtime.service import Service, ServiceOptions
 from tests.helpers_net import free_tcp_port
 
 # two identification periods in 4.6 s of acquisition time (windows end at samples 399 and

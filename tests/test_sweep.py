@@ -73,7 +73,7 @@ def _angle_diff(a: float, b: float) -> float:
 
 
 def test_segments_found_in_the_balance_data(sweep_rec, cfg):
-    from rsra.daq.sweep import detect_segments, load_sweep_data
+    from rsra.daq.analysis.sweep import detect_segments, load_sweep_data
 
     data = load_sweep_data(cfg, [sweep_rec / "sweep.log"])
     segs = detect_segments(data.known_H, data.fs, cfg.balance.sigma)

@@ -9,9 +9,9 @@ from helpers_canopen import T0, period_frames
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rsra.daq.reader import HealthReport, Reader
-from rsra.daq.recorder import Recorder, frame_files
-from rsra.daq.replay import replay
+from rsra.daq.bus.reader import HealthReport, Reader
+from rsra.daq.bus.recorder import Recorder, frame_files
+from rsra.daq.bus.replay import replay
 
 DT = 0.005
 

@@ -9,8 +9,8 @@ import can
 import pytest
 from helpers_canopen import T0, period_frames
 
-from rsra.daq.master import SyncProducer
-from rsra.daq.reader import HealthReport, Reader
+from rsra.daq.bus.master import SyncProducer
+from rsra.daq.bus.reader import HealthReport, Reader
 
 P = 0.005
 
@@ -99,10 +99,10 @@ def _reader_with_producer(cfg, producer):
 def test_health_reports_periods_not_taken_and_the_views_show_them(cfg):
     from rich.console import Console
 
-    from rsra.daq.commands.listen import KeyStats
-    from rsra.daq.commands.listen import render as listen_render
-    from rsra.daq.demo_view import DemoState
-    from rsra.daq.demo_view import render as demo_render
+    from rsra.daq.cli.commands.listen import KeyStats
+    from rsra.daq.cli.commands.listen import render as listen_render
+    from rsra.daq.cli.demo_view import DemoState
+    from rsra.daq.cli.demo_view import render as demo_render
 
     ft = FakeTime({10: 0.05}, 100)
     p = ft.make()

@@ -8,7 +8,7 @@ import time
 import zenoh
 
 from rsra.config.rig import load_config
-from rsra.daq.telemetry import TelemetryPublisher, viewer_config, zenoh_config
+from rsra.daq.runtime.telemetry import TelemetryPublisher, viewer_config, zenoh_config
 from tests.helpers_net import free_tcp_port
 
 

@@ -11,7 +11,7 @@ import can
 import pytest
 from can.interfaces.virtual import VirtualBus
 
-from rsra.daq.reader import FOREIGN_TIMEBASE_S, HealthReport, Reader, Timebase
+from rsra.daq.bus.reader import FOREIGN_TIMEBASE_S, HealthReport, Reader, Timebase
 from rsra.sim_bus.bus_sim import Simulator
 from tests.helpers_canopen import channel_name
 
@@ -114,8 +114,8 @@ class _OnePerIdBus(VirtualBus):
 def test_a_counter_sync_sequence_uses_our_producer_on_an_interface_without_sequences(cfg):
     import canopen
 
-    from rsra.daq.decoder import DecodeTable
-    from rsra.daq.master import CanopenMaster, SyncProducer, Supervisor
+    from rsra.daq.bus.decoder import DecodeTable
+    from rsra.daq.bus.master import CanopenMaster, SyncProducer, Supervisor
 
     assert cfg.sync.counter_overflow > 1
     table = DecodeTable(cfg)

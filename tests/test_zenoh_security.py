@@ -31,7 +31,7 @@ import pytest
 import zenoh
 
 from rsra.config.rig import load_config
-from rsra.daq.telemetry import STATE_KEYS, TelemetryPublisher, viewer_config, zenoh_config
+from rsra.daq.runtime.telemetry import STATE_KEYS, TelemetryPublisher, viewer_config, zenoh_config
 from tests.helpers_net import free_tcp_port
 
 ZENOH_DIR = Path(__file__).resolve().parents[1] / "config" / "zenoh"

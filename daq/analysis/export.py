@@ -1,0 +1,603 @@
+"""Files other tools open: a DBC of the bus, MCAP and Parquet of the telemetry (`rsra export`).
+
+* :func:`build_dbc` — a cantools database of the rig's bus, built from the same EDS-driven
+  decode tables as the reader (daq.decoder): every TPDO of every configured node with its
+  COB-ID, layout, data types (REAL32 as float signals), calibration and units, the SYNC
+  with its counter, heartbeats and EMCY. So a candump log decodes in cantools, SavvyCAN,
+  PlotJuggler or asammdf to the values the reader decodes.
+* :func:`write_mcap` / :func:`write_parquet` — telemetry records (``{"key": …, …payload}``,
+  the lines of ``rsra replay --out``) to MCAP (JSON messages with JSON schemas, log times
+  from the acquisition clock) and to Parquet (one table per key, typed columns, units in the
+  schema metadata).
+
+Field names, types and units of the payloads: :data:`FIELDS`, kept equal to the tables of
+docs/telemetry.md by tests/test_export.py.
+"""
+from __future__ import annotations
+
+import json
+import math
+import re
+from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path
+from typing import Any
+
+from canopen.objectdictionary import ODVariable
+
+from rsra.config.rig import RigConfig
+from rsra.daq.bus.decoder import (
+    MILLI_G,
+    PROFILES,
+    STATUS_FAULT,
+    STATUS_OVERRANGE,
+    DecodeTable,
+)
+from rsra.config.units import AXIS_KIND
+
+AXES = ("X", "Y", "Z", "L", "M", "N")
+AXIS_UNIT = {"force": "N", "moment": "N·m"}
+
+# -- units of the bus channels (the device profiles of bus.md; cf. daq.decoder.PROFILES) ---
+# DBC units are plain ASCII (DBC files are read as cp1252/latin-1 by most tools).
+_CHANNEL_UNITS: dict[str, dict[str, str]] = {
+    "load_cell": {"force": "N", "status": ""},
+    "accelerometer": {"x": "m/s^2", "y": "m/s^2", "z": "m/s^2"},
+    "rotor_speed": {"omega": "rad/s", "azimuth": "rad"},
+    "balance": {n: ("N" if k == "force" else "Nm") for n, k in zip(AXES, AXIS_KIND)},
+    "drive_load": {"torque": "Nm"},
+}
+assert all(set(_CHANNEL_UNITS[r]) == {n for n, _ in PROFILES[r].values()} for r in PROFILES)
+# CiA 303-2 unit codes (numerator byte of a CiA 404 "physical unit" object such as 0x6131)
+CIA_303_2_UNITS = {0x00: "", 0x01: "m", 0x02: "kg", 0x03: "s", 0x10: "rad", 0x20: "Hz",
+                   0x21: "N", 0x22: "Pa", 0x23: "J", 0x24: "W"}
+NMT_STATES = {0: "boot-up", 4: "stopped", 5: "operational", 127: "pre-operational"}
+COB_EMCY = 0x080
+COB_HEARTBEAT = 0x700
+
+
+class ExportError(ValueError):
+    """Input that cannot be exported (one line, names the input and the fix)."""
+
+
+def _ident(text: str) -> str:
+    """A DBC identifier (C identifier) from a node/channel name."""
+    s = re.sub(r"[^A-Za-z0-9_]", "_", text)
+    return s if re.match(r"[A-Za-z_]", s) else f"n_{s}"
+
+
+def eds_unit(od, index: int, sub: int) -> str | None:
+    """The unit a CiA 404 physical-unit object (index+1, e.g. 0x6131 for 0x6130) gives for
+    ``index:sub``, or None when the EDS has none or an unknown code."""
+    try:
+        code = od[index + 1][sub].default
+    except (KeyError, TypeError):
+        return None
+    if not isinstance(code, int) or code & 0xFF00FFFF:  # only 10^0 and no denominator
+        return None
+    return CIA_303_2_UNITS.get((code >> 16) & 0xFF)
+
+
+def build_dbc(cfg: RigConfig, table: DecodeTable | None = None):
+    """A :class:`cantools.database.can.Database` of the rig's bus (see the module doc)."""
+    from cantools.database.can import Database, Message, Node, Signal
+    from cantools.database.conversion import BaseConversion
+
+    table = table or DecodeTable(cfg)
+    period_ms = max(1, round(1000.0 / cfg.sample_rate_hz))
+    messages: list = []
+    nodes = [Node(name="rsra", comment="the service: CANopen master and SYNC producer")]
+    for nl in table.nodes:
+        node = _ident(nl.name)
+        nodes.append(Node(name=node, comment=f"{nl.role}, node id {nl.node_id}, EDS "
+                                             f"{Path(nl.eds).name}"))
+        units = _CHANNEL_UNITS.get(nl.role, {})
+        for lay in nl.tpdos:
+            signals = []
+            bit = 0
+            codes = iter(lay.codes)
+            entries = iter(range(lay.start, lay.stop))
+            for e in lay.mapping:
+                index, sub, bits = e >> 16, (e >> 8) & 0xFF, e & 0xFF
+                if 0x0001 <= index <= 0x0007:  # dummy mapping: padding
+                    bit += bits
+                    continue
+                code, i = next(codes), next(entries)
+                c = table.channels[i]
+                size = 8 * _struct_size(code)
+                obj = nl.od[index]
+                param = obj if isinstance(obj, ODVariable) and not sub else obj[sub]
+                comment = (f"0x{index:04X}:{sub} {param.name}"
+                           f"{'; bit 0 over-range, bit 1 sensor fault' if c.is_status else ''}")
+                if c.wrap is not None:
+                    comment += "; 0..2^bits = 0..2pi"
+                if c.is_status:
+                    conv = BaseConversion.factory(scale=1, offset=0, choices={
+                        0: "ok", STATUS_OVERRANGE: "over-range", STATUS_FAULT: "sensor fault",
+                        STATUS_OVERRANGE | STATUS_FAULT: "over-range and sensor fault"})
+                    unit = ""
+                else:
+                    conv = BaseConversion.factory(scale=c.gain * c.scale, offset=c.offset,
+                                                  is_float=code in "fd")
+                    unit = eds_unit(nl.od, index, sub) or units.get(c.name, "")
+                    if c.name in ("x", "y", "z") and c.scale == MILLI_G:
+                        comment += "; 1 count = 1 mg"
+                signals.append(Signal(
+                    name=_ident(f"{nl.name}_{c.name}"), start=bit, length=size,
+                    byte_order="little_endian", is_signed=code in "bhiqfd" and code != "?",
+                    conversion=conv, unit=unit or None, comment=comment, receivers=["rsra"]))
+                bit += size
+            messages.append(Message(
+                frame_id=lay.cob_id, name=_ident(f"{nl.name}_TPDO{lay.number}"),
+                length=lay.length, signals=signals, senders=[node], send_type="Cyclic",
+                cycle_time=period_ms, comment=f"TPDO{lay.number} of {nl.name} (on SYNC)"))
+        messages.append(Message(
+            frame_id=COB_HEARTBEAT + nl.node_id, name=_ident(f"{nl.name}_heartbeat"), length=1,
+            senders=[node], cycle_time=cfg.heartbeat.producer_ms, comment="NMT heartbeat",
+            signals=[Signal(name=_ident(f"{nl.name}_nmt_state"), start=0, length=7,
+                            conversion=BaseConversion.factory(choices=dict(NMT_STATES)),
+                            receivers=["rsra"])]))
+        messages.append(Message(
+            frame_id=COB_EMCY + nl.node_id, name=_ident(f"{nl.name}_EMCY"), length=8,
+            senders=[node], comment="emergency (CiA 301)", signals=[
+                Signal(name=_ident(f"{nl.name}_emcy_code"), start=0, length=16,
+                       receivers=["rsra"]),
+                Signal(name=_ident(f"{nl.name}_emcy_register"), start=16, length=8,
+                       receivers=["rsra"]),
+                Signal(name=_ident(f"{nl.name}_emcy_info"), start=24, length=40,
+                       receivers=["rsra"], comment="manufacturer-specific bytes")]))
+    sync_len = 1 if cfg.sync.counter_overflow else 0
+    sync_signals = [Signal(name="SYNC_counter", start=0, length=8,
+                           comment=f"1..{cfg.sync.counter_overflow}, then 1 again")] \
+        if sync_len else []
+    messages.append(Message(
+        frame_id=cfg.sync.cob_id, name="SYNC", length=sync_len, signals=sync_signals,
+        senders=["rsra"] if cfg.sync.producer == "service" else None, send_type="Cyclic",
+        cycle_time=period_ms, comment=f"CANopen SYNC: one sample per SYNC, "
+                                      f"{cfg.sample_rate_hz:g} Hz"))
+    messages.sort(key=lambda m: m.frame_id)
+    return Database(messages=messages, nodes=nodes,
+                    version=f"rsra rig {cfg.rig_name}")
+
+
+def _struct_size(code: str) -> int:
+    import struct
+
+    return struct.calcsize("<" + code)
+
+
+def dbc_text(cfg: RigConfig) -> str:
+    """The DBC file text of :func:`build_dbc` (cantools' own writer)."""
+    return build_dbc(cfg).as_dbc_string()
+
+
+# -- telemetry payloads: fields, JSON types and units (docs/telemetry.md) --------------------
+# (path, JSON type, unit) per key, in the order of the docs' tables; "<node>"/"<cell>" stand
+# for any name, "x[]" for the elements of the list x. Types: integer, number, string, boolean,
+# object, or array:<element type>. Every value may also be null (strict JSON, telemetry.md).
+VEC6 = "N, N·m"
+FIELDS: dict[str, list[tuple[str, str, str]]] = {
+    "hub_loads": [
+        ("seq", "integer", ""), ("sync", "integer", ""), ("t", "number", "s (UNIX)"),
+        ("frame", "string", ""), ("H", "array:number", VEC6), ("H_static", "array:number", VEC6),
+        ("omega", "number", "rad/s"), ("flags", "array:string", "")],
+    "channels": [
+        ("seq", "integer", ""), ("t", "number", "s (UNIX)"), ("T", "array:number", "N"),
+        ("accel", "array:array:number", "m/s²"), ("I", "array:number", VEC6),
+        ("omega", "number", "rad/s"), ("azimuth", "number", "rad"),
+        ("known_H", "array:number", VEC6), ("drive", "array:number", "channel units"),
+        ("status", "object", ""), ("status.<cell>", "integer", "")],
+    "innovations": [
+        ("seq", "integer", ""), ("t", "number", "s (UNIX)"), ("e", "array:number", VEC6),
+        ("nis", "number", "")],
+    "angles": [
+        ("t", "number", "s (UNIX)"), ("seq", "integer", ""), ("mode", "string", ""),
+        ("content", "string", ""), ("accepted", "boolean", ""), ("reason", "string", ""),
+        ("detail", "string", ""),
+        ("names", "array:string", ""), ("alpha", "array:number", "rad"),
+        ("P", "array:array:number", "rad²"), ("sigma_cr", "array:number", "rad"),
+        ("sigma_cr_corrected", "array:number", "rad"), ("determined", "integer", ""),
+        ("window_determined", "integer", ""),
+        ("information", "number", ""), ("nu", "number", ""), ("cost", "number", ""),
+        ("iterations", "integer", ""), ("window", "array:integer", ""),
+        ("applies_from_seq", "integer", ""), ("late", "boolean", ""),
+        ("restarted", "boolean", ""), ("condition", "number", ""),
+        ("next_conditions", "array:object", ""), ("next_conditions[].H", "array:number", VEC6),
+        ("next_conditions[].information_gain", "number", "nats"),
+        ("next_conditions[].by_structure", "object", ""),
+        ("next_conditions[].by_structure.constant", "number", "nats"),
+        ("next_conditions[].by_structure.cell_gain", "number", "nats")],
+    "health": [
+        ("t", "number", "s (UNIX)"), ("nodes", "object", ""),
+        ("nodes.<node>.state", "string", ""), ("nodes.<node>.heartbeat_age", "number", "s"),
+        ("nodes.<node>.required", "boolean", ""), ("nodes.<node>.boots", "integer", ""),
+        ("nodes.<node>.losses", "integer", ""), ("nodes.<node>.emcy_count", "integer", ""),
+        ("nodes.<node>.emcy", "array:object", ""),
+        ("nodes.<node>.emcy[].t", "number", "s (UNIX)"),
+        ("nodes.<node>.emcy[].code", "integer", ""),
+        ("nodes.<node>.emcy[].register", "integer", ""),
+        ("nodes.<node>.emcy[].info", "string", ""),
+        ("nodes.<node>.emcy[].length", "integer", "bytes"),
+        ("nodes.<node>.identity", "object", ""),
+        ("nodes.<node>.identity.vendor-ID", "integer", ""),
+        ("nodes.<node>.identity.product code", "integer", ""),
+        ("nodes.<node>.identity.revision number", "integer", ""),
+        ("nodes.<node>.identity.serial number", "integer", ""),
+        ("nodes.<node>.error", "string", ""),
+        *[(f"bus.{n}", "integer", "") for n in (
+            "frames", "errors", "bus_off", "unknown", "malformed", "duplicate", "orphan",
+            "remote", "callback_errors")],
+        *[(f"samples.{n}", "integer", "") for n in ("complete", "incomplete", "lost")],
+        ("sync", "object", ""), ("sync.duplicate", "integer", ""),
+        ("sync.bad_timestamp", "integer", ""), ("sync.late", "integer", ""),
+        ("sync.periods_not_taken", "integer", ""), ("sync.rate_hz", "number", "samples/s"),
+        ("sync.rate_low", "boolean", ""),
+        ("queues", "object", ""),
+        *[(f"queues.samples.{n}", "integer", "") for n in (
+            "depth", "size", "max_depth", "dropped", "blocked")],
+        ("queues.master_events.depth", "integer", ""),
+        ("queues.master_events.dropped", "integer", ""),
+        *[(f"queues.identification.{n}", "integer", "") for n in (
+            "submitted", "dropped", "errors")],
+        ("identification", "object", ""), ("identification.worker", "string", ""),
+        ("identification.pid", "integer", ""), ("identification.deaths", "integer", ""),
+        ("identification.restarts", "integer", ""), ("identification.last_death", "string", ""),
+        ("identification.off_reason", "string", ""),
+        ("identification.save_error", "string", ""),
+        ("identification.save_failures", "integer", ""),
+        ("queues.publisher.depth", "integer", ""), ("queues.publisher.dropped", "integer", ""),
+        ("estimator.implausible_omega", "integer", ""),
+        ("estimator.design_errors", "integer", ""), ("estimator.stuck_samples", "integer", ""),
+        ("estimator.stuck_episodes", "integer", ""),
+        ("estimator.stuck_now", "array:string", ""),
+        ("estimator.stuck_untested", "array:string", ""),
+        ("recording.active", "boolean", ""), ("recording.dir", "string", ""),
+        ("recording.format", "string", ""), ("recording.frames", "integer", ""),
+        ("recording.bytes", "integer", "bytes"), ("recording.files", "integer", ""),
+        ("recording.dropped", "integer", ""),
+        *[(f"recording.queue.{n}", "integer", "") for n in (
+            "depth", "size", "queued", "max_depth", "overflow")],
+        ("recording.error", "string", ""),
+        ("latency_ms.p50", "number", "ms"), ("latency_ms.p99", "number", "ms"),
+        ("latency_ms.max", "number", "ms"), ("latency_ms.deadline_misses", "integer", ""),
+        ("warnings", "array:string", "")],
+}
+
+
+def _type_schema(jtype: str) -> dict:
+    if jtype.startswith("array:"):
+        return {"type": ["array", "null"], "items": _type_schema(jtype[6:])}
+    return {"type": [jtype, "null"]}
+
+
+def json_schema(key: str) -> dict:
+    """The JSON Schema (draft 2020-12) of one telemetry key's payload, from :data:`FIELDS`:
+    nested objects by path, names (``<node>``) as additionalProperties, units in the
+    descriptions."""
+    root: dict = {"$schema": "https://json-schema.org/draft/2020-12/schema",
+                  "title": f"rsra {key}", "type": "object", "properties": {}}
+
+    def node_for(parts: list[str]) -> dict:
+        cur = root
+        for p in parts:
+            if p.endswith("[]"):
+                cur = cur["properties"].setdefault(p[:-2], _type_schema("array:object"))
+                cur = cur["items"]
+                cur.setdefault("properties", {})
+                continue
+            if p.startswith("<"):
+                cur = cur.setdefault("additionalProperties", {"type": "object",
+                                                              "properties": {}})
+            else:
+                cur = cur["properties"].setdefault(p, {"type": ["object", "null"],
+                                                       "properties": {}})
+            cur.setdefault("properties", {})
+        return cur
+
+    for path, jtype, unit in FIELDS[key]:
+        *parents, last = path.split(".")
+        parent = node_for(parents)
+        sch = _type_schema(jtype)
+        if unit:
+            sch["description"] = f"unit: {unit}"
+        if last.startswith("<"):
+            prev = parent.get("additionalProperties", {})
+            parent["additionalProperties"] = {**prev, **sch} if "properties" not in prev \
+                else prev
+            continue
+        if jtype == "object" or jtype == "array:object":
+            old = parent["properties"].get(last)
+            if old is not None:  # declared earlier as a parent
+                continue
+        parent["properties"][last] = sch
+    return root
+
+
+# -- telemetry records (JSONL of `rsra replay --out`) ------------------------------------------
+def read_records(path: Path) -> Iterator[tuple[str, dict]]:
+    """(key, payload) of every line of a telemetry JSONL file; ExportError on a bad line."""
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            yield from _parse_lines(path, f)
+    except OSError as e:
+        raise ExportError(f"{path}: cannot read ({e.strerror}); fix: check the path and "
+                          "its permissions") from None
+
+
+def _parse_lines(path: Path, f) -> Iterator[tuple[str, dict]]:
+    for n, line in enumerate(f, start=1):
+        if not line.strip():
+            continue
+        try:
+            rec = json.loads(line)
+        except ValueError as e:
+            raise ExportError(f"{path}:{n}: not a JSON line ({e.msg}); fix: give a file "
+                              "written by `rsra replay --out`") from None
+        if not isinstance(rec, dict) or not isinstance(rec.get("key"), str):
+            raise ExportError(f"{path}:{n}: a record without a \"key\"; fix: give a file "
+                              "written by `rsra replay --out`")
+        key = rec.pop("key")
+        yield key, rec
+
+
+def log_time_ns(payload: dict, last: int) -> int:
+    """The MCAP log time of a record: its acquisition time ``t`` in ns (the last one when
+    the record has none)."""
+    t = payload.get("t")
+    if isinstance(t, (int, float)) and not isinstance(t, bool) and math.isfinite(t):
+        return round(t * 1e9)
+    return last
+
+
+def write_mcap(records: Iterable[tuple[str, dict]], out, prefix: str,
+               metadata: dict[str, str] | None = None) -> dict[str, int]:
+    """Write the records to an MCAP stream ``out`` (binary file object): one channel per key
+    (topic ``<prefix>/<key>``, JSON messages, JSON schema), log and publish time from the
+    acquisition clock. Returns the message count per key."""
+    from mcap.writer import Writer
+
+    from rsra.daq.jsonout import dumps
+
+    w = Writer(out)
+    w.start(profile="", library="rsra")
+    channels: dict[str, int] = {}
+    counts: dict[str, int] = {}
+    last = 0
+    for key, payload in records:
+        cid = channels.get(key)
+        if cid is None:
+            sch = json_schema(key) if key in FIELDS else {"type": "object"}
+            sid = w.register_schema(name=f"rsra.{key}", encoding="jsonschema",
+                                    data=json.dumps(sch).encode())
+            cid = channels[key] = w.register_channel(
+                topic=f"{prefix}/{key}", message_encoding="json", schema_id=sid)
+        last = log_time_ns(payload, last)
+        seq = payload.get("seq")
+        w.add_message(cid, log_time=last, publish_time=last, data=dumps(payload).encode(),
+                      sequence=seq if isinstance(seq, int) and 0 <= seq < 2**32 else 0)
+        counts[key] = counts.get(key, 0) + 1
+    if metadata:
+        w.add_metadata("rsra", metadata)
+    w.finish()
+    return counts
+
+
+# -- Parquet: one table per key, flat typed columns ------------------------------------------
+def _components(key: str, path: str, value: list, payload: dict,
+                names: dict[str, tuple[str, ...]]) -> tuple[str, ...] | None:
+    """Names of the elements of a list field that becomes one column per element."""
+    if path in ("H", "H_static", "I", "known_H", "e") and len(value) == 6:
+        return AXES
+    if key == "channels" and path in ("T", "accel", "drive"):
+        comp = names.get(path, ())
+        return comp if len(comp) == len(value) else None
+    if key == "channels" and path.startswith("accel.") and len(value) == 3:
+        return ("x", "y", "z")
+    if key == "angles" and path in ("alpha", "sigma_cr", "sigma_cr_corrected"):
+        comp = tuple(payload.get("names") or ())
+        return comp if len(comp) == len(value) else None
+    return None
+
+
+def flatten(key: str, payload: dict, names: dict[str, tuple[str, ...]]) -> dict[str, Any]:
+    """One row: nested objects and named vectors as dotted columns (``H.X``, ``T.A``,
+    ``nodes.cell_A.state``); lists of objects (EMCY histories) as JSON text."""
+    row: dict[str, Any] = {}
+
+    def walk(path: str, v: Any) -> None:
+        if isinstance(v, dict):
+            for k, x in v.items():
+                walk(f"{path}.{k}" if path else str(k), x)
+        elif isinstance(v, list) and (comp := _components(key, path, v, payload, names)):
+            for c, x in zip(comp, v):
+                walk(f"{path}.{c}", x)
+        elif isinstance(v, list) and any(isinstance(x, dict) for x in v):
+            row[path] = json.dumps(v)
+        else:
+            row[path] = v
+
+    walk("", payload)
+    return row
+
+
+_FIELD_RES = {key: [(re.compile("^" + re.escape(p).replace(re.escape("<node>"), "[^.]+")
+                                .replace(re.escape("<cell>"), "[^.]+") + "$"), p, u)
+                    for p, _, u in fields] for key, fields in FIELDS.items()}
+
+
+def column_unit(key: str, column: str) -> str:
+    """The unit of a flat column, from :data:`FIELDS` ('' when none)."""
+    parts = column.split(".")
+    for n in range(len(parts), 0, -1):
+        head = ".".join(parts[:n])
+        for rx, _, unit in _FIELD_RES.get(key, ()):
+            if rx.match(head):
+                if unit == VEC6 and n < len(parts):
+                    return AXIS_UNIT[AXIS_KIND[AXES.index(parts[n])]] \
+                        if parts[n] in AXES else unit
+                return unit
+    return ""
+
+
+def _kind(v: Any) -> str:
+    if isinstance(v, bool):
+        return "bool"
+    if isinstance(v, int):
+        return "int"
+    if isinstance(v, float):
+        return "float"
+    if isinstance(v, str):
+        return "str"
+    if isinstance(v, list):
+        inner = {_kind(x) for x in v if x is not None}
+        if not inner:
+            return "list:"
+        if inner <= {"int"}:
+            return "list:int"
+        if inner <= {"int", "float"}:
+            return "list:float"
+        if inner == {"str"}:
+            return "list:str"
+        if all(k.startswith("list:") for k in inner) and inner <= {"list:", "list:int",
+                                                                   "list:float"}:
+            return "list:list"
+    return "json"
+
+
+def _arrow_type(kinds: set[str]):
+    import pyarrow as pa
+
+    lists = {k for k in kinds if k.startswith("list:")}
+    if not kinds:
+        return pa.null()
+    if kinds == {"bool"}:
+        return pa.bool_()
+    if kinds == {"int"}:
+        return pa.int64()
+    if kinds <= {"int", "float"}:
+        return pa.float64()
+    if kinds == {"str"}:
+        return pa.string()
+    if lists == kinds:
+        if lists <= {"list:", "list:int"} and "list:int" in lists:
+            return pa.list_(pa.int64())
+        if lists <= {"list:", "list:int", "list:float"} and lists - {"list:"}:
+            return pa.list_(pa.float64())
+        if lists <= {"list:", "list:str"}:
+            return pa.list_(pa.string())
+        if lists <= {"list:", "list:list"}:
+            return pa.list_(pa.list_(pa.float64()))
+    return pa.string()  # anything mixed: JSON text
+
+
+def parquet_schemas(records: Iterable[tuple[str, dict]], names: dict[str, tuple[str, ...]]):
+    """First pass: the Arrow schema of every key's table (columns in order of appearance,
+    types from the values, units from :data:`FIELDS` as field metadata ``unit`` and as the
+    schema metadata ``units``)."""
+    import pyarrow as pa
+
+    cols: dict[str, dict[str, set[str]]] = {}
+    for key, payload in records:
+        c = cols.setdefault(key, {})
+        for col, v in flatten(key, payload, names).items():
+            kinds = c.setdefault(col, set())
+            if v is not None:
+                kinds.add(_kind(v))
+    schemas = {}
+    for key, c in cols.items():
+        fields, units = [], {}
+        for col, kinds in c.items():
+            unit = column_unit(key, col)
+            units[col] = unit
+            typ = _arrow_type(kinds)
+            fields.append(pa.field(col, typ, nullable=True,
+                                   metadata={"unit": unit} if unit else None))
+        schemas[key] = pa.schema(fields, metadata={
+            "rsra.key": key, "units": json.dumps(units, ensure_ascii=False),
+            "source": "rsra export (docs/telemetry.md)"})
+    return schemas
+
+
+def _cell(v: Any, typ) -> Any:
+    import pyarrow as pa
+
+    if v is None:
+        return None
+    if pa.types.is_string(typ) and not isinstance(v, str):
+        return json.dumps(v)
+    if pa.types.is_floating(typ) and isinstance(v, int):
+        return float(v)
+    return v
+
+
+def write_parquet(records: Iterable[tuple[str, dict]], schemas: dict, paths: dict[str, Path],
+                  names: dict[str, tuple[str, ...]], batch: int = 4096) -> dict[str, int]:
+    """Second pass: rows of every key into its Parquet file (``paths[key]``), ``batch`` rows
+    at a time (bounded memory). Returns the row count per key."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    writers: dict[str, Any] = {}
+    pending: dict[str, list[dict]] = {k: [] for k in schemas}
+    counts = {k: 0 for k in schemas}
+
+    def flush(key: str) -> None:
+        rows = pending[key]
+        if not rows:
+            return
+        sch = schemas[key]
+        arrays = [pa.array([_cell(r.get(f.name), f.type) for r in rows], type=f.type)
+                  for f in sch]
+        if key not in writers:
+            writers[key] = pq.ParquetWriter(paths[key], sch)
+        writers[key].write_table(pa.Table.from_arrays(arrays, schema=sch))
+        counts[key] += len(rows)
+        rows.clear()
+
+    try:
+        for key, payload in records:
+            pending[key].append(flatten(key, payload, names))
+            if len(pending[key]) >= batch:
+                flush(key)
+        for key in schemas:
+            flush(key)
+    finally:
+        for w in writers.values():
+            w.close()
+    return counts
+
+
+def vector_names(cfg: RigConfig) -> dict[str, tuple[str, ...]]:
+    """Element names of the rig-sized vectors of ``channels`` (cells, accelerometers,
+    external loads) for the Parquet columns."""
+    return {"T": tuple(c.name for c in cfg.cells),
+            "accel": tuple(a.name for a in cfg.accelerometers),
+            "drive": tuple(e.name for e in cfg.external_loads)}
+
+
+def replay_to_jsonl(cfg: RigConfig, logs: list[str], out, on_error: Callable[[str], Exception]
+                    ) -> dict:
+    """A recording through the service's replay path (the same as `rsra replay --out`):
+    every published record as a JSON line into the text stream ``out``."""
+    from can.io.blf import BLFParseError
+
+    from rsra.config.rig import ConfigError
+    from rsra.daq.jsonout import dumps
+    from rsra.daq.runtime.service import Service, ServiceOptions
+    from rsra.estimator.posterior import PosteriorFileError
+
+    service = Service(cfg, ServiceOptions(replay=list(logs), zenoh=False))  # no publishing
+
+    def sink(key: str, payload: dict) -> None:
+        out.write(dumps({"key": key, **payload}) + "\n")
+
+    service.add_sink(sink)
+    try:
+        return service.run()
+    except PosteriorFileError as e:
+        raise on_error(str(e)) from None
+    except ConfigError:
+        raise
+    except (ValueError, OSError, BLFParseError) as e:  # a corrupt or truncated log file
+        why = " ".join(str(e).split())
+        raise on_error(f"cannot read the recording: {why}" + (
+            "" if "fix:" in why else "; fix: give an undamaged recording")) from None

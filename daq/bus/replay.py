@@ -1,0 +1,184 @@
+"""Replay of recordings through the reader (spec bus.md "Recording and replay", cli.md).
+
+Recordings are read with python-can's :class:`can.LogReader` (candump ``.log``, ``.blf``,
+``.asc``, …), either
+
+* as fast as possible straight into the reader (:func:`replay`): the frames go through the
+  same :class:`daq.reader.FrameTap` → canopen subscribe → assembler/supervisor code path as
+  on the live bus, so a ``.log`` or ``.blf`` recording assembles exactly the samples the live
+  reader did (``.asc`` keeps relative times only); or
+* at recorded timing (:func:`replay_to_bus`, ``can.MessageSync``) onto any python-can bus,
+  for a live reader (or any other tool) on that bus.
+
+Recordings that start mid-flight, without the boot sequence, decode by the EDS mapping: the
+decode tables never depend on having seen the boot.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Iterable, Iterator, Sequence
+from pathlib import Path
+
+import can
+
+from rsra.daq.bus.assembler import Sample
+from rsra.config.rig import RigConfig
+from rsra.daq.rigmodel import load_rig
+from rsra.daq.bus.reader import HealthReport, Reader
+from rsra.daq.bus.recorder import frame_files, recorded_config
+
+LOG_SUFFIXES = (".log", ".blf", ".asc", ".trc", ".csv", ".mf4")
+log = logging.getLogger(__name__)
+
+
+class ReplayError(ValueError):
+    """A recording that cannot be replayed (missing, empty folder, unknown format)."""
+
+
+def expand(paths: Sequence[str | Path]) -> list[Path]:
+    """Frame files in replay order: a folder gives its frame files (closed files first), a
+    file is taken as given; order of the arguments is kept."""
+    out: list[Path] = []
+    for p in map(Path, paths):
+        if p.is_dir():
+            files = frame_files(p)
+            if not files:
+                raise ReplayError(f"{p}: no frames.* recording files in this folder")
+            out.extend(files)
+        elif p.is_file():
+            suffixes = [s.lower() for s in p.suffixes]
+            if not suffixes or not ({*suffixes} & {*LOG_SUFFIXES}):
+                raise ReplayError(f"{p}: unknown log format (use one of "
+                                  f"{', '.join(LOG_SUFFIXES)})")
+            out.append(p)
+        else:
+            raise ReplayError(f"{p}: no such file or folder")
+    return out
+
+
+class _CompleteLines:
+    """The lines of a text log that end with a newline: a crash (``kill -9``, power loss)
+    can leave the last line cut anywhere, and a cut candump line may even parse — as a
+    shorter, wrong frame. Only the final line can be cut (the writer appends whole lines)."""
+
+    def __init__(self, path: Path):
+        self.file = open(path, encoding="utf-8", errors="replace")
+        self.partial = 0  # cut lines dropped (0 or 1)
+        self.lineno = 0  # the line last handed to the parser (1-based)
+        self.line = ""
+
+    def __iter__(self) -> Iterator[str]:
+        for line in self.file:
+            if line.endswith("\n"):
+                self.lineno += 1
+                self.line = line
+                yield line
+            else:
+                self.partial += 1
+                log.warning("%s: last line cut (a crash while recording?): dropped: %r",
+                            self.file.name, line[:80])
+
+    def close(self) -> None:
+        self.file.close()
+
+
+def read_frames(paths: Sequence[str | Path]) -> Iterator[can.Message]:
+    """Every frame of the recordings, in order (python-can LogReader per file).
+
+    A file that cannot be read — not the format its name says, damaged, a line that is not a
+    frame, a time stamp that is not a finite number — raises :class:`ReplayError` naming the
+    file (and the line of a text log) where it stops; the frames before it have been
+    yielded."""
+    for f in expand(paths):
+        if f.suffix.lower() == ".log":
+            lines = _CompleteLines(f)
+            try:
+                with can.CanutilsLogReader(lines) as reader:
+                    for msg in reader:
+                        if not math.isfinite(msg.timestamp):
+                            raise ValueError(f"time stamp {msg.timestamp} is not a finite number")
+                        yield msg
+            except ReplayError:
+                raise
+            except Exception as e:  # python-can raises assorted errors on a bad line
+                raise ReplayError(
+                    f"{f}:{lines.lineno}: not a candump frame ({_why(e)}): "
+                    f"{lines.line.strip()[:60]!r}; fix: repair or delete that line (a candump "
+                    "line reads '(1700000000.000000) can0 181#0102')") from None
+            continue
+        n = 0
+        try:
+            with can.LogReader(f) as reader:
+                for msg in reader:
+                    if not math.isfinite(msg.timestamp):
+                        raise ValueError(f"frame {n + 1}: time stamp {msg.timestamp} is not a "
+                                         "finite number")
+                    n += 1
+                    yield msg
+        except ReplayError:
+            raise
+        except Exception as e:  # BLFParseError, zlib.error, struct.error, …
+            where = f"after {n} frames" if n else "at its start"
+            raise ReplayError(
+                f"{f}: not a readable {f.suffix.lstrip('.').lower()} recording {where} "
+                f"({_why(e)}); fix: give an undamaged recording (rename it if its suffix "
+                "names the wrong format)") from None
+
+
+def _why(e: BaseException) -> str:
+    name = type(e).__name__
+    if name == "error":  # zlib.error, struct.error: say whose
+        name = f"{type(e).__module__}.error"
+    text = " ".join(str(e).split())
+    return f"{name}: {text}" if text else name
+
+
+def config_for(paths: Sequence[str | Path], config: str | Path | None = None) -> RigConfig:
+    """An explicit ``--config`` wins; else a recording folder's own effective configuration;
+    else the packaged default rig."""
+    if config is not None:
+        return load_rig(config)
+    for p in map(Path, paths):
+        if p.is_dir():
+            cfg = recorded_config(p)
+            if cfg is not None:
+                return cfg
+    return load_rig()
+
+
+def replay(cfg: RigConfig, paths: Sequence[str | Path] | None = None, *,
+           frames: Iterable[can.Message] | None = None, realtime: bool = False,
+           reader: Reader | None = None, finish: bool = False
+           ) -> Iterator[Sample | HealthReport]:
+    """Samples and 1 Hz health reports of recordings, in order, through the reader's code
+    path. ``realtime`` paces the frames at their recorded timing (``can.MessageSync``).
+    ``finish`` also passes on the last, incomplete sample when the recording ends."""
+    r = reader or Reader.offline(cfg)
+    src = frames if frames is not None else read_frames(paths or ())
+    if realtime:
+        src = can.MessageSync(src, timestamps=True, gap=0.0)
+    feed, poll = r.feed, r.poll
+    q = r.queue
+    for msg in src:
+        feed(msg)
+        if q.qsize():
+            yield from poll()
+    if finish:
+        r.assembler.finish()
+    yield from poll()
+
+
+def replay_to_bus(paths: Sequence[str | Path], bus: can.BusABC, *,
+                  realtime: bool = True) -> int:
+    """Send recorded frames onto ``bus`` (at recorded timing unless ``realtime=False``).
+    Returns the number of frames sent. Error frames are sent as recorded where the
+    interface can (python-can's virtual bus can)."""
+    n = 0
+    src: Iterable[can.Message] = read_frames(paths)
+    if realtime:
+        src = can.MessageSync(src, timestamps=True, gap=0.0)
+    for msg in src:
+        bus.send(msg)
+        n += 1
+    return n

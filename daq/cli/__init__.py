@@ -1,0 +1,133 @@
+"""The `rsra` command line: a thin table of commands over the library (spec: cli.md).
+
+Exit status: 0 success, 2 usage or configuration error, 1 anything else.
+"""
+from __future__ import annotations
+
+import argparse
+import errno
+import importlib
+import os
+import re
+import sys
+
+from rsra.config.rig import ConfigError
+from rsra.daq.cli.options import UsageError
+
+# name -> module under daq.commands; each module has add_parser(sub) and run(args).
+COMMANDS = {
+    "noise-budget": "noise_budget",
+    "listen": "listen",
+    "run": "run",
+    "demo": "demo",
+    "sim": "sim",
+    "bus": "bus",
+    "replay": "replay",
+    "nodes": "nodes",
+    "zero": "zero",
+    "angles": "angles",
+    "report": "report",
+    "sweep": "sweep",
+    "calibrate": "calibrate",
+    "export": "export",
+}
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # one line, exit 2
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="rsra", description=(
+        "Rotor hub loads from the load cells of an isolated transmission: CANopen DAQ, "
+        "fixed-gain Kalman filter, on-line calibration of the load-cell angles, Zenoh telemetry."))
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    for name, module in COMMANDS.items():
+        mod = importlib.import_module(f"rsra.daq.cli.commands.{module}")
+        p = mod.add_parser(sub, name)
+        p.set_defaults(_run=mod.run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:  # Ctrl-C at any moment, the start-up's imports included
+        return 130
+
+
+def _main(argv: list[str] | None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "_run", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args._run(args) or 0)
+    except KeyboardInterrupt:
+        return 130
+    except BrokenPipeError:
+        return 0
+    except Exception as e:  # the one error path: every failure is one line (cli.md)
+        if os.environ.get("RSRA_DEBUG"):
+            raise
+        status, line = describe_error(e)
+        print(f"rsra {args.command}: {line}", file=sys.stderr)
+        return status
+
+
+_RUST_SOURCE = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")
+
+
+def zenoh_error_line(e: BaseException) -> str:
+    """A Zenoh error in one line, without the Rust source paths it carries."""
+    text = " ".join(_RUST_SOURCE.sub("", str(e)).split())
+    m = re.search(r"bound to (\S+?):? \[.*Address already in use", text)
+    if m:
+        return (f"cannot listen on {m.group(1)}: the address is in use (another rsra or Zenoh "
+                "router?); fix: stop that process or give a free port with --zenoh-listen "
+                "tcp/127.0.0.1:PORT")
+    return (f"cannot open the Zenoh session: {text}; fix: check --zenoh-config, "
+            "--zenoh-listen and --zenoh-connect, certificates and credentials")
+
+
+def describe_error(e: BaseException) -> tuple[int, str]:
+    """(exit status, one line) for any exception that ends a command: 2 for a usage,
+    configuration or bad-input error, 1 for anything else (cli.md)."""
+    from rsra.daq.bus.master import BootError
+    from rsra.daq.bus.recorder import RecordingError
+    from rsra.daq.bus.replay import ReplayError
+    from rsra.daq.runtime.service import BusOpenError
+    from rsra.estimator.posterior import PosteriorFileError
+    from rsra.sim_bus.faults import FaultSpecError
+
+    if isinstance(e, ConfigError):
+        return 2, f"configuration error: {_one_line(e)}"
+    if isinstance(e, (UsageError, PosteriorFileError, FaultSpecError, RecordingError,
+                      ReplayError, BusOpenError)):
+        return 2, f"error: {_one_line(e)}"
+    if isinstance(e, BootError):
+        return 1, f"the nodes could not be started: {_one_line(e)}"
+    try:
+        import zenoh
+
+        if isinstance(e, zenoh.ZError):
+            return 1, zenoh_error_line(e)
+    except ImportError:  # pragma: no cover - zenoh is a dependency
+        pass
+    if isinstance(e, OSError):
+        where = e.filename if e.filename is not None else ""
+        what = e.strerror or str(e)
+        return 1, (f"{where}: {what}" if where else what) + (
+            "; fix: free some space or write elsewhere" if e.errno == errno.ENOSPC else "")
+    return 1, (f"internal error: {type(e).__name__}: {_one_line(e)} (please report it; "
+               "RSRA_DEBUG=1 shows the traceback)")
+
+
+def _one_line(e: BaseException) -> str:
+    return " ".join(str(e).split()) or type(e).__name__
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,216 @@
+"""`rsra demo`: the main job on the embedded default — the simulated aircraft and the service in
+one process on python-can's virtual bus, Zenoh on loopback, and a live terminal view."""
+from __future__ import annotations
+
+import argparse
+import json
+import socket
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+
+
+def add_parser(sub, name: str) -> argparse.ArgumentParser:
+    from rsra.daq.cli.options import common_options
+    from rsra.daq.cli.options import add_no_identification, add_sim_options
+
+    p = sub.add_parser(name, help="the simulator and the service in one process, with a live view",
+                       description="The main job on the embedded default: the simulated "
+                       "aircraft and the service in one process on python-can's virtual bus, "
+                       "telemetry on Zenoh (loopback), and a live view of the hub loads against "
+                       "the simulator's truth, the load-cell angles converging with their "
+                       "Cramér–Rao bounds, every identification run's verdict and the bus "
+                       "health. Ctrl-C or --duration ends it with a summary. `rsra listen` in "
+                       "another terminal shows the same telemetry.")
+    common_options(p)
+    p.add_argument("--scenario", default="ground-test",
+                   choices=("ground-test", "flight", "paper", "sweep"),
+                   help="the simulated aircraft's scenario (default ground-test: known loads)")
+    add_sim_options(p)
+    p.add_argument("--report", metavar="DIR", default=None,
+                   help="at the end, write plots (PNG) and a summary here")
+    p.add_argument("--record", metavar="DIR", default=None,
+                   help="record every frame, the angle schedule and the truth here")
+    p.add_argument("--angles", metavar="STATE", default=None,
+                   help="start from a saved posterior (e.g. a ground test's "
+                   "identification.state_file) instead of the configured initial angles")
+    from rsra.daq.runtime.posterior_file import add_accept_option
+
+    add_accept_option(p)
+    add_no_identification(p)
+    p.add_argument("--zenoh-listen", action="append", default=[], metavar="EP",
+                   help=f"Zenoh endpoint (default {DEFAULT_ENDPOINT}, or a free loopback port "
+                   "when that one is taken)")
+    p.add_argument("--log-level", default="warning",
+                   choices=("debug", "info", "warning", "error"), help="default warning")
+    return p
+
+
+def _port_free(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind(("127.0.0.1", port))
+            return True
+        except OSError:
+            return False
+
+
+def _endpoint(args) -> tuple[list[str], str | None]:
+    if args.zenoh_listen:
+        return args.zenoh_listen, None
+    if _port_free(7447):
+        return [DEFAULT_ENDPOINT], None
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    return [f"tcp/127.0.0.1:{port}"], f"port 7447 is taken: telemetry on tcp/127.0.0.1:{port}"
+
+
+def run(args: argparse.Namespace) -> int:
+    from rsra.daq.cli.options import UsageError
+    from rsra.daq.cli.options import check_sim_faults, config_for_run, setup_logging
+    from rsra.daq.cli.console import make_console
+    from rsra.daq.cli.demo_view import DemoState, render
+    from rsra.daq.runtime.service import Service, ServiceOptions, initial_angles
+    from rsra.estimator.noise_budget import noise_budget
+    from rsra.estimator.posterior import PosteriorFileError
+
+    setup_logging(args.log_level, None)
+    cfg = config_for_run(args.config, args.scenario)
+    check_sim_faults(cfg, args.scenario, args.faults, args.speed)  # before anything is created
+    try:  # a bad --angles file: one line before anything starts
+        alpha0, _, _ = initial_angles(cfg, args.angles, args.accept_rig_mismatch)
+    except PosteriorFileError as e:
+        raise UsageError(str(e)) from None
+    listen, note = _endpoint(args)
+    report_jsonl = None
+    closers = []
+    if args.report:
+        Path(args.report).mkdir(parents=True, exist_ok=True)
+        tmp = tempfile.mkdtemp(prefix="rsra-demo-")
+        report_jsonl = Path(tmp) / "records.jsonl"
+    opts = ServiceOptions(sim=args.scenario, seed=args.seed, faults=args.faults, speed=args.speed,
+                          duration=args.duration, zenoh_listen=listen, record=args.record,
+                          angles=args.angles, accept_rig_mismatch=args.accept_rig_mismatch,
+                          identification=args.identification,
+                          keep_truth=bool(args.report),
+                          truth=str(Path(report_jsonl).parent / "truth.npz") if report_jsonl else None)
+    svc = Service(cfg, opts)
+    svc.install_signal_handlers()
+    model = cfg.rig_model()
+    nb = noise_budget(model, alpha0)
+    state = DemoState(cfg, nb.total, model.geometry.angle_names)
+
+    def sink(key, payload):
+        truth = None
+        if key == "hub_loads" and svc.sim is not None:
+            seq = payload["seq"]
+            for s in reversed(svc.sim.recent_samples):
+                if s.index == seq:
+                    truth = s
+                    break
+        state.on_record(key, payload, truth)
+
+    svc.add_sink(sink)
+    if report_jsonl is not None:
+        from rsra.daq.runtime.service import jsonl_sink
+
+        jsink, jclose = jsonl_sink(report_jsonl)
+        svc.add_sink(jsink)
+        closers.append(jclose)
+    console = make_console()
+    speed = "as fast as possible (lock-step)" if args.speed is None else (
+        "real time" if args.speed == 1.0 else f"{args.speed:g}x real time (lock-step)")
+    title = f"{args.scenario}, {speed}"
+    console.print(f"[bold]rsra demo[/]: simulated aircraft '{args.scenario}' + service, "
+                  f"telemetry on {listen[0]} (try `rsra listen` in another terminal)")
+    if note:
+        console.print(note)
+    result: dict = {}
+
+    def work():
+        try:
+            result["summary"] = svc.run()
+        except BaseException as e:  # reported below, in the main thread
+            result["error"] = e
+
+    th = threading.Thread(target=work, name="rsra-service")
+    th.start()
+    live = None
+    last_line = 0.0
+    try:
+        if console.is_terminal:
+            from rich.live import Live
+
+            live = Live(render(state, title, args.units), console=console, refresh_per_second=4,
+                        transient=False)
+            live.start()
+        while th.is_alive():
+            th.join(timeout=0.25)
+            if live is not None:
+                live.update(render(state, title, args.units))
+            elif time.monotonic() - last_line > 5.0:  # not a terminal: a progress line
+                last_line = time.monotonic()
+                with state.lock:
+                    n, acc, rej = state.samples, state.accepted, dict(state.rejected)
+                print(f"demo: {n} samples, identification accepted {acc}, rejected {rej}",
+                      flush=True)
+    except KeyboardInterrupt:
+        svc.stop()
+        th.join()
+    finally:
+        if live is not None:
+            live.update(render(state, title, args.units))
+            live.stop()
+        for c in closers:
+            c()
+    if "error" in result:
+        raise result["error"]
+    summary = result.get("summary", {})
+    _print_summary(console, summary, state)
+    if args.report:
+        from rsra.daq.analysis.report import write_report
+        from rsra.sim_bus.truth import read_truth
+
+        rep = write_report(cfg, report_jsonl, opts.truth if Path(opts.truth).exists() else None,
+                           args.report, units=args.units, read_truth=read_truth)
+        console.print(f"report written to {args.report}: "
+                      + ", ".join(p.name for p in rep.plots) + ", summary.md, summary.json")
+    return 0
+
+
+def _print_summary(console, summary: dict, state) -> None:
+    import numpy as np
+
+    lines = [f"samples {summary.get('samples', 0)}, lost {summary.get('lost', 0)}, "
+             f"identification runs {summary.get('identification_runs', 0)} "
+             f"(accepted {summary.get('accepted', 0)}, rejected {summary.get('rejected', {})})"]
+    with state.lock:
+        if state.held_n:
+            ratio = np.sqrt(state.held_err2 / state.held_n) / state.static_bound
+            lines.append(f"hub-load RMS error / static bound, held loads ({state.held_n} "
+                         "samples; X Y Z L M N): " + " ".join(f"{r:.2f}" for r in ratio))
+        if state.err_n:
+            ratio = np.sqrt(state.err2 / state.err_n) / state.static_bound
+            lines.append(f"hub-load RMS error / static bound, every sample after 1 s, ramps "
+                         f"included ({state.err_n}): " + " ".join(f"{r:.2f}" for r in ratio))
+        ang, ta = state.angles, state.truth_alpha
+    if ang and ang.get("alpha") and ta is not None:
+        names = ang["names"]
+        e = np.degrees([ang["alpha"][i] - ta[state.angle_names.index(n)]
+                        for i, n in enumerate(names) if n in state.angle_names])
+        s = np.degrees([np.sqrt(ang["P"][i][i]) for i in range(len(names))])
+        lines.append(f"angles: max |error| {np.abs(e).max():.3f} deg, max sigma {s.max():.3f} deg, "
+                     f"determined {ang.get('determined')}/{len(names)}")
+    elif not ang and summary.get("alpha_applied") and ta is not None:
+        # no identification run: the starting angles held for the whole run
+        e = np.degrees(np.asarray(summary["alpha_applied"], float) - ta)
+        lines.append(f"angles (held, no identification run): max |error| "
+                     f"{np.abs(e).max():.3f} deg")
+    console.print("[bold]summary[/]: " + "\n  ".join(lines))
+    if not console.is_terminal:
+        print(json.dumps({"summary": summary}, default=str), file=sys.stdout)

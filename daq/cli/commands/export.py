@@ -1,0 +1,210 @@
+"""`rsra export`: files other tools open (cli.md) — a DBC of the bus, MCAP and Parquet of the
+telemetry (daq.export).
+
+Outputs are written under a temporary name beside the target and renamed only when complete:
+a refused or failed export leaves no partial file (and removes a --parquet folder it made).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+TELEMETRY_SUFFIXES = (".jsonl", ".json")
+
+
+def add_parser(sub, name: str) -> argparse.ArgumentParser:
+    from rsra.daq.cli.options import common_options
+
+    p = sub.add_parser(
+        name, help="write a DBC of the bus, or MCAP / Parquet files of the telemetry",
+        description="--dbc FILE: a DBC of the rig's bus from its EDS files and config (every "
+        "TPDO with float signals for REAL32 values, units and calibration; SYNC, heartbeats, "
+        "EMCY), for cantools, SavvyCAN, PlotJuggler, asammdf. --mcap FILE / --parquet DIR: "
+        "the telemetry of a `rsra replay --out` file (RESULTS.jsonl), or of recordings, which "
+        "are replayed first exactly as `rsra replay` does: MCAP with one JSON topic per key "
+        "(Foxglove, Lichtblick, PlotJuggler), Parquet with one table per key (pandas, polars, "
+        "DuckDB).")
+    common_options(p, units=False)
+    p.add_argument("inputs", nargs="*", metavar="RESULTS.jsonl|LOG|DIR",
+                   help="a telemetry file written by `rsra replay --out`, or recordings "
+                   "(frame files or recording folders, as for `rsra replay`)")
+    p.add_argument("--dbc", metavar="FILE", default=None, help="write a DBC of the bus")
+    p.add_argument("--mcap", metavar="FILE", default=None, help="write the telemetry as MCAP")
+    p.add_argument("--parquet", metavar="DIR", default=None,
+                   help="write the telemetry as Parquet, one <key>.parquet per key in DIR")
+    return p
+
+
+class _Staged:
+    """Output files under temporary names in their own folder; ``commit`` renames them into
+    place, ``discard`` removes them (and the folder when we made it)."""
+
+    def __init__(self) -> None:
+        self.files: list[tuple[Path, Path]] = []  # (temporary, target)
+        self.made_dir: Path | None = None
+
+    def file(self, target: Path, usage: Callable[[str], Exception]) -> Path:
+        if target.is_dir():
+            raise usage(f"{target}: is a folder; fix: give a file name")
+        try:
+            fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.",
+                                       suffix=".part")
+        except OSError as e:
+            raise usage(f"{target}: cannot write there ({e.strerror}); fix: create the "
+                        "folder or write elsewhere") from None
+        os.close(fd)
+        mask = os.umask(0)  # mkstemp makes 0600: give the file the mode open() would
+        os.umask(mask)
+        os.chmod(tmp, 0o666 & ~mask)
+        self.files.append((Path(tmp), target))
+        return Path(tmp)
+
+    def folder(self, target: Path, usage: Callable[[str], Exception]) -> None:
+        if target.exists() and not target.is_dir():
+            raise usage(f"--parquet {target}: is a file; fix: give a folder")
+        if not target.exists():
+            try:
+                target.mkdir()
+            except OSError as e:
+                raise usage(f"--parquet {target}: cannot create ({e.strerror}); fix: "
+                            "create its parent folder or write elsewhere") from None
+            self.made_dir = target
+
+    def commit(self) -> None:
+        for tmp, target in self.files:
+            os.replace(tmp, target)
+        self.files.clear()
+        self.made_dir = None
+
+    def discard(self) -> None:
+        for tmp, _ in self.files:
+            tmp.unlink(missing_ok=True)
+        self.files.clear()
+        if self.made_dir is not None:
+            try:
+                self.made_dir.rmdir()
+            except OSError:
+                pass
+            self.made_dir = None
+
+
+def run(args: argparse.Namespace) -> int:
+    from rsra.daq.cli.options import UsageError
+    from rsra.daq.rigmodel import load_rig
+    from rsra.daq.analysis.export import ExportError
+    from rsra.daq.bus.replay import ReplayError, config_for, expand
+
+    if not (args.dbc or args.mcap or args.parquet):
+        raise UsageError("nothing to write; fix: give --dbc FILE, --mcap FILE or --parquet DIR")
+    telemetry = None
+    logs: list[str] = []
+    if args.inputs:
+        tel = [p for p in args.inputs if Path(p).suffix.lower() in TELEMETRY_SUFFIXES]
+        if tel and len(args.inputs) > 1:
+            raise UsageError(f"{tel[0]}: a telemetry file among other inputs; fix: export "
+                             "one telemetry file at a time, on its own")
+        if tel:
+            telemetry = Path(tel[0])
+            if not telemetry.is_file():
+                raise UsageError(f"{telemetry}: no such file; fix: give a file written by "
+                                 "`rsra replay --out`")
+        else:
+            try:
+                expand(args.inputs)
+            except ReplayError as e:
+                raise UsageError(f"{e}" + ("" if "fix:" in str(e) else (
+                    "; fix: give recordings (frame files or recording folders) or a "
+                    "RESULTS.jsonl written by `rsra replay --out`"))) from None
+            logs = list(args.inputs)
+    elif args.mcap or args.parquet:
+        raise UsageError("--mcap and --parquet need the telemetry to export; fix: give a "
+                         "RESULTS.jsonl from `rsra replay --out`, or recordings")
+    cfg = config_for(logs, args.config) if logs else load_rig(args.config)
+
+    staged = _Staged()
+    done: list[str] = []
+    try:
+        dbc_tmp = staged.file(Path(args.dbc), UsageError) if args.dbc else None
+        mcap_tmp = staged.file(Path(args.mcap), UsageError) if args.mcap else None
+        if args.parquet:
+            staged.folder(Path(args.parquet), UsageError)
+        if dbc_tmp is not None:
+            import cantools
+
+            from rsra.daq.analysis.export import build_dbc
+
+            db = build_dbc(cfg)
+            cantools.database.dump_file(db, dbc_tmp, database_format="dbc")
+            done.append(f"{args.dbc}: {len(db.messages)} messages, "
+                        f"{sum(len(m.signals) for m in db.messages)} signals")
+        if mcap_tmp is not None or args.parquet:
+            with tempfile.TemporaryFile("w+", encoding="utf-8") as scratch:
+                source = telemetry
+                if telemetry is None:
+                    _replay(cfg, logs, scratch, UsageError)
+                try:
+                    done += _telemetry(cfg, source, scratch, args, mcap_tmp, staged,
+                                       UsageError)
+                except ExportError as e:
+                    raise UsageError(str(e)) from None
+        staged.commit()
+    except BaseException:
+        staged.discard()
+        raise
+    for line in done:
+        print(line)
+    return 0
+
+
+def _replay(cfg, logs: list[str], scratch, usage) -> None:
+    from rsra.daq.analysis.export import replay_to_jsonl
+
+    replay_to_jsonl(cfg, logs, scratch, usage)
+    scratch.flush()
+
+
+def _telemetry(cfg, source: Path | None, scratch, args, mcap_tmp: Path | None,
+               staged: _Staged, usage) -> list[str]:
+    """Export the telemetry records (from ``source``, or the replayed ``scratch`` stream)."""
+    import json
+
+    from rsra.daq.analysis.export import (
+        ExportError,
+        parquet_schemas,
+        read_records,
+        vector_names,
+        write_mcap,
+        write_parquet,
+    )
+
+    def records():
+        if source is not None:
+            yield from read_records(source)
+            return
+        scratch.seek(0)
+        for line in scratch:
+            rec = json.loads(line)
+            yield rec.pop("key"), rec
+
+    if next(records(), None) is None:
+        raise ExportError(f"{source or ' '.join(args.inputs)}: no telemetry records; fix: give a "
+                          "file written by `rsra replay --out`, or a recording with samples")
+    out = []
+    if mcap_tmp is not None:
+        meta = {"rig": cfg.rig_name, "source": " ".join(args.inputs),
+                "units": "SI: N, N·m, m/s², rad, rad/s; t in UNIX seconds (docs/telemetry.md)"}
+        with open(mcap_tmp, "wb") as f:
+            counts = write_mcap(records(), f, cfg.telemetry.prefix, metadata=meta)
+        out.append(f"{args.mcap}: " + ", ".join(f"{k} {n}" for k, n in counts.items()))
+    if args.parquet:
+        names = vector_names(cfg)
+        schemas = parquet_schemas(records(), names)
+        folder = Path(args.parquet)
+        paths = {k: staged.file(folder / f"{k}.parquet", usage) for k in schemas}
+        counts = write_parquet(records(), schemas, paths, names)
+        out.append(f"{args.parquet}: " + ", ".join(f"{k}.parquet {n} rows"
+                                                   for k, n in counts.items()))
+    return out

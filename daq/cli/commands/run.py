@@ -1,0 +1,82 @@
+"""`rsra run`: the service — on a real bus, or with the simulator attached in-process."""
+from __future__ import annotations
+
+import argparse
+import json
+
+from rsra.daq.cli.options import (
+    UsageError,
+    add_service_options,
+    add_sim_options,
+    check_output_file,
+    check_sim_faults,
+    common_options,
+    config_for_run,
+    setup_logging,
+)
+
+
+def add_parser(sub, name: str) -> argparse.ArgumentParser:
+    p = sub.add_parser(name, help="run the service (real bus, or the simulator in-process)",
+                       description="The DAQ service: CANopen master, real-time hub-load "
+                       "estimation, periodic identification of the load-cell angles in its own "
+                       "process, Zenoh telemetry. On a real bus (--interface socketcan --channel "
+                       "vcan0) or with the simulated aircraft attached in-process (--sim).")
+    common_options(p, units=False)
+    p.add_argument("--interface", default=None, help="python-can interface, e.g. socketcan")
+    p.add_argument("--channel", default=None, help="python-can channel, e.g. vcan0 or can0")
+    p.add_argument("--sim", metavar="SCENARIO", default=None,
+                   help="attach the simulator in-process: ground-test, flight, paper, sweep "
+                   "(or a scenario file)")
+    add_sim_options(p)
+    add_service_options(p)
+    p.add_argument("--truth", metavar="FILE", default=None,
+                   help="with --sim: write the simulator's truth here (default: beside the "
+                   "recording)")
+    return p
+
+
+def options_from_args(args: argparse.Namespace):
+    from rsra.daq.runtime.service import ServiceOptions
+
+    if args.sim is None and args.interface is None:
+        raise UsageError("give --interface and --channel for a bus, or --sim SCENARIO")
+    if args.sim is not None and args.interface not in (None, "virtual"):
+        raise UsageError("--sim runs the simulator in-process on python-can's virtual bus; "
+                         "for a bench rig run `rsra sim` on that bus instead")
+    if args.sim is None and (args.faults or args.seed is not None):
+        raise UsageError("--faults and --seed need --sim")
+    if args.sim is None and args.speed != 1.0:
+        raise UsageError("--speed needs --sim (a real bus runs in real time)")
+    return ServiceOptions(
+        interface=args.interface, channel=args.channel, sim=args.sim, seed=args.seed,
+        faults=args.faults, speed=args.speed, record=args.record, duration=args.duration,
+        angles=args.angles, accept_rig_mismatch=args.accept_rig_mismatch,
+        zenoh_config=args.zenoh_config, zenoh_listen=args.zenoh_listen,
+        zenoh_connect=args.zenoh_connect, truth=getattr(args, "truth", None),
+        identification=args.identification)
+
+
+def run_service(cfg, opts, quiet: bool = False) -> int:
+    """Run the service to its end; every failure reaches the one error path in daq.cli."""
+    from rsra.daq.runtime.service import Service
+
+    service = Service(cfg, opts)
+    service.install_signal_handlers()
+    summary = service.run()
+    if not quiet:
+        print(json.dumps({"summary": summary}, allow_nan=False, default=str))
+    return 0
+
+
+def run(args: argparse.Namespace) -> int:
+    setup_logging(args.log_level, args.log_file)
+    if args.truth:  # found out now, not after the run
+        if not args.sim:
+            raise UsageError("--truth needs --sim (the truth is the simulator's); fix: add "
+                             "--sim SCENARIO or leave --truth out")
+        check_output_file("--truth", args.truth)
+    opts = options_from_args(args)
+    cfg = config_for_run(args.config, args.sim)
+    check_sim_faults(cfg, args.sim, args.faults, args.speed)
+    return run_service(cfg, opts)

@@ -1,0 +1,179 @@
+"""What the commands share: the usage error, the common options and their checks.
+
+Each command module (``rsra.daq.cli.commands.<name>``) imports from here and from the library,
+never from another command; ``rsra.daq.cli`` is the table that imports the commands.
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import logging.handlers
+import math
+import os
+import sys
+from pathlib import Path
+
+LOG_FILE_BYTES = 10 * 1024 * 1024
+LOG_FILE_BACKUPS = 5
+
+
+class UsageError(Exception):
+    """A user mistake on the command line: one line, exit 2."""
+
+
+def common_options(p: argparse.ArgumentParser, units: bool = True) -> None:
+    p.add_argument("--config", metavar="PATH", default=None,
+                   help="rig TOML (default: the packaged default rig)")
+    if units:
+        p.add_argument("--units", choices=("si", "us"), default="si",
+                       help="display units: si (N, N·m) or us (lbf, ft·lbf); default si")
+
+
+def parse_speed(text: str) -> float | None:
+    if text == "max":
+        return None
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a number or 'max'") from None
+    if not v > 0:
+        raise argparse.ArgumentTypeError("the speed must be > 0 (or 'max')")
+    return v
+
+
+def positive_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a number") from None
+    if not 0 < v < math.inf:
+        raise argparse.ArgumentTypeError("must be a finite number > 0")
+    return v
+
+
+def positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number") from None
+    if v <= 0:
+        raise argparse.ArgumentTypeError("must be a whole number > 0")
+    return v
+
+
+def seed(text: str) -> int:
+    """A simulator seed: a whole number >= 0 (numpy's SeedSequence refuses negatives)."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError("must be a whole number >= 0")
+    return v
+
+
+def add_sim_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--seed", type=seed, default=None, help="simulator seed (default: the scenario's)")
+    p.add_argument("--faults", default=None, metavar="SPEC",
+                   help="simulator faults, e.g. 'drop:cell_A:0.1;reboot:cell_C@12.5' "
+                   "(see docs/simulator.md)")
+    p.add_argument("--speed", type=parse_speed, default=1.0, metavar="X|max",
+                   help="simulated time per wall-clock second: 1 (default) is real time; "
+                   "'max' runs simulator and service in lock-step as fast as possible (the "
+                   "same samples as real time)")
+    p.add_argument("--duration", type=positive_float, default=None, metavar="S",
+                   help="stop after S seconds of acquisition time (exit 0)")
+
+
+def add_no_identification(p: argparse.ArgumentParser, help: str | None = None) -> None:
+    p.add_argument("--no-identification", dest="identification", action="store_false",
+                   help=help or "no on-line identification: the angles stay at the starting "
+                   "ones (--angles, else the configured initial angles) for the whole run")
+
+
+def add_service_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--record", metavar="DIR", default=None,
+                   help="record every frame, the angle schedule and the effective config here")
+    p.add_argument("--angles", metavar="STATE", default=None,
+                   help="start from a saved posterior (see identification.state_file)")
+    from rsra.daq.runtime.posterior_file import add_accept_option
+
+    add_accept_option(p)
+    add_no_identification(p)
+    p.add_argument("--zenoh-config", metavar="FILE", default=None,
+                   help="a Zenoh config file (TLS, user/password, access control)")
+    p.add_argument("--zenoh-listen", action="append", default=[], metavar="EP",
+                   help="Zenoh endpoint to listen on (repeatable; default tcp/127.0.0.1:7447)")
+    p.add_argument("--zenoh-connect", action="append", default=[], metavar="EP",
+                   help="Zenoh endpoint (router) to connect to (repeatable)")
+    p.add_argument("--log-file", metavar="FILE", default=None,
+                   help="log to this size-rotated file instead of stderr")
+    p.add_argument("--log-level", default="info",
+                   choices=("debug", "info", "warning", "error"), help="default info")
+
+
+def setup_logging(level: str, log_file: str | None) -> None:
+    root = logging.getLogger()
+    for h in list(root.handlers):
+        root.removeHandler(h)
+    if log_file:
+        try:
+            h: logging.Handler = logging.handlers.RotatingFileHandler(
+                log_file, maxBytes=LOG_FILE_BYTES, backupCount=LOG_FILE_BACKUPS)
+        except OSError as e:
+                raise UsageError(f"--log-file {log_file}: cannot be written ({e.strerror or e}); "
+                             "fix: give a file in an existing, writable folder") from None
+    else:
+        h = logging.StreamHandler(sys.stderr)
+    h.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    root.addHandler(h)
+    root.setLevel(level.upper())
+    # canopen logs every SDO step of a boot at INFO: keep that for --log-level debug
+    if level != "debug":
+        logging.getLogger("canopen").setLevel(logging.WARNING)
+
+
+def check_sim_faults(cfg, scenario: str | None, faults: str | None, speed: float | None) -> None:
+    """A --faults SPEC checked against the simulated bus before anything starts (FaultSpecError:
+    one line, exit 2): the same parse and check as the simulator's."""
+    if not faults or scenario is None:
+        return
+    from rsra.sim_bus.bus_sim import check_faults
+    from rsra.sim_bus.scenarios import load_scenario
+
+    # the service's simulator produces SYNC itself (autostart) in lock-step only
+    check_faults(cfg, faults, load_scenario(scenario).nodes_present, autostart=speed != 1.0)
+
+
+def config_for_run(config: str | None, scenario: str | None):
+    """The rig config, with a simulated scenario's own overrides (e.g. `paper` starts the
+    service at 4°) when the simulator is attached."""
+    from rsra.config.rig import ConfigError
+    from rsra.daq.rigmodel import load_rig
+
+    if scenario is None:
+        return load_rig(config)
+    from rsra.sim_bus.scenarios import load_scenario
+
+    try:
+        sc = load_scenario(scenario)
+    except ConfigError:
+        raise
+    except (FileNotFoundError, ValueError) as e:
+        raise UsageError(str(e)) from None
+    return load_rig(config, overrides=sc.rig_overrides or None)
+
+
+def check_output_file(option: str, path: str) -> None:
+    """An output file named on the command line, checked before any work: not a folder, in an
+    existing folder we may write (no folder is created for it: nothing the user did not name)."""
+
+    p = Path(path)
+    if p.is_dir():
+        raise UsageError(f"{option} {path}: is a folder; fix: give a file name")
+    parent = p.resolve().parent
+    if not parent.is_dir():
+        raise UsageError(f"{option} {path}: no folder {parent}; fix: create it or write elsewhere")
+    if not os.access(parent, os.W_OK):
+        raise UsageError(f"{option} {path}: folder {parent} is not writable; fix: write "
+                         "elsewhere")

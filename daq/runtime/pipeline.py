@@ -1,0 +1,299 @@
+"""The estimator thread's per-sample work (architecture.md data flow), free of I/O:
+
+sample → stuck-channel test → inertial loads → static estimate → load filter → records;
+        └→ calibration branch: content filter → window buffer → identification jobs.
+
+Identification results are applied from a stated sample (`applies_from_seq`), so a replay
+that feeds the recorded `angles` records through `deliver()` reproduces a live run exactly.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from rsra.config.rig import DESIGN_BAND, ConfigError, RigConfig
+from rsra.daq.bus.assembler import channels_payload
+from rsra.daq.bus.decoder import DecodeTable
+from rsra.daq.runtime.stuck import StuckMonitor
+from rsra.estimator.balance import inertial_load_matrix
+from rsra.estimator.content import ContentFilter
+from rsra.daq.rigmodel import design_cache
+from rsra.estimator.filters import LoadFilter
+from rsra.estimator.geometry import hub_transfer_matrix, wrench_matrix
+from rsra.estimator.transient import TIME_CONSTANT_FRACTION, TRANSIENT, TransientDetector
+
+log = logging.getLogger("rsra.pipeline")
+
+PREFILL_BAND = DESIGN_BAND  # the rotor-speed band designed at start-up (flight: +-2 %)
+
+
+@dataclass
+class PipelineOutput:
+    records: list[tuple[str, dict]] = field(default_factory=list)
+    job: dict | None = None  # an identification window to submit
+
+
+class WindowBuffer:
+    """Ring buffer of the content-filtered calibration data (bounded: one window)."""
+
+    def __init__(self, n: int, n_acc_cols: int):
+        self.n = n
+        self.T = np.zeros((n, 7))
+        self.z = np.zeros((n, 6))
+        self.H = np.zeros((n, 6))
+        self.seq = np.zeros(n, dtype=np.int64)
+        self.t = np.zeros(n)
+        self.ok = np.zeros(n, dtype=bool)  # load cells and accelerometers present
+        self.known = np.zeros(n, dtype=bool)  # balance present
+        self.omega = np.zeros(n)
+        self.count = 0
+
+    def add(self, seq, t, T, z, H, ok, known, omega) -> None:
+        i = self.count % self.n
+        self.T[i], self.z[i], self.H[i] = T, z, H
+        self.seq[i], self.t[i], self.ok[i], self.known[i], self.omega[i] = seq, t, ok, known, omega
+        self.count += 1
+
+    def window(self) -> dict:
+        """The last n samples in time order (copies: the job leaves this thread)."""
+        m = min(self.count, self.n)
+        idx = (np.arange(self.count - m, self.count)) % self.n
+        return {"T": self.T[idx].copy(), "z": self.z[idx].copy(), "known_H": self.H[idx].copy(),
+                "seq": self.seq[idx].copy(), "t": self.t[idx].copy(), "ok": self.ok[idx].copy(),
+                "known": self.known[idx].copy(), "omega": self.omega[idx].copy()}
+
+
+class EstimatorPipeline:
+    """Per-sample estimation for the live service and for replay (one code path)."""
+
+    def __init__(self, cfg: RigConfig, alpha0: np.ndarray, *, identification: bool = True,
+                 table: DecodeTable | None = None):
+        self.cfg = cfg
+        self.model = cfg.rig_model()
+        self.fs = cfg.sample_rate_hz
+        self.frame = cfg.hub_frame
+        self.alpha = np.asarray(alpha0, float).copy()
+        self._S = wrench_matrix(self.model.geometry, self.alpha)
+        self._Rinv = np.linalg.inv(hub_transfer_matrix(self.model.geometry))
+        self._Mf = inertial_load_matrix(self.model)
+        self._D = self.model.external.wrenches
+        f = cfg.filter
+        self.cache = design_cache(cfg, model=self.model)
+        # a redesign takes 10-60 ms, longer than a sample: design the expected band now
+        w0 = cfg.rotor.omega_nominal_rad_s
+        try:
+            self.cache.prefill(w0 * (1 - PREFILL_BAND), w0 * (1 + PREFILL_BAND))
+            self.load_filter = LoadFilter(
+                self.cache, self.alpha, invalid_after_samples=int(round(f.invalid_after_s * self.fs)))
+        except (np.linalg.LinAlgError, ValueError) as e:  # the config check (Nyquist) passed
+            if isinstance(e, ConfigError):
+                raise
+            why = " ".join(f"{type(e).__name__}: {e}".split())
+            raise ConfigError(
+                "filter", f"harmonics {list(f.harmonics)}, time_constant_s {f.time_constant_s:g}",
+                f"the load filter cannot be designed at rig.sample_rate_hz = {self.fs:g} and "
+                f"rotor.omega_nominal_rad_s = {w0:g} ({why})",
+                "use fewer or lower harmonics, a longer time_constant_s or a higher sample rate",
+                cfg.source) from None
+        # the filter's lag behind a moving static load: flag `transient` (estimator/transient.py)
+        self.transient = TransientDetector(1.0 / self.fs,
+                                           TIME_CONSTANT_FRACTION * f.time_constant_s)
+        self.cell_names = [c.name for c in cfg.cells]
+        self.innov_every = max(1, int(round(self.fs / cfg.telemetry.innovations_hz)))
+        # calibration branch
+        idc = cfg.identification
+        self.identification = identification
+        # the identification worker died too often and is off (service): every hub_loads
+        # record is flagged so
+        self.identification_off = False
+        self.period_n = int(round(idc.period_s * self.fs))
+        self.window_n = int(round(idc.window_s * self.fs))
+        self.apply_delay_n = int(round(idc.apply_delay_s * self.fs))
+        self.buffer = WindowBuffer(self.window_n, 3 * len(cfg.accelerometers))
+        omega0 = cfg.rotor.omega_nominal_rad_s
+        harm = tuple(cfg.filter.harmonics)
+        n_ch = 7 + 6 + 6
+        self.content = {
+            "known_loads": ContentFilter(idc.content_known_loads, self.fs, omega0, harm, n_ch),
+            "filter_error": ContentFilter(idc.content_filter_error, self.fs, omega0, harm, n_ch),
+        }
+        self.first_seq: int | None = None
+        self.last_known_seq: int | None = None
+        self.pending: list[dict] = []  # results waiting for their apply sample
+        self.outstanding: dict[int, int] = {}  # job id -> planned apply seq
+        self.next_job_id = 0
+        # a rotor speed whose highest modelled harmonic is at or above Nyquist cannot be
+        # designed for (and no rotor gives one): such a reading is not used (model §5)
+        self.omega_max = math.pi * self.fs / max(cfg.filter.harmonics)
+        self.implausible_omega = 0  # readings refused (counted in health)
+        self._last_seq: int | None = None
+        self._omega: float | None = None  # this sample's usable rotor speed
+        self.design_errors = 0  # redesigns that failed: the current design was kept
+        # stuck channels (a frozen sensor with a clean status, daq/runtime/stuck.py): flagged
+        # fault:<cell|accelerometer> and treated like a faulted cell — predict-only (model
+        # §6), H_static null, not ok in the identification window
+        self.stuck = StuckMonitor(cfg, table) if cfg.stuck.enabled else None
+
+    # --- identification results -------------------------------------------------------
+    def deliver(self, record: dict, arrival_seq: int | None = None) -> None:
+        """Hand over an identification result (live) or a recorded angles record (replay).
+
+        Live: it applies from its planned sample, or — when it arrives after that sample —
+        from the first sample after arrival (`late`). A recorded record carries its
+        `applies_from_seq` and is applied exactly there.
+        """
+        rec = dict(record)
+        job = rec.pop("job_id", None)
+        if job is not None:
+            planned = self.outstanding.pop(job, rec.get("applies_from_seq"))
+            if arrival_seq is not None and planned is not None and arrival_seq >= planned:
+                rec["applies_from_seq"] = arrival_seq + 1
+                rec["late"] = True
+            else:
+                rec["applies_from_seq"] = planned
+                rec.setdefault("late", False)
+        self.pending.append(rec)
+        self.pending.sort(key=lambda r: r["applies_from_seq"])
+
+    def waiting_for(self, seq: int) -> list[int]:
+        """Jobs whose result must be in before sample `seq` is processed (lock-step)."""
+        return [j for j, s in self.outstanding.items() if s <= seq]
+
+    def _apply_due(self, seq: int, out: PipelineOutput) -> None:
+        while self.pending and self.pending[0]["applies_from_seq"] <= seq:
+            rec = self.pending.pop(0)
+            if rec.get("accepted"):
+                names = rec.get("names") or []
+                alpha = self.alpha.copy()
+                angle_names = self.model.geometry.angle_names
+                for n, v in zip(names, rec["alpha"]):
+                    if n in angle_names:
+                        alpha[angle_names.index(n)] = v
+                self.set_alpha(alpha)
+            out.records.append(("angles", rec))
+
+    def set_alpha(self, alpha: np.ndarray) -> None:
+        self.alpha = np.asarray(alpha, float).copy()
+        self._S = wrench_matrix(self.model.geometry, self.alpha)
+        self.load_filter.set_alpha(self.alpha)
+
+    # --- the per-sample path ----------------------------------------------------------
+    def process(self, s, early: Callable[[list], None] | None = None) -> PipelineOutput:
+        """One sample. ``early`` (live) receives the records up to and including hub_loads as
+        soon as they exist: the channels, innovations and calibration branch come after, off
+        the SYNC → hub-load latency path (performance.md P5)."""
+        out = PipelineOutput()
+        seq = int(s.seq)
+        if self.first_seq is None:
+            self.first_seq = seq
+        self._apply_due(seq, out)
+        T = np.asarray(s.T, float)
+        accel = np.asarray(s.accel, float).reshape(-1)
+        flags = list(s.flags)
+        stuck = False
+        if self.stuck is not None:
+            for fl in self.stuck.update(T, accel, s.flags):
+                stuck = True
+                if fl not in flags:
+                    flags.append(fl)
+        # (np.count_nonzero: a fraction of ndarray.all's cost on these short vectors, P5)
+        cells_ok = np.count_nonzero(np.isfinite(T)) == T.size
+        acc_ok = np.count_nonzero(np.isfinite(accel)) == accel.size
+        bad_status = stuck or (bool(flags) and
+                               any(f.startswith(("overrange:", "fault:")) for f in flags))
+        q = None
+        drive_ok = True
+        if self._D.shape[1]:
+            q = None if s.drive is None else np.asarray(s.drive, float)
+            drive_ok = q is not None and np.count_nonzero(np.isfinite(q)) == q.size
+        measured = cells_ok and acc_ok and drive_ok and not bad_status
+        I = self._Mf @ accel if acc_ok else np.full(6, np.nan)
+        z = I - self._D @ q if (q is not None and drive_ok) else I
+        H_static = None
+        if measured:
+            H_static = self._Rinv @ (z - self._S @ T)
+        omega = s.omega if s.omega is not None and math.isfinite(s.omega) else None
+        refused = omega is not None and not abs(omega) < self.omega_max
+        if refused:
+            # a corrupt or impossible reading (e.g. 1e12 rad/s): no redesign for it — the
+            # design would fail or take the estimator thread for tens of ms — and no value
+            self.implausible_omega += 1
+            omega = None
+            node = f"missing:{self.cfg.rotor.node}"
+            if node not in flags:
+                flags.append(node)
+        else:
+            try:
+                self.load_filter.set_omega(omega)
+            except (ValueError, np.linalg.LinAlgError) as e:  # keep the current design
+                self.design_errors += 1
+                if self.design_errors == 1:
+                    log.error("filter redesign at omega=%r failed (%s); the current design "
+                              "is kept", omega, e)
+        self._omega = omega
+        # samples lost before this one: SYNCs lost on the bus (lost_before), and samples
+        # dropped after assembly (a full queue live, counted in health) — both keep their seq,
+        # so the gap says how far to predict (model §6: Φ^k)
+        lost = int(s.lost_before)
+        if self._last_seq is not None and seq - self._last_seq - 1 > lost:
+            lost = seq - self._last_seq - 1
+        self._last_seq = seq
+        res = self.load_filter.step(T if measured else np.zeros(7), z if measured else np.zeros(6),
+                                    measured=measured, lost=lost)
+        for fl in res.flags:
+            if fl not in flags:
+                flags.append(fl)
+        if res.e is not None and self.transient.update(self.load_filter.design, res.e):
+            flags.append(TRANSIENT)
+        if self.identification_off:
+            flags.append("identification_off")
+        omega_pub = omega if omega is not None else (
+            None if self.cfg.rotor.stopped or refused else self.cfg.rotor.omega_nominal_rad_s)
+        out.records.append(("hub_loads", {
+            "seq": seq, "sync": int(s.sync), "t": float(s.t), "frame": self.frame,
+            "H": None if res.H is None else res.H, "H_static": H_static, "omega": omega_pub,
+            "flags": flags}))
+        if early is not None:
+            early(out.records)
+            out.records = []
+        status = s.cell_status
+        if not isinstance(status, dict):
+            status = {n: int(b) for n, b in zip(self.cell_names, status)}
+        out.records.append(("channels", channels_payload(s, I=I, status=status)))
+        if (seq - self.first_seq) % self.innov_every == 0:
+            out.records.append(("innovations", {"seq": seq, "t": float(s.t), "e": res.e,
+                                                "nis": res.nis}))
+        if self.identification:
+            out.job = self._calibration_branch(s, seq, T, z, measured)
+        return out
+
+    def _calibration_branch(self, s, seq, T, z, measured) -> dict | None:
+        known = s.known_H is not None and bool(np.isfinite(np.asarray(s.known_H, float)).all())
+        if known:
+            self.last_known_seq = seq
+        Hk = np.asarray(s.known_H, float) if known else np.zeros(6)
+        x = np.concatenate([T if measured else np.zeros(7), z if measured else np.zeros(6), Hk])
+        # one causal content filter per mode; both see every sample so either can take over
+        yk = self.content["known_loads"].process(x[None, :])[0]
+        yf = self.content["filter_error"].process(x[None, :])[0]
+        fresh = self.last_known_seq is not None and seq - self.last_known_seq < self.fs * 0.5
+        mode = "known_loads" if fresh else "filter_error"
+        y = yk if mode == "known_loads" else yf
+        omega = self._omega if self._omega is not None else self.cfg.rotor.omega_nominal_rad_s
+        self.buffer.add(seq, s.t, y[:7], y[7:13], y[13:], measured, known, omega)
+        since = seq - self.first_seq + 1
+        if since < self.period_n or since % self.period_n != 0:
+            return None
+        w = self.buffer.window()
+        job_id = self.next_job_id
+        self.next_job_id += 1
+        planned = int(w["seq"][-1]) + self.apply_delay_n
+        self.outstanding[job_id] = planned
+        content = (self.cfg.identification.content_known_loads if mode == "known_loads"
+                   else self.cfg.identification.content_filter_error)
+        return {"job_id": job_id, "mode": mode, "content": content, "applies_from_seq": planned,
+                "alpha": self.alpha.copy(), **w}

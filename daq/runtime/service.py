@@ -1,0 +1,745 @@
+"""The service runtime (`rsra run`, `rsra demo`, `rsra replay`): one code path for every source.
+
+    source (live bus │ simulator in lock-step │ recording) ─▶ reader ─▶ samples
+        ─▶ estimator loop (this thread): pipeline.process(sample) ─▶ publishers
+        └▶ identification windows ─▶ worker process ─▶ angles records ─▶ applied from a stated sample
+
+* Live (`--interface/--channel`, or `--sim` in real time): the reader's bus thread assembles
+  samples into a bounded queue; this thread estimates and publishes; identification results
+  apply from their planned sample, or from the first sample after they arrive (`late`).
+* Lock-step (`--sim … --speed max`, or a paced `--speed X`): the simulator boots its nodes
+  and produces SYNC; each step moves simulated time by one sample, so the samples are those of
+  real time and nothing reads the wall clock. A node that reboots is restarted by the reader
+  (SDO and NMT start between two steps, answered synchronously: Reader.supervise). The loop
+  waits for identification results at their planned sample, so a run is deterministic.
+* Replay: recorded frames through the same reader; the recorded `angles` schedule reproduces
+  the live run bit for bit, or `--recompute` runs the identification deterministically.
+
+High-rate records are published inline (Zenoh congestion control DROP never blocks); the
+low-rate ones (angles, health) go through a small bounded queue to a publisher thread, since a
+slow subscriber may block them.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import queue
+import signal
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rsra.config.rig import RigConfig
+from rsra.daq.jsonout import dumps
+from rsra.daq.runtime.pipeline import EstimatorPipeline
+
+log = logging.getLogger("rsra.service")
+
+LOW_RATE_QUEUE = 64
+# the in-process simulator computes its physics in blocks of samples; a block of 1000 takes
+# 7-14 ms, longer than a 5 ms sample period, which in real time made the simulated nodes miss
+# a SYNC every 5 s. 100-sample blocks take ~1 ms. Lock-step uses the same size, so a seed gives
+# the same samples in both modes.
+SIM_BLOCK = 100
+
+
+class BusOpenError(RuntimeError):
+    """The CAN interface could not be opened (no such interface or channel, no driver)."""
+LATENCY_HISTORY = 2000
+ANGLES_HISTORY = 16  # recent angles records kept in memory (~15 kB each with P)
+
+
+@dataclass
+class ServiceOptions:
+    interface: str | None = None
+    channel: str | None = None
+    sim: str | None = None  # scenario name or path
+    seed: int | None = None
+    faults: str | None = None
+    speed: float | None = 1.0  # None = as fast as possible (lock-step)
+    record: str | None = None
+    duration: float | None = None  # seconds of acquisition time
+    angles: str | None = None  # a saved posterior to start from
+    accept_rig_mismatch: bool = False  # use (or replace) a posterior of another rig
+    zenoh: bool = True
+    zenoh_config: str | None = None
+    zenoh_listen: list[str] = field(default_factory=list)
+    zenoh_connect: list[str] = field(default_factory=list)
+    identification: bool = True
+    truth: str | None = None  # simulator truth file (default: beside the recording)
+    keep_truth: bool = False  # keep the simulator's truth history in memory (demo report)
+    scenario_variants: dict = field(default_factory=dict)
+    # replay
+    replay: list[str] | None = None
+    recompute: bool = False
+    realtime: bool = False
+
+
+class _LowRatePublisher:
+    """A thread that publishes angles and health records (which may block on Zenoh)."""
+
+    def __init__(self, publish: Callable[[str, dict], Any]):
+        self._publish = publish
+        self.queue: queue.Queue = queue.Queue(LOW_RATE_QUEUE)
+        self.dropped = 0
+        self._thread = threading.Thread(target=self._run, name="rsra-low-rate", daemon=True)
+        self._thread.start()
+
+    def put(self, key: str, payload: dict) -> None:
+        try:
+            self.queue.put_nowait((key, payload))
+        except queue.Full:
+            self.dropped += 1
+
+    def _run(self) -> None:
+        while True:
+            item = self.queue.get()
+            if item is None:
+                return
+            try:
+                self._publish(*item)
+            except Exception as e:  # never let a publishing error kill the thread
+                log.debug("low-rate publish failed: %s", e)
+
+    def close(self) -> None:
+        try:
+            self.queue.put(None, timeout=2.0)
+        except queue.Full:
+            pass
+        self._thread.join(timeout=5.0)
+
+
+class Outputs:
+    """Where the records go: Zenoh, a JSONL file, in-process sinks (tests, the demo view)."""
+
+    def __init__(self, cfg: RigConfig, opts: ServiceOptions):
+        self.cfg = cfg
+        self.session = None
+        self.telemetry = None
+        self.low_rate: _LowRatePublisher | None = None
+        self.sinks: list[Callable[[str, dict], None]] = []
+        self.counts: dict[str, int] = {}
+        if opts.zenoh:
+            import zenoh
+
+            from rsra.config.rig import ConfigError, zenoh_endpoint_problem
+            from rsra.daq.runtime.telemetry import TelemetryPublisher, zenoh_config
+
+            for opt, eps in (("--zenoh-listen", opts.zenoh_listen),
+                             ("--zenoh-connect", opts.zenoh_connect)):
+                for ep in eps or ():
+                    problem = zenoh_endpoint_problem(ep)
+                    if problem:
+                        raise ConfigError(opt, ep, problem, f"e.g. {opt} tcp/127.0.0.1:7447")
+            conf = zenoh_config(cfg.telemetry, listen=opts.zenoh_listen or None,
+                                connect=opts.zenoh_connect or None,
+                                config_file=opts.zenoh_config)
+            self.session = zenoh.open(conf)
+            # state/config tells the endpoints the session really uses (options, config file)
+            effective = cfg.effective()
+            tel = effective.setdefault("telemetry", {})
+            for k in ("listen", "connect"):
+                tel[k] = json.loads(conf.get_json(f"{k}/endpoints"))
+            self.telemetry = TelemetryPublisher(self.session, cfg.telemetry.prefix, effective)
+            self.low_rate = _LowRatePublisher(self.telemetry.publish)
+
+    def publish(self, key: str, payload: dict) -> None:
+        self.counts[key] = self.counts.get(key, 0) + 1
+        for sink in self.sinks:
+            sink(key, payload)
+        if self.telemetry is None:
+            return
+        if key in ("angles", "health"):
+            self.low_rate.put(key, payload)
+        else:
+            self.telemetry.publish(key, payload)
+
+    def close(self) -> None:
+        if self.low_rate is not None:
+            self.low_rate.close()
+        if self.telemetry is not None:
+            self.telemetry.close()
+        if self.session is not None:
+            self.session.close()
+        self.telemetry = self.session = None
+
+
+def jsonl_sink(path: str | Path):
+    """A sink writing `{"key": …, …payload}` lines (strict JSON), and its closer."""
+    f = open(path, "w", encoding="utf-8")
+
+    def sink(key: str, payload: dict) -> None:
+        f.write(dumps({"key": key, **payload}) + "\n")
+
+    return sink, f.close
+
+
+def initial_angles(cfg: RigConfig, state_path: str | None, accept_rig_mismatch: bool = False):
+    """(alpha0, posterior state or None, warning or None) from the config or a saved
+    posterior (of this rig, within the angles' physical range: daq.posterior_file)."""
+    alpha0 = np.asarray(cfg.identification.initial_angles_rad, float).copy()
+    if not state_path:
+        return alpha0, None, None
+    from rsra.daq.runtime.posterior_file import load_checked
+
+    names = cfg.rig_model().geometry.angle_names
+    idc = cfg.identification
+    wanted = names if idc.parameters == "angles" else tuple(idc.parameters)
+    # PosteriorFileError on a corrupt file, another rig's, or angles out of range
+    state, warning = load_checked(cfg, state_path, wanted,
+                                  accept_rig_mismatch=accept_rig_mismatch)
+    for n, v in zip(state.names, state.theta):
+        if n in names:
+            alpha0[names.index(n)] = v
+    return alpha0, state, warning
+
+
+def read_angles_schedule(folder: Path) -> tuple[dict | None, list[dict]]:
+    """The starting posterior and the recorded angles records of a recording folder."""
+    p = folder / "angles.jsonl"
+    if not p.is_file():
+        return None, []
+    initial, records = None, []
+    with open(p, encoding="utf-8") as f:
+        for n, line in enumerate(f, 1):
+            line = line.strip()
+            if not line:
+                continue
+            try:
+                rec = json.loads(line)
+            except ValueError:
+                log.warning("%s:%d: unreadable angles record skipped (a crash mid-write?)", p, n)
+                continue
+            problem = _schedule_problem(rec)
+            if problem:
+                from rsra.daq.bus.replay import ReplayError
+
+                raise ReplayError(f"{p}:{n}: {problem}; fix: replay with --recompute (runs the "
+                                  "identification again) or repair that line")
+            if rec.get("initial"):
+                initial = rec
+            else:
+                records.append(rec)
+    return initial, records
+
+
+def _finite_numbers(x: Any) -> bool:
+    return isinstance(x, list) and all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in x)
+
+
+def _schedule_problem(rec: Any) -> str | None:
+    """What makes a recorded angles record unusable (None: usable)."""
+    if not isinstance(rec, dict):
+        return "an angles record must be a JSON object"
+    if rec.get("initial"):
+        alpha = rec.get("alpha_all", rec.get("alpha"))
+        if not _finite_numbers(alpha) or not alpha:
+            return "the starting record has no finite 'alpha_all' angles"
+        return None
+    seq = rec.get("applies_from_seq")
+    if "applies_from_seq" not in rec:
+        return "angles record without 'applies_from_seq' (the sample it applies from)"
+    if not isinstance(seq, int) or isinstance(seq, bool) or seq < 0:
+        return f"'applies_from_seq' = {seq!r} is not a sample number"
+    if rec.get("accepted"):
+        names, alpha = rec.get("names"), rec.get("alpha")
+        if (not isinstance(names, list) or not all(isinstance(x, str) for x in names)
+                or not _finite_numbers(alpha) or len(names) != len(alpha)):
+            return "an accepted angles record needs 'names' and as many finite 'alpha' values"
+    return None
+
+
+class Service:
+    """Builds the sources, the pipeline, the worker and the outputs; `run()` until done."""
+
+    def __init__(self, cfg: RigConfig, opts: ServiceOptions):
+        if opts.replay is not None and cfg.identification.state_file:
+            # a replay (recomputed or not) saves no posterior: identification.state_file is the
+            # live service's output, never one the user named for a replay (cli.md)
+            import dataclasses
+
+            cfg = dataclasses.replace(cfg, identification=dataclasses.replace(
+                cfg.identification, state_file=""))
+        self.cfg = cfg
+        self.opts = opts
+        self.stop_event = threading.Event()
+        self.fs = cfg.sample_rate_hz
+        self.dt = 1.0 / self.fs
+        self.latencies: deque[float] = deque(maxlen=LATENCY_HISTORY)
+        self.deadline_misses = 0
+        self.lockstep = opts.replay is None and opts.sim is not None and opts.speed != 1.0
+        self.synchronous_ident = self.lockstep or (opts.replay is not None)
+        self.worker = None
+        self.ident_errors = 0
+        self.reader = None
+        self.sim = None
+        self.outputs: Outputs | None = None
+        self.summary: dict[str, Any] = {}
+        self.last_seq: int | None = None
+        self.first_t: float | None = None
+        self.last_t: float | None = None
+        # the latest angles records (bounded: a record with its P is ~10 kB, one per period
+        # for as long as the service runs) and running counts for the summary
+        self.angles_log: deque[dict] = deque(maxlen=ANGLES_HISTORY)
+        self.ident_runs = 0
+        self.ident_rejected: dict[str, int] = {}
+        self.lost = 0
+        self.samples = 0
+        self.last_health: dict | None = None
+        self._extra_sinks: list[Callable[[str, dict], None]] = []
+        self.pipeline: EstimatorPipeline | None = None
+        self.recorder = None
+        self.warnings: list[str] = []  # start-up problems the service went on with
+        self.schedule: dict | None = None  # replay: where the angles come from
+        self.worker_initializer = None  # called first in the worker process (tests)
+
+    def add_sink(self, sink: Callable[[str, dict], None]) -> None:
+        self._extra_sinks.append(sink)
+
+    # -- set-up ----------------------------------------------------------------------------
+    def _setup_identification(self, alpha0, state) -> None:
+        from rsra.daq.runtime.ident_worker import SupervisedIdentification
+
+        self.worker = SupervisedIdentification(self.cfg, state, on_restart=self._worker_lost,
+                                               initializer=self.worker_initializer)
+
+    def _worker_lost(self) -> None:
+        """The identification worker died: the windows it held are lost (a restart is a
+        discontinuity; its first record says so), and when it is off for good the pipeline
+        stops cutting windows and flags every sample."""
+        p = self.pipeline
+        p.outstanding.clear()
+        if self.worker is not None and self.worker.off:
+            p.identification = False
+            p.identification_off = True
+
+    def _initial_record(self, alpha0, state) -> dict:
+        names = self.cfg.rig_model().geometry.angle_names
+        if state is not None:
+            P = state.P.tolist()
+            rec_names = list(state.names)
+            theta = state.theta.tolist()
+        else:
+            s = self.cfg.identification.prior_sigma_rad
+            rec_names = list(names)
+            theta = alpha0.tolist()
+            P = (np.eye(len(names)) * s * s).tolist()
+        return {"initial": True, "names": rec_names, "alpha": theta, "P": P,
+                "alpha_all": alpha0.tolist(), "applies_from_seq": None}
+
+    def stop(self, *_: Any) -> None:
+        self.stop_event.set()
+        if self.worker is not None:
+            self.worker.stopping = True
+
+    def install_signal_handlers(self) -> None:
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, self.stop)
+            signal.signal(signal.SIGTERM, self.stop)
+
+    # -- the run -----------------------------------------------------------------------------
+    def run(self) -> dict:
+        opts, cfg = self.opts, self.cfg
+        closers: list[Callable[[], None]] = []
+        try:
+            recorded_initial, recorded = (None, [])
+            recompute = opts.recompute
+            if opts.replay is not None:
+                folder = next((Path(p) for p in opts.replay if Path(p).is_dir()), None)
+                schedule = None if folder is None else folder / "angles.jsonl"
+                if not opts.identification:
+                    # the starting angles (the recording's, or --angles) for the whole replay
+                    if folder is not None:
+                        recorded_initial, _ = read_angles_schedule(folder)
+                    self.schedule = {"source": "off"}
+                elif opts.recompute:
+                    self.schedule = {"source": "recomputed", "why": "--recompute"}
+                elif schedule is None or not schedule.is_file():
+                    # a recording from elsewhere (bus.md): the identification is recomputed
+                    recompute = True
+                    self.schedule = {"source": "recomputed", "why": "no angle schedule"}
+                else:
+                    recorded_initial, recorded = read_angles_schedule(folder)
+                    applies = [r.get("applies_from_seq") for r in recorded]
+                    applies = [a for a in applies if isinstance(a, int)]
+                    self.schedule = {"source": "recorded", "file": str(schedule),
+                                     "records": len(recorded),
+                                     "initial": recorded_initial is not None,
+                                     "last_applies_from_seq": max(applies, default=None)}
+            if recorded_initial is not None and not opts.angles:
+                alpha0 = np.asarray(recorded_initial.get("alpha_all", recorded_initial["alpha"]),
+                                    float)
+                n_angles = len(cfg.rig_model().geometry.angle_names)
+                if alpha0.shape != (n_angles,):
+                    from rsra.daq.bus.replay import ReplayError
+
+                    raise ReplayError(f"{folder / 'angles.jsonl'}: the starting record holds "
+                                      f"{alpha0.size} angles, the rig has {n_angles}; fix: "
+                                      "replay with --recompute or give the recording's --config")
+                state = None
+            else:
+                alpha0, state, warning = initial_angles(cfg, opts.angles,
+                                                        opts.accept_rig_mismatch)
+                if warning:
+                    log.warning("%s", warning)
+                    self.warnings.append(warning)
+            use_ident = opts.identification and (opts.replay is None or recompute)
+            if use_ident:
+                # the worker saves accepted runs there: only over a posterior of ours
+                # (ConfigError naming the key otherwise, before acquisition starts)
+                from rsra.daq.runtime.posterior_file import prepare_state_file
+
+                for warning in prepare_state_file(
+                        cfg, accept_rig_mismatch=opts.accept_rig_mismatch):
+                    log.warning("%s", warning)
+                    self.warnings.append(warning)
+            self.pipeline = EstimatorPipeline(cfg, alpha0, identification=use_ident)
+            for rec in recorded:
+                self.pipeline.deliver(rec)
+            self.outputs = Outputs(cfg, opts)
+            closers.append(self.outputs.close)
+            self.outputs.sinks.extend(self._extra_sinks)
+            if use_ident:
+                self._setup_identification(alpha0, state)
+                closers.append(self._close_worker)
+            source = self._make_source(closers)
+            if self.recorder is not None:
+                self.recorder.write_angles(self._initial_record(alpha0, state))
+            log.info("service started: %s", self._describe())
+            self._loop(source)
+        finally:
+            for close in reversed(closers):
+                try:
+                    close()
+                except Exception as e:  # keep closing the rest
+                    log.error("shutdown: %s", e)
+        self.summary = self._summary()
+        return self.summary
+
+    def _close_worker(self) -> None:
+        if self.worker is not None:
+            self.worker.close()
+
+    def _describe(self) -> str:
+        o = self.opts
+        if o.replay is not None:
+            return f"replay of {', '.join(o.replay)}"
+        if o.sim:
+            mode = "lock-step, as fast as possible" if o.speed is None else (
+                f"lock-step at {o.speed:g}x real time" if self.lockstep else "real time")
+            return f"simulator {o.sim!r} in process ({mode})"
+        return f"bus {o.interface}:{o.channel}"
+
+    def _make_source(self, closers) -> Iterator:
+        import can
+
+        o, cfg = self.opts, self.cfg
+        from rsra.daq.bus.decoder import DecodeTable
+        from rsra.daq.bus.reader import Reader
+
+        # the EDS files first: one the simulator cannot read either is a ConfigError naming
+        # the key (exit 2), not a traceback from inside the simulator's nodes
+        table = DecodeTable(cfg)
+        if o.replay is not None:
+            from rsra.daq.bus.replay import replay
+
+            reader = Reader.offline(cfg, table=table)
+            self.reader = reader
+            return replay(cfg, o.replay, realtime=o.realtime, reader=reader, finish=True)
+        if o.sim is not None:
+            from rsra.sim_bus.bus_sim import Simulator
+            from rsra.sim_bus.physics import AircraftPhysics
+            from rsra.sim_bus.scenarios import load_scenario
+
+            scenario = load_scenario(o.sim, **o.scenario_variants)
+            channel = o.channel or f"rsra-{id(self):x}"
+            # the truth history (bounded, ~0.5 kB a sample) only when a truth file is wanted
+            keep = bool(o.truth or o.record or o.keep_truth)
+            if self.lockstep:
+                t0 = round(time.time(), 3)  # simulated time reads like UNIX time
+                sim = Simulator(cfg, physics=AircraftPhysics(cfg, scenario, seed=o.seed,
+                                                              block_size=SIM_BLOCK),
+                                seed=o.seed, faults=o.faults, channel=channel, autostart=True,
+                                lockstep=True, threaded=False, t0=t0, keep_samples=keep)
+                bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=True,
+                              preserve_timestamps=True)
+                # the simulator boots and starts its nodes and produces SYNC; the reader
+                # listens, and restarts a node that reboots (bus.md: reconfigured and
+                # restarted without restarting the service), its SDO answered in lock-step
+                try:
+                    reader = Reader(cfg, bus=bus, master=False, restart_nodes=True,
+                                    wall_clock=False, record=o.record, overflow="block",
+                                    table=table)
+                except BaseException:  # e.g. the recording cannot start: close what is open
+                    bus.shutdown()
+                    sim.close()
+                    raise
+                self.sim, self.reader = sim, reader
+                closers.append(bus.shutdown)
+                closers.append(reader.close)
+                closers.append(self._close_sim)
+                reader.start(notifier=False)
+                sim.start()
+                reader.pump()  # the simulator's own boot-ups: seen, not acted upon
+                reader.supervise(peer_pump=sim.pump)
+                self.recorder = reader.recorder
+                return self._lockstep_items()
+            sim = Simulator(cfg, physics=AircraftPhysics(cfg, scenario, seed=o.seed,
+                                                              block_size=SIM_BLOCK),
+                            seed=o.seed, faults=o.faults, channel=channel, autostart=False,
+                            lockstep=False, threaded=True, keep_samples=keep)
+            self.sim = sim
+            closers.append(self._close_sim)
+            sim.start()
+            reader = Reader(cfg, interface="virtual", channel=channel, master=True,
+                            record=o.record, overflow="drop", table=table)
+        else:
+            reader = Reader(cfg, interface=o.interface, channel=o.channel, master=True,
+                            record=o.record, overflow="drop", table=table)
+        self.reader = reader
+        closers.append(reader.close)
+
+        try:
+            reader.start()  # boots the nodes; BootError names node, object and both values
+        except (OSError, ImportError, ValueError, can.CanError) as e:
+            raise BusOpenError(
+                f"cannot open the bus {o.interface or 'virtual'}:{o.channel} ({e}); check "
+                f"--interface/--channel (python-can interfaces: "
+                f"{', '.join(sorted(set(can.VALID_INTERFACES) - {'udp_multicast'}))})") from None
+        self.recorder = reader.recorder
+        return self._live_items()
+
+    def _close_sim(self) -> None:
+        if self.sim is None:
+            return
+        truth = self.opts.truth
+        if truth is None and self.recorder is not None:
+            truth = str(Path(self.recorder.folder) / "truth.npz")
+        self.sim.close()  # first: in real time its threads would still be appending
+        if truth:
+            try:
+                self.sim.write_truth(truth)
+            except Exception as e:
+                log.error("truth not written: %s", e)
+
+    def _lockstep_items(self) -> Iterator:
+        sim, reader = self.sim, self.reader
+        speed = self.opts.speed
+        wall0 = time.monotonic()
+        k = 0
+        while not self.stop_event.is_set():
+            sim.step()
+            reader.pump()
+            reader.service_nodes()  # a node that booted: restarted before time moves on
+            k += 1
+            yield from reader.poll()
+            if speed:  # paced lock-step: simulated time runs at `speed` x the wall clock
+                ahead = k * self.dt / speed - (time.monotonic() - wall0)
+                if ahead > 0:
+                    time.sleep(ahead)
+
+    def _live_items(self) -> Iterator:
+        reader = self.reader
+        while not self.stop_event.is_set():
+            item = reader.get(timeout=0.05)
+            yield item  # None when idle: results are still polled
+
+    # -- per item ------------------------------------------------------------------------------
+    def _loop(self, source: Iterator) -> None:
+        from rsra.daq.bus.reader import HealthReport
+
+        # --duration counts samples of acquisition time (lost ones included: they keep seq)
+        n_max = None if self.opts.duration is None else max(1, round(self.opts.duration * self.fs))
+        first_seq = None
+        for item in source:
+            if item is None:
+                self._poll_results()
+            elif isinstance(item, HealthReport):
+                self._on_health(item)
+            else:
+                self._on_sample(item)
+                if first_seq is None:
+                    first_seq = item.seq
+                if n_max is not None and item.seq - first_seq + 1 >= n_max:
+                    break
+            if self.stop_event.is_set():
+                break
+
+    def _poll_results(self) -> None:
+        if self.worker is None or self.synchronous_ident:
+            return
+        arrival = self.last_seq if self.last_seq is not None else 0
+        for r in self.worker.poll(self.last_seq):  # (and restarts a dead worker)
+            self._deliver(r, arrival)
+
+    def _deliver(self, r: dict, arrival: int | None) -> None:
+        if "error" in r:
+            self.ident_errors += 1
+            log.error("identification: %s", r["error"])
+            job = r.get("job_id")
+            if job is not None:
+                self.pipeline.outstanding.pop(job, None)
+            return
+        self.pipeline.deliver(r, arrival_seq=arrival)
+
+    def _wait_results(self, seq: int) -> None:
+        """Lock-step and replay: the result of every window due at this sample first; a dead
+        worker is seen at every sample (restarted, or identification off: deterministic)."""
+        if self.worker is None:
+            return
+        self.worker.check(seq, every_call=True)
+        while self.pipeline.waiting_for(seq):
+            r = self.worker.wait(seq, timeout=120.0)
+            if r is None:  # it died: restarted or off, its jobs forgotten (_worker_lost)
+                self.pipeline.outstanding.clear()
+                return
+            self._deliver(r, None)
+
+    def _on_sample(self, s) -> None:
+        p = self.pipeline
+        if self.synchronous_ident:
+            self._wait_results(s.seq)
+        else:
+            self._poll_results()
+        publish = self.outputs.publish
+        live = not self.lockstep and self.opts.replay is None
+
+        def emit(records: list) -> None:
+            for key, payload in records:
+                publish(key, payload)
+                if key == "hub_loads" and live:
+                    lat = time.time() - s.t
+                    self.latencies.append(lat)
+                    if lat > self.dt:
+                        self.deadline_misses += 1
+                elif key == "angles":
+                    self._on_angles(payload)
+
+        # live: the hub loads are published before the rest of the sample is worked on
+        out = p.process(s, early=emit if live else None)
+        emit(out.records)
+        if out.job is not None and self.worker is not None:
+            if self.synchronous_ident:
+                # deterministic: every window runs (unless the worker died meanwhile)
+                if not self.worker.put(out.job, s.seq):
+                    p.outstanding.pop(out.job["job_id"], None)
+            elif not self.worker.submit(out.job, s.seq):  # busy, dead or off: logged
+                p.outstanding.pop(out.job["job_id"], None)
+        self.samples += 1
+        self.lost += int(s.lost_before)
+        self.last_seq = s.seq
+        if self.first_t is None:
+            self.first_t = s.t
+        self.last_t = s.t
+
+    def _on_angles(self, rec: dict) -> None:
+        if self.recorder is not None and self.opts.replay is None:
+            self.recorder.write_angles(rec)
+        self.angles_log.append(rec)
+        self.ident_runs += 1
+        if not rec.get("accepted"):
+            reason = str(rec.get("reason"))
+            self.ident_rejected[reason] = self.ident_rejected.get(reason, 0) + 1
+        if rec.get("accepted"):
+            sig = rec.get("sigma_cr") or []
+            worst = max((x for x in sig if x is not None), default=float("nan"))
+            log.info("identification accepted (%s, %s): %d of %d directions determined, "
+                     "worst sigma_CR %.3f deg, applies from sample %s%s", rec.get("mode"),
+                     rec.get("content"), rec.get("determined", 0), len(rec.get("names") or []),
+                     math.degrees(worst), rec.get("applies_from_seq"),
+                     " (late)" if rec.get("late") else "")
+        else:
+            log.info("identification rejected (%s, %s): %s", rec.get("mode"), rec.get("content"),
+                     rec.get("reason"))
+
+    def _on_health(self, item) -> None:
+        payload = dict(item.payload)
+        if self.latencies:
+            a = np.fromiter(self.latencies, float) * 1e3
+            payload["latency_ms"] = {"p50": float(np.percentile(a, 50)),
+                                     "p99": float(np.percentile(a, 99)),
+                                     "max": float(a.max()),
+                                     "deadline_misses": self.deadline_misses}
+        else:
+            payload["latency_ms"] = {"p50": None, "p99": None}
+        queues = dict(payload.get("queues") or {})
+        if self.worker is not None:
+            queues["identification"] = {"submitted": self.worker.submitted,
+                                        "dropped": self.worker.dropped,
+                                        "errors": self.ident_errors}
+            payload["identification"] = self.worker.health()
+        if self.outputs is not None and self.outputs.low_rate is not None:
+            queues["publisher"] = {"depth": self.outputs.low_rate.queue.qsize(),
+                                   "dropped": self.outputs.low_rate.dropped}
+        payload["queues"] = queues
+        if self.pipeline is not None:  # readings the estimator refused (bad input, counted)
+            payload["estimator"] = {"implausible_omega": self.pipeline.implausible_omega,
+                                    "design_errors": self.pipeline.design_errors}
+            if self.pipeline.stuck is not None:
+                payload["estimator"].update(self.pipeline.stuck.health())
+        if self.warnings:
+            payload["warnings"] = list(self.warnings)
+        prev = (self.last_health or {}).get("recording") or {}
+        rec = payload.get("recording") or {}
+        if rec.get("error") and rec.get("error") != prev.get("error"):
+            log.error("recording stopped: %s", rec["error"])
+        self.last_health = payload
+        self.outputs.publish("health", payload)
+
+    def _summary(self) -> dict:
+        rej = dict(self.ident_rejected)
+        out = {"samples": self.samples, "lost": self.lost,
+               "duration_s": None if self.first_t is None else self.last_t - self.first_t,
+               "identification_runs": self.ident_runs,
+               "accepted": self.ident_runs - sum(rej.values()),
+               "rejected": rej, "published": dict(self.outputs.counts) if self.outputs else {},
+               "deadline_misses": self.deadline_misses}
+        if self.warnings:
+            out["warnings"] = list(self.warnings)
+        if self.pipeline is not None and (self.pipeline.implausible_omega
+                                          or self.pipeline.design_errors):
+            out["implausible_omega"] = self.pipeline.implausible_omega
+            out["design_errors"] = self.pipeline.design_errors
+        if self.pipeline is not None and self.pipeline.stuck is not None:
+            st = self.pipeline.stuck.health()
+            if st["stuck_episodes"]:
+                out["stuck"] = {"episodes": st["stuck_episodes"], "samples": st["stuck_samples"]}
+        if self.latencies:
+            a = np.fromiter(self.latencies, float) * 1e3
+            out["latency_ms"] = {"p50": float(np.percentile(a, 50)),
+                                 "p99": float(np.percentile(a, 99)), "max": float(a.max())}
+        if self.angles_log:
+            last = self.angles_log[-1]
+            out["angles"] = {"names": last.get("names"), "alpha": last.get("alpha"),
+                             "sigma": [math.sqrt(max(last["P"][i][i], 0.0))
+                                       for i in range(len(last.get("names") or []))]
+                             if last.get("P") else None}
+        if self.pipeline is not None:
+            out["alpha_applied"] = self.pipeline.alpha.tolist()
+        if self.schedule is not None:
+            out["angles_schedule"] = self._schedule_summary()
+        return out
+
+    def _schedule_summary(self) -> dict:
+        """Replay: where the angles came from. A recorded schedule is partial when the
+        recording runs on for more than a period, the apply delay and a second past its last
+        record (a live run publishes one record per period)."""
+        sch = dict(self.schedule)
+        if sch["source"] != "recorded" or self.last_seq is None:
+            return sch
+        idc = self.cfg.identification
+        last = sch["last_applies_from_seq"]
+        sch["last_seq"] = self.last_seq
+        if last is not None:
+            sch["uncovered_s"] = max(0, self.last_seq - last) / self.fs
+            sch["partial"] = self.last_seq - last > (idc.period_s + idc.apply_delay_s
+                                                     + 1.0) * self.fs
+        return sch
