@@ -1,4 +1,4 @@
-"""The experiment design (estimator/design.py, daq/next_conditions.py; issue 19): the
+"""The experiment design (estimator/design.py, daq/runtime/next_conditions.py; issue 19): the
 information of a condition, the D-optimal order of the `calibration` scenario, the
 recommendation in `rsra calibrate` and in the live known-load `angles` records."""
 from __future__ import annotations

@@ -9,7 +9,7 @@ from scipy import stats
 
 from bench.p2_filter_step import load_filter_cache
 from rsra.config.rig import load_config
-from rsra.daq.report import nis_consistency
+from rsra.daq.analysis.report import nis_consistency
 from rsra.estimator.balance import inertial_loads
 from rsra.estimator.filters import LoadFilter
 from rsra.estimator.identification import innovation_model
@@ -153,7 +153,7 @@ def test_ramps_are_flagged_and_held_loads_are_consistent(cfg):
 def test_pipeline_flags_transient_in_hub_loads(cfg):
     """The service's pipeline puts the flag in hub_loads, on the ramp and not on the hold
     (the `calibration` scenario: its first ramp moves L, M and N)."""
-    from rsra.daq.pipeline import EstimatorPipeline
+    from rsra.daq.runtime.pipeline import EstimatorPipeline
     from types import SimpleNamespace
 
     sc, run, moving = _ground_test(cfg, 10.5, seed=2, scenario="calibration")

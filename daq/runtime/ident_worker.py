@@ -73,7 +73,7 @@ def build_identification(cfg, initial_state=None):
                                    content_settle_samples=settle(idc.content_known_loads),
                                    **common)
     design = cache.design_for(w0)
-    from rsra.daq.next_conditions import NextConditions
+    from rsra.daq.runtime.next_conditions import NextConditions
 
     # the next load conditions to apply (known-load records: `next_conditions`)
     known.next_conditions = NextConditions(cfg)

@@ -168,7 +168,7 @@ def run(args: argparse.Namespace) -> int:
     finally:
         progress.close()
 
-    from rsra.daq.next_conditions import for_calibration
+    from rsra.daq.runtime.next_conditions import for_calibration
 
     nxt = for_calibration(cfg, result) if result.status != "diverged" else None
     notes = _notes(cfg, result)
@@ -284,7 +284,7 @@ def _print_tables(cfg, result, units: str, notes: list[str], wrote: str | None,
         if not n.startswith("plausibility:"):
             con.print(f"note: {n}")
     if nxt:
-        from rsra.daq.next_conditions import describe
+        from rsra.daq.runtime.next_conditions import describe
 
         con.print("next load conditions to apply (D-optimal for the constant angles and per-cell "
                   "load gains, docs/identification.md):")
