@@ -130,6 +130,12 @@ def test_calibrate_recovers_the_true_angles_and_writes_a_fragment_that_loads(
                            cfg.filter.harmonics, 1).settle_samples
     assert d["samples_read"] == int(2 * SWEEP_S * cfg.sample_rate_hz)
     assert d["scored"] == d["valid"] - settle and d["valid"] >= d["samples_read"] - 1
+    # the next load conditions to apply (docs/identification.md): three, within the limits,
+    # the first changing the thrust beyond the ground test's 76–84 kN (the load gains)
+    nxt = res["next_conditions"]
+    assert len(nxt) == 3 and all(c["information_gain"] > 0 for c in nxt)
+    assert abs(nxt[0]["H"][2] + 80e3) > 20e3
+    assert max(abs(x) for c in nxt for x in c["H"]) <= cfg.balance.full_scale_force_N
     # the fragment: merged into the config, it carries the estimates
     assert res["fragment"] == str(frag)
     text = frag.read_text()

@@ -328,7 +328,9 @@ def test_every_flag_reason_mode_and_state_is_in_telemetry_md(published):
     doc = _read("telemetry.md")
     hub = code_names(section(doc, "`<prefix>/hub_loads`"))
     flags = {f for k, p in published if k == "hub_loads" for f in p["flags"]}
-    vocabulary = {PREDICT_ONLY, INVALID, LOST_BEFORE, ROTOR_STOPPED, "missing:<node>",
+    from rsra.estimator.transient import TRANSIENT
+
+    vocabulary = {PREDICT_ONLY, INVALID, LOST_BEFORE, ROTOR_STOPPED, TRANSIENT, "missing:<node>",
                   "overrange:<cell>", "fault:<cell>"}
     for f in flags:  # every flag seen belongs to the documented vocabulary
         kind = f.split(":")[0]

@@ -71,6 +71,12 @@ def test_report_end_to_end(e2e, capsys):
                  "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "RMS error / static σ" in printed
+    # the innovations with their verdict, overall and per state of the load (issue 19)
+    inn = json.loads((out / "summary.json").read_text())["innovations"]
+    assert inn["verdict"] in ("consistent", "conservative", "inconsistent")
+    assert set(inn["by_state"]) == {"held", "transient"}
+    line = [ln for ln in printed.splitlines() if "innovations: mean NIS" in ln][0]
+    assert line.endswith(("consistent", "CONSERVATIVE", "INCONSISTENT"))
     for name in ("hub_loads.png", "hub_load_errors.png", "angles.png", "innovations.png",
                  "spectra.png"):
         _png_ok(out / name)

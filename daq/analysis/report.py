@@ -456,13 +456,44 @@ def _innovations_summary(d: ReportData) -> dict:
     lo, hi = _chi2_band(6)
     total = float(nis.sum())
     dof = 6 * len(nis)
-    return {"records": int(len(nis)), "settle_s": d.settle_s,
-            "mean_nis": float(nis.mean()), "dof_per_record": 6,
-            "band": [lo, hi], "false_alarm": FALSE_ALARM,
-            "fraction_outside": float(np.mean((nis < lo) | (nis > hi))),
-            "joint_chi2": {"value": total, "dof": dof,
-                           "band": list(_chi2_band(dof)),
-                           "p_value_upper": float(stats.chi2.sf(total, dof))}}
+    out = {"records": int(len(nis)), "settle_s": d.settle_s,
+           "mean_nis": float(nis.mean()), "dof_per_record": 6,
+           "band": [lo, hi], "false_alarm": FALSE_ALARM,
+           "fraction_outside": float(np.mean((nis < lo) | (nis > hi))),
+           "joint_chi2": {"value": total, "dof": dof,
+                          "band": list(_chi2_band(dof)),
+                          "p_value_upper": float(stats.chi2.sf(total, dof))}}
+    out.update(nis_consistency(nis, lo, hi))
+    # per state of the load: held, or `transient` (the hub_loads flag at the record's sample)
+    sel = ok & (inn["t"] - d.t0 >= d.settle_s)
+    hub = d.rec.hub
+    if hub is not None:
+        moving = {int(q) for q, f in zip(hub["seq"], hub["flags"]) if "transient" in f}
+        tr = np.array([int(q) in moving for q in inn["seq"][sel]], bool)
+        out["by_state"] = {state: {"records": int(m.sum()),
+                                   "mean_nis": float(nis[m].mean()) if m.any() else None,
+                                   **nis_consistency(nis[m], lo, hi)}
+                           for state, m in (("held", ~tr), ("transient", tr))}
+    return out
+
+
+def nis_consistency(nis: np.ndarray, lo: float, hi: float,
+                    false_alarm: float = FALSE_ALARM) -> dict:
+    """The NIS against the χ²₆ band [lo, hi] (each tail ``false_alarm``/2): the share above and
+    below, and the verdict — ``inconsistent`` when more lie above hi than a consistent filter
+    gives at an overall false-alarm rate of ``false_alarm`` (binomial; innovations larger than
+    their stated σ), ``conservative`` when too many lie below lo (smaller than stated: the σ
+    is overstated), ``consistent`` otherwise; ``no data`` without records. The records are
+    taken as independent (they are ≥ 50 ms apart, a few filter time constants' correlation
+    remains: the verdict is indicative)."""
+    n = int(len(nis))
+    if not n:
+        return {"above": None, "below": None, "limit": None, "verdict": "no data"}
+    k_hi, k_lo = int(np.sum(nis > hi)), int(np.sum(nis < lo))
+    limit = int(stats.binom.isf(false_alarm / 2, n, false_alarm / 2))  # each tail, each side
+    verdict = ("inconsistent" if k_hi > limit else "conservative" if k_lo > limit
+               else "consistent")
+    return {"above": k_hi / n, "below": k_lo / n, "limit": limit / n, "verdict": verdict}
 
 
 def _flags_summary(d: ReportData) -> dict:
@@ -789,7 +820,15 @@ class Report:
         inn = s.get("innovations", {})
         if "mean_nis" in inn:
             lines.append(f"  innovations: mean NIS {inn['mean_nis']:.2f} (expected 6), "
-                         f"{inn['fraction_outside'] * 100:.2f} % outside the χ²₆ band")
+                         f"{inn['fraction_outside'] * 100:.2f} % outside the χ²₆ band: "
+                         f"{inn['verdict'].upper() if inn['verdict'] != 'consistent' else 'consistent'}")
+            for state, v in (inn.get("by_state") or {}).items():
+                if v["records"]:
+                    lines.append(f"    {state}: {v['records']} records, mean NIS "
+                                 f"{v['mean_nis']:.2f}, {v['above'] * 100:.2f} % above / "
+                                 f"{v['below'] * 100:.2f} % below the band: "
+                                 + (v["verdict"] if v["verdict"] == "consistent"
+                                    else v["verdict"].upper()))
         for k, v in self.skipped.items():
             lines.append(f"  skipped {k}: {v}")
         return "\n".join(lines)
@@ -861,7 +900,19 @@ def _markdown(s: dict, units: str) -> str:
                  f"{inn['fraction_outside'] * 100:.2f} % outside [{inn['band'][0]:.3g}, "
                  f"{inn['band'][1]:.3g}] (expected {FALSE_ALARM * 100:g} %); joint χ² "
                  f"{j['value']:.1f} on {j['dof']} dof (band [{j['band'][0]:.1f}, "
-                 f"{j['band'][1]:.1f}]; records are correlated, so this is indicative).")
+                 f"{j['band'][1]:.1f}]; records are correlated, so this is indicative): "
+                 + (f"**{inn['verdict']}**." if inn["verdict"] != "consistent" else "consistent."))
+        for state, v in (inn.get("by_state") or {}).items():
+            if v["records"]:
+                L.append(f"* {state} load ({'hub_loads flagged `transient`' if state == 'transient' else 'not flagged'}): "
+                         f"{v['records']} records, mean NIS {v['mean_nis']:.3f}, "
+                         f"{v['above'] * 100:.3f} % above and {v['below'] * 100:.3f} % below "
+                         f"the band (each tail at most {v['limit'] * 100:.3f} % when consistent): "
+                         + (f"**{v['verdict']}**" if v["verdict"] != "consistent"
+                            else "consistent")
+                         + (" — the filter lags the moving load; the σ that holds there is "
+                            "H_static's static bound (model.md, Transients)."
+                            if state == "transient" and v["verdict"] != "consistent" else "."))
     L += ["", "## Flags and health"]
     fl = s["flags"]
     if fl.get("hub_loads") is not None:

@@ -77,6 +77,10 @@ def build_identification(cfg, initial_state=None):
                                    content_settle_samples=settle(idc.content_known_loads),
                                    **common)
     design = cache.design_for(w0)
+    from rsra.daq.runtime.next_conditions import NextConditions
+
+    # the next load conditions to apply (known-load records: `next_conditions`)
+    known.next_conditions = NextConditions(cfg)
     ferr = PeriodicIdentification(mode="filter_error", content=idc.content_filter_error,
                                   design=design,
                                   content_sos=ContentFilter(idc.content_filter_error, fs, w0,
@@ -119,6 +123,14 @@ def run_job(cfg, runs: dict, cache, job: dict) -> dict:
     out["restarted"] = False
     out["job_id"] = job["job_id"]
     out["condition"] = rec.condition
+    nc = getattr(ident, "next_conditions", None)
+    if mode == "known_loads" and nc is not None:
+        if rec.reason == "reset":
+            nc.tracker = type(nc.tracker)(nc.model, cfg.identification.prior_sigma_rad,
+                                          moment_floor=cfg.identification.moment_floor_Nm)
+        elif rec.reason in (None, "not_identifiable"):  # the data the posterior holds
+            nc.add_window(ident.alpha(), job["T"][valid], int(np.count_nonzero(valid)))
+        out["next_conditions"] = nc.recommend(rec.names, ident.alpha(), rec.P)
     return out
 
 

@@ -25,6 +25,7 @@ from rsra.estimator.content import ContentFilter
 from rsra.daq.rigmodel import design_cache
 from rsra.estimator.filters import LoadFilter
 from rsra.estimator.geometry import hub_transfer_matrix, wrench_matrix
+from rsra.estimator.transient import TIME_CONSTANT_FRACTION, TRANSIENT, TransientDetector
 
 log = logging.getLogger("rsra.pipeline")
 
@@ -99,6 +100,9 @@ class EstimatorPipeline:
                 f"rotor.omega_nominal_rad_s = {w0:g} ({why})",
                 "use fewer or lower harmonics, a longer time_constant_s or a higher sample rate",
                 cfg.source) from None
+        # the filter's lag behind a moving static load: flag `transient` (estimator/transient.py)
+        self.transient = TransientDetector(1.0 / self.fs,
+                                           TIME_CONSTANT_FRACTION * f.time_constant_s)
         self.cell_names = [c.name for c in cfg.cells]
         self.innov_every = max(1, int(round(self.fs / cfg.telemetry.innovations_hz)))
         # calibration branch
@@ -250,6 +254,8 @@ class EstimatorPipeline:
         for fl in res.flags:
             if fl not in flags:
                 flags.append(fl)
+        if res.e is not None and self.transient.update(self.load_filter.design, res.e):
+            flags.append(TRANSIENT)
         if self.identification_off:
             flags.append("identification_off")
         omega_pub = omega if omega is not None else (

@@ -37,7 +37,12 @@ FIELDS: dict[str, list[tuple[str, str, str]]] = {
         ("iterations", "integer", ""), ("window", "array:integer", ""),
         ("applies_from_seq", "integer", ""), ("late", "boolean", ""),
         ("restarted", "boolean", ""), ("condition", "number", ""),
-        ("structure", "string", ""), ("candidates", "array:object", "")],
+        ("structure", "string", ""), ("candidates", "array:object", ""),
+        ("next_conditions", "array:object", ""), ("next_conditions[].H", "array:number", VEC6),
+        ("next_conditions[].information_gain", "number", "nats"),
+        ("next_conditions[].by_structure", "object", ""),
+        ("next_conditions[].by_structure.constant", "number", "nats"),
+        ("next_conditions[].by_structure.cell_gain", "number", "nats")],
     "health": [
         ("t", "number", "s (UNIX)"), ("nodes", "object", ""),
         ("nodes.<node>.state", "string", ""), ("nodes.<node>.heartbeat_age", "number", "s"),

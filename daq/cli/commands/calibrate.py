@@ -57,8 +57,9 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
                    '"unit", "start", "estimate", "sigma_cr", "sigma_cr_corrected", "prior_sigma", '
                    '"change_sigma", "determined"}], "names", "covariance", '
                    '"covariance_corrected", "alpha_all_deg", "residuals", "information", '
-                   '"convergence", "plausibility", "data", "notes", "fragment"} (angles in degrees, '
-                   "loads in SI whatever --units)")
+                   '"convergence", "plausibility", "data", "notes", "fragment", "next_conditions": '
+                   '[{"H", "information_gain", "by_structure"}]} (angles in degrees, loads in SI '
+                   "whatever --units)")
     p.add_argument("--angles", metavar="STATE", default=None,
                    help="start from the angles of a saved posterior (rsra angles show) instead of "
                    "identification.initial_angles_deg")
@@ -167,6 +168,9 @@ def run(args: argparse.Namespace) -> int:
     finally:
         progress.close()
 
+    from rsra.daq.runtime.next_conditions import for_calibration
+
+    nxt = for_calibration(cfg, result) if result.status != "diverged" else None
     notes = _notes(cfg, result)
     wrote = None
     if out is not None and result.status != "diverged":
@@ -176,9 +180,10 @@ def run(args: argparse.Namespace) -> int:
         d = result.to_dict(cfg)
         d["notes"] = notes
         d["fragment"] = wrote
+        d["next_conditions"] = nxt
         print(dumps(d))
     else:
-        _print_tables(cfg, result, args.units, notes, wrote)
+        _print_tables(cfg, result, args.units, notes, wrote, nxt)
     if result.status == "diverged":
         print("rsra calibrate: the identification diverged; no fragment written (check the "
               "recordings and the starting values)", file=sys.stderr)
@@ -222,7 +227,8 @@ def _fmt(v: float, unit: str) -> str:
     return f"{v:.2f}"
 
 
-def _print_tables(cfg, result, units: str, notes: list[str], wrote: str | None) -> None:
+def _print_tables(cfg, result, units: str, notes: list[str], wrote: str | None,
+                  nxt: list[dict] | None = None) -> None:
     from rich.table import Table
 
     from rsra.daq.analysis.calibrate import parameter_unit
@@ -277,5 +283,12 @@ def _print_tables(cfg, result, units: str, notes: list[str], wrote: str | None) 
     for n in notes:
         if not n.startswith("plausibility:"):
             con.print(f"note: {n}")
+    if nxt:
+        from rsra.daq.runtime.next_conditions import describe
+
+        con.print("next load conditions to apply (D-optimal for the constant angles and per-cell "
+                  "load gains, docs/identification.md):")
+        for k, c in enumerate(nxt, 1):
+            con.print(f"  {k}. {describe(c['H'], c['information_gain'])}")
     if wrote:
         con.print(f"wrote {wrote}: merge it into the rig config (or load_rig(overrides=…))")
