@@ -1,12 +1,12 @@
 """Honest transients: the load filter's lag behind a moving static load (issue 19; model.md
-§6, "Transients").
+§6.1 "Transients").
 
 The fixed-gain load filter (model §6, τ = 0.1 s) models the static hub load as a random
 walk whose process noise is set for the held load. When the static load moves — a 0.5 s
 ramp between ground-test conditions, a manoeuvre — the filter lags by about rate × τ, its
 innovations are biased, and neither Ĥ nor the NIS is within the σ it was designed with
 (measured on `ground-test`: 35 % of the NIS outside the χ²₆ band while the load moves, the
-N error 3.8× its bound). The filter is not changed (the gain stays fixed, as §6 says); the
+N error 3.8× its bound). The filter is not changed (the gain stays fixed, as model §6 says); the
 samples are **flagged** `transient` instead, and the σ that holds there is the static bound
 of `H_static` (model §3), which has no lag.
 
