@@ -78,6 +78,9 @@ class AnglesRecord:
     late: Any = ABSENT
     restarted: Any = ABSENT
     condition: Any = ABSENT
+    structure: Any = ABSENT  # known loads: the structure test (issue 19)
+    candidates: Any = ABSENT
+    next_conditions: Any = ABSENT  # known loads: the experiment design (issue 19)
     extra: tuple[tuple[str, Any], ...] = ()  # keys not declared above, in their order
 
     FIELDS: ClassVar[tuple[str, ...]]
