@@ -569,8 +569,10 @@ class StructureTest:
     def add_window(self, x: np.ndarray, alpha: np.ndarray) -> StructureVerdict:
         x = np.asarray(x, float)
         alpha = np.asarray(alpha, float)
-        if len(x) < self.min_samples:
-            return self.last  # too little of this window to count: nothing new
+        if len(x) < self.min_samples or not np.isfinite(x).all() or not np.isfinite(alpha).all():
+            # too little of this window to count, or a corrupt one (a non-finite value the
+            # window's own checks reject): nothing new
+            return self.last
         self.look += 1
         xbar, n = x.mean(axis=0), len(x)
         restarted = False
