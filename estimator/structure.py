@@ -78,6 +78,7 @@ CLUSTER_TOLERANCE = (1000.0, 1000.0)  # N, N·m: windows at the same load within
 MAX_CLUSTERS = 256  # bounded: a new load beyond this joins the nearest cluster
 MAX_PARAMETERS_REPORTED = 6  # per candidate, the most significant first
 GN_ITERATIONS = 8
+CONVERGED_STEP_RAD = 1e-6  # the constant fit's last Gauss–Newton step (rad): converged
 
 
 # ------------------------------------------------------------------------------------------
@@ -348,16 +349,26 @@ def fit_constant(model: RigModel, alpha: np.ndarray, means: np.ndarray, counts: 
                  moment_floor: float, iterations: int = GN_ITERATIONS) -> np.ndarray:
     """The constant-angle fit to condition means: Gauss–Newton with the pseudo-inverse (the
     directions the conditions do not determine stay at ``alpha``)."""
+    return fit_constant_converged(model, alpha, means, counts, moment_floor, iterations)[0]
+
+
+def fit_constant_converged(model: RigModel, alpha: np.ndarray, means: np.ndarray,
+                           counts: np.ndarray, moment_floor: float,
+                           iterations: int = GN_ITERATIONS) -> tuple[np.ndarray, bool]:
+    """:func:`fit_constant` and whether its Gauss–Newton steps converged (last step below
+    ``CONVERGED_STEP_RAD``): the test's null distribution holds only at a converged fit."""
     a = np.asarray(alpha, float).copy()
     Li = _whitener(model, a, moment_floor)
+    converged = False
     for _ in range(iterations):
         r, Ja, _ = _stack(model, a, means, counts, Li, ())
         step, *_ = np.linalg.lstsq(Ja, r, rcond=RANK_TOLERANCE)
         a = a + step
-        if np.max(np.abs(step)) < 1e-9:
+        if np.max(np.abs(step)) < CONVERGED_STEP_RAD:
+            converged = True
             break
     # J is 2π-periodic in the angles: the equivalent nearest the start
-    return alpha + np.angle(np.exp(1j * (a - alpha)))
+    return alpha + np.angle(np.exp(1j * (a - alpha))), converged
 
 
 @dataclass
@@ -596,8 +607,14 @@ class StructureTest:
         counts = np.array([c.n for c in self.clusters], float)
         # from the angles in force at every look (a previous fit on fewer conditions can sit
         # far off in directions they did not determine)
-        a = fit_constant(self.model, alpha, means, counts, self.moment_floor)
+        a, converged = fit_constant_converged(self.model, alpha, means, counts,
+                                              self.moment_floor)
         self.alpha = a
+        if not converged and not self.rejected:
+            # far from the angles (a cold start, a run that did not converge): the linearised
+            # statistic has no χ² law here — no verdict from this look
+            return StructureVerdict("undetermined", look=self.look, conditions=len(self.clusters),
+                                    level=level, restarted=restarted, fits=[])
         fits, _ = test_structures(self.model, a, means, counts, self.moment_floor, level,
                                   self.structures)
         base = dict(look=self.look, conditions=len(self.clusters), level=level,
