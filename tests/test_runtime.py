@@ -115,7 +115,10 @@ def _estimator_keys():
 
 
 def test_the_angles_record_declares_todays_keys_in_todays_order():
-    assert AnglesRecord.FIELDS == (*_estimator_keys(), "restarted", "condition")
+    # the estimator's keys, the service's two, then issue 19's known-load fields: the
+    # structure test and the experiment design (docs/telemetry.md §2.4)
+    assert AnglesRecord.FIELDS == (*_estimator_keys(), "restarted", "condition", "structure",
+                                   "candidates", "next_conditions")
 
 
 def test_the_angles_record_serialises_byte_for_byte_as_the_dict_did():
@@ -128,8 +131,8 @@ def test_the_angles_record_serialises_byte_for_byte_as_the_dict_did():
     assert list(late.to_dict()) == list(d)
     assert dumps(late.to_dict()) == dumps({**d, "applies_from_seq": 20, "late": True})
     # an undeclared key (a recording of another version) is carried, after the others
-    more = AnglesRecord.from_dict({**d, "structure": {"x": 1}})
-    assert dumps(more.to_dict()) == dumps({**d, "structure": {"x": 1}})
+    more = AnglesRecord.from_dict({**d, "future_field": {"x": 1}})
+    assert dumps(more.to_dict()) == dumps({**d, "future_field": {"x": 1}})
     # an absent key stays absent (an older recording without "condition")
     less = {k: v for k, v in d.items() if k != "condition"}
     assert dumps(AnglesRecord.from_dict(less).to_dict()) == dumps(less)
