@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import subprocess
 import sys
 import threading
@@ -28,31 +27,13 @@ import time
 import numpy as np
 
 from bench.common import BLAS_ENV, arg_parser, ratio, writer_from_args
+from bench.rig import free_tcp_port, wait_listening
 
 BENCH = "p5_latency"
 WARMUP_S = 5.0
 SCORED_S = 60.0
 FLOOR_S = 10.0
 CONNECT_TIMEOUT_S = 180.0  # the machine is shared: start-up can take a minute
-
-
-def free_tcp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_listening(port: int, proc: subprocess.Popen | None, timeout: float) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if proc is not None and proc.poll() is not None:
-            raise RuntimeError(f"the process exited ({proc.returncode}) before listening")
-        try:
-            with socket.create_connection(("127.0.0.1", port), timeout=0.2):
-                return
-        except OSError:
-            time.sleep(0.05)
-    raise RuntimeError(f"nothing listens on port {port} after {timeout} s")
 
 
 class Receiver:

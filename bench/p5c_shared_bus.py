@@ -26,13 +26,13 @@ import numpy as np
 
 from bench.common import arg_parser, ratio, writer_from_args
 from bench.rig import (
+    start_sim_and_service,
     Receiver,
     floor_master_main,
     free_tcp_port,
     responder_main,
     response_frames,
     scored,
-    spawn,
     start_bus,
     stop,
     wait_listening,
@@ -108,14 +108,7 @@ def service_run(channel: str, seconds: float, warmup: float, tmp: Path) -> dict:
     cfg = load_config()
     sim = svc = rx = None
     try:
-        sim = spawn(["-m", "rsra", "sim", "--scenario", "ground-test", "--interface", "remote",
-                     "--channel", channel])
-        time.sleep(2.0)
-        port = free_tcp_port()
-        ep = f"tcp/127.0.0.1:{port}"
-        svc = spawn(["-m", "rsra", "run", "--interface", "remote", "--channel", channel,
-                     "--zenoh-listen", ep, "--log-level", "warning"])
-        wait_listening(port, svc)
+        sim, svc, ep = start_sim_and_service(channel)
         rx = Receiver(ep, cfg.telemetry.prefix, int(RATE * (seconds + warmup + 120)))
         deadline = time.monotonic() + 120
         while rx.count() == 0 and time.monotonic() < deadline:  # the nodes booted

@@ -27,7 +27,7 @@ from pathlib import Path
 
 from bench.common import arg_parser, ratio, writer_from_args
 from bench.p5c_shared_bus import floor_run
-from bench.rig import Receiver, free_tcp_port, rate_config, spawn, start_bus, stop, wait_listening
+from bench.rig import start_sim_and_service, Receiver, rate_config, start_bus, stop
 
 BENCH = "p6a_shared_bus_rate"
 TRIAL_S = 12.0
@@ -48,14 +48,7 @@ def service_trial(channel: str, rate: float, seconds: float, warmup: float, tmp:
     prefix = load_config().telemetry.prefix
     sim = svc = rx = None
     try:
-        sim = spawn(["-m", "rsra", "sim", "--scenario", "ground-test", "--interface", "remote",
-                     "--channel", channel])
-        time.sleep(2.0)
-        port = free_tcp_port()
-        ep = f"tcp/127.0.0.1:{port}"
-        svc = spawn(["-m", "rsra", "run", "--config", str(cfg_path), "--interface", "remote",
-                     "--channel", channel, "--zenoh-listen", ep, "--log-level", "warning"])
-        wait_listening(port, svc)
+        sim, svc, ep = start_sim_and_service(channel, cfg_path)
         rx = Receiver(ep, prefix, int(rate * (seconds + warmup + 180)))
         deadline = time.monotonic() + 120
         while rx.count() == 0 and time.monotonic() < deadline:  # the nodes booted

@@ -32,7 +32,7 @@ import time
 from collections import Counter
 from pathlib import Path
 
-from bench.rig import Receiver, cpu_seconds, free_tcp_port, rate_config, spawn, start_bus, stop, wait_listening
+from bench.rig import start_sim_and_service, Receiver, cpu_seconds, free_tcp_port, rate_config, spawn, start_bus, stop, wait_listening
 
 WARMUP_S = 8.0
 
@@ -148,14 +148,7 @@ def run_shared(rate: float, seconds: float, tmp: Path) -> dict:
     bus, channel = start_bus()
     sim = svc = rx = None
     try:
-        sim = spawn(["-m", "rsra", "sim", "--scenario", "ground-test", "--interface", "remote",
-                     "--channel", channel])
-        time.sleep(2.0)
-        port = free_tcp_port()
-        ep = f"tcp/127.0.0.1:{port}"
-        svc = spawn(["-m", "rsra", "run", "--config", str(cfg_path), "--interface", "remote",
-                     "--channel", channel, "--zenoh-listen", ep, "--log-level", "warning"])
-        wait_listening(port, svc)
+        sim, svc, ep = start_sim_and_service(channel, cfg_path)
         rx = Receiver(ep, load_config().telemetry.prefix, int(rate * (seconds + WARMUP_S + 60)))
         time.sleep(WARMUP_S)
         return measure({"service": svc, "simulator": sim, "bus server": bus}, rx, seconds, tmp)

@@ -79,6 +79,29 @@ def stop(proc: subprocess.Popen | None, timeout: float = 20.0) -> int | None:
     return proc.returncode
 
 
+def start_sim_and_service(channel: str, cfg_path: str | Path | None = None
+                           ) -> tuple[subprocess.Popen, subprocess.Popen, str]:
+    """``rsra sim`` (ground-test) and ``rsra run`` each in its own process on the shared bus
+    ``channel``; (simulator, service, the service's Zenoh endpoint) once the service listens.
+    On any failure both are stopped before the error goes on."""
+    sim = spawn(["-m", "rsra", "sim", "--scenario", "ground-test", "--interface", "remote",
+                 "--channel", channel])
+    svc = None
+    try:
+        time.sleep(2.0)
+        port = free_tcp_port()
+        ep = f"tcp/127.0.0.1:{port}"
+        config = [] if cfg_path is None else ["--config", str(cfg_path)]
+        svc = spawn(["-m", "rsra", "run", *config, "--interface", "remote", "--channel", channel,
+                     "--zenoh-listen", ep, "--log-level", "warning"])
+        wait_listening(port, svc)
+    except BaseException:
+        stop(svc)
+        stop(sim)
+        raise
+    return sim, svc, ep
+
+
 def start_bus() -> tuple[subprocess.Popen, str]:
     """``rsra bus`` on a free loopback port; returns the process and the python-can channel."""
     port = free_tcp_port()
