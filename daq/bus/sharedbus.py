@@ -76,6 +76,18 @@ def _server_class():
     return Server
 
 
+def _quiet_disconnects(args: threading.ExceptHookArgs) -> None:
+    """python-can-remote's per-client sender thread raises BrokenPipeError/ConnectionResetError
+    when a client goes away mid-frame: a disconnect, logged in one line, not a traceback."""
+    if issubclass(args.exc_type, (BrokenPipeError, ConnectionResetError)):
+        log.info("a client disconnected while a frame was sent to it (%s)", args.exc_type.__name__)
+        return
+    _previous_excepthook(args)
+
+
+_previous_excepthook = threading.excepthook
+
+
 class BusServer:
     """python-can-remote's RemoteServer on ``host:port`` (port 0: a free one) sharing the
     python-can bus ``interface``/``channel``. ``start()`` serves from a thread; ``close()``
@@ -97,6 +109,7 @@ class BusServer:
         return self.server.RequestHandlerClass.refused
 
     def start(self) -> BusServer:
+        threading.excepthook = _quiet_disconnects
         self._thread = threading.Thread(target=self.server.serve_forever, args=(0.1,),
                                         name="rsra-bus-server", daemon=True)
         self._thread.start()
