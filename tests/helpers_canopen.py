@@ -16,6 +16,8 @@ from pathlib import Path
 import can
 import canopen
 
+from rsra.canbus import EchoFirstVirtualBus
+
 T0 = 1_700_000_000.0  # acquisition time origin of the tests (UNIX-like: BLF needs it)
 _chan = itertools.count()
 
@@ -208,8 +210,9 @@ class MasterRig:
         self.cfg = cfg
         self.sim = make_sim(sim_cfg or cfg, ch, seed=seed, faults=faults, lockstep=True,
                             threaded=True, nodes_present=nodes_present)
-        self.bus = can.Bus(interface="virtual", channel=ch, receive_own_messages=True,
-                           preserve_timestamps=True)
+        # the master's bus: its own SYNC back before any answer (rsra.canbus)
+        self.bus = EchoFirstVirtualBus(channel=ch, receive_own_messages=True,
+                                       preserve_timestamps=True)
         self.reader = Reader(cfg, bus=self.bus, master=True, wall_clock=False,
                              periodic_sync=False, record=record, **reader_kw)
         self.sim.start()

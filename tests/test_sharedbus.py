@@ -78,3 +78,38 @@ def test_rsra_bus_bad_input_is_one_line_exit_2(capsys, argv, word):
     assert main(["bus", *argv]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and word in err and "Traceback" not in err
+
+
+# --------------------------------------------------------------------------------------
+# the master's own copy of a frame comes back before any answer to it (rsra.canbus)
+
+@pytest.mark.parametrize("echo_first", [True, False])
+def test_the_senders_own_copy_is_queued_before_an_instant_answer(echo_first):
+    """A responder opened first that answers the instant the frame reaches its queue (a
+    thread switch between python-can's puts, made certain here): with python-can's plain
+    virtual bus the answer overtakes the sender's own copy; with EchoFirstVirtualBus it never
+    does. The plain case is asserted too, so the test shows it guards something."""
+    from rsra.canbus import EchoFirstVirtualBus, open_bus
+
+    ch = f"echo-first-{echo_first}"
+    responder = can.Bus(interface="virtual", channel=ch)
+    sender = (open_bus(interface="virtual", channel=ch, receive_own_messages=True)
+              if echo_first else
+              can.Bus(interface="virtual", channel=ch, receive_own_messages=True))
+    assert isinstance(sender, EchoFirstVirtualBus) == echo_first
+    put = responder.queue.put
+
+    def answer_at_once(msg, *a, **kw):
+        put(msg, *a, **kw)
+        if msg.arbitration_id == 0x80:
+            responder.send(can.Message(arbitration_id=0x193, data=b"\x01",
+                                       is_extended_id=False))
+
+    responder.queue.put = answer_at_once
+    try:
+        sender.send(can.Message(arbitration_id=0x80, data=b"", is_extended_id=False))
+        order = [sender.recv(1.0).arbitration_id for _ in range(2)]
+    finally:
+        responder.shutdown()
+        sender.shutdown()
+    assert order == ([0x80, 0x193] if echo_first else [0x193, 0x80])

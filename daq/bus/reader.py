@@ -50,7 +50,7 @@ from rsra.daq.bus.master import (
     Supervisor,
 )
 from rsra.daq.bus.recorder import Recorder
-from rsra.canbus import shutdown_bus
+from rsra.canbus import open_bus, shutdown_bus
 
 log = logging.getLogger(__name__)
 
@@ -355,7 +355,7 @@ class Reader:
                 args = dict(self._bus_args)
                 # the service's own SYNC/NMT/SDO must come back to the tap and the recorder
                 args.setdefault("receive_own_messages", True)
-                self._bus = can.Bus(**args)
+                self._bus = open_bus(**args)  # virtual: own copy first (rsra.canbus)
                 self._own_bus = True
                 self.network.bus = self._bus
             elif (self.use_master and self.cfg.sync.producer == "service"

@@ -95,7 +95,10 @@ class BusServer:
 
     def __init__(self, host: str = LOOPBACK, port: int = DEFAULT_PORT,
                  interface: str = "virtual", channel: str = "rig"):
-        self.server = _server_class()(host, port, interface=interface, channel=channel)
+        # each client's bus in the server: python-can's virtual bus with the sender's own
+        # copy first (rsra.canbus.EchoFirstVirtualBus, registered as "rsra_virtual")
+        served = "rsra_virtual" if interface == "virtual" else interface
+        self.server = _server_class()(host, port, interface=served, channel=channel)
         self.host, self.port = host, self.server.server_port
         self._thread: threading.Thread | None = None
 
