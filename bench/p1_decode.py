@@ -6,7 +6,7 @@ python-can virtual bus before the clock starts; one python-can Notifier thread t
 the bus and the clock stops when the last sample has been assembled. Three contestants on
 identical frames, interleaved round by round (best of the rounds):
 
-* ours — ``daq.reader.Reader`` (master=False, acquisition clock from the frames): FrameTap →
+* ours — ``daq.bus.reader.Reader`` (Listen, FrameClock: clock from the frames): FrameTap →
   per-COB-ID struct unpack → calibrated ``Sample`` objects into the reader's queue;
 * the dispatch floor — canopen ``Network.subscribe`` with do-nothing callbacks on every
   COB-ID (canopen's MessageListener → ``Network.notify``): no decoding at all;
@@ -28,7 +28,7 @@ import canopen
 from bench.common import arg_parser, interleaved, ratio, writer_from_args
 from rsra.daq.bus.assembler import Sample
 from rsra.config.rig import RigConfig, load_config
-from rsra.daq.bus.reader import Reader
+from rsra.daq.bus.reader import DropQueue, FrameClock, Listen, Reader
 from rsra.sim_bus.bus_sim import FRAME_OVERHEAD_BITS, Simulator
 
 BENCH = "p1_decode"
@@ -156,33 +156,33 @@ def run_canopen_pdo(cfg: RigConfig, frames: list[can.Message], last: tuple[int, 
         rx.shutdown()
 
 
-class _TimedReader(Reader):
-    """The reader, telling when the last sample has been assembled and queued."""
+class _TimedQueue(DropQueue):
+    """The reader's queue, telling when the last sample has been assembled and queued."""
 
-    last_seq = -1
-    done: threading.Event
+    def __init__(self, size: int, last_seq: int):
+        super().__init__(size)
+        self.last_seq = last_seq
+        self.done = threading.Event()
 
-    def _put(self, item) -> None:
-        super()._put(item)
+    def put(self, item) -> None:
+        super().put(item)
         if isinstance(item, Sample) and item.seq >= self.last_seq:
             self.done.set()
 
 
 def run_ours(cfg: RigConfig, frames: list[can.Message], n_samples: int) -> tuple[float, dict]:
     rx = _prequeued(frames)
-    r = _TimedReader(cfg, bus=rx, master=False, wall_clock=False,
-                     queue_size=n_samples + 1000, overflow="drop")
-    r.done = threading.Event()
-    r.last_seq = n_samples - 1
+    items = _TimedQueue(n_samples + 1000, last_seq=n_samples - 1)
+    r = Reader(cfg, rx, nodes=Listen(), clock=FrameClock(), items=items)
     try:
         t0 = time.perf_counter()
-        r.start()  # master=False, wall_clock=False: the one Notifier thread, nothing else
-        if not r.done.wait(DRAIN_TIMEOUT_S):
+        r.start()  # Listen, FrameClock: the one Notifier thread, nothing else
+        if not items.done.wait(DRAIN_TIMEOUT_S):
             raise RuntimeError(f"not every sample was assembled: {r.assembler.counters()}")
         rate = len(frames) / (time.perf_counter() - t0)
         counters = r.assembler.counters()
-        if counters["complete"] != n_samples or r.dropped:
-            raise RuntimeError(f"assembly went wrong: {counters}, dropped {r.dropped}")
+        if counters["complete"] != n_samples or items.dropped:
+            raise RuntimeError(f"assembly went wrong: {counters}, dropped {items.dropped}")
         return rate, counters
     finally:
         r.close()

@@ -112,7 +112,7 @@ def trial(rate: float, duration: float) -> dict:
     tally["samples"] = summary.get("samples")
     r = svc.reader
     if r is not None:
-        tally["dropped"] = max(tally["dropped"], int(r.dropped))
+        tally["dropped"] = max(tally["dropped"], int(r.items.dropped))
     if tally["count"] > 1 and tally["t_last"] > tally["t_first"]:
         # SYNCs per second of acquisition time (the producer's jitter shows here)
         tally["achieved_rate"] = (tally["count"] - 1) / (tally["t_last"] - tally["t_first"])

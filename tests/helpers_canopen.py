@@ -168,7 +168,7 @@ class LockstepRig:
 
     def __init__(self, cfg, *, faults: str = "", seed: int = 3, record: Path | None = None,
                  record_format: str | None = None, scenario: str = "ground-test", **reader_kw):
-        from rsra.daq.bus.reader import Reader
+        from rsra.daq.bus.reader import DropQueue, LockstepReader
 
         self.cfg = cfg
         ch = channel_name("lockstep")
@@ -176,9 +176,10 @@ class LockstepRig:
                             scenario=scenario)
         self.bus = can.Bus(interface="virtual", channel=ch, receive_own_messages=True,
                            preserve_timestamps=True)
-        self.reader = Reader(cfg, bus=self.bus, master=False, wall_clock=False, record=record,
-                             record_format=record_format, **reader_kw)
-        self.reader.start(notifier=False)
+        reader_kw.setdefault("items", DropQueue())
+        self.reader = LockstepReader(cfg, self.bus, record=record, record_format=record_format,
+                                     **reader_kw)
+        self.reader.start()
         self.sim.start()
         self.items: list = []
 
@@ -204,7 +205,7 @@ class MasterRig:
 
     def __init__(self, cfg, *, faults: str = "", seed: int = 3, sim_cfg=None,
                  record: Path | None = None, nodes_present=None, **reader_kw):
-        from rsra.daq.bus.reader import Reader
+        from rsra.daq.bus.reader import BootNodesSyncOnDemand, FrameClock, Reader
 
         ch = channel_name("master")
         self.cfg = cfg
@@ -213,8 +214,9 @@ class MasterRig:
         # the master's bus: its own SYNC back before any answer (rsra.canbus)
         self.bus = EchoFirstVirtualBus(channel=ch, receive_own_messages=True,
                                        preserve_timestamps=True)
-        self.reader = Reader(cfg, bus=self.bus, master=True, wall_clock=False,
-                             periodic_sync=False, record=record, **reader_kw)
+        self.nodes = BootNodesSyncOnDemand()  # the test's sample clock: sync(n)
+        self.reader = Reader(cfg, self.bus, nodes=self.nodes, clock=FrameClock(), record=record,
+                             **reader_kw)
         self.sim.start()
         self.k = 0
         self.t_start = T0 + 0.01
@@ -229,14 +231,14 @@ class MasterRig:
         """Every frame on the bus processed by the reader, and the master idle."""
         sim, r = self.sim, self.reader
         wait_until(lambda: r.tap.frames >= sim.frames_sent + sim.frames_received
-                   and r.master_idle(), what="the reader to catch up with the simulator")
+                   and r.nodes.idle(), what="the reader to catch up with the simulator")
 
     def sync(self, n: int = 1) -> list:
         out = []
         for _ in range(n):
             t = self.t_start + self.k * self.cfg.sample_period_s
             seen = len(self.sim.sync_info)
-            self.reader.send_sync(t)
+            self.nodes.send_sync(t)
             wait_until(lambda seen=seen: len(self.sim.sync_info) > seen,
                        what="the simulator's answer")
             self.sim.advance(t)  # barrier: the simulator's cycle is complete

@@ -11,12 +11,12 @@ from helpers_canopen import ACCEL, CELL, T0, accel, cell, heartbeat, msg, period
 
 from rsra.config.rig import G0, load_config
 from rsra.daq.bus.master import EMCY_HISTORY
-from rsra.daq.bus.reader import HealthReport, Reader
+from rsra.daq.bus.reader import DropQueue, HealthReport, OfflineReader
 
 DT = 0.005
 
 
-def feed(r: Reader, frames) -> list:
+def feed(r: OfflineReader, frames) -> list:
     for m in frames:
         r.feed(m)
     return r.poll()
@@ -27,7 +27,7 @@ def samples(items) -> list:
 
 
 def test_a_complete_sample_is_passed_on_at_its_last_tpdo(cfg):
-    r = Reader.offline(cfg)
+    r = OfflineReader(cfg)
     frames = period_frames(cfg, 0, T0 + 0.00000025, status=[0, 0, 1, 0, 2, 0, 3],
                            acc=(10, -20, -1000))
     out = feed(r, frames[:-1])
@@ -40,13 +40,13 @@ def test_a_complete_sample_is_passed_on_at_its_last_tpdo(cfg):
     assert s.cell_status == {"A": 0, "B": 0, "C": 1, "D": 0, "E": 2, "F": 0, "G": 3}
     assert s.flags == ("overrange:C", "fault:E", "overrange:G", "fault:G")
     assert s.omega is None and s.azimuth is None and s.known_H is None and s.drive is None
-    h = r.health()
+    h = r.health().to_dict()
     assert h["samples"] == {"complete": 1, "incomplete": 0, "lost": 0}
     assert h["bus"]["frames"] == len(frames)
 
 
 def test_an_incomplete_sample_is_passed_on_at_the_next_sync_with_missing_flagged(cfg):
-    r = Reader.offline(cfg)
+    r = OfflineReader(cfg)
     assert feed(r, period_frames(cfg, 0, T0, skip=("cell_D",))) == []
     out = feed(r, period_frames(cfg, 1, T0 + DT))
     s0, s1 = samples(out)
@@ -54,11 +54,11 @@ def test_an_incomplete_sample_is_passed_on_at_the_next_sync_with_missing_flagged
     assert math.isnan(s0.T[3]) and np.isfinite(np.delete(s0.T, 3)).all()
     assert "D" not in s0.cell_status
     assert s1.complete and s1.seq == 1
-    assert r.health()["samples"] == {"complete": 1, "incomplete": 1, "lost": 0}
+    assert r.health().to_dict()["samples"] == {"complete": 1, "incomplete": 1, "lost": 0}
 
 
 def test_skipped_sync_counters_count_as_lost_samples_and_keep_their_numbers(cfg):
-    r = Reader.offline(cfg)
+    r = OfflineReader(cfg)
     ks = [0, 1, 4, 5, 236, 237, 238, 239, 240, 243]  # counter = k % 240 + 1: wraps 240 -> 1
     out = []
     for k in ks:
@@ -67,14 +67,14 @@ def test_skipped_sync_counters_count_as_lost_samples_and_keep_their_numbers(cfg)
     assert got == [(0, 1, 0), (1, 2, 0), (4, 5, 2), (5, 6, 0), (236, 237, 230), (237, 238, 0),
                    (238, 239, 0), (239, 240, 0), (240, 1, 0), (243, 4, 2)]
     assert [("lost_before" in s.flags) for s in samples(out)] == [g[2] > 0 for g in got]
-    assert r.health()["samples"]["lost"] == 2 + 230 + 2
-    sy = r.health()["sync"]
+    assert r.health().to_dict()["samples"]["lost"] == 2 + 230 + 2
+    sy = r.health().to_dict()["sync"]
     assert (sy["duplicate"], sy["bad_timestamp"]) == (0, 0)
 
 
 def test_without_a_counter_byte_nothing_is_counted_lost():
     cfg0 = load_config(overrides={"sync": {"counter_overflow": 0}})
-    r = Reader.offline(cfg0)
+    r = OfflineReader(cfg0)
     out = []
     for k in range(3):
         out += feed(r, period_frames(cfg0, k, T0 + k * DT))
@@ -82,11 +82,11 @@ def test_without_a_counter_byte_nothing_is_counted_lost():
     r.feed(msg(0x80, b"\x01\x02", T0 + 4 * DT))  # two bytes: malformed, ignored
     assert [(s.seq, s.sync, s.lost_before) for s in samples(out)] == [(0, 0, 0), (1, 0, 0),
                                                                       (2, 0, 0)]
-    assert r.health()["bus"]["malformed"] == 1
+    assert r.health().to_dict()["bus"]["malformed"] == 1
 
 
 def test_malformed_duplicate_and_orphan_frames_are_counted_never_used(cfg):
-    r = Reader.offline(cfg)
+    r = OfflineReader(cfg)
     r.feed(cell(0x11, 5.0, 0, T0 - 0.001))  # before any SYNC: orphan
     frames = period_frames(cfg, 0, T0)
     bad = msg(0x193, frames[3].data[:-1], T0 + 1e-6)  # cell_C one byte short
@@ -96,13 +96,13 @@ def test_malformed_duplicate_and_orphan_frames_are_counted_never_used(cfg):
     s0 = samples(out)[0]
     assert s0.missing == ("cell_C",) and math.isnan(s0.T[2])
     assert s0.T[0] == 1000.0  # the first cell_A value is kept
-    b = r.health()["bus"]
+    b = r.health().to_dict()["bus"]
     assert (b["malformed"], b["duplicate"], b["orphan"]) == (1, 1, 1)
 
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
 def test_non_finite_values_mark_the_channel_missing(cfg, bad):
-    r = Reader.offline(cfg)
+    r = OfflineReader(cfg)
     forces = [1.0, 2.0, bad, 4.0, 5.0, 6.0, 7.0]
     out = feed(r, period_frames(cfg, 0, T0, forces=forces) + period_frames(cfg, 1, T0 + DT))
     s0 = samples(out)[0]
@@ -113,7 +113,7 @@ def test_non_finite_values_mark_the_channel_missing(cfg, bad):
 
 
 def test_optional_nodes_are_waited_for_once_seen_alive(cfg):
-    r = Reader.offline(cfg)
+    r = OfflineReader(cfg)
     H = (1.0, 2.0, 80000.0, 4.0, 5.0, 6.0)
     # period 0: rotor and balance report, but were not known to be alive: the sample is
     # complete at the accelerometer and passed on without them
@@ -133,7 +133,7 @@ def test_optional_nodes_are_waited_for_once_seen_alive(cfg):
     # period 3 no longer waits for it (not seen, no operational heartbeat): passed on at
     # its last expected frame
     assert s3.complete and s3.known_H is None
-    assert r.health()["samples"]["incomplete"] == 1
+    assert r.health().to_dict()["samples"]["incomplete"] == 1
     # an operational heartbeat makes it expected again
     r.feed(heartbeat(0x41, 0x05, T0 + 4 * DT - 1e-4))
     feed(r, period_frames(cfg, 4, T0 + 4 * DT, omega=19.4))
@@ -147,13 +147,13 @@ def test_assembly_is_by_frame_order_not_timestamps(cfg):
     the same frames with other timestamps give the same samples (but for t)."""
     frames = period_frames(cfg, 0, T0) + period_frames(cfg, 1, T0 + DT, skip=("cell_G",)) + \
         period_frames(cfg, 2, T0 + 2 * DT)
-    a = samples(feed(Reader.offline(cfg), frames))
+    a = samples(feed(OfflineReader(cfg), frames))
     rng = np.random.default_rng(1)
     jittered = []
     for m in frames:
         m2 = msg(m.arbitration_id, m.data, m.timestamp + rng.uniform(-0.004, 0.004))
         jittered.append(m2)
-    b = samples(feed(Reader.offline(cfg), jittered))
+    b = samples(feed(OfflineReader(cfg), jittered))
     assert len(a) == len(b) == 3
     for x, y in zip(a, b):
         y.t = x.t
@@ -163,7 +163,7 @@ def test_assembly_is_by_frame_order_not_timestamps(cfg):
 
 
 def test_unknown_error_and_remote_frames_are_counted_and_not_passed_on(cfg):
-    r = Reader.offline(cfg)
+    r = OfflineReader(cfg)
     frames = period_frames(cfg, 0, T0)
     extra = [
         msg(0x1FF, b"\x00" * 5, T0 + 1e-6),  # TPDO1 of a node nobody configured
@@ -176,13 +176,13 @@ def test_unknown_error_and_remote_frames_are_counted_and_not_passed_on(cfg):
     out = feed(r, frames[:2] + extra + [ext] + frames[2:])
     (s,) = samples(out)
     assert s.complete and s.sync == 1 and s.T[0] == 1000.0
-    b = r.health()["bus"]
+    b = r.health().to_dict()["bus"]
     assert (b["unknown"], b["remote"], b["errors"], b["bus_off"]) == (2, 1, 2, 1)
     assert b["malformed"] == b["duplicate"] == 0
 
 
 def test_heartbeat_watchdog_runs_on_the_acquisition_clock(cfg):
-    r = Reader.offline(cfg)
+    r = OfflineReader(cfg)
     events = []
     sup = r.supervisor
     base = sup.on_event
@@ -206,32 +206,32 @@ def test_heartbeat_watchdog_runs_on_the_acquisition_clock(cfg):
     t_lost = lost[0][2]
     timeout = cfg.heartbeat.timeout_factor * period
     assert last_hb + timeout < t_lost <= last_hb + timeout + DT  # the first frame past it
-    h = r.health()["nodes"]["accel_1"]
+    h = r.health().to_dict()["nodes"]["accel_1"]
     assert h["state"] == "lost" and h["losses"] == 1
     assert h["heartbeat_age"] == pytest.approx(r.now - last_hb, abs=1e-6)
-    assert r.health()["nodes"]["cell_A"]["state"] == "operational"
+    assert r.health().to_dict()["nodes"]["cell_A"]["state"] == "operational"
 
 
 def test_boot_up_and_emcy_are_decoded_with_a_bounded_history(cfg):
-    r = Reader.offline(cfg)
+    r = OfflineReader(cfg)
     r.feed(heartbeat(0x12, 0x00, T0))  # boot-up
-    assert r.health()["nodes"]["cell_B"]["state"] == "booting"
-    assert r.health()["nodes"]["cell_B"]["boots"] == 1
+    assert r.health().to_dict()["nodes"]["cell_B"]["state"] == "booting"
+    assert r.health().to_dict()["nodes"]["cell_B"]["boots"] == 1
     r.feed(msg(0x92, bytes.fromhex("01ff8103000000aa"), T0 + 0.001))  # 8 bytes
     r.feed(msg(0x92, bytes.fromhex("0050"), T0 + 0.002))  # 2 bytes: tolerated
-    e = r.health()["nodes"]["cell_B"]["emcy"]
+    e = r.health().to_dict()["nodes"]["cell_B"]["emcy"]
     assert e[0] == {"t": T0 + 0.001, "code": 0xFF01, "register": 0x81, "info": "03000000aa",
                     "length": 8}
     assert (e[1]["code"], e[1]["register"], e[1]["length"]) == (0x5000, 0, 2)
     for i in range(3 * EMCY_HISTORY):
         r.feed(msg(0x92, bytes([i, 0, 1]), T0 + 0.01 + i * 1e-3))
-    h = r.health()["nodes"]["cell_B"]
+    h = r.health().to_dict()["nodes"]["cell_B"]
     assert len(h["emcy"]) == EMCY_HISTORY and h["emcy_count"] == 2 + 3 * EMCY_HISTORY
     assert h["emcy"][-1]["code"] == 3 * EMCY_HISTORY - 1
 
 
 def test_health_is_reported_once_a_second_of_acquisition_time(cfg):
-    r = Reader.offline(cfg)
+    r = OfflineReader(cfg)
     out = []
     for k in range(700):  # 3.5 s
         out += feed(r, period_frames(cfg, k, T0 + k * DT))
@@ -240,7 +240,7 @@ def test_health_is_reported_once_a_second_of_acquisition_time(cfg):
     # in the stream at their place: the sample after a report is the first of that second
     i = out.index(reports[0])
     assert out[i - 1].t < T0 + 1.0 <= out[i + 1].t
-    p = reports[-1].payload
+    p = reports[-1].health.to_dict()
     assert set(p) >= {"t", "nodes", "bus", "samples", "queues", "recording"}
     assert set(p["bus"]) >= {"frames", "errors", "bus_off", "unknown", "malformed"}
     assert set(p["samples"]) == {"complete", "incomplete", "lost"}
@@ -249,20 +249,20 @@ def test_health_is_reported_once_a_second_of_acquisition_time(cfg):
 
 
 def test_the_queue_is_bounded_and_back_pressure_is_counted(cfg):
-    r = Reader.offline(cfg, queue_size=4)
+    r = OfflineReader(cfg, items=DropQueue(4))
     for k in range(10):
         for m in period_frames(cfg, k, T0 + k * DT):
             r.feed(m)
     got = samples(r.poll())
     assert [s.seq for s in got] == [0, 1, 2, 3]
-    q = r.health()["queues"]["samples"]
+    q = r.health().to_dict()["queues"]["samples"]
     assert (q["dropped"], q["size"], q["max_depth"]) == (6, 4, 4)
     out = samples(feed(r, period_frames(cfg, 10, T0 + 10 * DT)))
     assert [s.seq for s in out] == [10]  # the gap is visible through seq
 
 
 def test_channels_payload_is_strict_json(cfg):
-    r = Reader.offline(cfg)
+    r = OfflineReader(cfg)
     out = feed(r, period_frames(cfg, 0, T0, skip=("accel_1",)) + period_frames(cfg, 1, T0 + DT))
     p = samples(out)[0].channels_payload()
     text = json.dumps(p, allow_nan=False)
@@ -273,12 +273,12 @@ def test_channels_payload_is_strict_json(cfg):
 
 
 def test_rotor_without_balance_and_the_azimuth_wraps(cfg):
-    r = Reader.offline(cfg)
+    r = OfflineReader(cfg)
     feed(r, period_frames(cfg, 0, T0, omega=10.0, az=65535))
     (s,) = samples(feed(r, period_frames(cfg, 1, T0 + DT, omega=10.0, az=65535)))
     assert 0.0 <= s.azimuth < 2 * math.pi
     assert s.azimuth == pytest.approx(2 * math.pi * 65535 / 65536, rel=1e-15)
-    r2 = Reader.offline(load_config(overrides={"calibration": {
+    r2 = OfflineReader(load_config(overrides={"calibration": {
         "rotor_speed.azimuth": {"offset": 0.5}}}))
     feed(r2, period_frames(cfg, 0, T0, omega=10.0, az=65535))
     (s,) = samples(feed(r2, period_frames(cfg, 1, T0 + DT, omega=10.0, az=65535)))
@@ -286,29 +286,29 @@ def test_rotor_without_balance_and_the_azimuth_wraps(cfg):
 
 
 def test_frames_of_one_tpdo_from_a_node_reader_does_not_know_are_unknown(cfg):
-    r = Reader.offline(cfg)
+    r = OfflineReader(cfg)
     r.feed(rotor(0x32, 1.0, 0, T0))  # rotor TPDO layout, but node 0x32 is not configured
     r.feed(accel(0x22, (0, 0, 0), T0))  # accelerometer 2 is not in the default rig
-    assert r.health()["bus"]["unknown"] == 2
+    assert r.health().to_dict()["bus"]["unknown"] == 2
 
 
 def test_live_the_idle_bus_still_advances_the_clock(cfg):
     """The live wall-clock tick (driven here with explicit times): health and the watchdog
     go on when no frame arrives."""
-    r = Reader.offline(cfg)
+    r = OfflineReader(cfg)
     r.feed(heartbeat(0x21, 0x05, T0))
     r.tap.tick(T0 + 0.1)
     assert r.poll() == []
     r.tap.tick(T0 + 1.3)  # bus silent for 1.3 s
     (rep,) = r.poll()
     assert isinstance(rep, HealthReport) and rep.t == T0 + 1.3
-    assert rep.payload["nodes"]["accel_1"]["state"] == "lost"
-    assert rep.payload["nodes"]["accel_1"]["heartbeat_age"] == pytest.approx(1.3)
+    assert rep.health.to_dict()["nodes"]["accel_1"]["state"] == "lost"
+    assert rep.health.to_dict()["nodes"]["accel_1"]["heartbeat_age"] == pytest.approx(1.3)
     r.tap.tick(T0 + 1.2)  # the clock never goes back
     assert r.now == T0 + 1.3
     # a frame stamped before the tick keeps its own (frame-monotone) time, as in a recording
     r.feed(heartbeat(0x21, 0x05, T0 + 1.25))
-    assert r.health()["nodes"]["accel_1"]["state"] == "operational"
+    assert r.health().to_dict()["nodes"]["accel_1"]["state"] == "operational"
     assert r.tap.frame_time == T0 + 1.25 and r.now == T0 + 1.3
 
 
@@ -390,7 +390,7 @@ def test_samples_match_a_per_frame_reference_on_messy_traffic(cfg, seed, calibra
         acc = [[values[f"{a.node}.{x}"] if a.node in good else math.nan for x in "xyz"]
                for a in cfg.accelerometers]
         expected.append((seq, seq % ov + 1, tuple(missing), tuple(flags), status, T, acc, skip))
-    r = Reader.offline(cfg, queue_size=1000)
+    r = OfflineReader(cfg, items=DropQueue(1000))
     out = feed(r, frames)
     r.assembler.finish()
     got = samples(out + r.poll())

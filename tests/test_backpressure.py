@@ -26,7 +26,7 @@ from helpers_canopen import channel_name, period_frames, wait_until
 from helpers_net import free_tcp_port
 
 from rsra.daq.runtime.pipeline import EstimatorPipeline
-from rsra.daq.bus.reader import HealthReport, Reader
+from rsra.daq.bus.reader import DropQueue, HealthReport, Listen, Reader
 from rsra.daq.bus.replay import read_frames
 from rsra.daq.runtime.service import Service, ServiceOptions
 from rsra.daq.runtime.telemetry import viewer_config
@@ -64,7 +64,7 @@ def test_a_stalled_zenoh_subscriber_never_stalls_acquisition(cfg):
         sub.undeclare()
     s = svc.summary
     assert s["samples"] == n and s["lost"] == 0  # every sample acquired and estimated
-    assert svc.reader.health()["queues"]["samples"]["dropped"] == 0
+    assert svc.reader.health().to_dict()["queues"]["samples"]["dropped"] == 0
     seqs = sorted(set(got))
     assert seqs  # the link is up: what the buffers held arrives once the viewer moves again
     missed = n - len(seqs)
@@ -142,8 +142,8 @@ def test_a_high_rate_put_never_waits_for_a_stalled_subscriber(cfg):
 
 def _live_reader(cfg, tmp_path, **kw):
     ch = channel_name("backpressure")
-    r = Reader(cfg, interface="virtual", channel=ch, master=False, wall_clock=True,
-               record=tmp_path / "rec", **kw)
+    r = Reader(cfg, interface="virtual", channel=ch, nodes=Listen(), record=tmp_path / "rec",
+               **kw)
     r.start()
     tx = can.Bus(interface="virtual", channel=ch, receive_own_messages=False)
     return r, tx
@@ -151,7 +151,7 @@ def _live_reader(cfg, tmp_path, **kw):
 
 def test_a_stalled_disk_never_stalls_the_bus_thread_and_every_lost_frame_is_counted(
         cfg, tmp_path):
-    r, tx = _live_reader(cfg, tmp_path, queue_size=8192)
+    r, tx = _live_reader(cfg, tmp_path, items=DropQueue(8192))
     rec = r.recorder
     disk = threading.Event()
     real = rec._logger.on_message_received
@@ -179,7 +179,7 @@ def test_a_stalled_disk_never_stalls_the_bus_thread_and_every_lost_frame_is_coun
         # every frame is either handed to the writer or counted as dropped
         assert q["queued"] + q["overflow"] == sent
         assert q["queued"] <= q["size"] + 2  # the queue, the frame in hand, a tick marker
-        h = r.health()["recording"]
+        h = r.health().to_dict()["recording"]
         assert h["queue"]["overflow"] == q["overflow"] and h["active"]
     finally:
         disk.set()  # the disk comes back: the queued frames are written at close
@@ -195,7 +195,7 @@ def test_a_stalled_disk_never_stalls_the_bus_thread_and_every_lost_frame_is_coun
 def test_a_slow_estimator_costs_counted_samples_and_the_filter_predicts_through_them(cfg,
                                                                                    tmp_path):
     qsize = 64
-    r, tx = _live_reader(cfg, tmp_path, queue_size=qsize)
+    r, tx = _live_reader(cfg, tmp_path, items=DropQueue(qsize))
     first, second = 400, 40
     try:
         sent = 0
@@ -211,7 +211,7 @@ def test_a_slow_estimator_costs_counted_samples_and_the_filter_predicts_through_
                 sent += 1
         wait_until(lambda: r.tap.frames >= sent, timeout=300, what="the bus thread")
         batch2 = r.poll()
-        h = r.health()["queues"]["samples"]
+        h = r.health().to_dict()["queues"]["samples"]
     finally:
         r.close()
         tx.shutdown()

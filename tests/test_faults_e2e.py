@@ -89,7 +89,7 @@ class Run:
 
         svc.add_sink(sink)
         self.summary = svc.run()
-        self.final_health = svc.reader.health()
+        self.final_health = svc.reader.health().to_dict()
         self.log = svc.sim.fault_log
         self.truth = svc.sim.truth_arrays()
         # the samples the run covered (the simulator ran one SYNC more: an incomplete
@@ -406,7 +406,7 @@ def test_the_faulted_recording_replays_bit_for_bit(true_cfg, runs):
         n = len(faulted.text[key])
         assert replayed[key][:n] == faulted.text[key], key
         assert len(replayed[key]) - n <= extra
-    live, rep = faulted.final_health, rsvc.reader.health()
+    live, rep = faulted.final_health, rsvc.reader.health().to_dict()
     for k in ("unknown", "errors", "malformed", "duplicate"):
         assert rep["bus"][k] == live["bus"][k], k
     assert rep["samples"]["lost"] == live["samples"]["lost"]
@@ -428,7 +428,7 @@ def test_a_rebooted_node_is_restarted_and_the_estimate_returns(cfg):
         for item in rig.sync(800):  # 4 s of acquisition time
             if hasattr(item, "seq"):
                 out.append((item, pipe.process(item).records[0][1]))
-        health = rig.reader.health()["nodes"]["cell_C"]
+        health = rig.reader.health().to_dict()["nodes"]["cell_C"]
         reconfigured = rig.reader.master.reconfigured
         truth = rig.sim.truth_arrays()
     finally:

@@ -26,7 +26,7 @@ from rsra.config.rig import ConfigError, config_dir, default_config_path, load_c
 from rsra.daq.bus.decoder import DecodeTable
 from rsra.daq.jsonout import dumps
 from rsra.daq.runtime.pipeline import EstimatorPipeline
-from rsra.daq.bus.reader import HealthReport, Reader
+from rsra.daq.bus.reader import HealthReport, OfflineReader
 
 EXAMPLES = int(os.environ.get("RSRA_FUZZ_EXAMPLES", "100"))
 FUZZ = settings(max_examples=EXAMPLES, deadline=None, derandomize=False,
@@ -39,7 +39,7 @@ _cfg = load_config()
 _table = DecodeTable(_cfg)
 TPDO_COBS = sorted(_table.tpdos)
 SYNC_COB = _cfg.sync.cob_id
-KNOWN = Reader.offline(_cfg)._known_cob_ids()
+KNOWN = OfflineReader(_cfg)._known_cob_ids()
 FLAG_PREFIXES = ("missing:", "overrange:", "fault:")
 FLAG_WORDS = {"lost_before", "predict_only", "invalid", "rotor_stopped"}
 
@@ -148,7 +148,7 @@ def _check_records(pipe, out) -> None:
 @FUZZ
 @given(msgs=bus_traffic())
 def test_arbitrary_frames_never_raise_and_never_reach_the_filter_as_non_finite(msgs, pipeline):
-    r = Reader.offline(_cfg)
+    r = OfflineReader(_cfg)
     for m in msgs:
         r.feed(m)
     r.assembler.finish()
@@ -202,7 +202,7 @@ def test_extended_frames_on_the_configured_cob_ids_change_no_sample(data):
             n_ext += 1
 
     def run(msgs):
-        r = Reader.offline(_cfg)
+        r = OfflineReader(_cfg)
         for m in msgs:
             r.feed(m)
         r.assembler.finish()
@@ -225,7 +225,7 @@ def test_any_sync_counter_sequence_is_counted_not_trusted(counters, drop):
     frame times cannot hold re-stamps the SYNC; the numbering and the clock never break."""
     from helpers_canopen import period_frames
 
-    r = Reader.offline(_cfg)
+    r = OfflineReader(_cfg)
     ov = _cfg.sync.counter_overflow
     for k, c in enumerate(counters):
         frames = period_frames(_cfg, k, T0 + k * DT, counter=c)

@@ -14,7 +14,8 @@ from helpers_canopen import T0, LocalSlaves, LockstepRig, MasterRig, channel_nam
 
 from rsra.config.rig import G0, config_dir, load_config, parse_config
 from rsra.daq.bus.master import BootError
-from rsra.daq.bus.reader import HealthReport, Reader
+from rsra.daq.bus.reader import (BootNodes, BootNodesSyncOnDemand, FrameClock, HealthReport, Reader,
+                                 WallClock)
 
 EDS = config_dir() / "eds"
 
@@ -24,8 +25,8 @@ def samples(items) -> list:
 
 
 def _reader(cfg, ch, **kw) -> Reader:
-    kw.setdefault("periodic_sync", False)
-    kw.setdefault("wall_clock", False)
+    kw.setdefault("nodes", BootNodesSyncOnDemand())
+    kw.setdefault("clock", FrameClock())
     return Reader(cfg, interface="virtual", channel=ch, **kw)
 
 
@@ -51,7 +52,7 @@ def test_boot_resets_verifies_configures_and_starts_every_node():
         first_start = next(i for i, (_, c) in enumerate(slaves.nmt_log) if c == 0x01)
         assert all(c == 0x82 for _, c in slaves.nmt_log[:first_start])
         assert all(slaves.heartbeat_ms(n.name) == 50 for n in cfg.nodes)  # 0x1017 set
-        nodes = r.health()["nodes"]
+        nodes = r.health().to_dict()["nodes"]
         assert nodes["cell_A"]["identity"] == {"vendor-ID": 0xA5A, "product code": 0x404,
                                                "revision number": 0x10000, "serial number": 1}
         assert nodes["accel_1"]["identity"]["product code"] == \
@@ -118,7 +119,7 @@ def test_an_optional_node_missing_is_reported_and_the_start_goes_on():
         r.start()
         wait_until(lambda: sum(c == 0x01 for _, c in slaves.nmt_log) == len(cfg.nodes) - 1,
                    what="NMT start")
-        nodes = r.health()["nodes"]
+        nodes = r.health().to_dict()["nodes"]
         assert nodes["balance"]["state"] == "missing" and not nodes["balance"]["required"]
         assert all(d["state"] == "booting" for n, d in nodes.items() if n != "balance"), nodes
     finally:
@@ -132,7 +133,7 @@ def test_the_service_produces_sync_with_the_counter():
     cfg = load_config()
     ch = channel_name("sync")
     slaves = LocalSlaves(cfg, ch)
-    r = _reader(cfg, ch, periodic_sync=True, wall_clock=True)
+    r = _reader(cfg, ch, nodes=BootNodes(), clock=WallClock())
     try:
         r.start()
         wait_until(lambda: r.assembler.emitted >= 4, what="four SYNC periods")
@@ -173,7 +174,7 @@ def test_boot_and_start_with_the_simulator(cfg):
     try:
         rig.start()
         out = samples(rig.sync(30))
-        nodes = rig.reader.health()["nodes"]
+        nodes = rig.reader.health().to_dict()["nodes"]
         assert all(d["state"] == "operational" for d in nodes.values())
         assert all(s.complete for s in out[1:])  # sample 0: optional nodes not yet seen alive
         assert out[-1].omega is not None and out[-1].known_H is not None
@@ -208,7 +209,7 @@ def test_optional_nodes_missing_from_the_aircraft_are_reported():
     try:
         rig.start()
         out = samples(rig.sync(40))
-        nodes = rig.reader.health()["nodes"]
+        nodes = rig.reader.health().to_dict()["nodes"]
         assert nodes["rotor_speed"]["state"] == nodes["balance"]["state"] == "missing"
         assert all(s.complete and s.omega is None and s.known_H is None for s in out)
     finally:
@@ -224,7 +225,7 @@ def test_a_node_that_reboots_mid_run_is_back_within_a_second(cfg):
         assert gone, "the reboot was not seen"
         assert gone[-1] - gone[0] < 1.0  # back within a second of acquisition time
         assert all(s.complete for s in out if s.t > gone[-1])
-        h = rig.reader.health()["nodes"]["cell_C"]
+        h = rig.reader.health().to_dict()["nodes"]["cell_C"]
         assert h["boots"] == 3 and h["state"] == "operational"  # power-on, reset, reboot
         assert rig.reader.master.reconfigured == 1
     finally:
@@ -293,7 +294,7 @@ def test_each_injected_fault_is_counted_and_flagged(cfg):
         kinds = Counter(f["kind"] for f in log)
         assert all(kinds[k] >= 5 for k in ("drop", "malformed", "unknown", "lostsync",
                                             "errorframe")), kinds
-        h = rig.reader.health()
+        h = rig.reader.health().to_dict()
         assert h["bus"]["unknown"] == kinds["unknown"]
         assert h["bus"]["errors"] == kinds["errorframe"]
         assert h["bus"]["malformed"] == kinds["malformed"]
@@ -323,14 +324,14 @@ def test_an_optional_node_that_appears_later_is_configured_and_started():
     late = None
     try:
         r.start()
-        assert r.health()["nodes"]["rotor_speed"]["state"] == "missing"
+        assert r.health().to_dict()["nodes"]["rotor_speed"]["state"] == "missing"
         late = LocalSlaves(cfg, ch, absent=tuple(n.name for n in cfg.nodes
                                                  if n.name != "rotor_speed"))
         late.net.send_message(0x731, b"\x00")  # power-on: boot-up
         wait_until(lambda: ("rotor_speed", 0x01) in late.nmt_log, what="the late node's start")
         assert late.heartbeat_ms("rotor_speed") == cfg.heartbeat.producer_ms
         assert r.master.reconfigured == 1
-        assert r.health()["nodes"]["rotor_speed"]["identity"]["product code"] == 0xB01
+        assert r.health().to_dict()["nodes"]["rotor_speed"]["identity"]["product code"] == 0xB01
     finally:
         r.close()
         slaves.close()
@@ -351,16 +352,16 @@ def test_a_rebooted_node_that_fails_verification_is_reported_not_retried():
         slaves.nodes["cell_E"].set_data(0x1018, 2, struct.pack("<I", 0x999),
                                         check_writable=False)
         slaves.net.send_message(0x715, b"\x00")
-        wait_until(lambda: r.health()["nodes"]["cell_E"].get("error"), what="the verification")
-        err = r.health()["nodes"]["cell_E"]["error"]
+        wait_until(lambda: r.health().to_dict()["nodes"]["cell_E"].get("error"), what="the verification")
+        err = r.health().to_dict()["nodes"]["cell_E"]["error"]
         assert err == ("node cell_E: 0x1018:2 (product code) reads 0x00000999, "
                        "the EDS says 0x00000404")
         for _ in range(5):  # pre-operational heartbeats do not trigger retries
             slaves.net.send_message(0x715, b"\x7f")
         slaves.net.send_message(0x95, b"\x00\x10\x01")  # EMCY as a marker: all seen after it
-        wait_until(lambda: r.health()["nodes"]["cell_E"]["emcy_count"] == 1, what="the frames")
-        wait_until(r.master_idle, what="the master")
-        assert r.health()["nodes"]["cell_E"]["state"] == "error"
+        wait_until(lambda: r.health().to_dict()["nodes"]["cell_E"]["emcy_count"] == 1, what="the frames")
+        wait_until(r.nodes.idle, what="the master")
+        assert r.health().to_dict()["nodes"]["cell_E"]["state"] == "error"
         assert sum(1 for n, c in slaves.nmt_log if n == "cell_E" and c == 0x01) == 1
         assert r.master.reconfigured == 0
     finally:

@@ -14,7 +14,7 @@ from helpers_canopen import T0, LockstepRig, MasterRig, channel_name, period_fra
 
 from rsra.daq.cli import main as cli_main
 from rsra.config.rig import load_config
-from rsra.daq.bus.reader import HealthReport, Reader
+from rsra.daq.bus.reader import FrameClock, HealthReport, Listen, Reader
 from rsra.daq.bus.recorder import (
     ANGLES_FILE,
     CONFIG_FILE,
@@ -58,9 +58,9 @@ def test_a_recording_replays_to_exactly_the_samples_seen_live(cfg, tmp_path, fmt
     assert_same_samples(samples(live), samples(rep))
     assert [h.t for h in health(live)] == [h.t for h in health(rep)] == [T0 + 1.0, T0 + 2.0]
     for a, b in zip(health(live), health(rep)):
-        assert a.payload["bus"] == b.payload["bus"]
-        assert a.payload["samples"] == b.payload["samples"]
-        assert a.payload["nodes"] == b.payload["nodes"]
+        assert a.health.bus == b.health.bus
+        assert a.health.samples == b.health.samples
+        assert a.health.nodes == b.health.nodes
 
 
 def test_the_boot_sequence_and_own_transmissions_are_recorded_and_replay_exactly(cfg, tmp_path):
@@ -142,10 +142,10 @@ def test_the_size_cap_stops_the_recording_loudly_and_acquisition_goes_on(cfg, tm
     rec.cap_bytes = 30_000
     try:
         rig.step(800)  # 4 s: the cap is hit after about one second
-        h = rig.reader.health()["recording"]
+        h = rig.reader.health().to_dict()["recording"]
         assert not h["active"] and "size cap" in h["error"] and h["dropped"] > 0
         assert h["bytes"] >= 30_000
-        assert rig.reader.health()["samples"]["complete"] >= 790  # acquisition went on
+        assert rig.reader.health().to_dict()["samples"]["complete"] >= 790  # acquisition went on
     finally:
         rig.close()
     assert (folder / "frames.log").stat().st_size >= 30_000  # nothing deleted
@@ -166,9 +166,9 @@ def test_a_full_disk_stops_the_recording_loudly_and_acquisition_goes_on(cfg, tmp
         f.write = full
         f.flush = full
         rig.step(400)
-        h = rig.reader.health()["recording"]
+        h = rig.reader.health().to_dict()["recording"]
         assert not h["active"] and "No space left on device" in h["error"]
-        assert rig.reader.health()["samples"]["complete"] >= 400
+        assert rig.reader.health().to_dict()["samples"]["complete"] >= 400
     finally:
         rig.close()
     assert (folder / "frames.log").exists()
@@ -232,7 +232,7 @@ def test_replay_at_recorded_timing_onto_a_bus(cfg, tmp_path):
     rx = can.Bus(interface="virtual", channel=ch, receive_own_messages=False,
                  preserve_timestamps=True)
     tx = can.Bus(interface="virtual", channel=ch, preserve_timestamps=True)
-    r = Reader(cfg, bus=rx, master=False, wall_clock=False)
+    r = Reader(cfg, rx, nodes=Listen(), clock=FrameClock())
     try:
         r.start()
         sent = replay_to_bus([folder], tx)

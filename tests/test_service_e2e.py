@@ -108,7 +108,7 @@ def test_flight_with_faults_runs_to_the_end_with_every_fault_visible():
     assert "overrange:E" in flags and "missing:cell_F" in flags  # cells by name, nodes by node
     assert "predict_only" in flags and ("lost_before" in flags or lost == 0)
     assert len(recs["health"]) >= 11  # 1 Hz of acquisition time
-    health = svc.reader.health()  # at the end (the last 1 Hz record is up to 1 s older)
+    health = svc.reader.health().to_dict()  # at the end (the last 1 Hz record is up to 1 s older)
     bus = health["bus"]
     kinds = {f["kind"] for f in log}
     assert bus["unknown"] == sum(1 for f in log if f["kind"] == "unknown")

@@ -88,8 +88,8 @@ def test_soak_ten_minutes_with_faults(cfg, tmp_path):
     assert summary["samples"] + summary["lost"] == n
     assert state["hub"] == summary["samples"] and state["gaps"] == summary["lost"]
     assert summary["lost"] == injected["lostsync"]
-    assert h_sync_ok(svc.reader.health())
-    h = svc.reader.health()
+    assert h_sync_ok(svc.reader.health().to_dict())
+    h = svc.reader.health().to_dict()
     assert h["samples"]["incomplete"] == state["incomplete"]
     assert h["samples"]["lost"] == summary["lost"]
     assert h["queues"]["samples"]["dropped"] == 0 and h["bus"]["callback_errors"] == 0

@@ -9,15 +9,15 @@ from helpers_canopen import T0, period_frames
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rsra.daq.bus.reader import HealthReport, Reader
+from rsra.daq.bus.reader import HealthReport, OfflineReader
 from rsra.daq.bus.recorder import Recorder, frame_files
 from rsra.daq.bus.replay import replay
 
 DT = 0.005
 
 
-def run(cfg, frames) -> tuple[Reader, list]:
-    r = Reader.offline(cfg)
+def run(cfg, frames) -> tuple[OfflineReader, list]:
+    r = OfflineReader(cfg)
     for m in frames:
         r.feed(m)
     r.assembler.finish()
@@ -51,7 +51,7 @@ def test_one_duplicated_sync_is_counted_and_changes_no_sample(cfg):
     dup = frames[:i + 1] + [copy(frames[i])] + frames[i + 1:]
     r, got = run(cfg, dup)
     assert same_samples(got, ref)
-    h = r.health()
+    h = r.health().to_dict()
     assert h["samples"]["lost"] == 0 and h["sync"]["duplicate"] == 1
     assert h["sync"]["bad_timestamp"] == 0
 
@@ -72,7 +72,7 @@ def test_every_frame_duplicated_gives_the_same_samples(cfg):
     _, ref = run(cfg, frames)
     r, got = run(cfg, [c for m in frames for c in (m, copy(m))])
     assert same_samples(got, ref)
-    h = r.health()
+    h = r.health().to_dict()
     assert h["samples"]["lost"] == 0 and h["sync"]["duplicate"] == 1000
     assert h["bus"]["duplicate"] == len(frames) - 1000
 
@@ -127,7 +127,7 @@ def test_one_frame_stamped_far_away_is_re_stamped_and_moves_no_clock(cfg):
         assert same_samples(got, ref), (i, dt)
         # a TPDO far behind is re-stamped at the clock, not counted (own frames come back
         # stamped at send time or not at all)
-        assert r.health()["sync"]["bad_timestamp"] == bad, (i, dt)
+        assert r.health().to_dict()["sync"]["bad_timestamp"] == bad, (i, dt)
         assert r.assembler.lost == 0
 
 

@@ -10,7 +10,7 @@ import pytest
 from helpers_canopen import T0, period_frames
 
 from rsra.daq.bus.master import SyncProducer
-from rsra.daq.bus.reader import HealthReport, Reader
+from rsra.daq.bus.reader import HealthReport, OfflineReader
 
 P = 0.005
 
@@ -90,9 +90,8 @@ def test_a_real_stall_of_the_sync_thread_is_counted():
 
 
 def _reader_with_producer(cfg, producer):
-    r = Reader.offline(cfg)
-    r.master = SimpleNamespace(sync_task=producer, _events=SimpleNamespace(qsize=lambda: 0),
-                               events_dropped=0)
+    r = OfflineReader(cfg)
+    r.nodes.master = SimpleNamespace(sync_task=producer, events_pending=0, events_dropped=0)
     return r
 
 
@@ -108,7 +107,7 @@ def test_health_reports_periods_not_taken_and_the_views_show_them(cfg):
     p = ft.make()
     p._run()
     r = _reader_with_producer(cfg, p)
-    h = r.health()
+    h = r.health().to_dict()
     assert h["sync"]["periods_not_taken"] == p.periods_not_taken >= 9
     assert h["sync"]["late"] == p.late
     con = Console(width=250, record=True)
@@ -124,12 +123,12 @@ def test_health_reports_periods_not_taken_and_the_views_show_them(cfg):
 
 
 def _run_frames(cfg, times):
-    r = Reader.offline(cfg)
+    r = OfflineReader(cfg)
     reports = []
     for k, t in enumerate(times):
         for m in period_frames(cfg, k, t):
             r.feed(m)
-        reports += [x.payload for x in r.poll() if isinstance(x, HealthReport)]
+        reports += [x.health.to_dict() for x in r.poll() if isinstance(x, HealthReport)]
     return reports
 
 

@@ -11,7 +11,7 @@ import can
 import pytest
 from can.interfaces.virtual import VirtualBus
 
-from rsra.daq.bus.reader import FOREIGN_TIMEBASE_S, HealthReport, Reader, Timebase
+from rsra.daq.bus.reader import FOREIGN_TIMEBASE_S, HealthReport, Listen, Reader, Timebase
 from rsra.sim_bus.bus_sim import Simulator
 from tests.helpers_canopen import channel_name
 
@@ -81,14 +81,14 @@ def test_frames_from_an_offset_clock_give_every_sample_at_the_wall_clock(cfg):
     sim = Simulator(cfg, "ground-test", seed=2, autostart=True, bus=bus)
     samples, health = [], []
     try:
-        with Reader(cfg, interface="virtual", channel=chan, master=False) as reader:
+        with Reader(cfg, interface="virtual", channel=chan, nodes=Listen()) as reader:
             with sim:
                 runner = threading.Thread(target=sim.run, args=(2.0,), daemon=True)
                 runner.start()
                 while runner.is_alive():
                     item = reader.get(timeout=0.1)
                     if isinstance(item, HealthReport):
-                        health.append(item.payload)
+                        health.append(item.health.to_dict())
                     elif item is not None:
                         samples.append((item, time.time()))
     finally:
@@ -123,7 +123,7 @@ def test_a_counter_sync_sequence_uses_our_producer_on_an_interface_without_seque
     net = canopen.Network(bus)
     sup = Supervisor(cfg, table, set_alive=lambda *a: None, on_event=lambda *a: None,
                      wake=lambda t: None)
-    master = CanopenMaster(cfg, table, net, sup, clock=time.time, periodic_sync=False)
+    master = CanopenMaster(cfg, table, net, sup, clock=time.time)
     try:
         master.start_sync()
         assert isinstance(master.sync_task, SyncProducer)

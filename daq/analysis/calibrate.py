@@ -218,7 +218,7 @@ def load_known_load_data(
     hold no usable sample with known loads. ``progress(recorded_seconds, samples)`` is called
     every ``progress_every`` samples.
     """
-    from rsra.daq.bus.reader import Reader
+    from rsra.daq.bus.reader import OfflineReader
     from rsra.daq.bus.replay import ReplayError, expand, replay
 
     kind = content or cfg.identification.content_known_loads
@@ -261,7 +261,7 @@ def load_known_load_data(
         outs.append((Y, valid, scored))
 
     for path in map(str, paths):
-        reader = Reader.offline(cfg)
+        reader = OfflineReader(cfg)
         seg = _Segment(ncol)
         last_seq: int | None = None
         try:

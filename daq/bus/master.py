@@ -24,7 +24,7 @@ import struct
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -33,6 +33,7 @@ import canopen
 
 from rsra.config.rig import RigConfig
 from rsra.daq.bus.decoder import COB_MASK_11BIT, DecodeTable, NodeLayout
+from rsra.daq.bus.health import OMIT, Emcy, NodeHealth, frozen_map
 from rsra.daq.bus.nodecheck import fmt_value, verify_node
 
 log = logging.getLogger(__name__)
@@ -152,8 +153,8 @@ class Supervisor:
         # CiA 301 EMCY is 8 bytes; tolerate short frames (pad) rather than drop them
         code, register, info = EMCY_FRAME.unpack(bytes(data[:8]).ljust(8, b"\x00"))
         ns.emcy_count += 1
-        ns.emcy.append({"t": timestamp, "code": code, "register": register,
-                        "info": info.hex(), "length": len(data)})
+        ns.emcy.append(Emcy(t=timestamp, code=code, register=register, info=info.hex(),
+                            length=len(data)))
 
     def check(self, now: float) -> None:
         """Heartbeat watchdog at acquisition time ``now`` (called when the clock passes
@@ -174,20 +175,17 @@ class Supervisor:
                 nxt = deadline
         self.next_deadline = nxt
 
-    def snapshot(self, now: float) -> dict[str, dict]:
+    def snapshot(self, now: float) -> Mapping[str, NodeHealth]:
+        """Every node's part of the health record (read-only)."""
         out = {}
         for ns in self.nodes.values():
             age = None if ns.last_heartbeat is None else round(max(0.0, now - ns.last_heartbeat), 6)
-            d: dict[str, Any] = {"state": ns.state, "heartbeat_age": age,
-                                 "emcy": list(ns.emcy), "required": ns.required,
-                                 "boots": ns.boots, "losses": ns.losses,
-                                 "emcy_count": ns.emcy_count}
-            if ns.identity is not None:
-                d["identity"] = dict(ns.identity)
-            if ns.error:
-                d["error"] = ns.error
-            out[ns.name] = d
-        return out
+            out[ns.name] = NodeHealth(
+                state=ns.state, heartbeat_age=age, emcy=tuple(ns.emcy), required=ns.required,
+                boots=ns.boots, losses=ns.losses, emcy_count=ns.emcy_count,
+                identity=OMIT if ns.identity is None else frozen_map(ns.identity),
+                error=ns.error or OMIT)
+        return frozen_map(out)
 
 
 # python-can bus classes whose own send_periodic sends a sequence of messages in turn
@@ -259,10 +257,9 @@ class CanopenMaster:
     """
 
     def __init__(self, cfg: RigConfig, table: DecodeTable, network: canopen.Network,
-                 supervisor: Supervisor, clock: Callable[[], float], periodic_sync: bool = True):
+                 supervisor: Supervisor, clock: Callable[[], float]):
         self.cfg, self.table, self.network, self.supervisor = cfg, table, network, supervisor
         self.clock = clock
-        self.periodic_sync = periodic_sync
         # a worker thread restarts nodes (SDO must not run on the thread that delivers the
         # answers: the bus thread live, the lock-step driver's otherwise)
         self._sync_counter = 0
@@ -285,8 +282,10 @@ class CanopenMaster:
 
     # -- boot ------------------------------------------------------------------------------
     def boot(self) -> None:
-        """docs/bus.md §3, steps 1–3. Raises BootError naming node/object/values on any mismatch and
-        when a required node does not answer; optional absent nodes are reported missing."""
+        """docs/bus.md §3, steps 1–3 (reset, verify, start); SYNC (:meth:`start_sync`) and
+        supervision (:meth:`supervise`) are the caller's next steps (daq.bus.reader's node
+        policies). Raises BootError naming node/object/values on any mismatch and when a
+        required node does not answer; optional absent nodes are reported missing."""
         sup = self.supervisor
         for nl in self.table.nodes:
             sup.nodes[nl.name].heard.clear()
@@ -311,14 +310,11 @@ class CanopenMaster:
             self.configure(nl)
         for nl in present:
             self.remote[nl.name].nmt.send_command(NMT_START)
-        if self.periodic_sync:
-            self.start_sync()
-        self.supervise()
 
     def supervise(self) -> None:
         """From now on restart every node that boots (boot-up seen) or reports a state other
         than operational: reconfigure over SDO, then NMT start (docs/bus.md §3 "Boot and
-        supervision"). Called by boot(); alone where another party booted the nodes (the
+        supervision"). After boot(); alone where another party booted the nodes (the
         simulator in lock-step)."""
         if self.running:
             return
@@ -389,6 +385,11 @@ class CanopenMaster:
     def idle(self) -> bool:
         """No reconfiguration pending or running (lock-step drivers hold time meanwhile)."""
         return not self._pending and self._events.empty()
+
+    @property
+    def events_pending(self) -> int:
+        """Restart requests queued for the worker (health ``queues.master_events.depth``)."""
+        return self._events.qsize()
 
     # -- supervision ---------------------------------------------------------------------------
     def on_event(self, kind: str, node: str) -> None:

@@ -5,21 +5,46 @@
     python-can bus ─▶ one Notifier ─▶ FrameTap ─▶ canopen Network.subscribe callbacks
                                   │  (clock, counts,  ├─ SampleAssembler (SYNC, TPDOs)
                                   │   unknown IDs)    ├─ Supervisor (heartbeat, EMCY)
-                                  │                   └─ canopen SDO/NMT (master)
+                                  │        │          └─ canopen SDO/NMT (master)
+                                  │        └─▶ Deadlines: the watchdog, the 1 Hz HealthMonitor
                                   └─▶ Recorder (every frame, own transmissions too)
-    SampleAssembler / 1 Hz health ─▶ bounded queue ─▶ consumer (``Reader.get``)
+    SampleAssembler / HealthMonitor ─▶ ItemQueue (bounded) ─▶ consumer (``Reader.get``)
 
 The FrameTap replaces canopen's own MessageListener (one listener, one dispatch per frame):
 it keeps the ONE acquisition clock (model.md §8.3: the frame timestamps — simulated time in
 lock-step, recorded time in replay, the wall clock live — made monotone and quantised to
 1 µs; the frame is re-stamped with it before the recorder sees it), counts frames, error
 frames, bus-off and unknown COB-IDs, and dispatches through canopen's
-``Network.subscribe`` table. Heartbeat watchdog and the 1 Hz health report run when that
-clock passes their deadline. Live, an idle bus still advances
-the clock from the wall clock (the only place that reads it).
+``Network.subscribe`` table. The heartbeat watchdog and the 1 Hz health report are timed
+tasks registered with the tap's :class:`Deadlines` at construction; when the clock passes
+the earliest one the tap runs the due ones (one downward call; a heartbeat that brings the
+watchdog's time forward lowers the deadline, nothing calls back into the reader).
 
-Replay feeds recorded frames to the same FrameTap (:meth:`Reader.feed`), so it assembles
-exactly the samples the live reader did.
+What differs between a live bus, a lock-step run and a replay is chosen by the caller as
+classes and small objects, never as flags (python-can's ``BusABC``: variation in subclasses):
+
+* the reader: :class:`Reader` owns a bus and a notifier thread (live);
+  :class:`LockstepReader` owns no thread, a lock-step driver calls :meth:`~LockstepReader.pump`;
+  :class:`OfflineReader` has no bus at all, it is fed frames (:meth:`~OfflineReader.feed`:
+  replay, benchmarks) and so assembles exactly the samples the live reader did;
+* the clock (``Reader`` only): :class:`WallClock` (frames mapped onto the wall clock's
+  timebase, an idle bus still advances the clock — the only place that reads the wall
+  clock) or :class:`FrameClock` (frame time only);
+* the nodes: :class:`Listen` (no NMT, SDO or SYNC), :class:`BootNodes` (the CANopen master:
+  boot, periodic SYNC, supervision), :class:`BootNodesSyncOnDemand` (the same, one SYNC per
+  ``send_sync``), :class:`RestartNodes` (lock-step: someone else booted the nodes; restarts
+  a node that reboots once ``supervise()`` is called);
+* the item queue: :class:`DropQueue` (never blocks the bus thread; a full queue drops and
+  counts) or :class:`BlockQueue` (lock-step: the producer waits, the waits are counted).
+
+A combination that cannot work has no spelling: the lock-step reader takes only the
+node policies that need no bus thread, ``send_sync`` exists only on the on-demand policy,
+``supervise`` only on the restart one. (Issue 16 replaced the keywords ``master``,
+``restart_nodes``, ``periodic_sync``, ``wall_clock``, ``overflow``, ``queue_size``,
+``offline``, ``bus_kwargs`` and ``start(notifier=False)`` by these; no keyword is kept.)
+
+The health snapshot is a typed, frozen :class:`daq.bus.health.Health`, built in one place
+(:meth:`HealthMonitor.snapshot`).
 """
 from __future__ import annotations
 
@@ -32,7 +57,7 @@ from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import can
 import canopen
@@ -40,6 +65,17 @@ import canopen
 from rsra.daq.bus.assembler import Sample, SampleAssembler
 from rsra.config.rig import RigConfig
 from rsra.daq.bus.decoder import DecodeTable
+from rsra.daq.bus.health import (
+    OMIT,
+    BusCounts,
+    EventQueue,
+    Health,
+    Queues,
+    RecordingHealth,
+    SampleCounts,
+    SampleQueue,
+    SyncHealth,
+)
 from rsra.daq.bus.master import (
     COB_EMCY,
     COB_HEARTBEAT,
@@ -71,10 +107,10 @@ _floor = math.floor
 
 @dataclass(frozen=True, slots=True)
 class HealthReport:
-    """The 1 Hz ``health`` payload, emitted in frame order into the sample stream."""
+    """The 1 Hz ``health`` record, emitted in frame order into the sample stream."""
 
     t: float
-    payload: dict
+    health: Health
 
 
 def quantise_us(t: float) -> float:
@@ -84,14 +120,61 @@ def quantise_us(t: float) -> float:
     return math.floor(t * 1e6 + 0.5) / 1e6
 
 
-class FrameTap(can.Listener):
-    """The one per-frame entry point (bus thread, or the replay loop)."""
+# -- timed tasks on the acquisition clock ---------------------------------------------------------
+class TimedTask(Protocol):
+    """A task the acquisition clock runs once it passes ``due`` (which ``run`` moves on)."""
 
-    def __init__(self, reader: Reader, network: canopen.Network, known: set[int]):
-        self.reader = reader
+    @property
+    def due(self) -> float: ...
+
+    def run(self, t: float) -> None: ...
+
+
+class Deadlines:
+    """The tap's timed tasks, registered at construction. ``next`` is the earliest ``due``;
+    the tap calls :meth:`run` when its clock passes it. :meth:`lower` brings ``next``
+    forward (a task whose time moved earlier between two runs: the watchdog on a heartbeat)."""
+
+    def __init__(self) -> None:
+        self.tasks: tuple[TimedTask, ...] = ()
+        self.next = -math.inf  # the first frame runs every task once (their set-up)
+
+    def add(self, task: TimedTask) -> None:
+        self.tasks += (task,)
+
+    def run(self, t: float) -> None:
+        for task in self.tasks:
+            if t >= task.due:
+                task.run(t)
+        self.next = min(task.due for task in self.tasks)
+
+    def lower(self, t: float) -> None:
+        if t < self.next:
+            self.next = t
+
+
+class _Watchdog:
+    """The supervisor's heartbeat watchdog as a timed task."""
+
+    def __init__(self, sup: Supervisor):
+        self.sup = sup
+
+    @property
+    def due(self) -> float:
+        return self.sup.next_deadline
+
+    def run(self, t: float) -> None:
+        self.sup.check(t)
+
+
+class FrameTap(can.Listener):
+    """The one per-frame entry point (bus thread, lock-step driver, or the replay loop)."""
+
+    def __init__(self, network: canopen.Network, known: set[int], asm: SampleAssembler,
+                 deadlines: Deadlines):
         self.subscribers = network.subscribers  # canopen's subscribe table (live dict)
         self.known = frozenset(known)
-        asm = reader.assembler
+        self.deadlines = deadlines
         self.sync_cob = asm.sync_cob_id
         self.stamp_sync = asm.stamp_sync
         self.stamp_frame = asm.clock.stamp_frame
@@ -106,7 +189,6 @@ class FrameTap(can.Listener):
         self.last_callback_error: str | None = None
         self.frame_time = -math.inf  # monotone, quantised frame time
         self.tick_time = -math.inf  # live idle tick (wall clock)
-        self.deadline = -math.inf  # next watchdog / health time (first frame: set up)
         self.lock = threading.Lock()
 
     def on_message_received(self, msg: can.Message) -> None:
@@ -126,8 +208,9 @@ class FrameTap(can.Listener):
             t = _floor(ts * 1e6 + 0.5) / 1e6
         if t > self.frame_time:
             self.frame_time = t
-            if t >= self.deadline:
-                self.reader._on_time(t)
+            deadlines = self.deadlines
+            if t >= deadlines.next:
+                deadlines.run(t)
         else:
             t = self.frame_time  # never backwards (own transmissions stamped at send time)
         # the frame carries the acquisition time from here on: the recorder (next listener)
@@ -169,8 +252,8 @@ class FrameTap(can.Listener):
             t = quantise_us(wall)
             if t > self.tick_time:
                 self.tick_time = t
-                if t > self.frame_time and t >= self.deadline:
-                    self.reader._on_time(t)
+                if t > self.frame_time and t >= self.deadlines.next:
+                    self.deadlines.run(t)
 
     def on_error(self, exc: Exception) -> None:
         # a bus read failed (interface down, …): count it, keep the notifier running
@@ -244,93 +327,317 @@ class _LockedTap(can.Listener):
         pass
 
 
-class Reader:
-    """Calibrated, time-stamped samples from a CANopen bus.
+# -- the clock: what advances the acquisition clock besides the frames (Reader) -----------------
+class FrameClock:
+    """The acquisition clock is the frames' time only (a bus whose frames carry simulated
+    time; benchmarks). The recorder writes inline: nothing runs in real time."""
 
-    Live::
+    def listener(self, tap: FrameTap) -> can.Listener:
+        return tap
 
-        with Reader(cfg, interface="virtual", channel="rig") as r:   # boots the nodes
-            while (item := r.get(timeout=1.0)) is not None:
-                ...  # Sample, or HealthReport once a second of acquisition time
+    def recorder(self, folder: Path, cfg: RigConfig, fmt: str | None) -> Recorder:
+        return Recorder(folder, cfg, fmt=fmt, threaded=False)
 
-    Offline (replay, benchmarks): ``Reader.offline(cfg)``, then ``feed(msg)`` and ``poll()``.
+    def start(self, tap: FrameTap, recorder: Recorder | None) -> None:
+        pass
 
-    ``master=False`` only listens (no NMT, no SDO, no SYNC): a recording of another master, a
-    bus whose nodes start by themselves, lock-step runs where the simulator owns the nodes.
-    ``restart_nodes=True`` with ``master=False`` (lock-step): the nodes were booted by someone
-    else, but once :meth:`supervise` is called a node that reboots is reconfigured over SDO
-    and started by this reader's master thread, as the live master does (docs/bus.md §3 "Boot and
-    supervision"); a lock-step driver (sim_bus.drivers) holds time while :meth:`busy`.
-    ``overflow="drop"`` (live) never blocks the bus thread: a full queue drops the item and
-    counts it; ``"block"`` (lock-step) makes the bus thread wait and counts the waits.
-    """
+    def stop(self) -> None:
+        pass
 
-    def __init__(self, cfg: RigConfig, *, bus: can.BusABC | None = None,
-                 interface: str | None = None, channel: Any = None,
-                 bus_kwargs: dict | None = None, master: bool = True,
-                 record: str | Path | None = None, record_format: str | None = None,
-                 queue_size: int = DEFAULT_QUEUE, overflow: str = "drop",
-                 wall_clock: bool | None = None, table: DecodeTable | None = None,
-                 offline: bool = False, periodic_sync: bool = True,
-                 restart_nodes: bool = False):
-        if overflow not in ("drop", "block"):
-            raise ValueError(f"overflow must be 'drop' or 'block', not {overflow!r}")
-        self.cfg = cfg
-        self.table = table or DecodeTable(cfg)
-        self.offline = offline
-        self._bus = bus
-        self._own_bus = False
-        self._bus_args = dict(bus_kwargs or {})
-        if interface is not None:
-            self._bus_args["interface"] = interface
-        if channel is not None:
-            self._bus_args["channel"] = channel
-        self.use_master = master and not offline
-        self.restart_nodes = restart_nodes and not master and not offline
-        self.periodic_sync = periodic_sync
-        self.wall_clock = (not offline) if wall_clock is None else wall_clock
-        self.overflow = overflow
-        self.queue: queue.Queue[Sample | HealthReport] = queue.Queue(queue_size)
-        self.queue_size = queue_size
+
+class WallClock(FrameClock):
+    """Live: frames mapped onto the wall clock's timebase (:class:`Timebase`), and an idle
+    bus still advances the clock from the wall clock (a thread ticks it every ``TICK_S``).
+    The recorder writes from a thread of its own behind a bounded queue (a slow disk never
+    stalls the bus thread)."""
+
+    def __init__(self) -> None:
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def listener(self, tap: FrameTap) -> can.Listener:
+        return _LockedTap(tap)
+
+    def recorder(self, folder: Path, cfg: RigConfig, fmt: str | None) -> Recorder:
+        return Recorder(folder, cfg, fmt=fmt, threaded=True)
+
+    def start(self, tap: FrameTap, recorder: Recorder | None) -> None:
+        def tick() -> None:
+            while not self._stop.wait(TICK_S):
+                tap.tick(time.time())  # the live acquisition clock when the bus is idle
+                if recorder is not None:
+                    recorder.tick(tap.now)
+        self._thread = threading.Thread(target=tick, name="rsra-clock-tick", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None
+
+
+# -- the nodes: who boots, starts, supervises them and produces SYNC --------------------------------
+class Listen:
+    """Only listen: no NMT, no SDO, no SYNC (a recording of another master, nodes that start
+    by themselves, lock-step runs where the simulator owns the nodes)."""
+
+    master: CanopenMaster | None = None
+
+    def attach(self, cfg: RigConfig, table: DecodeTable, network: canopen.Network,
+               supervisor: Supervisor, clock: Callable[[], float]) -> None:
+        """Set up before the bus thread starts (the reader's start)."""
+
+    def begin(self) -> None:
+        """After the bus thread (if any) and the clock started."""
+
+    def on_event(self, kind: str, node: str) -> None:
+        """A supervisor event (bus thread: never blocks)."""
+        master = self.master
+        if master is not None:
+            master.on_event(kind, node)
+
+    def idle(self) -> bool:
+        """No node reconfiguration pending or running."""
+        master = self.master
+        return master is None or master.idle()
+
+    def check_bus(self, cfg: RigConfig, bus: Any) -> None:
+        """Refuse a caller's bus this policy cannot work with (ValueError)."""
+
+    def stop(self) -> None:
+        if self.master is not None:
+            self.master.stop()
+
+
+class RestartNodes(Listen):
+    """Lock-step: the nodes were booted by someone else (the simulator); once
+    :meth:`supervise` is called a node that reboots is reconfigured over SDO and started by
+    the master's thread, as the live master does (docs/bus.md §3 "Boot and supervision"),
+    its answers served by the lock-step driver while the reader is busy."""
+
+    def attach(self, cfg: RigConfig, table: DecodeTable, network: canopen.Network,
+               supervisor: Supervisor, clock: Callable[[], float]) -> None:
+        self.master = CanopenMaster(cfg, table, network, supervisor, clock=clock)
+
+    def supervise(self) -> None:
+        """From now on restart a node that reboots (the boot-ups already processed — the
+        other master's start — are not acted upon). The reader must be started."""
+        if self.master is None:
+            raise RuntimeError("supervise() needs a started reader")
+        self.master.supervise()
+
+
+class BootNodesSyncOnDemand(Listen):
+    """The CANopen master: boots, verifies and starts the nodes on :meth:`Reader.start`
+    (master.BootError when it cannot) and keeps them running; one SYNC per
+    :meth:`send_sync` (a test or driver owns the sample clock)."""
+
+    def attach(self, cfg: RigConfig, table: DecodeTable, network: canopen.Network,
+               supervisor: Supervisor, clock: Callable[[], float]) -> None:
+        self.master = CanopenMaster(cfg, table, network, supervisor, clock=clock)
+
+    def begin(self) -> None:
+        self.master.boot()
+        self._sync()
+        self.master.supervise()
+
+    def _sync(self) -> None:
+        pass
+
+    def send_sync(self, timestamp: float | None = None) -> None:
+        """Put one SYNC on the bus (``timestamp`` kept on buses that preserve it)."""
+        if self.master is None:
+            raise RuntimeError("send_sync() needs a started reader")
+        self.master.send_sync(timestamp)
+
+
+class BootNodes(BootNodesSyncOnDemand):
+    """The live CANopen master: boot, then SYNC at the sample rate (``sync.producer:
+    service``), then supervision."""
+
+    def _sync(self) -> None:
+        self.master.start_sync()
+
+    def send_sync(self, timestamp: float | None = None) -> None:  # type: ignore[override]
+        raise TypeError("BootNodes produces SYNC periodically: use BootNodesSyncOnDemand")
+
+    def check_bus(self, cfg: RigConfig, bus: Any) -> None:
+        if cfg.sync.producer == "service" and \
+                getattr(bus, "receive_own_messages", True) is False:
+            raise ValueError("the service produces SYNC but this bus does not deliver its "
+                             "own transmissions: open it with receive_own_messages=True")
+
+
+LockstepNodes = Listen | RestartNodes  # what needs no bus thread (SDO answered by a driver)
+
+
+# -- the items: what a full queue does -----------------------------------------------------------------
+class ItemQueue:
+    """The bounded queue of samples and health reports between the bus side and the
+    consumer; a subclass says what a full queue does."""
+
+    def __init__(self, size: int = DEFAULT_QUEUE):
+        self.queue: queue.Queue[Sample | HealthReport] = queue.Queue(size)
+        self.size = size
         self.dropped = 0
         self.blocked = 0
         self.max_depth = 0
-        self.health_period_s = 1.0
-        self._next_health = math.inf
-        self.last_health: dict | None = None
+
+    def put(self, item: Sample | HealthReport) -> None:
+        raise NotImplementedError
+
+    def get(self, timeout: float | None = None) -> Sample | HealthReport | None:
+        try:
+            return self.queue.get(timeout=timeout)
+        except queue.Empty:
+            return None
+
+    def poll(self) -> list[Sample | HealthReport]:
+        out = []
+        q = self.queue
+        while True:
+            try:
+                out.append(q.get_nowait())
+            except queue.Empty:
+                return out
+
+    def status(self) -> SampleQueue:
+        return SampleQueue(depth=self.queue.qsize(), size=self.size, max_depth=self.max_depth,
+                           dropped=self.dropped, blocked=self.blocked)
+
+
+class DropQueue(ItemQueue):
+    """Never blocks the producer (the bus thread): a full queue drops the item and counts
+    it (visible through seq gaps)."""
+
+    def put(self, item: Sample | HealthReport) -> None:
+        q = self.queue
+        try:
+            q.put_nowait(item)
+        except queue.Full:
+            self.dropped += 1
+            return
+        depth = len(q.queue)  # a statistic: no need for qsize()'s lock (per sample)
+        if depth > self.max_depth:
+            self.max_depth = depth
+
+
+class BlockQueue(ItemQueue):
+    """Lock-step: a full queue makes the producer wait; the waits are counted."""
+
+    def put(self, item: Sample | HealthReport) -> None:
+        q = self.queue
+        if q.full():
+            self.blocked += 1
+        q.put(item)
+        depth = len(q.queue)
+        if depth > self.max_depth:
+            self.max_depth = depth
+
+
+# -- health --------------------------------------------------------------------------------------------
+class HealthMonitor:
+    """The 1 Hz health report on acquisition time (a timed task of the tap) and the health
+    snapshot, built here only. It reads the parts; nothing reads it back but the consumer."""
+
+    period_s = 1.0
+
+    def __init__(self, cfg: RigConfig, tap: FrameTap, asm: SampleAssembler,
+                 supervisor: Supervisor, items: ItemQueue, nodes: Listen):
+        self.cfg, self.tap, self.asm, self.supervisor = cfg, tap, asm, supervisor
+        self.items, self.nodes = items, nodes
+        self.recorder: Recorder | None = None  # set when a bus reader starts recording
+        self.due = -math.inf  # the first run only sets the schedule up
+        self.last: Health | None = None
         self._rate_hist: deque[tuple[float, int]] = deque(maxlen=RATE_WINDOW + 1)
         self._rate_hz: float | None = None
-        # --record DIR is taken as given (and must be new); recording.dir in the config is a
-        # parent folder: every run records into its own time-stamped subfolder
-        self.record_dir = Path(record) if record else (
-            Path(cfg.recording.dir) / time.strftime("%Y%m%d-%H%M%S")
-            if cfg.recording.dir and not offline else None)
-        self.record_format = record_format
-        self.recorder: Recorder | None = None
-        self.master: CanopenMaster | None = None
-        self._tick_thread: threading.Thread | None = None
-        self._stop = threading.Event()
-        self._started = False
 
-        self.network = canopen.Network(bus)
+    def run(self, t: float) -> None:
+        """The acquisition clock passed ``due`` (bus thread / replay loop, frame order)."""
+        if self.due == -math.inf:
+            self.due = math.floor(t) + self.period_s
+            return
+        # 1 Hz on acquisition time; a long gap gives one report, not a burst
+        self.due = max(self.due + self.period_s, math.floor(t) + self.period_s)
+        self._measure_rate(t)
+        h = self.snapshot(t)
+        self.last = h
+        self.items.put(HealthReport(t, h))
+
+    def snapshot(self, t: float | None = None) -> Health:
+        """The ``health`` record of docs/telemetry.md §2.5 (the reader's part of it)."""
+        tap, asm = self.tap, self.asm
+        t = tap.now if t is None else t
+        bus = BusCounts(frames=tap.frames, errors=tap.errors, bus_off=tap.bus_off,
+                        unknown=tap.unknown, malformed=asm.malformed + self.supervisor.malformed,
+                        duplicate=asm.duplicate, orphan=asm.orphan, remote=tap.remote,
+                        callback_errors=tap.callback_errors,
+                        last_callback_error=tap.last_callback_error or OMIT)
+        master = self.nodes.master
+        queues = Queues(samples=self.items.status(), master_events=OMIT if master is None
+                        else EventQueue(depth=master.events_pending,
+                                        dropped=master.events_dropped))
+        rec = RecordingHealth(active=False) if self.recorder is None else \
+            RecordingHealth.from_status(self.recorder.status())
+        return Health(t=t if math.isfinite(t) else None, nodes=self.supervisor.snapshot(t),
+                      bus=bus, samples=SampleCounts(**asm.counters()), queues=queues,
+                      recording=rec, sync=self._sync())
+
+    def _sync(self) -> SyncHealth:
+        """Duplicated SYNCs, bad timestamps (docs/reliability.md), late SYNCs of our own
+        producer and the sample rate over the last ``RATE_WINDOW`` health periods."""
+        asm = self.asm
+        master = self.nodes.master
+        task = master.sync_task if master is not None else None
+        late = periods = OMIT
+        if task is not None and hasattr(task, "periods_not_taken"):
+            late, periods = task.late, task.periods_not_taken
+        rate = self._rate_hz
+        return SyncHealth(duplicate=asm.duplicate_sync, bad_timestamp=asm.clock.bad_timestamp,
+                          late=late, periods_not_taken=periods, rate_hz=rate,
+                          rate_low=rate is not None
+                          and rate < RATE_LOW_FRACTION * self.cfg.sample_rate_hz)
+
+    def _measure_rate(self, t: float) -> None:
+        """Samples assembled per second of acquisition time, over the last health periods
+        (called once per health period, before the report)."""
+        hist = self._rate_hist
+        hist.append((t, self.asm.emitted))
+        (t0, n0), (t1, n1) = hist[0], hist[-1]
+        self._rate_hz = (n1 - n0) / (t1 - t0) if t1 - t0 >= 0.999 * self.period_s else None
+
+
+# -- the readers ------------------------------------------------------------------------------------------
+class OfflineReader:
+    """Calibrated, time-stamped samples from frames the caller feeds (replay, benchmarks):
+    ``feed(msg)`` each frame, ``poll()`` the items. No bus, no thread, no master; the clock
+    is the frames' time; a full queue drops (DropQueue)."""
+
+    def __init__(self, cfg: RigConfig, *, table: DecodeTable | None = None,
+                 items: ItemQueue | None = None, nodes: Listen | None = None):
+        self.cfg = cfg
+        self.table = table or DecodeTable(cfg)
+        self.items = items if items is not None else DropQueue()
+        self.nodes = nodes if nodes is not None else Listen()
+        self.recorder: Recorder | None = None
+        self.network = canopen.Network(None)
         # the bus thread wakes this often to see a stop (canopen's default: 1 s per close)
         self.network.NOTIFIER_CYCLE = NOTIFIER_CYCLE_S
-        self.assembler = SampleAssembler(cfg, self.table, self._put)
+        self.assembler = SampleAssembler(cfg, self.table, self.items.put)
+        deadlines = Deadlines()
         self.supervisor = Supervisor(cfg, self.table, set_alive=self.assembler.set_alive,
-                                     on_event=self._on_node_event, wake=self._wake)
-        known = self._known_cob_ids()
-        self.tap = FrameTap(self, self.network, known)
+                                     on_event=self.nodes.on_event, wake=deadlines.lower)
+        self.tap = FrameTap(self.network, self._known_cob_ids(), self.assembler, deadlines)
+        self.monitor = HealthMonitor(cfg, self.tap, self.assembler, self.supervisor,
+                                     self.items, self.nodes)
+        deadlines.add(_Watchdog(self.supervisor))
+        deadlines.add(self.monitor)
         # our callbacks first: canopen's own (added by the master) must not shadow them
         for cob, cb in self.supervisor.callbacks().items():
             self.network.subscribe(cob, cb)
         for cob, cb in self.assembler.callbacks().items():
             self.network.subscribe(cob, cb)
-
-    @classmethod
-    def offline(cls, cfg: RigConfig, **kw: Any) -> Reader:
-        """A reader without a bus: feed it frames (replay, benchmarks)."""
-        kw.setdefault("master", False)
-        return cls(cfg, offline=True, **kw)
 
     def _known_cob_ids(self) -> set[int]:
         known = {COB_NMT, COB_TIME, self.cfg.sync.cob_id, *LSS_COB_IDS, *self.table.tpdos}
@@ -339,16 +646,67 @@ class Reader:
                       COB_SDO_TX + nl.node_id, COB_SDO_RX + nl.node_id}
         return known
 
-    # -- lifecycle --------------------------------------------------------------------------
-    def start(self, notifier: bool = True) -> Reader:
-        """Connect, start recording, boot the nodes (master) and start SYNC. Raises
-        master.BootError (after closing everything) when the nodes cannot be started.
+    @property
+    def master(self) -> CanopenMaster | None:
+        """The CANopen master of the node policy (None: only listening)."""
+        return self.nodes.master
 
-        ``notifier=False`` (lock-step, no master): no bus thread; call :meth:`pump`."""
-        if self.offline:
-            raise RuntimeError("an offline reader has no bus: use feed()")
+    # -- frames in ---------------------------------------------------------------------------
+    def feed(self, msg: can.Message) -> None:
+        """Process one frame on the caller's thread (the same code path as the bus thread)."""
+        self.tap.on_message_received(msg)
+        if self.recorder is not None:
+            self.recorder.on_message_received(msg)
+
+    # -- items out -----------------------------------------------------------------------------
+    def get(self, timeout: float | None = None) -> Sample | HealthReport | None:
+        """The next item (Sample or HealthReport), None after ``timeout`` seconds."""
+        return self.items.get(timeout)
+
+    def poll(self) -> list[Sample | HealthReport]:
+        """Every item available now, without waiting."""
+        return self.items.poll()
+
+    @property
+    def now(self) -> float:
+        """The acquisition clock (seconds)."""
+        return self.tap.now
+
+    def health(self, t: float | None = None) -> Health:
+        """A snapshot of the ``health`` record (docs/telemetry.md §2.5)."""
+        return self.monitor.snapshot(t)
+
+
+class _BusReader(OfflineReader):
+    """What a reader with a bus adds: opening (or taking) the bus, the recording, the node
+    policy's start and stop, closing in order."""
+
+    def __init__(self, cfg: RigConfig, bus: can.BusABC | None, *, interface: str | None,
+                 channel: Any, record: str | Path | None, record_format: str | None,
+                 table: DecodeTable | None, items: ItemQueue, nodes: Listen,
+                 clock: FrameClock):
+        super().__init__(cfg, table=table, items=items, nodes=nodes)
+        self.clock = clock
+        self._bus = bus
+        self._own_bus = False
+        self._bus_args: dict[str, Any] = {}
+        if interface is not None:
+            self._bus_args["interface"] = interface
+        if channel is not None:
+            self._bus_args["channel"] = channel
+        self.network.bus = bus
+        # --record DIR is taken as given (and must be new); recording.dir in the config is a
+        # parent folder: every run records into its own time-stamped subfolder
+        self.record_dir = Path(record) if record else (
+            Path(cfg.recording.dir) / time.strftime("%Y%m%d-%H%M%S")
+            if cfg.recording.dir else None)
+        self.record_format = record_format
+        self._stop = threading.Event()
+        self._started = False
+
+    def _start(self, thread: bool) -> None:
         if self._started:
-            return self
+            return
         self._started = True
         try:
             if self._bus is None:
@@ -358,55 +716,30 @@ class Reader:
                 self._bus = open_bus(**args)  # virtual: own copy first (rsra.canbus)
                 self._own_bus = True
                 self.network.bus = self._bus
-            elif (self.use_master and self.cfg.sync.producer == "service"
-                  and getattr(self._bus, "receive_own_messages", True) is False):
-                raise ValueError("the service produces SYNC but this bus does not deliver its "
-                                 "own transmissions: open it with receive_own_messages=True")
-            listeners: list[can.Listener] = [
-                _LockedTap(self.tap) if self.wall_clock else self.tap]
+            else:
+                self.nodes.check_bus(self.cfg, self._bus)
+            listeners: list[can.Listener] = [self.clock.listener(self.tap)]
             if self.record_dir is not None:
-                # live: a writer thread behind a bounded queue (a slow disk never stalls
-                # the bus thread); lock-step: inline (nothing runs in real time)
-                self.recorder = Recorder(self.record_dir, self.cfg, fmt=self.record_format,
-                                         threaded=self.wall_clock)
+                self.recorder = self.clock.recorder(self.record_dir, self.cfg,
+                                                    self.record_format)
+                self.monitor.recorder = self.recorder
                 listeners.append(self.recorder)
             self.network.listeners = listeners
-            if self.use_master:
-                if not notifier:
-                    raise ValueError("the master needs the bus thread (SDO): notifier=True")
-                self.master = CanopenMaster(self.cfg, self.table, self.network, self.supervisor,
-                                            clock=lambda: self.tap.now,
-                                            periodic_sync=self.periodic_sync)
-            elif self.restart_nodes:  # restarts only, armed by supervise()
-                self.master = CanopenMaster(self.cfg, self.table, self.network, self.supervisor,
-                                            clock=lambda: self.tap.now, periodic_sync=False)
-            if notifier:
+            self.nodes.attach(self.cfg, self.table, self.network, self.supervisor,
+                              clock=lambda: self.tap.now)
+            if thread:
                 self.network.connect()
-            if self.wall_clock:
-                self._tick_thread = threading.Thread(target=self._tick, name="rsra-clock-tick",
-                                                     daemon=True)
-                self._tick_thread.start()
-            if self.master is not None and self.use_master:
-                self.master.boot()
+            self.clock.start(self.tap, self.recorder)
+            self.nodes.begin()
         except BaseException:
             self.close()
             raise
-        return self
-
-    def _tick(self) -> None:
-        while not self._stop.wait(TICK_S):
-            self.tap.tick(time.time())  # the live acquisition clock when the bus is idle
-            if self.recorder is not None:
-                self.recorder.tick(self.tap.now)
 
     def close(self) -> None:
         """Stop SYNC, the master, the notifier, the recording; shut down a bus we opened."""
         self._stop.set()
-        if self.master is not None:
-            self.master.stop()
-        if self._tick_thread is not None:
-            self._tick_thread.join(timeout=2.0)
-            self._tick_thread = None
+        self.nodes.stop()
+        self.clock.stop()
         if self.network.notifier is not None:
             self.network.notifier.stop(2.0)  # also stops the recorder (a listener)
             self.network.notifier = None
@@ -417,88 +750,42 @@ class Reader:
             self._bus = None
             self.network.bus = None
 
-    def __enter__(self) -> Reader:
-        return self.start()
-
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    # -- frames in (replay / lock-step) -------------------------------------------------------
-    def feed(self, msg: can.Message) -> None:
-        """Process one frame on the caller's thread (the same code path as the bus thread)."""
-        self.tap.on_message_received(msg)
-        if self.recorder is not None:
-            self.recorder.on_message_received(msg)
 
-    def pump(self) -> int:
-        """Lock-step without a bus thread: process every frame queued on the bus now, in
-        order, in this thread. Returns the number of frames."""
-        if self.network.notifier is not None:
-            raise RuntimeError("the bus thread is running: pump() is for start(notifier=False)")
-        bus = self._bus
-        n = 0
-        while (msg := bus.recv(0.0)) is not None:
-            self.feed(msg)
-            n += 1
-        return n
+class Reader(_BusReader):
+    """Calibrated, time-stamped samples from a CANopen bus, read by a notifier thread.
 
-    def supervise(self) -> None:
-        """``restart_nodes``: from now on restart a node that reboots (the boot-ups already
-        processed — the other master's start — are not acted upon), in the master's thread.
-        Without a bus thread the SDO answers come in through :meth:`pump`: a lock-step
-        driver (sim_bus.drivers.LockstepDriver) pumps this reader and the peer while
-        :meth:`busy`, with the reader's transmissions handed over (HandoffBus)."""
-        if self.master is None or self.use_master:
-            raise RuntimeError("supervise() needs restart_nodes=True and a started reader")
-        self.master.supervise()
+    Live::
 
-    def busy(self) -> bool:
-        """A node reconfiguration is pending or running (lock-step drivers hold time)."""
-        return not self.master_idle()
+        with Reader(cfg, interface="virtual", channel="rig") as r:   # boots the nodes
+            while (item := r.get(timeout=1.0)) is not None:
+                ...  # Sample, or HealthReport once a second of acquisition time
 
-    def send_sync(self, timestamp: float | None = None) -> None:
-        """Lock-step with the master: put one SYNC on the bus (``periodic_sync=False``)."""
-        if self.master is None:
-            raise RuntimeError("send_sync() needs the master (master=True, started)")
-        self.master.send_sync(timestamp)
+    Defaults: the live master (:class:`BootNodes`), the wall clock (:class:`WallClock`), a
+    queue that never blocks the bus thread (:class:`DropQueue`)."""
 
-    def master_idle(self) -> bool:
-        """True when the master has no node reconfiguration pending or running."""
-        return self.master is None or self.master.idle()
+    def __init__(self, cfg: RigConfig, bus: can.BusABC | None = None, *,
+                 interface: str | None = None, channel: Any = None,
+                 record: str | Path | None = None, record_format: str | None = None,
+                 table: DecodeTable | None = None, items: ItemQueue | None = None,
+                 nodes: Listen | None = None, clock: FrameClock | None = None):
+        super().__init__(cfg, bus, interface=interface, channel=channel, record=record,
+                         record_format=record_format, table=table,
+                         items=items if items is not None else DropQueue(),
+                         nodes=nodes if nodes is not None else BootNodes(),
+                         clock=clock if clock is not None else WallClock())
 
-    # -- items out -------------------------------------------------------------------------------
-    def _put(self, item: Sample | HealthReport) -> None:
-        q = self.queue
-        if self.overflow == "drop" or self.offline:
-            try:
-                q.put_nowait(item)
-            except queue.Full:
-                self.dropped += 1  # back-pressure: counted, visible through seq gaps
-                return
-        else:
-            if q.full():
-                self.blocked += 1
-            q.put(item)
-        depth = len(q.queue)  # a statistic: no need for qsize()'s lock (bus thread, per sample)
-        if depth > self.max_depth:
-            self.max_depth = depth
+    def start(self) -> Reader:
+        """Connect, start recording, the bus thread, the clock; the node policy's start
+        (BootNodes: boot the nodes, start SYNC). Raises master.BootError (after closing
+        everything) when the nodes cannot be started."""
+        self._start(thread=True)
+        return self
 
-    def get(self, timeout: float | None = None) -> Sample | HealthReport | None:
-        """The next item (Sample or HealthReport), None after ``timeout`` seconds."""
-        try:
-            return self.queue.get(timeout=timeout)
-        except queue.Empty:
-            return None
-
-    def poll(self) -> list[Sample | HealthReport]:
-        """Every item available now, without waiting."""
-        out = []
-        q = self.queue
-        while True:
-            try:
-                out.append(q.get_nowait())
-            except queue.Empty:
-                return out
+    def __enter__(self) -> Reader:
+        return self.start()
 
     def samples(self, timeout: float = 1.0) -> Iterator[Sample | HealthReport]:
         """Items until the reader is closed (``timeout`` between checks)."""
@@ -507,81 +794,42 @@ class Reader:
             if item is not None:
                 yield item
 
-    # -- time -------------------------------------------------------------------------------------
-    def _on_time(self, t: float) -> None:
-        """The acquisition clock passed a deadline (bus thread / replay loop, frame order)."""
-        sup = self.supervisor
-        if t >= sup.next_deadline:
-            sup.check(t)
-        if self._next_health == math.inf:
-            self._next_health = math.floor(t) + self.health_period_s
-        elif t >= self._next_health:
-            # 1 Hz on acquisition time; a long gap gives one report, not a burst
-            self._next_health = max(self._next_health + self.health_period_s,
-                                    math.floor(t) + self.health_period_s)
-            self._measure_rate(t)
-            payload = self.health(t)
-            self.last_health = payload
-            self._put(HealthReport(t, payload))
-        self.tap.deadline = min(self._next_health, sup.next_deadline)
 
-    def _wake(self, t: float) -> None:
-        """The watchdog needs the clock's attention at ``t`` (earlier than planned)."""
-        self.tap.deadline = min(self.tap.deadline, t)
+class LockstepReader(_BusReader):
+    """A reader without a bus thread: a lock-step driver (sim_bus.drivers.LockstepDriver)
+    calls :meth:`pump` to process the frames queued on the bus, in its thread, and holds
+    time while :meth:`busy` (a :class:`RestartNodes` master restarting a node, its
+    transmissions handed over by a HandoffBus). The clock is the frames' time; the recorder
+    writes inline; by default a full queue makes the driver wait (:class:`BlockQueue`)."""
 
-    def _on_node_event(self, kind: str, node: str) -> None:
-        if self.master is not None:
-            self.master.on_event(kind, node)
+    def __init__(self, cfg: RigConfig, bus: can.BusABC | None = None, *,
+                 interface: str | None = None, channel: Any = None,
+                 record: str | Path | None = None, record_format: str | None = None,
+                 table: DecodeTable | None = None, items: ItemQueue | None = None,
+                 nodes: LockstepNodes | None = None):
+        super().__init__(cfg, bus, interface=interface, channel=channel, record=record,
+                         record_format=record_format, table=table,
+                         items=items if items is not None else BlockQueue(),
+                         nodes=nodes if nodes is not None else Listen(), clock=FrameClock())
 
-    @property
-    def now(self) -> float:
-        """The acquisition clock (seconds)."""
-        return self.tap.now
+    def start(self) -> LockstepReader:
+        """Connect the bus (no thread) and start recording."""
+        self._start(thread=False)
+        return self
 
-    # -- health ---------------------------------------------------------------------------
-    def health(self, t: float | None = None) -> dict:
-        """A snapshot shaped like the ``health`` payload of docs/telemetry.md §2.5."""
-        t = self.tap.now if t is None else t
-        tap, asm = self.tap, self.assembler
-        bus = {"frames": tap.frames, "errors": tap.errors, "bus_off": tap.bus_off,
-               "unknown": tap.unknown,
-               "malformed": asm.malformed + self.supervisor.malformed,
-               "duplicate": asm.duplicate, "orphan": asm.orphan, "remote": tap.remote,
-               "callback_errors": tap.callback_errors}
-        if tap.last_callback_error:
-            bus["last_callback_error"] = tap.last_callback_error
-        queues = {"samples": {"depth": self.queue.qsize(), "size": self.queue_size,
-                              "max_depth": self.max_depth, "dropped": self.dropped,
-                              "blocked": self.blocked}}
-        if self.master is not None:
-            queues["master_events"] = {"depth": self.master._events.qsize(),
-                                       "dropped": self.master.events_dropped}
-        rec = self.recorder.status() if self.recorder is not None else {"active": False}
-        payload = {"t": t if math.isfinite(t) else None, "nodes": self.supervisor.snapshot(t),
-                   "bus": bus, "samples": asm.counters(), "queues": queues, "recording": rec}
-        payload["sync"] = self.sync_health(t)
-        return payload
+    def __enter__(self) -> LockstepReader:
+        return self.start()
 
-    # -- health: SYNC counts and times (one section: docs/telemetry.md §2.5, ``sync.*``) -----------
-    def sync_health(self, t: float) -> dict:
-        """Duplicated SYNCs, bad timestamps (docs/reliability.md), late SYNCs of our own
-        producer and the sample rate over the last ``RATE_WINDOW`` health periods."""
-        asm = self.assembler
-        out: dict = {"duplicate": asm.duplicate_sync, "bad_timestamp": asm.clock.bad_timestamp}
-        task = self.master.sync_task if self.master is not None else None
-        if task is not None and hasattr(task, "periods_not_taken"):
-            out["late"] = task.late
-            out["periods_not_taken"] = task.periods_not_taken
-        out["rate_hz"] = self._rate_hz
-        out["rate_low"] = self._rate_hz is not None and \
-            self._rate_hz < RATE_LOW_FRACTION * self.cfg.sample_rate_hz
-        return out
+    def pump(self) -> int:
+        """Process every frame queued on the bus now, in order, in this thread. Returns the
+        number of frames."""
+        bus = self._bus
+        n = 0
+        while (msg := bus.recv(0.0)) is not None:
+            self.feed(msg)
+            n += 1
+        return n
 
-    def _measure_rate(self, t: float) -> None:
-        """Samples assembled per second of acquisition time, over the last health periods
-        (called once per health period, before the report)."""
-        hist = self._rate_hist
-        hist.append((t, self.assembler.emitted))
-        (t0, n0), (t1, n1) = hist[0], hist[-1]
-        self._rate_hz = (n1 - n0) / (t1 - t0) if t1 - t0 >= 0.999 * self.health_period_s \
-            else None
+    def busy(self) -> bool:
+        """A node reconfiguration is pending or running (lock-step drivers hold time)."""
+        return not self.nodes.idle()

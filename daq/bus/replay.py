@@ -25,7 +25,7 @@ import can
 from rsra.daq.bus.assembler import Sample
 from rsra.config.rig import RigConfig
 from rsra.daq.rigmodel import load_rig
-from rsra.daq.bus.reader import HealthReport, Reader
+from rsra.daq.bus.reader import HealthReport, OfflineReader
 from rsra.daq.bus.recorder import frame_files, recorded_config
 
 LOG_SUFFIXES = (".log", ".blf", ".asc", ".trc", ".csv", ".mf4")
@@ -149,17 +149,17 @@ def config_for(paths: Sequence[str | Path], config: str | Path | None = None) ->
 
 def replay(cfg: RigConfig, paths: Sequence[str | Path] | None = None, *,
            frames: Iterable[can.Message] | None = None, realtime: bool = False,
-           reader: Reader | None = None, finish: bool = False
+           reader: OfflineReader | None = None, finish: bool = False
            ) -> Iterator[Sample | HealthReport]:
     """Samples and 1 Hz health reports of recordings, in order, through the reader's code
     path. ``realtime`` paces the frames at their recorded timing (``can.MessageSync``).
     ``finish`` also passes on the last, incomplete sample when the recording ends."""
-    r = reader or Reader.offline(cfg)
+    r = reader or OfflineReader(cfg)
     src = frames if frames is not None else read_frames(paths or ())
     if realtime:
         src = can.MessageSync(src, timestamps=True, gap=0.0)
     feed, poll = r.feed, r.poll
-    q = r.queue
+    q = r.items.queue
     for msg in src:
         feed(msg)
         if q.qsize():

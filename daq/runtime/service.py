@@ -35,7 +35,7 @@ from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -44,6 +44,9 @@ from rsra.daq.jsonout import dumps
 from rsra.daq.runtime.pipeline import EstimatorPipeline
 from rsra.daq.runtime.records import AnglesRecord, IdentError, IdentResult, InitialAngles
 from rsra.daq.runtime.sources import SIM_BLOCK, BusOpenError, Source, make_source  # noqa: F401 (re-exported)
+
+if TYPE_CHECKING:
+    from rsra.daq.bus.health import Health
 
 log = logging.getLogger("rsra.service")
 
@@ -180,8 +183,8 @@ class Outputs:
         self.low_rate = _LowRatePublisher(self.telemetry.publish)
         self._stack.callback(self.low_rate.close)
 
-    def publish(self, key: str, payload: dict | AnglesRecord) -> None:
-        if not isinstance(payload, dict):  # a typed record: its JSON object (daq.records)
+    def publish(self, key: str, payload: dict | AnglesRecord | Health) -> None:
+        if not isinstance(payload, dict):  # a typed record: its JSON object (daq.records, daq.bus.health)
             payload = payload.to_dict()
         self.counts[key] = self.counts.get(key, 0) + 1
         for sink in self.sinks:
@@ -284,7 +287,7 @@ class Service:
         self.ident_rejected: dict[str, int] = {}
         self.lost = 0
         self.samples = 0
-        self.last_health: dict | None = None
+        self.last_health: Health | None = None  # (daq.bus.health)
         self._extra_sinks: list[Callable[[str, dict], None]] = []
         self.pipeline: EstimatorPipeline | None = None
         self.warnings: list[str] = []  # start-up problems the service went on with
@@ -515,40 +518,45 @@ class Service:
                      rec.get("reason"))
 
     def _on_health(self, item) -> None:
-        payload = dict(item.payload)
+        """The reader's health record (daq.bus.health) with the service's parts, replaced
+        into it; published as it is (serialised once, ``Health.to_dict``)."""
+        import dataclasses
+
+        from rsra.daq.bus.health import IdentQueue, Latency, PublisherQueue, frozen_map
+
+        h = item.health
         if self.latencies:
             a = np.fromiter(self.latencies, float) * 1e3
-            payload["latency_ms"] = {"p50": float(np.percentile(a, 50)),
-                                     "p99": float(np.percentile(a, 99)),
-                                     "max": float(a.max()),
-                                     "deadline_misses": self.deadline_misses}
+            latency = Latency(p50=float(np.percentile(a, 50)), p99=float(np.percentile(a, 99)),
+                              max=float(a.max()), deadline_misses=self.deadline_misses)
         else:
-            payload["latency_ms"] = {"p50": None, "p99": None}
-        queues = dict(payload.get("queues") or {})
+            latency = Latency(p50=None, p99=None)
+        queues, more = h.queues, {}
         if self.worker is not None:
-            queues["identification"] = {"submitted": self.worker.submitted,
-                                        "dropped": self.worker.dropped,
-                                        "errors": self.ident_errors}
-            payload["identification"] = self.worker.health()
+            queues = dataclasses.replace(queues, identification=IdentQueue(
+                submitted=self.worker.submitted, dropped=self.worker.dropped,
+                errors=self.ident_errors))
+            more["identification"] = frozen_map(self.worker.health())
         if self.outputs is not None and self.outputs.low_rate is not None:
-            queues["publisher"] = {"depth": self.outputs.low_rate.queue.qsize(),
-                                   "dropped": self.outputs.low_rate.dropped}
-        payload["queues"] = queues
+            queues = dataclasses.replace(queues, publisher=PublisherQueue(
+                depth=self.outputs.low_rate.queue.qsize(), dropped=self.outputs.low_rate.dropped))
         if self.outputs is not None and self.outputs.foxglove is not None:
-            payload["foxglove"] = self.outputs.foxglove.health()
+            more["foxglove"] = frozen_map(self.outputs.foxglove.health())
         if self.pipeline is not None:  # readings the estimator refused (bad input, counted)
-            payload["estimator"] = {"implausible_omega": self.pipeline.implausible_omega,
-                                    "design_errors": self.pipeline.design_errors}
+            est = {"implausible_omega": self.pipeline.implausible_omega,
+                   "design_errors": self.pipeline.design_errors}
             if self.pipeline.stuck is not None:
-                payload["estimator"].update(self.pipeline.stuck.health())
+                est.update(self.pipeline.stuck.health())
+            more["estimator"] = frozen_map(est)
         if self.warnings:
-            payload["warnings"] = list(self.warnings)
-        prev = (self.last_health or {}).get("recording") or {}
-        rec = payload.get("recording") or {}
-        if rec.get("error") and rec.get("error") != prev.get("error"):
-            log.error("recording stopped: %s", rec["error"])
-        self.last_health = payload
-        self.outputs.publish("health", payload)
+            more["warnings"] = tuple(self.warnings)
+        h = dataclasses.replace(h, latency_ms=latency, queues=queues, **more)
+        prev = self.last_health.recording.error if self.last_health is not None else None
+        err = h.recording.error
+        if err and err != prev:
+            log.error("recording stopped: %s", err)
+        self.last_health = h
+        self.outputs.publish("health", h)
 
     def _summary(self) -> dict:
         rej = dict(self.ident_rejected)

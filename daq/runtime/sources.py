@@ -39,7 +39,7 @@ if TYPE_CHECKING:
     from rsra.daq.bus.assembler import Sample
     from rsra.config.rig import RigConfig
     from rsra.daq.bus.decoder import DecodeTable
-    from rsra.daq.bus.reader import HealthReport, Reader
+    from rsra.daq.bus.reader import HealthReport, OfflineReader
     from rsra.daq.bus.recorder import Recorder
 
 log = logging.getLogger("rsra.service")
@@ -76,7 +76,7 @@ class Source(Protocol):
 
     deterministic: ClassVar[bool]  # not paced by the wall clock: results awaited, no latency
     saves_posterior: ClassVar[bool]  # identification.state_file is written by this kind of run
-    reader: Reader | None
+    reader: OfflineReader | None  # (Reader, LockstepReader and OfflineReader are all one)
     sim: Any  # the in-process simulator, if any (its truth, recent samples)
     recorder: Recorder | None
 
@@ -100,7 +100,7 @@ class _Base:
     def __init__(self, cfg: RigConfig):
         self.cfg = cfg
         self.table: DecodeTable | None = None  # read on open (the EDS files)
-        self.reader: Reader | None = None
+        self.reader: OfflineReader | None = None
         self.sim: Any = None
         self.recorder: Recorder | None = None
         self._stack = contextlib.ExitStack()
@@ -174,8 +174,9 @@ class BusSource(_Base):
 
         from rsra.daq.bus.reader import Reader
 
-        reader = Reader(self.cfg, interface=self.interface, channel=self.channel, master=True,
-                        record=self.record, overflow="drop", table=self.table)
+        # the live master (BootNodes), the wall clock, a queue that never blocks the bus thread
+        reader = Reader(self.cfg, interface=self.interface, channel=self.channel,
+                        record=self.record, table=self.table)
         self.reader = reader
         self._close_quietly(reader.close)
         try:
@@ -262,7 +263,7 @@ class LockstepSource(_Base):
     def _open(self) -> None:
         import can
 
-        from rsra.daq.bus.reader import Reader
+        from rsra.daq.bus.reader import BlockQueue, LockstepReader, RestartNodes
         from rsra.sim_bus.bus_sim import Simulator
         from rsra.sim_bus.drivers import HandoffBus, LockstepDriver
 
@@ -278,15 +279,16 @@ class LockstepSource(_Base):
                       preserve_timestamps=True)
         self._close_quietly(bus.shutdown)
         handoff = HandoffBus(bus)
-        reader = Reader(cfg, bus=handoff, master=False, restart_nodes=True, wall_clock=False,
-                        record=self.record, overflow="block", table=self.table)
+        restart = RestartNodes()  # the simulator boots the nodes; a reboot is restarted
+        reader = LockstepReader(cfg, handoff, record=self.record, table=self.table,
+                                items=BlockQueue(), nodes=restart)
         self.reader = reader
         self._close_quietly(reader.close)
         self.driver = driver = LockstepDriver(self.sim, reader, handoff)
         self._close_quietly(driver.close)  # before the reader: its master may wait on it
-        reader.start(notifier=False)
+        reader.start()
         driver.start()  # the simulator's own boot-ups: seen, not acted upon
-        reader.supervise()
+        restart.supervise()
         self.recorder = reader.recorder
 
     def items(self, stop: threading.Event) -> Iterator[Sample | HealthReport | None]:
@@ -347,10 +349,10 @@ class ReplaySource(_Base):
         return plan
 
     def _open(self) -> None:
-        from rsra.daq.bus.reader import Reader
+        from rsra.daq.bus.reader import OfflineReader
         from rsra.daq.bus.replay import replay
 
-        self.reader = Reader.offline(self.cfg, table=self.table)
+        self.reader = OfflineReader(self.cfg, table=self.table)
         self._items = replay(self.cfg, self.paths, realtime=self.paced, reader=self.reader,
                              finish=True)
 

@@ -11,6 +11,10 @@ import contextlib
 import os
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from rsra.daq.bus.health import Health
 
 
 
@@ -198,13 +202,13 @@ def schedule_note(sch: dict | None) -> str | None:
     return text
 
 
-def _summary(counts: dict, health: dict | None) -> str:
+def _summary(counts: dict, health: Health | None) -> str:
     s = f"replayed: {counts.get('channels', 0)} samples, {counts.get('health', 0)} health records"
-    if health:
-        b, sm = health["bus"], health["samples"]
-        s += (f"; frames {b['frames']}, unknown {b['unknown']}, malformed {b['malformed']}, "
-              f"error frames {b['errors']}; samples complete {sm['complete']}, incomplete "
-              f"{sm['incomplete']}, lost {sm['lost']}")
+    if health is not None:
+        b, sm = health.bus, health.samples
+        s += (f"; frames {b.frames}, unknown {b.unknown}, malformed {b.malformed}, "
+              f"error frames {b.errors}; samples complete {sm.complete}, incomplete "
+              f"{sm.incomplete}, lost {sm.lost}")
     return s
 
 

@@ -115,8 +115,7 @@ def run(args: argparse.Namespace) -> int:
     if not report.is_terminal:
         report.width = max(report.width, 120)
     bus = f"{args.interface}:{args.channel}" if args.channel else args.interface
-    reader = Reader(cfg, interface=args.interface, channel=args.channel, master=True,
-                    table=table)
+    reader = Reader(cfg, interface=args.interface, channel=args.channel, table=table)
     try:
         try:
             reader.start()
