@@ -676,6 +676,9 @@ class OfflineReader:
         """A snapshot of the ``health`` record (docs/telemetry.md §2.5)."""
         return self.monitor.snapshot(t)
 
+    def close(self) -> None:
+        """Nothing to close (a bus reader closes its bus, threads and recording)."""
+
 
 class _BusReader(OfflineReader):
     """What a reader with a bus adds: opening (or taking) the bus, the recording, the node
