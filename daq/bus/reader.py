@@ -378,9 +378,10 @@ class WallClock(FrameClock):
 
 
 # -- the nodes: who boots, starts, supervises them and produces SYNC --------------------------------
-class Listen:
-    """Only listen: no NMT, no SDO, no SYNC (a recording of another master, nodes that start
-    by themselves, lock-step runs where the simulator owns the nodes)."""
+class NodePolicy:
+    """Who drives the nodes (a subclass each): the reader calls :meth:`attach` before its
+    bus thread starts, :meth:`begin` after, :meth:`stop` on close; the supervisor's events
+    go to :meth:`on_event`."""
 
     master: CanopenMaster | None = None
 
@@ -410,7 +411,12 @@ class Listen:
             self.master.stop()
 
 
-class RestartNodes(Listen):
+class Listen(NodePolicy):
+    """Only listen: no NMT, no SDO, no SYNC (a recording of another master, nodes that start
+    by themselves, lock-step runs where the simulator owns the nodes)."""
+
+
+class RestartNodes(NodePolicy):
     """Lock-step: the nodes were booted by someone else (the simulator); once
     :meth:`supervise` is called a node that reboots is reconfigured over SDO and started by
     the master's thread, as the live master does (docs/bus.md §3 "Boot and supervision"),
@@ -428,10 +434,10 @@ class RestartNodes(Listen):
         self.master.supervise()
 
 
-class BootNodesSyncOnDemand(Listen):
+class _Master(NodePolicy):
     """The CANopen master: boots, verifies and starts the nodes on :meth:`Reader.start`
-    (master.BootError when it cannot) and keeps them running; one SYNC per
-    :meth:`send_sync` (a test or driver owns the sample clock)."""
+    (master.BootError when it cannot), SYNC as the subclass says, then keeps the nodes
+    running (docs/bus.md §3)."""
 
     def attach(self, cfg: RigConfig, table: DecodeTable, network: canopen.Network,
                supervisor: Supervisor, clock: Callable[[], float]) -> None:
@@ -445,28 +451,30 @@ class BootNodesSyncOnDemand(Listen):
     def _sync(self) -> None:
         pass
 
-    def send_sync(self, timestamp: float | None = None) -> None:
-        """Put one SYNC on the bus (``timestamp`` kept on buses that preserve it)."""
-        if self.master is None:
-            raise RuntimeError("send_sync() needs a started reader")
-        self.master.send_sync(timestamp)
-
-
-class BootNodes(BootNodesSyncOnDemand):
-    """The live CANopen master: boot, then SYNC at the sample rate (``sync.producer:
-    service``), then supervision."""
-
-    def _sync(self) -> None:
-        self.master.start_sync()
-
-    def send_sync(self, timestamp: float | None = None) -> None:  # type: ignore[override]
-        raise TypeError("BootNodes produces SYNC periodically: use BootNodesSyncOnDemand")
-
     def check_bus(self, cfg: RigConfig, bus: Any) -> None:
         if cfg.sync.producer == "service" and \
                 getattr(bus, "receive_own_messages", True) is False:
             raise ValueError("the service produces SYNC but this bus does not deliver its "
                              "own transmissions: open it with receive_own_messages=True")
+
+
+class BootNodes(_Master):
+    """The live CANopen master: boot, SYNC at the sample rate (``sync.producer: service``;
+    the interface's periodic sending or a thread of ours), supervision."""
+
+    def _sync(self) -> None:
+        self.master.start_sync()
+
+
+class BootNodesSyncOnDemand(_Master):
+    """The CANopen master without a SYNC clock of its own: one SYNC per :meth:`send_sync`
+    (a test or driver owns the sample clock)."""
+
+    def send_sync(self, timestamp: float | None = None) -> None:
+        """Put one SYNC on the bus (``timestamp`` kept on buses that preserve it)."""
+        if self.master is None:
+            raise RuntimeError("send_sync() needs a started reader")
+        self.master.send_sync(timestamp)
 
 
 LockstepNodes = Listen | RestartNodes  # what needs no bus thread (SDO answered by a driver)
@@ -544,7 +552,7 @@ class HealthMonitor:
     period_s = 1.0
 
     def __init__(self, cfg: RigConfig, tap: FrameTap, asm: SampleAssembler,
-                 supervisor: Supervisor, items: ItemQueue, nodes: Listen):
+                 supervisor: Supervisor, items: ItemQueue, nodes: NodePolicy):
         self.cfg, self.tap, self.asm, self.supervisor = cfg, tap, asm, supervisor
         self.items, self.nodes = items, nodes
         self.recorder: Recorder | None = None  # set when a bus reader starts recording
@@ -609,17 +617,18 @@ class HealthMonitor:
 
 
 # -- the readers ------------------------------------------------------------------------------------------
-class OfflineReader:
-    """Calibrated, time-stamped samples from frames the caller feeds (replay, benchmarks):
-    ``feed(msg)`` each frame, ``poll()`` the items. No bus, no thread, no master; the clock
-    is the frames' time; a full queue drops (DropQueue)."""
+class ReaderBase:
+    """What every reader is: the decode table, the assembler, the supervisor, the tap with
+    its deadlines, the health monitor, the item queue; frames in by :meth:`feed` (the bus
+    thread, a lock-step pump or the replay loop: one code path), items out by :meth:`get`
+    and :meth:`poll`."""
 
-    def __init__(self, cfg: RigConfig, *, table: DecodeTable | None = None,
-                 items: ItemQueue | None = None, nodes: Listen | None = None):
+    def __init__(self, cfg: RigConfig, table: DecodeTable | None, items: ItemQueue,
+                 nodes: NodePolicy):
         self.cfg = cfg
         self.table = table or DecodeTable(cfg)
-        self.items = items if items is not None else DropQueue()
-        self.nodes = nodes if nodes is not None else Listen()
+        self.items = items
+        self.nodes = nodes
         self.recorder: Recorder | None = None
         self.network = canopen.Network(None)
         # the bus thread wakes this often to see a stop (canopen's default: 1 s per close)
@@ -680,15 +689,25 @@ class OfflineReader:
         """Nothing to close (a bus reader closes its bus, threads and recording)."""
 
 
-class _BusReader(OfflineReader):
+class OfflineReader(ReaderBase):
+    """Calibrated, time-stamped samples from frames the caller feeds (replay, benchmarks):
+    ``feed(msg)`` each frame, ``poll()`` the items. No bus, no thread, no master
+    (:class:`Listen`); the clock is the frames' time; a full queue drops (DropQueue)."""
+
+    def __init__(self, cfg: RigConfig, *, table: DecodeTable | None = None,
+                 items: ItemQueue | None = None):
+        super().__init__(cfg, table, items if items is not None else DropQueue(), Listen())
+
+
+class _BusReader(ReaderBase):
     """What a reader with a bus adds: opening (or taking) the bus, the recording, the node
     policy's start and stop, closing in order."""
 
     def __init__(self, cfg: RigConfig, bus: can.BusABC | None, *, interface: str | None,
                  channel: Any, record: str | Path | None, record_format: str | None,
-                 table: DecodeTable | None, items: ItemQueue, nodes: Listen,
+                 table: DecodeTable | None, items: ItemQueue, nodes: NodePolicy,
                  clock: FrameClock):
-        super().__init__(cfg, table=table, items=items, nodes=nodes)
+        super().__init__(cfg, table, items, nodes)
         self.clock = clock
         self._bus = bus
         self._own_bus = False
@@ -773,7 +792,7 @@ class Reader(_BusReader):
                  interface: str | None = None, channel: Any = None,
                  record: str | Path | None = None, record_format: str | None = None,
                  table: DecodeTable | None = None, items: ItemQueue | None = None,
-                 nodes: Listen | None = None, clock: FrameClock | None = None):
+                 nodes: NodePolicy | None = None, clock: FrameClock | None = None):
         super().__init__(cfg, bus, interface=interface, channel=channel, record=record,
                          record_format=record_format, table=table,
                          items=items if items is not None else DropQueue(),

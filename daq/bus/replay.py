@@ -25,7 +25,7 @@ import can
 from rsra.daq.bus.assembler import Sample
 from rsra.config.rig import RigConfig
 from rsra.daq.rigmodel import load_rig
-from rsra.daq.bus.reader import HealthReport, OfflineReader
+from rsra.daq.bus.reader import HealthReport, OfflineReader, ReaderBase
 from rsra.daq.bus.recorder import frame_files, recorded_config
 
 LOG_SUFFIXES = (".log", ".blf", ".asc", ".trc", ".csv", ".mf4")
@@ -149,7 +149,7 @@ def config_for(paths: Sequence[str | Path], config: str | Path | None = None) ->
 
 def replay(cfg: RigConfig, paths: Sequence[str | Path] | None = None, *,
            frames: Iterable[can.Message] | None = None, realtime: bool = False,
-           reader: OfflineReader | None = None, finish: bool = False
+           reader: ReaderBase | None = None, finish: bool = False
            ) -> Iterator[Sample | HealthReport]:
     """Samples and 1 Hz health reports of recordings, in order, through the reader's code
     path. ``realtime`` paces the frames at their recorded timing (``can.MessageSync``).

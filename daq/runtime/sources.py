@@ -39,7 +39,7 @@ if TYPE_CHECKING:
     from rsra.daq.bus.assembler import Sample
     from rsra.config.rig import RigConfig
     from rsra.daq.bus.decoder import DecodeTable
-    from rsra.daq.bus.reader import HealthReport, OfflineReader
+    from rsra.daq.bus.reader import HealthReport, ReaderBase
     from rsra.daq.bus.recorder import Recorder
 
 log = logging.getLogger("rsra.service")
@@ -76,7 +76,7 @@ class Source(Protocol):
 
     deterministic: ClassVar[bool]  # not paced by the wall clock: results awaited, no latency
     saves_posterior: ClassVar[bool]  # identification.state_file is written by this kind of run
-    reader: OfflineReader | None  # (Reader, LockstepReader and OfflineReader are all one)
+    reader: ReaderBase | None  # Reader, LockstepReader or OfflineReader
     sim: Any  # the in-process simulator, if any (its truth, recent samples)
     recorder: Recorder | None
 
@@ -100,7 +100,7 @@ class _Base:
     def __init__(self, cfg: RigConfig):
         self.cfg = cfg
         self.table: DecodeTable | None = None  # read on open (the EDS files)
-        self.reader: OfflineReader | None = None
+        self.reader: ReaderBase | None = None
         self.sim: Any = None
         self.recorder: Recorder | None = None
         self._stack = contextlib.ExitStack()
