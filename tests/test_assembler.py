@@ -248,6 +248,66 @@ def test_health_is_reported_once_a_second_of_acquisition_time(cfg):
     json.dumps(p, allow_nan=False)
 
 
+def test_the_health_record_is_frozen_typed_and_serialised_in_the_payloads_order(cfg):
+    import dataclasses
+
+    from rsra.daq.bus.health import OMIT, Health, Latency
+    from rsra.daq.jsonout import dumps
+
+    r = OfflineReader(cfg)
+    for k in range(220):  # past the first report
+        feed(r, period_frames(cfg, k, T0 + k * DT))
+    h = r.health()
+    assert isinstance(h, Health) and h.samples.complete == 220 and h.bus.frames > 0
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        h.t = 0.0
+    with pytest.raises(TypeError):
+        h.nodes["cell_A"] = None  # a read-only mapping
+    d = h.to_dict()
+    # the reader's part, in the order the payload always had; optional keys left out
+    assert list(d) == ["t", "nodes", "bus", "samples", "queues", "recording", "sync"]
+    assert "last_callback_error" not in d["bus"] and "master_events" not in d["queues"]
+    assert list(d["sync"]) == ["duplicate", "bad_timestamp", "rate_hz", "rate_low"]
+    assert d["recording"] == {"active": False}
+    assert list(d["nodes"]["cell_A"]) == ["state", "heartbeat_age", "emcy", "required", "boots",
+                                          "losses", "emcy_count"]
+    # the service's parts: replaced in, after the reader's, the original unchanged
+    h2 = dataclasses.replace(h, latency_ms=Latency(p50=None, p99=None), warnings=("w",))
+    assert list(h2.to_dict())[-2:] == ["latency_ms", "warnings"]
+    assert h2.to_dict()["warnings"] == ["w"] and h.latency_ms is OMIT
+    assert dumps(h2.to_dict()) == json.dumps(h2.to_dict(), separators=(",", ":"),
+                                             allow_nan=False)
+
+
+def test_the_tap_runs_its_timed_tasks_and_a_lowered_deadline_in_frame_order():
+    from rsra.daq.bus.reader import Deadlines
+
+    ran: list = []
+
+    class Task:
+        def __init__(self, name, due):
+            self.name, self.due = name, due
+
+        def run(self, t):
+            ran.append((self.name, t))
+            self.due = t + 10.0
+
+    d = Deadlines()
+    a, b = Task("a", 5.0), Task("b", 7.0)
+    d.add(a)
+    d.add(b)
+    d.run(1.0)  # the first frame: nothing due yet, the schedule set up
+    assert ran == [] and d.next == 5.0
+    d.run(7.0)  # both due: in registration order
+    assert ran == [("a", 7.0), ("b", 7.0)] and d.next == 17.0
+    a.due = 9.0  # a task's time moved earlier between two runs (the watchdog on a heartbeat)
+    d.lower(9.0)
+    d.lower(12.0)  # later than next: no change
+    assert d.next == 9.0
+    d.run(9.0)
+    assert ran[-1] == ("a", 9.0) and d.next == 17.0
+
+
 def test_the_queue_is_bounded_and_back_pressure_is_counted(cfg):
     r = OfflineReader(cfg, items=DropQueue(4))
     for k in range(10):

@@ -146,6 +146,37 @@ def test_the_service_produces_sync_with_the_counter():
         slaves.close()
 
 
+def test_invalid_reader_combinations_have_no_spelling(cfg):
+    """Issue 16: what differs per source is a class or a policy object, and what cannot work
+    together cannot be written (no run-time flag checks left)."""
+    import inspect
+
+    from rsra.daq.bus.reader import (BlockQueue, DropQueue, Listen, LockstepReader,
+                                     OfflineReader, RestartNodes)
+
+    # SYNC on demand only on the on-demand master; supervise() only on the restart policy
+    assert hasattr(BootNodesSyncOnDemand(), "send_sync")
+    assert not hasattr(BootNodes(), "send_sync") and not hasattr(Listen(), "send_sync")
+    assert not hasattr(BootNodes(), "supervise") and hasattr(RestartNodes(), "supervise")
+    # only a lock-step reader is pumped; only an offline reader is fed without a bus
+    assert hasattr(LockstepReader, "pump") and not hasattr(Reader, "pump")
+    assert not hasattr(OfflineReader, "pump") and not hasattr(OfflineReader, "start")
+    # an offline reader takes no node policy and no clock; a lock-step reader no clock
+    assert {"nodes", "clock"}.isdisjoint(inspect.signature(OfflineReader).parameters)
+    assert "clock" not in inspect.signature(LockstepReader).parameters
+    with pytest.raises(TypeError):
+        OfflineReader(cfg, nodes=BootNodes())
+    # no mode keyword is left on any reader
+    for cls in (Reader, LockstepReader, OfflineReader):
+        params = set(inspect.signature(cls).parameters)
+        assert params.isdisjoint({"master", "restart_nodes", "periodic_sync", "wall_clock",
+                                  "overflow", "offline", "queue_size"}), cls
+    assert "notifier" not in inspect.signature(Reader.start).parameters
+    # the defaults: live reader drops, lock-step reader blocks
+    assert isinstance(Reader(cfg, interface="virtual").items, DropQueue)
+    assert isinstance(LockstepReader(cfg).items, BlockQueue)
+
+
 def test_own_sync_needs_own_messages_on_a_given_bus(cfg):
     import can
 
