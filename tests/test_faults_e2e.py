@@ -22,7 +22,7 @@ and the sample is predict-only like any faulted cell.
 
 Reboot: in lock-step the simulator boots its own nodes and produces SYNC; the reader listens
 and restarts a node that reboots (boot-up seen → reconfigure over SDO → NMT start), between
-two steps, its SDO answered synchronously (Reader.supervise): the node misses the one sample
+two steps, its SDO answered synchronously (RestartNodes.supervise): the node misses the one sample
 in which it rebooted. The live path (the reader as full CANopen master, the simulator
 following its SYNC: tests/helpers_canopen.MasterRig) is tested too. docs/reliability.md.
 """

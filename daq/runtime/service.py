@@ -10,7 +10,7 @@
 * Lock-step (`--sim … --speed max`, or a paced `--speed X`): the simulator boots its nodes
   and produces SYNC; each step moves simulated time by one sample, so the samples are those of
   real time and nothing reads the wall clock. A node that reboots is restarted by the reader
-  (SDO and NMT start between two steps, answered synchronously: Reader.supervise). The loop
+  (SDO and NMT start between two steps, answered synchronously: RestartNodes). The loop
   waits for identification results at their planned sample, so a run is deterministic.
 * Replay: recorded frames through the same reader; the recorded `angles` schedule reproduces
   the live run bit for bit, or `--recompute` runs the identification deterministically.
