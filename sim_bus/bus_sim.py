@@ -454,12 +454,13 @@ class Simulator:
     driver (sim_bus.drivers: LockstepSim, FollowSim, RealtimeSim) moves time (module
     docstring).
 
-    Parameters: ``clock`` a :class:`SimulatedTime` (default, from 0 s) or :class:`WallClock`; ``cfg`` the rig; ``scenario`` a scenario name/object for AircraftPhysics, or
+    Parameters: ``cfg`` the rig; ``scenario`` a scenario name/object for AircraftPhysics, or
     ``physics`` any object with ``dt`` and ``next_sample()``; ``nodes_present`` the optional
     node roles on the bus (default: the scenario's, else all); ``bus`` an open python-can bus
     to use (not closed here), else one is opened with ``interface``/``channel`` (virtual:
     ``preserve_timestamps=True``); ``faults`` a SPEC string or parsed faults; ``record`` a log
-    file (python-can Logger by suffix; candump ``.log`` when the suffix is not a log format).
+    file (python-can Logger by suffix; candump ``.log`` when the suffix is not a log format);
+    ``clock`` a :class:`SimulatedTime` (default: from 0 s) or a :class:`WallClock`.
     """
 
     def __init__(self, cfg: RigConfig, scenario: Any = None, *, physics: SampleSource | None = None,
@@ -955,6 +956,8 @@ class Simulator:
                 self.prefetched += 1
 
     def _block_boundary(self) -> bool:
+        """The physics computes a whole block at its next sample (AircraftPhysics: every
+        ``block_size`` samples) and that sample is not computed ahead yet."""
         bs = getattr(self.physics, "block_size", None)
         k = getattr(self.physics, "index", None)
         return bool(bs) and k is not None and self._ahead is None and k % bs == 0
