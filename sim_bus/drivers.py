@@ -399,8 +399,9 @@ class RealtimeSim(_Served):
             delay = deadline - time.monotonic()
             if delay > 0 and stop.wait(delay):
                 break
-            sim.produce_sync(None, jitter)  # stamped by the wall clock
-            self._schedule_ahead()
+            with sim.lock:  # the ticker is woken before the lock is free, as the SYNC's
+                sim.produce_sync(None, jitter)  # answer ends: it does not take the GIL from
+                self._schedule_ahead()  # this loop (measured: +50 µs CPU a SYNC otherwise)
             self.check()
             k += 1
             if progress and k % every == 0:
