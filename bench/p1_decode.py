@@ -1,6 +1,6 @@
 """P1 — PDO decode + sample assembly, frames/s on one core (docs/performance.md).
 
-The frames are the simulator's own (``Simulator(lockstep=True, autostart=True)``, the
+The frames are the simulator's own (``LockstepSim(cfg, autostart=True)``, the
 ground-test aircraft: boot-ups, SYNC with counter, every TPDO, heartbeats), pre-queued on a
 python-can virtual bus before the clock starts; one python-can Notifier thread then drains
 the bus and the clock stops when the last sample has been assembled. Three contestants on
@@ -29,7 +29,8 @@ from bench.common import arg_parser, interleaved, ratio, writer_from_args
 from rsra.daq.bus.assembler import Sample
 from rsra.config.rig import RigConfig, load_config
 from rsra.daq.bus.reader import DropQueue, FrameClock, Listen, Reader
-from rsra.sim_bus.bus_sim import FRAME_OVERHEAD_BITS, Simulator
+from rsra.sim_bus.bus_sim import FRAME_OVERHEAD_BITS
+from rsra.sim_bus.drivers import LockstepSim
 
 BENCH = "p1_decode"
 DRAIN_TIMEOUT_S = 600.0
@@ -44,8 +45,8 @@ def simulator_frames(cfg: RigConfig, n_samples: int, scenario: str = "ground-tes
     collect = can.Bus(interface="virtual", channel=chan, preserve_timestamps=True,
                       receive_own_messages=False)
     try:
-        with Simulator(cfg, scenario, seed=seed, lockstep=True, autostart=True, channel=chan,
-                       keep_samples=False) as sim:
+        with LockstepSim(cfg, scenario, seed=seed, autostart=True, channel=chan,
+                         keep_samples=False) as sim:
             bitrate = sim.bitrate
             for _ in range(n_samples):
                 sim.step()

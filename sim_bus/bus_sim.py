@@ -1,36 +1,55 @@
 """The simulated aircraft on a CAN bus: every configured CANopen node fed by the physics, one
 sample per SYNC (docs/bus.md §2; model.md §8.3 "Time").
 
-Modes
------
+The aircraft and how its time moves are separate::
+
+    Simulator  (this module)          the aircraft: bus, nodes, physics, faults, SDO server,
+       │                              truth; answers a SYNC at time t, sends the heartbeats
+       │ clock: SimulatedTime         due by t; no thread, no mode
+       │        | WallClock           how frames are stamped (and the bus serialised)
+       ▼
+    sim_bus.drivers                   who moves time, and in which thread:
+       LockstepSim   simulated time, no thread: step() / on_sync() / pump() in the caller's
+       FollowSim     simulated time the master's SYNC frames carry; a Notifier thread serves
+                     NMT, SDO and SYNC (a blocking SDO client gets its answers)
+       RealtimeSim   the wall clock; Notifier + heartbeat ticker threads; each SYNC's answer
+                     built ahead of it; run()
+
+Construct the driver (``LockstepSim(cfg, …)``, ``RealtimeSim(cfg, …)``: it builds its
+Simulator with the right clock and reads like one); the Simulator alone is driven by hand
+(``pump``, ``answer_sync``, ``produce_sync``, ``advance``, ``prepare_next``).
+
+Masters
+-------
 * **follow** (default): the nodes boot, send their boot-up frames and wait for an external
   master's NMT start; every SYNC seen on the bus produces one physics sample and the TPDOs.
 * **autostart**: the nodes start themselves and the simulator is its own master, producing
-  SYNC (with the CiA 301 counter) at the sample rate: ``run()`` in real time, ``step()`` in
-  lock-step.
-* **lock-step** (``lockstep=True``): simulated time is the one acquisition clock. It advances
-  only with the SYNCs (``step()``, ``on_sync(counter, t)`` or SYNC frames' timestamps) and
-  drives the heartbeats and the fault timeline; nothing reads the wall clock. Frame timestamps
-  are simulated time, spaced by each frame's transmission time at the EDS bit rate, rounded to
+  SYNC (with the CiA 301 counter) at the sample rate (``produce_sync``: ``RealtimeSim.run()``
+  in real time, ``LockstepSim.step()`` in lock-step).
+
+Clocks
+------
+* :class:`SimulatedTime` (lock-step): simulated time is the one acquisition clock. It moves
+  only with the SYNCs (their time, or SYNC frames' timestamps) and ``advance(t)``, and drives
+  the heartbeats and the fault timeline; nothing reads the wall clock. Frame timestamps are
+  simulated time, spaced by each frame's transmission time at the EDS bit rate, rounded to
   1 µs. The same seed gives the same frames bit for bit, and the same sample values as real
   time (one physics sample per SYNC in both).
+* :class:`WallClock` (real time): frames are stamped when sent.
 
-Threads: with ``threaded=True`` (the default live) a python-can Notifier (canopen's, one per
-bus) serves NMT, SDO and SYNC as they arrive, and a ticker thread sends the heartbeats on the
-wall clock. With ``threaded=False`` (the default in lock-step) nothing runs in the background:
-``pump()`` — called by ``step()``/``advance()``/``on_sync()`` too — handles the frames queued on
-the bus in the caller's thread, in order, so a master that sends NMT start then SYNC and calls
-``pump()`` gets a deterministic answer without any sleep. SDO needs a concurrent server: use
-``threaded=True`` when a blocking SDO client talks to the simulator.
+Frames from the other bus users: ``pump()`` handles the frames queued on the bus in the
+caller's thread, in order, so a master that sends NMT start then SYNC and calls ``pump()``
+gets a deterministic answer without any sleep; or a driver's Notifier thread hands them over
+as they arrive (SDO needs that when the client blocks).
 
-Real time (docs/performance.md P5): half a period after each SYNC the ticker computes the next
-physics sample and builds the whole answer to the next SYNC (``_prepare_next``: process image,
-TPDOs due, the drop/malformed/unknown/errorframe draws, the frames as python-can messages, the
-fault-log entries in order), so the SYNC only sends pre-built frames. A sample where a fault
-window opens or closes, a node reboots, an EMCY goes out or the SYNC is lost is built at its
-SYNC, as in lock-step; an NMT command or SDO request in between, or a SYNC counter other than
-the one predicted, undoes the plan (node snapshots) and the SYNC builds its answer itself.
-Lock-step never builds ahead.
+Answers built ahead (``prepare_next``; only ``RealtimeSim`` asks, docs/performance.md P5):
+half a period after each SYNC the driver's ticker computes the next physics sample
+(``prefetch``) and has the whole answer to the next SYNC built (process image, TPDOs due, the
+drop/malformed/unknown/errorframe draws, the frames as python-can messages, the fault-log
+entries in order), so the SYNC only sends pre-built frames. A sample where a fault window
+opens or closes, a node reboots, an EMCY goes out or the SYNC is lost is built at its SYNC,
+as in lock-step; an NMT command or SDO request in between, or a SYNC counter other than the
+one predicted, undoes the plan (node snapshots) and the SYNC builds its answer itself.
 """
 from __future__ import annotations
 
@@ -43,7 +62,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any, Callable, Protocol
+from typing import Any, Callable, ClassVar, Protocol
 
 import can
 import canopen
@@ -298,6 +317,77 @@ def _round_us(t: float) -> float:
     return round(t * 1e6) / 1e6
 
 
+class Clock(Protocol):
+    """The simulator's time base: what time it is, and how a frame sent now is stamped."""
+
+    simulated: ClassVar[bool]  # frames carry simulated time (the truth file's ``lockstep``)
+
+    def now(self) -> float: ...
+
+    def advance_to(self, t: float) -> None: ...
+
+    def stamp(self, t: float | None, duration: float) -> float: ...
+
+    def occupy(self, t: float, duration: float) -> None: ...
+
+    def sync_time(self, timestamp: float) -> float: ...
+
+
+class SimulatedTime:
+    """Simulated time (lock-step; model §8.3 "Time"): it moves only when the driver says (a
+    SYNC's time, ``advance_to``). The bus is serialised: a frame starts when the previous one
+    has finished (``duration``: its transmission time at the bit rate); timestamps are rounded
+    to 1 µs. Nothing reads the wall clock."""
+
+    simulated: ClassVar[bool] = True
+
+    def __init__(self, t0: float = 0.0):
+        self.t0 = float(t0)
+        self.t = self.t0
+        self._bus_free = self.t0  # when the frame on the bus has finished
+
+    def now(self) -> float:
+        return self.t
+
+    def advance_to(self, t: float) -> None:
+        self.t = max(self.t, t)
+
+    def stamp(self, t: float | None, duration: float) -> float:
+        """A frame sent at ``t`` (None: now) starts when the bus is free."""
+        ts = _round_us(max(self.t if t is None else t, self._bus_free))
+        self._bus_free = ts + duration
+        return ts
+
+    def occupy(self, t: float, duration: float) -> None:
+        """Another user's frame (the master's SYNC) held the bus from ``t``."""
+        self._bus_free = max(self._bus_free, t + duration)
+
+    def sync_time(self, timestamp: float) -> float:
+        """The time of a SYNC frame received: the time it carries."""
+        return timestamp
+
+
+class WallClock:
+    """Real time: the wall clock; frames are stamped when sent, the bus is the interface's."""
+
+    simulated: ClassVar[bool] = False
+
+    def now(self) -> float:
+        return time.time()
+
+    def advance_to(self, t: float) -> None:
+        pass
+
+    def stamp(self, t: float | None, duration: float) -> float:
+        return time.time()
+
+    def occupy(self, t: float, duration: float) -> None:
+        pass
+
+    def sync_time(self, timestamp: float) -> float:
+        return time.time()
+
+
 class _SimNetwork(canopen.Network):
     """canopen's Network whose sends (LocalNode's SDO server, among others) go through the
     simulator, so they are stamped, recorded and captured like every other frame."""
@@ -359,29 +449,30 @@ def check_faults(cfg: RigConfig, spec: str, nodes_present: tuple[str, ...] | Non
 
 
 class Simulator:
-    """Every configured node on one python-can bus, fed by the physics one sample per SYNC.
+    """The aircraft: every configured node on one python-can bus, fed by the physics one
+    sample per SYNC. It runs no thread and has no mode: ``clock`` stamps its frames, and a
+    driver (sim_bus.drivers: LockstepSim, FollowSim, RealtimeSim) moves time (module
+    docstring).
 
     Parameters: ``cfg`` the rig; ``scenario`` a scenario name/object for AircraftPhysics, or
     ``physics`` any object with ``dt`` and ``next_sample()``; ``nodes_present`` the optional
     node roles on the bus (default: the scenario's, else all); ``bus`` an open python-can bus
     to use (not closed here), else one is opened with ``interface``/``channel`` (virtual:
     ``preserve_timestamps=True``); ``faults`` a SPEC string or parsed faults; ``record`` a log
-    file (python-can Logger by suffix; candump ``.log`` when the suffix is not a log format).
+    file (python-can Logger by suffix; candump ``.log`` when the suffix is not a log format);
+    ``clock`` a :class:`SimulatedTime` (default: from 0 s) or a :class:`WallClock`.
     """
 
     def __init__(self, cfg: RigConfig, scenario: Any = None, *, physics: SampleSource | None = None,
                  seed: int | None = None, faults: str | tuple[Fault, ...] | None = None,
                  bus: can.BusABC | None = None, interface: str = "virtual",
-                 channel: str = "rsra", autostart: bool = False, lockstep: bool = False,
-                 threaded: bool | None = None, record: str | Path | None = None,
-                 keep_samples: bool = True, t0: float = 0.0,
-                 nodes_present: tuple[str, ...] | None = None):
+                 channel: str = "rsra", autostart: bool = False,
+                 clock: Clock | None = None, record: str | Path | None = None,
+                 keep_samples: bool = True, nodes_present: tuple[str, ...] | None = None):
         self.cfg = cfg
         self.autostart = autostart
-        self.lockstep = lockstep
-        self.threaded = (not lockstep) if threaded is None else threaded
+        self.clock: Clock = SimulatedTime() if clock is None else clock
         self.keep_samples = keep_samples
-        self.t0 = float(t0)
         if physics is None:
             from rsra.sim_bus.physics import AircraftPhysics
             if scenario is None or isinstance(scenario, str):
@@ -391,15 +482,14 @@ class Simulator:
         self.physics = physics
         self.dt = float(getattr(physics, "dt", cfg.sample_period_s))
         self.seed = seed if seed is not None else int(getattr(physics, "seed", 0) or 0)
-        self._lock = threading.RLock()
-        self._sim_t = self.t0  # lock-step acquisition clock
+        self.lock = threading.RLock()  # the drivers' threads and the caller's take turns
         # ---- nodes from the config; the EDS gives every object and COB-ID ------------------
         # required nodes always; optional ones when the scenario's aircraft has them
         # (Scenario.nodes_present: optional roles), all of them without a scenario
         if nodes_present is None:
             nodes_present = getattr(getattr(physics, "scenario", None), "nodes_present", None)
         self.nodes: list[SimNode] = [
-            SimNode(n.name, n.role, n.node_id, n.eds, clock=self.now, lock=self._lock)
+            SimNode(n.name, n.role, n.node_id, n.eds, clock=self.now, lock=self.lock)
             for n in cfg.nodes if n.required or nodes_present is None or n.role in nodes_present]
         self.by_name = {n.name: n for n in self.nodes}
         self._codec = ChannelCodec(cfg)
@@ -439,9 +529,8 @@ class Simulator:
             n.before_change = self._discard_plan
         self.network.subscribe(COB_NMT, self._guard(self._on_nmt_frame))
         self.network.subscribe(self._sync_cob, self._guard(self._on_sync_frame))
-        self._last_flush = self.t0
+        self._last_flush = self.clock.now()
         # ---- state ---------------------------------------------------------------------------------
-        self._bus_free = self.t0
         self._capture: list[can.Message] | None = None
         self._n_sync = 0  # SYNC cycles produced (autostart)
         self._counter = 0
@@ -456,16 +545,13 @@ class Simulator:
         self.sync_info = SyncLog(keep_samples)  # (sample, counter, t, lost) per SYNC cycle
         self.truth_truncated = False
         self._error: BaseException | None = None
-        self._stop = threading.Event()
-        self._ticker: threading.Thread | None = None
-        self._wake = threading.Event()  # the ticker re-plans its next wake-up
         # real time: the physics block that the next SYNC would compute (~1 ms for 100 samples)
-        # is computed half a period after the current SYNC instead, off the SYNC → TPDO path
+        # is computed half a period after the current SYNC instead (prefetch), off the
+        # SYNC → TPDO path
         self._ahead: Any = None  # the next physics sample, computed ahead of its SYNC
-        self._prefetch_at: float | None = None  # wall-clock time of that computation
         self.prefetched = 0  # physics samples computed ahead (real time)
         # real time: the whole answer to the next SYNC (TPDO frames, fault decisions) is built
-        # half a period ahead by the ticker; the SYNC only sends it (docs/performance.md P5)
+        # half a period ahead (prepare_next); the SYNC only sends it (docs/performance.md P5)
         self._plan: _Plan | None = None
         self.prepared = 0  # SYNC answers built ahead and sent as built
         self.plans_discarded = 0  # built ahead but undone (NMT/SDO in between, other counter)
@@ -523,13 +609,11 @@ class Simulator:
         return known
 
     def start(self) -> "Simulator":
-        """Boot every node (boot-up frames); with autostart, start them; start the threads."""
-        with self._lock:
+        """Boot every node (boot-up frames); with autostart, start them."""
+        with self.lock:
             if self._started:
                 return self
             self._started = True
-            if self.threaded:
-                self.network.notifier = can.Notifier(self.bus, self.network.listeners, 0.1)
             t = self.now()
             frames = []
             for n in self.nodes:
@@ -539,25 +623,15 @@ class Simulator:
             if self.autostart:  # CiA 301 self-starting nodes
                 for n in self.nodes:
                     n.nmt(NMT_START, n.node_id, t)
-        if not self.lockstep:
-            self._ticker = threading.Thread(target=self._tick_loop, name="rsra-sim-heartbeat",
-                                            daemon=True)
-            self._ticker.start()
         return self
 
     def close(self) -> None:
-        """Stop the threads, close the recording and (if we opened it) the bus. Idempotent."""
+        """Close the recording and (if we opened it) the bus; a driver stops its threads
+        first. Idempotent."""
         if self._closed:
             return
         self._closed = True
-        self._stop.set()
-        self._wake.set()
-        if self._ticker is not None:
-            self._ticker.join(timeout=5.0)
-        if self.network.notifier is not None:
-            self.network.notifier.stop(timeout=5.0)
-            self.network.notifier = None
-        with self._lock:
+        with self.lock:
             for n in self.nodes:
                 n.detach()
             if self._logger is not None:
@@ -575,8 +649,8 @@ class Simulator:
     # ------------------------------------------------------------------------------------------
     # the acquisition clock
     def now(self) -> float:
-        """Simulated time in lock-step, the wall clock live (model §8.3 "Time")."""
-        return self._sim_t if self.lockstep else time.time()
+        """The clock's time: simulated in lock-step, the wall clock live (model §8.3 "Time")."""
+        return self.clock.now()
 
     def _guard(self, fn: Callable) -> Callable:
         """canopen only logs exceptions in callbacks (docs/bus.md §6 "Library pitfalls"): keep the first one and
@@ -591,12 +665,10 @@ class Simulator:
         return wrapped
 
     def check(self) -> None:
-        """Raise the first exception a background callback hit."""
+        """Raise the first exception a bus callback hit."""
         if self._error is not None:
             err, self._error = self._error, None
             raise err
-        if self.network.notifier is not None and self.network.notifier.exception is not None:
-            raise self.network.notifier.exception
 
     # ------------------------------------------------------------------------------------------
     # transmission
@@ -605,13 +677,8 @@ class Simulator:
 
     def _transmit(self, kind: str, cob_id: int, data: bytes, t: float | None, *,
                   remote: bool = False, error: bool = False) -> can.Message:
-        with self._lock:
-            if self.lockstep:
-                # serialise on the bus: a frame starts when the previous one has finished
-                ts = _round_us(max(self._sim_t if t is None else t, self._bus_free))
-                self._bus_free = ts + self._frame_time(len(data))
-            else:
-                ts = time.time()
+        with self.lock:
+            ts = self.clock.stamp(t, self._frame_time(len(data)))
             msg = self._build(cob_id, data, error, remote=remote)
             msg.timestamp = ts
             self._emit(msg)
@@ -631,8 +698,8 @@ class Simulator:
         return msg
 
     def _send_built(self, msg: _TxMessage) -> None:
-        """Send a message built ahead, stamped now (real time: the wall clock, as _transmit)."""
-        msg.timestamp = time.time()
+        """Send a message built ahead, stamped now (as _transmit)."""
+        msg.timestamp = self.clock.stamp(None, self._frame_time(len(msg.data)))
         self._emit(msg)
 
     def _emit(self, msg: _TxMessage) -> None:
@@ -649,7 +716,7 @@ class Simulator:
         return self._transmit(fr.kind, fr.cob_id, fr.data, t)
 
     def _on_received(self, msg: can.Message) -> None:
-        with self._lock:
+        with self.lock:
             self.frames_received += 1
             if msg.is_error_frame:
                 self.error_frames_received += 1
@@ -657,10 +724,8 @@ class Simulator:
                 self._logger.on_message_received(msg)
 
     def pump(self) -> int:
-        """Handle every frame already queued on the bus, in order, in this thread (only without
-        the background Notifier). Returns the number handled."""
-        if self.threaded:
-            return 0
+        """Handle every frame already queued on the bus, in order, in this thread (a driver
+        without a Notifier reading the bus). Returns the number handled."""
         n = 0
         while True:
             msg = self.bus.recv(0.0)
@@ -676,7 +741,7 @@ class Simulator:
     def _on_nmt_frame(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if len(data) < 2:
             return  # malformed NMT: ignored, as a node would
-        with self._lock:
+        with self.lock:
             t = self.now()
             frames = []
             for n in self.nodes:
@@ -686,66 +751,69 @@ class Simulator:
 
     def _on_sync_frame(self, can_id: int, data: bytearray, timestamp: float) -> None:
         counter = data[0] if len(data) >= 1 else None
-        with self._lock:
-            t = timestamp if self.lockstep else self.now()
-            self._cycle(counter, t, send_sync=False, received_sync=len(data))
+        with self.lock:
+            self._cycle(counter, self.clock.sync_time(timestamp), send_sync=False,
+                        received_sync=len(data))
 
     # ------------------------------------------------------------------------------------------
-    # the public stepping API
-    def advance(self, t: float) -> list[can.Message]:
-        """Time passes to ``t`` without a SYNC: due heartbeats go out (each stamped with its due
-        time). In lock-step this is how simulated time moves between SYNCs."""
-        with self._lock:
-            self.pump()
+    # what a driver calls to move time (each returns the frames it sent; none pumps the bus)
+    def _captured(self, fn: Callable[..., None], *args: Any, **kw: Any) -> list[can.Message]:
+        with self.lock:
             self._capture = out = []
             try:
-                self._advance(t)
+                fn(*args, **kw)
             finally:
                 self._capture = None
-            return out
+        return out
+
+    def advance(self, t: float) -> list[can.Message]:
+        """Time passes to ``t`` without a SYNC: due heartbeats go out (each stamped with its due
+        time). With simulated time this is how time moves between SYNCs."""
+        return self._captured(self._advance, t)
 
     def _advance(self, t: float) -> None:
-        if self.lockstep:
-            self._sim_t = max(self._sim_t, t)
+        self.clock.advance_to(t)
         due = []
         for n in self.nodes:
             due.extend((d, f.cob_id, n, f) for d, f in n.heartbeats(t))
         for d, _, n, f in sorted(due, key=lambda x: (x[0], x[1])):
             self._send_frame(f, d, n)
-        if self._logger is not None and self.lockstep and t - self._last_flush >= 1.0:
+        if self._logger is not None and t - self._last_flush >= 1.0:
             self._flush(t)
 
-    def on_sync(self, counter: int | None, t: float) -> list[can.Message]:
+    def answer_sync(self, counter: int | None, t: float) -> list[can.Message]:
         """A SYNC (counter byte or None) was put on the bus at time ``t`` by someone else: draw
-        one physics sample and answer it. Processes synchronously; returns the frames sent.
-        Use this *or* SYNC frames on the bus, not both, for the same SYNC."""
-        with self._lock:
-            self.pump()
-            self._capture = out = []
-            try:
-                self._cycle(counter, t, send_sync=False)
-            finally:
-                self._capture = None
-            self.check()
-            return out
+        one physics sample and answer it. Use this *or* SYNC frames on the bus, not both, for
+        the same SYNC."""
+        out = self._captured(self._cycle, counter, t, send_sync=False)
+        self.check()
+        return out
 
-    def step(self) -> list[can.Message]:
-        """Lock-step as our own master (autostart): simulated time moves one sample period, the
-        SYNC (counter, jitter, loss per the faults) and every answer go out. Returns the frames."""
-        if not self.lockstep:
-            raise RuntimeError("step() is the lock-step API; use run() in real time")
-        with self._lock:
-            self.pump()
-            k = self._n_sync
-            self._capture = out = []
-            try:
-                jitter, _ = self._sync_plan(k)
-                self._cycle(self._next_counter(), self.t0 + k * self.dt + jitter, send_sync=True,
-                            jitter=jitter)
-            finally:
-                self._capture = None
-            self.check()
-            return out
+    @property
+    def syncs_produced(self) -> int:
+        """SYNC cycles this simulator produced as its own master (autostart), lost ones too."""
+        return self._n_sync
+
+    def sync_jitter(self) -> float:
+        """The jitter of the next SYNC :meth:`produce_sync` sends (the faults'; 0 without)."""
+        return self._sync_plan(self._n_sync)[0]
+
+    def produce_sync(self, t: float | None = None, jitter: float = 0.0) -> list[can.Message]:
+        """As our own master (autostart): the next SYNC (counter; loss per the faults) at time
+        ``t`` (None: the clock's now), which includes its ``jitter`` (:meth:`sync_jitter`), and
+        every answer."""
+        with self.lock:
+            out = self._captured(self._cycle, self._next_counter(),
+                                 self.clock.now() if t is None else t, send_sync=True,
+                                 jitter=jitter)
+        self.check()
+        return out
+
+    def next_heartbeat(self) -> float | None:
+        """When the next heartbeat is due (None: no node produces one)."""
+        with self.lock:
+            due = [n.next_heartbeat for n in self.nodes if n.next_heartbeat is not None]
+        return min(due) if due else None
 
     def _next_counter(self) -> int | None:
         if self._counter_overflow == 0:
@@ -790,8 +858,8 @@ class Simulator:
             self._undo(plan)  # not the SYNC it was built for: build it now, as below
         self._last_counter = counter
         self._advance(t)
-        if received_sync is not None and self.lockstep:  # the master's SYNC occupied the bus
-            self._bus_free = max(self._bus_free, t + self._frame_time(received_sync))
+        if received_sync is not None:  # the master's SYNC occupied the bus
+            self.clock.occupy(t, self._frame_time(received_sync))
         sample = self._next_sample()
         k = int(getattr(sample, "index", len(self.sync_info)))
         st = float(getattr(sample, "t", k * self.dt))
@@ -844,7 +912,6 @@ class Simulator:
                 self._apply_node_faults(feed, started)
             frames.extend((node, fr) for fr in self._status_emcy(feed))
         if lost:
-            self._schedule_ahead()
             fi.end_sample(st)
             return
         for n in self.nodes:
@@ -865,7 +932,6 @@ class Simulator:
                               length=len(bad), expected=len(fr.data))
                     fr = fr._replace(data=bad)
             self._send_frame(fr, t, node)
-        self._schedule_ahead()
         if fi:
             f = fi.chance("unknown", k, st, slot=0x2000)
             if f is not None:
@@ -879,13 +945,22 @@ class Simulator:
             fi.end_sample(st)
 
     # ------------------------------------------------------------------------------------------
-    # real time: the next SYNC's answer built ahead of it
-    def _schedule_ahead(self) -> None:
-        """Half a period after this SYNC the ticker computes the next physics sample and builds
-        the next SYNC's frames (``_prepare_next``), off the SYNC → TPDO path (P5)."""
-        if not self.lockstep and self._ticker is not None:
-            self._prefetch_at = time.time() + 0.5 * self.dt
-            self._wake.set()
+    # the next SYNC's answer built ahead of it (a real-time driver asks, between two SYNCs)
+    def prefetch(self) -> None:
+        """Compute the next physics sample now when the physics computes a whole block at it
+        (AircraftPhysics: every ``block_size`` samples) and it is not computed yet: off the
+        next SYNC's path to its TPDOs."""
+        with self.lock:
+            if self._block_boundary():
+                self._ahead = self.physics.next_sample()
+                self.prefetched += 1
+
+    def _block_boundary(self) -> bool:
+        """The physics computes a whole block at its next sample (AircraftPhysics: every
+        ``block_size`` samples) and that sample is not computed ahead yet."""
+        bs = getattr(self.physics, "block_size", None)
+        k = getattr(self.physics, "index", None)
+        return bool(bs) and k is not None and self._ahead is None and k % bs == 0
 
     def _windows_change(self, st: float) -> bool:
         """A window fault begins or ends at sample time ``st`` (FaultInjector.window_changes
@@ -899,16 +974,19 @@ class Simulator:
                         return True
         return False
 
-    def _prepare_next(self) -> None:
-        """Build the answer to the next SYNC now (ticker thread, under the lock): the same
+    def prepare_next(self) -> None:
+        """Build the answer to the next SYNC now (a real-time driver, between SYNCs): the same
         steps as ``_cycle`` in the same order — process image, node faults, TPDOs due, the
         drop/malformed/unknown/errorframe draws (pure functions of seed, sample and slot) — with
         the fault-log entries and the frames kept in order for the SYNC to emit and send.
         Not built ahead (left to the SYNC, as before): a sample where a fault window opens or
         closes, a node reboots, an EMCY goes out or the SYNC is lost; anything that then
         changes a node (NMT, SDO) undoes the plan first (SimNode.before_change)."""
-        if self.lockstep or self._closed or self._plan is not None or not self._feeds:
-            return
+        with self.lock:
+            if not self._closed and self._plan is None and self._feeds:
+                self._prepare_next()
+
+    def _prepare_next(self) -> None:
         ovf = self._counter_overflow
         if self.autostart:
             counter = self._counter % ovf + 1 if ovf else None
@@ -986,7 +1064,7 @@ class Simulator:
 
     def _discard_plan(self) -> None:
         """Something outside a SYNC cycle is about to change a node: undo the plan first."""
-        with self._lock:
+        with self.lock:
             plan, self._plan = self._plan, None
             if plan is not None:
                 self._undo(plan)
@@ -999,7 +1077,7 @@ class Simulator:
         self._advance(t)
         self._next_sample()  # plan.sample: the truth bookkeeping
         k, st, fi = plan.k, plan.st, self.faults
-        if send_sync:  # not lost: _prepare_next does not build a lost SYNC's answer
+        if send_sync:  # not lost: prepare_next does not build a lost SYNC's answer
             self._n_sync += 1
             if jitter:
                 fi.record(k, st, "jitter", None, offset_s=jitter)
@@ -1014,7 +1092,6 @@ class Simulator:
             else:
                 fi.record(*a[1], **a[2])
         self.prepared += 1
-        self._schedule_ahead()
         if fi:
             fi.end_sample(st)
 
@@ -1058,102 +1135,11 @@ class Simulator:
                     out.append(fr)
         return out
 
-    # ------------------------------------------------------------------------------------------
-    # real time
-    def _block_boundary(self) -> bool:
-        """The physics computes a whole block at its next sample (AircraftPhysics: every
-        ``block_size`` samples) and that sample is not computed ahead yet."""
-        bs = getattr(self.physics, "block_size", None)
-        k = getattr(self.physics, "index", None)
-        return bool(bs) and k is not None and self._ahead is None and k % bs == 0
-
-    def _tick_loop(self) -> None:
-        """Live heartbeats between SYNCs (wall clock): wake at the next due heartbeat, and
-        half a period after a SYNC that ended a physics block, to compute the next block then
-        (between SYNCs) rather than on the next SYNC's path to its TPDOs."""
-        while not self._stop.is_set():
-            self._wake.clear()  # a set() from here on ends the wait below at once
-            with self._lock:
-                nxt = [n.next_heartbeat for n in self.nodes if n.next_heartbeat is not None]
-                if self._prefetch_at is not None:
-                    nxt.append(self._prefetch_at)
-            wait = min(nxt) - time.time() if nxt else 0.5
-            self._wake.wait(min(max(wait, 0.0), 0.5))
-            if self._stop.is_set():
-                return
-            try:
-                with self._lock:
-                    now = time.time()
-                    self._advance(now)
-                    if self._prefetch_at is not None and now >= self._prefetch_at:
-                        self._prefetch_at = None
-                        if self._block_boundary():  # still ahead of the next SYNC
-                            self._ahead = self.physics.next_sample()
-                            self.prefetched += 1
-                        self._prepare_next()
-                    if self._logger is not None and time.time() - self._last_flush >= 1.0:
-                        self._flush(time.time())
-            except Exception as e:  # noqa: BLE001 - re-raised by check()
-                log.exception("heartbeat ticker failed")
-                self._error = self._error or e
-                return
-
     def _flush(self, t: float) -> None:
         self._last_flush = t
         f = getattr(self._logger, "file", None)
         if f is not None and hasattr(f, "flush"):
             f.flush()
-
-    def run(self, duration: float | None = None, *, stop: threading.Event | None = None,
-            progress: Callable[[int, float], None] | None = None,
-            progress_every: float = 1.0) -> int:
-        """Run until ``duration`` seconds (None: until ``stop`` is set). Autostart: produce SYNC
-        at the sample rate — in real time, or as fast as possible in lock-step. Follow mode:
-        answer the master's SYNCs (threaded) while the time passes. Returns SYNC cycles."""
-        self.start()
-        stop = stop or threading.Event()
-        n_total = None if duration is None else int(round(duration / self.dt))
-        if self.lockstep:
-            if not self.autostart:
-                raise RuntimeError("lock-step follow mode is driven by the master: use on_sync()/pump()")
-            k = 0
-            while (n_total is None or k < n_total) and not stop.is_set():
-                self.step()
-                k += 1
-                if progress and k % max(1, int(progress_every / self.dt)) == 0:
-                    progress(k, k * self.dt)
-            return k
-        start = time.monotonic()
-        if not self.autostart:
-            next_report = progress_every
-            while not stop.is_set():
-                el = time.monotonic() - start
-                if duration is not None and el >= duration:
-                    break
-                stop.wait(min(0.1, progress_every, (duration - el) if duration else 0.1))
-                self.check()
-                if progress and time.monotonic() - start >= next_report:
-                    next_report += progress_every
-                    progress(self._n_sync_seen(), time.monotonic() - start)
-            return self._n_sync_seen()
-        k = 0
-        every = max(1, int(round(progress_every / self.dt)))
-        while (n_total is None or k < n_total) and not stop.is_set():
-            jitter, _ = self._sync_plan(self._n_sync)
-            deadline = start + k * self.dt + jitter
-            delay = deadline - time.monotonic()
-            if delay > 0 and stop.wait(delay):
-                break
-            with self._lock:
-                self._cycle(self._next_counter(), time.time(), send_sync=True, jitter=jitter)
-            self.check()
-            k += 1
-            if progress and k % every == 0:
-                progress(k, k * self.dt)
-        return k
-
-    def _n_sync_seen(self) -> int:
-        return len(self.sync_info)
 
     # ------------------------------------------------------------------------------------------
     # truth
@@ -1198,7 +1184,7 @@ class Simulator:
         full.update(faults_spec=[f.token for f in self.faults.faults],
                     fault_entries_not_kept=self.faults.dropped_log_entries,
                     samples_not_kept=self.samples.dropped,
-                    nodes=[n.name for n in self.nodes], lockstep=self.lockstep,
+                    nodes=[n.name for n in self.nodes], lockstep=self.clock.simulated,
                     autostart=self.autostart, **(meta or {}))
         arrs = self.truth_arrays()
         return write_truth(path, arrs, faults=self.fault_log, meta=full,

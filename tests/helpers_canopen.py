@@ -152,13 +152,17 @@ class LocalSlaves:
 # ------------------------------------------------------------------------------------------
 # lock-step rigs around the simulator
 
-def make_sim(cfg, channel: str, *, seed: int = 3, scenario: str = "ground-test", **kw):
-    from rsra.sim_bus.bus_sim import Simulator
+def make_sim(cfg, channel: str, *, seed: int = 3, scenario: str = "ground-test",
+             driver: type | None = None, **kw):
+    """The simulator in simulated time from T0: ``driver`` sim_bus.drivers.LockstepSim
+    (default: no thread) or FollowSim (a Notifier thread serves NMT/SDO/SYNC)."""
+    from rsra.sim_bus.drivers import LockstepSim
     from rsra.sim_bus.physics import AircraftPhysics
     from rsra.sim_bus.scenarios import load_scenario
 
-    return Simulator(cfg, physics=AircraftPhysics(cfg, load_scenario(scenario), seed=seed),
-                     seed=seed, channel=channel, t0=T0, **kw)
+    return (driver or LockstepSim)(
+        cfg, physics=AircraftPhysics(cfg, load_scenario(scenario), seed=seed), seed=seed,
+        channel=channel, t0=T0, **kw)
 
 
 class LockstepRig:
@@ -172,7 +176,7 @@ class LockstepRig:
 
         self.cfg = cfg
         ch = channel_name("lockstep")
-        self.sim = make_sim(cfg, ch, seed=seed, faults=faults, autostart=True, lockstep=True,
+        self.sim = make_sim(cfg, ch, seed=seed, faults=faults, autostart=True,
                             scenario=scenario)
         self.bus = can.Bus(interface="virtual", channel=ch, receive_own_messages=True,
                            preserve_timestamps=True)
@@ -199,9 +203,10 @@ class LockstepRig:
 
 
 class MasterRig:
-    """Simulator in follow mode (threaded: it serves SDO) + the Reader as CANopen master; the
-    sample clock is the test's: ``sync(n)`` sends SYNCs stamped in simulated time, one at a
-    time, and holds simulated time while the master reconfigures a node (lock-step)."""
+    """Simulator in follow mode (FollowSim: its Notifier thread serves SDO) + the Reader as
+    CANopen master; the sample clock is the test's: ``sync(n)`` sends SYNCs stamped in
+    simulated time, one at a time, and holds simulated time while the master reconfigures a
+    node (lock-step)."""
 
     def __init__(self, cfg, *, faults: str = "", seed: int = 3, sim_cfg=None,
                  record: Path | None = None, nodes_present=None, **reader_kw):
@@ -209,8 +214,10 @@ class MasterRig:
 
         ch = channel_name("master")
         self.cfg = cfg
-        self.sim = make_sim(sim_cfg or cfg, ch, seed=seed, faults=faults, lockstep=True,
-                            threaded=True, nodes_present=nodes_present)
+        from rsra.sim_bus.drivers import FollowSim
+
+        self.sim = make_sim(sim_cfg or cfg, ch, seed=seed, faults=faults, driver=FollowSim,
+                            nodes_present=nodes_present)
         # the master's bus: its own SYNC back before any answer (rsra.canbus)
         self.bus = EchoFirstVirtualBus(channel=ch, receive_own_messages=True,
                                        preserve_timestamps=True)

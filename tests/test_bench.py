@@ -84,14 +84,14 @@ def test_floor_responder_sends_the_simulators_frames():
 
     from bench.rig import response_frames
     from rsra.config.rig import load_config
-    from rsra.sim_bus.bus_sim import Simulator
+    from rsra.sim_bus.drivers import LockstepSim
     from rsra.sim_bus.physics import AircraftPhysics
     from rsra.sim_bus.scenarios import load_scenario
 
     cfg = load_config()
     physics = AircraftPhysics(cfg, load_scenario("ground-test"), seed=1)
-    with Simulator(cfg, physics=physics, seed=1, autostart=True, lockstep=True,
-                   channel=f"floor-{uuid.uuid4().hex}") as sim:
+    with LockstepSim(cfg, physics=physics, seed=1, autostart=True,
+                     channel=f"floor-{uuid.uuid4().hex}") as sim:
         frames = [m for _ in range(5) for m in sim.step()]
     last = []  # the frames after the last SYNC: one period's answer
     for m in frames:

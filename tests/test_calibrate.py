@@ -1,6 +1,6 @@
 """`rsra calibrate`: off-line known-load calibration from recordings (cli.md; model.md §7).
 
-The recordings are made here by the simulator alone in lock-step (`Simulator(lockstep=True,
+The recordings are made here by the simulator alone in lock-step (`LockstepSim(cfg,
 autostart=True, record=…)`: the nodes start by themselves and the simulator produces SYNC, as
 `rsra sim --autostart --record`), with its truth file, and read back through the reader's code
 path by the command under test. Two sweeps of the `ground-test` scenario's six static
@@ -30,7 +30,7 @@ from rsra.config.rig import load_config
 from rsra.daq.runtime.persistence import save_posterior
 from rsra.estimator.content import ContentFilter
 from rsra.estimator.posterior import PosteriorState
-from rsra.sim_bus.bus_sim import Simulator
+from rsra.sim_bus.drivers import LockstepSim
 from rsra.sim_bus.truth import read_truth
 
 SWEEP_S = 60.0  # one sweep of the six static conditions (config/scenarios/ground-test.toml)
@@ -44,8 +44,8 @@ def _record(cfg, folder, seconds: float, seed: int, channel: str, nodes=None) ->
     folder.mkdir(parents=True, exist_ok=True)
     log, truth = folder / "run.log", folder / "truth.npz"
     kw = {} if nodes is None else {"nodes_present": nodes}
-    with Simulator(cfg, "ground-test", seed=seed, lockstep=True, autostart=True, record=log,
-                   channel=channel, **kw) as sim:
+    with LockstepSim(cfg, "ground-test", seed=seed, autostart=True, record=log,
+                     channel=channel, **kw) as sim:
         sim.run(seconds)
         sim.write_truth(truth)
     return log, truth

@@ -48,11 +48,11 @@ def rest_scenario(Z: float = 0.0, nodes_present=("rotor_speed", "balance")):
 def live_sim(sim_cfg, scenario, channel: str, seed: int = 5):
     """The simulator in real time, threaded (it serves NMT/SDO/SYNC as they arrive), in follow
     mode: its nodes boot, heartbeat and wait for a master."""
-    from rsra.sim_bus.bus_sim import Simulator
+    from rsra.sim_bus.drivers import RealtimeSim
     from rsra.sim_bus.physics import AircraftPhysics
 
-    sim = Simulator(sim_cfg, physics=AircraftPhysics(sim_cfg, scenario, seed=seed),
-                    channel=channel, seed=seed)
+    sim = RealtimeSim(sim_cfg, physics=AircraftPhysics(sim_cfg, scenario, seed=seed),
+                      channel=channel, seed=seed)
     sim.start()
     try:
         yield sim

@@ -41,14 +41,14 @@ def _png_ok(path) -> tuple[int, int]:
 @pytest.fixture(scope="module")
 def e2e(tmp_path_factory, cfg):
     """A short lock-step ground-test recording, its truth, and the replay's records."""
-    from rsra.sim_bus.bus_sim import Simulator
+    from rsra.sim_bus.drivers import LockstepSim
     from rsra.sim_bus.physics import AircraftPhysics
     from rsra.sim_bus.scenarios import load_scenario
 
     d = tmp_path_factory.mktemp("report")
-    sim = Simulator(cfg, physics=AircraftPhysics(cfg, load_scenario("ground-test"), seed=5),
-                    autostart=True, lockstep=True, record=str(d / "run.log"),
-                    channel=f"test-report-{os.getpid()}-{next(_chan)}")
+    sim = LockstepSim(cfg, physics=AircraftPhysics(cfg, load_scenario("ground-test"), seed=5),
+                      autostart=True, record=str(d / "run.log"),
+                      channel=f"test-report-{os.getpid()}-{next(_chan)}")
     try:
         with sim:
             sim.run(E2E_SECONDS)

@@ -12,6 +12,7 @@ import signal
 import struct
 import subprocess
 import sys
+import threading
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -23,6 +24,7 @@ from scipy import stats
 
 from rsra.daq.cli import main as cli_main
 from rsra.sim_bus.bus_sim import Simulator
+from rsra.sim_bus.drivers import LockstepSim, RealtimeSim
 from rsra.sim_bus.faults import FaultSpecError, parse_faults
 from test_sim_nodes import channel_name, make_physics
 
@@ -30,12 +32,12 @@ ROOT = Path(__file__).resolve().parents[1]
 ALPHA = 1e-3  # false-alarm rate of the statistical checks
 
 
-def lockstep(cfg, faults: str = "", seed: int = 7, **kw) -> Simulator:
-    return Simulator(cfg, physics=make_physics(cfg, seed), seed=seed, faults=faults,
-                     autostart=True, lockstep=True, channel=channel_name("bus"), **kw)
+def lockstep(cfg, faults: str = "", seed: int = 7, **kw) -> LockstepSim:
+    return LockstepSim(cfg, physics=make_physics(cfg, seed), seed=seed, faults=faults,
+                       autostart=True, channel=channel_name("bus"), **kw)
 
 
-def run_steps(sim: Simulator, n: int) -> list[can.Message]:
+def run_steps(sim: LockstepSim, n: int) -> list[can.Message]:
     out = []
     for _ in range(n):
         out.extend(sim.step())
@@ -169,12 +171,12 @@ def test_lockstep_follow_mode_pump_and_on_sync_are_deterministic(cfg):
         ref = [(m.arbitration_id, bytes(m.data)) for m in run_steps(ref_sim, n)
                if 0x180 <= m.arbitration_id < 0x580]
     chan = channel_name("follow")
-    sim = Simulator(cfg, physics=make_physics(cfg, 9), seed=9, lockstep=True, channel=chan)
+    sim = LockstepSim(cfg, physics=make_physics(cfg, 9), seed=9, channel=chan)
     master = can.Bus(interface="virtual", channel=chan, receive_own_messages=False,
                      preserve_timestamps=True)
     try:
         with sim:
-            assert not sim.threaded and sim.network.notifier is None
+            assert sim.network.notifier is None
             master.send(can.Message(arbitration_id=0, data=[1, 0], is_extended_id=False))
             for k in range(n // 2):
                 master.send(can.Message(arbitration_id=0x80, data=[k + 1], timestamp=k * 0.005,
@@ -193,6 +195,19 @@ def test_lockstep_follow_mode_pump_and_on_sync_are_deterministic(cfg):
     assert tp == ref
 
 
+def test_the_aircraft_and_its_lockstep_driver_start_no_thread(cfg):
+    """The Simulator has no mode: threads are a driver's (RealtimeSim, FollowSim); neither the
+    bare aircraft nor LockstepSim starts one, booting, stepping or answering."""
+    before = set(threading.enumerate())
+    bare = Simulator(cfg, physics=make_physics(cfg, 2), seed=2, channel=channel_name("bare"))
+    with lockstep(cfg, seed=2) as sim, bare:
+        run_steps(sim, 3)
+        bare.answer_sync(1, 0.005)
+        assert bare.pump() == 0
+        assert {t for t in threading.enumerate() if t.is_alive()} <= before
+        assert sim.network.notifier is None and bare.network.notifier is None
+
+
 @pytest.mark.timeout(60)
 def test_lockstep_and_real_time_give_the_same_samples(cfg):
     n = 80  # 0.4 s of real time
@@ -202,7 +217,7 @@ def test_lockstep_and_real_time_give_the_same_samples(cfg):
     chan = channel_name("rt")
     rx = can.Bus(interface="virtual", channel=chan, receive_own_messages=False)
     try:
-        sim = Simulator(cfg, physics=make_physics(cfg, 5), seed=5, autostart=True, channel=chan)
+        sim = RealtimeSim(cfg, physics=make_physics(cfg, 5), seed=5, autostart=True, channel=chan)
         with sim:
             assert sim.run(duration=n * cfg.sample_period_s) == n
         got = []
@@ -459,7 +474,7 @@ def test_fault_window_and_node_wildcard(cfg):
 def test_fault_spec_errors_name_the_bad_token(cfg, spec, token, words):
     with pytest.raises(FaultSpecError) as e:
         Simulator(cfg, physics=make_physics(cfg), faults=spec, autostart="lostsync" not in spec,
-                  lockstep=True, channel=channel_name("spec"))
+                  channel=channel_name("spec"))
     assert repr(token) in str(e.value) and words in str(e.value)
 
 

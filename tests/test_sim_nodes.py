@@ -3,7 +3,7 @@ by a master built only from canopen's RemoteNode and the EDS, and unit by unit.
 
 Lock-step throughout: simulated time comes from the SYNC timestamps the test master sends, so
 heartbeat periods are measured exactly, without sleeping. SDO needs the simulator's bus
-thread (threaded=True); an SDO upload doubles as a barrier: the simulator handles frames in
+thread (sim_bus.drivers.FollowSim); an SDO upload doubles as a barrier: the simulator handles frames in
 order, so when the answer is back every earlier SYNC/NMT has been handled.
 """
 from __future__ import annotations
@@ -22,6 +22,7 @@ import pytest
 from canopen.sdo import SdoAbortedError
 
 from rsra.sim_bus.bus_sim import Simulator
+from rsra.sim_bus.drivers import FollowSim, RealtimeSim
 from rsra.sim_bus.nodes import (
     NMT_PRE_OPERATIONAL,
     NMT_RESET_COMM,
@@ -119,7 +120,7 @@ class Master:
     net: canopen.Network
     collector: Collector
     remotes: dict[str, Any]
-    sim: Simulator
+    sim: FollowSim
     t: float = 0.0
     k: int = 0
     counter: int = 0
@@ -156,7 +157,7 @@ def master(cfg):
     remotes = {n.name: net.add_node(n.node_id, str(n.eds)) for n in cfg.nodes}
     for r in remotes.values():
         r.sdo.RESPONSE_TIMEOUT = 1.0
-    sim = Simulator(cfg, physics=make_physics(cfg), channel=chan, lockstep=True, threaded=True)
+    sim = FollowSim(cfg, physics=make_physics(cfg), channel=chan)
     sim.start()
     try:
         yield Master(net, collector, remotes, sim, ids={n.name: n.node_id for n in cfg.nodes})
@@ -434,7 +435,7 @@ def test_live_follow_mode_heartbeats_on_the_wall_clock_and_answers_sync(cfg):
     remotes = {n.name: net.add_node(n.node_id, str(n.eds)) for n in cfg.nodes}
     for r in remotes.values():
         r.sdo.RESPONSE_TIMEOUT = 5.0  # generous: a loaded 2-core CI box
-    sim = Simulator(cfg, physics=make_physics(cfg), channel=chan)
+    sim = RealtimeSim(cfg, physics=make_physics(cfg), channel=chan)
     try:
         sim.start()
         net.nmt.send_command(NMT_START)

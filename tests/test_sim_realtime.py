@@ -5,12 +5,16 @@ unexpected SYNC counter) and the immutable frame payloads give the frames and th
 lock-step bit for bit."""
 from __future__ import annotations
 
+import time
+
 import can
 import pytest
+from helpers_canopen import wait_until
 from test_sim_nodes import channel_name
 
 from rsra.config.rig import load_config
-from rsra.sim_bus.bus_sim import Simulator
+from rsra.sim_bus.bus_sim import SimulatedTime, Simulator, WallClock
+from rsra.sim_bus.drivers import LockstepSim, RealtimeSim
 from rsra.sim_bus.physics import AircraftPhysics
 from rsra.sim_bus.scenarios import load_scenario
 
@@ -32,8 +36,8 @@ def test_physics_computed_ahead_in_real_time_gives_the_lockstep_frames():
     cfg = load_config(overrides={"rig": {"sample_rate_hz": RATE}})
     n = 40  # 0.8 s of real time, 8 block boundaries
     chan = channel_name("ls-ahead")
-    with Simulator(cfg, physics=_physics(cfg, 11), seed=11, lockstep=True, autostart=True,
-                   channel=chan) as sim:
+    with LockstepSim(cfg, physics=_physics(cfg, 11), seed=11, autostart=True,
+                     channel=chan) as sim:
         ref = []
         for _ in range(n):
             ref.extend(sim.step())
@@ -43,7 +47,7 @@ def test_physics_computed_ahead_in_real_time_gives_the_lockstep_frames():
     chan = channel_name("rt-ahead")
     rx = can.Bus(interface="virtual", channel=chan, receive_own_messages=False)
     try:
-        sim = Simulator(cfg, physics=_physics(cfg, 11), seed=11, autostart=True, channel=chan)
+        sim = RealtimeSim(cfg, physics=_physics(cfg, 11), seed=11, autostart=True, channel=chan)
         with sim:
             assert sim.run(duration=n * cfg.sample_period_s) == n
         got = []
@@ -77,8 +81,8 @@ def test_answers_built_ahead_in_real_time_give_the_lockstep_frames_and_faults():
     cfg = load_config(overrides={"rig": {"sample_rate_hz": RATE}})
     n = 40  # 0.8 s of real time; every fault kind fires or opens/closes a window in it
     chan = channel_name("ls-plan")
-    with Simulator(cfg, physics=_physics(cfg, 5), seed=5, lockstep=True, autostart=True,
-                   channel=chan, faults=FAULTS) as sim:
+    with LockstepSim(cfg, physics=_physics(cfg, 5), seed=5, autostart=True,
+                     channel=chan, faults=FAULTS) as sim:
         ref = []
         for _ in range(n):
             ref.extend(sim.step())
@@ -91,8 +95,8 @@ def test_answers_built_ahead_in_real_time_give_the_lockstep_frames_and_faults():
     chan = channel_name("rt-plan")
     rx = can.Bus(interface="virtual", channel=chan, receive_own_messages=False)
     try:
-        sim = Simulator(cfg, physics=_physics(cfg, 5), seed=5, autostart=True, channel=chan,
-                        faults=FAULTS)
+        sim = RealtimeSim(cfg, physics=_physics(cfg, 5), seed=5, autostart=True, channel=chan,
+                          faults=FAULTS)
         with sim:
             assert sim.run(duration=n * cfg.sample_period_s) == n
         got = []
@@ -115,25 +119,25 @@ def _sdo_write_u8(node_id: int, index: int, sub: int, value: int) -> can.Message
                        data=bytes([0x2F, index & 0xFF, index >> 8, sub, value, 0, 0, 0]))
 
 
-def _follow_run(cfg, chan: str, lockstep: bool, build_ahead: bool):
-    """Follow mode, the master's frames by hand: NMT start, SYNCs, and between two SYNCs the
-    events that change an answer already built (NMT stop/start of a node, an SDO write of a
-    transmission type, a skipped SYNC counter). Returns (the simulator's frames, simulator)."""
+def _follow_run(cfg, chan: str, clock, build_ahead: bool):
+    """Follow mode, the master's frames by hand and the simulator driven by hand (no thread):
+    NMT start, SYNCs, and between two SYNCs the events that change an answer already built
+    (NMT stop/start of a node, an SDO write of a transmission type, a skipped SYNC counter);
+    ``build_ahead``: each answer built before those events, as RealtimeSim's ticker does.
+    Returns (the simulator's frames, simulator)."""
     master = can.Bus(interface="virtual", channel=chan, receive_own_messages=False)
     node_id = next(n.node_id for n in cfg.nodes if n.name == "cell_B")
     out = []
     try:
-        sim = Simulator(cfg, physics=_physics(cfg, 3), seed=3, channel=chan, lockstep=lockstep,
-                        threaded=False)
+        sim = Simulator(cfg, physics=_physics(cfg, 3), seed=3, channel=chan, clock=clock)
         with sim:
             def sync(counter: int, k: int, before=()):
                 if build_ahead:
-                    with sim._lock:
-                        sim._prepare_next()
+                    sim.prepare_next()
                 for msg in before:
                     master.send(msg)
                 sim.pump()
-                out.extend(sim.on_sync(counter, k * sim.dt))
+                out.extend(sim.answer_sync(counter, k * sim.dt))
 
             master.send(can.Message(arbitration_id=0, is_extended_id=False, data=[1, 0]))
             sim.pump()
@@ -156,8 +160,8 @@ def _follow_run(cfg, chan: str, lockstep: bool, build_ahead: bool):
 @pytest.mark.timeout(60)
 def test_nmt_sdo_and_counter_changes_undo_an_answer_built_ahead():
     cfg = load_config(overrides={"rig": {"sample_rate_hz": RATE}})
-    ref, _ = _follow_run(cfg, channel_name("follow-ls"), lockstep=True, build_ahead=False)
-    got, rt = _follow_run(cfg, channel_name("follow-rt"), lockstep=False, build_ahead=True)
+    ref, _ = _follow_run(cfg, channel_name("follow-ls"), SimulatedTime(), build_ahead=False)
+    got, rt = _follow_run(cfg, channel_name("follow-rt"), WallClock(), build_ahead=True)
     assert got == ref
     node_id = next(n.node_id for n in cfg.nodes if n.name == "cell_B")
     tpdo1 = [d for c, d in ref if c == 0x180 + node_id]
@@ -166,13 +170,51 @@ def test_nmt_sdo_and_counter_changes_undo_an_answer_built_ahead():
     assert rt.plans_discarded >= 4 and rt.prepared >= 6
 
 
+def _tpdos(frames) -> list[tuple[int, bytes]]:
+    return [(m.arbitration_id, bytes(m.data)) for m in frames if 0x180 <= m.arbitration_id < 0x580]
+
+
+@pytest.mark.timeout(60)
+def test_real_time_behind_a_master_sends_answers_built_ahead_and_the_lockstep_frames():
+    """RealtimeSim in follow mode (the service's real-time source): a master's SYNC frames
+    come through the Notifier; the driver listens for SYNC after the simulator has answered
+    and has the next answer built ahead (``prepared``), which gives lock-step's frames."""
+    cfg = load_config(overrides={"rig": {"sample_rate_hz": RATE}})
+    n = 20  # 0.4 s of real time
+    start = can.Message(arbitration_id=0, is_extended_id=False, data=[1, 0])
+    chan = channel_name("follow-ref")
+    master = can.Bus(interface="virtual", channel=chan, receive_own_messages=False)
+    try:
+        with LockstepSim(cfg, physics=_physics(cfg, 3), seed=3, channel=chan) as sim:
+            master.send(start)
+            ref = _tpdos(f for k in range(1, n + 1) for f in sim.on_sync(k, k * sim.dt))
+    finally:
+        master.shutdown()
+    chan = channel_name("follow-live")
+    master = can.Bus(interface="virtual", channel=chan, receive_own_messages=False)
+    try:
+        with RealtimeSim(cfg, physics=_physics(cfg, 3), seed=3, channel=chan) as sim:
+            master.send(start)
+            for k in range(1, n + 1):
+                time.sleep(sim.dt)  # pace only: nothing below depends on how long it took
+                master.send(can.Message(arbitration_id=0x80, is_extended_id=False, data=[k]))
+            wait_until(lambda: len(sim.sync_info) == n, timeout=20.0, what="every SYNC answered")
+            sim.check()
+        got = list(iter(lambda: master.recv(0), None))
+    finally:
+        master.shutdown()
+    assert _tpdos(got) == ref
+    # the answers built ahead went out as built (a late ticker leaves one to its SYNC)
+    assert sim.prepared >= 1 and sim.plans_discarded == 0
+
+
 def test_sent_frames_reach_receivers_as_independent_plain_messages():
     chan = channel_name("txmsg")
     cfg = load_config()
     rxs = [can.Bus(interface="virtual", channel=chan, receive_own_messages=False) for _ in range(2)]
     try:
-        with Simulator(cfg, "ground-test", seed=1, lockstep=True, autostart=True,
-                       channel=chan) as sim:
+        with LockstepSim(cfg, "ground-test", seed=1, autostart=True,
+                         channel=chan) as sim:
             sent = sim.step()
         got = [list(iter(lambda r=rx: r.recv(0), None)) for rx in rxs]
     finally:

@@ -23,12 +23,12 @@ SWEEP_S = 20.0  # the report's sweep time: the x-force (0.24 noise σ) needs it 
 
 def _record(cfg, scenario, seconds: float, path, truth=None) -> None:
     """Lock-step recording (candump .log) of a scenario, no wall clock involved."""
-    from rsra.sim_bus.bus_sim import Simulator
+    from rsra.sim_bus.drivers import LockstepSim
     from rsra.sim_bus.physics import AircraftPhysics
 
-    sim = Simulator(cfg, physics=AircraftPhysics(cfg, scenario), autostart=True, lockstep=True,
-                    channel=f"test-sweep-{os.getpid()}-{next(_chan)}", record=str(path),
-                    keep_samples=truth is not None)
+    sim = LockstepSim(cfg, physics=AircraftPhysics(cfg, scenario), autostart=True,
+                      channel=f"test-sweep-{os.getpid()}-{next(_chan)}", record=str(path),
+                      keep_samples=truth is not None)
     try:
         with sim:
             sim.run(seconds)

@@ -12,7 +12,7 @@ import pytest
 from can.interfaces.virtual import VirtualBus
 
 from rsra.daq.bus.reader import FOREIGN_TIMEBASE_S, HealthReport, Listen, Reader, Timebase
-from rsra.sim_bus.bus_sim import Simulator
+from rsra.sim_bus.drivers import RealtimeSim
 from tests.helpers_canopen import channel_name
 
 
@@ -78,7 +78,7 @@ def test_frames_from_an_offset_clock_give_every_sample_at_the_wall_clock(cfg):
     timestamp (before the mapping: the idle tick ran 20 s ahead of the frames)."""
     chan = channel_name("timebase")
     bus = _OffsetBus(channel=chan, preserve_timestamps=True, receive_own_messages=False)
-    sim = Simulator(cfg, "ground-test", seed=2, autostart=True, bus=bus)
+    sim = RealtimeSim(cfg, "ground-test", seed=2, autostart=True, bus=bus)
     samples, health = [], []
     try:
         with Reader(cfg, interface="virtual", channel=chan, nodes=Listen()) as reader:

@@ -227,14 +227,14 @@ class RealtimeSimSource(BusSource):
         return f"simulator {self.sim_opts.scenario!r} in process (real time)"
 
     def _open(self) -> None:
-        from rsra.sim_bus.bus_sim import Simulator
+        from rsra.sim_bus.drivers import RealtimeSim
 
         o = self.sim_opts
         # the truth history (bounded, ~0.5 kB a sample) only when a truth file is wanted
         keep = bool(o.truth or self.record or o.keep_truth)
-        self.sim = Simulator(self.cfg, physics=_physics(self.cfg, o.scenario, o.seed, o.variants),
-                             seed=o.seed, faults=o.faults, channel=self.channel, autostart=False,
-                             lockstep=False, threaded=True, keep_samples=keep)
+        self.sim = RealtimeSim(self.cfg, physics=_physics(self.cfg, o.scenario, o.seed, o.variants),
+                               seed=o.seed, faults=o.faults, channel=self.channel,
+                               autostart=False, keep_samples=keep)
         _write_truth_after(self._stack, self.sim, o.truth, self)
         self.sim.start()
         super()._open()
@@ -264,16 +264,15 @@ class LockstepSource(_Base):
         import can
 
         from rsra.daq.bus.reader import BlockQueue, LockstepReader, RestartNodes
-        from rsra.sim_bus.bus_sim import Simulator
-        from rsra.sim_bus.drivers import HandoffBus, LockstepDriver
+        from rsra.sim_bus.drivers import HandoffBus, LockstepDriver, LockstepSim
 
         o, cfg = self.sim_opts, self.cfg
         channel = o.channel or f"rsra-{id(self):x}"
         keep = bool(o.truth or self.record or o.keep_truth)
         t0 = round(time.time(), 3)  # simulated time reads like UNIX time
-        self.sim = Simulator(cfg, physics=_physics(cfg, o.scenario, o.seed, o.variants),
-                             seed=o.seed, faults=o.faults, channel=channel, autostart=True,
-                             lockstep=True, threaded=False, t0=t0, keep_samples=keep)
+        self.sim = LockstepSim(cfg, physics=_physics(cfg, o.scenario, o.seed, o.variants),
+                               seed=o.seed, faults=o.faults, channel=channel, autostart=True,
+                               t0=t0, keep_samples=keep)
         _write_truth_after(self._stack, self.sim, o.truth, self)
         bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=True,
                       preserve_timestamps=True)

@@ -62,7 +62,8 @@ def run(args: argparse.Namespace) -> int:
     from rsra.daq.cli.options import UsageError
     from rsra.daq.rigmodel import load_rig
     from rsra.daq.cli.console import make_console
-    from rsra.sim_bus.bus_sim import RecordError, Simulator
+    from rsra.sim_bus.bus_sim import RecordError
+    from rsra.sim_bus.drivers import RealtimeSim
     from rsra.sim_bus.faults import FaultSpecError
     from rsra.sim_bus.physics import AircraftPhysics
     from rsra.sim_bus.scenarios import load_scenario
@@ -80,9 +81,9 @@ def run(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
     physics = AircraftPhysics(cfg, scenario, seed=args.seed)
     try:
-        sim = Simulator(cfg, physics=physics, faults=args.faults, interface=args.interface,
-                        channel=args.channel, autostart=args.autostart, record=args.record,
-                        keep_samples=bool(args.truth))
+        sim = RealtimeSim(cfg, physics=physics, faults=args.faults, interface=args.interface,
+                          channel=args.channel, autostart=args.autostart, record=args.record,
+                          keep_samples=bool(args.truth))
     except FaultSpecError as e:
         raise UsageError(f"--faults: {e}") from None
     except RecordError as e:
