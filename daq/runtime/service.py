@@ -455,12 +455,10 @@ class Service:
 
     def _on_sample(self, s) -> None:
         p = self.pipeline
-        if self.source.deterministic:
-            self._wait_results(s.seq)
-        else:
-            self._poll_results()
-        publish = self.outputs.publish
         live = not self.source.deterministic
+        if not live:
+            self._wait_results(s.seq)
+        publish = self.outputs.publish
 
         def emit(records: list) -> None:
             for key, payload in records:
@@ -493,6 +491,8 @@ class Service:
         if self.first_t is None:
             self.first_t = s.t
         self.last_t = s.t
+        if live:  # after the sample, off the SYNC → hub_loads path (docs/performance.md P5b):
+            self._poll_results()  # a result in now applies from the next sample at the earliest
 
     def _on_angles(self, rec: AnglesRecord) -> None:
         if self.recorder is not None:  # (a replay records nothing)
