@@ -260,3 +260,16 @@ def test_replay_recomputes_without_a_schedule_and_says_what_a_partial_one_holds(
     assert got == [] and summary["identification_runs"] == 0
     assert summary["alpha_applied"] == json.loads(lines[0])["alpha_all"]
     assert "identification off" in schedule_note(summary["angles_schedule"])
+
+
+def test_zenoh_off_opens_no_session(cfg):
+    """ServiceOptions(zenoh=False) (rsra export, these tests): no Zenoh session, no listener;
+    records still reach the sinks."""
+    from rsra.daq.runtime.service import Outputs
+
+    with Outputs(cfg, ServiceOptions(zenoh=False)) as out:
+        assert out.session is None and out.telemetry is None and out.low_rate is None
+        got = []
+        out.sinks.append(lambda k, p: got.append(k))
+        out.publish("hub_loads", {"seq": 1})
+        assert got == ["hub_loads"]

@@ -140,18 +140,11 @@ class Outputs:
                                            opts.foxglove_origins,
                                            announce=opts.foxglove_announce)
         try:
-            self._open_zenoh(cfg, opts)
-        except BaseException:
+            if opts.zenoh:  # (ServiceOptions.zenoh False: no session at all — export, tests)
+                self._open_zenoh(cfg, opts)
+        except BaseException:  # what was opened before the failure is closed
             self.close()
             raise
-
-    def _open_zenoh(self, cfg: RigConfig, opts: ServiceOptions) -> None:
-        if opts.zenoh:
-            try:
-                self._open_zenoh(cfg, opts)
-            except BaseException:  # what was opened before the failure is closed
-                self._stack.close()
-                raise
 
     def _open_zenoh(self, cfg: RigConfig, opts: ServiceOptions) -> None:
         import zenoh
