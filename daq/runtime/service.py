@@ -385,7 +385,11 @@ class Service:
         with contextlib.ExitStack() as stack:
             if opts.realtime_priority is not None:
                 # first: every thread started below (Zenoh's, the bus thread, the SYNC
-                # producer, the simulator's) inherits it; the worker process drops it
+                # producer, the simulator's) inherits it; the worker process drops it, and
+                # multiprocessing's resource tracker (a helper process) starts before it
+                from multiprocessing import resource_tracker
+
+                resource_tracker.ensure_running()
                 stack.callback(realtime_priority(opts.realtime_priority))
                 if self.worker_initializer is None:
                     self.worker_initializer = normal_scheduling
