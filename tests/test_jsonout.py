@@ -53,3 +53,47 @@ trees = st.recursive(leaves, lambda c: st.one_of(
 @given(trees)
 def test_random_trees_encode_as_the_strict_path(obj):
     assert dumps(obj) == reference(obj)
+
+
+def _stdlib_text(obj) -> str:
+    return json.dumps(obj, allow_nan=False, separators=(",", ":"))
+
+
+def test_floats_of_every_magnitude_encode_as_the_stdlib():
+    """The orjson path (daq/jsonout.dumpb) keeps its text only where it is the stdlib's:
+    random bit patterns (every exponent) and short decimals across the exponent forms."""
+    rng = np.random.default_rng(17)
+    bits = rng.integers(0, 2**63, size=40_000, dtype=np.int64).view(np.float64)
+    x = bits[np.isfinite(bits)]
+    dec = np.round(rng.standard_normal(20_000) * 1e3, 3) * 10.0 ** rng.integers(-12, 22, 20_000)
+    edges = [1e-4, 9.999999999999999e-05, 1e-5, 1.5e-5, 1e-10, 1e16, 9999999999999998.0,
+             1e17, 5e-324, -0.0, 0.0, 1.7976931348623157e308, 123.456e-7]
+    for vals in (x.tolist(), (-x).tolist(), dec.tolist(), edges):
+        assert dumps(vals) == _stdlib_text(vals)
+        assert dumps(np.array(vals)) == _stdlib_text(vals)
+        for v in vals[:200]:
+            assert dumps({"v": v}) == _stdlib_text({"v": v})
+
+
+def test_strings_keys_and_types_orjson_writes_otherwise_take_the_stdlib_path():
+    import dataclasses
+    import enum
+
+    class Level(enum.IntEnum):
+        HIGH = 2
+
+    class Name(str):
+        pass
+
+    @dataclasses.dataclass
+    class Rec:
+        a: int = 1
+
+    for obj in ({"s": "é"}, {"s": "\x7f"}, {"s": "a\nb\t\x01\"\\/"}, {"s": "\u2028"},
+                {1: 2, "k": None}, {"n": 2**70}, {"n": -2**63 - 1}, {"e": Level.HIGH},
+                {"n": Name("x")}, {"t": (1, 2.5)}, {"deep": [[[[1.0e-7]]]]}):
+        assert dumps(obj) == _stdlib_text(sanitise(obj))
+    with pytest.raises(TypeError):
+        dumps({"r": Rec()})  # the stdlib refuses a dataclass: so does dumps
+    with pytest.raises(TypeError):
+        dumps({"c": np.array([1j])})

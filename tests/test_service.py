@@ -260,3 +260,74 @@ def test_replay_recomputes_without_a_schedule_and_says_what_a_partial_one_holds(
     assert got == [] and summary["identification_runs"] == 0
     assert summary["alpha_applied"] == json.loads(lines[0])["alpha_all"]
     assert "identification off" in schedule_note(summary["angles_schedule"])
+
+
+def test_zenoh_off_opens_no_session(cfg):
+    """ServiceOptions(zenoh=False) (rsra export, these tests): no Zenoh session, no listener;
+    records still reach the sinks."""
+    from rsra.daq.runtime.service import Outputs
+
+    with Outputs(cfg, ServiceOptions(zenoh=False)) as out:
+        assert out.session is None and out.telemetry is None and out.low_rate is None
+        got = []
+        out.sinks.append(lambda k, p: got.append(k))
+        out.publish("hub_loads", {"seq": 1})
+        assert got == ["hub_loads"]
+
+
+def test_realtime_priority_puts_the_service_threads_under_sched_fifo_and_restores(cfg):
+    """--realtime-priority: the thread running the service, and the threads it starts (the
+    estimator loop's sinks run in it), are SCHED_FIFO at that priority during the run; the
+    policy before is back afterwards; the identification worker is told to drop it."""
+    import os
+    import threading
+
+    from rsra.config.rig import ConfigError
+    from rsra.daq.runtime.service import normal_scheduling
+
+    before = os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
+    svc = Service(cfg, ServiceOptions(sim="ground-test", speed=None, duration=0.2, zenoh=False,
+                                      identification=False, realtime_priority=3))
+    seen = []
+    child = []
+
+    def sink(key, payload):
+        if not seen:
+            t = threading.Thread(target=lambda: child.append(os.sched_getscheduler(0)))
+            t.start()
+            t.join()
+        seen.append((os.sched_getscheduler(0), os.sched_getparam(0).sched_priority))
+
+    svc.add_sink(sink)
+    try:
+        svc.run()
+    except ConfigError as e:
+        import pytest
+
+        pytest.skip(f"SCHED_FIFO not permitted here (needs root or CAP_SYS_NICE): {e}")
+    assert seen and set(seen) == {(os.SCHED_FIFO, 3)}
+    assert child == [os.SCHED_FIFO]  # inherited by a thread started during the run
+    assert (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority) == before
+    assert svc.worker_initializer is normal_scheduling
+
+
+def test_realtime_priority_refused_is_one_line_naming_the_option(cfg, monkeypatch):
+    import os
+
+    import pytest
+
+    from rsra.config.rig import ConfigError
+    from rsra.daq.cli import describe_error
+
+    def refuse(*a):
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "sched_setscheduler", refuse)
+    svc = Service(cfg, ServiceOptions(sim="ground-test", speed=None, duration=0.2, zenoh=False,
+                                      identification=False, realtime_priority=10))
+    with pytest.raises(ConfigError) as e:
+        svc.run()
+    code, line = describe_error(e.value)
+    assert code == 2 and "\n" not in line
+    assert "--realtime-priority = 10" in line and "Operation not permitted" in line
+    assert "CAP_SYS_NICE" in line

@@ -183,6 +183,49 @@ def test_the_detector_matches_a_scalar_reference_on_random_streams():
     assert min(samples[:3]) > 0 and samples[3] == 0  # the stream exercised the flagging
 
 
+def test_the_fresh_sample_shortcut_matches_the_scalar_reference():
+    """Every run length >= 2 (the rigs' case): a sample whose readings are all present and
+    all new takes the shortcut (runs restart at 1, nothing flagged). On continuous streams
+    with frozen stretches, NaN, inf and huge values the
+    state and the flags are those of the per-channel definition, sample by sample."""
+    rng = np.random.default_rng(11)
+    k = np.array([2, 3, 4, 0, 6])
+    n, m = 4000, len(k)
+    x = rng.standard_normal((n, m))
+    for _ in range(60):  # frozen stretches of 1-8 samples, some channels at once
+        t0, L = rng.integers(1, n - 10), rng.integers(1, 9)
+        cols = rng.random(m) < 0.5
+        x[t0:t0 + L, cols] = x[t0 - 1, cols]
+    x[rng.random((n, m)) < 0.01] = np.nan
+    x[rng.random((n, m)) < 0.003] = np.inf
+    x[rng.random(n) < 0.01, 0] = 1e300
+    det = StuckDetector(k)
+    assert det._fresh_ok
+    value, run = [math.nan] * m, [0] * m
+    episodes, samples, shortcut = [0] * m, [0] * m, 0
+    for t in range(n):
+        got = det.update(x[t])
+        want = []
+        fresh = all(math.isfinite(v) and v != value[c] for c, v in enumerate(x[t]))
+        shortcut += fresh
+        for c in range(m):
+            v = x[t, c]
+            if math.isfinite(v):
+                run[c] = run[c] + 1 if v == value[c] else 1
+                value[c] = v
+            hit = math.isfinite(v) and k[c] > 0 and run[c] >= k[c]
+            episodes[c] += hit and run[c] == k[c]
+            samples[c] += hit
+            want.append(hit)
+        assert got.tolist() == want, t
+        assert det.run.tolist() == run, t
+        assert det.n_stuck == sum(want), t
+        assert det.fresh == fresh, t  # the pipeline skips its own finiteness test on it
+        assert np.array_equal(det.value, value, equal_nan=True), t
+    assert det.episodes.tolist() == episodes and det.samples.tolist() == samples
+    assert min(samples[:3]) > 0 and shortcut > n // 2  # both paths exercised
+
+
 def test_a_status_flag_explains_a_constant_cell(cfg):
     """An over-range cell reads full scale (constant): its status says why; not `stuck` too."""
     mon = StuckMonitor(cfg)

@@ -91,6 +91,13 @@ def add_no_identification(p: argparse.ArgumentParser, help: str | None = None) -
                    "ones (--angles, else the configured initial angles) for the whole run")
 
 
+def add_realtime_priority(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--realtime-priority", type=positive_int, default=None, metavar="N",
+                   help="run the service's threads under SCHED_FIFO at priority N (1-99, e.g. "
+                   "10; Linux, root or CAP_SYS_NICE): no other process can delay a sample "
+                   "(docs/deployment.md)")
+
+
 def add_service_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--record", metavar="DIR", default=None,
                    help="record every frame, the angle schedule and the effective config here")
@@ -109,6 +116,7 @@ def add_service_options(p: argparse.ArgumentParser) -> None:
     from rsra.daq.runtime.foxglove_out import add_options as add_foxglove_options
 
     add_foxglove_options(p)
+    add_realtime_priority(p)
     p.add_argument("--log-file", metavar="FILE", default=None,
                    help="log to this size-rotated file instead of stderr")
     p.add_argument("--log-level", default="info",

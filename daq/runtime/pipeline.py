@@ -202,14 +202,19 @@ class EstimatorPipeline:
         accel = np.asarray(s.accel, float).reshape(-1)
         flags = list(s.flags)
         stuck = False
+        present = False  # every cell and accelerometer reading finite, known already
         if self.stuck is not None:
             for fl in self.stuck.update(T, accel, s.flags):
                 stuck = True
                 if fl not in flags:
                     flags.append(fl)
-        # (np.count_nonzero: a fraction of ndarray.all's cost on these short vectors, P5)
-        cells_ok = np.count_nonzero(np.isfinite(T)) == T.size
-        acc_ok = np.count_nonzero(np.isfinite(accel)) == accel.size
+            present = self.stuck.detector.fresh
+        if present:
+            cells_ok = acc_ok = True
+        else:
+            # (np.count_nonzero: a fraction of ndarray.all's cost on these short vectors, P5)
+            cells_ok = np.count_nonzero(np.isfinite(T)) == T.size
+            acc_ok = np.count_nonzero(np.isfinite(accel)) == accel.size
         bad_status = stuck or (bool(flags) and
                                any(f.startswith(("overrange:", "fault:")) for f in flags))
         q = None
@@ -218,11 +223,12 @@ class EstimatorPipeline:
             q = None if s.drive is None else np.asarray(s.drive, float)
             drive_ok = q is not None and np.count_nonzero(np.isfinite(q)) == q.size
         measured = cells_ok and acc_ok and drive_ok and not bad_status
-        I = self._Mf @ accel if acc_ok else np.full(6, np.nan)
-        z = I - self._D @ q if (q is not None and drive_ok) else I
+        # (ndarray.dot: the same BLAS gemv as @, at half the call cost on these sizes, P5b)
+        I = self._Mf.dot(accel) if acc_ok else np.full(6, np.nan)
+        z = I - self._D.dot(q) if (q is not None and drive_ok) else I
         H_static = None
         if measured:
-            H_static = self._Rinv @ (z - self._S @ T)
+            H_static = self._Rinv.dot(z - self._S.dot(T))
         omega = s.omega if s.omega is not None and math.isfinite(s.omega) else None
         refused = omega is not None and not abs(omega) < self.omega_max
         if refused:

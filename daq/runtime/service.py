@@ -27,6 +27,7 @@ import contextlib
 import json
 import logging
 import math
+import os
 import queue
 import signal
 import threading
@@ -84,6 +85,9 @@ class ServiceOptions:
     foxglove: str | None = None
     foxglove_origins: list[str] = field(default_factory=list)
     foxglove_announce: Callable[[str], None] | None = None
+    # real-time scheduling (SCHED_FIFO at this priority, 1-99) for the service's threads;
+    # None: the default scheduler (docs/deployment.md "Real-time priority")
+    realtime_priority: int | None = None
 
 
 class _LowRatePublisher:
@@ -143,18 +147,11 @@ class Outputs:
                                            opts.foxglove_origins,
                                            announce=opts.foxglove_announce)
         try:
-            self._open_zenoh(cfg, opts)
-        except BaseException:
+            if opts.zenoh:  # (ServiceOptions.zenoh False: no session at all — export, tests)
+                self._open_zenoh(cfg, opts)
+        except BaseException:  # what was opened before the failure is closed
             self.close()
             raise
-
-    def _open_zenoh(self, cfg: RigConfig, opts: ServiceOptions) -> None:
-        if opts.zenoh:
-            try:
-                self._open_zenoh(cfg, opts)
-            except BaseException:  # what was opened before the failure is closed
-                self._stack.close()
-                raise
 
     def _open_zenoh(self, cfg: RigConfig, opts: ServiceOptions) -> None:
         import zenoh
@@ -210,6 +207,40 @@ class Outputs:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def realtime_priority(priority: int) -> Callable[[], None]:
+    """SCHED_FIFO at ``priority`` for the calling thread, inherited by every thread it starts
+    from then on (Linux); returns the call that restores the thread's previous policy. Not
+    permitted (no root, CAP_SYS_NICE or RLIMIT_RTPRIO), or not on this system: a ConfigError
+    naming the option, before anything starts."""
+    from rsra.config.rig import ConfigError
+
+    fix = ("run as root, grant the interpreter CAP_SYS_NICE (setcap cap_sys_nice+ep) or an "
+           f"RLIMIT_RTPRIO of at least {priority} (ulimit -r), or leave --realtime-priority out")
+    if not hasattr(os, "sched_setscheduler"):
+        raise ConfigError("--realtime-priority", priority,
+                          "this system has no SCHED_FIFO (Linux only)", "leave it out")
+    lo, hi = os.sched_get_priority_min(os.SCHED_FIFO), os.sched_get_priority_max(os.SCHED_FIFO)
+    if not lo <= priority <= hi:
+        raise ConfigError("--realtime-priority", priority, "not a SCHED_FIFO priority",
+                          f"give {lo}..{hi} (10 is plenty: above every normal process)")
+    old = os.sched_getscheduler(0), os.sched_getparam(0)
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except OSError as e:
+        raise ConfigError("--realtime-priority", priority,
+                          f"this process may not use SCHED_FIFO ({e.strerror or e})", fix) from None
+
+    def restore() -> None:
+        os.sched_setscheduler(0, old[0], old[1])
+    return restore
+
+
+def normal_scheduling() -> None:
+    """The identification worker's first call under --realtime-priority: back to the default
+    scheduler (its runs take a core for up to a second; they are not real-time work)."""
+    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
 
 
 def _close_logged(stack: contextlib.ExitStack, close: Callable[[], None]) -> None:
@@ -355,6 +386,16 @@ class Service:
     def run(self) -> dict:
         opts, cfg = self.opts, self.cfg
         with contextlib.ExitStack() as stack:
+            if opts.realtime_priority is not None:
+                # first: every thread started below (Zenoh's, the bus thread, the SYNC
+                # producer, the simulator's) inherits it; the worker process drops it, and
+                # multiprocessing's resource tracker (a helper process) starts before it
+                from multiprocessing import resource_tracker
+
+                resource_tracker.ensure_running()
+                stack.callback(realtime_priority(opts.realtime_priority))
+                if self.worker_initializer is None:
+                    self.worker_initializer = normal_scheduling
             plan = self.source.angles_plan(opts.identification, opts.recompute)
             self.schedule = plan.schedule
             recorded_initial, recorded, folder = plan.recorded_initial, plan.recorded, plan.folder
@@ -458,12 +499,10 @@ class Service:
 
     def _on_sample(self, s) -> None:
         p = self.pipeline
-        if self.source.deterministic:
-            self._wait_results(s.seq)
-        else:
-            self._poll_results()
-        publish = self.outputs.publish
         live = not self.source.deterministic
+        if not live:
+            self._wait_results(s.seq)
+        publish = self.outputs.publish
 
         def emit(records: list) -> None:
             for key, payload in records:
@@ -496,6 +535,8 @@ class Service:
         if self.first_t is None:
             self.first_t = s.t
         self.last_t = s.t
+        if live:  # after the sample, off the SYNC → hub_loads path (docs/performance.md P5b):
+            self._poll_results()  # a result in now applies from the next sample at the earliest
 
     def _on_angles(self, rec: AnglesRecord) -> None:
         if self.recorder is not None:  # (a replay records nothing)

@@ -154,12 +154,31 @@ class StuckDetector:
         self.episodes = np.zeros(n, np.int64)  # runs that reached k
         self.samples = np.zeros(n, np.int64)  # samples flagged
         self.stuck = np.zeros(n, bool)
+        self.n_stuck = 0  # channels stuck in the last sample
+        self.fresh = False  # the last sample took the shortcut below (every reading present)
+        # the common sample — every reading present and new — restarts every run at 1, and
+        # flags nothing when no channel flags at a run of 1: then it is three ufuncs and
+        # two copies (the estimator's per-sample path, docs/performance.md P5b)
+        self._fresh_ok = bool(n) and int(self._k_flag.min()) >= 2
+        self._none = np.zeros(n, bool)
+        self._none.flags.writeable = False
 
     def update(self, x: np.ndarray, explained: np.ndarray | None = None) -> np.ndarray:
         """Feed one sample's readings; returns the channels stuck in it. ``explained``: the
         channels whose own status already accounts for a constant value (an over-range cell
         reads full scale): their run goes on, but they are not flagged or counted."""
         x = np.asarray(x, float)
+        if self._fresh_ok:
+            same = x == self.value
+            if not np.count_nonzero(same):
+                if np.count_nonzero(np.isfinite(x)) == x.size:
+                    self.run.fill(1)
+                    self.value[:] = x
+                    self.stuck = self._none
+                    self.n_stuck = 0
+                    self.fresh = True
+                    return self._none
+        self.fresh = False
         present = np.isfinite(x)
         same = x == self.value  # NaN equals nothing: a repeat is always a present reading
         new = present ^ same  # present and different: a new run starts at 1
@@ -170,7 +189,8 @@ class StuckDetector:
         stuck = present & (self.run >= self._k_flag)
         if explained is not None:
             stuck &= ~np.asarray(explained, bool)
-        if np.count_nonzero(stuck):  # (ndarray.any costs 4x as much on 10 channels)
+        self.n_stuck = n_stuck = np.count_nonzero(stuck)  # (ndarray.any costs 4x as much)
+        if n_stuck:
             self.episodes += stuck & (self.run == self.k)
             self.samples += stuck
         self.stuck = stuck
@@ -203,7 +223,7 @@ class StuckMonitor:
                 explained = np.array([c.flag.split(":", 1)[1] in status and i < self.n_cells
                                       for i, c in enumerate(self.channels)])
         hit = self.detector.update(x, explained)
-        if not np.count_nonzero(hit):
+        if not self.detector.n_stuck:
             return []
         flags: list[str] = []
         for i in np.flatnonzero(hit):

@@ -18,7 +18,7 @@ import zenoh
 
 from rsra.config.rig import TelemetryConfig
 from rsra.daq import stagetiming
-from rsra.daq.jsonout import dumps
+from rsra.daq.jsonout import dumpb, dumps
 
 log = logging.getLogger("rsra.telemetry")
 
@@ -137,14 +137,14 @@ class TelemetryPublisher:
         self._declared.callback(undeclare)
         return obj
 
-    def publish(self, key: str, payload: dict) -> str:
-        """Publish one record; returns the JSON text (for recording or replay output)."""
-        text = dumps(payload)
+    def publish(self, key: str, payload: dict) -> bytes:
+        """Publish one record; returns its JSON text (UTF-8 bytes, as put)."""
+        data = dumpb(payload)
         timer = stagetiming.TIMER  # None unless a benchmark asked (docs/performance.md P5b)
         if timer is not None and key == "hub_loads":
             timer.handed_on(payload["seq"])
         try:
-            self._pubs[key].put(text)
+            self._pubs[key].put(data)
             self.published[key] += 1
             if timer is not None and key == "hub_loads":
                 timer.put_done(payload["seq"])
@@ -153,8 +153,8 @@ class TelemetryPublisher:
             log.debug("publish %s failed: %s", key, e)
         if key in STATE_KEYS:
             with self._state_lock:
-                self._state[key] = text.encode()
-        return text
+                self._state[key] = data
+        return data
 
     def _answer_queries(self) -> None:
         handler = self._queryable.handler

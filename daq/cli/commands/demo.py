@@ -16,7 +16,7 @@ DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
     from rsra.daq.cli.options import common_options
-    from rsra.daq.cli.options import add_no_identification, add_sim_options
+    from rsra.daq.cli.options import add_no_identification, add_realtime_priority, add_sim_options
 
     p = sub.add_parser(name, help="the simulator and the service in one process, with a live view",
                        description="The main job on the embedded default: the simulated "
@@ -48,6 +48,7 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
     from rsra.daq.runtime.foxglove_out import add_options as add_foxglove_options
 
     add_foxglove_options(p)
+    add_realtime_priority(p)
     p.add_argument("--log-level", default="warning",
                    choices=("debug", "info", "warning", "error"), help="default warning")
     return p
@@ -105,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
                           identification=args.identification,
                           keep_truth=bool(args.report), foxglove=args.foxglove,
                           foxglove_origins=args.foxglove_allow_origin,
+                          realtime_priority=args.realtime_priority,
                           truth=str(Path(report_jsonl).parent / "truth.npz") if report_jsonl else None)
     svc = Service(cfg, opts)
     svc.install_signal_handlers()

@@ -55,7 +55,8 @@ def options_from_args(args: argparse.Namespace):
         zenoh_config=args.zenoh_config, zenoh_listen=args.zenoh_listen,
         zenoh_connect=args.zenoh_connect, truth=getattr(args, "truth", None),
         identification=args.identification, foxglove=args.foxglove,
-        foxglove_origins=args.foxglove_allow_origin)
+        foxglove_origins=args.foxglove_allow_origin,
+        realtime_priority=args.realtime_priority)
 
 
 def run_service(cfg, opts, quiet: bool = False) -> int:
