@@ -62,6 +62,7 @@ from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
+from scipy.optimize import least_squares
 from scipy.stats import chi2
 
 from .balance import measurement_covariance
@@ -345,6 +346,129 @@ def _range_basis(A: np.ndarray, tol: float = RANK_TOLERANCE) -> np.ndarray:
     return U[:, s > tol * s[0]]
 
 
+def _white_jacobian(st: str, model: RigModel, alpha: np.ndarray, beta: np.ndarray,
+                    means: np.ndarray, counts: np.ndarray, Li: np.ndarray) -> np.ndarray:
+    """∂/∂[α, β] of :func:`_white_residual` (6C, 14 + p), exact at (α, β)."""
+    g = model.geometry
+    n = g.n_cells
+    X = np.atleast_2d(np.asarray(means, float))
+    z, T, H = X[:, :6], X[:, 6:6 + n], X[:, 6 + n:12 + n]
+    C, na = len(X), 2 * n
+    cell = np.arange(na) // 2
+    beta = np.asarray(beta, float)
+    if st == "cell_load_angles":  # every condition at its own angles α + β∘T_c
+        dS = np.stack([wrench_matrix_jacobian(g, alpha + beta * Tn[cell]) for Tn in T])
+        Ja = np.einsum("nkac,nc->nak", dS, T)
+        Jb = Ja * T[:, cell][:, None, :]
+    else:
+        Ja = np.einsum("kac,nc->nak", wrench_matrix_jacobian(g, alpha), T)
+        F, Mo = H[:, :3], H[:, 3:]
+        if st == "hub_position":
+            Jb = np.zeros((C, 6, 3))
+            Jb[:, 3:] = -np.stack([skew(f) for f in F])
+        elif st == "external_load":
+            Jb = np.zeros((C, 6, 18))
+            for i in range(6):
+                Jb[:, i, 3 * i:3 * i + 3] = F
+        elif st == "balance":
+            R0 = hub_transfer_matrix(g, "body")
+            Rp = np.eye(3) + skew(beta[6:9])
+            D = np.zeros((C, 6, 9))
+            D[:, :3, :3] = Rp[None] * F[:, None, :]
+            D[:, 3:, 3:6] = Rp[None] * Mo[:, None, :]
+            D[:, :3, 6:] = -np.stack([skew(f) for f in F * (1 + beta[:3])])
+            D[:, 3:, 6:] = -np.stack([skew(m) for m in Mo * (1 + beta[3:6])])
+            Jb = np.einsum("ab,nbk->nak", R0, D)
+        else:
+            raise ValueError(f"unknown structure {st!r}; choose from {STRUCTURES}")
+    Jm = np.concatenate([Ja, Jb], axis=2)  # ∂m/∂[α, β]; the residual is z − m
+    sw = np.sqrt(np.asarray(counts, float))[:, None, None]
+    return -(np.einsum("ab,nbk->nak", Li, Jm) * sw).reshape(6 * C, -1)
+
+
+@dataclass
+class StructureEstimate:
+    """The joint fit of a structure's [α0, β] (:func:`fit_structure`)."""
+
+    structure: str
+    alpha: np.ndarray  # α0 (14)
+    beta: np.ndarray  # β (p); undetermined directions held at the start (the prior, 0)
+    P: np.ndarray  # covariance of [α0, β] in the determined directions (0 elsewhere)
+    sigma: np.ndarray  # √diag(P); inf for a parameter not determined
+    determined: np.ndarray  # (14 + p) bool: the parameter lies in the determined span
+    rank: int  # determined directions of [α0, β]
+    cost: float  # ‖whitened residual‖² at the fit
+    start_cost: float
+    converged: bool
+    nfev: int
+    status: str
+
+
+def fit_structure(structure: str, model: RigModel, alpha: np.ndarray, means: np.ndarray,
+                  counts: np.ndarray, moment_floor: float, beta: np.ndarray | None = None,
+                  *, max_nfev: int = 100) -> StructureEstimate:
+    """The exact least-squares (maximum-likelihood, W fixed at the start's α) fit of a
+    structure's [α0, β] to condition means: Levenberg–Marquardt
+    (``scipy.optimize.least_squares``, analytic Jacobian) from (α, β) — the constant-angle fit
+    and β = 0 by default — in the directions the conditions determine: the singular vectors of
+    the whitened Jacobian at the start, columns scaled to unit length, with singular values
+    ≥ ``RANK_TOLERANCE`` of the largest. The other directions stay at the start (the prior),
+    carry no covariance and their parameters are reported as not determined. Converged: the
+    solver stopped on its tolerances (not on ``max_nfev``), the result is finite and the cost
+    did not rise."""
+    alpha = np.asarray(alpha, float)
+    p = len(parameter_names(structure, model))
+    beta0 = np.zeros(p) if beta is None else np.asarray(beta, float)
+    theta0 = np.concatenate([alpha, beta0])
+    na = len(alpha)
+    Li = _whitener(model, alpha, moment_floor)
+
+    def split(th):
+        return th[:na], th[na:]
+
+    J0 = _white_jacobian(structure, model, alpha, beta0, means, counts, Li)
+    cs = np.linalg.norm(J0, axis=0)
+    cs = np.where(cs > 0, cs, 1.0)
+    _, s, Vt = np.linalg.svd(J0 / cs, full_matrices=False)
+    keep = s > RANK_TOLERANCE * s[0] if len(s) and s[0] > 0 else np.zeros(len(s), bool)
+    B = Vt[keep].T / cs[:, None]  # θ = θ0 + B ξ
+    r = B.shape[1]
+    r0 = _white_residual(structure, model, alpha, beta0, means, counts, Li)
+    start_cost = float(r0 @ r0)
+    if r == 0:
+        return StructureEstimate(structure, alpha.copy(), beta0.copy(),
+                                 np.zeros((na + p, na + p)), np.full(na + p, np.inf),
+                                 np.zeros(na + p, bool), 0, start_cost, start_cost, False, 0,
+                                 "nothing determined")
+
+    def fun(xi):
+        return _white_residual(structure, model, *split(theta0 + B @ xi), means, counts, Li)
+
+    def jac(xi):
+        return _white_jacobian(structure, model, *split(theta0 + B @ xi), means, counts,
+                               Li) @ B
+
+    with np.errstate(all="ignore"):
+        sol = least_squares(fun, np.zeros(r), jac=jac, method="lm", xtol=1e-12, ftol=1e-12,
+                            gtol=1e-12, max_nfev=max_nfev)
+    theta = theta0 + B @ sol.x
+    cost = float(sol.fun @ sol.fun)
+    ok = bool(sol.status > 0 and np.isfinite(theta).all() and np.isfinite(cost)
+              and cost <= start_cost * (1 + 1e-9) + 1e-9)
+    Jr = sol.jac if np.isfinite(sol.jac).all() else jac(sol.x)
+    Pxi = np.linalg.pinv(Jr.T @ Jr, hermitian=True)
+    P = B @ Pxi @ B.T
+    # a parameter is determined when its unit vector lies in the span of B (scaled columns)
+    Vk = Vt[keep].T
+    outside = 1.0 - np.sum(Vk**2, axis=1)
+    det = outside < 1e-9
+    sigma = np.where(det, np.sqrt(np.maximum(np.diag(P), 0.0)), np.inf)
+    a, b = split(theta)
+    a = alpha + np.angle(np.exp(1j * (a - alpha)))  # the equivalent nearest the start
+    return StructureEstimate(structure, a, b, P, sigma, det, r, cost, start_cost, ok,
+                             int(sol.nfev), str(sol.message))
+
+
 def fit_constant(model: RigModel, alpha: np.ndarray, means: np.ndarray, counts: np.ndarray,
                  moment_floor: float, iterations: int = GN_ITERATIONS) -> np.ndarray:
     """The constant-angle fit to condition means: Gauss–Newton with the pseudo-inverse (the
@@ -389,6 +513,7 @@ class StructureFit:
     determined: bool  # every parameter determined (rank == nominal)
     alpha: np.ndarray | None = None  # the angles of the joint fit (α0 of the structure)
     P: np.ndarray | None = None  # covariance of the joint fit [α0, β] (pseudo-inverse)
+    converged: bool = False  # the joint fit (fit_structure) converged
 
     @property
     def rejects_constant(self) -> bool:
@@ -401,9 +526,13 @@ class StructureFit:
 
 def test_structures(model: RigModel, alpha: np.ndarray, means: np.ndarray, counts: np.ndarray,
                     moment_floor: float, level: float,
-                    structures: Sequence[str] = STRUCTURES) -> tuple[list[StructureFit], dict]:
+                    structures: Sequence[str] = STRUCTURES, joint: bool | None = True
+                    ) -> tuple[list[StructureFit], dict]:
     """Every structure against the constant-angle model on condition means at α (already the
-    constant fit); ``level``: the false-alarm rate of this look (split over the structures)."""
+    constant fit); ``level``: the false-alarm rate of this look (split over the structures).
+    ``joint``: fit every structure's [α0, β] exactly (:func:`fit_structure`); ``None``: only
+    when some structure rejects the constant model at this look (the fit is what costs);
+    ``False``: never (the linear estimates and misfits)."""
     Li = _whitener(model, alpha, moment_floor)
     r, Ja, Js = _stack(model, alpha, means, counts, Li, structures)
     Ua = _range_basis(Ja)
@@ -412,6 +541,14 @@ def test_structures(model: RigModel, alpha: np.ndarray, means: np.ndarray, count
     n_eq, ra = len(r), Ua.shape[1]
     each = level / max(len(structures), 1)
     fits = []
+    if joint is None:  # does any structure reject? (the linear statistics are cheap)
+        joint = False
+        for st in structures:
+            X = _unit_columns(Js[st])[0]
+            Ub = _range_basis(X - Ua @ (Ua.T @ X))
+            if Ub.shape[1] and float(np.sum((Ub.T @ e) ** 2)) > chi2.isf(each, Ub.shape[1]):
+                joint = True
+                break
     for st in structures:
         X, cs = _unit_columns(Js[st])  # the rank on unit columns: units do not matter
         X = X - Ua @ (Ua.T @ X)
@@ -434,31 +571,18 @@ def test_structures(model: RigModel, alpha: np.ndarray, means: np.ndarray, count
         a_fit = np.asarray(alpha, float).copy()
         P_joint = None
         misfit = total - q
-        if rank:  # the joint (α, β) fit, exact in β: Gauss–Newton from the linear estimate
-            a_j, b_j = np.asarray(alpha, float).copy(), beta.copy()
-            J, cj = _unit_columns(np.hstack([Ja, Js[st]]))
-            misfit = total - q
-            rj = _white_residual(st, model, a_j, b_j, means, counts, Li)
-            for _ in range(GN_ITERATIONS):
-                step, *_ = np.linalg.lstsq(J, rj, rcond=RANK_TOLERANCE)
-                step = step / cj
-                a_j, b_j = a_j + step[:len(a_j)], b_j + step[len(a_j):]
-                rj = _white_residual(st, model, a_j, b_j, means, counts, Li)
-                misfit = float(rj @ rj)
-                if np.max(np.abs(step)) < 1e-12:
-                    break
-            a_j = alpha + np.angle(np.exp(1j * (a_j - alpha)))  # nearest the constant fit
-            if misfit < total - q:  # the joint fit for the estimate and the misfit; the
-                # statistic stays the linearised one (χ² under constant angles, also where
-                # the nonlinear fit could exploit weakly determined angles)
-                beta, a_fit = b_j, a_j
-            else:
-                misfit = total - q
-            P_joint = (np.linalg.pinv(J.T @ J, rcond=RANK_TOLERANCE**2, hermitian=True)
-                       / cj[:, None] / cj[None, :])
+        converged = False
+        if rank and joint:  # the joint (α0, β) fit, exact in β (fit_structure): estimate and misfit;
+            # the statistic stays the linearised one (χ² under constant angles, also where
+            # the nonlinear fit could exploit weakly determined angles)
+            est = fit_structure(st, model, alpha, means, counts, moment_floor)
+            converged = est.converged
+            if converged:
+                beta, a_fit, P_joint, misfit = est.beta, est.alpha, est.P, est.cost
+                sigma = est.sigma[len(a_fit):]
         logp = float(chi2.logsf(q, rank) / math.log(10)) if rank else 0.0
         fits.append(StructureFit(st, rank, p, q, limit, logp, max(misfit, 0.0), mdof, mlimit,
-                                 beta, sigma, rank == p, a_fit, P_joint))
+                                 beta, sigma, rank == p, a_fit, P_joint, converged))
     info = {"equations": n_eq, "angle_rank": ra, "residual": total,
             "residual_dof": n_eq - ra}
     return fits, info
@@ -616,7 +740,7 @@ class StructureTest:
             return StructureVerdict("undetermined", look=self.look, conditions=len(self.clusters),
                                     level=level, restarted=restarted, fits=[])
         fits, _ = test_structures(self.model, a, means, counts, self.moment_floor, level,
-                                  self.structures)
+                                  self.structures, joint=True if self.rejected else None)
         base = dict(look=self.look, conditions=len(self.clusters), level=level,
                     restarted=restarted, fits=fits)
         if any(f.rejects_constant for f in fits):
@@ -634,7 +758,7 @@ class StructureTest:
         # larger by more than χ²₁ at this look's level
         others = [f for f in ranked[1:] if f.explains]
         margin = float(chi2.isf(level, 1))
-        if top.explains and top.determined and all(
+        if top.explains and top.determined and top.converged and all(
                 f.nominal > top.nominal or f.misfit - top.misfit > margin for f in others):
             selected = {"structure": top.structure, "alpha": top.alpha.copy(),
                         "beta": top.beta.copy(), "sigma": top.sigma.copy(), "P": top.P}
