@@ -79,6 +79,9 @@ CLUSTER_TOLERANCE = (1000.0, 1000.0)  # N, N·m: windows at the same load within
 MAX_CLUSTERS = 256  # bounded: a new load beyond this joins the nearest cluster
 MAX_PARAMETERS_REPORTED = 6  # per candidate, the most significant first
 GN_ITERATIONS = 8
+FIT_TOLERANCE = 1e-8  # the joint fit's relative tolerances (cost, step, gradient)
+FIT_MAX_EVALUATIONS = 40  # the right structure converges in 3–37 (measured); a wrong one
+# (a large misfit: Gauss–Newton converges slowly) stops here and keeps its linear misfit
 CONVERGED_STEP_RAD = 1e-6  # the constant fit's last Gauss–Newton step (rad): converged
 
 
@@ -406,7 +409,7 @@ class StructureEstimate:
 
 def fit_structure(structure: str, model: RigModel, alpha: np.ndarray, means: np.ndarray,
                   counts: np.ndarray, moment_floor: float, beta: np.ndarray | None = None,
-                  *, max_nfev: int = 100) -> StructureEstimate:
+                  *, max_nfev: int = FIT_MAX_EVALUATIONS) -> StructureEstimate:
     """The exact least-squares (maximum-likelihood, W fixed at the start's α) fit of a
     structure's [α0, β] to condition means: Levenberg–Marquardt
     (``scipy.optimize.least_squares``, analytic Jacobian) from (α, β) — the constant-angle fit
@@ -449,8 +452,8 @@ def fit_structure(structure: str, model: RigModel, alpha: np.ndarray, means: np.
                                Li) @ B
 
     with np.errstate(all="ignore"):
-        sol = least_squares(fun, np.zeros(r), jac=jac, method="lm", xtol=1e-12, ftol=1e-12,
-                            gtol=1e-12, max_nfev=max_nfev)
+        sol = least_squares(fun, np.zeros(r), jac=jac, method="lm", xtol=FIT_TOLERANCE,
+                            ftol=FIT_TOLERANCE, gtol=FIT_TOLERANCE, max_nfev=max_nfev)
     theta = theta0 + B @ sol.x
     cost = float(sol.fun @ sol.fun)
     ok = bool(sol.status > 0 and np.isfinite(theta).all() and np.isfinite(cost)
@@ -526,13 +529,14 @@ class StructureFit:
 
 def test_structures(model: RigModel, alpha: np.ndarray, means: np.ndarray, counts: np.ndarray,
                     moment_floor: float, level: float,
-                    structures: Sequence[str] = STRUCTURES, joint: bool | None = True
-                    ) -> tuple[list[StructureFit], dict]:
+                    structures: Sequence[str] = STRUCTURES, joint: bool | None = True,
+                    starts: dict | None = None) -> tuple[list[StructureFit], dict]:
     """Every structure against the constant-angle model on condition means at α (already the
     constant fit); ``level``: the false-alarm rate of this look (split over the structures).
     ``joint``: fit every structure's [α0, β] exactly (:func:`fit_structure`); ``None``: only
     when some structure rejects the constant model at this look (the fit is what costs);
-    ``False``: never (the linear estimates and misfits)."""
+    ``False``: never (the linear estimates and misfits). ``starts``: per structure, the
+    (α0, β) the joint fit starts from (the previous look's; default the constant fit, β = 0)."""
     Li = _whitener(model, alpha, moment_floor)
     r, Ja, Js = _stack(model, alpha, means, counts, Li, structures)
     Ua = _range_basis(Ja)
@@ -575,7 +579,10 @@ def test_structures(model: RigModel, alpha: np.ndarray, means: np.ndarray, count
         if rank and joint:  # the joint (α0, β) fit, exact in β (fit_structure): estimate and misfit;
             # the statistic stays the linearised one (χ² under constant angles, also where
             # the nonlinear fit could exploit weakly determined angles)
-            est = fit_structure(st, model, alpha, means, counts, moment_floor)
+            a_s, b_s = (starts or {}).get(st, (alpha, None))
+            est = fit_structure(st, model, a_s, means, counts, moment_floor, b_s)
+            if not est.converged and b_s is not None:  # from the constant fit, β = 0
+                est = fit_structure(st, model, alpha, means, counts, moment_floor)
             converged = est.converged
             if converged:
                 beta, a_fit, P_joint, misfit = est.beta, est.alpha, est.P, est.cost
@@ -672,6 +679,7 @@ class StructureTest:
         self.rejected = False
         self.restarts = 0
         self.clusters: list[_Cluster] = []
+        self._starts: dict = {}  # per structure, the last converged joint fit (α0, β)
         self.alpha: np.ndarray | None = None
         self.last = StructureVerdict("undetermined")
 
@@ -680,6 +688,7 @@ class StructureTest:
         self.clusters = []
         self.rejected = False
         self.restarts += 1
+        self._starts = {}
 
     def _h_slice(self) -> slice:
         n = self.model.geometry.n_cells
@@ -740,7 +749,10 @@ class StructureTest:
             return StructureVerdict("undetermined", look=self.look, conditions=len(self.clusters),
                                     level=level, restarted=restarted, fits=[])
         fits, _ = test_structures(self.model, a, means, counts, self.moment_floor, level,
-                                  self.structures, joint=True if self.rejected else None)
+                                  self.structures, joint=True if self.rejected else None,
+                                  starts=self._starts)
+        # the next look's joint fits start from these (a restart forgets them)
+        self._starts = {f.structure: (f.alpha, f.beta) for f in fits if f.converged}
         base = dict(look=self.look, conditions=len(self.clusters), level=level,
                     restarted=restarted, fits=fits)
         if any(f.rejects_constant for f in fits):
@@ -760,8 +772,15 @@ class StructureTest:
         margin = float(chi2.isf(level, 1))
         if top.explains and top.determined and top.converged and all(
                 f.nominal > top.nominal or f.misfit - top.misfit > margin for f in others):
+            na = len(top.alpha)
+            sig_all = np.concatenate([np.sqrt(np.maximum(np.diag(top.P)[:na], 0.0)),
+                                      top.sigma])
             selected = {"structure": top.structure, "alpha": top.alpha.copy(),
-                        "beta": top.beta.copy(), "sigma": top.sigma.copy(), "P": top.P}
+                        "beta": top.beta.copy(), "sigma": top.sigma.copy(), "P": top.P,
+                        "sigma_all": sig_all,
+                        # the mean cell load of the conditions: where the angles linearise
+                        "T_ref": np.average(means[:, 6:6 + self.model.geometry.n_cells],
+                                            axis=0, weights=counts)}
         return StructureVerdict("not_constant", cands, selected=selected, **base)
 
     def _candidate(self, f: StructureFit, explaining: list[str]) -> dict:
@@ -784,3 +803,97 @@ class StructureTest:
                 "determined": f.determined,
                 "not_separated_from": [s for s in explaining if s != f.structure]
                 if f.explains else []}
+
+
+# ------------------------------------------------------------------------------------------
+# The selected structure in the hub-load estimate (the service's per-sample path)
+# ------------------------------------------------------------------------------------------
+APPLIED = ("cell_load_angles", "hub_position", "balance", "external_load")
+
+
+def fit_payload(selected: dict, model: RigModel) -> dict:
+    """The JSON-ready ``structure_fit`` (angles record, posterior file, config fragment;
+    docs/telemetry.md) of a :attr:`StructureVerdict.selected`: the structure, α0 (rad), β in
+    its SI units, their σ (None: not determined — held at the prior, never invented), and
+    the reference cell loads ``T_ref`` (N) about which the estimator linearises the angles."""
+    st = selected["structure"]
+    na = model.geometry.n_cells * 2
+    sig = np.asarray(selected["sigma_all"], float)
+    return {"structure": st,
+            "parameters": list(parameter_names(st, model)),
+            "alpha0": [float(v) for v in selected["alpha"]],
+            "beta": [float(v) for v in selected["beta"]],
+            "alpha0_sigma": [float(v) if math.isfinite(v) else None for v in sig[:na]],
+            "beta_sigma": [float(v) if math.isfinite(v) else None for v in sig[na:]],
+            "T_ref": [float(v) for v in selected["T_ref"]]}
+
+
+def check_fit_payload(d: object, model: RigModel) -> dict:
+    """A ``structure_fit`` read from a file or a record, checked (ValueError naming what is
+    wrong); returns it with float lists."""
+    if not isinstance(d, dict):
+        raise ValueError("structure_fit must be an object")
+    st = d.get("structure")
+    if st not in APPLIED:
+        raise ValueError(f"structure_fit.structure {st!r} is not one of {list(APPLIED)}")
+    na, p = 2 * model.geometry.n_cells, len(parameter_names(st, model))
+    out = dict(d)
+    for key, n in (("alpha0", na), ("beta", p), ("T_ref", model.geometry.n_cells)):
+        try:
+            v = np.asarray(d.get(key), float)
+        except (TypeError, ValueError):
+            raise ValueError(f"structure_fit.{key} is not a list of numbers") from None
+        if v.shape != (n,) or not np.isfinite(v).all():
+            raise ValueError(f"structure_fit.{key} must be {n} finite numbers")
+        out[key] = v.tolist()
+    return out
+
+
+class StructureCorrection:
+    """The hub-load model of a selected structure in the form the per-sample path takes:
+    the filter keeps ``R₀`` and ``S(alpha)``; the measured CG wrench z is replaced by
+    ``correct(z, T)`` so that ``R₀⁻¹ (correct(z, T) − S(alpha) T)`` is the structure's
+    hub load:
+
+    * ``cell_load_angles``: ``alpha = α0 + g∘T_ref`` and
+      ``correct = z − B (T∘(T − T_ref))``, B (6×7) the first-order change of S T with the
+      angles (``B[:, c] = Σ_{k∈c} ∂S/∂α_k[:, c] g_k``) — S(α0 + g∘T) T to first order in
+      g∘(T − T_ref); the second order is ½ |∂²S| (g ΔT)² T (≈ 3 N at 0.75° and 30 kN);
+    * ``hub_position``, ``external_load``: ``alpha = α0``,
+      ``correct = z − (I − R₀ R(β)⁻¹)(z − S(α0) T)`` (exact: the hub load is R(β)⁻¹(z − S T));
+    * ``balance``: ``alpha = α0``, z unchanged (the balance's error is in the reference).
+
+    The instantaneous cell load drives the angles (a deflection follows the load well below
+    the mount modes); the simulator moves them with the static load, which differs at the
+    harmonics only (their mean is unchanged)."""
+
+    def __init__(self, model: RigModel, fit: dict) -> None:
+        fit = check_fit_payload(fit, model)
+        g = model.geometry
+        self.structure = fit["structure"]
+        a0, beta = np.asarray(fit["alpha0"]), np.asarray(fit["beta"])
+        self.T_ref = np.asarray(fit["T_ref"])
+        self.B = None
+        self.M = None
+        if self.structure == "cell_load_angles":
+            cell = np.arange(2 * g.n_cells) // 2
+            self.alpha = a0 + beta * self.T_ref[cell]
+            dS = wrench_matrix_jacobian(g, self.alpha)
+            B = np.zeros((6, g.n_cells))
+            for k in range(2 * g.n_cells):
+                B[:, cell[k]] += dS[k, :, cell[k]] * beta[k]
+            self.B = B
+        else:
+            self.alpha = a0.copy()
+            if self.structure in ("hub_position", "external_load"):
+                R = structure_matrices(self.structure, beta, model)["R"]
+                R0 = hub_transfer_matrix(g, "body")
+                self.M = np.eye(6) - R0 @ np.linalg.inv(R)
+                self.S = wrench_matrix(g, self.alpha)
+
+    def correct(self, z: np.ndarray, T: np.ndarray) -> np.ndarray:
+        if self.B is not None:
+            return z - self.B @ (T * (T - self.T_ref))
+        if self.M is not None:
+            return z - self.M @ (z - self.S @ T)
+        return z

@@ -160,8 +160,12 @@ def handle_job(cfg, post, runs: dict, cache, job: IdentJob,
                           traceback.format_exc(limit=5))
     job_id = out.pop("job_id", job.job_id)
     res = IdentResult(job_id, AnglesRecord.from_dict(out))
-    if res.record.accepted and state_file:
+    # saved after an accepted run, and when the structure the hub loads use changes
+    fit = res.record.structure_fit
+    changed = fit is not ABSENT and fit != getattr(post, "saved_structure_fit", None)
+    if (res.record.accepted or changed) and state_file:
         res = replace(res, save_error=save_state(post, res.record, state_file))
+        post.saved_structure_fit = None if fit is ABSENT else fit
     return res
 
 

@@ -81,6 +81,7 @@ class AnglesRecord:
     structure: Any = ABSENT  # known loads: the structure test (issue 19)
     candidates: Any = ABSENT
     next_conditions: Any = ABSENT  # known loads: the experiment design (issue 19)
+    structure_fit: Any = ABSENT  # known loads: the structure the hub loads use (issue 19)
     extra: tuple[tuple[str, Any], ...] = ()  # keys not declared above, in their order
 
     FIELDS: ClassVar[tuple[str, ...]]
