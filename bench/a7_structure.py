@@ -104,8 +104,12 @@ def run_arm(cfg, arm: str, seed: int, tiny: bool = False) -> dict:
     alpha0 = np.asarray(cfg.identification.initial_angles_rad, float)
     P = round(5.0 * fs)
     verdicts, windows, a_true = [], [], []
-    for k, end in enumerate(range(P, len(Y) + 1, P)):
+    ends = list(range(P, len(Y) + 1, P))
+    for k, end in enumerate(ends):
         x = Y[end - P:end]
+        # the joint fits at the last look only (what the decisions judge; the verdict of
+        # every look comes from the linear statistics either way)
+        st.joint_fits = k == len(ends) - 1
         if k == 0:
             x = x[cf.settle_samples:]
         v = st.add_window(x[:, :19], alpha0)

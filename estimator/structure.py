@@ -66,11 +66,14 @@ from scipy.optimize import least_squares
 from scipy.stats import chi2
 
 from .balance import measurement_covariance
-from .geometry import hub_transfer_matrix, skew, wrench_matrix, wrench_matrix_jacobian
-from .params import RigModel
+from .geometry import _E, hub_transfer_matrix, skew, wrench_matrix, wrench_matrix_jacobian
+from .params import ANGLE_AXES, RigModel
 
 STRUCTURES = ("cell_load_angles", "hub_position", "balance", "external_load")
 VERDICTS = ("constant", "not_constant", "undetermined")
+# (smaller, larger): the larger structure contains the smaller one whatever the conditions
+# (δp × F is an external load U F)
+NESTED = frozenset({("hub_position", "external_load")})
 AXES = ("X", "Y", "Z", "L", "M", "N")
 FALSE_ALARM = 1e-3  # over the whole run (alpha spending)
 TIME_LEVEL = 1e-3  # per window: a change in time restarts the accumulation
@@ -79,6 +82,8 @@ CLUSTER_TOLERANCE = (1000.0, 1000.0)  # N, N·m: windows at the same load within
 MAX_CLUSTERS = 256  # bounded: a new load beyond this joins the nearest cluster
 MAX_PARAMETERS_REPORTED = 6  # per candidate, the most significant first
 GN_ITERATIONS = 8
+HUB_SIGMA_FRACTION = 1.0 / 3.0  # a structure is used once its parameters add at most this
+# fraction of the static bound (σ, per axis) to the hub loads at every condition seen
 FIT_TOLERANCE = 1e-8  # the joint fit's relative tolerances (cost, step, gradient)
 FIT_MAX_EVALUATIONS = 40  # the right structure converges in 3–37 (measured); a wrong one
 # (a large misfit: Gauss–Newton converges slowly) stops here and keeps its linear misfit
@@ -319,8 +324,8 @@ def _white_residual(st: str, model: RigModel, alpha: np.ndarray, beta: np.ndarra
     R0 = hub_transfer_matrix(g, "body")
     if st == "cell_load_angles":
         cell = np.arange(2 * n) // 2
-        ST = np.array([wrench_matrix(g, alpha + beta * Tn[cell]) @ Tn for Tn in T])
-        m = ST + H @ R0.T
+        Sc, _ = _cell_columns(model, alpha[None, :] + beta[None, :] * T[:, cell])
+        m = np.einsum("nac,nc->na", Sc, T) + H @ R0.T
     elif st == "balance":
         Rp = np.eye(3) + skew(beta[6:9])
         Ht = np.hstack([(H[:, :3] * (1 + beta[:3])) @ Rp.T, (H[:, 3:] * (1 + beta[3:6])) @ Rp.T])
@@ -349,6 +354,42 @@ def _range_basis(A: np.ndarray, tol: float = RANK_TOLERANCE) -> np.ndarray:
     return U[:, s > tol * s[0]]
 
 
+def _rot_batch(axis: str, a: np.ndarray) -> np.ndarray:
+    """rot(axis, a) of geometry.rot for every a (C,) at once: (C, 3, 3)."""
+    c, s = np.cos(a), np.sin(a)
+    o, z = np.ones_like(a), np.zeros_like(a)
+    if axis == "x":
+        m = [[o, z, z], [z, c, -s], [z, s, c]]
+    elif axis == "y":
+        m = [[c, z, s], [z, o, z], [-s, z, c]]
+    else:
+        m = [[c, -s, z], [s, c, z], [z, z, o]]
+    return np.moveaxis(np.array(m), 2, 0)
+
+
+def _cell_columns(model: RigModel, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For angle sets A (C, 14): the columns of S (C, 6, 7) and the derivative of each
+    angle's own column (C, 14, 6) — geometry.wrench_matrix and wrench_matrix_jacobian for C
+    angle sets at once."""
+    g = model.geometry
+    C = len(A)
+    u = np.empty((C, g.n_cells, 3))
+    du = np.empty((C, 2 * g.n_cells, 3))
+    for i, kind in enumerate(g.cell_kinds):
+        first, second = ANGLE_AXES[kind]
+        n = g.cell_axes[i]
+        R1, R2 = _rot_batch(first, A[:, 2 * i]), _rot_batch(second, A[:, 2 * i + 1])
+        v1 = R1 @ n  # (C, 3)
+        u[:, i] = np.einsum("nab,nb->na", R2, v1)
+        du[:, 2 * i] = np.einsum("nab,nb->na", R2, np.cross(_E[first], v1))
+        du[:, 2 * i + 1] = np.cross(_E[second], u[:, i])
+    pos = np.asarray(g.cell_positions, float)
+    S = np.concatenate([u, np.cross(pos[None], u)], axis=2).transpose(0, 2, 1)
+    cell = np.arange(2 * g.n_cells) // 2
+    D = np.concatenate([du, np.cross(pos[cell][None], du)], axis=2)
+    return S, D
+
+
 def _white_jacobian(st: str, model: RigModel, alpha: np.ndarray, beta: np.ndarray,
                     means: np.ndarray, counts: np.ndarray, Li: np.ndarray) -> np.ndarray:
     """∂/∂[α, β] of :func:`_white_residual` (6C, 14 + p), exact at (α, β)."""
@@ -360,8 +401,8 @@ def _white_jacobian(st: str, model: RigModel, alpha: np.ndarray, beta: np.ndarra
     cell = np.arange(na) // 2
     beta = np.asarray(beta, float)
     if st == "cell_load_angles":  # every condition at its own angles α + β∘T_c
-        dS = np.stack([wrench_matrix_jacobian(g, alpha + beta * Tn[cell]) for Tn in T])
-        Ja = np.einsum("nkac,nc->nak", dS, T)
+        _, D = _cell_columns(model, alpha[None, :] + beta[None, :] * T[:, cell])
+        Ja = D.transpose(0, 2, 1) * T[:, cell][:, None, :]
         Jb = Ja * T[:, cell][:, None, :]
     else:
         Ja = np.einsum("kac,nc->nak", wrench_matrix_jacobian(g, alpha), T)
@@ -470,6 +511,17 @@ def fit_structure(structure: str, model: RigModel, alpha: np.ndarray, means: np.
     a = alpha + np.angle(np.exp(1j * (a - alpha)))  # the equivalent nearest the start
     return StructureEstimate(structure, a, b, P, sigma, det, r, cost, start_cost, ok,
                              int(sol.nfev), str(sol.message))
+
+
+def hub_sigma(structure: str, model: RigModel, alpha: np.ndarray, beta: np.ndarray,
+              P: np.ndarray, means: np.ndarray) -> np.ndarray:
+    """σ (C, 6; N, N·m, body axes) of the static hub-load estimate under a structure at each
+    condition that comes from the uncertainty P of its [α0, β] alone (``R₀⁻¹ ∂m/∂θ``)."""
+    C = len(np.atleast_2d(means))
+    J = _white_jacobian(structure, model, alpha, beta, means, np.ones(C), np.eye(6))
+    Ri = np.linalg.inv(hub_transfer_matrix(model.geometry, "body"))
+    JH = np.einsum("ab,nbk->nak", Ri, J.reshape(C, 6, -1))
+    return np.sqrt(np.maximum(np.einsum("nak,kl,nal->na", JH, P, JH), 0.0))
 
 
 def fit_constant(model: RigModel, alpha: np.ndarray, means: np.ndarray, counts: np.ndarray,
@@ -680,6 +732,10 @@ class StructureTest:
         self.restarts = 0
         self.clusters: list[_Cluster] = []
         self._starts: dict = {}  # per structure, the last converged joint fit (α0, β)
+        self.bound: np.ndarray | None = None  # the static bound per axis (noise budget)
+        # the joint fits (estimate, misfit, selection) at this look; off, a look gives the
+        # verdict from the linear statistics only (a Monte Carlo that judges the last look)
+        self.joint_fits = True
         self.alpha: np.ndarray | None = None
         self.last = StructureVerdict("undetermined")
 
@@ -749,7 +805,9 @@ class StructureTest:
             return StructureVerdict("undetermined", look=self.look, conditions=len(self.clusters),
                                     level=level, restarted=restarted, fits=[])
         fits, _ = test_structures(self.model, a, means, counts, self.moment_floor, level,
-                                  self.structures, joint=True if self.rejected else None,
+                                  self.structures,
+                                  joint=(True if self.rejected else None) if self.joint_fits
+                                  else False,
                                   starts=self._starts)
         # the next look's joint fits start from these (a restart forgets them)
         self._starts = {f.structure: (f.alpha, f.beta) for f in fits if f.converged}
@@ -766,12 +824,19 @@ class StructureTest:
         selected = None
         top = ranked[0]
         # the estimator may use the top structure when it explains the data, every parameter
-        # is determined, and every other explaining structure is larger or leaves a misfit
-        # larger by more than χ²₁ at this look's level
+        # is determined, its joint fit converged and determines the hub loads (_precise),
+        # and every other explaining structure contains it by construction (NESTED: a
+        # hub-position error is an external load; parsimony) or is tested — misfit dof left —
+        # and leaves a misfit larger by more than χ²₁ at this look's level. A structure that
+        # fills every testable direction explains anything: until the conditions leave it
+        # dof, nothing is separated from it and nothing is selected (the next conditions
+        # say what to apply)
         others = [f for f in ranked[1:] if f.explains]
         margin = float(chi2.isf(level, 1))
         if top.explains and top.determined and top.converged and all(
-                f.nominal > top.nominal or f.misfit - top.misfit > margin for f in others):
+                (top.structure, f.structure) in NESTED
+                or (f.misfit_dof > 0 and f.misfit - top.misfit > margin)
+                for f in others) and self._precise(top, means):
             na = len(top.alpha)
             sig_all = np.concatenate([np.sqrt(np.maximum(np.diag(top.P)[:na], 0.0)),
                                       top.sigma])
@@ -782,6 +847,15 @@ class StructureTest:
                         "T_ref": np.average(means[:, 6:6 + self.model.geometry.n_cells],
                                             axis=0, weights=counts)}
         return StructureVerdict("not_constant", cands, selected=selected, **base)
+
+    def _precise(self, f: StructureFit, means: np.ndarray) -> bool:
+        """The fit determines the hub loads: at every condition seen, the σ its parameters'
+        uncertainty adds is at most ``HUB_SIGMA_FRACTION`` of the static bound per axis."""
+        if self.bound is None:
+            from .noise_budget import noise_budget
+            self.bound = noise_budget(self.model, f.alpha, "body").total
+        sig = hub_sigma(f.structure, self.model, f.alpha, f.beta, f.P, means)
+        return bool(np.all(sig <= HUB_SIGMA_FRACTION * self.bound))
 
     def _candidate(self, f: StructureFit, explaining: list[str]) -> dict:
         names = parameter_names(f.structure, self.model)
