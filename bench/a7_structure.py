@@ -176,7 +176,8 @@ def _one_seed_tiny(seed: int) -> list[dict]:
     return one_seed(seed, tiny=True)
 
 
-def _map_with_progress(fn, seeds: list[int]) -> list[list[dict]]:
+def _map_with_progress(fn, seeds: list[int], processes: int | None = None
+                       ) -> list[list[dict]]:
     """fn over seeds, one spawned single-threaded process per core; every finished seed is
     appended to $A7_PROGRESS (JSON lines) when set, so that a cut-short run keeps its seeds."""
     import json
@@ -190,7 +191,7 @@ def _map_with_progress(fn, seeds: list[int]) -> list[list[dict]]:
         procs = len(os.sched_getaffinity(0))
     except AttributeError:
         procs = os.cpu_count() or 1
-    procs = max(1, min(procs, len(seeds)))
+    procs = max(1, min(processes or procs, len(seeds)))
     out = []
     old = {k: os.environ.get(k) for k in BLAS_ENV}
     os.environ.update(BLAS_ENV)
@@ -213,12 +214,18 @@ def _map_with_progress(fn, seeds: list[int]) -> list[list[dict]]:
 def main(argv: list[str] | None = None) -> int:
     p = arg_parser(__doc__.splitlines()[0])
     p.add_argument("--seeds", type=int, default=N_SEEDS, help=f"seeds (default {N_SEEDS})")
+    p.add_argument("--first-seed", type=int, default=1,
+                   help="the first seed (default 1): split a run over machines or sessions")
+    p.add_argument("--processes", type=int, default=None,
+                   help="worker processes (default: one per core)")
     args = p.parse_args(argv)
     if args.seeds < 1:
         p.error("--seeds must be at least 1")
     w = writer_from_args(BENCH, args)
-    seeds = list(range(1, 2 if args.tiny else args.seeds + 1))
-    res = [r for rs in _map_with_progress(_one_seed_tiny if args.tiny else one_seed, seeds)
+    first = args.first_seed
+    seeds = list(range(first, first + (1 if args.tiny else args.seeds)))
+    res = [r for rs in _map_with_progress(_one_seed_tiny if args.tiny else one_seed, seeds,
+                                          args.processes)
            for r in rs]
     report(res, len(seeds), w)
     return 0

@@ -932,11 +932,15 @@ class PeriodicIdentification:
                           arrived_seq=arrived_seq, moments=moments, dt=dt, gate=gate,
                           checks=checks, structure=verdict)
         if self.structure is not None:
-            # the structure the hub-load estimate uses (docs/identification.md): the
-            # selected one, while it stays selected; None otherwise
-            sel = self.structure.last.selected
-            rec.structure_fit = None if sel is None else fit_payload(sel, self.model)
-            self.posterior.structure_fit = rec.structure_fit
+            # the structure the hub-load estimate uses (docs/identification.md): the selected
+            # one, while it stays selected; none once the constant model fits again; while
+            # the test has not (re)selected one, the one in force stays (a restored one)
+            v = self.structure.last
+            if v.selected is not None:
+                self.posterior.structure_fit = fit_payload(v.selected, self.model)
+            elif v.structure == "constant":
+                self.posterior.structure_fit = None
+            rec.structure_fit = self.posterior.structure_fit
         if self.mode == "filter_error" and res.end_state is not None and res.status != "diverged":
             self.filter_state = res.end_state
         if rec.accepted:

@@ -54,6 +54,9 @@ def build_identification(cfg, initial_state=None):
                                            rig=rig_fingerprint(model.geometry))
     if initial_state is not None:
         post.restore(initial_state)
+    if post.structure_fit is None:  # the structure in force from the start (issue 19)
+        post.structure_fit = idc.structure_fit
+    post.saved_structure_fit = post.structure_fit
     fs = cfg.sample_rate_hz
     common = dict(model=model, posterior=post, fs=fs, moment_floor=idc.moment_floor_Nm,
                   max_iterations=idc.max_iterations,
