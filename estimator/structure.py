@@ -396,7 +396,7 @@ def _white_jacobian(st: str, model: RigModel, alpha: np.ndarray, beta: np.ndarra
     g = model.geometry
     n = g.n_cells
     X = np.atleast_2d(np.asarray(means, float))
-    z, T, H = X[:, :6], X[:, 6:6 + n], X[:, 6 + n:12 + n]
+    T, H = X[:, 6:6 + n], X[:, 6 + n:12 + n]
     C, na = len(X), 2 * n
     cell = np.arange(na) // 2
     beta = np.asarray(beta, float)
