@@ -48,10 +48,17 @@ same load, so pooling loses nothing. At every look (every known-load window):
    time of the run is at most A, whatever the dependence between looks. Once rejected, the
    verdict stays ``not_constant`` until a change in time restarts the accumulation.
 
-Candidates are ranked: those whose remaining misfit ``‖ê‖² − q_s`` passes at the same level
-("explains the data") first, then by the p-value of q_s (a smaller structure that explains as
-much ranks before a larger one that contains it). Each carries the fitted parameters (in the
-determined directions; min-norm), their σ, the same per kN of load, and the statistic.
+Candidates are ranked: those whose remaining misfit passes at the same level ("explains the
+data") first, then by the p-value of q_s (a smaller structure that explains as much ranks
+before a larger one that contains it). Each carries the fitted parameters, their σ, the same
+per kN of load, and the statistic. The estimate and the misfit come from the joint fit of
+[α0, β] (:func:`fit_structure`: Levenberg–Marquardt with the analytic Jacobian, in the
+directions the conditions determine only — the others stay at the prior and are reported as
+not determined). A structure is *selected* for the hub loads (``StructureVerdict.selected``)
+only when it explains the data, is determined, its fit converged and determines the hub loads
+(:func:`hub_sigma`), and every other explaining structure contains it by construction
+(``NESTED``) or is tested and fits worse; :class:`StructureCorrection` is that structure in
+the form the per-sample hub-load path applies.
 
 Pure numerics.
 """
