@@ -153,11 +153,14 @@ def test_the_richer_design_selects_the_true_structure(model, truth, beta):
     """Power: on the 17-condition design every structure is rejected against constant angles
     and the true one is ranked first, explains the data, and is selected with its parameters
     near the truth. Break-checked: ranking by the statistic alone (no misfit, no p-value)
-    fails for the hub-position truth."""
+    fails for the hub-position truth. Windows of 1000 samples (the service's 5 s): with 200
+    the balance errors here (0.2 %, 0.03°) leave the external load explaining the data within
+    χ²₁ of the balance (misfit 76.9 against 63.0, margin 22.5) — not separated, and nothing
+    is selected (the selection rule, docs/identification.md)."""
     rng = np.random.default_rng(3)
     alpha = np.radians(rng.uniform(-4, 4, 14))
     st = StructureTest(model, 100.0, min_samples=10)
-    for x in _windows(model, rng, design17(), alpha, n=200, truth=truth, beta=beta):
+    for x in _windows(model, rng, design17(), alpha, n=1000, truth=truth, beta=beta):
         v = st.add_window(x, alpha)
     assert v.structure == "not_constant"
     assert v.candidates[0]["structure"] == truth and v.candidates[0]["explains"]
