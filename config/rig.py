@@ -280,6 +280,27 @@ class IdentificationConfig:
     gap_s: float
     state_file: str
     angle_limit_rad: float = math.radians(10.0)
+    # [identification.structure] (issue 19; `rsra calibrate` writes it): the structure the
+    # hub loads use from the start, as estimator.structure.fit_payload (SI); None: constant
+    structure_fit: dict | None = None
+
+
+# [identification.structure]: the number of parameters β of each structure
+# (estimator.structure.parameter_names; config may import estimator.params only)
+STRUCTURE_PARAMETERS = {"cell_load_angles": 14, "hub_position": 3, "balance": 9,
+                        "external_load": 18}
+
+
+def _structure_fit(st: "Section") -> dict:
+    """``[identification.structure]`` → the structure's fit payload (SI)."""
+    name = st.string("structure", choices=tuple(STRUCTURE_PARAMETERS))
+    p = STRUCTURE_PARAMETERS[name]
+    fit = {"structure": name,
+           "alpha0": np.radians(st.vector("alpha0_deg", 14, unit=" in degrees")).tolist(),
+           "beta": st.vector("beta", p, unit=" (SI: rad/N, m, fraction and rad, N/N)").tolist(),
+           "T_ref": st.vector("T_ref_N", 7, unit=" in N").tolist()}
+    st.finish()
+    return fit
 
 
 @dataclass(frozen=True)
@@ -632,6 +653,8 @@ def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = No
         gap_s=idt.number("gap_s", 0.5, positive=True),
         state_file=idt.string("state_file", ""),
         angle_limit_rad=math.radians(idt.number("angle_limit_deg", 10.0, positive=True)),
+        structure_fit=_structure_fit(idt.table("structure")) if "structure" in idt.data
+        else None,
     )
     over = np.flatnonzero(~(np.abs(init) <= ident.angle_limit_rad))
     if over.size:

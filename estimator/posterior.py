@@ -70,7 +70,7 @@ from .identification import (
     scored_mask,
 )
 from .params import RigModel
-from .structure import StructureTest, StructureVerdict
+from .structure import StructureTest, StructureVerdict, fit_payload
 
 ACCEPTED = None
 REASONS = ("not_converged", "diverged", "not_identifiable", "inconsistent", "reset",
@@ -125,6 +125,8 @@ class AnglesRecord:
     structure: str | None = None  # "constant", "not_constant", "undetermined"
     candidates: list | None = None  # ranked, with their evidence (not_constant only)
     structure_verdict: StructureVerdict | None = None
+    # the selected structure the hub-load estimate uses (structure.fit_payload), None: none
+    structure_fit: dict | None = None
 
     def to_dict(self) -> dict:
         """The telemetry ``angles`` payload (SI: radians), values as computed (numpy arrays,
@@ -137,6 +139,7 @@ class AnglesRecord:
         if self.mode == "known_loads":
             out["structure"] = self.structure
             out["candidates"] = self.candidates or []
+            out["structure_fit"] = self.structure_fit
         return out
 
 
@@ -212,6 +215,9 @@ class PosteriorState:
     applies_from_seq: int | None = None
     t: float | None = None
     rig: dict | None = None
+    # optional (issue 19): the selected structure the hub-load estimate uses
+    # (structure.fit_payload); files without it load as before
+    structure: dict | None = None
 
     @property
     def version(self) -> int:
@@ -223,6 +229,8 @@ class PosteriorState:
             d["rig"] = self.rig
         d.update({"names": list(self.names), "theta": self.theta.tolist(), "P": self.P.tolist(),
                   "applies_from_seq": self.applies_from_seq, "t": self.t})
+        if self.structure is not None:
+            d["structure"] = self.structure
         return d
 
 
@@ -310,7 +318,13 @@ def posterior_from_json(text: str, path: str | Path,
         raise PosteriorFileError(path, "applies_from_seq must be an integer or null")
     if t is not None and not isinstance(t, (int, float)):
         raise PosteriorFileError(path, "t must be a number or null")
-    return PosteriorState(fnames, theta, P, afs, None if t is None else float(t), rig)
+    structure = raw.get("structure")
+    if structure is not None and not (isinstance(structure, dict)
+                                      and isinstance(structure.get("structure"), str)):
+        raise PosteriorFileError(path, "malformed structure section (an object naming its "
+                                 "structure, or absent)")
+    return PosteriorState(fnames, theta, P, afs, None if t is None else float(t), rig,
+                          structure)
 
 
 def out_of_range(theta: np.ndarray, limit: np.ndarray) -> bool:
@@ -384,6 +398,7 @@ class SequentialPosterior:
         # the physical range |θ_k| ≤ limit_k (angles: identification.angle_limit_deg)
         self.limit = np.broadcast_to(np.asarray(limit, float), (p,)).copy()
         self.rig = rig  # the fingerprint saved with the posterior (rig_fingerprint)
+        self.structure_fit: dict | None = None  # the selected structure (saved with it)
         self.theta = np.asarray(theta0, float).copy()
         self.P0 = np.diag(np.broadcast_to(np.asarray(sigma0, float), (p,)) ** 2)
         self.P = self.P0.copy()
@@ -489,7 +504,8 @@ class SequentialPosterior:
     # ---------------------------------------------------------------------------------
     def state(self) -> PosteriorState:
         return PosteriorState(self.names, self.theta.copy(), self.P.copy(),
-                              self.applies_from_seq, self.t, self.rig)
+                              self.applies_from_seq, self.t, self.rig,
+                              self.structure_fit)
 
     def restore(self, state: PosteriorState) -> None:
         """Start from a saved posterior (``--angles``)."""
@@ -497,6 +513,7 @@ class SequentialPosterior:
             raise ValueError(f"saved parameters {list(state.names)} differ from {list(self.names)}")
         self.theta, self.P = state.theta.copy(), state.P.copy()
         self.applies_from_seq, self.t = state.applies_from_seq, state.t
+        self.structure_fit = state.structure
         self.inconsistent_in_a_row = 0
         self.fold()
 
@@ -914,6 +931,16 @@ class PeriodicIdentification:
                           apply_delay_samples=self.apply_delay_samples,
                           arrived_seq=arrived_seq, moments=moments, dt=dt, gate=gate,
                           checks=checks, structure=verdict)
+        if self.structure is not None:
+            # the structure the hub-load estimate uses (docs/identification.md): the selected
+            # one, while it stays selected; none once the constant model fits again; while
+            # the test has not (re)selected one, the one in force stays (a restored one)
+            v = self.structure.last
+            if v.selected is not None:
+                self.posterior.structure_fit = fit_payload(v.selected, self.model)
+            elif v.structure == "constant":
+                self.posterior.structure_fit = None
+            rec.structure_fit = self.posterior.structure_fit
         if self.mode == "filter_error" and res.end_state is not None and res.status != "diverged":
             self.filter_state = res.end_state
         if rec.accepted:

@@ -48,10 +48,17 @@ same load, so pooling loses nothing. At every look (every known-load window):
    time of the run is at most A, whatever the dependence between looks. Once rejected, the
    verdict stays ``not_constant`` until a change in time restarts the accumulation.
 
-Candidates are ranked: those whose remaining misfit ``‖ê‖² − q_s`` passes at the same level
-("explains the data") first, then by the p-value of q_s (a smaller structure that explains as
-much ranks before a larger one that contains it). Each carries the fitted parameters (in the
-determined directions; min-norm), their σ, the same per kN of load, and the statistic.
+Candidates are ranked: those whose remaining misfit passes at the same level ("explains the
+data") first, then by the p-value of q_s (a smaller structure that explains as much ranks
+before a larger one that contains it). Each carries the fitted parameters, their σ, the same
+per kN of load, and the statistic. The estimate and the misfit come from the joint fit of
+[α0, β] (:func:`fit_structure`: Levenberg–Marquardt with the analytic Jacobian, in the
+directions the conditions determine only — the others stay at the prior and are reported as
+not determined). A structure is *selected* for the hub loads (``StructureVerdict.selected``)
+only when it explains the data, is determined, its fit converged and determines the hub loads
+(:func:`hub_sigma`), and every other explaining structure contains it by construction
+(``NESTED``) or is tested and fits worse; :class:`StructureCorrection` is that structure in
+the form the per-sample hub-load path applies.
 
 Pure numerics.
 """
@@ -62,14 +69,18 @@ from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
+from scipy.optimize import least_squares
 from scipy.stats import chi2
 
 from .balance import measurement_covariance
-from .geometry import hub_transfer_matrix, skew, wrench_matrix, wrench_matrix_jacobian
-from .params import RigModel
+from .geometry import _E, hub_transfer_matrix, skew, wrench_matrix, wrench_matrix_jacobian
+from .params import ANGLE_AXES, RigModel
 
 STRUCTURES = ("cell_load_angles", "hub_position", "balance", "external_load")
 VERDICTS = ("constant", "not_constant", "undetermined")
+# (smaller, larger): the larger structure contains the smaller one whatever the conditions
+# (δp × F is an external load U F)
+NESTED = frozenset({("hub_position", "external_load")})
 AXES = ("X", "Y", "Z", "L", "M", "N")
 FALSE_ALARM = 1e-3  # over the whole run (alpha spending)
 TIME_LEVEL = 1e-3  # per window: a change in time restarts the accumulation
@@ -78,6 +89,11 @@ CLUSTER_TOLERANCE = (1000.0, 1000.0)  # N, N·m: windows at the same load within
 MAX_CLUSTERS = 256  # bounded: a new load beyond this joins the nearest cluster
 MAX_PARAMETERS_REPORTED = 6  # per candidate, the most significant first
 GN_ITERATIONS = 8
+HUB_SIGMA_FRACTION = 1.0 / 3.0  # a structure is used once its parameters add at most this
+# fraction of the static bound (σ, per axis) to the hub loads at every condition seen
+FIT_TOLERANCE = 1e-8  # the joint fit's relative tolerances (cost, step, gradient)
+FIT_MAX_EVALUATIONS = 40  # the right structure converges in 3–37 (measured); a wrong one
+# (a large misfit: Gauss–Newton converges slowly) stops here and keeps its linear misfit
 CONVERGED_STEP_RAD = 1e-6  # the constant fit's last Gauss–Newton step (rad): converged
 
 
@@ -315,8 +331,8 @@ def _white_residual(st: str, model: RigModel, alpha: np.ndarray, beta: np.ndarra
     R0 = hub_transfer_matrix(g, "body")
     if st == "cell_load_angles":
         cell = np.arange(2 * n) // 2
-        ST = np.array([wrench_matrix(g, alpha + beta * Tn[cell]) @ Tn for Tn in T])
-        m = ST + H @ R0.T
+        Sc, _ = _cell_columns(model, alpha[None, :] + beta[None, :] * T[:, cell])
+        m = np.einsum("nac,nc->na", Sc, T) + H @ R0.T
     elif st == "balance":
         Rp = np.eye(3) + skew(beta[6:9])
         Ht = np.hstack([(H[:, :3] * (1 + beta[:3])) @ Rp.T, (H[:, 3:] * (1 + beta[3:6])) @ Rp.T])
@@ -343,6 +359,176 @@ def _range_basis(A: np.ndarray, tol: float = RANK_TOLERANCE) -> np.ndarray:
     if not len(s) or s[0] <= 0:
         return np.zeros((A.shape[0], 0))
     return U[:, s > tol * s[0]]
+
+
+def _rot_batch(axis: str, a: np.ndarray) -> np.ndarray:
+    """rot(axis, a) of geometry.rot for every a (C,) at once: (C, 3, 3)."""
+    c, s = np.cos(a), np.sin(a)
+    o, z = np.ones_like(a), np.zeros_like(a)
+    if axis == "x":
+        m = [[o, z, z], [z, c, -s], [z, s, c]]
+    elif axis == "y":
+        m = [[c, z, s], [z, o, z], [-s, z, c]]
+    else:
+        m = [[c, -s, z], [s, c, z], [z, z, o]]
+    return np.moveaxis(np.array(m), 2, 0)
+
+
+def _cell_columns(model: RigModel, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For angle sets A (C, 14): the columns of S (C, 6, 7) and the derivative of each
+    angle's own column (C, 14, 6) — geometry.wrench_matrix and wrench_matrix_jacobian for C
+    angle sets at once."""
+    g = model.geometry
+    C = len(A)
+    u = np.empty((C, g.n_cells, 3))
+    du = np.empty((C, 2 * g.n_cells, 3))
+    for i, kind in enumerate(g.cell_kinds):
+        first, second = ANGLE_AXES[kind]
+        n = g.cell_axes[i]
+        R1, R2 = _rot_batch(first, A[:, 2 * i]), _rot_batch(second, A[:, 2 * i + 1])
+        v1 = R1 @ n  # (C, 3)
+        u[:, i] = np.einsum("nab,nb->na", R2, v1)
+        du[:, 2 * i] = np.einsum("nab,nb->na", R2, np.cross(_E[first], v1))
+        du[:, 2 * i + 1] = np.cross(_E[second], u[:, i])
+    pos = np.asarray(g.cell_positions, float)
+    S = np.concatenate([u, np.cross(pos[None], u)], axis=2).transpose(0, 2, 1)
+    cell = np.arange(2 * g.n_cells) // 2
+    D = np.concatenate([du, np.cross(pos[cell][None], du)], axis=2)
+    return S, D
+
+
+def _white_jacobian(st: str, model: RigModel, alpha: np.ndarray, beta: np.ndarray,
+                    means: np.ndarray, counts: np.ndarray, Li: np.ndarray) -> np.ndarray:
+    """∂/∂[α, β] of :func:`_white_residual` (6C, 14 + p), exact at (α, β)."""
+    g = model.geometry
+    n = g.n_cells
+    X = np.atleast_2d(np.asarray(means, float))
+    T, H = X[:, 6:6 + n], X[:, 6 + n:12 + n]
+    C, na = len(X), 2 * n
+    cell = np.arange(na) // 2
+    beta = np.asarray(beta, float)
+    if st == "cell_load_angles":  # every condition at its own angles α + β∘T_c
+        _, D = _cell_columns(model, alpha[None, :] + beta[None, :] * T[:, cell])
+        Ja = D.transpose(0, 2, 1) * T[:, cell][:, None, :]
+        Jb = Ja * T[:, cell][:, None, :]
+    else:
+        Ja = np.einsum("kac,nc->nak", wrench_matrix_jacobian(g, alpha), T)
+        F, Mo = H[:, :3], H[:, 3:]
+        if st == "hub_position":
+            Jb = np.zeros((C, 6, 3))
+            Jb[:, 3:] = -np.stack([skew(f) for f in F])
+        elif st == "external_load":
+            Jb = np.zeros((C, 6, 18))
+            for i in range(6):
+                Jb[:, i, 3 * i:3 * i + 3] = F
+        elif st == "balance":
+            R0 = hub_transfer_matrix(g, "body")
+            Rp = np.eye(3) + skew(beta[6:9])
+            D = np.zeros((C, 6, 9))
+            D[:, :3, :3] = Rp[None] * F[:, None, :]
+            D[:, 3:, 3:6] = Rp[None] * Mo[:, None, :]
+            D[:, :3, 6:] = -np.stack([skew(f) for f in F * (1 + beta[:3])])
+            D[:, 3:, 6:] = -np.stack([skew(m) for m in Mo * (1 + beta[3:6])])
+            Jb = np.einsum("ab,nbk->nak", R0, D)
+        else:
+            raise ValueError(f"unknown structure {st!r}; choose from {STRUCTURES}")
+    Jm = np.concatenate([Ja, Jb], axis=2)  # ∂m/∂[α, β]; the residual is z − m
+    sw = np.sqrt(np.asarray(counts, float))[:, None, None]
+    return -(np.einsum("ab,nbk->nak", Li, Jm) * sw).reshape(6 * C, -1)
+
+
+@dataclass
+class StructureEstimate:
+    """The joint fit of a structure's [α0, β] (:func:`fit_structure`)."""
+
+    structure: str
+    alpha: np.ndarray  # α0 (14)
+    beta: np.ndarray  # β (p); undetermined directions held at the start (the prior, 0)
+    P: np.ndarray  # covariance of [α0, β] in the determined directions (0 elsewhere)
+    sigma: np.ndarray  # √diag(P); inf for a parameter not determined
+    determined: np.ndarray  # (14 + p) bool: the parameter lies in the determined span
+    rank: int  # determined directions of [α0, β]
+    cost: float  # ‖whitened residual‖² at the fit
+    start_cost: float
+    converged: bool
+    nfev: int
+    status: str
+
+
+def fit_structure(structure: str, model: RigModel, alpha: np.ndarray, means: np.ndarray,
+                  counts: np.ndarray, moment_floor: float, beta: np.ndarray | None = None,
+                  *, max_nfev: int = FIT_MAX_EVALUATIONS) -> StructureEstimate:
+    """The exact least-squares (maximum-likelihood, W fixed at the start's α) fit of a
+    structure's [α0, β] to condition means: Levenberg–Marquardt
+    (``scipy.optimize.least_squares``, analytic Jacobian) from (α, β) — the constant-angle fit
+    and β = 0 by default — in the directions the conditions determine: the singular vectors of
+    the whitened Jacobian at the start, columns scaled to unit length, with singular values
+    ≥ ``RANK_TOLERANCE`` of the largest. The other directions stay at the start (the prior),
+    carry no covariance and their parameters are reported as not determined. Converged: the
+    solver stopped on its tolerances (not on ``max_nfev``), the result is finite and the cost
+    did not rise."""
+    alpha = np.asarray(alpha, float)
+    p = len(parameter_names(structure, model))
+    beta0 = np.zeros(p) if beta is None else np.asarray(beta, float)
+    theta0 = np.concatenate([alpha, beta0])
+    na = len(alpha)
+    Li = _whitener(model, alpha, moment_floor)
+
+    def split(th):
+        return th[:na], th[na:]
+
+    J0 = _white_jacobian(structure, model, alpha, beta0, means, counts, Li)
+    cs = np.linalg.norm(J0, axis=0)
+    cs = np.where(cs > 0, cs, 1.0)
+    _, s, Vt = np.linalg.svd(J0 / cs, full_matrices=False)
+    keep = s > RANK_TOLERANCE * s[0] if len(s) and s[0] > 0 else np.zeros(len(s), bool)
+    B = Vt[keep].T / cs[:, None]  # θ = θ0 + B ξ
+    r = B.shape[1]
+    r0 = _white_residual(structure, model, alpha, beta0, means, counts, Li)
+    start_cost = float(r0 @ r0)
+    if r == 0:
+        return StructureEstimate(structure, alpha.copy(), beta0.copy(),
+                                 np.zeros((na + p, na + p)), np.full(na + p, np.inf),
+                                 np.zeros(na + p, bool), 0, start_cost, start_cost, False, 0,
+                                 "nothing determined")
+
+    def fun(xi):
+        return _white_residual(structure, model, *split(theta0 + B @ xi), means, counts, Li)
+
+    def jac(xi):
+        return _white_jacobian(structure, model, *split(theta0 + B @ xi), means, counts,
+                               Li) @ B
+
+    with np.errstate(all="ignore"):
+        sol = least_squares(fun, np.zeros(r), jac=jac, method="lm", xtol=FIT_TOLERANCE,
+                            ftol=FIT_TOLERANCE, gtol=FIT_TOLERANCE, max_nfev=max_nfev)
+    theta = theta0 + B @ sol.x
+    cost = float(sol.fun @ sol.fun)
+    ok = bool(sol.status > 0 and np.isfinite(theta).all() and np.isfinite(cost)
+              and cost <= start_cost * (1 + 1e-9) + 1e-9)
+    Jr = sol.jac if np.isfinite(sol.jac).all() else jac(sol.x)
+    Pxi = np.linalg.pinv(Jr.T @ Jr, hermitian=True)
+    P = B @ Pxi @ B.T
+    # a parameter is determined when its unit vector lies in the span of B (scaled columns)
+    Vk = Vt[keep].T
+    outside = 1.0 - np.sum(Vk**2, axis=1)
+    det = outside < 1e-9
+    sigma = np.where(det, np.sqrt(np.maximum(np.diag(P), 0.0)), np.inf)
+    a, b = split(theta)
+    a = alpha + np.angle(np.exp(1j * (a - alpha)))  # the equivalent nearest the start
+    return StructureEstimate(structure, a, b, P, sigma, det, r, cost, start_cost, ok,
+                             int(sol.nfev), str(sol.message))
+
+
+def hub_sigma(structure: str, model: RigModel, alpha: np.ndarray, beta: np.ndarray,
+              P: np.ndarray, means: np.ndarray) -> np.ndarray:
+    """σ (C, 6; N, N·m, body axes) of the static hub-load estimate under a structure at each
+    condition that comes from the uncertainty P of its [α0, β] alone (``R₀⁻¹ ∂m/∂θ``)."""
+    C = len(np.atleast_2d(means))
+    J = _white_jacobian(structure, model, alpha, beta, means, np.ones(C), np.eye(6))
+    Ri = np.linalg.inv(hub_transfer_matrix(model.geometry, "body"))
+    JH = np.einsum("ab,nbk->nak", Ri, J.reshape(C, 6, -1))
+    return np.sqrt(np.maximum(np.einsum("nak,kl,nal->na", JH, P, JH), 0.0))
 
 
 def fit_constant(model: RigModel, alpha: np.ndarray, means: np.ndarray, counts: np.ndarray,
@@ -389,6 +575,7 @@ class StructureFit:
     determined: bool  # every parameter determined (rank == nominal)
     alpha: np.ndarray | None = None  # the angles of the joint fit (α0 of the structure)
     P: np.ndarray | None = None  # covariance of the joint fit [α0, β] (pseudo-inverse)
+    converged: bool = False  # the joint fit (fit_structure) converged
 
     @property
     def rejects_constant(self) -> bool:
@@ -401,9 +588,14 @@ class StructureFit:
 
 def test_structures(model: RigModel, alpha: np.ndarray, means: np.ndarray, counts: np.ndarray,
                     moment_floor: float, level: float,
-                    structures: Sequence[str] = STRUCTURES) -> tuple[list[StructureFit], dict]:
+                    structures: Sequence[str] = STRUCTURES, joint: bool | None = True,
+                    starts: dict | None = None) -> tuple[list[StructureFit], dict]:
     """Every structure against the constant-angle model on condition means at α (already the
-    constant fit); ``level``: the false-alarm rate of this look (split over the structures)."""
+    constant fit); ``level``: the false-alarm rate of this look (split over the structures).
+    ``joint``: fit every structure's [α0, β] exactly (:func:`fit_structure`); ``None``: only
+    when some structure rejects the constant model at this look (the fit is what costs);
+    ``False``: never (the linear estimates and misfits). ``starts``: per structure, the
+    (α0, β) the joint fit starts from (the previous look's; default the constant fit, β = 0)."""
     Li = _whitener(model, alpha, moment_floor)
     r, Ja, Js = _stack(model, alpha, means, counts, Li, structures)
     Ua = _range_basis(Ja)
@@ -412,6 +604,14 @@ def test_structures(model: RigModel, alpha: np.ndarray, means: np.ndarray, count
     n_eq, ra = len(r), Ua.shape[1]
     each = level / max(len(structures), 1)
     fits = []
+    if joint is None:  # does any structure reject? (the linear statistics are cheap)
+        joint = False
+        for st in structures:
+            X = _unit_columns(Js[st])[0]
+            Ub = _range_basis(X - Ua @ (Ua.T @ X))
+            if Ub.shape[1] and float(np.sum((Ub.T @ e) ** 2)) > chi2.isf(each, Ub.shape[1]):
+                joint = True
+                break
     for st in structures:
         X, cs = _unit_columns(Js[st])  # the rank on unit columns: units do not matter
         X = X - Ua @ (Ua.T @ X)
@@ -434,31 +634,21 @@ def test_structures(model: RigModel, alpha: np.ndarray, means: np.ndarray, count
         a_fit = np.asarray(alpha, float).copy()
         P_joint = None
         misfit = total - q
-        if rank:  # the joint (α, β) fit, exact in β: Gauss–Newton from the linear estimate
-            a_j, b_j = np.asarray(alpha, float).copy(), beta.copy()
-            J, cj = _unit_columns(np.hstack([Ja, Js[st]]))
-            misfit = total - q
-            rj = _white_residual(st, model, a_j, b_j, means, counts, Li)
-            for _ in range(GN_ITERATIONS):
-                step, *_ = np.linalg.lstsq(J, rj, rcond=RANK_TOLERANCE)
-                step = step / cj
-                a_j, b_j = a_j + step[:len(a_j)], b_j + step[len(a_j):]
-                rj = _white_residual(st, model, a_j, b_j, means, counts, Li)
-                misfit = float(rj @ rj)
-                if np.max(np.abs(step)) < 1e-12:
-                    break
-            a_j = alpha + np.angle(np.exp(1j * (a_j - alpha)))  # nearest the constant fit
-            if misfit < total - q:  # the joint fit for the estimate and the misfit; the
-                # statistic stays the linearised one (χ² under constant angles, also where
-                # the nonlinear fit could exploit weakly determined angles)
-                beta, a_fit = b_j, a_j
-            else:
-                misfit = total - q
-            P_joint = (np.linalg.pinv(J.T @ J, rcond=RANK_TOLERANCE**2, hermitian=True)
-                       / cj[:, None] / cj[None, :])
+        converged = False
+        if rank and joint:  # the joint (α0, β) fit, exact in β (fit_structure): estimate and misfit;
+            # the statistic stays the linearised one (χ² under constant angles, also where
+            # the nonlinear fit could exploit weakly determined angles)
+            a_s, b_s = (starts or {}).get(st, (alpha, None))
+            est = fit_structure(st, model, a_s, means, counts, moment_floor, b_s)
+            if not est.converged and b_s is not None:  # from the constant fit, β = 0
+                est = fit_structure(st, model, alpha, means, counts, moment_floor)
+            converged = est.converged
+            if converged:
+                beta, a_fit, P_joint, misfit = est.beta, est.alpha, est.P, est.cost
+                sigma = est.sigma[len(a_fit):]
         logp = float(chi2.logsf(q, rank) / math.log(10)) if rank else 0.0
         fits.append(StructureFit(st, rank, p, q, limit, logp, max(misfit, 0.0), mdof, mlimit,
-                                 beta, sigma, rank == p, a_fit, P_joint))
+                                 beta, sigma, rank == p, a_fit, P_joint, converged))
     info = {"equations": n_eq, "angle_rank": ra, "residual": total,
             "residual_dof": n_eq - ra}
     return fits, info
@@ -548,6 +738,11 @@ class StructureTest:
         self.rejected = False
         self.restarts = 0
         self.clusters: list[_Cluster] = []
+        self._starts: dict = {}  # per structure, the last converged joint fit (α0, β)
+        self.bound: np.ndarray | None = None  # the static bound per axis (noise budget)
+        # the joint fits (estimate, misfit, selection) at this look; off, a look gives the
+        # verdict from the linear statistics only (a Monte Carlo that judges the last look)
+        self.joint_fits = True
         self.alpha: np.ndarray | None = None
         self.last = StructureVerdict("undetermined")
 
@@ -556,6 +751,7 @@ class StructureTest:
         self.clusters = []
         self.rejected = False
         self.restarts += 1
+        self._starts = {}
 
     def _h_slice(self) -> slice:
         n = self.model.geometry.n_cells
@@ -616,7 +812,12 @@ class StructureTest:
             return StructureVerdict("undetermined", look=self.look, conditions=len(self.clusters),
                                     level=level, restarted=restarted, fits=[])
         fits, _ = test_structures(self.model, a, means, counts, self.moment_floor, level,
-                                  self.structures)
+                                  self.structures,
+                                  joint=(True if self.rejected else None) if self.joint_fits
+                                  else False,
+                                  starts=self._starts)
+        # the next look's joint fits start from these (a restart forgets them)
+        self._starts = {f.structure: (f.alpha, f.beta) for f in fits if f.converged}
         base = dict(look=self.look, conditions=len(self.clusters), level=level,
                     restarted=restarted, fits=fits)
         if any(f.rejects_constant for f in fits):
@@ -630,15 +831,38 @@ class StructureTest:
         selected = None
         top = ranked[0]
         # the estimator may use the top structure when it explains the data, every parameter
-        # is determined, and every other explaining structure is larger or leaves a misfit
-        # larger by more than χ²₁ at this look's level
+        # is determined, its joint fit converged and determines the hub loads (_precise),
+        # and every other explaining structure contains it by construction (NESTED: a
+        # hub-position error is an external load; parsimony) or is tested — misfit dof left —
+        # and leaves a misfit larger by more than χ²₁ at this look's level. A structure that
+        # fills every testable direction explains anything: until the conditions leave it
+        # dof, nothing is separated from it and nothing is selected (the next conditions
+        # say what to apply)
         others = [f for f in ranked[1:] if f.explains]
         margin = float(chi2.isf(level, 1))
-        if top.explains and top.determined and all(
-                f.nominal > top.nominal or f.misfit - top.misfit > margin for f in others):
+        if top.explains and top.determined and top.converged and all(
+                (top.structure, f.structure) in NESTED
+                or (f.misfit_dof > 0 and f.misfit - top.misfit > margin)
+                for f in others) and self._precise(top, means):
+            na = len(top.alpha)
+            sig_all = np.concatenate([np.sqrt(np.maximum(np.diag(top.P)[:na], 0.0)),
+                                      top.sigma])
             selected = {"structure": top.structure, "alpha": top.alpha.copy(),
-                        "beta": top.beta.copy(), "sigma": top.sigma.copy(), "P": top.P}
+                        "beta": top.beta.copy(), "sigma": top.sigma.copy(), "P": top.P,
+                        "sigma_all": sig_all,
+                        # the mean cell load of the conditions: where the angles linearise
+                        "T_ref": np.average(means[:, 6:6 + self.model.geometry.n_cells],
+                                            axis=0, weights=counts)}
         return StructureVerdict("not_constant", cands, selected=selected, **base)
+
+    def _precise(self, f: StructureFit, means: np.ndarray) -> bool:
+        """The fit determines the hub loads: at every condition seen, the σ its parameters'
+        uncertainty adds is at most ``HUB_SIGMA_FRACTION`` of the static bound per axis."""
+        if self.bound is None:
+            from .noise_budget import noise_budget
+            self.bound = noise_budget(self.model, f.alpha, "body").total
+        sig = hub_sigma(f.structure, self.model, f.alpha, f.beta, f.P, means)
+        return bool(np.all(sig <= HUB_SIGMA_FRACTION * self.bound))
 
     def _candidate(self, f: StructureFit, explaining: list[str]) -> dict:
         names = parameter_names(f.structure, self.model)
@@ -660,3 +884,97 @@ class StructureTest:
                 "determined": f.determined,
                 "not_separated_from": [s for s in explaining if s != f.structure]
                 if f.explains else []}
+
+
+# ------------------------------------------------------------------------------------------
+# The selected structure in the hub-load estimate (the service's per-sample path)
+# ------------------------------------------------------------------------------------------
+APPLIED = ("cell_load_angles", "hub_position", "balance", "external_load")
+
+
+def fit_payload(selected: dict, model: RigModel) -> dict:
+    """The JSON-ready ``structure_fit`` (angles record, posterior file, config fragment;
+    docs/telemetry.md) of a :attr:`StructureVerdict.selected`: the structure, α0 (rad), β in
+    its SI units, their σ (None: not determined — held at the prior, never invented), and
+    the reference cell loads ``T_ref`` (N) about which the estimator linearises the angles."""
+    st = selected["structure"]
+    na = model.geometry.n_cells * 2
+    sig = np.asarray(selected["sigma_all"], float)
+    return {"structure": st,
+            "parameters": list(parameter_names(st, model)),
+            "alpha0": [float(v) for v in selected["alpha"]],
+            "beta": [float(v) for v in selected["beta"]],
+            "alpha0_sigma": [float(v) if math.isfinite(v) else None for v in sig[:na]],
+            "beta_sigma": [float(v) if math.isfinite(v) else None for v in sig[na:]],
+            "T_ref": [float(v) for v in selected["T_ref"]]}
+
+
+def check_fit_payload(d: object, model: RigModel) -> dict:
+    """A ``structure_fit`` read from a file or a record, checked (ValueError naming what is
+    wrong); returns it with float lists."""
+    if not isinstance(d, dict):
+        raise ValueError("structure_fit must be an object")
+    st = d.get("structure")
+    if st not in APPLIED:
+        raise ValueError(f"structure_fit.structure {st!r} is not one of {list(APPLIED)}")
+    na, p = 2 * model.geometry.n_cells, len(parameter_names(st, model))
+    out = dict(d)
+    for key, n in (("alpha0", na), ("beta", p), ("T_ref", model.geometry.n_cells)):
+        try:
+            v = np.asarray(d.get(key), float)
+        except (TypeError, ValueError):
+            raise ValueError(f"structure_fit.{key} is not a list of numbers") from None
+        if v.shape != (n,) or not np.isfinite(v).all():
+            raise ValueError(f"structure_fit.{key} must be {n} finite numbers")
+        out[key] = v.tolist()
+    return out
+
+
+class StructureCorrection:
+    """The hub-load model of a selected structure in the form the per-sample path takes:
+    the filter keeps ``R₀`` and ``S(alpha)``; the measured CG wrench z is replaced by
+    ``correct(z, T)`` so that ``R₀⁻¹ (correct(z, T) − S(alpha) T)`` is the structure's
+    hub load:
+
+    * ``cell_load_angles``: ``alpha = α0 + g∘T_ref`` and
+      ``correct = z − B (T∘(T − T_ref))``, B (6×7) the first-order change of S T with the
+      angles (``B[:, c] = Σ_{k∈c} ∂S/∂α_k[:, c] g_k``) — S(α0 + g∘T) T to first order in
+      g∘(T − T_ref); the second order is ½ |∂²S| (g ΔT)² T (≈ 3 N at 0.75° and 30 kN);
+    * ``hub_position``, ``external_load``: ``alpha = α0``,
+      ``correct = z − (I − R₀ R(β)⁻¹)(z − S(α0) T)`` (exact: the hub load is R(β)⁻¹(z − S T));
+    * ``balance``: ``alpha = α0``, z unchanged (the balance's error is in the reference).
+
+    The instantaneous cell load drives the angles (a deflection follows the load well below
+    the mount modes); the simulator moves them with the static load, which differs at the
+    harmonics only (their mean is unchanged)."""
+
+    def __init__(self, model: RigModel, fit: dict) -> None:
+        fit = check_fit_payload(fit, model)
+        g = model.geometry
+        self.structure = fit["structure"]
+        a0, beta = np.asarray(fit["alpha0"]), np.asarray(fit["beta"])
+        self.T_ref = np.asarray(fit["T_ref"])
+        self.B = None
+        self.M = None
+        if self.structure == "cell_load_angles":
+            cell = np.arange(2 * g.n_cells) // 2
+            self.alpha = a0 + beta * self.T_ref[cell]
+            dS = wrench_matrix_jacobian(g, self.alpha)
+            B = np.zeros((6, g.n_cells))
+            for k in range(2 * g.n_cells):
+                B[:, cell[k]] += dS[k, :, cell[k]] * beta[k]
+            self.B = B
+        else:
+            self.alpha = a0.copy()
+            if self.structure in ("hub_position", "external_load"):
+                R = structure_matrices(self.structure, beta, model)["R"]
+                R0 = hub_transfer_matrix(g, "body")
+                self.M = np.eye(6) - R0 @ np.linalg.inv(R)
+                self.S = wrench_matrix(g, self.alpha)
+
+    def correct(self, z: np.ndarray, T: np.ndarray) -> np.ndarray:
+        if self.B is not None:
+            return z - self.B @ (T * (T - self.T_ref))
+        if self.M is not None:
+            return z - self.M @ (z - self.S @ T)
+        return z

@@ -284,3 +284,57 @@ def test_content_noise_gain_is_the_variance_ratio_of_white_noise(cfg, kind, rng)
     y = cf.process(x)[cf.settle_samples:, 0]
     g = content_noise_gain(kind, cfg)
     assert abs(float(y.var()) / g - 1.0) < 0.1, (kind, y.var(), g)
+
+
+def test_calibrate_selects_the_load_gain_structure_and_writes_its_fragment(cfg):
+    """Issue 19: on a recording whose angles move with the load (0.025°/kN of each cell's
+    own load) under the `calibration` design (17 conditions, held 5 s here), `rsra calibrate`
+    runs the structure test over the recording's windows, selects `cell_load_angles` and
+    writes ``[identification.structure]``; the fragment loads, and a pipeline built from it
+    uses the structure from the start (its angles and the z correction). The recording is
+    the off-line physics through the calibrate path's own content filter (no bus: fast).
+    Break-checked: with ``structure_of`` returning no fit the fragment has no structure
+    block and the test fails."""
+    from rsra.daq.analysis.calibrate import CalibrationData, calibrate, fragment_toml, structure_of
+    from rsra.daq.runtime.pipeline import EstimatorPipeline
+    from rsra.estimator.balance import inertial_loads
+    from rsra.sim_bus import load_scenario, simulate
+
+    sc = load_scenario("calibration", **{"angles.mode": "cell_load",
+                                         "angles.cell_gain_deg_per_kN": 0.025,
+                                         "angles.resolution_deg": 0.0001,
+                                         "loads.hold_s": 5.0, "duration_s": 85.0})
+    fs = cfg.sample_rate_hz
+    run = simulate(cfg, sc, seed=4, n_samples=round(85.0 * fs))
+    cf = ContentFilter("static", fs, cfg.rotor.omega_nominal_rad_s, cfg.filter.harmonics, 19)
+    Y = cf.process(np.hstack([inertial_loads(cfg.rig_model(), run.accel), run.T,
+                              run.H_balance]))
+    n = len(Y)
+    valid = np.ones(n, bool)
+    scored = valid.copy()
+    scored[:cf.settle_samples] = False
+    data = CalibrationData(z=Y[:, :6], T=Y[:, 6:13], H=Y[:, 13:], q=None, valid=valid,
+                           scored=scored, content="static", fs=fs, files=("sim",), segments=1,
+                           samples_read=n)
+    result = calibrate(cfg, data)
+    struct = structure_of(cfg, result)
+    assert struct["structure"] == "not_constant"
+    assert struct["candidates"][0]["structure"] == "cell_load_angles"
+    fit = struct["structure_fit"]
+    assert fit is not None and fit["structure"] == "cell_load_angles"
+    text = fragment_toml(cfg, result, struct)
+    assert "[identification.structure]" in text
+    merged = load_config(overrides=tomllib.loads(text))
+    got = merged.identification.structure_fit
+    assert got["structure"] == "cell_load_angles"
+    assert np.allclose(got["beta"], fit["beta"], rtol=1e-12, atol=0)
+    assert np.allclose(got["alpha0"], fit["alpha0"], atol=1e-8)
+    # the true gains within the fit's σ (χ² over the 14 gains at 10⁻³)
+    from rsra.sim_bus.physics import AircraftPhysics
+    g_true = AircraftPhysics(cfg, sc, seed=4).cell_gain
+    u = (np.array(fit["beta"]) - g_true) / np.array(fit["beta_sigma"])
+    assert float(u @ u) <= chi2.isf(FALSE_ALARM, 14)
+    pipe = EstimatorPipeline(merged, merged.identification.initial_angles_rad,
+                             identification=False)
+    pipe.set_structure(got)
+    assert pipe.structure is not None and pipe.structure.structure == "cell_load_angles"

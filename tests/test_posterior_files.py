@@ -435,3 +435,38 @@ def test_a_save_through_a_symbolic_link_replaces_the_target_and_keeps_the_link(c
     np.testing.assert_allclose(load_posterior(target).theta, 1 * DEG)
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["posterior.json", "real",
                                                              "state.json"]
+
+
+def _fit(cfg):
+    n = cfg.rig_model().geometry.n_cells
+    return {"structure": "cell_load_angles",
+            "parameters": [f"g_{a}" for a in cfg.rig_model().geometry.angle_names],
+            "alpha0": [0.01] * 2 * n, "beta": [1e-8] * 2 * n, "alpha0_sigma": [1e-4] * 2 * n,
+            "beta_sigma": [None] * 2 * n, "T_ref": [1e4] * n}
+
+
+def test_an_old_posterior_without_a_structure_section_still_loads(cfg, tmp_path):
+    """The posterior format grows an optional ``structure`` section (issue 19: the selected
+    structure the hub loads use); a file written before it — no such key — loads as before,
+    with no structure, and a file with it round-trips. Break-checked: requiring the key in
+    posterior_from_json fails the first half."""
+    from rsra.daq.runtime.ident_worker import build_identification
+
+    post, _, _ = build_identification(cfg)
+    path = tmp_path / "old.json"
+    save_posterior(path, post.state())
+    raw = json.loads(path.read_text())
+    assert "structure" not in raw  # what every file before issue 19 looks like
+    st, warning = load_checked(cfg, path)
+    assert warning is None and st.structure is None
+    post.structure_fit = _fit(cfg)
+    save_posterior(path, post.state())
+    st, _ = load_checked(cfg, path)
+    assert st.structure == _fit(cfg)
+    post2, _, _ = build_identification(cfg, st)
+    assert post2.structure_fit == _fit(cfg)
+    raw = json.loads(path.read_text())
+    raw["structure"] = [1, 2]
+    path.write_text(json.dumps(raw))
+    with pytest.raises(PosteriorFileError, match="structure"):
+        load_posterior(path)

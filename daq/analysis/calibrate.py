@@ -554,6 +554,33 @@ def calibrate(
         alpha_all=par.alpha(res.theta), data=data, content_gain=gain)
 
 
+def structure_of(cfg: RigConfig, result: CalibrationResult) -> dict | None:
+    """The structure test over the recording (issue 19, docs/identification.md): the scored
+    samples of each identification window (as the live windows see them), one look each, from the batch estimate's angles. None unless the content is ``static`` (the
+    test compares window means). Returns the verdict, the ranked candidates and the fit of
+    the selected structure (``structure_fit``, None when none is selected)."""
+    from rsra.estimator.structure import StructureTest, fit_payload
+
+    d = result.data
+    if d.content != "static":
+        return None
+    model = cfg.rig_model()
+    st = StructureTest(model, cfg.identification.moment_floor_Nm)
+    n = max(int(round(cfg.identification.window_s * d.fs)), 1)
+    cols = [d.z, d.T, d.H] + ([d.q] if d.q is not None and d.q.shape[1] else [])
+    x = np.hstack(cols)
+    v = st.last
+    # windows on the sample grid from the first sample read, as the service's periodic
+    # windows are (a condition held a multiple of the period fills whole windows)
+    starts = range(0, len(x), n)
+    for k in starts:
+        st.joint_fits = k == starts[-1]  # the verdict of the whole recording: the last look
+        v = st.add_window(x[k:k + n][d.scored[k:k + n]], result.alpha_all)
+    fit = None if v.selected is None else fit_payload(v.selected, model)
+    return {"structure": v.structure, "candidates": v.candidates, "structure_fit": fit,
+            "looks": v.look, "conditions": v.conditions}
+
+
 # ------------------------------------------------------------------------------------------
 # The config fragment
 # ------------------------------------------------------------------------------------------
@@ -583,7 +610,8 @@ def _toml_value(v) -> str:
     raise TypeError(f"cannot write {v!r} as TOML")
 
 
-def fragment_toml(cfg: RigConfig, result: CalibrationResult) -> str:
+def fragment_toml(cfg: RigConfig, result: CalibrationResult,
+                  structure: dict | None = None) -> str:
     """A TOML fragment to merge into the rig config (``load_config(overrides=…)`` accepts it):
     ``[identification] initial_angles_deg`` (all 14; the non-identified at their start values)
     when angles were identified; ``[geometry] hub_centre_m``, ``[mass] effective_mass_kg`` /
@@ -616,6 +644,18 @@ def fragment_toml(cfg: RigConfig, result: CalibrationResult) -> str:
                    if a in est else "not identified: start value kept")
             lines.append(f"# {a}: {tag}")
         lines.append(f"initial_angles_deg = {_vec(np.degrees(result.alpha_all), 6)}")
+        lines.append("")
+    fit = None if structure is None else structure.get("structure_fit")
+    if fit is not None:  # the structure the hub loads use (issue 19; config.rig)
+        lines.append("[identification.structure]")
+        lines.append(f"# the structure test selected {fit['structure']!r} (docs/identification.md); "
+                     "the hub loads use it from the start")
+        for nm, b, sb in zip(fit["parameters"], fit["beta"], fit["beta_sigma"]):
+            lines.append(f"# {nm}: {b:.6g}, sigma {'-' if sb is None else f'{sb:.3g}'} (SI)")
+        lines.append(f'structure = "{fit["structure"]}"')
+        lines.append(f"alpha0_deg = {_vec(np.degrees(fit['alpha0']), 6)}")
+        lines.append(f"beta = [{', '.join(repr(float(b)) for b in fit['beta'])}]")
+        lines.append(f"T_ref_N = {_vec(fit['T_ref'], 2)}")
         lines.append("")
     hub = [n for n in names if n.startswith("hub_")]
     if hub:

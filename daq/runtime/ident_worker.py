@@ -54,6 +54,9 @@ def build_identification(cfg, initial_state=None):
                                            rig=rig_fingerprint(model.geometry))
     if initial_state is not None:
         post.restore(initial_state)
+    if post.structure_fit is None:  # the structure in force from the start (issue 19)
+        post.structure_fit = idc.structure_fit
+    post.saved_structure_fit = post.structure_fit
     fs = cfg.sample_rate_hz
     common = dict(model=model, posterior=post, fs=fs, moment_floor=idc.moment_floor_Nm,
                   max_iterations=idc.max_iterations,
@@ -160,8 +163,12 @@ def handle_job(cfg, post, runs: dict, cache, job: IdentJob,
                           traceback.format_exc(limit=5))
     job_id = out.pop("job_id", job.job_id)
     res = IdentResult(job_id, AnglesRecord.from_dict(out))
-    if res.record.accepted and state_file:
+    # saved after an accepted run, and when the structure the hub loads use changes
+    fit = res.record.structure_fit
+    changed = fit is not ABSENT and fit != getattr(post, "saved_structure_fit", None)
+    if (res.record.accepted or changed) and state_file:
         res = replace(res, save_error=save_state(post, res.record, state_file))
+        post.saved_structure_fit = None if fit is ABSENT else fit
     return res
 
 

@@ -25,6 +25,7 @@ from rsra.estimator.content import ContentFilter
 from rsra.daq.rigmodel import design_cache
 from rsra.estimator.filters import LoadFilter
 from rsra.estimator.geometry import hub_transfer_matrix, wrench_matrix
+from rsra.estimator.structure import StructureCorrection
 from rsra.estimator.transient import TIME_CONSTANT_FRACTION, TRANSIENT, TransientDetector
 
 log = logging.getLogger("rsra.pipeline")
@@ -78,6 +79,8 @@ class EstimatorPipeline:
         self.fs = cfg.sample_rate_hz
         self.frame = cfg.hub_frame
         self.alpha = np.asarray(alpha0, float).copy()
+        self.structure: StructureCorrection | None = None  # a selected structure in force
+        self._structure_fit: dict | None = None
         self._S = wrench_matrix(self.model.geometry, self.alpha)
         self._Rinv = np.linalg.inv(hub_transfer_matrix(self.model.geometry))
         self._Mf = inertial_load_matrix(self.model)
@@ -174,12 +177,31 @@ class EstimatorPipeline:
                     if n in angle_names:
                         alpha[angle_names.index(n)] = v
                 self.set_alpha(alpha)
+            if rec.structure_fit is not ABSENT:  # known loads: the structure in force
+                self.set_structure(rec.structure_fit)
             out.records.append(("angles", rec))
 
     def set_alpha(self, alpha: np.ndarray) -> None:
         self.alpha = np.asarray(alpha, float).copy()
-        self._S = wrench_matrix(self.model.geometry, self.alpha)
-        self.load_filter.set_alpha(self.alpha)
+        if self.structure is None:
+            self._use_angles(self.alpha)
+
+    def _use_angles(self, alpha: np.ndarray) -> None:
+        self._S = wrench_matrix(self.model.geometry, alpha)
+        self.load_filter.set_alpha(alpha)
+
+    def set_structure(self, fit: dict | None) -> None:
+        """Hub loads under a selected structure (estimator.structure.StructureCorrection:
+        its angles and the correction of z), or under the constant angles again (None)."""
+        if fit == self._structure_fit:
+            return
+        self._structure_fit = fit
+        try:
+            self.structure = None if fit is None else StructureCorrection(self.model, fit)
+        except ValueError as e:  # a malformed record (another version): constant angles
+            log.error("structure_fit not used (%s); hub loads use the constant angles", e)
+            self.structure = None
+        self._use_angles(self.alpha if self.structure is None else self.structure.alpha)
 
     # --- the per-sample path ----------------------------------------------------------
     def process(self, s) -> PipelineOutput:
@@ -227,8 +249,9 @@ class EstimatorPipeline:
         I = self._Mf.dot(accel) if acc_ok else np.full(6, np.nan)
         z = I - self._D.dot(q) if (q is not None and drive_ok) else I
         H_static = None
+        zh = z if self.structure is None or not measured else self.structure.correct(z, T)
         if measured:
-            H_static = self._Rinv.dot(z - self._S.dot(T))
+            H_static = self._Rinv.dot(zh - self._S.dot(T))
         omega = s.omega if s.omega is not None and math.isfinite(s.omega) else None
         refused = omega is not None and not abs(omega) < self.omega_max
         if refused:
@@ -255,7 +278,7 @@ class EstimatorPipeline:
         if self._last_seq is not None and seq - self._last_seq - 1 > lost:
             lost = seq - self._last_seq - 1
         self._last_seq = seq
-        res = self.load_filter.step(T if measured else np.zeros(7), z if measured else np.zeros(6),
+        res = self.load_filter.step(T if measured else np.zeros(7), zh if measured else np.zeros(6),
                                     measured=measured, lost=lost)
         for fl in res.flags:
             if fl not in flags:

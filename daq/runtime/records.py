@@ -81,6 +81,7 @@ class AnglesRecord:
     structure: Any = ABSENT  # known loads: the structure test (issue 19)
     candidates: Any = ABSENT
     next_conditions: Any = ABSENT  # known loads: the experiment design (issue 19)
+    structure_fit: Any = ABSENT  # known loads: the structure the hub loads use (issue 19)
     extra: tuple[tuple[str, Any], ...] = ()  # keys not declared above, in their order
 
     FIELDS: ClassVar[tuple[str, ...]]
@@ -124,10 +125,14 @@ class InitialAngles:
     alpha: list[float]
     P: list[list[float]]
     alpha_all: list[float]
+    structure_fit: dict | None = None  # the saved posterior's structure (issue 19), if any
 
     def to_dict(self) -> dict[str, Any]:
-        return {"initial": True, "names": self.names, "alpha": self.alpha, "P": self.P,
-                "alpha_all": self.alpha_all, "applies_from_seq": None}
+        d = {"initial": True, "names": self.names, "alpha": self.alpha, "P": self.P,
+             "alpha_all": self.alpha_all, "applies_from_seq": None}
+        if self.structure_fit is not None:  # absent otherwise: the line as it always was
+            d["structure_fit"] = self.structure_fit
+        return d
 
 
 @dataclass(frozen=True, slots=True)

@@ -370,7 +370,8 @@ class Service:
             rec_names = list(names)
             theta = alpha0.tolist()
             P = (np.eye(len(names)) * s * s).tolist()
-        return InitialAngles(names=rec_names, alpha=theta, P=P, alpha_all=alpha0.tolist())
+        return InitialAngles(names=rec_names, alpha=theta, P=P, alpha_all=alpha0.tolist(),
+                             structure_fit=getattr(self, "start_fit", None))
 
     def stop(self, *_: Any) -> None:
         self.stop_event.set()
@@ -427,6 +428,16 @@ class Service:
                     log.warning("%s", warning)
                     self.warnings.append(warning)
             self.pipeline = EstimatorPipeline(cfg, alpha0, identification=use_ident)
+            # the structure the hub loads use from the start (issue 19): the recording's
+            # first line in a replay; else the saved posterior's, else the config's
+            if recorded_initial is not None and not opts.angles:
+                self.start_fit = recorded_initial.get("structure_fit")
+            elif state is not None and state.structure is not None:
+                self.start_fit = state.structure
+            else:
+                self.start_fit = cfg.identification.structure_fit
+            if self.start_fit is not None:
+                self.pipeline.set_structure(self.start_fit)
             for rec in recorded:
                 self.pipeline.deliver(rec)
             self.outputs = Outputs(cfg, opts)

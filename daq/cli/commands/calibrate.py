@@ -51,15 +51,17 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
     p.add_argument("--out", metavar="FILE", default=None,
                    help="write a TOML config fragment to adopt ([identification] "
                    "initial_angles_deg for angles; [geometry], [mass] or [[cells]] keys for the "
-                   "others), with the σ and the source recordings in comments")
+                   "others; [identification.structure] when the structure test selected one), "
+                   "with the σ and the source recordings in comments")
     p.add_argument("--json", action="store_true",
                    help='print the result as JSON instead of the tables: {"parameters": [{"name", '
                    '"unit", "start", "estimate", "sigma_cr", "sigma_cr_corrected", "prior_sigma", '
                    '"change_sigma", "determined"}], "names", "covariance", '
                    '"covariance_corrected", "alpha_all_deg", "residuals", "information", '
                    '"convergence", "plausibility", "data", "notes", "fragment", "next_conditions": '
-                   '[{"H", "information_gain", "by_structure"}]} (angles in degrees, loads in SI '
-                   "whatever --units)")
+                   '[{"H", "information_gain", "by_structure"}], "structure": {"structure", '
+                   '"candidates", "structure_fit", "looks", "conditions"} or null} (angles in '
+                   "degrees, loads in SI whatever --units)")
     p.add_argument("--angles", metavar="STATE", default=None,
                    help="start from the angles of a saved posterior (rsra angles show) instead of "
                    "identification.initial_angles_deg")
@@ -170,25 +172,44 @@ def run(args: argparse.Namespace) -> int:
 
     from rsra.daq.runtime.next_conditions import for_calibration
 
+    from rsra.daq.analysis.calibrate import structure_of
+
     nxt = for_calibration(cfg, result) if result.status != "diverged" else None
+    struct = structure_of(cfg, result) if result.status != "diverged" else None
     notes = _notes(cfg, result)
     wrote = None
     if out is not None and result.status != "diverged":
-        write_text_atomic(out, fragment_toml(cfg, result))
+        write_text_atomic(out, fragment_toml(cfg, result, struct))
         wrote = str(out)
     if args.json:
         d = result.to_dict(cfg)
         d["notes"] = notes
         d["fragment"] = wrote
         d["next_conditions"] = nxt
+        d["structure"] = struct
         print(dumps(d))
     else:
         _print_tables(cfg, result, args.units, notes, wrote, nxt)
+        if struct is not None:
+            _print_structure(struct)
     if result.status == "diverged":
         print("rsra calibrate: the identification diverged; no fragment written (check the "
               "recordings and the starting values)", file=sys.stderr)
         return 1
     return 0
+
+
+def _print_structure(struct: dict) -> None:
+    """The structure test's verdict (issue 19): constant angles, or what explains the data."""
+    print(f"structure: {struct['structure']} ({struct['conditions']} load conditions, "
+          f"{struct['looks']} windows)")
+    for c in struct["candidates"][:4]:
+        print(f"  candidate {c['structure']}: statistic {c['statistic']:.1f} on {c['dof']} dof"
+              f"{', explains the data' if c['explains'] else ''}")
+    fit = struct["structure_fit"]
+    if fit is not None:
+        print(f"  selected {fit['structure']}: its fit is in the fragment "
+              "([identification.structure]); the hub loads use it")
 
 
 def _notes(cfg, result) -> list[str]:
