@@ -56,11 +56,11 @@ def replay_round(cfg, frames, initial_alpha, publisher) -> dict:
     """One replay of ``frames`` through the service's per-sample path; µs per sample."""
     import numpy as np
 
-    from rsra.daq.bus.reader import HealthReport, Reader
+    from rsra.daq.bus.reader import HealthReport, OfflineReader
     from rsra.daq.runtime.pipeline import EstimatorPipeline
 
     tt = time.thread_time_ns
-    reader = Reader.offline(cfg)
+    reader = OfflineReader(cfg)
     asm = reader.assembler
     pass_on = asm._pass_on
     acc = {"pass_on": 0}
@@ -72,7 +72,7 @@ def replay_round(cfg, frames, initial_alpha, publisher) -> dict:
 
     asm._pass_on = timed_pass_on  # (the frame callbacks look it up per call)
     samples = []
-    feed, queue, poll = reader.feed, reader.queue, reader.poll
+    feed, queue, poll = reader.feed, reader.items.queue, reader.poll
     t0 = tt()
     for m in frames:
         feed(m)

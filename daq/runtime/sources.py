@@ -50,6 +50,7 @@ log = logging.getLogger("rsra.service")
 # the same samples in both modes.
 SIM_BLOCK = 100
 LIVE_POLL_S = 0.05  # a live source yields None after this long without an item
+PACE_SLACK_S = 0.05  # paced lock-step: a delay longer than this is not caught up
 
 
 class BusOpenError(RuntimeError):
@@ -303,6 +304,11 @@ class LockstepSource(_Base):
                 ahead = k * dt / speed - (time.monotonic() - wall0)
                 if ahead > 0:
                     time.sleep(ahead)
+                elif ahead < -PACE_SLACK_S:
+                    # held up (a consumer waited, the machine stalled): go on at the pace
+                    # from here, not in a burst that catches up (subscribers under DROP
+                    # would lose the burst)
+                    wall0 -= ahead  # ahead < 0: the schedule moves later by the delay
 
 
 class ReplaySource(_Base):

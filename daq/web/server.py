@@ -96,6 +96,7 @@ class Client:
         self.dropped = 0  # points dropped (queue or batch full)
         self.sent = 0  # points sent
         self.max_depth = 0
+        self.closing = False
 
     def offer(self, pts: list[tuple[str, dict]]) -> None:
         for pid, d in pts:
@@ -116,13 +117,29 @@ class Client:
         self.wake.set()
 
     async def writer(self) -> None:
-        while True:
-            await self.wake.wait()
-            self.wake.clear()
-            while self.queue:
-                b = self.queue.popleft()
-                await self.ws.send_str(json.dumps({"points": b}, allow_nan=False))
-                self.sent += len(b)
+        """Sends the queued batches until :meth:`stop`. Never cancelled mid-send: aiohttp
+        sends a compressed frame in a shielded task of its own, and cancelling the send
+        leaves that task to fail unobserved when the browser has gone ("Task exception was
+        never retrieved")."""
+        try:
+            while not self.closing:
+                await self.wake.wait()
+                self.wake.clear()
+                while self.queue and not self.closing:
+                    b = self.queue.popleft()
+                    await self.ws.send_str(json.dumps({"points": b}, allow_nan=False))
+                    self.sent += len(b)
+        except ConnectionResetError:  # aiohttp's ClientConnectionResetError: the browser left
+            pass
+
+    async def stop(self, task: asyncio.Task) -> None:
+        """Ends the writer after its current send (bounded: cancelled after 5 s)."""
+        self.closing = True
+        self.wake.set()
+        try:
+            await asyncio.wait_for(task, timeout=5.0)
+        except (asyncio.TimeoutError, asyncio.CancelledError, ConnectionResetError):
+            pass
 
 
 class Gateway:
@@ -273,7 +290,7 @@ class Gateway:
                     c.subs.discard(pid)
         finally:
             self.clients.discard(c)
-            writer.cancel()
+            await c.stop(writer)
             self.dropped_closed += c.dropped + sum(len(b) for b in c.queue) + len(c.batch)
             self.sent_closed += c.sent
         return ws
