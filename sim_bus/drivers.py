@@ -308,6 +308,8 @@ class RealtimeSim(_Served):
         self._ticker: threading.Thread | None = None
         self._prefetch_at: float | None = None  # when the ticker works ahead (wall clock)
         self._error: BaseException | None = None
+        # the physics computes its next block ahead (AircraftPhysics), else None
+        self._compute_ahead = getattr(self.sim.physics, "compute_ahead", None)
         # a master's SYNC: after the simulator's answer (subscribed after it), plan ahead
         self.sim.network.subscribe(self.sim.cfg.sync.cob_id, self._on_sync_frame)
 
@@ -356,6 +358,7 @@ class RealtimeSim(_Served):
             if self._stop.is_set():
                 return
             try:
+                ahead = False
                 with sim.lock:
                     now = time.time()
                     sim.advance(now)  # the heartbeats due; the recording flushed each second
@@ -363,6 +366,12 @@ class RealtimeSim(_Served):
                         self._prefetch_at = None
                         sim.prefetch()  # still ahead of the next SYNC
                         sim.prepare_next()
+                        ahead = True
+                if ahead and self._compute_ahead is not None:
+                    # the physics' next block (1-2 ms for 100 samples), outside the
+                    # simulator's lock: the next SYNCs are answered meanwhile, and the block
+                    # is ready long before its boundary (docs/performance.md P6b)
+                    self._compute_ahead()
             except Exception as e:  # noqa: BLE001 - re-raised by check()
                 log.exception("heartbeat ticker failed")
                 self._error = self._error or e

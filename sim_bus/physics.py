@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass, fields
 
@@ -419,6 +420,10 @@ class AircraftPhysics:
         self._k_next = 0  # index of the next block's first sample
         self._block: dict | None = None
         self._pos = 0
+        # the next block computed ahead by another thread (compute_ahead: a real-time driver,
+        # off the SYNC path); the lock orders it with next_sample's block boundary
+        self._next: dict | None = None
+        self._next_lock = threading.Lock()
 
     # ------------------------------------------------------------------ set-up
     def _draw_parameters(self, rng: np.random.Generator, angles_rng: np.random.Generator) -> None:
@@ -493,8 +498,7 @@ class AircraftPhysics:
     def next_sample(self) -> SimSample:
         """Advance one sample period."""
         if self._block is None or self._pos >= self.block_size:
-            self._block = self._compute_block(self._k_next)
-            self._k_next += self.block_size
+            self._block = self._take_block()
             self._pos = 0
         b, i = self._block, self._pos
         self._pos += 1
@@ -509,10 +513,29 @@ class AircraftPhysics:
         next_sample() inside one block."""
         if self._block is not None and 0 < self._pos < self.block_size:
             raise RuntimeError("next_block() in the middle of a block consumed by next_sample()")
-        out = self._compute_block(self._k_next)
-        self._k_next += self.block_size
+        out = self._take_block()
         self._block, self._pos = None, 0
         return out
+
+    def compute_ahead(self) -> bool:
+        """Compute the next block now, unless it is computed already (a real-time driver's
+        thread between SYNCs, so that no SYNC waits for a whole block: 1-2 ms for 100
+        samples). The block is the one :meth:`next_sample` would compute at the boundary, bit
+        for bit (blocks are computed once each, in order). Returns whether it computed."""
+        with self._next_lock:
+            if self._next is not None:
+                return False
+            self._next = self._compute_block(self._k_next)
+            return True
+
+    def _take_block(self) -> dict[str, np.ndarray]:
+        """The next block: the one computed ahead, else computed now."""
+        with self._next_lock:
+            b, self._next = self._next, None
+            if b is None:
+                b = self._compute_block(self._k_next)
+            self._k_next += self.block_size
+        return b
 
     def mode_frequencies_hz(self, alpha: np.ndarray | None = None) -> np.ndarray:
         """The six mount-mode frequencies (model §8: clear of 1/rev and N_b/rev)."""

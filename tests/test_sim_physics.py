@@ -381,6 +381,31 @@ def test_streaming_equals_offline_bit_for_bit(cfg, name):
         assert np.array_equal(np.array([getattr(s, f) for s in streamed]), getattr(run, f)), f
 
 
+def test_blocks_computed_ahead_by_another_thread_are_the_streamed_ones(cfg):
+    """compute_ahead (a real-time driver's thread, outside the simulator's lock) gives the
+    samples of plain streaming bit for bit, whenever it runs within a block."""
+    import threading
+
+    sc = load_scenario("flight")
+    ref = AircraftPhysics(cfg, sc, block_size=50)
+    want = [ref.next_sample() for _ in range(260)]
+    phys = AircraftPhysics(cfg, sc, block_size=50)
+    got, computed = [], []
+    for i in range(260):
+        if i % 7 == 3:  # at different positions within the blocks, from another thread
+            th = threading.Thread(target=lambda: computed.append(phys.compute_ahead()))
+            th.start()
+            got.append(phys.next_sample())
+            th.join()
+        else:
+            got.append(phys.next_sample())
+    assert any(computed) and not all(computed)  # computed ahead once per block at most
+    assert [s.index for s in got] == list(range(260))
+    for f in SAMPLE_FIELDS:
+        assert np.array_equal(np.array([getattr(s, f) for s in got]),
+                              np.array([getattr(s, f) for s in want])), f
+
+
 # ----------------------------------------------------------------------------- channels
 
 def test_sensor_noise_is_accuracy_times_full_scale(cfg):
