@@ -483,9 +483,16 @@ LockstepNodes = Listen | RestartNodes  # what needs no bus thread (SDO answered 
 # -- the items: what a full queue does -----------------------------------------------------------------
 class ItemQueue:
     """The bounded queue of samples and health reports between the bus side and the
-    consumer; a subclass says what a full queue does."""
+    consumer; a subclass says what a full queue does.
 
-    def __init__(self, size: int = DEFAULT_QUEUE):
+    ``first_step``, when given, is called with each Sample in the producer's thread (the bus
+    thread, under the tap's lock: one sample at a time, in order) before it is queued, and
+    what it returns is queued instead: the service publishes a sample's hub loads there,
+    with no hand-off to another thread (docs/performance.md P5b)."""
+
+    def __init__(self, size: int = DEFAULT_QUEUE,
+                 first_step: Callable[[Sample], Any] | None = None):
+        self.first_step = first_step
         self.queue: queue.Queue[Sample | HealthReport] = queue.Queue(size)
         self.size = size
         self.dropped = 0
@@ -521,6 +528,8 @@ class DropQueue(ItemQueue):
 
     def put(self, item: Sample | HealthReport) -> None:
         q = self.queue
+        if self.first_step is not None and not isinstance(item, HealthReport):
+            item = self.first_step(item)
         try:
             q.put_nowait(item)
         except queue.Full:
@@ -536,6 +545,8 @@ class BlockQueue(ItemQueue):
 
     def put(self, item: Sample | HealthReport) -> None:
         q = self.queue
+        if self.first_step is not None and not isinstance(item, HealthReport):
+            item = self.first_step(item)
         if q.full():
             self.blocked += 1
         q.put(item)

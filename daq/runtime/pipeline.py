@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 
@@ -128,6 +129,11 @@ class EstimatorPipeline:
         self.first_seq: int | None = None
         self.last_known_seq: int | None = None
         self.pending: list[AnglesRecord] = []  # results waiting for their apply sample
+        # results handed over (deliver: the service thread) and not yet scheduled: the
+        # first step takes them in at its next sample (live, that step runs in the bus
+        # thread; deque's append/popleft are atomic), so the sample a result applies from is
+        # decided where samples are counted
+        self._inbox: deque[tuple[AnglesRecord, int | None, bool]] = deque()
         self.outstanding: dict[int, int] = {}  # job id -> planned apply seq
         self.next_job_id = 0
         # a rotor speed whose highest modelled harmonic is at or above Nyquist cannot be
@@ -135,7 +141,6 @@ class EstimatorPipeline:
         self.omega_max = math.pi * self.fs / max(cfg.filter.harmonics)
         self.implausible_omega = 0  # readings refused (counted in health)
         self._last_seq: int | None = None
-        self._omega: float | None = None  # this sample's usable rotor speed
         self.design_errors = 0  # redesigns that failed: the current design was kept
         # stuck channels (a frozen sensor with a clean status, daq/runtime/stuck.py): flagged
         # fault:<cell|accelerometer> and treated like a faulted cell — predict-only (model
@@ -145,28 +150,42 @@ class EstimatorPipeline:
     # --- identification results -------------------------------------------------------
     def deliver(self, rec: AnglesRecord, arrival_seq: int | None = None,
                 job_id: int | None = None) -> None:
-        """Hand over an identification result of job ``job_id`` (live) or a recorded angles
-        record (replay).
+        """Hand over an identification result of job ``job_id`` (live: ``arrival_seq`` given)
+        or a recorded angles record (replay). Safe to call while another thread runs the first
+        step of :meth:`stages`.
 
-        Live: it applies from its planned sample, or — when it arrives after that sample —
-        from the first sample after arrival (`late`). A recorded record carries its
-        `applies_from_seq` and is applied exactly there.
+        Live: it applies from its planned sample, or — when the first step has passed that
+        sample before taking the result in — from the first sample it takes it in at
+        (`late`): after sample ``arrival_seq`` at the earliest. A recorded record carries its
+        `applies_from_seq` and is applied exactly there; so is a lock-step result (no
+        ``arrival_seq``: the loop waits for it).
         """
+        planned = None
         if job_id is not None:
             planned = self.outstanding.pop(job_id, rec.get("applies_from_seq"))
-            if arrival_seq is not None and planned is not None and arrival_seq >= planned:
-                rec = replace(rec, applies_from_seq=arrival_seq + 1, late=True)
-            else:
-                rec = replace(rec, applies_from_seq=planned,
-                              late=False if rec.late is ABSENT else rec.late)
-        self.pending.append(rec)
-        self.pending.sort(key=lambda r: r.applies_from_seq)
+        self._inbox.append((rec, planned, job_id is not None and arrival_seq is not None))
 
     def waiting_for(self, seq: int) -> list[int]:
         """Jobs whose result must be in before sample `seq` is processed (lock-step)."""
         return [j for j, s in self.outstanding.items() if s <= seq]
 
+    def _take_in(self, seq: int) -> None:
+        """The results handed over since the last sample, scheduled (before sample ``seq``)."""
+        inbox = self._inbox
+        while inbox:
+            rec, planned, live = inbox.popleft()
+            if planned is not None:
+                if live and planned < seq:  # its sample has passed: from this one, late
+                    rec = replace(rec, applies_from_seq=seq, late=True)
+                else:
+                    rec = replace(rec, applies_from_seq=planned,
+                                  late=False if rec.late is ABSENT else rec.late)
+            self.pending.append(rec)
+            self.pending.sort(key=lambda r: r.applies_from_seq)
+
     def _apply_due(self, seq: int, out: PipelineOutput) -> None:
+        if self._inbox:
+            self._take_in(seq)
         while self.pending and self.pending[0].applies_from_seq <= seq:
             rec = self.pending.pop(0)
             if rec.accepted:
@@ -214,12 +233,16 @@ class EstimatorPipeline:
     def stages(self, s) -> Iterator[PipelineOutput]:
         """One sample in two steps the caller pulls (live): first the records up to and
         including hub_loads, then the channels, innovations and calibration branch — off the
-        SYNC → hub-load latency path (docs/performance.md P5). Both steps must be taken."""
+        SYNC → hub-load latency path (docs/performance.md P5). Both steps must be taken, in
+        order; live, the first runs in the bus thread and the second in the service thread
+        (the first step of the next sample may run while this one's second runs: what the
+        second needs of the first is passed in the generator's locals, never in ``self``)."""
         out = PipelineOutput()
         seq = int(s.seq)
         if self.first_seq is None:
             self.first_seq = seq
         self._apply_due(seq, out)
+        alpha = self.alpha  # the angles in force for this sample (set_alpha replaces it)
         T = np.asarray(s.T, float)
         accel = np.asarray(s.accel, float).reshape(-1)
         flags = list(s.flags)
@@ -270,7 +293,6 @@ class EstimatorPipeline:
                 if self.design_errors == 1:
                     log.error("filter redesign at omega=%r failed (%s); the current design "
                               "is kept", omega, e)
-        self._omega = omega
         # samples lost before this one: SYNCs lost on the bus (lost_before), and samples
         # dropped after assembly (a full queue live, counted in health) — both keep their seq,
         # so the gap says how far to predict (model §6: Φ^k)
@@ -303,10 +325,10 @@ class EstimatorPipeline:
             out.records.append(("innovations", {"seq": seq, "t": float(s.t), "e": res.e,
                                                 "nis": res.nis}))
         if self.identification:
-            out.job = self._calibration_branch(s, seq, T, z, measured)
+            out.job = self._calibration_branch(s, seq, T, z, measured, omega, alpha)
         yield out
 
-    def _calibration_branch(self, s, seq, T, z, measured) -> IdentJob | None:
+    def _calibration_branch(self, s, seq, T, z, measured, omega, alpha) -> IdentJob | None:
         known = s.known_H is not None and bool(np.isfinite(np.asarray(s.known_H, float)).all())
         if known:
             self.last_known_seq = seq
@@ -318,7 +340,8 @@ class EstimatorPipeline:
         fresh = self.last_known_seq is not None and seq - self.last_known_seq < self.fs * 0.5
         mode = "known_loads" if fresh else "filter_error"
         y = yk if mode == "known_loads" else yf
-        omega = self._omega if self._omega is not None else self.cfg.rotor.omega_nominal_rad_s
+        if omega is None:
+            omega = self.cfg.rotor.omega_nominal_rad_s
         self.buffer.add(seq, s.t, y[:7], y[7:13], y[13:], measured, known, omega)
         since = seq - self.first_seq + 1
         if since < self.period_n or since % self.period_n != 0:
@@ -331,4 +354,4 @@ class EstimatorPipeline:
         content = (self.cfg.identification.content_known_loads if mode == "known_loads"
                    else self.cfg.identification.content_filter_error)
         return IdentJob(job_id=job_id, mode=mode, content=content, applies_from_seq=planned,
-                        alpha=self.alpha.copy(), **w)
+                        alpha=alpha.copy(), **w)

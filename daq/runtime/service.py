@@ -132,6 +132,9 @@ class Outputs:
 
     def __init__(self, cfg: RigConfig, opts: ServiceOptions):
         self.cfg = cfg
+        # live, hub_loads is published from the bus thread and the rest from the service
+        # thread: one record at a time through the sinks, Foxglove and Zenoh
+        self._lock = threading.Lock()
         self._stack = contextlib.ExitStack()
         self.session = None
         self.telemetry = None
@@ -183,17 +186,18 @@ class Outputs:
     def publish(self, key: str, payload: dict | AnglesRecord | Health) -> None:
         if not isinstance(payload, dict):  # a typed record: its JSON object (daq.records, daq.bus.health)
             payload = payload.to_dict()
-        self.counts[key] = self.counts.get(key, 0) + 1
-        for sink in self.sinks:
-            sink(key, payload)
-        if self.foxglove is not None:
-            self.foxglove.publish(key, payload)
-        if self.telemetry is None:
-            return
-        if key in ("angles", "health"):
-            self.low_rate.put(key, payload)
-        else:
-            self.telemetry.publish(key, payload)
+        with self._lock:
+            self.counts[key] = self.counts.get(key, 0) + 1
+            for sink in self.sinks:
+                sink(key, payload)
+            if self.foxglove is not None:
+                self.foxglove.publish(key, payload)
+            if self.telemetry is None:
+                return
+            if key in ("angles", "health"):
+                self.low_rate.put(key, payload)
+            else:
+                self.telemetry.publish(key, payload)
 
     def close(self) -> None:
         self._stack.close()
@@ -283,6 +287,20 @@ def initial_angles(cfg: RigConfig, state_path: str | None, accept_rig_mismatch: 
     return alpha0, state, warning
 
 
+class _FirstStepDone:
+    """A live sample whose first step ran in the bus thread (hub_loads published there):
+    what the service thread needs to finish it."""
+
+    __slots__ = ("sample", "rest", "records", "error")
+
+    def __init__(self, sample, rest, records, error=None):
+        self.sample, self.rest, self.records, self.error = sample, rest, records, error
+
+    @property
+    def seq(self) -> int:
+        return self.sample.seq
+
+
 class Service:
     """Builds the sources, the pipeline, the worker and the outputs; `run()` until done."""
 
@@ -324,6 +342,9 @@ class Service:
         self.warnings: list[str] = []  # start-up problems the service went on with
         self.schedule: dict | None = None  # replay: where the angles come from
         self.worker_initializer = None  # called first in the worker process (tests)
+        # --duration in samples of acquisition time
+        self._n_max = None if opts.duration is None else max(1, round(opts.duration * self.fs))
+        self._first_seq: int | None = None  # the first sample processed
 
     @property
     def reader(self):
@@ -446,6 +467,8 @@ class Service:
             if use_ident:
                 self._setup_identification(alpha0, state)
                 _close_logged(stack, self._close_worker)
+            if not self.source.deterministic:  # hub_loads from the bus thread (P5b)
+                self.source.first_step = self._first_step
             stack.enter_context(self.source)
             if self.recorder is not None:
                 self.recorder.write_angles(self._initial_record(alpha0, state).to_dict())
@@ -462,9 +485,6 @@ class Service:
     def _loop(self, source: Iterator) -> None:
         from rsra.daq.bus.reader import HealthReport
 
-        # --duration counts samples of acquisition time (lost ones included: they keep seq)
-        n_max = None if self.opts.duration is None else max(1, round(self.opts.duration * self.fs))
-        first_seq = None
         for item in source:
             if item is None:
                 self._poll_results()
@@ -472,12 +492,19 @@ class Service:
                 self._on_health(item)
             else:
                 self._on_sample(item)
-                if first_seq is None:
-                    first_seq = item.seq
-                if n_max is not None and item.seq - first_seq + 1 >= n_max:
+                if self._last_wanted(item.seq):
                     break
             if self.stop_event.is_set():
                 break
+
+    def _last_wanted(self, seq: int) -> bool:
+        """Sample ``seq`` is the last one --duration asks for (it counts samples of
+        acquisition time from the first one processed: lost ones included, they keep seq)."""
+        if self._first_seq is None:
+            self._first_seq = seq
+        if self._n_max is None:
+            return False
+        return seq - self._first_seq + 1 >= self._n_max
 
     def _poll_results(self) -> None:
         if self.worker is None or self.source.deterministic:
@@ -508,31 +535,68 @@ class Service:
                 return
             self._deliver(r, None)
 
-    def _on_sample(self, s) -> None:
+    def _first_step(self, s):
+        """The bus thread, as a sample completes (live): the pipeline's first step and the
+        publication of its records (hub_loads, and angles applied from this sample) at once,
+        with no hand-off to another thread (docs/performance.md P5b). The service thread
+        finishes the sample (:meth:`_on_sample`). Samples after the last one wanted, or
+        once stopping, are passed on untouched (the loop ends before them)."""
+        if self.stop_event.is_set() or self._past_last(s.seq):
+            return s
+        try:
+            rest = self.pipeline.stages(s)
+            records = next(rest).records
+            self._publish_first(s, records)
+        except BaseException as e:  # raised again in the service thread, as before
+            return _FirstStepDone(s, None, [], e)
+        return _FirstStepDone(s, rest, records)
+
+    def _past_last(self, seq: int) -> bool:
+        if self._first_seq is None:
+            self._first_seq = seq
+        return self._n_max is not None and seq - self._first_seq + 1 > self._n_max
+
+    def _publish_first(self, s, records: list) -> None:
+        publish = self.outputs.publish
+        for key, payload in records:
+            publish(key, payload)
+            if key == "hub_loads":
+                lat = time.time() - s.t
+                self.latencies.append(lat)
+                if lat > self.dt:
+                    self.deadline_misses += 1
+
+    def _on_sample(self, item) -> None:
         p = self.pipeline
         live = not self.source.deterministic
+        first: list = []
+        if isinstance(item, _FirstStepDone):  # live: hub_loads is out already
+            if item.error is not None:
+                raise item.error
+            s, stages, first = item.sample, item.rest, item.records
+        else:
+            s, stages = item, None
         if not live:
             self._wait_results(s.seq)
-        publish = self.outputs.publish
 
-        def emit(records: list) -> None:
-            for key, payload in records:
-                publish(key, payload)
-                if key == "hub_loads" and live:
-                    lat = time.time() - s.t
-                    self.latencies.append(lat)
-                    if lat > self.dt:
-                        self.deadline_misses += 1
-                elif key == "angles":
-                    self._on_angles(payload)
-
-        if live:  # the hub loads are published before the rest of the sample is worked on
-            stages = p.stages(s)
-            emit(next(stages).records)
-            out = next(stages)
+        if stages is None:
+            if live:  # the hub loads are published before the rest of the sample
+                stages = p.stages(s)
+                first = next(stages).records
+                self._publish_first(s, first)
+                out = next(stages)
+            else:
+                out = p.process(s)
         else:
-            out = p.process(s)
-        emit(out.records)
+            out = next(stages)
+        for key, payload in first:
+            if key == "angles":
+                self._on_angles(payload)
+        publish = self.outputs.publish
+        for key, payload in out.records:
+            publish(key, payload)
+            if key == "angles":
+                self._on_angles(payload)
         if out.job is not None and self.worker is not None:
             if self.source.deterministic:
                 # deterministic: every window runs (unless the worker died meanwhile)

@@ -28,7 +28,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Protocol
@@ -105,6 +105,10 @@ class _Base:
         self.sim: Any = None
         self.recorder: Recorder | None = None
         self._stack = contextlib.ExitStack()
+        # a live source runs this on each sample in its bus thread before queueing it (the
+        # service's first step: hub loads published with no hand-off, docs/performance.md
+        # P5b); set before the source is opened; sources that are not live ignore it
+        self.first_step: Callable[[Sample], Any] | None = None
 
     def angles_plan(self, identification: bool, recompute: bool) -> AnglesPlan:
         return AnglesPlan(recompute=recompute)
@@ -173,11 +177,12 @@ class BusSource(_Base):
     def _open(self) -> None:
         import can
 
-        from rsra.daq.bus.reader import Reader
+        from rsra.daq.bus.reader import DropQueue, Reader
 
         # the live master (BootNodes), the wall clock, a queue that never blocks the bus thread
         reader = Reader(self.cfg, interface=self.interface, channel=self.channel,
-                        record=self.record, table=self.table)
+                        record=self.record, table=self.table,
+                        items=DropQueue(first_step=self.first_step))
         self.reader = reader
         self._close_quietly(reader.close)
         try:
