@@ -208,11 +208,16 @@ def main(argv: list[str] | None = None) -> int:
     put_ms = (st["put"][keep] - st["handed"][keep]) * 1e3
     put_ms = put_ms[np.isfinite(put_ms)]
     b50, b99 = float(np.percentile(share, 50)), float(np.percentile(share, 99))
+    # the CPU the hub path took in the thread that stamped both ends (live: the bus thread)
+    cpu_ms = (st["put_cpu"][keep] - st["frame_cpu"][keep]) * 1e3
+    cpu_ms = cpu_ms[np.isfinite(cpu_ms)]
     p5b = {"samples_timed": int(share.size), "max_ms": float(share.max()),
            "p90_ms": float(np.percentile(share, 90)),
            "zenoh_put_call_p50_ms": float(np.percentile(put_ms, 50)),
            "zenoh_put_call_p99_ms": float(np.percentile(put_ms, 99)),
            "zenoh_hop_p50_ms": f50, "zenoh_hop_p99_ms": f99,
+           "hub_path_cpu_p50_ms": float(np.percentile(cpu_ms, 50)) if cpu_ms.size else None,
+           "hub_path_cpu_p90_ms": float(np.percentile(cpu_ms, 90)) if cpu_ms.size else None,
            "timed": "RSRA_STAGE_TIMING hook (daq/stagetiming.py): assembler's sample "
                     "completion by its last TPDO -> Zenoh put returned"}
     w.add("p5b_service_share_p50", b50, "ms", peer="Zenoh hop (p50), same run", peer_figure=f50,

@@ -11,7 +11,11 @@ at exit, as an ``.npz`` file with one row per sample:
 * ``frame`` — the sample was completed by its last TPDO (the assembler, in the thread that
   received the frame), or passed on incomplete at the next SYNC;
 * ``handed`` — ``hub_loads`` encoded and about to be put (the estimator thread);
-* ``put`` — Zenoh's ``put`` returned.
+* ``put`` — Zenoh's ``put`` returned;
+* ``frame_cpu``, ``put_cpu`` — the stamping thread's CPU clock (``time.thread_time``) at
+  ``frame`` and ``put``: live both are stamped by the bus thread (the hub loads are
+  published there), so their difference is the CPU the hub path took, caches as they are
+  at 200 samples/s (cold), against the wall time beside it.
 
 Nothing here is read by the service itself: it never changes what is computed or published.
 """
@@ -37,14 +41,18 @@ class StageTimer:
         self.frame = np.full(capacity, np.nan)
         self.handed = np.full(capacity, np.nan)
         self.put = np.full(capacity, np.nan)
+        self.frame_cpu = np.full(capacity, np.nan)
+        self.put_cpu = np.full(capacity, np.nan)
         self.n_max = -1
         self.clock = time.perf_counter
+        self.cpu = time.thread_time
 
     def frame_done(self, seq: int) -> None:
         i = seq % self.capacity
         self.seq[i] = seq
+        self.frame_cpu[i] = self.cpu()
         self.frame[i] = self.clock()
-        self.handed[i] = self.put[i] = np.nan
+        self.handed[i] = self.put[i] = self.put_cpu[i] = np.nan
         if seq > self.n_max:
             self.n_max = seq
 
@@ -57,12 +65,14 @@ class StageTimer:
         i = seq % self.capacity
         if self.seq[i] == seq:
             self.put[i] = self.clock()
+            self.put_cpu[i] = self.cpu()
 
     def write(self) -> None:
         ok = self.seq >= 0
         order = np.argsort(self.seq[ok])
         np.savez(self.path, seq=self.seq[ok][order], frame=self.frame[ok][order],
-                 handed=self.handed[ok][order], put=self.put[ok][order])
+                 handed=self.handed[ok][order], put=self.put[ok][order],
+                 frame_cpu=self.frame_cpu[ok][order], put_cpu=self.put_cpu[ok][order])
 
 
 def _from_env() -> StageTimer | None:

@@ -126,6 +126,9 @@ def test_stage_timing_hook_is_off_unless_asked(tmp_path):
     assert ok.mean() > 0.99  # every published hub_loads timed
     assert np.all(st["frame"][ok] <= st["handed"][ok])
     assert np.all(st["handed"][ok] <= st["put"][ok])
+    # the hub path's CPU, stamped by the one thread that ran it: never more than its wall time
+    cpu = st["put_cpu"][ok] - st["frame_cpu"][ok]
+    assert np.all(cpu >= 0) and np.all(cpu <= st["put"][ok] - st["frame"][ok] + 1e-4)
 
 
 def test_stage_profile_quick(capsys):
