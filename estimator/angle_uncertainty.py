@@ -1,5 +1,5 @@
 """How far the angles in force can move the hub loads (docs/identification.md, "How far
-the angles can move the hub loads").
+the angles in force can move the hub loads").
 
 The static estimate is ``H = R⁻¹ (z − S(α) T)`` (model §2, §3), so an error δα of the angles
 in force moves it by ``δH = J δα`` with
@@ -17,6 +17,9 @@ import numpy as np
 
 from .geometry import hub_transfer_matrix, wrench_matrix_jacobian
 from .params import Geometry
+
+# the hub_loads flag: sigma_angles exceeds the static noise bound on some axis (telemetry.md)
+ANGLES_UNCERTAIN = "angles_uncertain"
 
 
 def hub_angle_sensitivity(geometry: Geometry, alpha: np.ndarray,

@@ -8,6 +8,7 @@ import pytest
 
 from rsra.config.rig import load_config
 from rsra.estimator.angle_uncertainty import (
+    ANGLES_UNCERTAIN,
     HubAngleVariance,
     angle_covariance,
     hub_angle_jacobian,
@@ -17,7 +18,7 @@ from rsra.estimator.angle_uncertainty import (
 from rsra.estimator.geometry import hub_transfer_matrix, wrench_matrix
 from rsra.estimator.noise_budget import noise_budget
 
-FLAG = "angles_uncertain"
+FLAG = ANGLES_UNCERTAIN
 
 
 @pytest.mark.parametrize("frame", ["body", "shaft"])

@@ -23,7 +23,11 @@ from rsra.daq.runtime.stuck import StuckMonitor
 from rsra.estimator.balance import inertial_load_matrix
 from rsra.estimator.content import ContentFilter
 from rsra.daq.rigmodel import design_cache
-from rsra.estimator.angle_uncertainty import HubAngleVariance, angle_covariance
+from rsra.estimator.angle_uncertainty import (
+    ANGLES_UNCERTAIN,
+    HubAngleVariance,
+    angle_covariance,
+)
 from rsra.estimator.filters import LoadFilter
 from rsra.estimator.geometry import hub_transfer_matrix, wrench_matrix
 from rsra.estimator.noise_budget import noise_budget
@@ -333,7 +337,7 @@ class EstimatorPipeline:
             self._angles_uncertain = np.count_nonzero(v > self._angle_bound2) > 0
         sigma_angles = None if res.H is None else self._sigma_angles
         if sigma_angles is not None and self._angles_uncertain:
-            flags.append("angles_uncertain")
+            flags.append(ANGLES_UNCERTAIN)
         omega_pub = omega if omega is not None else (
             None if self.cfg.rotor.stopped or refused else self.cfg.rotor.omega_nominal_rad_s)
         out.records.append(("hub_loads", {
