@@ -178,3 +178,52 @@ def test_ground_test_after_a_small_sigma_posterior_is_not_flagged():
     e = np.abs(Hs - run.H_true[at:])
     cover = np.mean(e <= 3 * np.sqrt(sig[at:] ** 2 + bound**2), axis=0)
     assert (cover >= 0.98).all(), cover  # (400 correlated samples; measured ≥ 0.9925)
+
+
+def test_under_a_selected_structure_its_alpha0_sigma_is_in_force():
+    """A structure in force (issue 19): sigma_angles from the fit's `alpha0_sigma` (the
+    prior's σ where it is null), whatever P the angles records carry; back to the
+    posterior's P when the structure is dropped. Break-checked: the structure's σ not used
+    (the posterior's P always) fails the first comparison."""
+    from rsra.daq.runtime.pipeline import EstimatorPipeline
+    from rsra.daq.runtime.records import AnglesRecord
+    from rsra.estimator.structure import parameter_names
+    from rsra.sim_bus import simulate
+
+    cfg = load_config()
+    model = cfg.rig_model()
+    g = model.geometry
+    run = simulate(cfg, "ground-test", seed=2, n_samples=4)
+    p = EstimatorPipeline(cfg, cfg.identification.initial_angles_rad, identification=False)
+    n = len(g.angle_names)
+    small = np.radians(0.01)
+    P_small = np.eye(n) * small**2
+    p.deliver(AnglesRecord(accepted=False, reason="not_identifiable", names=list(g.angle_names),
+                           alpha=[0.0] * n, P=P_small.tolist(), applies_from_seq=2))
+    a0 = np.radians(np.linspace(-1.0, 1.0, n))
+    sig = [np.radians(0.2)] * (n - 1) + [None]
+    fit = {"structure": "balance", "alpha0": a0.tolist(),
+           "beta": [0.0] * len(parameter_names("balance", model)),
+           "T_ref": [0.0] * g.n_cells, "alpha0_sigma": sig}
+
+    def sigma_at(i):
+        s = SimpleNamespace(seq=i, sync=i + 1, t=float(run.t[i]), T=run.T[i],
+                            accel=run.accel[i], flags=[], drive=None, omega=float(run.omega[i]),
+                            azimuth=float(run.azimuth[i]), known_H=None,
+                            cell_status=np.zeros(7, int), lost_before=0)
+        hub = next(r for k, r in p.process(s).records if k == "hub_loads")
+        return np.asarray(hub["sigma_angles"], float), run.T[i]
+
+    p.set_structure(fit)
+    got, T = sigma_at(0)
+    s2 = np.array([np.radians(0.2)] * (n - 1) + [cfg.identification.prior_sigma_rad]) ** 2
+    want = np.sqrt(HubAngleVariance(g, a0, np.diag(s2)).variance(T))
+    assert np.allclose(got, want, rtol=1e-12)
+    got, T = sigma_at(2)  # the record's P (σ 0.01°) applies: the structure's σ stays
+    want = np.sqrt(HubAngleVariance(g, a0, np.diag(s2)).variance(T))
+    assert np.allclose(got, want, rtol=1e-12)
+    p.set_structure(None)
+    got, T = sigma_at(3)
+    want = np.sqrt(HubAngleVariance(g, cfg.identification.initial_angles_rad,
+                                    P_small).variance(T))
+    assert np.allclose(got, want, rtol=1e-12)
