@@ -328,10 +328,11 @@ def test_every_flag_reason_mode_and_state_is_in_telemetry_md(published):
     doc = _read("telemetry.md")
     hub = code_names(section(doc, "`<prefix>/hub_loads`"))
     flags = {f for k, p in published if k == "hub_loads" for f in p["flags"]}
+    from rsra.estimator.angle_uncertainty import ANGLES_UNCERTAIN
     from rsra.estimator.transient import TRANSIENT
 
-    vocabulary = {PREDICT_ONLY, INVALID, LOST_BEFORE, ROTOR_STOPPED, TRANSIENT, "missing:<node>",
-                  "overrange:<cell>", "fault:<cell>"}
+    vocabulary = {PREDICT_ONLY, INVALID, LOST_BEFORE, ROTOR_STOPPED, TRANSIENT, ANGLES_UNCERTAIN,
+                  "missing:<node>", "overrange:<cell>", "fault:<cell>"}
     for f in flags:  # every flag seen belongs to the documented vocabulary
         kind = f.split(":")[0]
         assert f in vocabulary or any(v.startswith(kind + ":") for v in vocabulary), f

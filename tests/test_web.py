@@ -47,7 +47,7 @@ def test_dictionary_is_built_from_the_rig_config(cfg, dic):
     ids = dic.by_id
     for i, ax in enumerate(D.AXES):
         unit = "N" if i < 3 else "N·m"
-        for kind in ("H", "static", "upper", "lower"):
+        for kind in ("H", "static", "upper", "lower", "angles"):
             assert ids[f"hub.{kind}.{ax}"].unit == unit
     assert [m.id for m in dic.measurements if m.group == "Load cells"] == \
         [f"cell.{c.name}" for c in cfg.cells]
@@ -112,6 +112,22 @@ def test_limits_false_alarm_rate_monte_carlo(dic):
     got = {i: d for i, d in D.points(dic, "hub_loads", _hub(0, 1.0, H, S))}
     assert all(got[f"hub.static.{ax}"]["lim"] == "yellow" for ax in D.AXES)
     assert got["hub.upper.Z"]["value"] == pytest.approx(H[2] + D.Z_YELLOW * sig[2])
+
+
+def test_sigma_angles_points_turn_yellow_beyond_the_static_sigma(dic):
+    """`sigma_angles` (the flag `angles_uncertain`): yellow on an axis where it exceeds the
+    axis' noise-budget σ, no limit below it, no point when null. Break-checked: the limit
+    against 3.29 σ leaves the 1.5 σ axis without its limit."""
+    sig = dic.sigma_static
+    hub = _hub(0, 1.0)
+    hub["sigma_angles"] = [0.5 * s for s in sig]
+    hub["sigma_angles"][5] = 1.5 * sig[5]
+    got = dict(D.points(dic, "hub_loads", hub))
+    assert got["hub.angles.N"]["lim"] == "yellow"
+    assert got["hub.angles.N"]["value"] == pytest.approx(1.5 * sig[5])
+    assert all("lim" not in got[f"hub.angles.{ax}"] for ax in D.AXES[:5])
+    hub["sigma_angles"] = None
+    assert not any(i.startswith("hub.angles.") for i, _ in D.points(dic, "hub_loads", hub))
 
 
 def test_points_of_every_key(dic, cfg):

@@ -234,7 +234,7 @@ def write_mcap(records: Iterable[tuple[str, dict]], out, prefix: str,
 def _components(key: str, path: str, value: list, payload: dict,
                 names: dict[str, tuple[str, ...]]) -> tuple[str, ...] | None:
     """Names of the elements of a list field that becomes one column per element."""
-    if path in ("H", "H_static", "I", "known_H", "e") and len(value) == 6:
+    if path in ("H", "H_static", "sigma_angles", "I", "known_H", "e") and len(value) == 6:
         return AXES
     if key == "channels" and path in ("T", "accel", "drive"):
         comp = names.get(path, ())

@@ -24,8 +24,14 @@ from rsra.daq.runtime.stuck import StuckMonitor
 from rsra.estimator.balance import inertial_load_matrix
 from rsra.estimator.content import ContentFilter
 from rsra.daq.rigmodel import design_cache
+from rsra.estimator.angle_uncertainty import (
+    ANGLES_UNCERTAIN,
+    HubAngleVariance,
+    angle_covariance,
+)
 from rsra.estimator.filters import LoadFilter
 from rsra.estimator.geometry import hub_transfer_matrix, wrench_matrix
+from rsra.estimator.noise_budget import noise_budget
 from rsra.estimator.structure import StructureCorrection
 from rsra.estimator.transient import TIME_CONSTANT_FRACTION, TRANSIENT, TransientDetector
 
@@ -146,6 +152,17 @@ class EstimatorPipeline:
         # fault:<cell|accelerometer> and treated like a faulted cell — predict-only (model
         # §6), H_static null, not ok in the identification window
         self.stuck = StuckMonitor(cfg, table) if cfg.stuck.enabled else None
+        # how far the angles in force can move the hub loads (`sigma_angles`, flag
+        # `angles_uncertain`; docs/identification.md): their covariance starts at the prior
+        # (set_angles_covariance: a saved or recorded starting posterior), then each applied
+        # angles record's P; flagged where it exceeds the static noise bound (`rsra
+        # noise-budget`, model §4)
+        n_a = len(self.model.geometry.angle_names)
+        self._P_angles = np.eye(n_a) * cfg.identification.prior_sigma_rad ** 2
+        self._angle_bound2 = noise_budget(self.model, idc.initial_angles_rad).total ** 2
+        self._angle_var = HubAngleVariance(self.model.geometry, self.alpha, self._P_angles)
+        self._sigma_angles = None  # the last measured sample's (predict-only samples keep it)
+        self._angles_uncertain = False
 
     # --- identification results -------------------------------------------------------
     def deliver(self, rec: AnglesRecord, arrival_seq: int | None = None,
@@ -188,6 +205,7 @@ class EstimatorPipeline:
             self._take_in(seq)
         while self.pending and self.pending[0].applies_from_seq <= seq:
             rec = self.pending.pop(0)
+            self.set_angles_covariance(rec.get("names"), rec.get("P"))
             if rec.accepted:
                 names = rec.names or []
                 alpha = self.alpha.copy()
@@ -208,6 +226,32 @@ class EstimatorPipeline:
     def _use_angles(self, alpha: np.ndarray) -> None:
         self._S = wrench_matrix(self.model.geometry, alpha)
         self.load_filter.set_alpha(alpha)
+        self._angle_var = HubAngleVariance(self.model.geometry, alpha, self._angles_P_in_force())
+
+    def set_angles_covariance(self, names, P) -> None:
+        """The covariance of the angles in force: the posterior ``P`` over ``names`` (an
+        angles record's — every record carries the posterior whose mean is in force — or the
+        starting posterior). Angles it does not name keep theirs; a record without P
+        changes nothing."""
+        if names is None or P is None:
+            return
+        P_new = angle_covariance(self.model.geometry.angle_names, names, P, self._P_angles)
+        if not np.array_equal(P_new, self._P_angles):
+            self._P_angles = P_new
+            if self.structure is None:
+                self._angle_var = HubAngleVariance(self.model.geometry, self.alpha, P_new)
+
+    def _angles_P_in_force(self) -> np.ndarray:
+        """Under a selected structure: its fit's α0 σ where the fit determined it (the prior
+        σ elsewhere), its β's uncertainty left out; else the posterior's covariance."""
+        if self.structure is None:
+            return self._P_angles
+        prior = self.cfg.identification.prior_sigma_rad
+        sig = (self._structure_fit or {}).get("alpha0_sigma") or []
+        n_a = len(self._P_angles)
+        s = [float(sig[k]) if k < len(sig) and isinstance(sig[k], (int, float))
+             and math.isfinite(sig[k]) else prior for k in range(n_a)]
+        return np.diag(np.square(s))
 
     def set_structure(self, fit: dict | None) -> None:
         """Hub loads under a selected structure (estimator.structure.StructureCorrection:
@@ -309,12 +353,19 @@ class EstimatorPipeline:
             flags.append(TRANSIENT)
         if self.identification_off:
             flags.append("identification_off")
+        if measured:  # (predict-only: H comes from earlier samples, and so does their σ)
+            v = self._angle_var.variance(T)
+            self._sigma_angles = np.sqrt(np.abs(v))
+            self._angles_uncertain = np.count_nonzero(v > self._angle_bound2) > 0
+        sigma_angles = None if res.H is None else self._sigma_angles
+        if sigma_angles is not None and self._angles_uncertain:
+            flags.append(ANGLES_UNCERTAIN)
         omega_pub = omega if omega is not None else (
             None if self.cfg.rotor.stopped or refused else self.cfg.rotor.omega_nominal_rad_s)
         out.records.append(("hub_loads", {
             "seq": seq, "sync": int(s.sync), "t": float(s.t), "frame": self.frame,
-            "H": None if res.H is None else res.H, "H_static": H_static, "omega": omega_pub,
-            "flags": flags}))
+            "H": None if res.H is None else res.H, "H_static": H_static,
+            "sigma_angles": sigma_angles, "omega": omega_pub, "flags": flags}))
         yield out
         out = PipelineOutput()
         status = s.cell_status

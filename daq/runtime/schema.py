@@ -15,6 +15,7 @@ FIELDS: dict[str, list[tuple[str, str, str]]] = {
     "hub_loads": [
         ("seq", "integer", ""), ("sync", "integer", ""), ("t", "number", "s (UNIX)"),
         ("frame", "string", ""), ("H", "array:number", VEC6), ("H_static", "array:number", VEC6),
+        ("sigma_angles", "array:number", VEC6),
         ("omega", "number", "rad/s"), ("flags", "array:string", "")],
     "channels": [
         ("seq", "integer", ""), ("t", "number", "s (UNIX)"), ("T", "array:number", "N"),

@@ -11,7 +11,9 @@ Limits, from what rsra knows (docs/cli.md §15):
 * hub loads: the static estimate against the filter estimate, per axis, in units of the
   static-estimate noise σ of the noise budget (model §4): yellow beyond the two-sided 10⁻³
   quantile of a normal variable (3.29 σ), red beyond 10⁻⁶ (4.89 σ); the band
-  ``H ± 3.29 σ`` is drawn as two series (``hub.upper.*``, ``hub.lower.*``);
+  ``H ± 3.29 σ`` is drawn as two series (``hub.upper.*``, ``hub.lower.*``); the σ of the
+  hub-load error due to the angles in force (``hub.angles.*``, ``sigma_angles``) yellow
+  beyond that static σ (the flag ``angles_uncertain``);
 * NIS: the χ² band with 6 degrees of freedom — yellow outside the two-sided 10⁻³ band,
   red above the 10⁻⁶ upper quantile (absolute limit lines in the plot);
 * node states: ``operational`` fine, ``booting``/``pre-operational``/``stopped`` yellow,
@@ -130,6 +132,8 @@ def build_dictionary(cfg, prefix: str | None = None) -> Dictionary:
                               "hub_loads", u))
         ms.append(Measurement(f"hub.lower.{ax}", f"{ax} filter −{Z_YELLOW:.2f}σ", "Hub loads",
                               "hub_loads", u))
+        ms.append(Measurement(f"hub.angles.{ax}", f"{ax} σ from the angles", "Hub loads",
+                              "hub_loads", u))
     ms.append(Measurement("hub.omega", "rotor speed", "Hub loads", "hub_loads", "rad/s"))
     ms.append(Measurement("hub.flags", "sample flags", "Hub loads", "hub_loads", "",
                           format="string"))
@@ -246,6 +250,9 @@ def points(dic: Dictionary, key: str, p: dict) -> list[tuple[str, dict]]:
                 out.append((f"hub.static.{ax}", _datum(
                     utc, s, None if dev is None else static_limit(dev), ref=h,
                     dev=None if dev is None else round(dev, 3))))
+            a = _num(_idx(p.get("sigma_angles"), i))
+            if a is not None:  # yellow where the flag angles_uncertain says so
+                out.append((f"hub.angles.{ax}", _datum(utc, a, "yellow" if a > sig else None)))
         om = _num(p.get("omega"))
         if om is not None:
             out.append(("hub.omega", _datum(utc, om)))

@@ -127,7 +127,8 @@ def render(stats: dict[str, KeyStats], prefix: str, units: str, now: float):
         u = axis_units(units)
         for i, ax in enumerate(AXES):
             ht.add_column(f"{ax} [{u[i]}]", justify="right")
-        for label, field in (("filter H", "H"), ("static", "H_static")):
+        for label, field in (("filter H", "H"), ("static", "H_static"),
+                             ("σ angles", "sigma_angles")):
             v = hl.latest.get(field)
             vals = ([None] * 6 if v is None else
                     to_units(np.array([np.nan if x is None else x for x in v]), units).tolist())
