@@ -227,3 +227,29 @@ def test_under_a_selected_structure_its_alpha0_sigma_is_in_force():
     want = np.sqrt(HubAngleVariance(g, cfg.identification.initial_angles_rad,
                                     P_small).variance(T))
     assert np.allclose(got, want, rtol=1e-12)
+
+
+def test_the_service_starts_from_the_saved_posteriors_covariance(tmp_path):
+    """`rsra run --angles FILE` (lock-step, 1 s): the hub loads' sigma_angles comes from the
+    file's P from the first sample (0.05°: never flagged), not from the 5° prior until a first
+    record applies. Break-checked: without the service's set_angles_covariance call every
+    sample is flagged."""
+    from rsra.daq.runtime.persistence import save_posterior
+    from rsra.daq.runtime.service import Service, ServiceOptions
+    from rsra.estimator.posterior import PosteriorState
+
+    cfg = load_config()
+    names = cfg.rig_model().geometry.angle_names
+    path = tmp_path / "post.json"
+    save_posterior(path, PosteriorState(tuple(names), np.zeros(len(names)),
+                                        np.eye(len(names)) * np.radians(0.05) ** 2))
+    hubs = []
+    svc = Service(cfg, ServiceOptions(sim="ground-test", speed=None, duration=1.0, zenoh=False,
+                                      identification=False, angles=str(path), seed=3))
+    svc.add_sink(lambda k, p: hubs.append(p) if k == "hub_loads" else None)
+    svc.run()
+    bound = noise_budget(cfg.rig_model(), cfg.identification.initial_angles_rad).total
+    assert len(hubs) == round(cfg.sample_rate_hz)
+    assert not any(FLAG in h["flags"] for h in hubs)
+    sig = np.array([h["sigma_angles"] for h in hubs if h["sigma_angles"] is not None], float)
+    assert len(sig) and (sig <= 0.3 * bound).all()

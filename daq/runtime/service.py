@@ -449,6 +449,11 @@ class Service:
                     log.warning("%s", warning)
                     self.warnings.append(warning)
             self.pipeline = EstimatorPipeline(cfg, alpha0, identification=use_ident)
+            # the covariance of the starting angles (hub_loads sigma_angles): the recording's
+            # starting posterior in a replay, else the saved posterior's or the prior
+            start = (recorded_initial if recorded_initial is not None and not opts.angles
+                     else self._initial_record(alpha0, state).to_dict())
+            self.pipeline.set_angles_covariance(start.get("names"), start.get("P"))
             # the structure the hub loads use from the start (issue 19): the recording's
             # first line in a replay; else the saved posterior's, else the config's
             if recorded_initial is not None and not opts.angles:
