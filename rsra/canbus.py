@@ -33,6 +33,35 @@ def shutdown_bus(bus: can.BusABC) -> None:
         can.BusABC.shutdown(bus)  # the base class's part: periodic tasks stopped, flag set
 
 
+def bus_failure(exc: BaseException) -> bool:
+    """The bus itself failed or went away (an interface down, python-can-remote's server
+    closed: ``WebsocketClosed``), as opposed to a bug in a frame's handler."""
+    if isinstance(exc, (can.CanError, OSError)):
+        return True
+    try:
+        from can_remote.websocket import WebsocketClosed
+    except ImportError:  # python-can-remote not installed: no such failure
+        return False
+    return isinstance(exc, WebsocketClosed)
+
+
+class EndOnBusFailure(can.Listener):
+    """A Notifier listener that ends the Notifier's thread when its bus fails (python-can
+    otherwise either re-raises from the thread, printing a traceback, or — with an
+    ``on_error`` that returns — retries a bus that is gone at once, in a loop). The failure
+    stays in ``notifier.exception`` for the owner to report; the thread ends by SystemExit,
+    which ``threading`` ends a thread with silently. Any other error is left unhandled (a bug:
+    its traceback is printed, as before)."""
+
+    def on_message_received(self, msg: can.Message) -> None:
+        pass
+
+    def on_error(self, exc: Exception) -> None:
+        if not bus_failure(exc):
+            raise NotImplementedError  # not handled here: python-can raises it
+        raise SystemExit
+
+
 class EchoFirstVirtualBus(VirtualBus):
     """python-can's ``virtual`` bus, with one ordering guarantee added: a frame sent with
     ``receive_own_messages`` reaches the sender's own queue before any other user's.

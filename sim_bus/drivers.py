@@ -53,6 +53,7 @@ from typing import Any, Protocol
 
 import can
 
+from rsra.canbus import EndOnBusFailure, bus_failure
 from rsra.sim_bus.bus_sim import SimulatedTime, Simulator, WallClock
 
 log = logging.getLogger(__name__)
@@ -258,7 +259,9 @@ class _Served(_Driven):
         with sim.lock:  # the notifier's callbacks wait for the nodes' boot
             if not self._started:
                 self._started = True
-                sim.network.notifier = can.Notifier(sim.bus, sim.network.listeners, 0.1)
+                # a bus that fails ends the thread quietly; check() raises the failure
+                sim.network.notifier = can.Notifier(
+                    sim.bus, [*sim.network.listeners, EndOnBusFailure()], 0.1)
                 sim.start()
         return self
 
@@ -373,7 +376,10 @@ class RealtimeSim(_Served):
                     # is ready long before its boundary (docs/performance.md P6b)
                     self._compute_ahead()
             except Exception as e:  # noqa: BLE001 - re-raised by check()
-                log.exception("heartbeat ticker failed")
+                if bus_failure(e):  # the bus went away: the owner reports it, once
+                    log.debug("heartbeat ticker: the bus failed: %s", e)
+                else:
+                    log.exception("heartbeat ticker failed")
                 self._error = self._error or e
                 return
 

@@ -113,3 +113,63 @@ def test_the_senders_own_copy_is_queued_before_an_instant_answer(echo_first):
         responder.shutdown()
         sender.shutdown()
     assert order == ([0x80, 0x193] if echo_first else [0x193, 0x80])
+
+
+@pytest.mark.timeout(120)
+def test_when_the_shared_bus_stops_the_simulator_says_so_and_keeps_its_truth(tmp_path):
+    """`rsra bus` stopped under a running `rsra sim` (any order of stopping is allowed):
+    the simulator ends with one line naming the failure, exit 1, no traceback, and the truth
+    file the user asked for is written."""
+    import subprocess
+    import sys
+
+    truth = tmp_path / "truth.npz"
+    with BusServer(port=0, channel="t-gone") as srv:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "rsra", "sim", "--scenario", "ground-test", "--autostart",
+             "--interface", "remote", "--channel", srv.url, "--truth", str(truth)],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        try:
+            line = proc.stdout.readline()  # its start line
+            assert "rsra sim:" in line, line
+            while "samples" not in (line := proc.stdout.readline()) or " 0 samples" in line:
+                assert line, "the simulator ended before producing samples"
+        except BaseException:
+            proc.kill()
+            raise
+    try:
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 1, out
+    assert "Traceback" not in out and "internal error" not in out, out
+    assert "the bus failed" in out and f"truth in {truth}" in out, out
+    assert truth.exists() and truth.stat().st_size > 0
+
+
+def test_a_bus_that_keeps_failing_is_retried_with_a_growing_pause(monkeypatch, caplog):
+    """The service's reader (FrameTap.on_error, python-can's Notifier calls it on a failed
+    read): counted, logged once per distinct failure, and retried after a pause that doubles
+    while no frame arrives (10 ms … 1 s: a bus that is gone for good does not spin the bus
+    thread); a frame in between starts again without a pause."""
+    import logging
+
+    from rsra.config.rig import load_config
+    from rsra.daq.bus import reader as reader_mod
+
+    pauses = []
+    monkeypatch.setattr(reader_mod.time, "sleep", pauses.append)
+    caplog.set_level(logging.ERROR, logger="rsra.daq.bus.reader")
+    tap = reader_mod.OfflineReader(load_config()).tap
+    gone = OSError("the server closed the connection")
+    for _ in range(10):
+        tap.on_error(gone)
+    assert pauses == [0.01, 0.02, 0.04, 0.08, 0.16, 0.32, 0.64, 1.0, 1.0]
+    assert tap.errors == 10 and "server closed" in tap.last_callback_error
+    assert sum("bus read failed" in r.getMessage() for r in caplog.records) == 1
+    tap.frames += 1  # a frame was read: the next failure is retried at once
+    pauses.clear()
+    tap.on_error(gone)
+    tap.on_error(gone)
+    assert pauses == [0.01]

@@ -101,6 +101,8 @@ RATE_LOW_FRACTION = 0.99  # below this fraction of sample_rate_hz: sync.rate_low
 TIMEBASE_BLOCK = 256  # frames per estimate of a foreign frame timebase's offset
 TIMEBASE_FIRST_BLOCK = 16  # the first block (a quick first estimate)
 TIMEBASE_QUANTILE = 0.1  # the block's quantile of receipt delays taken as the offset
+READ_RETRY_MIN_S = 0.01  # the pause after a second failed bus read in a row (FrameTap.on_error)
+READ_RETRY_MAX_S = 1.0  # ... doubling up to this while the reads keep failing
 FOREIGN_TIMEBASE_S = 0.05  # a receipt delay floor beyond this: frames carry a foreign clock
 _floor = math.floor
 
@@ -187,6 +189,8 @@ class FrameTap(can.Listener):
         self.remote = 0
         self.callback_errors = 0
         self.last_callback_error: str | None = None
+        self._read_failed_at = -1  # self.frames at the last failed read
+        self._backoff = 0.0  # the pause after a failed read (on_error)
         self.frame_time = -math.inf  # monotone, quantised frame time
         self.tick_time = -math.inf  # live idle tick (wall clock)
         self.lock = threading.Lock()
@@ -256,9 +260,23 @@ class FrameTap(can.Listener):
                     self.deadlines.run(t)
 
     def on_error(self, exc: Exception) -> None:
-        # a bus read failed (interface down, …): count it, keep the notifier running
+        """A bus read failed (interface down, the shared bus's server gone, …): counted
+        (health ``bus.errors``, the text in ``bus.last_callback_error``), logged when it changes, and the notifier keeps
+        reading — after a pause that doubles while the reads keep failing (10 ms … 1 s), so
+        a bus that is gone for good does not spin the bus thread; a frame read again resets
+        it."""
         self.errors += 1
-        self.last_callback_error = f"bus: {type(exc).__name__}: {exc}"
+        text = f"bus: {type(exc).__name__}: {exc}"
+        if text != self.last_callback_error:
+            log.error("bus read failed (%s); retrying, the samples report what is missing",
+                      text[5:])
+        self.last_callback_error = text
+        if self._read_failed_at == self.frames:  # no frame since the last failure
+            self._backoff = min(READ_RETRY_MAX_S, max(READ_RETRY_MIN_S, 2 * self._backoff))
+            time.sleep(self._backoff)
+        else:
+            self._backoff = 0.0
+        self._read_failed_at = self.frames
 
     def stop(self) -> None:
         pass

@@ -59,6 +59,7 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     import can
 
+    from rsra.canbus import bus_failure
     from rsra.daq.cli.options import UsageError
     from rsra.daq.rigmodel import load_rig
     from rsra.daq.cli.console import make_console
@@ -112,6 +113,7 @@ def run(args: argparse.Namespace) -> int:
         stop.set()
 
     old_term = signal.signal(signal.SIGTERM, on_term)
+    failed: BaseException | None = None
     try:
         with sim:
             try:
@@ -119,14 +121,21 @@ def run(args: argparse.Namespace) -> int:
             except KeyboardInterrupt:
                 interrupted = True
                 stop.set()
+            except Exception as e:  # the bus went away (e.g. `rsra bus` stopped): say so
+                if not bus_failure(e):
+                    raise
+                failed = e
+                stop.set()
     finally:
         sim.close()
         signal.signal(signal.SIGTERM, old_term)
+    # the truth so far is written whatever ended the run (nothing lost)
     truth = sim.write_truth(Path(args.truth)) if args.truth and len(sim.samples) else None
     how = ("stopped (Ctrl-C)" if interrupted else "stopped (SIGTERM)" if terminated.is_set()
-           else "done")
+           else f"the bus failed ({type(failed).__name__}: {failed}; was it closed?)"
+           if failed is not None else "done")
     console.print(f"rsra sim: {how}: {len(sim.sync_info)} samples, {sim.frames_sent} frames sent, "
                   f"{sim.faults.events} fault events"
                   + (f", frames in {args.record}" if args.record else "")
                   + (f", truth in {truth}" if truth else ""))
-    return 0
+    return 1 if failed is not None else 0
