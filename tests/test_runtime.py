@@ -147,3 +147,46 @@ def test_records_cross_the_process_boundary_intact():
     back = pickle.loads(pickle.dumps(job))
     assert back.job_id == 4 and np.array_equal(back.seq, job.seq)
     assert list(back.as_mapping())[:4] == ["job_id", "mode", "content", "applies_from_seq"]
+
+
+def test_paced_lockstep_goes_on_at_its_pace_after_a_hold_up(monkeypatch):
+    """`--speed 2` (paced lock-step) on a virtual clock: a consumer that holds the loop for
+    0.5 s (a subscriber waited for, the machine stalled) is not caught up in a burst — the
+    next samples are paced again at once (a DROP subscriber would lose a burst); a hold-up
+    within PACE_SLACK_S is caught up. No wall-clock timing is asserted."""
+    import types
+
+    from rsra.config.rig import load_config
+    from rsra.daq.runtime import sources
+    from rsra.daq.runtime.service import Service
+
+    now = [1000.0]
+    sleeps: list[tuple[int, float]] = []
+    seen = [0]
+
+    def sleep(s):
+        sleeps.append((seen[0], s))
+        now[0] += s
+
+    fake = types.SimpleNamespace(monotonic=lambda: now[0], sleep=sleep, time=__import__("time").time)
+    monkeypatch.setattr(sources, "time", fake)
+    cfg = load_config()
+    dt = 1.0 / cfg.sample_rate_hz / 2.0  # paced at 2x real time
+    svc = Service(cfg, ServiceOptions(sim="ground-test", speed=2.0, duration=0.5, zenoh=False,
+                                      identification=False, seed=1))
+
+    def sink(key, payload):
+        if key == "hub_loads":
+            seen[0] += 1
+            if seen[0] == 20:
+                now[0] += 0.5  # held up 0.5 s: 100 samples' worth
+            elif seen[0] == 60:
+                now[0] += 0.5 * sources.PACE_SLACK_S  # a small delay: caught up
+
+    svc.add_sink(sink)
+    svc.run()
+    after = [s for k, s in sleeps if 20 <= k < 25]
+    assert after and all(s == pytest.approx(dt, abs=1e-9) for s in after), sleeps[15:30]
+    # within the slack: the next samples run without pausing until the schedule is met
+    at = [k for k, s in sleeps if k >= 60]  # 0.025 s = 10 samples at 2.5 ms: caught up
+    assert at and at[0] >= 68, [x for x in sleeps if 55 <= x[0] < 75]
