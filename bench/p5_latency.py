@@ -211,11 +211,17 @@ def main(argv: list[str] | None = None) -> int:
     # the CPU the hub path took in the thread that stamped both ends (live: the bus thread)
     cpu_ms = (st["put_cpu"][keep] - st["frame_cpu"][keep]) * 1e3
     cpu_ms = cpu_ms[np.isfinite(cpu_ms)]
+    # before it: SYNC -> the sample's last frame processed (the simulator's answer and
+    # python-can's delivery of its frames, in the service's process)
+    answer_ms = (st["frame"][keep] - st["sync"][keep]) * 1e3
+    answer_ms = answer_ms[np.isfinite(answer_ms)]
     p5b = {"samples_timed": int(share.size), "max_ms": float(share.max()),
            "p90_ms": float(np.percentile(share, 90)),
            "zenoh_put_call_p50_ms": float(np.percentile(put_ms, 50)),
            "zenoh_put_call_p99_ms": float(np.percentile(put_ms, 99)),
            "zenoh_hop_p50_ms": f50, "zenoh_hop_p99_ms": f99,
+           "sync_to_last_frame_p50_ms": float(np.percentile(answer_ms, 50)) if answer_ms.size else None,
+           "sync_to_last_frame_p99_ms": float(np.percentile(answer_ms, 99)) if answer_ms.size else None,
            "hub_path_cpu_p50_ms": float(np.percentile(cpu_ms, 50)) if cpu_ms.size else None,
            "hub_path_cpu_p90_ms": float(np.percentile(cpu_ms, 90)) if cpu_ms.size else None,
            "timed": "RSRA_STAGE_TIMING hook (daq/stagetiming.py): assembler's sample "

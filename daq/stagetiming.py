@@ -8,6 +8,10 @@ preallocated arrays indexed by ``seq`` modulo the capacity (bounded), and are wr
 at exit, as an ``.npz`` file with one row per sample:
 
 * ``seq``;
+* ``sync`` — the sample's SYNC time (the acquisition clock: the wall clock, ``time.time``)
+  on the ``perf_counter`` scale (shifted by the offset between the two clocks taken once at
+  start), so ``frame - sync`` is SYNC → the sample's last frame processed (in the service's
+  process: the simulator's answer and python-can's delivery of its frames);
 * ``frame`` — the sample was completed by its last TPDO (the assembler, in the thread that
   received the frame), or passed on incomplete at the next SYNC;
 * ``handed`` — ``hub_loads`` encoded and about to be put (the estimator thread);
@@ -22,6 +26,7 @@ Nothing here is read by the service itself: it never changes what is computed or
 from __future__ import annotations
 
 import atexit
+import math
 import os
 import time
 
@@ -43,13 +48,16 @@ class StageTimer:
         self.put = np.full(capacity, np.nan)
         self.frame_cpu = np.full(capacity, np.nan)
         self.put_cpu = np.full(capacity, np.nan)
+        self.sync = np.full(capacity, np.nan)
         self.n_max = -1
         self.clock = time.perf_counter
         self.cpu = time.thread_time
+        self.offset = time.time() - time.perf_counter()  # wall clock -> perf_counter scale
 
-    def frame_done(self, seq: int) -> None:
+    def frame_done(self, seq: int, sync_t: float = math.nan) -> None:
         i = seq % self.capacity
         self.seq[i] = seq
+        self.sync[i] = sync_t - self.offset
         self.frame_cpu[i] = self.cpu()
         self.frame[i] = self.clock()
         self.handed[i] = self.put[i] = self.put_cpu[i] = np.nan
@@ -72,7 +80,8 @@ class StageTimer:
         order = np.argsort(self.seq[ok])
         np.savez(self.path, seq=self.seq[ok][order], frame=self.frame[ok][order],
                  handed=self.handed[ok][order], put=self.put[ok][order],
-                 frame_cpu=self.frame_cpu[ok][order], put_cpu=self.put_cpu[ok][order])
+                 frame_cpu=self.frame_cpu[ok][order], put_cpu=self.put_cpu[ok][order],
+                 sync=self.sync[ok][order])
 
 
 def _from_env() -> StageTimer | None:

@@ -129,6 +129,8 @@ def test_stage_timing_hook_is_off_unless_asked(tmp_path):
     # the hub path's CPU, stamped by the one thread that ran it: never more than its wall time
     cpu = st["put_cpu"][ok] - st["frame_cpu"][ok]
     assert np.all(cpu >= 0) and np.all(cpu <= st["put"][ok] - st["frame"][ok] + 1e-4)
+    # the sample's SYNC time, on the perf_counter scale (lock-step: simulated time)
+    assert np.all(np.isfinite(st["sync"][ok]))
 
 
 def test_stage_profile_quick(capsys):

@@ -467,7 +467,7 @@ class SampleAssembler:
 
     def _pass_on(self, complete_trigger: bool) -> None:
         if stagetiming.TIMER is not None:  # off unless a benchmark asked (docs/performance.md P5b)
-            stagetiming.TIMER.frame_done(self._seq)
+            stagetiming.TIMER.frame_done(self._seq, self._sync_t)
         self._open = False
         self._wait = -1
         (unreported, missing, missing_flags, nan_idx, nan_out, cell_names, status_idx,
