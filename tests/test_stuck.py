@@ -183,11 +183,14 @@ def test_the_detector_matches_a_scalar_reference_on_random_streams():
     assert min(samples[:3]) > 0 and samples[3] == 0  # the stream exercised the flagging
 
 
-def test_the_fresh_sample_shortcut_matches_the_scalar_reference():
+@pytest.mark.parametrize("python_first", [False, True])
+def test_the_fresh_sample_shortcut_matches_the_scalar_reference(python_first):
     """Every run length >= 2 (the rigs' case): a sample whose readings are all present and
     all new takes the shortcut (runs restart at 1, nothing flagged). On continuous streams
     with frozen stretches, NaN, inf and huge values the
-    state and the flags are those of the per-channel definition, sample by sample."""
+    state and the flags are those of the per-channel definition, sample by sample — also
+    when each sample is first offered to the Python shortcut (``update_fresh``, what the
+    monitor does), its state brought up to date only when read."""
     rng = np.random.default_rng(11)
     k = np.array([2, 3, 4, 0, 6])
     n, m = 4000, len(k)
@@ -204,7 +207,10 @@ def test_the_fresh_sample_shortcut_matches_the_scalar_reference():
     value, run = [math.nan] * m, [0] * m
     episodes, samples, shortcut = [0] * m, [0] * m, 0
     for t in range(n):
-        got = det.update(x[t])
+        if python_first and det.update_fresh(x[t].tolist()):
+            got = det.stuck
+        else:
+            got = det.update(x[t])
         want = []
         fresh = all(math.isfinite(v) and v != value[c] for c, v in enumerate(x[t]))
         shortcut += fresh

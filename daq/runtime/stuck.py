@@ -149,8 +149,12 @@ class StuckDetector:
         self.tested = self.k > 0
         # the run length that flags, an untested channel's never reached (one compare a sample)
         self._k_flag = np.where(self.tested, self.k, np.iinfo(np.int64).max)
-        self.value = np.full(n, np.nan)
-        self.run = np.zeros(n, np.int64)
+        self._value = np.full(n, np.nan)
+        self._run = np.zeros(n, np.int64)
+        # after samples that took the shortcut in Python (update_fresh): the last one's
+        # readings; the arrays above are brought up to date only when read or when a sample
+        # takes the vectorised path (docs/performance.md P5b: a dozen numpy calls saved)
+        self._last: list[float] | None = None
         self.episodes = np.zeros(n, np.int64)  # runs that reached k
         self.samples = np.zeros(n, np.int64)  # samples flagged
         self.stuck = np.zeros(n, bool)
@@ -163,17 +167,53 @@ class StuckDetector:
         self._none = np.zeros(n, bool)
         self._none.flags.writeable = False
 
+    @property
+    def value(self) -> np.ndarray:
+        """Per channel, the value of its current run (NaN before the first reading)."""
+        self._settle()
+        return self._value
+
+    @property
+    def run(self) -> np.ndarray:
+        """Per channel, the length of its current run of equal readings."""
+        self._settle()
+        return self._run
+
+    def _settle(self) -> None:
+        if self._last is not None:  # the last sample was new and present on every channel
+            self._run.fill(1)
+            self._value[:] = self._last
+            self._last = None
+
+    def update_fresh(self, xl: list[float]) -> bool:
+        """The common sample, as Python floats: when every reading is present and differs
+        from the last one (every run restarts at 1, nothing flags), take it and return True
+        (``fresh``) — with no numpy call; otherwise change nothing and return False (then
+        :meth:`update` takes it). The same decision as :meth:`update`'s shortcut."""
+        if not self._fresh_ok:
+            return False
+        prev = self._last if self._last is not None else self._value.tolist()
+        for a, b in zip(xl, prev):
+            if a == b or a - a != 0.0:  # the same, or not finite (a - a is NaN for inf, NaN)
+                return False
+        self._last = xl
+        self.stuck = self._none
+        self.n_stuck = 0
+        self.fresh = True
+        return True
+
     def update(self, x: np.ndarray, explained: np.ndarray | None = None) -> np.ndarray:
         """Feed one sample's readings; returns the channels stuck in it. ``explained``: the
         channels whose own status already accounts for a constant value (an over-range cell
         reads full scale): their run goes on, but they are not flagged or counted."""
+        self._settle()
         x = np.asarray(x, float)
         if self._fresh_ok:
             same = x == self.value
             if not np.count_nonzero(same):
                 if np.count_nonzero(np.isfinite(x)) == x.size:
-                    self.run.fill(1)
-                    self.value[:] = x
+                    self._run.fill(1)
+                    self._value[:] = x
                     self.stuck = self._none
                     self.n_stuck = 0
                     self.fresh = True
@@ -183,15 +223,16 @@ class StuckDetector:
         same = x == self.value  # NaN equals nothing: a repeat is always a present reading
         new = present ^ same  # present and different: a new run starts at 1
         # in place (the estimator's per-sample path, docs/performance.md P5)
-        self.run += same
-        np.copyto(self.run, 1, where=new)
-        np.copyto(self.value, x, where=new)
-        stuck = present & (self.run >= self._k_flag)
+        run = self._run
+        run += same
+        np.copyto(run, 1, where=new)
+        np.copyto(self._value, x, where=new)
+        stuck = present & (run >= self._k_flag)
         if explained is not None:
             stuck &= ~np.asarray(explained, bool)
         self.n_stuck = n_stuck = np.count_nonzero(stuck)  # (ndarray.any costs 4x as much)
         if n_stuck:
-            self.episodes += stuck & (self.run == self.k)
+            self.episodes += stuck & (run == self.k)
             self.samples += stuck
         self.stuck = stuck
         return stuck
@@ -213,6 +254,12 @@ class StuckMonitor:
         """The flags of this sample (each once, in channel order). ``flags``: the sample's
         own; a cell that reports over-range or a fault by its status is not flagged stuck
         (the simulated over-range pins the force at full scale: one cause, one flag)."""
+        if not flags and isinstance(T, np.ndarray) and T.ndim == 1 and self._acc_flat(accel):
+            # the common sample in Python: present and new everywhere (nothing can flag)
+            xl = T.tolist()
+            xl += accel.ravel().tolist()
+            if self.detector.update_fresh(xl):
+                return []
         x = self._x  # reused: the detector keeps only copies of it
         x[:self.n_cells] = np.asarray(T, float).reshape(-1)
         x[self.n_cells:] = np.asarray(accel, float).reshape(-1)
@@ -231,6 +278,9 @@ class StuckMonitor:
             if f not in flags:
                 flags.append(f)
         return flags
+
+    def _acc_flat(self, accel: np.ndarray) -> bool:
+        return isinstance(accel, np.ndarray) and accel.size + self.n_cells == len(self._x)
 
     def health(self) -> dict:
         """Counts for the health record (estimator.stuck_*)."""
