@@ -380,6 +380,19 @@ class DesignCache:
                 made += 1
         return made
 
+    def has_design(self, omega: float | None, current: FilterDesign | None = None) -> bool:
+        """Whether :meth:`design_for` would return at once (the design in use, or one
+        cached), not design a filter (~10–60 ms)."""
+        ref = self._last if current is None else current
+        if omega is None:
+            omega = self.omega_default
+        if self.is_stopped(omega):
+            return self._stopped is not None
+        if (ref is not None and not ref.rotor_stopped
+                and abs(omega / ref.omega - 1.0) <= self.redesign_band):
+            return True
+        return self._grid(omega)[0] in self._designs
+
     def design_for(self, omega: float | None, current: FilterDesign | None = None) -> FilterDesign:
         """The design to use at rotor speed ``omega``.
 

@@ -128,3 +128,62 @@ def test_live_hub_loads_come_from_the_bus_thread_and_the_rest_from_the_service_t
     assert len(seqs["hub_loads"]) == len(seqs["channels"]) == n
     assert seqs["hub_loads"] == seqs["channels"]
     assert seqs["hub_loads"] == list(range(seqs["hub_loads"][0], seqs["hub_loads"][0] + n))
+
+
+def test_a_slow_first_step_goes_whole_to_the_service_thread_in_order(cfg, run):
+    """A rotor speed outside every cached design (a redesign: 10–60 ms) or a result to
+    apply: the bus thread passes the whole sample to the service thread instead of stalling
+    frame reading, and the samples after it too until that one is done; then it takes first
+    steps again. The hub loads are those of one thread doing every sample in order (bit for
+    bit). Break-checked: with first_step_is_quick always True, the redesign runs in the bus
+    thread (the whole-sample assertions fail)."""
+    import queue
+
+    def sample(i):
+        s = _sample(run, i)
+        if 40 <= i < 60:
+            s.omega = s.omega * 1.2  # a speed step beyond the prefilled band
+        return s
+
+    ref = EstimatorPipeline(cfg, cfg.identification.initial_angles_rad, identification=False)
+    want = [_hub(ref.process(sample(i)).records)[0] for i in range(100)]
+
+    published = []
+    svc = Service(cfg, ServiceOptions(sim="ground-test", speed=1.0, zenoh=False,
+                                      identification=False))
+    svc.pipeline = EstimatorPipeline(cfg, cfg.identification.initial_angles_rad,
+                                     identification=False)
+    svc.outputs = SimpleNamespace(publish=lambda k, p: published.append((k, p)))
+    svc.source = SimpleNamespace(deterministic=False, recorder=None,
+                                 reader=SimpleNamespace(items=SimpleNamespace(
+                                     queue=queue.Queue(16))))
+    kinds = []
+    pending = []
+    for i in range(100):
+        item = svc._first_step(sample(i))  # the bus thread
+        kinds.append("whole" if item.rest is None else "step")
+        pending.append(item)
+        if i % 3 == 2 or i == 99:  # the service thread, behind by a few samples
+            for it in pending:
+                svc._on_sample(it)
+            pending.clear()
+    assert kinds[:40] == ["step"] * 40
+    assert kinds[40] == "whole"  # the redesign: not in the bus thread
+    assert "step" in kinds[41:] and kinds[-1] == "step"  # first steps again once it is done
+    got = [p for k, p in published if k == "hub_loads"]
+    assert [h["seq"] for h in got] == list(range(100))
+    for a, b in zip(got, want):
+        assert np.array_equal(np.asarray(a["H"], float), np.asarray(b["H"], float)), a["seq"]
+
+
+def test_first_step_is_quick_only_without_a_design_or_a_result_to_take_in(cfg, run):
+    p = EstimatorPipeline(cfg, cfg.identification.initial_angles_rad, identification=False)
+    s = _sample(run, 0)
+    assert p.first_step_is_quick(s)
+    s.omega *= 1.2
+    assert not p.first_step_is_quick(s)  # no design for it yet
+    s.omega = float("nan")
+    assert p.first_step_is_quick(s)  # refused: no redesign
+    p.outstanding[1] = 5
+    p.deliver(_result(cfg, 5), arrival_seq=0, job_id=1)
+    assert not p.first_step_is_quick(_sample(run, 1))  # a result to take in

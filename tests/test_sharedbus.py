@@ -148,7 +148,7 @@ def test_when_the_shared_bus_stops_the_simulator_says_so_and_keeps_its_truth(tmp
     assert truth.exists() and truth.stat().st_size > 0
 
 
-def test_a_bus_that_keeps_failing_is_retried_with_a_growing_pause(monkeypatch, caplog):
+def test_a_bus_that_keeps_failing_is_retried_with_a_growing_pause(caplog):
     """The service's reader (FrameTap.on_error, python-can's Notifier calls it on a failed
     read): counted, logged once per distinct failure, and retried after a pause that doubles
     while no frame arrives (10 ms … 1 s: a bus that is gone for good does not spin the bus
@@ -159,17 +159,22 @@ def test_a_bus_that_keeps_failing_is_retried_with_a_growing_pause(monkeypatch, c
     from rsra.daq.bus import reader as reader_mod
 
     pauses = []
-    monkeypatch.setattr(reader_mod.time, "sleep", pauses.append)
     caplog.set_level(logging.ERROR, logger="rsra.daq.bus.reader")
     tap = reader_mod.OfflineReader(load_config()).tap
+    tap.pause = pauses.append  # (a bus reader's: its stop event's wait, ended by close())
+    recovered = []
+    tap.recovered = lambda: recovered.append(tap.frames)
     gone = OSError("the server closed the connection")
     for _ in range(10):
         tap.on_error(gone)
     assert pauses == [0.01, 0.02, 0.04, 0.08, 0.16, 0.32, 0.64, 1.0, 1.0]
     assert tap.errors == 10 and "server closed" in tap.last_callback_error
     assert sum("bus read failed" in r.getMessage() for r in caplog.records) == 1
-    tap.frames += 1  # a frame was read: the next failure is retried at once
+    import can
+
+    tap.on_message_received(can.Message(arbitration_id=0x7FF, data=b"", timestamp=1.0))
+    assert recovered == [1]  # reading again: the reader clears python-can's kept failure
     pauses.clear()
-    tap.on_error(gone)
+    tap.on_error(gone)  # a frame was read since: retried at once
     tap.on_error(gone)
     assert pauses == [0.01]

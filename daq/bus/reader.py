@@ -191,12 +191,19 @@ class FrameTap(can.Listener):
         self.last_callback_error: str | None = None
         self._read_failed_at = -1  # self.frames at the last failed read
         self._backoff = 0.0  # the pause after a failed read (on_error)
+        self._failing = False  # a read failed and no frame has been read since
+        self.pause: Callable[[float], Any] = time.sleep  # a bus reader's: its stop event's wait
+        self.recovered: Callable[[], None] | None = None  # a frame read after a failure
         self.frame_time = -math.inf  # monotone, quantised frame time
         self.tick_time = -math.inf  # live idle tick (wall clock)
         self.lock = threading.Lock()
 
     def on_message_received(self, msg: can.Message) -> None:
         self.frames += 1
+        if self._failing:  # the bus reads again after a failure
+            self._failing = False
+            if self.recovered is not None:
+                self.recovered()
         t = _floor(msg.timestamp * 1e6 + 0.5) / 1e6  # 1 µs, the recordings' resolution
         # a time far from where the SYNC counter / schedule puts the frame is re-stamped
         # (counted as a bad timestamp; docs/reliability.md)
@@ -271,9 +278,10 @@ class FrameTap(can.Listener):
             log.error("bus read failed (%s); retrying, the samples report what is missing",
                       text[5:])
         self.last_callback_error = text
+        self._failing = True
         if self._read_failed_at == self.frames:  # no frame since the last failure
             self._backoff = min(READ_RETRY_MAX_S, max(READ_RETRY_MIN_S, 2 * self._backoff))
-            time.sleep(self._backoff)
+            self.pause(self._backoff)
         else:
             self._backoff = 0.0
         self._read_failed_at = self.frames
@@ -780,11 +788,22 @@ class _BusReader(ReaderBase):
                               clock=lambda: self.tap.now)
             if thread:
                 self.network.connect()
+                # a failed read pauses on the stop event (close() ends it at once), and once
+                # frames come again the failure python-can keeps in notifier.exception is
+                # cleared: canopen's send_message raises it otherwise (NMT, SDO) for ever
+                self.tap.pause = self._stop.wait
+                self.tap.recovered = self._bus_recovered
             self.clock.start(self.tap, self.recorder)
             self.nodes.begin()
         except BaseException:
             self.close()
             raise
+
+    def _bus_recovered(self) -> None:
+        notifier = self.network.notifier
+        if notifier is not None:
+            notifier.exception = None
+        log.warning("the bus reads again (%d failed reads so far)", self.tap.errors)
 
     def close(self) -> None:
         """Stop SYNC, the master, the notifier, the recording; shut down a bus we opened."""

@@ -267,6 +267,17 @@ class EstimatorPipeline:
         self._use_angles(self.alpha if self.structure is None else self.structure.alpha)
 
     # --- the per-sample path ----------------------------------------------------------
+    def first_step_is_quick(self, s) -> bool:
+        """The first step of sample ``s`` takes no slow work: no identification result to
+        take in or apply (new angles redesign the filter: ms), no filter design for its rotor
+        speed (a cache miss: 10–60 ms). Live, only such a step runs in the bus thread."""
+        if self._inbox or (self.pending and self.pending[0].applies_from_seq <= int(s.seq)):
+            return False
+        omega = s.omega
+        if omega is not None and not (math.isfinite(omega) and abs(omega) < self.omega_max):
+            return True  # refused or missing: no redesign for it (stages)
+        return self.cache.has_design(omega, current=self.load_filter.design)
+
     def process(self, s) -> PipelineOutput:
         """One sample: every record and the identification job, if one is due."""
         first, rest = self.stages(s)
@@ -338,8 +349,9 @@ class EstimatorPipeline:
                     log.error("filter redesign at omega=%r failed (%s); the current design "
                               "is kept", omega, e)
         # samples lost before this one: SYNCs lost on the bus (lost_before), and samples
-        # dropped after assembly (a full queue live, counted in health) — both keep their seq,
-        # so the gap says how far to predict (model §6: Φ^k)
+        # that never reached this step (a whole sample dropped from a full queue live,
+        # counted in health; a replay's gap) — both keep their seq, so the gap says how far
+        # to predict (model §6: Φ^k)
         lost = int(s.lost_before)
         if self._last_seq is not None and seq - self._last_seq - 1 > lost:
             lost = seq - self._last_seq - 1

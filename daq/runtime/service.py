@@ -288,8 +288,9 @@ def initial_angles(cfg: RigConfig, state_path: str | None, accept_rig_mismatch: 
 
 
 class _FirstStepDone:
-    """A live sample whose first step ran in the bus thread (hub_loads published there):
-    what the service thread needs to finish it."""
+    """A live sample from the bus thread: its first step done there (hub_loads published;
+    ``rest`` the second step to take), or — ``rest`` None — the whole sample for the service
+    thread (a slow first step); ``error`` a first step that failed."""
 
     __slots__ = ("sample", "rest", "records", "error")
 
@@ -345,6 +346,12 @@ class Service:
         # --duration in samples of acquisition time
         self._n_max = None if opts.duration is None else max(1, round(opts.duration * self.fs))
         self._first_seq: int | None = None  # the first sample processed
+        # live: samples the bus thread passed on whole (a slow first step, or after one):
+        # counted by the bus thread when queued, by the service thread when done; the bus
+        # thread runs first steps again only once none is left (sample order kept)
+        self._whole_queued = 0
+        self._whole_done = 0
+        self._step_error: BaseException | None = None  # a first step failed (bus thread)
 
     @property
     def reader(self):
@@ -496,11 +503,15 @@ class Service:
             elif isinstance(item, HealthReport):
                 self._on_health(item)
             else:
+                if self._first_seq is not None and self._past_last(item.seq):
+                    break  # (the last wanted sample was dropped from a full queue)
                 self._on_sample(item)
                 if self._last_wanted(item.seq):
                     break
             if self.stop_event.is_set():
                 break
+        if self._step_error is not None:
+            raise self._step_error
 
     def _last_wanted(self, seq: int) -> bool:
         """Sample ``seq`` is the last one --duration asks for (it counts samples of
@@ -548,11 +559,20 @@ class Service:
         once stopping, are passed on untouched (the loop ends before them)."""
         if self.stop_event.is_set() or self._past_last(s.seq):
             return s
+        p = self.pipeline
+        if self._whole_queued != self._whole_done or not p.first_step_is_quick(s):
+            # slow work (new angles, a filter design), or such a sample still in the service
+            # thread: the whole sample goes there, in order (a full queue drops it: uncounted)
+            if not self.source.reader.items.queue.full():
+                self._whole_queued += 1
+            return _FirstStepDone(s, None, [])  # rest None: the whole sample
         try:
-            rest = self.pipeline.stages(s)
+            rest = p.stages(s)
             records = next(rest).records
             self._publish_first(s, records)
-        except BaseException as e:  # raised again in the service thread, as before
+        except BaseException as e:  # the run stops; raised again in the service thread
+            self._step_error = e
+            self.stop_event.set()
             return _FirstStepDone(s, None, [], e)
         return _FirstStepDone(s, rest, records)
 
@@ -570,15 +590,18 @@ class Service:
                 self.latencies.append(lat)
                 if lat > self.dt:
                     self.deadline_misses += 1
+            elif key == "angles":  # recorded where applied: never lost with a dropped sample
+                self._on_angles(payload)
 
     def _on_sample(self, item) -> None:
         p = self.pipeline
         live = not self.source.deterministic
-        first: list = []
-        if isinstance(item, _FirstStepDone):  # live: hub_loads is out already
+        counted = False  # a whole sample the bus thread counted (_first_step)
+        if isinstance(item, _FirstStepDone):  # live: hub_loads is out (with its angles)
             if item.error is not None:
                 raise item.error
-            s, stages, first = item.sample, item.rest, item.records
+            s, stages = item.sample, item.rest
+            counted = stages is None
         else:
             s, stages = item, None
         if not live:
@@ -587,16 +610,12 @@ class Service:
         if stages is None:
             if live:  # the hub loads are published before the rest of the sample
                 stages = p.stages(s)
-                first = next(stages).records
-                self._publish_first(s, first)
+                self._publish_first(s, next(stages).records)
                 out = next(stages)
             else:
                 out = p.process(s)
         else:
             out = next(stages)
-        for key, payload in first:
-            if key == "angles":
-                self._on_angles(payload)
         publish = self.outputs.publish
         for key, payload in out.records:
             publish(key, payload)
@@ -617,6 +636,8 @@ class Service:
         self.last_t = s.t
         if live:  # after the sample, off the SYNC → hub_loads path (docs/performance.md P5b):
             self._poll_results()  # a result in now applies from the next sample at the earliest
+            if counted:
+                self._whole_done += 1  # the bus thread may take first steps again
 
     def _on_angles(self, rec: AnglesRecord) -> None:
         if self.recorder is not None:  # (a replay records nothing)
