@@ -128,7 +128,7 @@ def service_run(channel: str, seconds: float, warmup: float, tmp: Path) -> dict:
 def main(argv: list[str] | None = None) -> int:
     args = arg_parser(__doc__.splitlines()[0]).parse_args(argv)
     w = writer_from_args(BENCH, args)
-    warmup, seconds = (2.0, 2.0) if args.tiny else (WARMUP_S, SCORED_S)
+    warmup, seconds = (0.5, 1.0) if args.tiny else (WARMUP_S, SCORED_S)
     bus, channel = start_bus()
     try:
         with tempfile.TemporaryDirectory(prefix="rsra-p5c-") as d:

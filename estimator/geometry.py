@@ -1,9 +1,12 @@
 """Cell axes, the wrench matrix S(alpha) and its analytic derivative, and R (model.md §2)."""
 from __future__ import annotations
 
+import functools
+from typing import Sequence
+
 import numpy as np
 
-from .params import ANGLE_AXES, Geometry
+from .params import ANGLE_AXES, Geometry, cell_kind
 
 _E = {"x": np.array([1.0, 0, 0]), "y": np.array([0, 1.0, 0]), "z": np.array([0, 0, 1.0])}
 
@@ -38,43 +41,67 @@ def _drot(axis: str, angle: float) -> np.ndarray:
     return skew(_E[axis]) @ rot(axis, angle)
 
 
-def rot_cells(axes, angle: np.ndarray) -> np.ndarray:
+# rot(axis, a) as a flat 3×3: where 1, c, c, s and −s go
+_ROT_FLAT = {"x": (0, 4, 8, 7, 5), "y": (4, 0, 8, 2, 6), "z": (8, 0, 4, 3, 1)}
+
+
+@functools.lru_cache(maxsize=64)
+def _rot_index(axes: tuple[str, ...]) -> tuple[np.ndarray, ...]:
+    return tuple(np.array(col) for col in zip(*(_ROT_FLAT[ax] for ax in axes)))
+
+
+def rot_cells(axes: Sequence[str], angle: np.ndarray) -> np.ndarray:
     """rot(axes[i], angle[..., i]) for every cell i at once: (..., n, 3, 3), the same
     numbers as :func:`rot`."""
     angle = np.asarray(angle, dtype=float)
     c, s = np.cos(angle), np.sin(angle)
-    R = np.zeros(angle.shape + (3, 3))
-    for axis, (i, j, k) in (("x", (0, 1, 2)), ("y", (1, 2, 0)), ("z", (2, 0, 1))):
-        sel = [m for m, ax in enumerate(axes) if ax == axis]
-        if sel:  # about axis i: (j, k) turn by +angle, [[c, -s], [s, c]]
-            cc, ss = c[..., sel], s[..., sel]
-            R[..., sel, i, i] = 1.0
-            R[..., sel, j, j], R[..., sel, j, k] = cc, -ss
-            R[..., sel, k, j], R[..., sel, k, k] = ss, cc
-    return R
+    one, c1, c2, sp, sn = _rot_index(tuple(axes))
+    cells = np.arange(angle.shape[-1])
+    R = np.zeros(angle.shape + (9,))
+    R[..., cells, one] = 1.0
+    R[..., cells, c1] = c
+    R[..., cells, c2] = c
+    R[..., cells, sp] = s
+    R[..., cells, sn] = -s
+    return R.reshape(angle.shape + (3, 3))
+
+
+@functools.lru_cache(maxsize=64)
+def _cell_frames(nominal: bytes) -> tuple[tuple[str, ...], tuple[str, ...], np.ndarray, np.ndarray]:
+    """Per cell: the first and the second angle's axis, skew() of each (by the nominal axes'
+    bytes: Geometry.cell_kinds recomputes the kinds at every call)."""
+    kinds = [cell_kind(a) for a in np.frombuffer(nominal).reshape(-1, 3)]
+    first, second = zip(*(ANGLE_AXES[k] for k in kinds))
+    return (first, second, np.array([skew(_E[ax]) for ax in first]),
+            np.array([skew(_E[ax]) for ax in second]))
+
+
+def angle_axes(geometry: Geometry) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """The first and the second angle's rotation axis of every cell (params.ANGLE_AXES)."""
+    return _frames(geometry)[:2]
+
+
+def _frames(geometry: Geometry):
+    return _cell_frames(np.ascontiguousarray(geometry.cell_axes, dtype=float).tobytes())
 
 
 def cell_axes(geometry: Geometry, alpha: np.ndarray) -> np.ndarray:
     """Actual unit axes u_i (7, 3) from the nominal axes and the 14 angles (Eq A2)."""
     alpha = np.asarray(alpha, dtype=float)
-    u = np.empty((geometry.n_cells, 3))
-    for i, kind in enumerate(geometry.cell_kinds):
-        first, second = ANGLE_AXES[kind]
-        a1, a2 = alpha[2 * i], alpha[2 * i + 1]
-        u[i] = rot(second, a2) @ rot(first, a1) @ geometry.cell_axes[i]
-    return u
+    first, second, _, _ = _frames(geometry)
+    R = np.matmul(rot_cells(second, alpha[1::2]), rot_cells(first, alpha[0::2]))
+    return np.matmul(R, np.asarray(geometry.cell_axes, float)[:, :, None])[:, :, 0]
 
 
 def cell_axes_jacobian(geometry: Geometry, alpha: np.ndarray) -> np.ndarray:
     """du_i/dalpha: (7, 2, 3), the derivative of cell i's axis by its own two angles."""
     alpha = np.asarray(alpha, dtype=float)
+    first, second, K1, K2 = _frames(geometry)
+    R1, R2 = rot_cells(first, alpha[0::2]), rot_cells(second, alpha[1::2])
+    n = np.asarray(geometry.cell_axes, float)[:, :, None]
     du = np.empty((geometry.n_cells, 2, 3))
-    for i, kind in enumerate(geometry.cell_kinds):
-        first, second = ANGLE_AXES[kind]
-        a1, a2 = alpha[2 * i], alpha[2 * i + 1]
-        n = geometry.cell_axes[i]
-        du[i, 0] = rot(second, a2) @ _drot(first, a1) @ n
-        du[i, 1] = _drot(second, a2) @ rot(first, a1) @ n
+    du[:, 0] = np.matmul(np.matmul(R2, np.matmul(K1, R1)), n)[:, :, 0]  # R2 · (K1 R1) · n
+    du[:, 1] = np.matmul(np.matmul(np.matmul(K2, R2), R1), n)[:, :, 0]  # (K2 R2) · R1 · n
     return du
 
 

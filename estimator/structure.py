@@ -75,6 +75,7 @@ from scipy.stats import chi2
 from .balance import measurement_covariance
 from .geometry import (
     _E,
+    angle_axes,
     cross3,
     hub_transfer_matrix,
     rot_cells,
@@ -82,7 +83,7 @@ from .geometry import (
     wrench_matrix,
     wrench_matrix_jacobian,
 )
-from .params import ANGLE_AXES, RigModel
+from .params import RigModel
 
 STRUCTURES = ("cell_load_angles", "hub_position", "balance", "external_load")
 VERDICTS = ("constant", "not_constant", "undetermined")
@@ -375,7 +376,7 @@ def _cell_columns(model: RigModel, A: np.ndarray) -> tuple[np.ndarray, np.ndarra
     angle sets at once (every cell at once: the Monte Carlo tests call this ~10⁴ times)."""
     g = model.geometry
     C, n = len(A), g.n_cells
-    first, second = zip(*(ANGLE_AXES[kind] for kind in g.cell_kinds))
+    first, second = angle_axes(g)
     R1, R2 = rot_cells(first, A[:, 0::2]), rot_cells(second, A[:, 1::2])
     v1 = np.einsum("ncab,cb->nca", R1, np.asarray(g.cell_axes, float))  # (C, n, 3)
     u = np.einsum("ncab,ncb->nca", R2, v1)
