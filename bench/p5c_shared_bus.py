@@ -53,9 +53,14 @@ def floor_run(channel: str, rate: float, seconds: float, size: int, tmp: Path,
     port = free_tcp_port()
     ep = f"tcp/127.0.0.1:{port}" if with_zenoh else None
     key = f"rsra-bench/floor/{os.getpid()}"
-    resp = ctx.Process(target=responder_main, args=(channel, frames, seconds + 30.0), daemon=True)
+    ready = ctx.Event()
+    resp = ctx.Process(target=responder_main, args=(channel, frames, seconds + 30.0, ready),
+                       daemon=True)
     resp.start()
-    time.sleep(1.5)  # the responder is connected
+    if not ready.wait(120):  # the responder is connected
+        resp.terminate()
+        resp.join(10)
+        raise RuntimeError("the do-nothing responder did not connect to the shared bus")
     master = ctx.Process(target=floor_master_main,
                          args=(channel, frames, rate, seconds, ep, key, size, str(res)), daemon=True)
     master.start()
@@ -128,7 +133,7 @@ def service_run(channel: str, seconds: float, warmup: float, tmp: Path) -> dict:
 def main(argv: list[str] | None = None) -> int:
     args = arg_parser(__doc__.splitlines()[0]).parse_args(argv)
     w = writer_from_args(BENCH, args)
-    warmup, seconds = (2.0, 2.0) if args.tiny else (WARMUP_S, SCORED_S)
+    warmup, seconds = (0.5, 1.0) if args.tiny else (WARMUP_S, SCORED_S)
     bus, channel = start_bus()
     try:
         with tempfile.TemporaryDirectory(prefix="rsra-p5c-") as d:

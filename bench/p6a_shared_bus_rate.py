@@ -39,6 +39,7 @@ MIN_RATE = 50.0  # the default rig refuses rates below 31.5 samples/s (its 5th h
 MAX_RATE = 3200.0
 BISECT_STEPS = 2
 LATE_MAX = 0.001
+TINY_TRIAL_S, TINY_WARMUP_S = 1.0, 0.5  # --tiny: the smoke run (every path once, no figure)
 
 
 def service_trial(channel: str, rate: float, seconds: float, warmup: float, tmp: Path) -> dict:
@@ -91,7 +92,7 @@ def search(trial, tiny: bool, log: list) -> float:
         print(f"bench.{BENCH}: {r['side']} {rate:g}/s {'ok' if r['ok'] else 'FAIL'} {r}", flush=True)
         return r["ok"]
 
-    seconds = 2.0 if tiny else TRIAL_S
+    seconds = TINY_TRIAL_S if tiny else TRIAL_S
     good = bad = None
     rate = START_RATE
     while True:
@@ -128,7 +129,7 @@ def search(trial, tiny: bool, log: list) -> float:
 def main(argv: list[str] | None = None) -> int:
     args = arg_parser(__doc__.splitlines()[0]).parse_args(argv)
     w = writer_from_args(BENCH, args)
-    warmup = 2.0 if args.tiny else WARMUP_S
+    warmup = TINY_WARMUP_S if args.tiny else WARMUP_S
     log: list[dict] = []
     bus, channel = start_bus()
     try:
@@ -143,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
           peer="do-nothing master + responder, same shared bus, same run (samples/s)",
           peer_figure=ceiling, ratio_value=r, ratio_is="figure/peer",
           target="≥ 90 % of the ceiling (60 s, zero lost, ≤ 0.1 % of periods late)",
-          met=r is not None and r >= 0.9, trials=log, trial_s=2.0 if args.tiny else TRIAL_S,
+          met=r is not None and r >= 0.9, trials=log, trial_s=TINY_TRIAL_S if args.tiny else TRIAL_S,
           confirm_s=None if args.tiny else CONFIRM_S, warmup_s=warmup,
           load_average=os.getloadavg()[0],
           note="a tiny run tries 200 samples/s only" if args.tiny else None)

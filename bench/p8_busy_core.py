@@ -29,6 +29,9 @@ BENCH = "p8_busy_core"
 WARMUP_S = 8.0
 BURN_S = 60.0
 HEALTH_WAIT_S = 3.0  # health is published every second
+# --tiny (the test suite's smoke run: every path once, no figure): a shorter window, and one
+# health period and a half after it
+TINY_WARMUP_S, TINY_BURN_S, TINY_HEALTH_WAIT_S = 0.5, 1.0, 1.5
 
 
 def _sync(h: dict | None) -> dict:
@@ -46,7 +49,7 @@ def rt_permitted() -> bool:
 
 
 def one_run(burn: bool, seconds: float, warmup: float = WARMUP_S,
-            realtime: bool = False) -> dict:
+            realtime: bool = False, health_wait: float = HEALTH_WAIT_S) -> dict:
     from rsra.config.rig import load_config
 
     cfg = load_config()
@@ -69,7 +72,7 @@ def one_run(burn: bool, seconds: float, warmup: float = WARMUP_S,
         q1 = rx.last_seq()
         if burner is not None:
             burner.wait(30)
-        time.sleep(HEALTH_WAIT_S)
+        time.sleep(health_wait)
         h1 = rx.health
         wall = time.monotonic() - t0
     finally:
@@ -102,10 +105,11 @@ def one_run(burn: bool, seconds: float, warmup: float = WARMUP_S,
 def main(argv: list[str] | None = None) -> int:
     args = arg_parser(__doc__.splitlines()[0]).parse_args(argv)
     w = writer_from_args(BENCH, args)
-    seconds = 3.0 if args.tiny else BURN_S
-    warmup = 2.0 if args.tiny else WARMUP_S
-    quiet = one_run(False, seconds, warmup)
-    busy = one_run(True, seconds, warmup)
+    seconds = TINY_BURN_S if args.tiny else BURN_S
+    warmup = TINY_WARMUP_S if args.tiny else WARMUP_S
+    wait = TINY_HEALTH_WAIT_S if args.tiny else HEALTH_WAIT_S
+    quiet = one_run(False, seconds, warmup, health_wait=wait)
+    busy = one_run(True, seconds, warmup, health_wait=wait)
     print(f"bench.p8_busy_core: quiet {quiet}; busy {busy}", flush=True)
     rt = False if args.tiny else rt_permitted()  # the smoke test never runs real-time priority
     busy_rt = one_run(True, seconds, warmup, realtime=True) if rt else None

@@ -16,7 +16,7 @@ Configurations:
 * ``lockstep``: ``rsra run --sim ground-test --speed max`` (both, one thread, no waiting).
 
 Output: one JSON line per configuration and process, and a Markdown table (``--markdown``).
-``--quick`` runs 3 s of ``inproc-200`` only (the smoke test).
+``--quick`` runs 2 s of ``inproc-200`` only, after a 1 s warm-up (the smoke test).
 """
 from __future__ import annotations
 
@@ -35,6 +35,7 @@ from pathlib import Path
 from bench.rig import start_sim_and_service, Receiver, cpu_seconds, free_tcp_port, rate_config, spawn, start_bus, stop, wait_listening
 
 WARMUP_S = 8.0
+QUICK_WARMUP_S, QUICK_S = 1.0, 2.0  # --quick: the smoke test (every path once, no figure)
 
 # stage of a stack: the innermost frame that matches, on the side (simulator or service) the
 # stack belongs to (a stack with a sim_bus/ frame is the simulator's)
@@ -141,7 +142,7 @@ def measure(procs: dict[str, subprocess.Popen], rx: Receiver, seconds: float, tm
     return res
 
 
-def run_shared(rate: float, seconds: float, tmp: Path) -> dict:
+def run_shared(rate: float, seconds: float, tmp: Path, warmup: float = WARMUP_S) -> dict:
     from rsra.config.rig import load_config
 
     cfg_path = rate_config(rate, tmp)
@@ -149,8 +150,8 @@ def run_shared(rate: float, seconds: float, tmp: Path) -> dict:
     sim = svc = rx = None
     try:
         sim, svc, ep = start_sim_and_service(channel, cfg_path)
-        rx = Receiver(ep, load_config().telemetry.prefix, int(rate * (seconds + WARMUP_S + 60)))
-        time.sleep(WARMUP_S)
+        rx = Receiver(ep, load_config().telemetry.prefix, int(rate * (seconds + warmup + 60)))
+        time.sleep(warmup)
         return measure({"service": svc, "simulator": sim, "bus server": bus}, rx, seconds, tmp)
     finally:
         if rx is not None:
@@ -159,7 +160,8 @@ def run_shared(rate: float, seconds: float, tmp: Path) -> dict:
             stop(p)
 
 
-def run_inproc(extra: list[str], seconds: float, tmp: Path, rate_hint: float) -> dict:
+def run_inproc(extra: list[str], seconds: float, tmp: Path, rate_hint: float,
+               warmup: float = WARMUP_S) -> dict:
     from rsra.config.rig import load_config
 
     port = free_tcp_port()
@@ -169,8 +171,8 @@ def run_inproc(extra: list[str], seconds: float, tmp: Path, rate_hint: float) ->
     rx = None
     try:
         wait_listening(port, svc)
-        rx = Receiver(ep, load_config().telemetry.prefix, int(rate_hint * (seconds + WARMUP_S + 60)))
-        time.sleep(WARMUP_S)
+        rx = Receiver(ep, load_config().telemetry.prefix, int(rate_hint * (seconds + warmup + 60)))
+        time.sleep(warmup)
         return measure({"process": svc}, rx, seconds, tmp)
     finally:
         if rx is not None:
@@ -205,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seconds", type=float, default=20.0, help="profiled window per configuration")
     p.add_argument("--only", nargs="+", default=None,
                    choices=("shared-200", "shared-limit", "inproc-200", "lockstep"))
-    p.add_argument("--quick", action="store_true", help="3 s of inproc-200 (smoke test)")
+    p.add_argument("--quick", action="store_true", help="2 s of inproc-200 after a 1 s warm-up (smoke test)")
     p.add_argument("--markdown", action="store_true", help="also print the Markdown table")
     p.add_argument("--keep", default=None, metavar="DIR",
                    help="keep py-spy's raw stacks here (one file per configuration and process)")
@@ -216,19 +218,21 @@ def main(argv: list[str] | None = None) -> int:
     limit = math.floor(bus_limit_samples_per_s(load_config())[0])
     confs = ["inproc-200"] if args.quick else (args.only or ["shared-200", "shared-limit",
                                                              "inproc-200", "lockstep"])
-    seconds = 3.0 if args.quick else args.seconds
+    seconds = QUICK_S if args.quick else args.seconds
+    warmup = QUICK_WARMUP_S if args.quick else WARMUP_S
     results = {}
     with tempfile.TemporaryDirectory(prefix="rsra-profile-") as d:
         tmp = Path(d)
         for conf in confs:
             if conf == "shared-200":
-                r = run_shared(200.0, seconds, tmp)
+                r = run_shared(200.0, seconds, tmp, warmup)
             elif conf == "shared-limit":
-                r = run_shared(float(limit), seconds, tmp)
+                r = run_shared(float(limit), seconds, tmp, warmup)
             elif conf == "inproc-200":
-                r = run_inproc(["--speed", "1"], seconds, tmp, 200.0)
+                r = run_inproc(["--speed", "1"], seconds, tmp, 200.0, warmup)
             else:
-                r = run_inproc(["--speed", "max", "--no-identification"], seconds, tmp, 5000.0)
+                r = run_inproc(["--speed", "max", "--no-identification"], seconds, tmp, 5000.0,
+                               warmup)
             results[conf] = r
             if args.keep:
                 Path(args.keep).mkdir(parents=True, exist_ok=True)

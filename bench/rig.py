@@ -241,13 +241,17 @@ def response_frames(scenario: str = "ground-test") -> list[tuple[int, int]]:
     return out
 
 
-def responder_main(channel: str, frames: list[tuple[int, int]], stop_after: float) -> None:
-    """Do-nothing responder: on every SYNC (0x080) send the same frames, constant data."""
+def responder_main(channel: str, frames: list[tuple[int, int]], stop_after: float,
+                   ready=None) -> None:
+    """Do-nothing responder: on every SYNC (0x080) send the same frames, constant data.
+    ``ready`` (an Event) is set once it is connected to the bus."""
     import can
 
     from rsra.canbus import shutdown_bus
 
     bus = can.Bus(channel=channel, interface="remote")
+    if ready is not None:
+        ready.set()
     msgs = [can.Message(arbitration_id=c, data=bytes(n), is_extended_id=False) for c, n in frames]
     end = time.monotonic() + stop_after
     try:
@@ -284,7 +288,9 @@ def floor_master_main(channel: str, frames: list[tuple[int, int]], rate: float, 
         session = zenoh.open(conf)
         pub = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.DROP,
                                         priority=zenoh.Priority.REAL_TIME, express=True)
-        time.sleep(2.0)  # the subscriber connects
+        deadline = time.monotonic() + 2.0  # the subscriber connects (at most 2 s)
+        while not pub.matching_status.matching and time.monotonic() < deadline:
+            time.sleep(0.02)
     ids = {c for c, _ in frames}
     n_frames = len(frames)
     period = 1.0 / rate

@@ -73,8 +73,17 @@ from scipy.optimize import least_squares
 from scipy.stats import chi2
 
 from .balance import measurement_covariance
-from .geometry import _E, hub_transfer_matrix, skew, wrench_matrix, wrench_matrix_jacobian
-from .params import ANGLE_AXES, RigModel
+from .geometry import (
+    _E,
+    angle_axes,
+    cross3,
+    hub_transfer_matrix,
+    rot_cells,
+    skew,
+    wrench_matrix,
+    wrench_matrix_jacobian,
+)
+from .params import RigModel
 
 STRUCTURES = ("cell_load_angles", "hub_position", "balance", "external_load")
 VERDICTS = ("constant", "not_constant", "undetermined")
@@ -361,39 +370,25 @@ def _range_basis(A: np.ndarray, tol: float = RANK_TOLERANCE) -> np.ndarray:
     return U[:, s > tol * s[0]]
 
 
-def _rot_batch(axis: str, a: np.ndarray) -> np.ndarray:
-    """rot(axis, a) of geometry.rot for every a (C,) at once: (C, 3, 3)."""
-    c, s = np.cos(a), np.sin(a)
-    o, z = np.ones_like(a), np.zeros_like(a)
-    if axis == "x":
-        m = [[o, z, z], [z, c, -s], [z, s, c]]
-    elif axis == "y":
-        m = [[c, z, s], [z, o, z], [-s, z, c]]
-    else:
-        m = [[c, -s, z], [s, c, z], [z, z, o]]
-    return np.moveaxis(np.array(m), 2, 0)
-
-
 def _cell_columns(model: RigModel, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """For angle sets A (C, 14): the columns of S (C, 6, 7) and the derivative of each
     angle's own column (C, 14, 6) — geometry.wrench_matrix and wrench_matrix_jacobian for C
-    angle sets at once."""
+    angle sets at once (every cell at once: the Monte Carlo tests call this ~10⁴ times)."""
     g = model.geometry
-    C = len(A)
-    u = np.empty((C, g.n_cells, 3))
-    du = np.empty((C, 2 * g.n_cells, 3))
-    for i, kind in enumerate(g.cell_kinds):
-        first, second = ANGLE_AXES[kind]
-        n = g.cell_axes[i]
-        R1, R2 = _rot_batch(first, A[:, 2 * i]), _rot_batch(second, A[:, 2 * i + 1])
-        v1 = R1 @ n  # (C, 3)
-        u[:, i] = np.einsum("nab,nb->na", R2, v1)
-        du[:, 2 * i] = np.einsum("nab,nb->na", R2, np.cross(_E[first], v1))
-        du[:, 2 * i + 1] = np.cross(_E[second], u[:, i])
+    C, n = len(A), g.n_cells
+    first, second = angle_axes(g)
+    R1, R2 = rot_cells(first, A[:, 0::2]), rot_cells(second, A[:, 1::2])
+    v1 = np.einsum("ncab,cb->nca", R1, np.asarray(g.cell_axes, float))  # (C, n, 3)
+    u = np.einsum("ncab,ncb->nca", R2, v1)
+    E1 = np.array([_E[ax] for ax in first])[None]
+    E2 = np.array([_E[ax] for ax in second])[None]
+    du = np.empty((C, 2 * n, 3))
+    du[:, 0::2] = np.einsum("ncab,ncb->nca", R2, cross3(E1, v1))
+    du[:, 1::2] = cross3(E2, u)
     pos = np.asarray(g.cell_positions, float)
-    S = np.concatenate([u, np.cross(pos[None], u)], axis=2).transpose(0, 2, 1)
-    cell = np.arange(2 * g.n_cells) // 2
-    D = np.concatenate([du, np.cross(pos[cell][None], du)], axis=2)
+    S = np.concatenate([u, cross3(pos[None], u)], axis=2).transpose(0, 2, 1)
+    cell = np.arange(2 * n) // 2
+    D = np.concatenate([du, cross3(pos[cell][None], du)], axis=2)
     return S, D
 
 

@@ -5,17 +5,27 @@ import sys
 import zipfile
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def test_wheel_installs_and_runs_outside_the_repo(tmp_path):
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    """One `pip wheel` of the repository for the tests of this file: (its output, the wheel)."""
+    wheel_dir = tmp_path_factory.mktemp("wheel")
+    out = subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps",
+                          "-w", str(wheel_dir), str(ROOT)], capture_output=True, text=True,
+                         check=False)
+    assert out.returncode == 0, out.stderr
+    return out, next(wheel_dir.glob("rsra-*.whl"))
+
+
+def test_wheel_installs_and_runs_outside_the_repo(tmp_path, built):
     """One import namespace (issue 15): the wheel's only top-level package is `rsra`; the
     packaged rig, EDS and scenarios come with it; `python -m rsra --help` runs outside the repo
     and no generic name (`daq`, `estimator`, `sim_bus`, `rsra_config`, `config`) is importable."""
-    wheel_dir = tmp_path / "wheel"
-    subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps",
-                    "-w", str(wheel_dir), str(ROOT)], check=True, capture_output=True)
-    wheel = next(wheel_dir.glob("rsra-*.whl"))
+    _, wheel = built
     names = zipfile.ZipFile(wheel).namelist()
     assert "rsra/config/rig.toml" in names
     assert "rsra/config/eds/load_cell.eds" in names
@@ -54,15 +64,12 @@ def _backend_warnings(stderr: str) -> list[str]:
     return [line.strip() for line in stderr.splitlines() if "Warning" in line]
 
 
-def test_building_the_wheel_prints_no_warning_and_matplotlib_is_a_dependency(tmp_path):
+def test_building_the_wheel_prints_no_warning_and_matplotlib_is_a_dependency(built):
     """`project.license` as a table and data folders missing from `packages` made setuptools
     print ~200 lines on every install (issue 13)."""
-    out = subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps",
-                          "-w", str(tmp_path), str(ROOT)], capture_output=True, text=True,
-                         check=False)
+    out, wheel = built
     assert out.returncode == 0, out.stderr
     assert _backend_warnings(out.stderr) == [], out.stderr
-    wheel = next(tmp_path.glob("rsra-*.whl"))
     zf = zipfile.ZipFile(wheel)
     meta = zf.read(next(n for n in zf.namelist() if n.endswith(".dist-info/METADATA")))
     requires = [line for line in meta.decode().splitlines() if line.startswith("Requires-Dist:")]
