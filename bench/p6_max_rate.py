@@ -10,7 +10,12 @@ below assumes. Each rate runs in a fresh process for ``TRIAL_S`` of acquisition 
 
 A rate passes when (in one of ``ATTEMPTS`` runs: the machine is shared), after the first second (node start-up), every SYNC gives one published
 sample: no gap in ``seq`` (a lost SYNC or a sample dropped from a full queue), no sample
-flagged ``lost_before`` or ``missing:*``, no drop in the reader's queue. Search: double
+flagged ``lost_before`` or ``missing:*``, no drop in the reader's queue — and the rate is
+held: SYNCs at ≥ 99 % of the requested rate (the service's SYNC producer sends a late SYNC
+at once and never catches up, so a producer that cannot keep the rate gives fewer samples,
+none lost). Each trial also reports the SYNCs more than half a period late and the periods
+not taken after the warm-up (health ``sync.late``, ``sync.periods_not_taken``: P6a's
+criterion allows 0.1 % of them; P6b's target is about lost samples). Search: double
 from 200 samples/s until a rate fails — or, when 200 already fails, halve until one passes
 (down to ``MIN_RATE``) — then bisect between the highest passing and the lowest failing rate.
 Each trial says how its losses fell: ``all_missing`` samples (no TPDO between two SYNCs: the
@@ -74,7 +79,8 @@ def trial(rate: float, duration: float) -> dict:
     n_required = sum(1 for n in cfg.nodes if n.required)
     tally = {"first": None, "last": None, "count": 0, "flagged": 0, "gaps": 0,
              "dropped": 0, "incomplete": 0, "flags": {}, "flagged_seqs": [],
-             "all_missing": 0, "t_first": None, "t_last": None}
+             "all_missing": 0, "t_first": None, "t_last": None, "sync_late": 0,
+             "periods_not_taken": 0}
 
     def sink(key: str, payload: dict) -> None:
         if key == "hub_loads":
@@ -105,6 +111,12 @@ def trial(rate: float, duration: float) -> dict:
             tally["dropped"] = int(q.get("dropped") or 0)
             # cumulative, start-up included (reported; the seq/flag checks decide)
             tally["incomplete"] = int((payload.get("samples") or {}).get("incomplete") or 0)
+            sync = payload.get("sync") or {}
+            late, skipped = int(sync.get("late") or 0), int(sync.get("periods_not_taken") or 0)
+            if tally["count"] == 0:  # still warming up (node start-up): the baseline
+                tally["sync_base"] = (late, skipped)
+            b = tally.get("sync_base", (0, 0))
+            tally["sync_late"], tally["periods_not_taken"] = late - b[0], skipped - b[1]
 
     svc.add_sink(sink)
     summary = svc.run()
@@ -116,8 +128,13 @@ def trial(rate: float, duration: float) -> dict:
     if tally["count"] > 1 and tally["t_last"] > tally["t_first"]:
         # SYNCs per second of acquisition time (the producer's jitter shows here)
         tally["achieved_rate"] = (tally["count"] - 1) / (tally["t_last"] - tally["t_first"])
+    periods = round((duration - WARMUP_S) * rate)  # the scored periods (after the warm-up)
+    tally["late_fraction"] = ((tally.get("sync_late", 0) + tally.get("periods_not_taken", 0))
+                              / max(1, periods))
+    tally["schedule_kept"] = tally.get("achieved_rate", 0.0) >= 0.99 * rate
     tally["ok"] = (tally["count"] > 0 and tally["gaps"] == 0 and tally["flagged"] == 0
-                   and tally["dropped"] == 0 and not summary.get("lost"))
+                   and tally["dropped"] == 0 and not summary.get("lost")
+                   and tally["schedule_kept"])
     tally["rate"] = rate
     return tally
 
