@@ -517,3 +517,17 @@ def test_new_angles_move_the_estimate_at_once_without_a_transient(cfg, model):
     assert np.abs(r.e).max() < 1e-6 * np.abs(expected).max()
     np.testing.assert_allclose(r.H, static_estimate(model, a_new, T[None], z[None])[0],
                                rtol=1e-9, atol=1e-6)
+
+
+def test_has_design_says_exactly_when_design_for_would_design():
+    """The live first step (daq pipeline.first_step_is_quick) asks has_design before the bus
+    thread takes a sample: it must agree with design_for on every kind of rotor speed — the
+    band around the design in use, a cached grid point, a new one, stopped, None."""
+    cache = _cache()
+    w0 = 2 * np.pi * 3.5
+    current = cache.design_for(w0)
+    for w in [w0, w0 * 1.003, w0 * 1.02, w0 * 1.02, w0 * 0.95, None, 0.0, w0 * 1.02001, w0]:
+        said = cache.has_design(w, current=current)
+        before = cache.designs_made
+        current = cache.design_for(w, current=current)
+        assert said == (cache.designs_made == before), w
