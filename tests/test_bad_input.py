@@ -292,8 +292,9 @@ def test_replay_out_on_a_full_disk_is_one_line_exit_1(recording, capsys):
 
 
 def test_a_replay_that_publishes_nothing_still_writes_its_empty_out(tmp_path, capsys):
-    (tmp_path / "empty.log").write_text("")
-    assert main(["replay", str(tmp_path / "empty.log"), "--out", str(tmp_path / "o.jsonl")]) == 0
+    # frames, but no SYNC: no sample (an empty recording is refused: test_no_overwrite.py)
+    (tmp_path / "hb.log").write_text("(1700000000.000000) can0 701#05\n")
+    assert main(["replay", str(tmp_path / "hb.log"), "--out", str(tmp_path / "o.jsonl")]) == 0
     assert (tmp_path / "o.jsonl").read_text() == ""
 
 

@@ -11,7 +11,10 @@ import threading
 import time
 from pathlib import Path
 
+from rsra.daq.cli.outputs import REPORT_FILES
+
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+OUTPUTS = {"report": REPORT_FILES, "record": "folder"}  # against the inputs (daq.cli.outputs)
 
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
