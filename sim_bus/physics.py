@@ -42,7 +42,7 @@ from scipy.spatial.transform import Rotation
 
 from rsra.config.rig import G0, RigConfig
 
-from .scenarios import Scenario, load_scenario
+from .scenarios import Scenario, check_against_rig, load_scenario
 
 BLOCK_SIZE = 1000  # samples per computed block (fixed: it makes streaming == off-line exact)
 LFILTER_MIN_RUN = 256  # runs of constant angles this long use lfilter, shorter ones a scan
@@ -388,6 +388,7 @@ class AircraftPhysics:
         blades = cfg.rotor.blades
         self.blades = blades
         self.omega0 = cfg.rotor.omega_nominal_rad_s
+        check_against_rig(scenario, cfg.sample_rate_hz, self.omega0, blades)
         frame_rot = hub_matrix(np.zeros(3), cfg.shaft_tilt_rad, scenario.loads.frame)
         self.load_frame = frame_rot  # scenario axes -> body axes (block-diagonal)
 

@@ -487,3 +487,32 @@ def parse_scenario(raw: dict, source: str = "<scenario>", variants: dict | None 
                     base_vibration=base_vibration, unmodelled=unmodelled, drive=drive,
                     rig_overrides=overrides, variants=dict(variants or {}),
                     turbulence=turbulence, rig_errors=rig_errors)
+
+
+def check_against_rig(sc: Scenario, sample_rate_hz: float, omega_nominal_rad_s: float,
+                      blades: int) -> None:
+    """Content the rig's sample rate cannot represent, refused when the scenario meets the rig
+    (a simulated harmonic or shaker frequency at or above Nyquist would alias silently): a
+    :class:`ConfigError` naming the scenario's line and the fix."""
+    nyquist = sample_rate_hz / 2
+    omega_max = omega_nominal_rad_s * (1 + sc.rotor.omega_variation)
+    for i, h in enumerate(sc.harmonics):
+        order = h.resolve_order(blades)
+        f = order * omega_max / (2 * math.pi)
+        if f >= nyquist:
+            raise ConfigError(
+                f"harmonics[{i}].order", h.order,
+                f"harmonic {order}/rev reaches {f:.3g} Hz at the scenario's highest rotor speed, "
+                f"at or above the Nyquist frequency {nyquist:g} Hz of rig.sample_rate_hz = "
+                f"{sample_rate_hz:g} (it would alias)",
+                f"remove that harmonic or raise rig.sample_rate_hz above {2 * f:.3g}",
+                source=sc.source)
+    if sc.shaker is not None:
+        f = max(sc.shaker.f_start_hz, sc.shaker.f_stop_hz)
+        if f >= nyquist:
+            key = "f_stop_hz" if sc.shaker.f_stop_hz >= sc.shaker.f_start_hz else "f_start_hz"
+            raise ConfigError(
+                f"shaker.{key}", f, f"at or above the Nyquist frequency {nyquist:g} Hz of "
+                f"rig.sample_rate_hz = {sample_rate_hz:g} (it would alias)",
+                f"sweep below {nyquist:g} Hz or raise rig.sample_rate_hz above {2 * f:g}",
+                source=sc.source)

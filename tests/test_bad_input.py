@@ -144,6 +144,14 @@ def nan_loads(tmp, rec):
             "--zenoh-listen", f"tcp/127.0.0.1:{free_tcp_port()}"]
 
 
+def scenario_above_nyquist(tmp, rec):  # issue 27: aliased silently before
+    old = 'order = "blades"'
+    assert old in GROUND
+    (tmp / "alias.toml").write_text(GROUND.replace(old, "order = 40", 1))
+    return ["run", "--sim", str(tmp / "alias.toml"), "--speed", "max", "--duration", "1",
+            "--record", str(tmp / "R"), "--zenoh-listen", f"tcp/127.0.0.1:{free_tcp_port()}"]
+
+
 def config_folder(tmp, rec):
     (tmp / "conf").mkdir()
     return ["noise-budget", "--config", str(tmp / "conf")]
@@ -204,6 +212,8 @@ CASES = {
                                                            "accel_1"]),
     "demo --faults drop:cell_Q": (demo_bad_fault, 2, ["cell_Q", "did you mean 'cell_G'"]),
     "scenario with NaN loads": (nan_loads, 2, ["loads.conditions[0][5]", "finite"]),
+    "scenario harmonic above Nyquist": (scenario_above_nyquist, 2, [
+        "alias.toml: harmonics[1].order = 40", "Nyquist frequency 100 Hz", "fix:"]),
     "--config naming a folder": (config_folder, 2, ["--config", "Is a directory", "fix:"]),
     "--log-file in a missing folder": (log_file_nowhere, 2, ["--log-file", "fix:"]),
     "sweep of a junk file": (sweep_junk, 2, ["junk.blf", "BLFParseError"]),
