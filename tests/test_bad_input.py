@@ -111,6 +111,11 @@ def harmonic_200(tmp, rec):
     return _sim_run(_rig(tmp, "harmonics = [1, 5]", "harmonics = [1, 5, 200]"))
 
 
+def position_1e308(tmp, rec):  # issue 27: leaked a raw numpy overflow warning before
+    return _sim_run(_rig(tmp, "position_m = [0.738, -0.945, 0.354]",
+                         "position_m = [1e308, -0.945, 0.354]"))
+
+
 def rate_7(tmp, rec):
     return _sim_run(_rig(tmp, "sample_rate_hz = 200.0", "sample_rate_hz = 7.0"))
 
@@ -205,6 +210,8 @@ CASES = {
         harmonic_200, 2, ["filter.harmonics", "harmonic 200", "Nyquist", "sample_rate_hz"]),
     "sample_rate_hz = 7.0": (rate_7, 2, ["filter.harmonics", "harmonic 5",
                                          "Nyquist frequency 3.5 Hz"]),
+    "cell position 1e308": (position_1e308, 2, ["cells[0].position_m[0] = 1e+308",
+                                                "more than 100 m", "fix:"]),
     "gain = 0.0": (zero_gain, 2, ["calibration.cell_A.force.gain", "fix:"]),
     "window_s = 0.001": (tiny_window, 2, ["identification.window_s", "one sample"]),
     "sync cob_id on a TPDO": (sync_on_a_tpdo, 2, ["sync.cob_id", "TPDO1", "cell_A"]),
