@@ -267,7 +267,8 @@ def test_the_health_record_is_frozen_typed_and_serialised_in_the_payloads_order(
     # the reader's part, in the order the payload always had; optional keys left out
     assert list(d) == ["t", "nodes", "bus", "samples", "queues", "recording", "sync"]
     assert "last_callback_error" not in d["bus"] and "master_events" not in d["queues"]
-    assert list(d["sync"]) == ["duplicate", "bad_timestamp", "rate_hz", "rate_low"]
+    assert list(d["sync"]) == ["duplicate", "bad_timestamp", "late_received", "rate_hz",
+                              "rate_low"]
     assert d["recording"] == {"active": False}
     assert list(d["nodes"]["cell_A"]) == ["state", "heartbeat_age", "emcy", "required", "boots",
                                           "losses", "emcy_count"]
@@ -370,6 +371,29 @@ def test_live_the_idle_bus_still_advances_the_clock(cfg):
     r.feed(heartbeat(0x21, 0x05, T0 + 1.25))
     assert r.health().to_dict()["nodes"]["accel_1"]["state"] == "operational"
     assert r.tap.frame_time == T0 + 1.25 and r.now == T0 + 1.3
+
+
+def test_live_the_tick_runs_no_timed_task_while_frames_flow(cfg):
+    """The bus thread may be behind the wall clock (a loaded machine): a tick ahead of frames
+    still queued must not judge their node lost, nor put a health report where a replay of
+    the recording cannot. The timed tasks run at frame times alone until the bus has been
+    quiet for IDLE_TICK_S (issue 29: a live run flagged a sample its replay did not)."""
+    from rsra.daq.bus.reader import IDLE_TICK_S
+
+    r = OfflineReader(cfg)
+    timeout = cfg.heartbeat.timeout_factor * cfg.heartbeat.producer_ms / 1000
+    assert timeout < 0.9 * IDLE_TICK_S
+    for k in range(10):  # up to T0 + 0.9
+        r.feed(heartbeat(0x21, 0x05, T0 + 0.1 * k))
+    # the wall clock past the watchdog's deadline and the health report's, frames queued
+    r.tap.tick(T0 + 0.9 + 0.9 * IDLE_TICK_S)
+    assert r.poll() == []
+    for k in range(10, 20):  # ... processed now
+        r.feed(heartbeat(0x21, 0x05, T0 + 0.1 * k))
+    (rep,) = r.poll()
+    assert rep.t == T0 + 1.0  # at the frame that passed the due time, as in a replay
+    assert r.health().to_dict()["nodes"]["accel_1"]["state"] == "operational"
+    assert r.supervisor.nodes["accel_1"].losses == 0
 
 
 CALIBRATED = {"calibration": {"cell_B.force": {"gain": 1.01, "offset": -50.0},
