@@ -462,7 +462,8 @@ class SampleAssembler:
         self._lost = lost
         self._sync_t = math.floor(timestamp * 1e6 + 0.5) / 1e6  # 1 µs, = round(t, 6)
         self._sync_counter = counter
-        have = self._have if self._in_sample else 0
+        first = not self._in_sample
+        have = 0 if first else self._have
         # optional nodes that reported in the last period count as alive (by frame order)
         self._expect = expect = self._required_bits | self._alive_bits | (have & self._optional_bits)
         self._prev_have = have
@@ -470,8 +471,11 @@ class SampleAssembler:
         self._have = 0
         self._in_sample = True
         self._open = True
-        self._wait = expect
-        if expect == 0:
+        # the first sample has no period before it to say which optional nodes report: it
+        # waits for every node (or the next SYNC), so that nothing its frames hold is left
+        # out of it; `missing` is still judged against `expect`
+        self._wait = wait = expect | self._optional_bits if first else expect
+        if wait == 0:
             self._pass_on(True)
 
     # -- sample construction (once per SYNC) -----------------------------------------------
