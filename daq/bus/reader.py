@@ -95,6 +95,7 @@ LSS_COB_IDS = (0x7E4, 0x7E5)  # CiA 305 (canopen's network subscribes to them)
 COB_TIME = 0x100
 DEFAULT_QUEUE = 1024  # samples (≈ 5 s at 200 samples/s)
 TICK_S = 0.1  # live idle tick of the acquisition clock
+IDLE_TICK_S = 1.0  # no frame for this long (wall clock): the idle tick runs the timed tasks
 NOTIFIER_CYCLE_S = 0.1
 RATE_WINDOW = 10  # health periods over which the sample rate is measured
 RATE_LOW_FRACTION = 0.99  # below this fraction of sample_rate_hz: sync.rate_low
@@ -104,6 +105,7 @@ TIMEBASE_QUANTILE = 0.1  # the block's quantile of receipt delays taken as the o
 READ_RETRY_MIN_S = 0.01  # the pause after a second failed bus read in a row (FrameTap.on_error)
 READ_RETRY_MAX_S = 1.0  # ... doubling up to this while the reads keep failing
 FOREIGN_TIMEBASE_S = 0.05  # a receipt delay floor beyond this: frames carry a foreign clock
+LOCAL_LAG_S = 0.5  # frames stamped up to this far in the past: the local clock, read late
 _floor = math.floor
 
 
@@ -215,6 +217,7 @@ class FrameTap(can.Listener):
             ts = t  # stamp_frame's common case, inline (nothing pending, not far ahead)
         else:
             ts = self.stamp_frame(t, self.frame_time)
+        own = t
         if ts != t:
             t = _floor(ts * 1e6 + 0.5) / 1e6
         if t > self.frame_time:
@@ -224,9 +227,11 @@ class FrameTap(can.Listener):
                 deadlines.run(t)
         else:
             t = self.frame_time  # never backwards (own transmissions stamped at send time)
-        # the frame carries the acquisition time from here on: the recorder (next listener)
-        # writes exactly this value, so a replay sees the same clock bit for bit
-        msg.timestamp = t
+        # what the recorder (next listener) writes: the frame's own time, or the clock when
+        # it was behind it — never a frame held back (a suspect time, a late SYNC): the
+        # replay then sees the times this tap saw and takes the same decisions, so its
+        # samples and clock are the live ones bit for bit
+        msg.timestamp = own if own > t else t
         cbs = self.subscribers.get(cid)
         if cbs is None or msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
             self._classify(msg, cid, cbs)
@@ -258,12 +263,17 @@ class FrameTap(can.Listener):
         return max(self.frame_time, self.tick_time)
 
     def tick(self, wall: float) -> None:
-        """Live idle tick: advance the clock from the wall clock when no frame does."""
+        """Live idle tick: advance the clock from the wall clock when no frame does.
+
+        The timed tasks (watchdog, health) run from the tick only once no frame has come for
+        ``IDLE_TICK_S``: while frames flow they run at the frames' times alone, as in a
+        replay of the recording (the bus thread may be some way behind the wall clock, and
+        a watchdog run at the wall clock would judge frames still queued lost)."""
         with self.lock:
             t = quantise_us(wall)
             if t > self.tick_time:
                 self.tick_time = t
-                if t > self.frame_time and t >= self.deadlines.next:
+                if t > self.frame_time + IDLE_TICK_S and t >= self.deadlines.next:
                     self.deadlines.run(t)
 
     def on_error(self, exc: Exception) -> None:
@@ -327,8 +337,13 @@ class Timebase:
         return ts + self.shift
 
     def _set(self, offset: float) -> None:
+        # frames stamped in the future are another clock beyond FOREIGN_TIMEBASE_S; frames
+        # stamped in the past may be the bus thread running behind (a busy start reads a
+        # backlog): another clock only beyond LOCAL_LAG_S (below it the idle tick, which
+        # waits IDLE_TICK_S for a quiet bus, never runs ahead of frames still coming)
         self.offset = offset
-        self.shift = offset if abs(offset) > FOREIGN_TIMEBASE_S else 0.0
+        foreign = offset < -FOREIGN_TIMEBASE_S or offset > LOCAL_LAG_S
+        self.shift = offset if foreign else 0.0
 
 
 class _LockedTap(can.Listener):
@@ -640,6 +655,7 @@ class HealthMonitor:
             late, periods = task.late, task.periods_not_taken
         rate = self._rate_hz
         return SyncHealth(duplicate=asm.duplicate_sync, bad_timestamp=asm.clock.bad_timestamp,
+                          late_received=asm.clock.late,
                           late=late, periods_not_taken=periods, rate_hz=rate,
                           rate_low=rate is not None
                           and rate < RATE_LOW_FRACTION * self.cfg.sample_rate_hz)
