@@ -47,6 +47,15 @@ def own_temp_pid(name: str, target_name: str) -> int | None:
 
 
 def write_text_atomic(path: str | Path, text: str) -> None:
+    _write_atomic(path, text.encode("utf-8"))
+
+
+def write_bytes_atomic(path: str | Path, data: bytes) -> None:
+    """The same atomic write for a binary file (the simulator's truth .npz)."""
+    _write_atomic(path, data)
+
+
+def _write_atomic(path: str | Path, data: bytes) -> None:
     path = Path(os.path.realpath(path))  # through a symbolic link: the link stays the user's
     # no parent folder is created (nothing the user did not name): a missing one fails here
     fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path), suffix=".tmp", dir=path.parent)
@@ -58,8 +67,8 @@ def write_text_atomic(path: str | Path, text: str) -> None:
             os.umask(umask)
             mode = 0o666 & ~umask
         os.fchmod(fd, mode)
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
