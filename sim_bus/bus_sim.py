@@ -1173,8 +1173,10 @@ class Simulator:
         arrs["sync_lost"] = sync["sync_lost"][:n]
         return arrs
 
-    def write_truth(self, path: str | Path, meta: dict | None = None) -> Path:
-        """Write the truth file (sim_bus.truth format) with the injected faults."""
+    def write_truth(self, path: str | Path, meta: dict | None = None,
+                    write: Callable[[Path, bytes], None] | None = None) -> Path:
+        """Write the truth file (sim_bus.truth format) with the injected faults; ``write``
+        as in :func:`sim_bus.truth.write_truth` (an atomic write)."""
         from rsra.sim_bus.offline import run_meta
         from rsra.sim_bus.truth import write_truth
 
@@ -1188,7 +1190,7 @@ class Simulator:
                     autostart=self.autostart, **(meta or {}))
         arrs = self.truth_arrays()
         return write_truth(path, arrs, faults=self.fault_log, meta=full,
-                           sync_counter=arrs["sync_counter"])
+                           sync_counter=arrs["sync_counter"], write=write)
 
 
 class RecordError(OSError):

@@ -48,10 +48,19 @@ def own_temp_pid(name: str, target_name: str) -> int | None:
 
 
 def write_text_atomic(path: str | Path, text: str) -> None:
+    _write_atomic(path, text.encode("utf-8"))
+
+
+def write_bytes_atomic(path: str | Path, data: bytes) -> None:
+    """The same atomic write for a binary file (the simulator's truth .npz)."""
+    _write_atomic(path, data)
+
+
+def _write_atomic(path: str | Path, data: bytes) -> None:
     # no parent folder is created (nothing the user did not name): a missing one fails here
-    out = AtomicOutput(path)
+    out = AtomicOutput(path, "wb")
     try:
-        out.open().write(text)
+        out.open().write(data)
         out.commit()
     finally:
         out.discard()
