@@ -2,7 +2,7 @@
 
 ::
 
-    python-can bus ─▶ one Notifier ─▶ FrameTap ─▶ canopen Network.subscribe callbacks
+    python-can bus ─▶ one BatchNotifier ─▶ FrameTap ─▶ canopen Network.subscribe callbacks
                                   │  (clock, counts,  ├─ SampleAssembler (SYNC, TPDOs)
                                   │   unknown IDs)    ├─ Supervisor (heartbeat, EMCY)
                                   │        │          └─ canopen SDO/NMT (master)
@@ -86,7 +86,7 @@ from rsra.daq.bus.master import (
     Supervisor,
 )
 from rsra.daq.bus.recorder import Recorder
-from rsra.canbus import open_bus, shutdown_bus
+from rsra.canbus import BatchNotifier, open_bus, shutdown_bus
 
 log = logging.getLogger(__name__)
 
@@ -803,7 +803,10 @@ class _BusReader(ReaderBase):
             self.nodes.attach(self.cfg, self.table, self.network, self.supervisor,
                               clock=lambda: self.tap.now)
             if thread:
-                self.network.connect()
+                # canopen's Network.connect, with python-can's Notifier reading in batches:
+                # one wake-up takes every frame received meanwhile (rsra.canbus.BatchNotifier)
+                self.network.notifier = BatchNotifier(self._bus, self.network.listeners,
+                                                      self.network.NOTIFIER_CYCLE)
                 # a failed read pauses on the stop event (close() ends it at once), and once
                 # frames come again the failure python-can keeps in notifier.exception is
                 # cleared: canopen's send_message raises it otherwise (NMT, SDO) for ever
@@ -814,6 +817,15 @@ class _BusReader(ReaderBase):
         except BaseException:
             self.close()
             raise
+
+    @property
+    def wakeups(self) -> tuple[int, int] | None:
+        """(wake-ups, frames) of the bus thread so far: how often it woke for a frame and
+        how many frames it took (docs/performance.md P6b); None without a bus thread."""
+        notifier = self.network.notifier
+        if not isinstance(notifier, BatchNotifier):
+            return None
+        return notifier.wakeups, notifier.frames
 
     def _bus_recovered(self) -> None:
         notifier = self.network.notifier

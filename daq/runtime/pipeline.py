@@ -19,6 +19,8 @@ import numpy as np
 from rsra.config.rig import DESIGN_BAND, ConfigError, RigConfig
 from rsra.daq.bus.assembler import channels_payload
 from rsra.daq.bus.decoder import DecodeTable
+from rsra.daq.runtime.hubpath import HubKernel
+from rsra.daq.runtime.hubpath import load as load_hub_kernel
 from rsra.daq.runtime.records import ABSENT, AnglesRecord, IdentJob
 from rsra.daq.runtime.stuck import StuckMonitor
 from rsra.estimator.balance import inertial_load_matrix
@@ -80,7 +82,7 @@ class EstimatorPipeline:
     """Per-sample estimation for the live service and for replay (one code path)."""
 
     def __init__(self, cfg: RigConfig, alpha0: np.ndarray, *, identification: bool = True,
-                 table: DecodeTable | None = None):
+                 table: DecodeTable | None = None, hub_kernel: bool = True):
         self.cfg = cfg
         self.model = cfg.rig_model()
         self.fs = cfg.sample_rate_hz
@@ -163,6 +165,17 @@ class EstimatorPipeline:
         self._angle_var = HubAngleVariance(self.model.geometry, self.alpha, self._P_angles)
         self._sigma_angles = None  # the last measured sample's (predict-only samples keep it)
         self._angles_uncertain = False
+        # the compiled hub path (daq/runtime/hubpath.py): measured samples' first step in one
+        # call, the same records bit for bit; None: the reference path only (why: below)
+        self.hub_kernel: HubKernel | None = None
+        self.hub_kernel_status = "off (not asked)"
+        if hub_kernel:
+            k, self.hub_kernel_status = load_hub_kernel()
+            if k is not None:
+                try:
+                    self.hub_kernel = HubKernel(k, self)
+                except ValueError as e:
+                    self.hub_kernel_status = f"not used ({e})"
 
     # --- identification results -------------------------------------------------------
     def deliver(self, rec: AnglesRecord, arrival_seq: int | None = None,
@@ -323,6 +336,34 @@ class EstimatorPipeline:
             q = None if s.drive is None else np.asarray(s.drive, float)
             drive_ok = q is not None and np.count_nonzero(np.isfinite(q)) == q.size
         measured = cells_ok and acc_ok and drive_ok and not bad_status
+        fast = None
+        if measured and not flags and self.hub_kernel is not None and self.structure is None:
+            # the compiled hub path (daq/runtime/hubpath.py): the same records bit for bit;
+            # None where this sample needs the reference path below
+            fast = self.hub_kernel.first_step(s, seq, T, accel, q)
+        if fast is not None:
+            I, z, e, nis, omega, rec = fast
+            out.records.append(("hub_loads", rec))
+        else:
+            I, z, e, nis, omega = self._first_reference(s, seq, T, accel, q, flags, measured,
+                                                        acc_ok, drive_ok, out)
+        yield out
+        out = PipelineOutput()
+        status = s.cell_status
+        if not isinstance(status, dict):
+            status = {n: int(b) for n, b in zip(self.cell_names, status)}
+        out.records.append(("channels", channels_payload(s, I=I, status=status)))
+        if (seq - self.first_seq) % self.innov_every == 0:
+            out.records.append(("innovations", {"seq": seq, "t": float(s.t), "e": e,
+                                                "nis": nis}))
+        if self.identification:
+            out.job = self._calibration_branch(s, seq, T, z, measured, omega, alpha)
+        yield out
+
+    def _first_reference(self, s, seq, T, accel, q, flags, measured, acc_ok, drive_ok,
+                         out) -> tuple:
+        """The first step's reference path (numpy): every sample the compiled hub path does
+        not take, and all of them without it. Returns (I, z, e, nis, omega)."""
         # (ndarray.dot: the same BLAS gemv as @, at half the call cost on these sizes, P5b)
         I = self._Mf.dot(accel) if acc_ok else np.full(6, np.nan)
         z = I - self._D.dot(q) if (q is not None and drive_ok) else I
@@ -378,18 +419,7 @@ class EstimatorPipeline:
             "seq": seq, "sync": int(s.sync), "t": float(s.t), "frame": self.frame,
             "H": None if res.H is None else res.H, "H_static": H_static,
             "sigma_angles": sigma_angles, "omega": omega_pub, "flags": flags}))
-        yield out
-        out = PipelineOutput()
-        status = s.cell_status
-        if not isinstance(status, dict):
-            status = {n: int(b) for n, b in zip(self.cell_names, status)}
-        out.records.append(("channels", channels_payload(s, I=I, status=status)))
-        if (seq - self.first_seq) % self.innov_every == 0:
-            out.records.append(("innovations", {"seq": seq, "t": float(s.t), "e": res.e,
-                                                "nis": res.nis}))
-        if self.identification:
-            out.job = self._calibration_branch(s, seq, T, z, measured, omega, alpha)
-        yield out
+        return I, z, res.e, res.nis, omega
 
     def _calibration_branch(self, s, seq, T, z, measured, omega, alpha) -> IdentJob | None:
         known = s.known_H is not None and bool(np.isfinite(np.asarray(s.known_H, float)).all())

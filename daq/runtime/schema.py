@@ -93,6 +93,7 @@ FIELDS: dict[str, list[tuple[str, str, str]]] = {
         ("queues.publisher.depth", "integer", ""), ("queues.publisher.dropped", "integer", ""),
         ("estimator.implausible_omega", "integer", ""),
         ("estimator.design_errors", "integer", ""), ("estimator.stuck_samples", "integer", ""),
+        ("estimator.hub_kernel", "string", ""), ("estimator.hub_kernel_samples", "integer", ""),
         ("estimator.stuck_episodes", "integer", ""),
         ("estimator.stuck_now", "array:string", ""),
         ("estimator.stuck_untested", "array:string", ""),
