@@ -29,7 +29,7 @@ from rsra.estimator.angle_uncertainty import (
     HubAngleVariance,
     angle_covariance,
 )
-from rsra.estimator.filters import LoadFilter
+from rsra.estimator.filters import AzimuthTracker, LoadFilter
 from rsra.estimator.geometry import hub_transfer_matrix, wrench_matrix
 from rsra.estimator.noise_budget import noise_budget
 from rsra.estimator.structure import StructureCorrection
@@ -59,11 +59,13 @@ class WindowBuffer:
         self.ok = np.zeros(n, dtype=bool)  # load cells and accelerometers present
         self.known = np.zeros(n, dtype=bool)  # balance present
         self.omega = np.zeros(n)
+        self.dpsi = np.full(n, np.nan)  # the rotor's turn since the last sample (azimuth mode)
         self.count = 0
 
-    def add(self, seq, t, T, z, H, ok, known, omega) -> None:
+    def add(self, seq, t, T, z, H, ok, known, omega, dpsi=None) -> None:
         i = self.count % self.n
         self.T[i], self.z[i], self.H[i] = T, z, H
+        self.dpsi[i] = np.nan if dpsi is None else dpsi
         self.seq[i], self.t[i], self.ok[i], self.known[i], self.omega[i] = seq, t, ok, known, omega
         self.count += 1
 
@@ -73,7 +75,8 @@ class WindowBuffer:
         idx = (np.arange(self.count - m, self.count)) % self.n
         return {"T": self.T[idx].copy(), "z": self.z[idx].copy(), "known_H": self.H[idx].copy(),
                 "seq": self.seq[idx].copy(), "t": self.t[idx].copy(), "ok": self.ok[idx].copy(),
-                "known": self.known[idx].copy(), "omega": self.omega[idx].copy()}
+                "known": self.known[idx].copy(), "omega": self.omega[idx].copy(),
+                "dpsi": self.dpsi[idx].copy()}
 
 
 class EstimatorPipeline:
@@ -93,13 +96,17 @@ class EstimatorPipeline:
         self._Mf = inertial_load_matrix(self.model)
         self._D = self.model.external.wrenches
         f = cfg.filter
+        # issue 25: the harmonic states turn with the rotor's measured azimuth
+        self.azimuth_mode = cfg.rotor.harmonic_phase == "azimuth"
+        self.azimuth = AzimuthTracker(cfg.rotor.omega_nominal_rad_s, 1.0 / self.fs)
         self.cache = design_cache(cfg, model=self.model)
         # a redesign takes 10-60 ms, longer than a sample: design the expected band now
         w0 = cfg.rotor.omega_nominal_rad_s
         try:
             self.cache.prefill(w0 * (1 - PREFILL_BAND), w0 * (1 + PREFILL_BAND))
             self.load_filter = LoadFilter(
-                self.cache, self.alpha, invalid_after_samples=int(round(f.invalid_after_s * self.fs)))
+                self.cache, self.alpha, invalid_after_samples=int(round(f.invalid_after_s * self.fs)),
+                azimuth=self.azimuth_mode)
         except (np.linalg.LinAlgError, ValueError) as e:  # the config check (Nyquist) passed
             if isinstance(e, ConfigError):
                 raise
@@ -356,8 +363,9 @@ class EstimatorPipeline:
         if self._last_seq is not None and seq - self._last_seq - 1 > lost:
             lost = seq - self._last_seq - 1
         self._last_seq = seq
+        dpsi = (self.azimuth.step(s.azimuth, omega, lost + 1) if self.azimuth_mode else None)
         res = self.load_filter.step(T if measured else np.zeros(7), zh if measured else np.zeros(6),
-                                    measured=measured, lost=lost)
+                                    measured=measured, lost=lost, dpsi=dpsi)
         for fl in res.flags:
             if fl not in flags:
                 flags.append(fl)
@@ -388,10 +396,11 @@ class EstimatorPipeline:
             out.records.append(("innovations", {"seq": seq, "t": float(s.t), "e": res.e,
                                                 "nis": res.nis}))
         if self.identification:
-            out.job = self._calibration_branch(s, seq, T, z, measured, omega, alpha)
+            out.job = self._calibration_branch(s, seq, T, z, measured, omega, alpha, dpsi)
         yield out
 
-    def _calibration_branch(self, s, seq, T, z, measured, omega, alpha) -> IdentJob | None:
+    def _calibration_branch(self, s, seq, T, z, measured, omega, alpha,
+                            dpsi=None) -> IdentJob | None:
         known = s.known_H is not None and bool(np.isfinite(np.asarray(s.known_H, float)).all())
         if known:
             self.last_known_seq = seq
@@ -405,11 +414,13 @@ class EstimatorPipeline:
         y = yk if mode == "known_loads" else yf
         if omega is None:
             omega = self.cfg.rotor.omega_nominal_rad_s
-        self.buffer.add(seq, s.t, y[:7], y[7:13], y[13:], measured, known, omega)
+        self.buffer.add(seq, s.t, y[:7], y[7:13], y[13:], measured, known, omega, dpsi)
         since = seq - self.first_seq + 1
         if since < self.period_n or since % self.period_n != 0:
             return None
         w = self.buffer.window()
+        if not self.azimuth_mode:
+            w.pop("dpsi")
         job_id = self.next_job_id
         self.next_job_id += 1
         planned = int(w["seq"][-1]) + self.apply_delay_n
