@@ -29,7 +29,7 @@ from rsra.estimator.angle_uncertainty import (
     HubAngleVariance,
     angle_covariance,
 )
-from rsra.estimator.filters import AzimuthTracker, LoadFilter
+from rsra.estimator.filters import AZIMUTH_MISSING, AzimuthTracker, LoadFilter
 from rsra.estimator.geometry import hub_transfer_matrix, wrench_matrix
 from rsra.estimator.noise_budget import noise_budget
 from rsra.estimator.structure import StructureCorrection
@@ -99,6 +99,7 @@ class EstimatorPipeline:
         # issue 25: the harmonic states turn with the rotor's measured azimuth
         self.azimuth_mode = cfg.rotor.harmonic_phase == "azimuth"
         self.azimuth = AzimuthTracker(cfg.rotor.omega_nominal_rad_s, 1.0 / self.fs)
+        self.azimuth_missing = 0  # samples advanced by the design's Ω (health)
         self.cache = design_cache(cfg, model=self.model)
         # a redesign takes 10-60 ms, longer than a sample: design the expected band now
         w0 = cfg.rotor.omega_nominal_rad_s
@@ -369,6 +370,8 @@ class EstimatorPipeline:
         for fl in res.flags:
             if fl not in flags:
                 flags.append(fl)
+        if self.azimuth_mode and dpsi is None and AZIMUTH_MISSING in res.flags:
+            self.azimuth_missing += 1
         if res.e is not None and self.transient.update(self.load_filter.design, res.e):
             flags.append(TRANSIENT)
         if self.identification_off:

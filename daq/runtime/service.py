@@ -686,7 +686,12 @@ class Service:
             more["foxglove"] = frozen_map(self.outputs.foxglove.health())
         if self.pipeline is not None:  # readings the estimator refused (bad input, counted)
             est = {"implausible_omega": self.pipeline.implausible_omega,
-                   "design_errors": self.pipeline.design_errors}
+                   "design_errors": self.pipeline.design_errors,
+                   "inertial": self.pipeline.cfg.angular,
+                   "harmonic_phase": self.pipeline.cfg.rotor.harmonic_phase}
+            if self.pipeline.azimuth_mode:
+                est["azimuth_missing"] = self.pipeline.azimuth_missing
+                est["azimuth_refused"] = self.pipeline.azimuth.refused
             if self.pipeline.stuck is not None:
                 est.update(self.pipeline.stuck.health())
             more["estimator"] = frozen_map(est)
