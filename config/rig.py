@@ -233,6 +233,9 @@ class RotorConfig:
     redesign_band: float
     cache_resolution: float
     stopped: bool
+    # issue 25: "design" (the harmonic states advance by the design's Ω, the default) or
+    # "azimuth" (by the measured azimuth of the rotor-speed node; gain held ±5 %)
+    harmonic_phase: str = "design"
 
 
 @dataclass(frozen=True)
@@ -560,7 +563,11 @@ def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = No
         redesign_band=rot.number("redesign_band", 0.005, positive=True),
         cache_resolution=rot.number("cache_resolution", 0.001, positive=True),
         stopped=rot.boolean("stopped", False),
+        harmonic_phase=rot.string("harmonic_phase", "design", ("design", "azimuth")),
     )
+    if rotor.harmonic_phase == "azimuth" and not rotor.node:
+        raise rot.error("harmonic_phase", "azimuth", "needs the rotor-speed node's azimuth",
+                        'set rotor.node, or harmonic_phase = "design"')
     rot.finish()
 
     bal = top.table("balance", {})

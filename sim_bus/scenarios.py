@@ -106,6 +106,10 @@ class RotorMotion:
     omega_variation: float  # fraction: Omega = Omega_nominal (1 + v m(t)), |m| <= 1
     omega_period_s: float
     follow_shaker: bool  # Omega = 2 pi f_shaker / N_b (the shaker is the N_b/rev harmonic)
+    # a governor-like oscillation on top (issue 25): + amplitude sin(2 pi f t), fraction of
+    # Omega_nominal; 0 = none
+    governor_amplitude: float = 0.0
+    governor_hz: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -389,7 +393,13 @@ def parse_scenario(raw: dict, source: str = "<scenario>", variants: dict | None 
         omega_variation=ro.number("omega_variation", 0.0, nonneg=True),
         omega_period_s=ro.number("omega_period_s", 30.0, positive=True),
         follow_shaker=ro.boolean("follow_shaker", False),
+        governor_amplitude=ro.number("governor_amplitude", 0.0, nonneg=True),
+        governor_hz=ro.number("governor_hz", 1.0, positive=True),
     )
+    if rotor.omega_variation + rotor.governor_amplitude >= 0.5:
+        raise ro.error("governor_amplitude", rotor.governor_amplitude,
+                       "omega_variation + governor_amplitude must be < 0.5 (fractions)",
+                       "e.g. governor_amplitude = 0.003")
     if rotor.omega_variation >= 0.5:
         raise ro.error("omega_variation", rotor.omega_variation, "must be < 0.5 (a fraction)",
                        "e.g. omega_variation = 0.02 for +-2 %")

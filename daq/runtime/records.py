@@ -153,6 +153,9 @@ class IdentJob:
     ok: np.ndarray
     known: np.ndarray
     omega: np.ndarray
+    # the rotor's turn since the previous sample (rad; NaN where the azimuth was missing or
+    # refused), azimuth mode only (issue 25): the calibration filter's Φ(Δψ)
+    dpsi: np.ndarray | None = None
 
     def as_mapping(self) -> dict[str, Any]:
         """The job as the numerics take it (``daq.ident_worker.run_job``; no copies)."""

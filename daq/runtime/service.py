@@ -695,8 +695,13 @@ class Service:
             p = self.pipeline
             est = {"implausible_omega": p.implausible_omega,
                    "design_errors": p.design_errors,
+                   "inertial": p.cfg.angular,
+                   "harmonic_phase": p.cfg.rotor.harmonic_phase,
                    "hub_kernel": p.hub_kernel_status,
                    "hub_kernel_samples": 0 if p.hub_kernel is None else p.hub_kernel.samples}
+            if p.azimuth_mode:
+                est["azimuth_missing"] = p.azimuth_missing
+                est["azimuth_refused"] = p.azimuth.refused
             if self.pipeline.stuck is not None:
                 est.update(self.pipeline.stuck.health())
             more["estimator"] = frozen_map(est)
