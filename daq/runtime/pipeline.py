@@ -19,6 +19,7 @@ import numpy as np
 from rsra.config.rig import DESIGN_BAND, ConfigError, RigConfig
 from rsra.daq.bus.assembler import channels_payload
 from rsra.daq.bus.decoder import DecodeTable
+from rsra.daq.runtime.reasons import input_labels
 from rsra.daq.runtime.records import ABSENT, AnglesRecord, IdentJob
 from rsra.daq.runtime.stuck import StuckMonitor
 from rsra.estimator.balance import inertial_load_matrix
@@ -59,12 +60,16 @@ class WindowBuffer:
         self.ok = np.zeros(n, dtype=bool)  # load cells and accelerometers present
         self.known = np.zeros(n, dtype=bool)  # balance present
         self.omega = np.zeros(n)
+        # what each sample lacked (bits of EstimatorPipeline.input_labels): reported in a
+        # rejected run's explanation (daq.runtime.reasons), never used to decide
+        self.missing = np.zeros(n, dtype=np.uint64)
         self.count = 0
 
-    def add(self, seq, t, T, z, H, ok, known, omega) -> None:
+    def add(self, seq, t, T, z, H, ok, known, omega, missing: int = 0) -> None:
         i = self.count % self.n
         self.T[i], self.z[i], self.H[i] = T, z, H
         self.seq[i], self.t[i], self.ok[i], self.known[i], self.omega[i] = seq, t, ok, known, omega
+        self.missing[i] = missing
         self.count += 1
 
     def window(self) -> dict:
@@ -73,7 +78,8 @@ class WindowBuffer:
         idx = (np.arange(self.count - m, self.count)) % self.n
         return {"T": self.T[idx].copy(), "z": self.z[idx].copy(), "known_H": self.H[idx].copy(),
                 "seq": self.seq[idx].copy(), "t": self.t[idx].copy(), "ok": self.ok[idx].copy(),
-                "known": self.known[idx].copy(), "omega": self.omega[idx].copy()}
+                "known": self.known[idx].copy(), "omega": self.omega[idx].copy(),
+                "missing": self.missing[idx].copy()}
 
 
 class EstimatorPipeline:
@@ -125,6 +131,10 @@ class EstimatorPipeline:
         self.window_n = int(round(idc.window_s * self.fs))
         self.apply_delay_n = int(round(idc.apply_delay_s * self.fs))
         self.buffer = WindowBuffer(self.window_n, 3 * len(cfg.accelerometers))
+        # the inputs a sample may lack, as its flags name them (bit k of WindowBuffer.missing);
+        # the last bit: unusable without a flag naming why (a non-finite reading)
+        self.input_labels = input_labels(cfg)
+        self._input_bit = {lab: k for k, lab in enumerate(self.input_labels[:-1])}
         omega0 = cfg.rotor.omega_nominal_rad_s
         harm = tuple(cfg.filter.harmonics)
         n_ch = 7 + 6 + 6
@@ -388,10 +398,21 @@ class EstimatorPipeline:
             out.records.append(("innovations", {"seq": seq, "t": float(s.t), "e": res.e,
                                                 "nis": res.nis}))
         if self.identification:
-            out.job = self._calibration_branch(s, seq, T, z, measured, omega, alpha)
+            out.job = self._calibration_branch(s, seq, T, z, measured, omega, alpha, flags)
         yield out
 
-    def _calibration_branch(self, s, seq, T, z, measured, omega, alpha) -> IdentJob | None:
+    def _missing_bits(self, flags, measured: bool) -> int:
+        m = 0
+        for f in flags:  # (usually none)
+            k = self._input_bit.get(f)
+            if k is not None:
+                m |= 1 << k
+        if not measured and not m:
+            m = 1 << (len(self.input_labels) - 1)
+        return m
+
+    def _calibration_branch(self, s, seq, T, z, measured, omega, alpha,
+                            flags=()) -> IdentJob | None:
         known = s.known_H is not None and bool(np.isfinite(np.asarray(s.known_H, float)).all())
         if known:
             self.last_known_seq = seq
@@ -405,7 +426,8 @@ class EstimatorPipeline:
         y = yk if mode == "known_loads" else yf
         if omega is None:
             omega = self.cfg.rotor.omega_nominal_rad_s
-        self.buffer.add(seq, s.t, y[:7], y[7:13], y[13:], measured, known, omega)
+        self.buffer.add(seq, s.t, y[:7], y[7:13], y[13:], measured, known, omega,
+                        self._missing_bits(flags, measured) if flags or not measured else 0)
         since = seq - self.first_seq + 1
         if since < self.period_n or since % self.period_n != 0:
             return None

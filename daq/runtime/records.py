@@ -62,6 +62,8 @@ class AnglesRecord:
     accepted: Any = ABSENT
     reason: Any = ABSENT
     detail: Any = ABSENT
+    explanation: Any = ABSENT  # one line: the figures behind reason/detail (issue 28)
+    hint: Any = ABSENT  # one line: the likely cause and what to do (null when accepted)
     names: Any = ABSENT
     alpha: Any = ABSENT
     P: Any = ABSENT
@@ -153,6 +155,7 @@ class IdentJob:
     ok: np.ndarray
     known: np.ndarray
     omega: np.ndarray
+    missing: np.ndarray | None = None  # what each sample lacked (bits: pipeline.input_labels)
 
     def as_mapping(self) -> dict[str, Any]:
         """The job as the numerics take it (``daq.ident_worker.run_job``; no copies)."""

@@ -29,7 +29,7 @@ FIELDS: dict[str, list[tuple[str, str, str]]] = {
     "angles": [
         ("t", "number", "s (UNIX)"), ("seq", "integer", ""), ("mode", "string", ""),
         ("content", "string", ""), ("accepted", "boolean", ""), ("reason", "string", ""),
-        ("detail", "string", ""),
+        ("detail", "string", ""), ("explanation", "string", ""), ("hint", "string", ""),
         ("names", "array:string", ""), ("alpha", "array:number", "rad"),
         ("P", "array:array:number", "rad²"), ("sigma_cr", "array:number", "rad"),
         ("sigma_cr_corrected", "array:number", "rad"), ("determined", "integer", ""),
