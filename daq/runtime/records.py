@@ -62,8 +62,6 @@ class AnglesRecord:
     accepted: Any = ABSENT
     reason: Any = ABSENT
     detail: Any = ABSENT
-    explanation: Any = ABSENT  # one line: the figures behind reason/detail (issue 28)
-    hint: Any = ABSENT  # one line: the likely cause and what to do (null when accepted)
     names: Any = ABSENT
     alpha: Any = ABSENT
     P: Any = ABSENT
@@ -84,6 +82,8 @@ class AnglesRecord:
     candidates: Any = ABSENT
     next_conditions: Any = ABSENT  # known loads: the experiment design (issue 19)
     structure_fit: Any = ABSENT  # known loads: the structure the hub loads use (issue 19)
+    explanation: Any = ABSENT  # one line: the figures behind reason/detail (issue 28)
+    hint: Any = ABSENT  # one line: the likely cause and what to do (null when accepted)
     extra: tuple[tuple[str, Any], ...] = ()  # keys not declared above, in their order
 
     FIELDS: ClassVar[tuple[str, ...]]

@@ -29,7 +29,7 @@ FIELDS: dict[str, list[tuple[str, str, str]]] = {
     "angles": [
         ("t", "number", "s (UNIX)"), ("seq", "integer", ""), ("mode", "string", ""),
         ("content", "string", ""), ("accepted", "boolean", ""), ("reason", "string", ""),
-        ("detail", "string", ""), ("explanation", "string", ""), ("hint", "string", ""),
+        ("detail", "string", ""),
         ("names", "array:string", ""), ("alpha", "array:number", "rad"),
         ("P", "array:array:number", "rad²"), ("sigma_cr", "array:number", "rad"),
         ("sigma_cr_corrected", "array:number", "rad"), ("determined", "integer", ""),
@@ -50,7 +50,8 @@ FIELDS: dict[str, list[tuple[str, str, str]]] = {
         ("structure_fit.beta", "array:number", "SI"),
         ("structure_fit.alpha0_sigma", "array:number", "rad"),
         ("structure_fit.beta_sigma", "array:number", "SI"),
-        ("structure_fit.T_ref", "array:number", "N")],
+        ("structure_fit.T_ref", "array:number", "N"),
+        ("explanation", "string", ""), ("hint", "string", "")],
     "health": [
         ("t", "number", "s (UNIX)"), ("nodes", "object", ""),
         ("nodes.<node>.state", "string", ""), ("nodes.<node>.heartbeat_age", "number", "s"),
