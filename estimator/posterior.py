@@ -127,6 +127,10 @@ class AnglesRecord:
     structure_verdict: StructureVerdict | None = None
     # the selected structure the hub-load estimate uses (structure.fit_payload), None: none
     structure_fit: dict | None = None
+    # the run's cost J at its start (the prior mean) and after each iteration (how a run
+    # that did not converge was going: the shell's explanation of a rejection)
+    cost_start: float | None = None
+    cost_history: tuple[float, ...] | None = None
 
     def to_dict(self) -> dict:
         """The telemetry ``angles`` payload (SI: radians), values as computed (numpy arrays,
@@ -549,6 +553,8 @@ class SequentialPosterior:
             / checks.innovation.mean,
             innovation_limit=None if checks is None else checks.innovation.limit
             / checks.innovation.mean,
+            cost_start=None if result is None else float(result.cost_start),
+            cost_history=None if result is None else tuple(float(c) for c in result.history),
         )
 
     def update(

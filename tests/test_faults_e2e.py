@@ -517,6 +517,16 @@ def test_a_bad_window_never_replaces_the_angles(cfg, window_job, corrupt, reason
     np.testing.assert_array_equal(post.theta, theta0)
     np.testing.assert_array_equal(post.P, P0)
     assert json.loads(dumps(rec))["reason"] == rec["reason"]  # strict JSON, publishable
+    # every rejection says why in figures and what to do, one line each (issue 28)
+    for key in ("explanation", "hint"):
+        assert isinstance(rec[key], str) and rec[key] and "\n" not in rec[key], rec
+    if rec["reason"] == "stale_input":
+        assert "allowed 5.0 %" in rec["explanation"]
+        what = "the balance absent in 10" if bad["known"][550] == 0 else \
+            "a non-finite reading (no flag) in 10.0 %"
+        assert what in rec["explanation"], rec["explanation"]
+    if rec["reason"] in ("not_converged", "diverged"):
+        assert f"{rec['iterations']}" in rec["explanation"] and "cost" in rec["explanation"]
     # delivered to the estimator: published at its sample, angles in force unchanged
     from rsra.daq.runtime.pipeline import PipelineOutput
 
@@ -541,6 +551,10 @@ def test_stale_input_through_the_service(cfg):
     svc.add_sink(lambda k, p: angles.append(json.loads(dumps(p))) if k == "angles" else None)
     summary = svc.run()
     assert [a["reason"] for a in angles] == ["stale_input"] and not angles[0]["accepted"]
+    # it names the input and the fraction of the window it was missing in (issue 28)
+    n = angles[0]["window"][1] - angles[0]["window"][0] + 1
+    assert f"accel_1 missing in {100 * 200 / n:.1f} %" in angles[0]["explanation"], angles[0]
+    assert "accel_1 silent" in angles[0]["hint"]
     assert angles[0]["applies_from_seq"] == angles[0]["window"][1] + round(
         cfg.identification.apply_delay_s * cfg.sample_rate_hz)
     np.testing.assert_array_equal(summary["alpha_applied"], cfg.identification.initial_angles_rad)

@@ -128,6 +128,11 @@ def run_job(cfg, runs: dict, cache, job: dict) -> dict:
             if other is not ident:
                 other.mark_discontinuity()
     out = sanitise(rec.to_dict())  # strict JSON values, as they cross the process boundary
+    from rsra.daq.runtime.reasons import explain, input_labels
+
+    # the figures behind the decision and the likely cause, in words (never the decision)
+    out["explanation"], out["hint"] = explain(rec, {**job, "mode": mode}, cfg.identification,
+                                              input_labels(cfg))
     out["applies_from_seq"] = int(job["applies_from_seq"])
     out["late"] = False
     out["restarted"] = False

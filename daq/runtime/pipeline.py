@@ -21,6 +21,7 @@ from rsra.daq.bus.assembler import channels_payload
 from rsra.daq.bus.decoder import DecodeTable
 from rsra.daq.runtime.hubpath import HubKernel
 from rsra.daq.runtime.hubpath import load as load_hub_kernel
+from rsra.daq.runtime.reasons import input_labels
 from rsra.daq.runtime.records import ABSENT, AnglesRecord, IdentJob
 from rsra.daq.runtime.stuck import StuckMonitor
 from rsra.estimator.balance import inertial_load_matrix
@@ -62,13 +63,17 @@ class WindowBuffer:
         self.known = np.zeros(n, dtype=bool)  # balance present
         self.omega = np.zeros(n)
         self.dpsi = np.full(n, np.nan)  # the rotor's turn since the last sample (azimuth mode)
+        # what each sample lacked (bits of EstimatorPipeline.input_labels): reported in a
+        # rejected run's explanation (daq.runtime.reasons), never used to decide
+        self.missing = np.zeros(n, dtype=np.uint64)
         self.count = 0
 
-    def add(self, seq, t, T, z, H, ok, known, omega, dpsi=None) -> None:
+    def add(self, seq, t, T, z, H, ok, known, omega, dpsi=None, missing: int = 0) -> None:
         i = self.count % self.n
         self.T[i], self.z[i], self.H[i] = T, z, H
         self.dpsi[i] = np.nan if dpsi is None else dpsi
         self.seq[i], self.t[i], self.ok[i], self.known[i], self.omega[i] = seq, t, ok, known, omega
+        self.missing[i] = missing
         self.count += 1
 
     def window(self) -> dict:
@@ -78,7 +83,8 @@ class WindowBuffer:
         return {"T": self.T[idx].copy(), "z": self.z[idx].copy(), "known_H": self.H[idx].copy(),
                 "seq": self.seq[idx].copy(), "t": self.t[idx].copy(), "ok": self.ok[idx].copy(),
                 "known": self.known[idx].copy(), "omega": self.omega[idx].copy(),
-                "dpsi": self.dpsi[idx].copy()}
+                "dpsi": self.dpsi[idx].copy(),
+                "missing": self.missing[idx].copy()}
 
 
 class EstimatorPipeline:
@@ -135,6 +141,10 @@ class EstimatorPipeline:
         self.window_n = int(round(idc.window_s * self.fs))
         self.apply_delay_n = int(round(idc.apply_delay_s * self.fs))
         self.buffer = WindowBuffer(self.window_n, 3 * len(cfg.accelerometers))
+        # the inputs a sample may lack, as its flags name them (bit k of WindowBuffer.missing);
+        # the last bit: unusable without a flag naming why (a non-finite reading)
+        self.input_labels = input_labels(cfg)
+        self._input_bit = {lab: k for k, lab in enumerate(self.input_labels[:-1])}
         omega0 = cfg.rotor.omega_nominal_rad_s
         harm = tuple(cfg.filter.harmonics)
         n_ch = 7 + 6 + 6
@@ -368,7 +378,8 @@ class EstimatorPipeline:
             out.records.append(("innovations", {"seq": seq, "t": float(s.t), "e": e,
                                                 "nis": nis}))
         if self.identification:
-            out.job = self._calibration_branch(s, seq, T, z, measured, omega, alpha, dpsi)
+            out.job = self._calibration_branch(s, seq, T, z, measured, omega, alpha, dpsi,
+                                               flags)
         yield out
 
     def _first_reference(self, s, seq, T, accel, q, flags, measured, acc_ok, drive_ok,
@@ -435,8 +446,18 @@ class EstimatorPipeline:
             "sigma_angles": sigma_angles, "omega": omega_pub, "flags": flags}))
         return I, z, res.e, res.nis, omega, dpsi
 
+    def _missing_bits(self, flags, measured: bool) -> int:
+        m = 0
+        for f in flags:  # (usually none)
+            k = self._input_bit.get(f)
+            if k is not None:
+                m |= 1 << k
+        if not measured and not m:
+            m = 1 << (len(self.input_labels) - 1)
+        return m
+
     def _calibration_branch(self, s, seq, T, z, measured, omega, alpha,
-                            dpsi=None) -> IdentJob | None:
+                            dpsi=None, flags=()) -> IdentJob | None:
         known = s.known_H is not None and bool(np.isfinite(np.asarray(s.known_H, float)).all())
         if known:
             self.last_known_seq = seq
@@ -450,7 +471,8 @@ class EstimatorPipeline:
         y = yk if mode == "known_loads" else yf
         if omega is None:
             omega = self.cfg.rotor.omega_nominal_rad_s
-        self.buffer.add(seq, s.t, y[:7], y[7:13], y[13:], measured, known, omega, dpsi)
+        self.buffer.add(seq, s.t, y[:7], y[7:13], y[13:], measured, known, omega, dpsi,
+                        self._missing_bits(flags, measured) if flags or not measured else 0)
         since = seq - self.first_seq + 1
         if since < self.period_n or since % self.period_n != 0:
             return None

@@ -50,7 +50,8 @@ FIELDS: dict[str, list[tuple[str, str, str]]] = {
         ("structure_fit.beta", "array:number", "SI"),
         ("structure_fit.alpha0_sigma", "array:number", "rad"),
         ("structure_fit.beta_sigma", "array:number", "SI"),
-        ("structure_fit.T_ref", "array:number", "N")],
+        ("structure_fit.T_ref", "array:number", "N"),
+        ("explanation", "string", ""), ("hint", "string", "")],
     "health": [
         ("t", "number", "s (UNIX)"), ("nodes", "object", ""),
         ("nodes.<node>.state", "string", ""), ("nodes.<node>.heartbeat_age", "number", "s"),

@@ -663,8 +663,9 @@ class Service:
                      math.degrees(worst), rec.get("applies_from_seq"),
                      " (late)" if rec.get("late") else "")
         else:
-            log.info("identification rejected (%s, %s): %s", rec.get("mode"), rec.get("content"),
-                     rec.get("reason"))
+            log.info("identification rejected (%s, %s): %s: %s%s", rec.get("mode"),
+                     rec.get("content"), rec.get("reason"), rec.get("explanation") or
+                     rec.get("detail"), f"; hint: {rec.get('hint')}" if rec.get("hint") else "")
 
     def _on_health(self, item) -> None:
         """The reader's health record (daq.bus.health) with the service's parts, replaced
