@@ -118,3 +118,11 @@ def test_without_the_kernel_the_reference_runs_and_says_why(monkeypatch, recordi
     assert p.hub_kernel is None and p.hub_kernel_status == f"off ({hubpath.OFF_ENV}=off)"
     for s in _samples(cfg, recordings["ground"])[:50]:
         assert [k for k, _ in p.process(s).records][:1] == ["hub_loads"]
+
+
+def test_the_kernel_follows_the_estimator_code_it_mirrors():
+    """The kernel does what LoadFilter.step/_build, TransientDetector.update and
+    HubAngleVariance do; when they change (issue 25: the harmonic states in the rotor's
+    frame), the kernel is off until it is brought in line and the tests above pass again
+    with the new fingerprint in daq/runtime/hubpath.py."""
+    assert hubpath.estimator_fingerprint() == hubpath.MIRRORS_FINGERPRINT

@@ -35,6 +35,33 @@ _STATE: dict[str, Any] = {}
 OFF_ENV = "RSRA_HUB_KERNEL"  # "off": the pure-Python path (benchmarks' before/after)
 
 
+# The estimator code the kernel mirrors (daq/_hubkernel.c does what these do, in their
+# order): a change to any of them turns the kernel off with the reason until the kernel is
+# brought in line and tests/test_hubpath.py shows both paths equal again (then put the new
+# fingerprint here: ``python -c "from rsra.daq.runtime import hubpath; print(hubpath.
+# estimator_fingerprint())"``).
+MIRRORS_FINGERPRINT = "ad63002fa64be0b1"
+
+
+def estimator_fingerprint() -> str:
+    """A hash of the source of the estimator steps the kernel mirrors."""
+    import hashlib
+    import inspect
+
+    from rsra.estimator.angle_uncertainty import HubAngleVariance
+    from rsra.estimator.filters import LoadFilter
+    from rsra.estimator.transient import TransientDetector
+
+    h = hashlib.sha256()
+    for f in (LoadFilter._build, LoadFilter.step, TransientDetector.update,
+              HubAngleVariance.variance, HubAngleVariance.__init__):
+        try:
+            h.update(inspect.getsource(f).encode())
+        except (OSError, TypeError):  # no source (a frozen install): cannot tell
+            return "unknown"
+    return h.hexdigest()[:16]
+
+
 class EncodedRecord(dict):
     """A record payload (a plain dict to every reader) that carries its JSON text as the
     kernel wrote it (``encoded``: what :func:`rsra.daq.jsonout.dumpb` gives for it)."""
@@ -120,7 +147,11 @@ def load() -> tuple[Any, str]:
             why = f"not built ({e}); reinstall with a C compiler (pip install .)"
         else:
             blas = _find_blas()
-            if isinstance(blas, str):
+            fp = estimator_fingerprint()
+            if fp != MIRRORS_FINGERPRINT:
+                why = (f"off: the estimator steps it mirrors changed (fingerprint {fp}, "
+                       f"the kernel follows {MIRRORS_FINGERPRINT}; daq/runtime/hubpath.py)")
+            elif isinstance(blas, str):
                 why = blas
             else:
                 k.set_blas(blas[0], blas[1], blas[2])
