@@ -91,8 +91,8 @@ def test_angular_acceleration_from_three_triaxes_against_the_simulator_truth():
     cfg = load_config(FLIGHT_RIG)
     model = cfg.rig_model()
     run = simulate(cfg, load_scenario("flight"), seed=4, duration_s=10.0)
-    I = inertial_loads(model, run.accel)
-    r = I - run.I_true
+    Im = inertial_loads(model, run.accel)
+    r = Im - run.I_true
     W = accelerometer_covariance(model)
     chi = np.einsum("ni,ij,nj->n", r, np.linalg.inv(W), r)
     n = len(chi)
@@ -103,7 +103,7 @@ def test_angular_acceleration_from_three_triaxes_against_the_simulator_truth():
     # regress on the truth with slope 1 (within 4 standard errors; 0 in the report's regime)
     for ax in (3, 4):
         x = run.I_true[:, ax] - run.I_true[:, ax].mean()
-        slope = float(x @ (I[:, ax] - I[:, ax].mean()) / (x @ x))
+        slope = float(x @ (Im[:, ax] - Im[:, ax].mean()) / (x @ x))
         se = np.sqrt(W[ax, ax] / (x @ x))
         assert abs(slope - 1.0) < 4 * se, (ax, slope, se)
 
