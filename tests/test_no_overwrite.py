@@ -158,3 +158,33 @@ def test_unwritable_out_a_device_and_an_empty_recording_are_one_line_exit_2(
     for w in words:
         assert w in lines[0], (w, lines[0])
     assert not (tmp_path / "o.jsonl").exists()
+
+
+def test_time_going_back_is_a_discontinuity_not_lost_samples_or_rewritten_times(
+        recording, tmp_path, capsys):
+    """The same log concatenated twice (issue 27 item 3): every sample of both halves, none
+    lost, the second half at its own (recorded) times, the jump counted and reported once."""
+    import json
+
+    rig = LockstepRig(load_config(), record=tmp_path / "long")  # 1.5 s: more than 1 s back
+    try:
+        rig.step(300)
+    finally:
+        rig.close()
+    once = (tmp_path / "long" / "frames.log").read_text()
+    (tmp_path / "twice.log").write_text(once + once)
+    out = tmp_path / "r.jsonl"
+    assert main(["replay", str(tmp_path / "twice.log"), "--out", str(out)]) == 0
+    io = capsys.readouterr()
+    assert "time went back 1 time" in io.out
+    assert io.err.count("time goes back") == 1  # the log line, once
+    recs = [json.loads(x) for x in out.read_text().splitlines()]
+    hub = [r for r in recs if r["key"] == "hub_loads"]
+    n = len(hub) // 2
+    assert len(hub) == 2 * n and n >= 290
+    assert [r["t"] for r in hub[n:]] == [r["t"] for r in hub[:n]]  # times as recorded
+    assert [r["seq"] for r in hub] == list(range(2 * n))  # no seq skipped: nothing lost
+    health = [r for r in recs if r["key"] == "health"][-1]
+    assert health["samples"]["lost"] == 0
+    assert health["sync"]["discontinuities"] == 1
+    assert health["sync"]["bad_timestamp"] == 0

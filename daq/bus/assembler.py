@@ -29,6 +29,10 @@ from rsra.daq.jsonout import sanitise
 
 FrameCallback = Callable[[int, Any, float], None]
 _CACHE_MAX = 256  # distinct (reported, expected) patterns remembered (bounded)
+# a SYNC stamped this far before the last one, with a counter that does not follow it, is a
+# discontinuity (time went back: recordings joined, a clock stepped back), not a bad stamp:
+# far above any delay of a frame, far below the gap of a recording replayed after itself
+DISCONTINUITY_S = 1.0
 TIME_TOLERANCE_PERIODS = 4  # "a few periods": a frame time further than this from where the
 #                             SYNC counter puts it is a bad timestamp (docs/reliability.md)
 
@@ -75,6 +79,7 @@ class SyncClock:
         # the result for the SYNC just stamped (read by the assembler): lost, duplicate
         self.lost = 0
         self.duplicate = False
+        self.jumped = False  # the SYNC just stamped started afresh: time went back
 
     def _gap(self, x: float, lost_c: int, same: bool) -> int | None:
         """Samples lost for a SYNC ``x`` periods after the base whose counter says ``lost_c``
@@ -114,13 +119,21 @@ class SyncClock:
 
     def stamp_sync(self, counter: int, t: float, clock: float) -> float:
         """A SYNC with a valid counter (1…overflow) at raw time ``t``."""
-        self.lost, self.duplicate = 0, False
+        self.lost, self.duplicate, self.jumped = 0, False, False
         if self.base_t is None:
             self.base_t, self.base_c = t, counter
             return t
         ov, dt = self.overflow, self.period
         same = counter == self.base_c
         lost_c = (counter - (self.base_c % ov + 1)) % ov
+        if t < self.base_t - DISCONTINUITY_S and lost_c and not same:
+            # time went back and the counter does not follow (a single SYNC stamped far back
+            # with the next counter is a bad timestamp, below): a discontinuity — counted by
+            # the tap, no sample lost for it, the SYNC taken at its own time as the new base
+            self._suspect = None
+            self.base_t, self.base_c = t, counter
+            self.jumped = True
+            return t
         lost = self._gap((t - self.base_t) / dt, lost_c, same)
         if lost is None and self._suspect is not None:
             st, sc = self._suspect

@@ -151,6 +151,7 @@ class SyncHealth(_Part):
     periods_not_taken: Any = OMIT
     rate_hz: float | None = None
     rate_low: bool = False
+    discontinuities: int = 0  # SYNCs whose time went back (two recordings joined, a clock step)
 
 
 @_part

@@ -75,6 +75,7 @@ FIELDS: dict[str, list[tuple[str, str, str]]] = {
         *[(f"samples.{n}", "integer", "") for n in ("complete", "incomplete", "lost")],
         ("sync", "object", ""), ("sync.duplicate", "integer", ""),
         ("sync.bad_timestamp", "integer", ""), ("sync.late_received", "integer", ""),
+        ("sync.discontinuities", "integer", ""),
         ("sync.late", "integer", ""),
         ("sync.periods_not_taken", "integer", ""), ("sync.rate_hz", "number", "samples/s"),
         ("sync.rate_low", "boolean", ""),

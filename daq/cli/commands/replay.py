@@ -213,6 +213,10 @@ def _summary(counts: dict, health: Health | None) -> str:
         s += (f"; frames {b.frames}, unknown {b.unknown}, malformed {b.malformed}, "
               f"error frames {b.errors}; samples complete {sm.complete}, incomplete "
               f"{sm.incomplete}, lost {sm.lost}")
+        n = health.sync.discontinuities
+        if n:
+            s += (f"; time went back {n} time{'s' if n != 1 else ''} (a discontinuity: "
+                  "recordings joined?), no sample invented")
     return s
 
 
