@@ -428,6 +428,55 @@ done:
     return result;
 }
 
+/* sos_step(sos, zi, x, y): one sample of n channels through the biquad sections of a
+ * content filter (estimator/content.py ContentFilter._step, scipy's sosfilt loop, direct
+ * form II transposed), the state zi (sections, 2, n) updated in place:
+ *     y = b0 x + z0;  z0 = (b1 x - a1 y) + z1;  z1 = b2 x - a2 y
+ * elementwise, in that order (numpy's operations on the row, bit for bit) */
+static PyObject *k_sos_step(PyObject *self, PyObject *args) {
+    Py_buffer bs, bz, bx, by;
+    if (!PyArg_ParseTuple(args, "y*w*y*w*", &bs, &bz, &bx, &by))
+        return NULL;
+    PyObject *r = NULL;
+    Py_ssize_t n = bx.len / 8, ns = bs.len / 48;
+    if (bs.len != ns * 48 || bx.len != n * 8 || by.len != n * 8 || bz.len != ns * 2 * n * 8 ||
+        n > 256) {
+        PyErr_SetString(PyExc_ValueError, "sos_step: wrong sizes");
+        goto done;
+    }
+    {
+        const double *sos = bs.buf;
+        double *zi = bz.buf, *y = by.buf;
+        double cur[256];
+        memcpy(cur, bx.buf, n * sizeof(double));
+        for (Py_ssize_t s = 0; s < ns; s++) {
+            const double *c = sos + 6 * s;
+            double b0 = c[0], b1 = c[1], b2 = c[2], a1 = c[4], a2 = c[5];
+            double *z0 = zi + (2 * s) * n, *z1 = zi + (2 * s + 1) * n;
+            for (Py_ssize_t i = 0; i < n; i++) {
+                double x = cur[i];
+                double yy = b0 * x;
+                yy = yy + z0[i];
+                double t0 = b1 * x, t1 = a1 * yy;
+                t0 = t0 - t1;
+                z0[i] = t0 + z1[i];
+                double u0 = b2 * x, u1 = a2 * yy;
+                z1[i] = u0 - u1;
+                cur[i] = yy;
+            }
+        }
+        memcpy(y, cur, n * sizeof(double));
+    }
+    r = Py_None;
+    Py_INCREF(r);
+done:
+    PyBuffer_Release(&bs);
+    PyBuffer_Release(&bz);
+    PyBuffer_Release(&bx);
+    PyBuffer_Release(&by);
+    return r;
+}
+
 /* gemv(A, x, y): y = A x with the kernel's BLAS (tests: the same bits as numpy's dot) */
 static PyObject *k_gemv(PyObject *self, PyObject *args) {
     Py_buffer bA, bx, by;
@@ -468,6 +517,8 @@ static PyTypeObject PlanType = {
 static PyMethodDef module_methods[] = {
     {"set_blas", set_blas, METH_VARARGS,
      "set_blas(dgemv_address, ddot_address, ilp64): numpy's CBLAS functions."},
+    {"sos_step", k_sos_step, METH_VARARGS,
+     "sos_step(sos, zi, x, y): one sample through a content filter's sections."},
     {"gemv", k_gemv, METH_VARARGS, "gemv(A, m, k, fortran, x, y): y = A x as numpy's dot computes it (tests)."},
     {NULL, NULL, 0, NULL}};
 

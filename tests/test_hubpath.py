@@ -86,6 +86,12 @@ def test_compiled_and_reference_paths_publish_the_same_records(recordings, name)
     diff = [i for i, (a, b) in enumerate(zip(ref, fast)) if a != b]
     assert diff == [], f"{len(diff)} records differ, first {ref[diff[0]]} / {fast[diff[0]]}"
     assert sum(k == "angles" for k, _ in fast) == 1  # the delivered angles applied
+    # the calibration branch (the content filters run in the kernel): the identification
+    # window and the filters' states, bit for bit
+    for a in ("T", "z", "H", "seq", "ok", "known", "omega"):
+        assert getattr(p_ref.buffer, a).tobytes() == getattr(p_fast.buffer, a).tobytes(), a
+    for mode, cf in p_ref.content.items():
+        assert cf._zi.tobytes() == p_fast.content[mode]._zi.tobytes(), mode
     # the kernel computed the measured samples (the rest took the reference path)
     n = len(samples)
     share = p_fast.hub_kernel.samples / n
@@ -121,8 +127,8 @@ def test_without_the_kernel_the_reference_runs_and_says_why(monkeypatch, recordi
 
 
 def test_the_kernel_follows_the_estimator_code_it_mirrors():
-    """The kernel does what LoadFilter.step/_build, TransientDetector.update and
-    HubAngleVariance do; when they change (issue 25: the harmonic states in the rotor's
+    """The kernel does what LoadFilter.step/_build, TransientDetector.update,
+    HubAngleVariance and ContentFilter._step do; when they change (issue 25: the harmonic states in the rotor's
     frame), the kernel is off until it is brought in line and the tests above pass again
     with the new fingerprint in daq/runtime/hubpath.py."""
     assert hubpath.estimator_fingerprint() == hubpath.MIRRORS_FINGERPRINT

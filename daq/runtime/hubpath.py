@@ -40,7 +40,7 @@ OFF_ENV = "RSRA_HUB_KERNEL"  # "off": the pure-Python path (benchmarks' before/a
 # brought in line and tests/test_hubpath.py shows both paths equal again (then put the new
 # fingerprint here: ``python -c "from rsra.daq.runtime import hubpath; print(hubpath.
 # estimator_fingerprint())"``).
-MIRRORS_FINGERPRINT = "e6eec7fcbc66ceb8"  # design mode; azimuth mode takes the reference path
+MIRRORS_FINGERPRINT = "65fe054904f57ab7"  # design mode; azimuth mode takes the reference path
 
 
 def estimator_fingerprint() -> str:
@@ -49,12 +49,14 @@ def estimator_fingerprint() -> str:
     import inspect
 
     from rsra.estimator.angle_uncertainty import HubAngleVariance
+    from rsra.estimator.content import ContentFilter
     from rsra.estimator.filters import LoadFilter
     from rsra.estimator.transient import TransientDetector
 
     h = hashlib.sha256()
     for f in (LoadFilter._build, LoadFilter.step, TransientDetector.update,
-              HubAngleVariance.variance, HubAngleVariance.__init__):
+              HubAngleVariance.variance, HubAngleVariance.__init__, ContentFilter._step,
+              ContentFilter.process):
         try:
             h.update(inspect.getsource(f).encode())
         except (OSError, TypeError):  # no source (a frozen install): cannot tell
@@ -250,3 +252,17 @@ class HubKernel:
             rec.encoded = text
         self.samples += 1
         return out[0:6], out[30:36], out[18:24], nis, omega, rec
+
+    def content_step(self, cf, x: np.ndarray) -> np.ndarray:
+        """One sample ``x`` through the content filter ``cf`` (estimator.content
+        .ContentFilter: ``cf.process(x[None, :])[0]``, the same values): its sections run in
+        the kernel on its own state; the first sample (the state is set up from it), an
+        identity filter or arrays the kernel cannot take go through ``cf.process``."""
+        zi = cf._zi
+        if (zi is None or cf._identity or x.dtype != np.float64 or not x.flags.c_contiguous
+                or not zi.flags.c_contiguous or not cf.sos.flags.c_contiguous
+                or cf.sos.dtype != np.float64):
+            return cf.process(x[None, :])[0]
+        y = np.empty(x.shape[0])
+        self.k.sos_step(cf.sos, zi, x, y)
+        return y

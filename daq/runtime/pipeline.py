@@ -464,8 +464,13 @@ class EstimatorPipeline:
         Hk = np.asarray(s.known_H, float) if known else np.zeros(6)
         x = np.concatenate([T if measured else np.zeros(7), z if measured else np.zeros(6), Hk])
         # one causal content filter per mode; both see every sample so either can take over
-        yk = self.content["known_loads"].process(x[None, :])[0]
-        yf = self.content["filter_error"].process(x[None, :])[0]
+        hk = self.hub_kernel
+        if hk is not None:  # the same sections in C (daq/runtime/hubpath.py), bit for bit
+            yk = hk.content_step(self.content["known_loads"], x)
+            yf = hk.content_step(self.content["filter_error"], x)
+        else:
+            yk = self.content["known_loads"].process(x[None, :])[0]
+            yf = self.content["filter_error"].process(x[None, :])[0]
         fresh = self.last_known_seq is not None and seq - self.last_known_seq < self.fs * 0.5
         mode = "known_loads" if fresh else "filter_error"
         y = yk if mode == "known_loads" else yf
