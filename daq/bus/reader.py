@@ -689,6 +689,7 @@ class HealthMonitor:
         return SyncHealth(duplicate=asm.duplicate_sync, bad_timestamp=asm.clock.bad_timestamp,
                           late_received=asm.clock.late,
                           discontinuities=self.tap.discontinuities,
+                          gaps=asm.clock.gaps, gap_longest_s=round(asm.clock.gap_longest_s, 6),
                           late=late, periods_not_taken=periods, rate_hz=rate,
                           rate_low=rate is not None
                           and rate < RATE_LOW_FRACTION * self.cfg.sample_rate_hz)

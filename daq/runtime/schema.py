@@ -76,6 +76,7 @@ FIELDS: dict[str, list[tuple[str, str, str]]] = {
         ("sync", "object", ""), ("sync.duplicate", "integer", ""),
         ("sync.bad_timestamp", "integer", ""), ("sync.late_received", "integer", ""),
         ("sync.discontinuities", "integer", ""),
+        ("sync.gaps", "integer", ""), ("sync.gap_longest_s", "number", "s"),
         ("sync.late", "integer", ""),
         ("sync.periods_not_taken", "integer", ""), ("sync.rate_hz", "number", "samples/s"),
         ("sync.rate_low", "boolean", ""),

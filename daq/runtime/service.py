@@ -724,6 +724,12 @@ class Service:
                "accepted": self.ident_runs - sum(rej.values()),
                "rejected": rej, "published": dict(self.outputs.counts) if self.outputs else {},
                "deadline_misses": self.deadline_misses}
+        if self.reader is not None:  # the reader's counts, as a replay of the run reports them
+            h = self.reader.health()
+            out["samples_complete"] = h.samples.complete
+            out["samples_incomplete"] = h.samples.incomplete
+            if h.sync.gaps:
+                out["sync_gaps"] = {"count": h.sync.gaps, "longest_s": h.sync.gap_longest_s}
         if self.warnings:
             out["warnings"] = list(self.warnings)
         if self.pipeline is not None and (self.pipeline.implausible_omega

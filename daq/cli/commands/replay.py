@@ -213,6 +213,11 @@ def _summary(counts: dict, health: Health | None) -> str:
         s += (f"; frames {b.frames}, unknown {b.unknown}, malformed {b.malformed}, "
               f"error frames {b.errors}; samples complete {sm.complete}, incomplete "
               f"{sm.incomplete}, lost {sm.lost}")
+        g = health.sync.gaps
+        if g:
+            s += (f"; {g} SYNC gap{'s' if g != 1 else ''} over 1 s (the longest "
+                  f"{health.sync.gap_longest_s:.1f} s: the SYNC producer stalled or the bus "
+                  "paused)")
         n = health.sync.discontinuities
         if n:
             s += (f"; time went back {n} time{'s' if n != 1 else ''} (a discontinuity: "
