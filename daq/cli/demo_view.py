@@ -90,19 +90,24 @@ class DemoState:
         return {k: a.summary() for k, a in self.acc.items()}
 
 
+PHASE_WORDS = {"start": "uncalibrated angles", "transient": "ramps, manoeuvres",
+               "steady": "calibrated: the claim"}
+
+
 def phase_line(by_phase: dict) -> str:
-    """One line: the filtered H's worst axis RMS error/σ and beyond-3σ fraction per phase."""
+    """The filtered H per phase: worst axis RMS error/σ, fraction beyond 3σ, samples, and
+    what the phase is — one line each."""
     from rsra.daq.analysis.accuracy import PHASES
 
-    parts = []
+    rows = []
     for p in PHASES:
         v = (by_phase.get("H") or {}).get(p)
         if v:
-            parts.append(f"{p} {max(v['rms_over_sigma']):.2f} / "
-                         f"{100 * max(v['beyond_3sigma']):.1f} % ({v['samples']})")
-    return ("H error vs published σ, worst axis RMS/σ / beyond 3σ (samples): "
-            + ("; ".join(parts) if parts else "—")
-            + " — start: uncalibrated angles; transient: ramps; steady: calibrated, the claim")
+            rows.append(f"  {p:9s} {max(v['rms_over_sigma']):5.2f} "
+                        f"{100 * max(v['beyond_3sigma']):5.1f} % {v['samples']:>7d}  "
+                        f"{PHASE_WORDS[p]}")
+    return "Ĥ vs published σ: worst-axis err/σ, beyond 3σ, samples" + (
+        "\n" + "\n".join(rows) if rows else ": —")
 
 
 def _f(x, fmt="{:9.1f}") -> str:
@@ -161,10 +166,11 @@ def render(state: DemoState, title: str, units: str):
     parts.append(head)
 
     u = axis_units(units)
-    t = Table(title="hub loads (" + (hub or {}).get("frame", "body") + " axes)", expand=False)
-    for c in ("axis", "truth", "Ĥ", "static", "σ Ĥ", "steady err/σ", ">3σ"):
+    t = Table(title="hub loads (" + (hub or {}).get("frame", "body") + " axes); err/σ, >3σ: "
+              "steady state", expand=False)
+    for c in ("axis", "truth", "Ĥ", "static", "σ Ĥ", "err/σ", ">3σ"):
         t.add_column(c, justify="left" if c == "axis" else "right", no_wrap=True,
-                     min_width=7 if c == "axis" else 8)
+                     min_width=7 if c == "axis" else 5 if c in ("err/σ", ">3σ") else 8)
 
     def conv(v):
         return None if v is None else to_units(np.asarray(v, float), units)
@@ -179,8 +185,8 @@ def render(state: DemoState, title: str, units: str):
         t.add_row(f"{ax} [{u[i]}]", _f(None if T is None else T[i], g),
                   _f(None if H is None else H[i], g), _f(None if Hs is None else Hs[i], g),
                   _f(None if S is None else S[i], g),
-                  _f(None if st is None else st["rms_over_sigma"][i], "{:8.2f}"),
-                  _f(None if st is None else 100 * st["beyond_3sigma"][i], "{:5.1f} %"))
+                  _f(None if st is None else st["rms_over_sigma"][i], "{:.2f}"),
+                  _f(None if st is None else 100 * st["beyond_3sigma"][i], "{:.1f}%"))
     flags = (hub or {}).get("flags") or []
     flag_text = Text("flags: " + (", ".join(flags) if flags else "none") + "\n"
                      + phase_line(bp))
@@ -281,7 +287,7 @@ def render_plain(state: DemoState, title: str, units: str) -> str:
     for i, ax in enumerate(AXES):
         lines.append(f"  {ax + ' [' + u[i] + ']':10s} {cell(T, i)} {cell(H, i)} {cell(Hs, i)} "
                      f"{cell(S, i)} {cell(z, i, '{:.2f}', 16)} {cell(b, i, '{:.1f} %', 8)}")
-    lines.append("  " + phase_line(bp))
+    lines.append("  " + phase_line(bp).replace("\n", "\n  "))
     flags = (hub or {}).get("flags") or []
     if flags:
         lines.append("  flags: " + ", ".join(flags))
