@@ -112,3 +112,27 @@ def test_demo_refuses_a_bad_angles_file_in_one_line_before_starting(tmp_path):
                         str(rep)], capture_output=True, text=True, timeout=60, check=False)
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and str(bad) in r.stderr
     assert r.stdout == "" and not rep.exists()
+
+
+def test_demo_phases_start_only_on_uncalibrated_angles(cfg):
+    """The demo's accuracy by phase (issue 28): samples before the first accepted run are
+    `start` when the run began on uncertain angles, `steady` when it began from a calibrated
+    posterior (no angles_uncertain flag); σ is the record's published one."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from rsra.daq.cli.demo_view import DemoState
+
+    bound = np.full(6, 100.0)
+    for first_flags, phase in ((["angles_uncertain"], "start"), ([], "steady")):
+        st = DemoState(cfg, bound, cfg.rig_model().geometry.angle_names)
+        truth = SimpleNamespace(H_true=np.zeros(6), alpha_true=np.zeros(14))
+        for k in range(400):
+            st.on_record("hub_loads", {"seq": k, "t": k * 0.005, "H": [50.0] * 6,
+                                       "H_static": [0.0] * 6, "sigma_angles": [0.0] * 6,
+                                       "flags": first_flags}, truth)
+        bp = st.by_phase()["H"]
+        assert bp[phase]["samples"] == 400 - 201  # scored after 1 s of settling
+        np.testing.assert_allclose(bp[phase]["rms_over_sigma"], 0.5)
+        assert [p for p, v in bp.items() if v] == [phase]

@@ -48,7 +48,7 @@ class DemoState:
         self.rate_marks: deque[tuple[float, int]] = deque(maxlen=40)  # (wall, samples)
 
     def on_record(self, key: str, payload: dict, truth=None) -> None:
-        from rsra.daq.analysis.accuracy import phase_of, published_sigma
+        from rsra.daq.analysis.accuracy import phase_of, published_sigma, starts_calibrated
 
         with self.lock:
             if key == "hub_loads":
@@ -57,6 +57,8 @@ class DemoState:
                 if self.first_t is None:
                     self.first_t = payload["t"]
                 flags = payload.get("flags") or []
+                if self.samples == 1 and starts_calibrated(flags):
+                    self.calibrated = True  # a saved posterior: no start phase
                 for f in flags:
                     self.flags[f] = self.flags.get(f, 0) + 1
                 H, Hs = payload.get("H"), payload.get("H_static")
