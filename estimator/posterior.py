@@ -860,7 +860,11 @@ class PeriodicIdentification:
         valid: np.ndarray | None = None,
         t: float | None = None,
         arrived_seq: int | None = None,
+        dpsi: np.ndarray | None = None,
     ) -> AnglesRecord:
+        """One window. ``dpsi`` (filter error, azimuth mode): the rotor's measured turn since
+        the previous sample, per sample (NaN: the design's Ω) — the calibration filter's
+        harmonic states turn with it (``filters.azimuth_transition``, issue 25)."""
         N = len(T)
         valid = np.ones(N, bool) if valid is None else np.asarray(valid, bool)
         seq1 = seq0 + N - 1
@@ -892,9 +896,16 @@ class PeriodicIdentification:
                 prob = prob.with_moments(post.G_held, post.n_held)
             moments = (prob.G, prob.n_scored)
         else:
+            Phi_n = None
+            if dpsi is not None:
+                from .filters import azimuth_transition
+
+                d = self.design
+                dp = np.asarray(dpsi, float)
+                Phi_n = azimuth_transition(d, np.where(np.isfinite(dp), dp, d.omega * d.dt))
             prob = FilterErrorProblem(
                 self.par, self.design.Phi, self.design.K, self.design.J, self.design.Qd, z, T, q,
-                valid=valid, state=self.filter_state, discontinuity=False)
+                valid=valid, state=self.filter_state, discontinuity=False, Phi_n=Phi_n)
             prob.scored &= scored
             prob.n_scored = int(prob.scored.sum())
         self._settle_pending = max(self._settle_pending - N, 0)

@@ -28,12 +28,16 @@ def samples(items) -> list:
 
 def test_a_complete_sample_is_passed_on_at_its_last_tpdo(cfg):
     r = OfflineReader(cfg)
-    frames = period_frames(cfg, 0, T0 + 0.00000025, status=[0, 0, 1, 0, 2, 0, 3],
+    first = period_frames(cfg, 0, T0 - DT)  # (the first sample waits for every node)
+    feed(r, first)
+    frames = period_frames(cfg, 1, T0 + 0.00000025, status=[0, 0, 1, 0, 2, 0, 3],
+                           forces=[1000.0 * (i + 1) for i in range(7)],
                            acc=(10, -20, -1000))
-    out = feed(r, frames[:-1])
+    out = feed(r, frames[:1])  # the SYNC passes seq 0 on
+    out = feed(r, frames[1:-1])
     assert out == []  # the accelerometer is still missing: nothing yet
     (s,) = feed(r, frames[-1:])  # no next SYNC needed
-    assert (s.seq, s.sync, s.lost_before, s.missing, s.complete) == (0, 1, 0, (), True)
+    assert (s.seq, s.sync, s.lost_before, s.missing, s.complete) == (1, 2, 0, (), True)
     assert s.t == T0  # SYNC receive time rounded to 1 µs
     np.testing.assert_array_equal(s.T, [1000.0 * (i + 1) for i in range(7)])
     np.testing.assert_allclose(s.accel, [[0.010 * G0, -0.020 * G0, -G0]], rtol=1e-15)
@@ -41,8 +45,8 @@ def test_a_complete_sample_is_passed_on_at_its_last_tpdo(cfg):
     assert s.flags == ("overrange:C", "fault:E", "overrange:G", "fault:G")
     assert s.omega is None and s.azimuth is None and s.known_H is None and s.drive is None
     h = r.health().to_dict()
-    assert h["samples"] == {"complete": 1, "incomplete": 0, "lost": 0}
-    assert h["bus"]["frames"] == len(frames)
+    assert h["samples"] == {"complete": 2, "incomplete": 0, "lost": 0}
+    assert h["bus"]["frames"] == len(first) + len(frames)
 
 
 def test_an_incomplete_sample_is_passed_on_at_the_next_sync_with_missing_flagged(cfg):
@@ -115,10 +119,10 @@ def test_non_finite_values_mark_the_channel_missing(cfg, bad):
 def test_optional_nodes_are_waited_for_once_seen_alive(cfg):
     r = OfflineReader(cfg)
     H = (1.0, 2.0, 80000.0, 4.0, 5.0, 6.0)
-    # period 0: rotor and balance report, but were not known to be alive: the sample is
-    # complete at the accelerometer and passed on without them
+    # period 0: rotor and balance report, not known to be alive; the first sample waits for
+    # every node (no period before it says which report), so it holds them
     out = feed(r, period_frames(cfg, 0, T0, omega=19.4, az=49152, H=H))
-    assert samples(out)[0].omega is None
+    assert samples(out)[0].omega == pytest.approx(19.4, rel=1e-7)
     # period 1: seen in the last period, so now expected; complete only with them
     frames = period_frames(cfg, 1, T0 + DT, omega=19.4, az=49152, H=H)
     assert samples(feed(r, frames[:-3])) == []
@@ -173,7 +177,7 @@ def test_unknown_error_and_remote_frames_are_counted_and_not_passed_on(cfg):
     ]
     ext = msg(0x191, b"\x00" * 5, T0 + 1e-6)
     ext.is_extended_id = True  # 29-bit frame with a known 11-bit value
-    out = feed(r, frames[:2] + extra + [ext] + frames[2:])
+    out = feed(r, frames[:2] + extra + [ext] + frames[2:] + [sync(2, T0 + DT)])
     (s,) = samples(out)
     assert s.complete and s.sync == 1 and s.T[0] == 1000.0
     b = r.health().to_dict()["bus"]
@@ -267,7 +271,8 @@ def test_the_health_record_is_frozen_typed_and_serialised_in_the_payloads_order(
     # the reader's part, in the order the payload always had; optional keys left out
     assert list(d) == ["t", "nodes", "bus", "samples", "queues", "recording", "sync"]
     assert "last_callback_error" not in d["bus"] and "master_events" not in d["queues"]
-    assert list(d["sync"]) == ["duplicate", "bad_timestamp", "rate_hz", "rate_low"]
+    assert list(d["sync"]) == ["duplicate", "bad_timestamp", "late_received", "rate_hz",
+                              "rate_low", "discontinuities"]
     assert d["recording"] == {"active": False}
     assert list(d["nodes"]["cell_A"]) == ["state", "heartbeat_age", "emcy", "required", "boots",
                                           "losses", "emcy_count"]
@@ -335,13 +340,13 @@ def test_channels_payload_is_strict_json(cfg):
 def test_rotor_without_balance_and_the_azimuth_wraps(cfg):
     r = OfflineReader(cfg)
     feed(r, period_frames(cfg, 0, T0, omega=10.0, az=65535))
-    (s,) = samples(feed(r, period_frames(cfg, 1, T0 + DT, omega=10.0, az=65535)))
+    s = samples(feed(r, period_frames(cfg, 1, T0 + DT, omega=10.0, az=65535)))[-1]
     assert 0.0 <= s.azimuth < 2 * math.pi
     assert s.azimuth == pytest.approx(2 * math.pi * 65535 / 65536, rel=1e-15)
     r2 = OfflineReader(load_config(overrides={"calibration": {
         "rotor_speed.azimuth": {"offset": 0.5}}}))
     feed(r2, period_frames(cfg, 0, T0, omega=10.0, az=65535))
-    (s,) = samples(feed(r2, period_frames(cfg, 1, T0 + DT, omega=10.0, az=65535)))
+    s = samples(feed(r2, period_frames(cfg, 1, T0 + DT, omega=10.0, az=65535)))[-1]
     assert s.azimuth == pytest.approx(2 * math.pi * 65535 / 65536 + 0.5 - 2 * math.pi)
 
 
@@ -370,6 +375,29 @@ def test_live_the_idle_bus_still_advances_the_clock(cfg):
     r.feed(heartbeat(0x21, 0x05, T0 + 1.25))
     assert r.health().to_dict()["nodes"]["accel_1"]["state"] == "operational"
     assert r.tap.frame_time == T0 + 1.25 and r.now == T0 + 1.3
+
+
+def test_live_the_tick_runs_no_timed_task_while_frames_flow(cfg):
+    """The bus thread may be behind the wall clock (a loaded machine): a tick ahead of frames
+    still queued must not judge their node lost, nor put a health report where a replay of
+    the recording cannot. The timed tasks run at frame times alone until the bus has been
+    quiet for IDLE_TICK_S (issue 29: a live run flagged a sample its replay did not)."""
+    from rsra.daq.bus.reader import IDLE_TICK_S
+
+    r = OfflineReader(cfg)
+    timeout = cfg.heartbeat.timeout_factor * cfg.heartbeat.producer_ms / 1000
+    assert timeout < 0.9 * IDLE_TICK_S
+    for k in range(10):  # up to T0 + 0.9
+        r.feed(heartbeat(0x21, 0x05, T0 + 0.1 * k))
+    # the wall clock past the watchdog's deadline and the health report's, frames queued
+    r.tap.tick(T0 + 0.9 + 0.9 * IDLE_TICK_S)
+    assert r.poll() == []
+    for k in range(10, 20):  # ... processed now
+        r.feed(heartbeat(0x21, 0x05, T0 + 0.1 * k))
+    (rep,) = r.poll()
+    assert rep.t == T0 + 1.0  # at the frame that passed the due time, as in a replay
+    assert r.health().to_dict()["nodes"]["accel_1"]["state"] == "operational"
+    assert r.supervisor.nodes["accel_1"].losses == 0
 
 
 CALIBRATED = {"calibration": {"cell_B.force": {"gain": 1.01, "offset": -50.0},
@@ -464,3 +492,29 @@ def test_samples_match_a_per_frame_reference_on_messy_traffic(cfg, seed, calibra
         np.testing.assert_array_equal(s.accel, acc)
         n_incomplete += not s.complete
     assert 10 < n_incomplete < len(expected) - 10  # both kinds were exercised
+
+
+@pytest.mark.parametrize("alive", [False, True])
+def test_the_first_sample_holds_everything_its_frames_hold(cfg, alive):
+    """Issue 29: at seq 0 a replay published omega, azimuth and known_H as null although their
+    frames were in the log — no period before it said the optional nodes report, so it was
+    passed on as soon as the required ones had. The first sample now waits for every node
+    (or the next SYNC); `missing` is still judged against what was expected."""
+    r = OfflineReader(cfg)
+    if alive:  # the optional nodes' heartbeats seen first (a recording with the boot)
+        for n in ("rotor_speed", "balance"):
+            r.feed(heartbeat(cfg.node(n).node_id, 0x05, T0 - 0.01))
+    H = (1.0, 2.0, 3.0, 4.0, 5.0, 6.0)
+    got = []
+    for k in range(3):
+        got += samples(feed(r, period_frames(cfg, k, T0 + k * DT, omega=20.0, az=100, H=H)))
+    s0 = got[0]
+    assert s0.seq == 0 and s0.complete and s0.missing == ()
+    assert s0.omega is not None and s0.azimuth is not None and s0.known_H is not None
+    assert s0.omega == got[1].omega and np.array_equal(s0.known_H, got[1].known_H)
+    # without the optional nodes' frames, seq 0 is passed on at the next SYNC, not flagged
+    r2 = OfflineReader(cfg)
+    feed(r2, period_frames(cfg, 0, T0, skip=("rotor_speed", "balance")))
+    assert samples(r2.poll()) == []
+    s = samples(feed(r2, period_frames(cfg, 1, T0 + DT)))[0]
+    assert s.seq == 0 and s.omega is None and s.known_H is None and s.missing == ()

@@ -289,6 +289,110 @@ def test_parquet_angles_by_parameter_name(tmp_path):
     assert t.column("window").to_pylist() == [[0, 10], [0, 10]]
 
 
+def _other_run(results: Path, tmp_path: Path) -> Path:
+    """A second telemetry file whose data differ in every way a schema could follow: a
+    vector null throughout (known_H), every angles run accepted (reason null throughout),
+    no health record, fewer rows."""
+    out = tmp_path / "other.jsonl"
+    lines = []
+    for rec in _records(results)[:300]:
+        if rec["key"] == "health":
+            continue
+        if rec["key"] == "channels":
+            rec["known_H"] = None
+        lines.append(json.dumps(rec))
+    angles = {"key": "angles", "t": 1.5, "seq": 10, "mode": "known_loads",
+              "content": "static", "accepted": True, "reason": None, "names": ["delta_A"],
+              "alpha": [0.001], "P": [[1e-6]], "window": [0, 10], "iterations": 3}
+    lines.append(json.dumps(angles))
+    out.write_text("\n".join(lines) + "\n")
+    return out
+
+
+def _angles_file(tmp_path: Path) -> Path:
+    """Angles records with a rejected run (a reason) and a structure fit."""
+    names = ["delta_A", "theta_A", "x_A"]
+    rec = {"key": "angles", "t": 1.5, "seq": 10, "mode": "known_loads", "content": "static",
+           "accepted": False, "reason": "stale_input", "names": names,
+           "alpha": [0.001, -0.002, 0.5], "P": [[1e-6, 0, 0], [0, 2e-6, 0], [0, 0, 1e-6]],
+           "window": [0, 10], "iterations": 3, "candidates": [{"structure": "constant"}],
+           "structure_fit": {"structure": "constant", "parameters": ["a"], "alpha0": [0.1]}}
+    out = tmp_path / "angles.jsonl"
+    out.write_text(json.dumps(rec) + "\n")
+    return out
+
+
+def test_parquet_schemas_are_declared_not_taken_from_the_data_and_datasets_concatenate(
+        cfg, results, tmp_path):
+    """Issue 29: `channels.parquet` had an all-null `known_H` column beside `known_H.X…N`
+    (from seq 0's null), the angles table's `reason` was of type null when every run was
+    accepted: two recordings' files did not concatenate. The schema of each key is now
+    declared (FIELDS and the rig's names), the same for every file of a rig."""
+    from rsra.daq.analysis.export import FIELDS, parquet_schemas, vector_names
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    other = _other_run(results, tmp_path)
+    assert cli_main(["export", str(results), "--parquet", str(a)]) == 0
+    assert cli_main(["export", str(other), "--parquet", str(b)]) == 0
+    declared = parquet_schemas(FIELDS, vector_names(cfg))
+    assert not (a / "angles.parquet").exists()  # (the fixture's run is too short for one)
+    assert cli_main(["export", str(_angles_file(tmp_path)), "--parquet", str(a / "x")]) == 0
+    (a / "x" / "angles.parquet").rename(a / "angles.parquet")
+    for key in ("hub_loads", "channels", "innovations", "angles"):
+        ta, tb = pq.read_table(a / f"{key}.parquet"), pq.read_table(b / f"{key}.parquet")
+        for t in (ta, tb):
+            assert t.schema.equals(declared[key]), key  # names, types, order
+            assert t.schema.metadata[b"units"] == declared[key].metadata[b"units"]
+        assert not [f.name for f in ta.schema if pa.types.is_null(f.type)], key
+        assert pa.concat_tables([ta, tb]).num_rows == ta.num_rows + tb.num_rows
+    ch = pq.read_table(b / "channels.parquet")
+    assert "known_H" not in ch.schema.names and ch.column("known_H.X").null_count == ch.num_rows
+    assert ch.schema.field("known_H.X").type == pa.float64()
+    assert pq.read_table(b / "angles.parquet").schema.field("reason").type == pa.string()
+    # the two folders as one dataset (pyarrow.dataset, as pandas/DuckDB/polars read them)
+    import pyarrow.dataset as ds
+
+    both = ds.dataset([str(a / "hub_loads.parquet"), str(b / "hub_loads.parquet")])
+    assert both.to_table().num_rows == sum(
+        1 for p in (results, other) for r in _records(p) if r["key"] == "hub_loads")
+
+
+def test_every_field_rsra_publishes_is_declared(cfg, results, tmp_path):
+    """Nothing of a replay's records is left out of the declared Parquet columns, and every
+    message conforms to its key's declared JSON Schema (the MCAP writer's)."""
+    from rsra.daq.analysis.export import (
+        json_schema,
+        parquet_schemas,
+        read_records,
+        vector_names,
+        write_parquet,
+    )
+
+    names = vector_names(cfg)
+    recs = list(read_records(results))
+    schemas = parquet_schemas([k for k, _ in recs], names)
+    left_out: dict = {}
+    write_parquet(recs, schemas, {k: tmp_path / f"{k}.parquet" for k in schemas}, names,
+                  left_out=left_out)
+    assert left_out == {}
+    for key, payload in recs:
+        _conforms(payload, json_schema(key), key)
+
+
+def test_mcap_schemas_are_declared_not_taken_from_the_data(cfg, results, tmp_path):
+    from rsra.daq.analysis.export import json_schema
+
+    a, b = tmp_path / "a.mcap", tmp_path / "b.mcap"
+    assert cli_main(["export", str(results), "--mcap", str(a)]) == 0
+    assert cli_main(["export", str(_other_run(results, tmp_path)), "--mcap", str(b)]) == 0
+    for f in (a, b):
+        with open(f, "rb") as fh:
+            summary = make_reader(fh).get_summary()
+        for sch in summary.schemas.values():
+            key = sch.name.removeprefix("rsra.")
+            assert json.loads(sch.data) == json_schema(key), key
+
+
 # -- the payload table is the documented one -------------------------------------------------
 def _documented_fields() -> dict[str, list[tuple[str, str]]]:
     text = (ROOT / "docs" / "telemetry.md").read_text(encoding="utf-8")
@@ -357,6 +461,6 @@ def test_bad_input_is_refused_in_one_line_and_leaves_no_file(results, tmp_path, 
     assert "nothing to write" in _one_line_exit_2(capsys, ["export", str(results)])
     assert "need the telemetry" in _one_line_exit_2(capsys, ["export", "--mcap",
                                                              str(out / "m.mcap")])
-    assert "cannot write" in _one_line_exit_2(
+    assert "no folder" in _one_line_exit_2(
         capsys, ["export", "--dbc", str(tmp_path / "no" / "such" / "dir.dbc")])
     assert sorted(os.listdir(out)) == before

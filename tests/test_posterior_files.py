@@ -519,3 +519,21 @@ def test_angles_show_recording_last_applied_and_the_records_after_it(cfg, tmp_pa
     f.write_text("")
     assert main(["angles", "show", str(f)]) == 2
     assert "holds no angles record" in capsys.readouterr().err
+
+
+def test_angles_show_prints_each_angles_95_percent_range_and_the_physical_limit(cfg, tmp_path,
+                                                                                capsys):
+    """issue 27 item 3: a range per angle (± 1.96 σ) beside σ, and one line saying what it is."""
+    path = tmp_path / "p.json"
+    st = _state(cfg)
+    save_posterior(path, st)
+    assert main(["angles", "show", str(path), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    a, s = np.array(d["angles_deg"]), np.array(d["sigma_deg"])
+    lo, hi = np.array(d["range_deg"]).T
+    assert np.allclose(lo, a - 1.959964 * s) and np.allclose(hi, a + 1.959964 * s)
+    assert d["angle_limit_deg"] == pytest.approx(10.0)
+    assert main(["angles", "show", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "95 % range (deg)" in out and f"{lo[0]:+.3f} … {hi[0]:+.3f}" in out
+    assert "range: angle ± 1.96 σ" in out and "within ±10°" in out

@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import can
 import numpy as np
-from helpers_canopen import T0, period_frames
+import pytest
+from helpers_canopen import T0, heartbeat, period_frames
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from rsra.daq.bus.reader import HealthReport, OfflineReader
 from rsra.daq.bus.recorder import Recorder, frame_files
+from rsra.daq.bus.replay import read_frames as replay_frames
 from rsra.daq.bus.replay import replay
 
 DT = 0.005
@@ -141,8 +143,72 @@ def test_a_real_step_of_the_clock_is_followed_not_counted(cfg):
                for m in frames]
     r, got = run(cfg, stepped)
     assert [s.seq for s in got] == ks and r.assembler.lost == 0
-    assert r.assembler.clock.bad_timestamp == 0
-    assert [s.t for s in got[26:]] == [round(T0 + k * DT + pause, 6) for k in ks[26:]]
+    assert r.assembler.clock.bad_timestamp == 0 and r.assembler.clock.late == 1
+    # the first sample after the pause too keeps its SYNC's own time (it used to get the
+    # time its counter put it at, 7.3 s early)
+    assert [s.t for s in got[25:]] == [round(T0 + k * DT + pause, 6) for k in ks[25:]]
+
+
+def _stalled_producer(cfg, n: int, stall_at: int, stall: float, hb_every: int = 4,
+                      straggler: bool = False):
+    """What a live run gives when the SYNC producer stalls for ``stall`` s before SYNC
+    ``stall_at`` (counter continuous, the schedule re-phased after it, as the service's SYNC
+    thread does) while the nodes' heartbeats go on at the wall clock, in the stall too.
+    ``straggler``: the last TPDO before the stall comes after the late SYNC, with the time
+    it was stamped at (a node's thread held up between stamping and sending)."""
+    frames, late_t = [], None
+    hb = [cfg.node(c.node).node_id for c in cfg.cells[:2]]
+    for k in range(n):
+        t = T0 + k * DT + (stall if k >= stall_at else 0.0)
+        held = None
+        if k == stall_at:
+            late_t = t
+            if straggler:
+                held = frames.pop()
+            for j, nid in enumerate(hb):  # heard during the stall, before the late SYNC
+                frames.append(heartbeat(nid, 0x05, T0 + k * DT + 0.6 * stall + j * 1e-5))
+        p = period_frames(cfg, k, t)
+        frames += p[:1] + ([held] if held is not None else []) + p[1:]
+        if k % hb_every == 0:
+            frames.append(heartbeat(hb[0], 0x05, t + 0.002))
+    return frames, late_t
+
+
+@pytest.mark.parametrize("stall,straggler", [(0.0035, False), (0.0374, False), (0.25, False),
+                                             (7.3, False), (0.0374, True), (0.25, True)])
+def test_a_late_sync_keeps_its_own_time_and_its_recording_replays_to_the_same_samples(
+        cfg, tmp_path, stall, straggler):
+    """Issue 29: live, a SYNC 37 ms late got the time its counter put it at (the previous
+    SYNC + 5 ms) while the recording kept its own time, and the replay then judged the next
+    SYNC a bad timestamp and moved it by 38 ms: 21 of 3 670 samples a real-time run published
+    differed from their replay in `t`. Now every sample takes its SYNC's own time, late or
+    not, the lateness is counted, and what the tap records replays to the same samples."""
+    n, k = 60, 30
+    frames, late_t = _stalled_producer(cfg, n, k, stall, straggler=straggler)
+    live = OfflineReader(cfg)
+    folder = tmp_path / "rec"
+    live.recorder = Recorder(folder, cfg, threaded=False)
+    got = []
+    for m in frames:
+        live.feed(m)
+        got += [x for x in live.poll() if not isinstance(x, HealthReport)]
+    live.assembler.finish()
+    got += [x for x in live.poll() if not isinstance(x, HealthReport)]
+    live.recorder.stop()
+    assert [s.seq for s in got] == list(range(n)) and live.assembler.lost == 0
+    assert got[k].t == round(late_t, 6)  # its own SYNC's time, not the counter's schedule
+    assert [s.t for s in got] == [round(T0 + j * DT + (stall if j >= k else 0), 6)
+                                  for j in range(n)]
+    sync_h = live.health().to_dict()["sync"]
+    assert sync_h["late_received"] == (1 if stall > DT / 2 else 0)
+    assert sync_h["bad_timestamp"] == 0
+    rep = [x for x in replay(cfg, [folder], finish=True) if not isinstance(x, HealthReport)]
+    assert same_samples(rep, got)
+    r2 = OfflineReader(cfg)
+    for m in replay_frames([folder]):
+        r2.feed(m)
+    assert r2.health().to_dict()["sync"] == sync_h
+    assert r2.tap.frame_time == live.tap.frame_time
 
 
 @settings(max_examples=60, deadline=None)

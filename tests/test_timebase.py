@@ -11,7 +11,15 @@ import can
 import pytest
 from can.interfaces.virtual import VirtualBus
 
-from rsra.daq.bus.reader import FOREIGN_TIMEBASE_S, HealthReport, Listen, Reader, Timebase
+from rsra.daq.bus.reader import (
+    FOREIGN_TIMEBASE_S,
+    IDLE_TICK_S,
+    LOCAL_LAG_S,
+    HealthReport,
+    Listen,
+    Reader,
+    Timebase,
+)
 from rsra.sim_bus.drivers import RealtimeSim
 from tests.helpers_canopen import channel_name
 
@@ -130,3 +138,20 @@ def test_a_counter_sync_sequence_uses_our_producer_on_an_interface_without_seque
     finally:
         master.stop()
         bus.shutdown()
+
+
+@pytest.mark.parametrize("lag", [0.06, 0.3, 0.45])
+def test_a_busy_start_is_not_taken_for_a_foreign_clock(lag):
+    """Issue 29: on a loaded machine the bus thread started `lag` s late with frames queued;
+    the first frame's delay alone moved every timestamp by it, the next block moved them
+    back, and every SYNC after the jump back was a bad timestamp (111 in the first second
+    of a real-time run; its replay counted 3). A backlog being caught up is not an offset."""
+    clock = _Clock()
+    tb = Timebase(block=32, clock=clock)
+    n_backlog = int(lag / 0.0005)  # frames queued 0.5 ms apart, read 20 µs apart
+    for k in range(n_backlog + 400):
+        ts = 1000.0 + 0.0005 * k
+        clock.t = 1000.0 + lag + 2e-5 * k if k < n_backlog else ts + 0.0003
+        clock.t = max(clock.t, ts + 0.0003)
+        assert tb.map(ts) == ts, k
+    assert LOCAL_LAG_S < IDLE_TICK_S  # an unmapped lag never lets the idle tick run ahead

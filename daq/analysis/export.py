@@ -8,7 +8,9 @@
 * :func:`write_mcap` / :func:`write_parquet` — telemetry records (``{"key": …, …payload}``,
   the lines of ``rsra replay --out``) to MCAP (JSON messages with JSON schemas, log times
   from the acquisition clock) and to Parquet (one table per key, typed columns, units in the
-  schema metadata).
+  schema metadata). Both schemas are declared once per key (:data:`FIELDS`, with the rig's
+  names for the Parquet columns: :func:`declared_columns`), never taken from the data, so
+  the files of two recordings of a rig have the same schemas and concatenate.
 
 Field names, types and units of the payloads: :data:`FIELDS`, kept equal to the tables of
 docs/telemetry.md by tests/test_export.py.
@@ -257,8 +259,13 @@ def flatten(key: str, payload: dict, names: dict[str, tuple[str, ...]]) -> dict[
             for k, x in v.items():
                 walk(f"{path}.{k}" if path else str(k), x)
         elif isinstance(v, list) and (comp := _components(key, path, v, payload, names)):
+            if key == "angles":  # by name (the rig's angles), and as the list in `names` order
+                row[path] = v
+                known = names.get("angles")
+                comp = [c if not known or c in known else None for c in comp]
             for c, x in zip(comp, v):
-                walk(f"{path}.{c}", x)
+                if c is not None:
+                    walk(f"{path}.{c}", x)
         elif isinstance(v, list) and any(isinstance(x, dict) for x in v):
             row[path] = json.dumps(v)
         else:
@@ -338,32 +345,104 @@ def _arrow_type(kinds: set[str]):
     return pa.string()  # anything mixed: JSON text
 
 
-def parquet_schemas(records: Iterable[tuple[str, dict]], names: dict[str, tuple[str, ...]]):
-    """First pass: the Arrow schema of every key's table (columns in order of appearance,
-    types from the values, units from :data:`FIELDS` as field metadata ``unit`` and as the
-    schema metadata ``units``)."""
+# -- the declared Arrow schema of each key (FIELDS and the rig's names; never the data) ---------
+_VEC6_PATHS = ("H", "H_static", "sigma_angles", "I", "known_H", "e")
+_BY_NAME = {("channels", "T"): "T", ("channels", "drive"): "drive",
+            ("angles", "alpha"): "angles", ("angles", "sigma_cr"): "angles",
+            ("angles", "sigma_cr_corrected"): "angles"}
+
+
+def _arrow_of(jtype: str):
     import pyarrow as pa
 
-    cols: dict[str, dict[str, set[str]]] = {}
-    for key, payload in records:
-        c = cols.setdefault(key, {})
-        for col, v in flatten(key, payload, names).items():
-            kinds = c.setdefault(col, set())
-            if v is not None:
-                kinds.add(_kind(v))
+    scalar = {"integer": pa.int64(), "number": pa.float64(), "string": pa.string(),
+              "boolean": pa.bool_()}
+    if jtype in scalar:
+        return scalar[jtype]
+    if jtype.startswith("array:") and jtype != "array:object":
+        inner = _arrow_of(jtype[6:])
+        if not pa.types.is_string(inner) or jtype == "array:string":
+            return pa.list_(inner)
+    return pa.string()  # objects without declared fields, lists of objects: JSON text
+
+
+def declared_columns(key: str, names: dict[str, tuple[str, ...]]) -> list[tuple[str, str]]:
+    """(column, JSON type) of ``key``'s table, in :data:`FIELDS` order: nested objects as
+    dotted columns, ``<node>``/``<cell>`` for each of the rig's, named vectors one column
+    per element (``H.X``, ``T.<cell>``, ``accel.<acc>.z``, ``alpha.<angle>`` beside the list
+    ``alpha``), lists of objects as JSON text. From the declaration and the rig alone, so
+    two recordings of a rig give the same columns, whatever their data."""
+    fields = FIELDS[key]
+    parents = {p.rsplit(".", 1)[0] for p, _, _ in fields if "." in p}
+    out: list[tuple[str, str]] = []
+
+    def expand(path: str) -> list[str]:
+        paths = [""]
+        for part in path.split("."):
+            subs = names.get(part, (part,)) if part.startswith("<") else (part,)
+            paths = [f"{p}.{x}" if p else x for p in paths for x in subs]
+        return paths
+
+    for path, jtype, unit in fields:
+        if "[]" in path or (jtype == "object" and path in parents):
+            continue  # inside a JSON-text column, or a parent of declared columns
+        for col in expand(path):
+            if path in _VEC6_PATHS and unit == VEC6:
+                out += [(f"{col}.{a}", "number") for a in AXES]
+            elif key == "channels" and path == "accel":
+                out += [(f"accel.{a}.{x}", "number") for a in names.get("accel", ())
+                        for x in "xyz"]
+            elif (key, path) in _BY_NAME:
+                if key == "angles":
+                    out.append((col, jtype))
+                out += [(f"{col}.{n}", "number") for n in names.get(_BY_NAME[key, path], ())]
+            else:
+                out.append((col, jtype))
+    return out
+
+
+def parquet_schemas(keys: Iterable[str], names: dict[str, tuple[str, ...]],
+                    records: Iterable[tuple[str, dict]] | None = None):
+    """The Arrow schema of every key's table: declared (:func:`declared_columns`) for the
+    keys of :data:`FIELDS`, units from it as field metadata ``unit`` and as the schema
+    metadata ``units``. A key outside the declaration (a file from elsewhere) has its
+    columns and types taken from ``records`` (a pass over the data) instead."""
+    import pyarrow as pa
+
     schemas = {}
-    for key, c in cols.items():
+    undeclared = [k for k in dict.fromkeys(keys) if k not in FIELDS]
+    inferred = _inferred_columns(records or (), set(undeclared))
+    for key in dict.fromkeys(keys):
+        if key in FIELDS:
+            cols = [(c, _arrow_of(t)) for c, t in declared_columns(key, names)]
+        else:
+            cols = [(c, _arrow_type(kinds)) for c, kinds in inferred.get(key, {}).items()]
         fields, units = [], {}
-        for col, kinds in c.items():
+        for col, typ in cols:
             unit = column_unit(key, col)
             units[col] = unit
-            typ = _arrow_type(kinds)
             fields.append(pa.field(col, typ, nullable=True,
                                    metadata={"unit": unit} if unit else None))
         schemas[key] = pa.schema(fields, metadata={
             "rsra.key": key, "units": json.dumps(units, ensure_ascii=False),
             "source": "rsra export (docs/telemetry.md)"})
     return schemas
+
+
+def _inferred_columns(records: Iterable[tuple[str, dict]], keys: set[str]
+                      ) -> dict[str, dict[str, set[str]]]:
+    cols: dict[str, dict[str, set[str]]] = {}
+    if not keys:
+        return cols
+    for key, payload in records:
+        if key not in keys:
+            continue
+        c = cols.setdefault(key, {})
+        for col, v in flatten(key, payload, {}).items():
+            kinds = c.setdefault(col, set())
+            if v is not None:
+                kinds.add(_kind(v))
+    return cols
 
 
 def _cell(v: Any, typ) -> Any:
@@ -379,15 +458,22 @@ def _cell(v: Any, typ) -> Any:
 
 
 def write_parquet(records: Iterable[tuple[str, dict]], schemas: dict, paths: dict[str, Path],
-                  names: dict[str, tuple[str, ...]], batch: int = 4096) -> dict[str, int]:
-    """Second pass: rows of every key into its Parquet file (``paths[key]``), ``batch`` rows
-    at a time (bounded memory). Returns the row count per key."""
+                  names: dict[str, tuple[str, ...]], batch: int = 4096,
+                  left_out: dict[str, set[str]] | None = None) -> dict[str, int]:
+    """Rows of every key into its Parquet file (``paths[key]``) under its schema, ``batch``
+    rows at a time (bounded memory). Returns the row count per key; a value in a column the
+    schema does not declare is left out, and its column named in ``left_out`` (the
+    declaration is incomplete: tests/test_export.py keeps it complete for what rsra
+    publishes)."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 
     writers: dict[str, Any] = {}
     pending: dict[str, list[dict]] = {k: [] for k in schemas}
     counts = {k: 0 for k in schemas}
+    declared = {k: set(sch.names) for k, sch in schemas.items()}
+    if left_out is None:
+        left_out = {}
 
     def flush(key: str) -> None:
         rows = pending[key]
@@ -404,7 +490,12 @@ def write_parquet(records: Iterable[tuple[str, dict]], schemas: dict, paths: dic
 
     try:
         for key, payload in records:
-            pending[key].append(flatten(key, payload, names))
+            row = flatten(key, payload, names)
+            cols = declared[key]
+            for col, v in row.items():
+                if v is not None and col not in cols:
+                    left_out.setdefault(key, set()).add(col)
+            pending[key].append(row)
             if len(pending[key]) >= batch:
                 flush(key)
         for key in schemas:
@@ -416,9 +507,12 @@ def write_parquet(records: Iterable[tuple[str, dict]], schemas: dict, paths: dic
 
 
 def vector_names(cfg: RigConfig) -> dict[str, tuple[str, ...]]:
-    """Element names of the rig-sized vectors of ``channels`` (cells, accelerometers,
-    external loads) for the Parquet columns."""
-    return {"T": tuple(c.name for c in cfg.cells),
+    """The rig's names the Parquet columns are declared with: cells, accelerometers, external
+    loads (the vectors of ``channels``), nodes (``health``), angles (``angles``)."""
+    cells = tuple(c.name for c in cfg.cells)
+    return {"T": cells, "<cell>": cells,
             "accel": tuple(a.name for a in cfg.accelerometers),
-            "drive": tuple(e.name for e in cfg.external_loads)}
+            "drive": tuple(e.name for e in cfg.external_loads),
+            "<node>": tuple(n.name for n in cfg.nodes),
+            "angles": tuple(cfg.rig_model().geometry.angle_names)}
 

@@ -26,6 +26,7 @@ from scipy import signal, stats
 
 from rsra.config.rig import RigConfig
 from rsra.daq.jsonout import dumps
+from rsra.daq.runtime.persistence import save_figure, write_text_atomic
 from rsra.config.units import axis_units, to_units
 from rsra.estimator.geometry import shaft_rotation
 from rsra.estimator.noise_budget import AXES, noise_budget
@@ -607,7 +608,7 @@ def _plt():
 
 
 def _save(fig, path: Path) -> Path:
-    fig.savefig(path, dpi=DPI)
+    save_figure(fig, path, dpi=DPI)
     _plt().close(fig)
     return path
 
@@ -1103,8 +1104,8 @@ def build_report(cfg: RigConfig, rec: Records, truth: dict | None, out: str | Pa
         skipped["spectra.png"] = why
     summary["plots"] = [p.name for p in plots]
     summary["skipped"] = skipped
-    (out / "summary.json").write_text(dumps(summary) + "\n", encoding="utf-8")
-    (out / "summary.md").write_text(_markdown(summary, units), encoding="utf-8")
+    write_text_atomic(out / "summary.json", dumps(summary) + "\n")
+    write_text_atomic(out / "summary.md", _markdown(summary, units))
     return Report(out=out, plots=plots, skipped=skipped, summary=summary)
 
 

@@ -29,6 +29,10 @@ from rsra.daq.jsonout import sanitise
 
 FrameCallback = Callable[[int, Any, float], None]
 _CACHE_MAX = 256  # distinct (reported, expected) patterns remembered (bounded)
+# a SYNC stamped this far before the last one, with a counter that does not follow it, is a
+# discontinuity (time went back: recordings joined, a clock stepped back), not a bad stamp:
+# far above any delay of a frame, far below the gap of a recording replayed after itself
+DISCONTINUITY_S = 1.0
 TIME_TOLERANCE_PERIODS = 4  # "a few periods": a frame time further than this from where the
 #                             SYNC counter puts it is a bad timestamp (docs/reliability.md)
 
@@ -46,11 +50,16 @@ class SyncClock:
       other frame more than ``tol`` periods ahead of the running SYNC schedule, is a **bad
       timestamp**: it is re-stamped (a SYNC where its counter puts it, another frame at the
       current clock) and never moves the acquisition clock. Unless the next frame confirms
-      a time ahead: then the clock really stepped there (a paused producer, a clock step)
-      and the count is withdrawn.
+      a time ahead: then the SYNC was **late** (a stalled producer, a paused bus, a clock
+      step): the bad-timestamp count is withdrawn, the SYNC counted ``late``, its sample
+      takes the SYNC's own time after all (``on_late``) and the clock follows from there.
+    * A SYNC more than half a period after where its counter puts it (within ``tol``) is
+      taken at its own time and counted ``late`` too: lateness is counted, never corrected.
 
     ``stamp_sync``/``stamp_frame`` take the raw (1 µs) time and the current acquisition
-    clock and return the time the frame is to carry.
+    clock and return the time the frame is to carry now (a suspect frame: held at the
+    clock). What the recording keeps is the frame's own time (the reader's tap), so a
+    replay takes every one of these decisions again on the same times.
     """
 
     def __init__(self, period: float, overflow: int, tol: float = TIME_TOLERANCE_PERIODS):
@@ -62,9 +71,15 @@ class SyncClock:
         self.base_c = 0  # its counter
         self._suspect: tuple[float, int | None] | None = None  # (raw time, SYNC counter)
         self.bad_timestamp = 0
+        #: SYNCs later than their counter puts them (> half a period), taken at their own time
+        self.late = 0
+        #: called with a late SYNC's own time once the next frame confirmed it (the
+        #: assembler: the open sample takes that time)
+        self.on_late: Callable[[float], None] = lambda t: None
         # the result for the SYNC just stamped (read by the assembler): lost, duplicate
         self.lost = 0
         self.duplicate = False
+        self.jumped = False  # the SYNC just stamped started afresh: time went back
 
     def _gap(self, x: float, lost_c: int, same: bool) -> int | None:
         """Samples lost for a SYNC ``x`` periods after the base whose counter says ``lost_c``
@@ -76,25 +91,49 @@ class SyncClock:
         m = max(0, round((x - lost_c - 1) / ov))
         return lost_c + m * ov if abs(x - (lost_c + 1 + m * ov)) <= self.tol else None
 
-    def _confirm(self, t: float) -> None:
+    def _confirm(self, t: float, decisive: bool = True) -> None:
         """A pending suspect frame: confirmed (the clock stepped) if ``t`` is not back
-        before it; then its bad-timestamp count is withdrawn (and a SYNC becomes the base)."""
+        before it; then its bad-timestamp count is withdrawn, and a SYNC was late: it
+        becomes the base and its sample takes its own time. A suspect SYNC is refuted only
+        by a SYNC (``decisive``) or its sample's end (:meth:`settle`): a data frame stamped
+        before it is a straggler sent before it (a node's thread held up), not evidence."""
         st, sc = self._suspect
-        self._suspect = None
         if t >= st - self.tol * self.period:
+            self._suspect = None
             self.bad_timestamp -= 1
             if sc is not None:
-                self.base_t, self.base_c = st, sc
+                self._late_confirmed(st, sc)
+        elif decisive or sc is None:
+            self._suspect = None
+
+    def settle(self) -> None:
+        """The open sample is passed on: a suspect SYNC not confirmed by then stays a bad
+        timestamp (its sample keeps the time its counter put it at)."""
+        if self._suspect is not None and self._suspect[1] is not None:
+            self._suspect = None
+
+    def _late_confirmed(self, st: float, sc: int) -> None:
+        self.base_t, self.base_c = st, sc
+        self.late += 1
+        self.on_late(st)
 
     def stamp_sync(self, counter: int, t: float, clock: float) -> float:
         """A SYNC with a valid counter (1…overflow) at raw time ``t``."""
-        self.lost, self.duplicate = 0, False
+        self.lost, self.duplicate, self.jumped = 0, False, False
         if self.base_t is None:
             self.base_t, self.base_c = t, counter
             return t
         ov, dt = self.overflow, self.period
         same = counter == self.base_c
         lost_c = (counter - (self.base_c % ov + 1)) % ov
+        if t < self.base_t - DISCONTINUITY_S and lost_c and not same:
+            # time went back and the counter does not follow (a single SYNC stamped far back
+            # with the next counter is a bad timestamp, below): a discontinuity — counted by
+            # the tap, no sample lost for it, the SYNC taken at its own time as the new base
+            self._suspect = None
+            self.base_t, self.base_c = t, counter
+            self.jumped = True
+            return t
         lost = self._gap((t - self.base_t) / dt, lost_c, same)
         if lost is None and self._suspect is not None:
             st, sc = self._suspect
@@ -104,12 +143,15 @@ class SyncClock:
                 if lost2 is not None:
                     self._suspect = None
                     self.bad_timestamp -= 1
+                    self._late_confirmed(st, sc)
+                    self._count_late(t, lost2)
                     self.base_t, self.base_c = t, counter
                     self.lost = lost2
                     return t
         if self._suspect is not None:
             self._confirm(t)
         if lost is not None:
+            self._count_late(t, lost)
             self.base_t, self.base_c = t, counter
             self.lost = lost
             return t
@@ -136,21 +178,29 @@ class SyncClock:
         self.lost = lost_c
         return stamp
 
+    def _count_late(self, t: float, lost: int) -> None:
+        """A SYNC taken at its own time ``t``, ``lost`` after the base: late if more than
+        half a period after where its counter puts it."""
+        if t - self.base_t > (lost + 1.5) * self.period:
+            self.late += 1
+
     def stamp_frame(self, t: float, clock: float, sync: bool = False) -> float:
         """Any other frame (a SYNC without counter: ``sync=True``): far ahead of a running
         SYNC schedule, it is held at the clock until the next frame confirms it."""
         if self._suspect is not None:
-            self._confirm(t)
+            self._confirm(t, decisive=sync)
         base = self.base_t
         if base is None or clock == -math.inf:
             if sync:
                 self.base_t = t
             return t
         dt, tol = self.period, self.tol
+        clock = max(clock, base)  # a late SYNC just confirmed: the clock follows it
         running = clock <= base + (1 + tol) * dt  # SYNCs are coming
         if running and t > clock + tol * dt:
-            self.bad_timestamp += 1
-            self._suspect = (t, None)
+            if self._suspect is None:  # (with a SYNC's time undecided: held, not counted)
+                self.bad_timestamp += 1
+                self._suspect = (t, None)
             return clock
         # far behind: re-stamped at the clock by the tap (never backwards), not counted —
         # our own transmissions come back stamped at send time, or not at all (canopen's
@@ -255,6 +305,7 @@ class SampleAssembler:
         self._next_seq = 0
         self._prev_have = 0
         self.clock = SyncClock(1.0 / cfg.sample_rate_hz, self.overflow)
+        self.clock.on_late = self._late_sync
         self._stamped: tuple[Any, float] | None = None  # (data, t) the tap stamped last
         # counters (health)
         self.complete = 0
@@ -370,6 +421,7 @@ class SampleAssembler:
             self._have = have
             wait = self._wait
             if have & wait == wait:  # every expected TPDO is in (never while not open)
+                self.clock.settle()  # its SYNC's time is decided by now
                 self._pass_on(True)
 
         return on_tpdo
@@ -394,6 +446,12 @@ class SampleAssembler:
         self._stamped = (data, t)
         return t
 
+    def _late_sync(self, t: float) -> None:
+        """The next frame confirmed the open sample's SYNC late: the sample takes the SYNC's
+        own time (it was held at where the counter put it until then)."""
+        if self._open:
+            self._sync_t = math.floor(t * 1e6 + 0.5) / 1e6
+
     def on_sync(self, can_id: int, data: Any, timestamp: float) -> None:
         counter = self.sync_counter(data)
         if counter is None:
@@ -417,7 +475,8 @@ class SampleAssembler:
         self._lost = lost
         self._sync_t = math.floor(timestamp * 1e6 + 0.5) / 1e6  # 1 µs, = round(t, 6)
         self._sync_counter = counter
-        have = self._have if self._in_sample else 0
+        first = not self._in_sample
+        have = 0 if first else self._have
         # optional nodes that reported in the last period count as alive (by frame order)
         self._expect = expect = self._required_bits | self._alive_bits | (have & self._optional_bits)
         self._prev_have = have
@@ -425,8 +484,11 @@ class SampleAssembler:
         self._have = 0
         self._in_sample = True
         self._open = True
-        self._wait = expect
-        if expect == 0:
+        # the first sample has no period before it to say which optional nodes report: it
+        # waits for every node (or the next SYNC), so that nothing its frames hold is left
+        # out of it; `missing` is still judged against `expect`
+        self._wait = wait = expect | self._optional_bits if first else expect
+        if wait == 0:
             self._pass_on(True)
 
     # -- sample construction (once per SYNC) -----------------------------------------------
@@ -538,6 +600,7 @@ class SampleAssembler:
     def finish(self) -> None:
         """Pass on a pending incomplete sample (end of a replay; no further SYNC will come)."""
         if self._open:
+            self.clock.settle()
             self._pass_on(False)
 
     def counters(self) -> dict[str, int]:

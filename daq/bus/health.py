@@ -146,10 +146,12 @@ class SyncHealth(_Part):
 
     duplicate: int
     bad_timestamp: int
+    late_received: int = 0  # SYNCs later than their counter puts them (frame times)
     late: Any = OMIT  # int, with our own SYNC producer thread
     periods_not_taken: Any = OMIT
     rate_hz: float | None = None
     rate_low: bool = False
+    discontinuities: int = 0  # SYNCs whose time went back (two recordings joined, a clock step)
 
 
 @_part

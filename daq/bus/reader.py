@@ -2,7 +2,7 @@
 
 ::
 
-    python-can bus ─▶ one Notifier ─▶ FrameTap ─▶ canopen Network.subscribe callbacks
+    python-can bus ─▶ one BatchNotifier ─▶ FrameTap ─▶ canopen Network.subscribe callbacks
                                   │  (clock, counts,  ├─ SampleAssembler (SYNC, TPDOs)
                                   │   unknown IDs)    ├─ Supervisor (heartbeat, EMCY)
                                   │        │          └─ canopen SDO/NMT (master)
@@ -86,7 +86,7 @@ from rsra.daq.bus.master import (
     Supervisor,
 )
 from rsra.daq.bus.recorder import Recorder
-from rsra.canbus import open_bus, shutdown_bus
+from rsra.canbus import BatchNotifier, open_bus, shutdown_bus
 
 log = logging.getLogger(__name__)
 
@@ -95,6 +95,7 @@ LSS_COB_IDS = (0x7E4, 0x7E5)  # CiA 305 (canopen's network subscribes to them)
 COB_TIME = 0x100
 DEFAULT_QUEUE = 1024  # samples (≈ 5 s at 200 samples/s)
 TICK_S = 0.1  # live idle tick of the acquisition clock
+IDLE_TICK_S = 1.0  # no frame for this long (wall clock): the idle tick runs the timed tasks
 NOTIFIER_CYCLE_S = 0.1
 RATE_WINDOW = 10  # health periods over which the sample rate is measured
 RATE_LOW_FRACTION = 0.99  # below this fraction of sample_rate_hz: sync.rate_low
@@ -104,6 +105,7 @@ TIMEBASE_QUANTILE = 0.1  # the block's quantile of receipt delays taken as the o
 READ_RETRY_MIN_S = 0.01  # the pause after a second failed bus read in a row (FrameTap.on_error)
 READ_RETRY_MAX_S = 1.0  # ... doubling up to this while the reads keep failing
 FOREIGN_TIMEBASE_S = 0.05  # a receipt delay floor beyond this: frames carry a foreign clock
+LOCAL_LAG_S = 0.5  # frames stamped up to this far in the past: the local clock, read late
 _floor = math.floor
 
 
@@ -154,6 +156,13 @@ class Deadlines:
         if t < self.next:
             self.next = t
 
+    def rebase(self, t: float) -> None:
+        """The acquisition clock went back to ``t`` (a discontinuity): every task's schedule
+        starts again from there."""
+        for task in self.tasks:
+            task.rebase(t)
+        self.next = min(task.due for task in self.tasks)
+
 
 class _Watchdog:
     """The supervisor's heartbeat watchdog as a timed task."""
@@ -167,6 +176,9 @@ class _Watchdog:
 
     def run(self, t: float) -> None:
         self.sup.check(t)
+
+    def rebase(self, t: float) -> None:
+        self.sup.rebase(t)
 
 
 class FrameTap(can.Listener):
@@ -194,7 +206,8 @@ class FrameTap(can.Listener):
         self._failing = False  # a read failed and no frame has been read since
         self.pause: Callable[[float], Any] = time.sleep  # a bus reader's: its stop event's wait
         self.recovered: Callable[[], None] | None = None  # a frame read after a failure
-        self.frame_time = -math.inf  # monotone, quantised frame time
+        self.frame_time = -math.inf  # monotone, quantised frame time (but at a discontinuity)
+        self.discontinuities = 0
         self.tick_time = -math.inf  # live idle tick (wall clock)
         self.lock = threading.Lock()
 
@@ -211,10 +224,13 @@ class FrameTap(can.Listener):
         if cid == self.sync_cob and not (msg.is_extended_id or msg.is_error_frame
                                          or msg.is_remote_frame):
             ts = self.stamp_sync(msg.data, t, self.frame_time)
+            if self._clock.jumped:
+                self._discontinuity(t)
         elif self._clock._suspect is None and t <= self.frame_time + self._ahead_s:
             ts = t  # stamp_frame's common case, inline (nothing pending, not far ahead)
         else:
             ts = self.stamp_frame(t, self.frame_time)
+        own = t
         if ts != t:
             t = _floor(ts * 1e6 + 0.5) / 1e6
         if t > self.frame_time:
@@ -224,9 +240,11 @@ class FrameTap(can.Listener):
                 deadlines.run(t)
         else:
             t = self.frame_time  # never backwards (own transmissions stamped at send time)
-        # the frame carries the acquisition time from here on: the recorder (next listener)
-        # writes exactly this value, so a replay sees the same clock bit for bit
-        msg.timestamp = t
+        # what the recorder (next listener) writes: the frame's own time, or the clock when
+        # it was behind it — never a frame held back (a suspect time, a late SYNC): the
+        # replay then sees the times this tap saw and takes the same decisions, so its
+        # samples and clock are the live ones bit for bit
+        msg.timestamp = own if own > t else t
         cbs = self.subscribers.get(cid)
         if cbs is None or msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
             self._classify(msg, cid, cbs)
@@ -240,6 +258,20 @@ class FrameTap(can.Listener):
                 self.last_callback_error = f"0x{cid:03X}: {type(e).__name__}: {e}"
 
     __call__ = on_message_received  # the Notifier calls listeners directly: one frame less
+
+    def _discontinuity(self, t: float) -> None:
+        """The SYNC clock found time going back at this SYNC (``SyncClock.jumped``: two
+        recordings joined, a clock stepped back). Counted and reported, never turned into
+        lost samples or rewritten times: the clock, the watchdog and the health schedule
+        start afresh from it, its sample takes its own time (docs/reliability.md)."""
+        self.discontinuities += 1
+        if self.discontinuities == 1:
+            log.warning("time goes back %.3f s at frame %d (SYNC at %.6f after %.6f): a "
+                        "discontinuity (recordings joined? a clock stepped back?); counted in "
+                        "health sync.discontinuities, no sample invented", self.frame_time - t,
+                        self.frames, t, self.frame_time)
+        self.frame_time = t
+        self.deadlines.rebase(t)
 
     def _classify(self, msg: can.Message, cid: int, cbs: list | None) -> None:
         if msg.is_error_frame:
@@ -258,12 +290,17 @@ class FrameTap(can.Listener):
         return max(self.frame_time, self.tick_time)
 
     def tick(self, wall: float) -> None:
-        """Live idle tick: advance the clock from the wall clock when no frame does."""
+        """Live idle tick: advance the clock from the wall clock when no frame does.
+
+        The timed tasks (watchdog, health) run from the tick only once no frame has come for
+        ``IDLE_TICK_S``: while frames flow they run at the frames' times alone, as in a
+        replay of the recording (the bus thread may be some way behind the wall clock, and
+        a watchdog run at the wall clock would judge frames still queued lost)."""
         with self.lock:
             t = quantise_us(wall)
             if t > self.tick_time:
                 self.tick_time = t
-                if t > self.frame_time and t >= self.deadlines.next:
+                if t > self.frame_time + IDLE_TICK_S and t >= self.deadlines.next:
                     self.deadlines.run(t)
 
     def on_error(self, exc: Exception) -> None:
@@ -327,8 +364,13 @@ class Timebase:
         return ts + self.shift
 
     def _set(self, offset: float) -> None:
+        # frames stamped in the future are another clock beyond FOREIGN_TIMEBASE_S; frames
+        # stamped in the past may be the bus thread running behind (a busy start reads a
+        # backlog): another clock only beyond LOCAL_LAG_S (below it the idle tick, which
+        # waits IDLE_TICK_S for a quiet bus, never runs ahead of frames still coming)
         self.offset = offset
-        self.shift = offset if abs(offset) > FOREIGN_TIMEBASE_S else 0.0
+        foreign = offset < -FOREIGN_TIMEBASE_S or offset > LOCAL_LAG_S
+        self.shift = offset if foreign else 0.0
 
 
 class _LockedTap(can.Listener):
@@ -598,6 +640,11 @@ class HealthMonitor:
         self._rate_hist: deque[tuple[float, int]] = deque(maxlen=RATE_WINDOW + 1)
         self._rate_hz: float | None = None
 
+    def rebase(self, t: float) -> None:
+        """A discontinuity: the next report one period after ``t``, the rate measured afresh."""
+        self.due = math.floor(t) + self.period_s
+        self._rate_hist.clear()
+
     def run(self, t: float) -> None:
         """The acquisition clock passed ``due`` (bus thread / replay loop, frame order)."""
         if self.due == -math.inf:
@@ -640,6 +687,8 @@ class HealthMonitor:
             late, periods = task.late, task.periods_not_taken
         rate = self._rate_hz
         return SyncHealth(duplicate=asm.duplicate_sync, bad_timestamp=asm.clock.bad_timestamp,
+                          late_received=asm.clock.late,
+                          discontinuities=self.tap.discontinuities,
                           late=late, periods_not_taken=periods, rate_hz=rate,
                           rate_low=rate is not None
                           and rate < RATE_LOW_FRACTION * self.cfg.sample_rate_hz)
@@ -787,7 +836,10 @@ class _BusReader(ReaderBase):
             self.nodes.attach(self.cfg, self.table, self.network, self.supervisor,
                               clock=lambda: self.tap.now)
             if thread:
-                self.network.connect()
+                # canopen's Network.connect, with python-can's Notifier reading in batches:
+                # one wake-up takes every frame received meanwhile (rsra.canbus.BatchNotifier)
+                self.network.notifier = BatchNotifier(self._bus, self.network.listeners,
+                                                      self.network.NOTIFIER_CYCLE)
                 # a failed read pauses on the stop event (close() ends it at once), and once
                 # frames come again the failure python-can keeps in notifier.exception is
                 # cleared: canopen's send_message raises it otherwise (NMT, SDO) for ever
@@ -798,6 +850,15 @@ class _BusReader(ReaderBase):
         except BaseException:
             self.close()
             raise
+
+    @property
+    def wakeups(self) -> tuple[int, int] | None:
+        """(wake-ups, frames) of the bus thread so far: how often it woke for a frame and
+        how many frames it took (docs/performance.md P6b); None without a bus thread."""
+        notifier = self.network.notifier
+        if not isinstance(notifier, BatchNotifier):
+            return None
+        return notifier.wakeups, notifier.frames
 
     def _bus_recovered(self) -> None:
         notifier = self.network.notifier

@@ -155,6 +155,9 @@ class IdentJob:
     ok: np.ndarray
     known: np.ndarray
     omega: np.ndarray
+    # the rotor's turn since the previous sample (rad; NaN where the azimuth was missing or
+    # refused), azimuth mode only (issue 25): the calibration filter's Φ(Δψ)
+    dpsi: np.ndarray | None = None
     missing: np.ndarray | None = None  # what each sample lacked (bits: pipeline.input_labels)
 
     def as_mapping(self) -> dict[str, Any]:

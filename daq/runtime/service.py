@@ -456,6 +456,13 @@ class Service:
                     log.warning("%s", warning)
                     self.warnings.append(warning)
             self.pipeline = EstimatorPipeline(cfg, alpha0, identification=use_ident)
+            # the compiled hub path (daq/runtime/hubpath.py) or why not (health too)
+            if self.pipeline.hub_kernel is not None:
+                log.info("hub path: %s", self.pipeline.hub_kernel_status)
+            else:
+                log.warning("hub path: the compiled kernel is %s; the pure-Python path runs "
+                            "(the same records, more CPU per sample)",
+                            self.pipeline.hub_kernel_status)
             # the covariance of the starting angles (hub_loads sigma_angles): the recording's
             # starting posterior in a replay, else the saved posterior's or the prior
             start = (recorded_initial if recorded_initial is not None and not opts.angles
@@ -686,8 +693,16 @@ class Service:
         if self.outputs is not None and self.outputs.foxglove is not None:
             more["foxglove"] = frozen_map(self.outputs.foxglove.health())
         if self.pipeline is not None:  # readings the estimator refused (bad input, counted)
-            est = {"implausible_omega": self.pipeline.implausible_omega,
-                   "design_errors": self.pipeline.design_errors}
+            p = self.pipeline
+            est = {"implausible_omega": p.implausible_omega,
+                   "design_errors": p.design_errors,
+                   "inertial": p.cfg.angular,
+                   "harmonic_phase": p.cfg.rotor.harmonic_phase,
+                   "hub_kernel": p.hub_kernel_status,
+                   "hub_kernel_samples": 0 if p.hub_kernel is None else p.hub_kernel.samples}
+            if p.azimuth_mode:
+                est["azimuth_missing"] = p.azimuth_missing
+                est["azimuth_refused"] = p.azimuth.refused
             if self.pipeline.stuck is not None:
                 est.update(self.pipeline.stuck.health())
             more["estimator"] = frozen_map(est)

@@ -21,7 +21,8 @@ from rsra.config.rig import RigConfig
 from rsra.estimator.posterior import PosteriorFileError, PosteriorState, determined_directions
 
 DIRECTION_COMPONENT_MIN = 0.1  # components of an undetermined direction worth naming
-SHOW_DIRECTIONS = 5  # undetermined directions listed in the table view (largest σ first)
+SHOW_DIRECTIONS = 5
+RANGE_Z = 1.959964  # the 95 % two-sided range of a Gaussian: ± 1.96 σ  # undetermined directions listed in the table view (largest σ first)
 
 
 def _configured_names(cfg: RigConfig) -> tuple[tuple[str, ...], tuple[str, ...]]:
@@ -57,6 +58,11 @@ def describe(state: PosteriorState, cfg: RigConfig) -> dict:
         "angles_deg": np.degrees(state.theta).tolist(),
         "sigma_deg": np.degrees(sigma).tolist(),
         "sigma_max_deg": math.degrees(smax),
+        # each angle's 95 % range (± RANGE_Z σ, the Gaussian posterior) and the physical
+        # range every angle is held to (identification.angle_limit_deg)
+        "range_deg": [[math.degrees(a - RANGE_Z * sg), math.degrees(a + RANGE_Z * sg)]
+                      for a, sg in zip(state.theta, sigma)],
+        "angle_limit_deg": math.degrees(cfg.identification.angle_limit_rad),
         "determined": det,
         "parameters": len(state.names),
         "determined_parameters": (sigma <= smax).tolist(),
@@ -241,12 +247,16 @@ def _show(cfg: RigConfig, args: argparse.Namespace) -> int:
                     "no record applied: the starting posterior")
                  + f" (rig {cfg.rig_name!r})")
     t = Table(title=title)
-    for col in ("parameter", "angle (deg)", "σ (deg)", f"σ ≤ {smax:g}°"):
+    for col in ("parameter", "angle (deg)", "σ (deg)", "95 % range (deg)", f"σ ≤ {smax:g}°"):
         t.add_column(col, justify="left" if col == "parameter" else "right")
-    for n, a, s, ok in zip(d["names"], d["angles_deg"], d["sigma_deg"],
-                           d["determined_parameters"]):
-        t.add_row(n, f"{a:+.4f}", f"{s:.4f}", "[green]yes[/green]" if ok else "[yellow]no[/yellow]")
+    for n, a, s, (lo, hi), ok in zip(d["names"], d["angles_deg"], d["sigma_deg"],
+                                     d["range_deg"], d["determined_parameters"]):
+        t.add_row(n, f"{a:+.4f}", f"{s:.4f}", f"{lo:+.3f} … {hi:+.3f}",
+                  "[green]yes[/green]" if ok else "[yellow]no[/yellow]")
     console.print(t)
+    console.print(f"range: angle ± 1.96 σ, where the true angle lies with 95 % probability (the "
+                  f"posterior is Gaussian); every angle is held within ±{d['angle_limit_deg']:g}° "
+                  "(identification.angle_limit_deg)", highlight=False)
     cond = "inf" if d["condition"] is None else f"{d['condition']:.3g}"
     applies = ("from the start" if d["applies_from_seq"] is None
                else f"from sample {d['applies_from_seq']}")

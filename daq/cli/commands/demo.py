@@ -11,8 +11,11 @@ import threading
 import time
 from pathlib import Path
 
+from rsra.daq.cli.outputs import REPORT_FILES
+
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 PLAIN_INTERVAL_S = 5.0  # off a terminal: the plain-text view every this many wall seconds
+OUTPUTS = {"report": REPORT_FILES, "record": "folder"}  # against the inputs (daq.cli.outputs)
 
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:

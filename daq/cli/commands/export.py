@@ -15,6 +15,9 @@ from pathlib import Path
 TELEMETRY_SUFFIXES = (".jsonl", ".json")
 
 
+OUTPUTS = {"dbc": "file", "mcap": "file", "parquet": "folder"}  # against the inputs (daq.cli.outputs)
+
+
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
     from rsra.daq.cli.options import common_options
 
@@ -228,10 +231,17 @@ def _telemetry(cfg, source: Path | None, scratch, args, mcap_tmp: Path | None,
         out.append(f"{args.mcap}: " + ", ".join(f"{k} {n}" for k, n in counts.items()))
     if args.parquet:
         names = vector_names(cfg)
-        schemas = parquet_schemas(records(), names)
+        keys = list(dict.fromkeys(k for k, _ in records()))
+        # declared schemas (independent of the data); a pass over the data only for keys
+        # rsra does not publish
+        schemas = parquet_schemas(keys, names, records())
         folder = Path(args.parquet)
         paths = {k: staged.file(folder / f"{k}.parquet", usage) for k in schemas}
-        counts = write_parquet(records(), schemas, paths, names)
+        left_out: dict[str, set[str]] = {}
+        counts = write_parquet(records(), schemas, paths, names, left_out=left_out)
         out.append(f"{args.parquet}: " + ", ".join(f"{k}.parquet {n} rows"
                                                    for k, n in counts.items()))
+        for k, cols in left_out.items():
+            out.append(f"{args.parquet}: {k}: values of undeclared fields left out: "
+                       f"{', '.join(sorted(cols)[:8])}{' …' if len(cols) > 8 else ''}")
     return out

@@ -16,6 +16,9 @@ from rsra.daq.cli.options import (
 )
 
 
+OUTPUTS = {"truth": "file", "record": "folder"}  # checked against the inputs (daq.cli.outputs)
+
+
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
     p = sub.add_parser(name, help="run the service (real bus, or the simulator in-process)",
                        description="The DAQ service: CANopen master, real-time hub-load "

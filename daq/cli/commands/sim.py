@@ -21,6 +21,9 @@ FAULT_HELP = (
     "NODE may be '*'. See docs/simulator.md, 'Faults'")
 
 
+OUTPUTS = {"truth": "file", "record": "file"}  # checked against the inputs (daq.cli.outputs)
+
+
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
     from rsra.daq.cli.options import common_options
     from rsra.daq.cli.options import positive_float, seed
