@@ -542,9 +542,12 @@ def test_a_bad_window_never_replaces_the_angles(cfg, window_job, corrupt, reason
     np.testing.assert_array_equal(pipe.alpha, alpha)
 
 
-def test_stale_input_through_the_service(cfg):
+def test_stale_input_through_the_service(cfg, caplog):
     """accel_1 silent for 20 % of the first window: the run is refused as stale_input, the
     record is published at its sample, and the angles in force stay the configured ones."""
+    import logging
+
+    caplog.set_level(logging.INFO, logger="rsra")
     svc = Service(cfg, ServiceOptions(sim="ground-test", seed=SEED, speed=None, duration=6.5,
                                       zenoh=False, faults="silent:accel_1@1-2"))
     angles = []
@@ -555,6 +558,9 @@ def test_stale_input_through_the_service(cfg):
     n = angles[0]["window"][1] - angles[0]["window"][0] + 1
     assert f"accel_1 missing in {100 * 200 / n:.1f} %" in angles[0]["explanation"], angles[0]
     assert "accel_1 silent" in angles[0]["hint"]
+    logged = [r.getMessage() for r in caplog.records if "identification rejected" in
+              r.getMessage()]  # the log says the same, with the hint
+    assert logged and angles[0]["explanation"] in logged[0] and "hint: accel_1" in logged[0]
     assert angles[0]["applies_from_seq"] == angles[0]["window"][1] + round(
         cfg.identification.apply_delay_s * cfg.sample_rate_hz)
     np.testing.assert_array_equal(summary["alpha_applied"], cfg.identification.initial_angles_rad)

@@ -334,7 +334,8 @@ def test_accuracy_by_phase_against_the_published_sigma(synth_truth, cfg, tmp_pat
                       "frame": "body", "H": H[seq] + k * sH * rng.standard_normal(6),
                       "H_static": H[seq] + sS * rng.standard_normal(6), "omega": 19.4,
                       "sigma_angles": sa, "sigma_filter": sf,
-                      "flags": ["transient"] if seq in moving else []})
+                      "flags": (["transient"] if seq in moving else [])
+                      + (["angles_uncertain"] if seq < cal else [])})
         if seq % 10 == 0:
             nis = float(rng.chisquare(6)) * (20.0 if seq in moving else 1.0)
             lines.append({"key": "innovations", "seq": seq, "t": float(t[seq] + 4e-4),
@@ -369,3 +370,11 @@ def test_accuracy_by_phase_against_the_published_sigma(synth_truth, cfg, tmp_pat
 
     text = Report(tmp_path, [], {}, s).markdown_brief()
     assert "H steady" in text and "calibrated steady state" in text and "beyond" in text
+    # a run started from calibrated angles (a saved posterior: its first sample not flagged
+    # angles_uncertain) has no start phase
+    first = json.loads(lines and dumps(lines[0]))
+    first["flags"] = []
+    p.write_text("\n".join([dumps(first)] + [dumps(x) for x in lines[1:]]) + "\n")
+    _, s = summarise(cfg, load_records(p), tr)
+    assert s["hub_loads"]["by_phase"]["calibrated_from_seq"] == 0
+    assert s["hub_loads"]["by_phase"]["H_static"]["start"] is None

@@ -4,9 +4,11 @@ live view.
 
 Three phases, because one figure over a whole run mixes three different things:
 
-* ``start`` — before the first accepted calibration: the hub loads use the starting angles
-  (uncalibrated unless ``--angles`` gave a posterior); their error is what ``sigma_angles``
-  says the angles' uncertainty causes, and the published σ is large accordingly;
+* ``start`` — before the first accepted calibration: the hub loads use the starting angles,
+  uncalibrated; their error is what ``sigma_angles`` says the angles' uncertainty causes, and
+  the published σ is large accordingly. A run that starts from calibrated angles (a saved
+  posterior, ``--angles``: its first sample is not flagged ``angles_uncertain``) has no start
+  phase (:func:`starts_calibrated`);
 * ``transient`` — samples the service flagged ``transient`` (load ramps, manoeuvres): the
   filter lags the moving load (``H_static`` follows it);
 * ``steady`` — calibrated and not transient: the state the accuracy claim is about.
@@ -26,13 +28,20 @@ import numpy as np
 
 PHASES = ("start", "transient", "steady")
 MEANING = {
-    "start": "before the first accepted calibration: the starting angles, their larger σ "
-             "published (sigma_angles)",
+    "start": "before the first accepted calibration: the uncalibrated starting angles, their "
+             "larger σ published (sigma_angles)",
     "transient": "load ramps and manoeuvres (hub_loads flagged transient): the filter lags "
                  "the moving load",
     "steady": "calibrated steady state: the accuracy claim (beyond 3σ ≈ 0.27 % for a true σ)",
 }
 TRANSIENT_FLAG = "transient"
+UNCERTAIN_FLAG = "angles_uncertain"
+
+
+def starts_calibrated(first_flags: Iterable[str]) -> bool:
+    """A run whose first sample's angles are known to the accuracy the noise budget states
+    (no ``angles_uncertain`` flag: a saved posterior) is calibrated from its start."""
+    return UNCERTAIN_FLAG not in first_flags
 
 
 def phase_of(calibrated: bool, flags: Iterable[str]) -> str:

@@ -381,6 +381,18 @@ def calibrated_from_seq(angles: list[dict]) -> int | None:
     return min(seqs) if seqs else None
 
 
+def calibrated_from(d: ReportData) -> int | None:
+    """The first sample of the calibrated state: the first accepted calibration's, or the
+    run's first sample when it started from calibrated angles (daq.analysis.accuracy)."""
+    from rsra.daq.analysis.accuracy import starts_calibrated
+
+    hub = d.rec.hub
+    if hub is not None and len(hub["seq"]) and starts_calibrated(
+            hub["flags"][int(np.argmin(hub["seq"]))]):
+        return int(np.min(hub["seq"]))  # a saved posterior: no start phase
+    return calibrated_from_seq(d.rec.angles)
+
+
 def record_phases(d: ReportData, seq: np.ndarray) -> np.ndarray:
     """The phase (daq.analysis.accuracy) of each record by its sample number: ``start``
     before the first accepted calibration, then ``transient`` where the hub_loads record at
@@ -388,7 +400,7 @@ def record_phases(d: ReportData, seq: np.ndarray) -> np.ndarray:
     from rsra.daq.analysis.accuracy import TRANSIENT_FLAG
 
     hub = d.rec.hub
-    cal = calibrated_from_seq(d.rec.angles)
+    cal = calibrated_from(d)
     moving = ({int(q) for q, f in zip(hub["seq"], hub["flags"]) if TRANSIENT_FLAG in f}
               if hub is not None else set())
     seq = np.asarray(seq, np.int64)
@@ -411,7 +423,7 @@ def _hub_by_phase(d: ReportData) -> dict:
            "H_static": np.sqrt(sa2 + bound ** 2)}
     scale = to_units(np.ones(6), d.units)
     out: dict = {"meaning": dict(MEANING),
-                 "calibrated_from_seq": calibrated_from_seq(d.rec.angles),
+                 "calibrated_from_seq": calibrated_from(d),
                  "sigma": ("published: sqrt(sigma_angles² + sigma_filter²) for H"
                            if np.isfinite(sf).any() else
                            "published: sqrt(sigma_angles² + static bound²) for H")

@@ -123,10 +123,14 @@ def _trend(rec: Any) -> str:
     return text
 
 
+STILL_FALLING = 1e-4  # a last iteration that lowered J by more than this (relative; the
+# search's own tolerance, estimator.identification.levenberg_marquardt rel_tol): still falling
+
+
 def _still_falling(rec: Any) -> bool:
     hist = list(getattr(rec, "cost_history", None) or ())
     return (len(hist) >= 2 and all(math.isfinite(x) for x in hist[-2:])
-            and hist[-1] < hist[-2] * (1 - 1e-9))
+            and hist[-2] - hist[-1] > STILL_FALLING * abs(hist[-2]))
 
 
 def explain(rec: Any, job: Mapping[str, Any], idc: Any, labels: Sequence[str]
@@ -154,14 +158,16 @@ def explain(rec: Any, job: Mapping[str, Any], idc: Any, labels: Sequence[str]
     if reason == "stale_input":
         return _stale(job, labels, idc.stale_fraction)
     if reason == "not_converged":
-        text = (f"stopped after {rec.iterations} of {idc.max_iterations} iterations without "
+        text = (f"stopped after {rec.iterations} iterations (identification.max_iterations "
+                f"{idc.max_iterations} per stage: a warm start, then the full search) without "
                 f"meeting the tolerance; {_trend(rec)}")
         if _still_falling(rec):
             return text, ("the cost was still falling at the limit: the starting angles were "
                           "far off; the next window continues from here (or raise "
                           "identification.max_iterations)")
-        return text, ("the cost stalled: the window's loads were transient (a ramp or a "
-                      "manoeuvre) or too little varied; the next window is tried")
+        return text, ("the cost barely moves but the steps do not settle: a flat direction "
+                      "(the window's loads too little varied, or a ramp in it); the next "
+                      "window is tried")
     if reason == "diverged":
         return (f"the run diverged after {rec.iterations} iterations; {_trend(rec)}",
                 "the run left the region where the model holds (a transient in the window, or "
