@@ -172,7 +172,12 @@ def config_for_run(config: str | None, scenario: str | None):
         raise
     except (FileNotFoundError, ValueError) as e:
         raise UsageError(str(e)) from None
-    return load_rig(config, overrides=sc.rig_overrides or None)
+    cfg = load_rig(config, overrides=sc.rig_overrides or None)
+    from rsra.sim_bus.scenarios import check_against_rig
+
+    # content the rig cannot sample, refused before anything starts (the physics checks it too)
+    check_against_rig(sc, cfg.sample_rate_hz, cfg.rotor.omega_nominal_rad_s, cfg.rotor.blades)
+    return cfg
 
 
 def check_output_file(option: str, path: str) -> None:

@@ -456,13 +456,6 @@ class Service:
                     log.warning("%s", warning)
                     self.warnings.append(warning)
             self.pipeline = EstimatorPipeline(cfg, alpha0, identification=use_ident)
-            # the compiled hub path (daq/runtime/hubpath.py) or why not (health too)
-            if self.pipeline.hub_kernel is not None:
-                log.info("hub path: %s", self.pipeline.hub_kernel_status)
-            else:
-                log.warning("hub path: the compiled kernel is %s; the pure-Python path runs "
-                            "(the same records, more CPU per sample)",
-                            self.pipeline.hub_kernel_status)
             # the covariance of the starting angles (hub_loads sigma_angles): the recording's
             # starting posterior in a replay, else the saved posterior's or the prior
             start = (recorded_initial if recorded_initial is not None and not opts.angles
@@ -492,6 +485,14 @@ class Service:
             if self.recorder is not None:
                 self.recorder.write_angles(self._initial_record(alpha0, state).to_dict())
             log.info("service started: %s", self.source.describe())
+            # the compiled hub path (daq/runtime/hubpath.py) or why not (health too): said once
+            # everything has started (a start that fails stays one line)
+            if self.pipeline.hub_kernel is not None:
+                log.info("hub path: %s", self.pipeline.hub_kernel_status)
+            else:
+                log.warning("hub path: the compiled kernel is %s; the pure-Python path runs "
+                            "(the same records, more CPU per sample)",
+                            self.pipeline.hub_kernel_status)
             self._loop(self.source.items(self.stop_event))
         self.summary = self._summary()
         return self.summary
