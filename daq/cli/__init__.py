@@ -31,6 +31,7 @@ COMMANDS = {
     "calibrate": "calibrate",
     "export": "export",
     "web": "web",
+    "config": "config",
 }
 
 
@@ -70,7 +71,7 @@ def _main(argv: list[str] | None) -> int:
         return 130
     except BrokenPipeError:
         return 0
-    except Exception as e:  # the one error path: every failure is one line (docs/cli.md §16)
+    except Exception as e:  # the one error path: every failure is one line (docs/cli.md §17)
         if os.environ.get("RSRA_DEBUG"):
             raise
         status, line = describe_error(e)
@@ -95,7 +96,7 @@ def zenoh_error_line(e: BaseException) -> str:
 
 def describe_error(e: BaseException) -> tuple[int, str]:
     """(exit status, one line) for any exception that ends a command: 2 for a usage,
-    configuration or bad-input error, 1 for anything else (docs/cli.md §16)."""
+    configuration or bad-input error, 1 for anything else (docs/cli.md §17)."""
     from rsra.daq.bus.master import BootError
     from rsra.daq.bus.recorder import RecordingError
     from rsra.daq.bus.replay import ReplayError
