@@ -91,3 +91,17 @@ def test_editable_install_the_way_make_runs_it_is_quiet(tmp_path):
                          shell=True, cwd=ROOT, capture_output=True, text=True, check=False)
     assert out.returncode == 0, out.stderr
     assert out.stderr.strip() == "" and out.stdout.strip() == "", out.stderr + out.stdout
+
+
+def test_rsra_version_prints_the_installed_version(capsys):
+    """Issue 29: there was no `rsra --version`."""
+    from importlib.metadata import version
+
+    import pytest
+
+    from rsra.daq.cli import main
+
+    with pytest.raises(SystemExit) as ei:
+        main(["--version"])
+    assert ei.value.code == 0
+    assert capsys.readouterr().out.strip() == f"rsra {version('rsra')}"

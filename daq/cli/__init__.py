@@ -40,10 +40,22 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
+def _version() -> str:
+    """The installed distribution's version (pyproject.toml), or 'unknown' outside one."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("rsra")
+    except PackageNotFoundError:
+        return "unknown"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="rsra", description=(
         "Rotor hub loads from the load cells of an isolated transmission: CANopen DAQ, "
         "fixed-gain Kalman filter, on-line calibration of the load-cell angles, Zenoh telemetry."))
+    parser.add_argument("--version", action="version", version=f"rsra {_version()}",
+                        help="print the version of rsra and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for name, module in COMMANDS.items():
         mod = importlib.import_module(f"rsra.daq.cli.commands.{module}")
