@@ -10,6 +10,9 @@ PIP_INSTALL := PYTHONWARNINGS="ignore:Editable installation" $(BIN)/pip install 
 .PHONY: setup web demo test test-all bench lint clean
 
 $(STAMP): pyproject.toml
+	@echo "make: installing rsra into $(VENV) (once, about a minute): a virtual environment, then"
+	@echo "      numpy, scipy, python-can, canopen, eclipse-zenoh, rich, matplotlib and the test and"
+	@echo "      bench tools from PyPI (pyproject.toml); then the demo starts"
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	$(PIP_INSTALL) -e '.[test,bench]'

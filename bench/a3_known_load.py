@@ -66,6 +66,12 @@ def run_calibration(cfg, run, *, known_loads: bool, initial_state=None
     delay = round(idc.apply_delay_s * fs)
     n = len(Y)
     seq = np.arange(n)
+    dpsi = None
+    if cfg.rotor.harmonic_phase == "azimuth":  # the pipeline's AzimuthTracker, sample by sample
+        from rsra.estimator.filters import AzimuthTracker
+
+        dpsi = AzimuthTracker(cfg.rotor.omega_nominal_rad_s, 1.0 / fs).turns(
+            run.azimuth, run.omega)
     for j, end in enumerate(range(period, n + 1, period)):
         sl = slice(max(0, end - window), end)
         m = end - sl.start
@@ -73,6 +79,8 @@ def run_calibration(cfg, run, *, known_loads: bool, initial_state=None
                "alpha": post.theta.copy(), "T": Y[sl, :7], "z": Y[sl, 7:13],
                "known_H": Y[sl, 13:], "seq": seq[sl], "t": run.t[sl], "ok": np.ones(m, bool),
                "known": np.full(m, known_loads), "omega": run.omega[sl]}
+        if dpsi is not None:
+            job["dpsi"] = dpsi[sl]
         rec = run_job(cfg, runs, cache, job)
         yield end - 1, rec, post.theta.copy(), post.P.copy()
 

@@ -16,6 +16,22 @@ run_calibration`` in filter-error mode: the calibration branch and the worker's 
   accelerations measured: ``angular = "least_squares"``), ``vibration`` content, from the true
   angles (rig overrides in ``POWER_RIG``; ``max_iterations`` 40).
 
+The flight rig's arms (issue 25: ``config/flight-rig.toml`` — three triaxial accelerometers,
+harmonic states turned by the measured azimuth, ``vibration`` content; 20 s, four runs):
+
+* ``rig_speed`` — the power arm with the rotor-speed variation (±1.7 % slow + the governor's
+  0.3 % at 0.8 Hz), no manoeuvres, from the truth at trim;
+* ``rig_manoeuvres`` — ``flight`` with its manoeuvres (the pull-up at 15–19 s in the last
+  window), speed variation and vibration, the angles held constant (the manoeuvres' own
+  effect), from the truth;
+* ``rig_turbulence`` — the same with broadband hub loads;
+* ``rig_zero`` — ``flight`` as it is (thrust-dependent angles too) from the 0° start (σ₀ = 5°);
+* ``rig_ground`` — ``flight`` as it is from the seed's ground posterior (a ``ground-test``
+  sweep of the same aircraft on the flight rig).
+
+``--arms`` runs a subset; ``--extend`` adds its lines to the latest full run of this bench
+(the other arms' lines of that run stand as they were measured).
+
 The truth of a window is the mean of the true angles over it (the angles move with thrust).
 Decisions at an overall false-alarm rate of 10⁻³:
 
@@ -46,6 +62,10 @@ FLIGHT_S = 15.0  # three runs: the shortest that decides (the first manoeuvre st
 POWER_S = 10.0
 GROUND_S = 60.0  # one sweep of the six conditions
 ARMS = ("flight_true", "flight_ground", "turbulence", "power")
+RIG_ARMS = ("rig_speed", "rig_manoeuvres", "rig_turbulence", "rig_zero", "rig_ground")
+ALL_ARMS = ARMS + RIG_ARMS
+RIG_S = 20.0  # four runs: the pull-up (15-19 s) in the last
+SIGMA_TARGET_DEG = 0.1  # time to reach it, per determined direction
 # three triaxial accelerometers on the transmission (non-collinear): angular accelerations
 POWER_POSITIONS = ((0.7, -0.9, 0.35), (0.7, 0.9, 0.35), (-0.7, 0.0, 0.35))
 _TINY = {"flight": 10.0, "power": 10.0, "ground": 20.0}
@@ -69,9 +89,28 @@ def power_rig() -> dict:
             "identification": {"content_filter_error": "vibration", "max_iterations": 40}}
 
 
+def flight_rig_path():
+    from rsra.config.rig import config_dir
+
+    return config_dir() / "flight-rig.toml"
+
+
 def _scenario(arm: str):
     from rsra.sim_bus import load_scenario
 
+    if arm == "rig_speed":  # no manoeuvres; the speed variation as the scenario has it
+        import tomllib
+
+        from rsra.sim_bus.scenarios import parse_scenario, scenario_dir
+        raw = tomllib.loads((scenario_dir() / "flight.toml").read_text(encoding="utf-8"))
+        raw.pop("manoeuvres", None)
+        return parse_scenario(raw, source="flight.toml (A6 rig_speed arm)")
+    if arm == "rig_turbulence":
+        return load_scenario("flight", turbulence=True)
+    if arm == "rig_manoeuvres":  # the manoeuvres' own effect: angles held constant
+        return load_scenario("flight", angles="constant")
+    if arm in RIG_ARMS:
+        return load_scenario("flight")
     if arm == "turbulence":
         return load_scenario("flight", turbulence=True)
     if arm == "power":  # no manoeuvres, constant rotor speed
@@ -110,7 +149,110 @@ def hub_load_rms(cfg, run, schedule: list[tuple[int, np.ndarray]], alpha0: np.nd
     return np.sqrt(np.mean(e * e, axis=0))
 
 
+def hub_load_rms_azimuth(cfg, run, schedule: list[tuple[int, np.ndarray]],
+                         alpha0: np.ndarray, skip: int) -> np.ndarray:
+    """As :func:`hub_load_rms` with the service's per-sample load filter in azimuth mode
+    (``rotor.harmonic_phase = "azimuth"``: the harmonic states turn with the azimuth)."""
+    from rsra.daq.rigmodel import design_cache
+    from rsra.estimator.balance import inertial_loads
+    from rsra.estimator.filters import AzimuthTracker, LoadFilter
+
+    model = cfg.rig_model()
+    cache = design_cache(cfg, model=model, omega_min=0.0)
+    fs = cfg.sample_rate_hz
+    f = LoadFilter(cache, alpha0, invalid_after_samples=10**9,
+                   omega=cfg.rotor.omega_nominal_rad_s, azimuth=True)
+    dpsi = AzimuthTracker(cfg.rotor.omega_nominal_rad_s, 1.0 / fs).turns(run.azimuth, run.omega)
+    z = inertial_loads(model, run.accel)
+    n = len(z)
+    switch = {int(s_): a for s_, a in schedule if 0 < s_ < n}
+    H = np.empty((n, 6))
+    for i in range(n):
+        if i in switch:
+            f.set_alpha(switch[i])
+        d = dpsi[i]
+        H[i] = f.step(run.T[i], z[i], dpsi=None if not np.isfinite(d) else float(d)).H
+    e = H[skip:] - run.H_true[skip:]
+    return np.sqrt(np.mean(e * e, axis=0))
+
+
+def _time_to_sigma(P_hist: list[tuple[float, np.ndarray]], k_max: int = 3) -> list:
+    """Per determined direction k (the k-th smallest eigen-σ of P): the first window end (s)
+    at which it is ≤ SIGMA_TARGET_DEG; None when never."""
+    out = []
+    lim = math.radians(SIGMA_TARGET_DEG)
+    for k in range(k_max):
+        t = next((t for t, P in P_hist if np.sqrt(np.linalg.eigvalsh(P)[k]) <= lim), None)
+        out.append(t)
+    return out
+
+
 def one_arm(seed: int, arm: str, tiny: bool = False) -> dict:
+    if arm in RIG_ARMS:
+        return one_rig_arm(seed, arm, tiny)
+    return _one_default_arm(seed, arm, tiny)
+
+
+def one_rig_arm(seed: int, arm: str, tiny: bool = False) -> dict:
+    """An arm on the flight rig (module doc)."""
+    from rsra.config.rig import load_config
+    from rsra.estimator.posterior import PosteriorState
+    from rsra.sim_bus import load_scenario, simulate
+
+    rig = flight_rig_path()
+    base_cfg = load_config(rig)
+    dur = 10.0 if tiny else RIG_S
+    run = simulate(base_cfg, _scenario(arm), seed=seed, duration_s=dur)
+    alpha0 = run.alpha_true[0].copy()  # the truth at trim
+    start = np.zeros(14) if arm == "rig_zero" else alpha0
+    cfg = load_config(rig, overrides={"identification": {
+        "initial_angles_deg": np.degrees(start).tolist()}})
+    initial = None
+    if arm == "rig_ground":
+        gs = load_scenario("ground-test", **{"angles.base": np.degrees(alpha0).tolist(),
+                                             "angles.mode": "constant"})
+        g_run = simulate(base_cfg, gs, seed=seed, duration_s=_TINY["ground"] if tiny else GROUND_S)
+        theta = P = None
+        for _, _, theta, P in run_calibration(base_cfg, g_run, known_loads=True):
+            pass
+        initial = PosteriorState(tuple(base_cfg.rig_model().geometry.angle_names), theta, P)
+        start = theta
+    sigma0 = np.sqrt(np.diag(initial.P if initial is not None else
+                             np.eye(14) * cfg.identification.prior_sigma_rad**2))
+    fs = cfg.sample_rate_hz
+    w = round(cfg.identification.window_s * fs)
+    out = {"seed": seed, "arm": arm, "runs": [], "reasons": Counter()}
+    schedule, P_hist = [], []
+    theta = P = None
+    for end, rec, theta, P in run_calibration(cfg, run, known_loads=False,
+                                              initial_state=initial):
+        truth = run.alpha_true[max(0, end + 1 - w):end + 1].mean(0)
+        err = theta - truth
+        out["reasons"][f"{rec['reason'] or 'accepted'}:{rec.get('detail')}"] += 1
+        out["runs"].append({"accepted": bool(rec["accepted"]),
+                            "chi2": float(err @ np.linalg.solve(P, err)),
+                            "window_determined": int(rec.get("window_determined") or 0)})
+        P_hist.append(((end + 1) / fs, P.copy()))
+        if rec["accepted"]:
+            schedule.append((int(rec["applies_from_seq"]), np.asarray(rec["alpha"], float)))
+    final_truth = run.alpha_true[-w:].mean(0)
+    ferr = theta - final_truth
+    out["final_chi2"] = float(ferr @ np.linalg.solve(P, ferr))
+    out["final_error_deg"] = float(np.degrees(np.linalg.norm(ferr)))
+    out["start_error_deg"] = float(np.degrees(np.linalg.norm(start - final_truth)))
+    ratio = np.sqrt(np.diag(P)) / sigma0
+    out["sigma_shrink"] = float(np.min(ratio))
+    out["sigma_ratio_median"] = float(np.median(ratio))
+    out["time_to_sigma"] = _time_to_sigma(P_hist)
+    skip = round(1.0 * fs)
+    out["rms_with"] = hub_load_rms_azimuth(cfg, run, schedule, start, skip)
+    out["rms_without"] = (out["rms_with"] if not schedule
+                          else hub_load_rms_azimuth(cfg, run, [], start, skip))
+    out["reasons"] = dict(out["reasons"])
+    return out
+
+
+def _one_default_arm(seed: int, arm: str, tiny: bool = False) -> dict:
     from rsra.config.rig import load_config
     from rsra.estimator.posterior import PosteriorState
     from rsra.sim_bus import load_scenario, simulate
@@ -170,12 +312,25 @@ def one_arm(seed: int, arm: str, tiny: bool = False) -> dict:
     return out
 
 
-def one_seed(seed: int, tiny: bool = False) -> dict:
-    return {arm: one_arm(seed, arm, tiny) for arm in ARMS}
+_SELECTED = ARMS  # the arms of this run (set by main; inherited by the workers via argv)
+
+
+def one_seed(seed: int, tiny: bool = False, arms: tuple[str, ...] | None = None) -> dict:
+    return {arm: one_arm(seed, arm, tiny) for arm in (arms or _SELECTED)}
 
 
 def _one_seed_tiny(seed: int) -> dict:
     return one_seed(seed, tiny=True)
+
+
+class _Seed:
+    """Picklable fn over seeds for ``seed_map`` (spawned workers do not see main's globals)."""
+
+    def __init__(self, arms: tuple[str, ...], tiny: bool) -> None:
+        self.arms, self.tiny = arms, tiny
+
+    def __call__(self, seed: int) -> dict:
+        return one_seed(seed, self.tiny, self.arms)
 
 
 def paired_not_worse(with_: np.ndarray, without: np.ndarray, false_alarm: float) -> dict:
@@ -195,11 +350,25 @@ def main(argv: list[str] | None = None) -> int:
     p = arg_parser(__doc__.splitlines()[0])
     p.add_argument("--seeds", type=int, default=N_SEEDS,
                    help=f"number of seeds (default {N_SEEDS}; fewer only when time is short)")
+    p.add_argument("--arms", nargs="+", choices=ALL_ARMS, default=list(ALL_ARMS),
+                   help="the arms to run (default: all)")
+    p.add_argument("--extend", action="store_true",
+                   help="add these arms' lines to the latest full run of this bench")
+    p.add_argument("--processes", type=int, default=2)
     args = p.parse_args(argv)
     w = writer_from_args(BENCH, args)
+    if args.extend and not args.tiny:
+        from bench.common import latest_run, read_lines
+        prev = latest_run(read_lines(w.path))
+        if prev:
+            w.run_id = prev[0]["run_id"]
+    arms = tuple(a for a in ALL_ARMS if a in args.arms)
     seeds = list(range(1, 3 if args.tiny else args.seeds + 1))
-    res = seed_map(_one_seed_tiny if args.tiny else one_seed, seeds, processes=2)
-    for arm in ARMS:
+    res = seed_map(_Seed(arms, args.tiny), seeds, processes=args.processes)
+    for arm in arms:
+        if arm in RIG_ARMS:
+            _report_rig_arm(w, arm, [r[arm] for r in res])
+            continue
         rows = [r[arm] for r in res]
         runs = [x for r in rows for x in r["runs"]]
         n_tested = max(len(runs), 1)
@@ -236,6 +405,49 @@ def main(argv: list[str] | None = None) -> int:
                   smallest_sigma_ratio_median=float(np.median(shrink)),
                   accepted_fraction=len(acc) / n_tested, **common)
     return 0
+
+
+def _report_rig_arm(w, arm: str, rows: list[dict]) -> None:
+    runs = [x for r in rows for x in r["runs"]]
+    n_tested = max(len(runs), 1)
+    limit = float(stats.chi2.isf(FALSE_ALARM / n_tested, 14))
+    acc = [x for x in runs if x["accepted"]]
+    worst_acc = max((x["chi2"] for x in acc), default=0.0)
+    final = np.array([r["final_chi2"] for r in rows])
+    empty_acc = sum(1 for x in acc if x["window_determined"] == 0)
+    reasons: Counter = Counter()
+    for r in rows:
+        reasons.update(r["reasons"])
+    t_sig = []
+    for k in range(3):
+        ts = [r["time_to_sigma"][k] for r in rows]
+        got = [t for t in ts if t is not None]
+        t_sig.append({"reached": len(got), "median_s": float(np.median(got)) if got else None})
+    closer = sum(1 for r in rows if r["final_error_deg"] < r["start_error_deg"])
+    common = {"arm": arm, "seeds": len(rows), "runs": len(runs), "accepted": len(acc),
+              "reasons": dict(reasons), "chi2_limit": limit, "duration_s": RIG_S,
+              "accepted_fraction": len(acc) / n_tested,
+              "sigma_ratio_median": float(np.median([r["sigma_ratio_median"] for r in rows])),
+              "smallest_sigma_ratio_median": float(np.median([r["sigma_shrink"] for r in rows])),
+              "time_to_0p1deg_per_direction": t_sig,
+              "seeds_closer_to_truth": closer,
+              "error_deg_median": [float(np.median([r["start_error_deg"] for r in rows])),
+                                   float(np.median([r["final_error_deg"] for r in rows]))]}
+    worst = max(worst_acc, float(final.max()))
+    w.add(f"{arm}_consistency", worst,
+          "χ²₁₄ (worst accepted run or final posterior against the window truth)",
+          target=f"≤ {limit:.1f} (10⁻³ over seeds × runs), no accepted run whose window "
+          "determines nothing", met=bool(worst <= limit and empty_acc == 0),
+          accepted_without_window_information=empty_acc, final_chi2_max=float(final.max()),
+          worst_accepted_chi2=worst_acc, **common)
+    w.add(f"{arm}_accepted", len(acc) / n_tested, "fraction of runs accepted",
+          target="> 0 (flight calibrates)", met=len(acc) > 0, **common)
+    pw = paired_not_worse(np.array([r["rms_with"] for r in rows]),
+                          np.array([r["rms_without"] for r in rows]), FALSE_ALARM)
+    w.add(f"{arm}_hub_loads", float(pw["t"].max()),
+          "paired t (largest axis; > 0: worse with updates)",
+          target=f"with updates not worse than without on every axis (t ≤ {pw['limit']:.2f})",
+          met=not pw["worse"], mean_relative_change=pw["mean_relative_change"], **common)
 
 
 if __name__ == "__main__":

@@ -52,7 +52,7 @@ def record(cfg, folder: Path, seconds: float) -> Path:
     return folder
 
 
-def replay_round(cfg, frames, initial_alpha, publisher) -> dict:
+def replay_round(cfg, frames, initial_alpha, publisher, kernel: bool = True) -> dict:
     """One replay of ``frames`` through the service's per-sample path; µs per sample."""
     import numpy as np
 
@@ -79,7 +79,8 @@ def replay_round(cfg, frames, initial_alpha, publisher) -> dict:
         if queue.qsize():
             samples.extend(x for x in poll() if not isinstance(x, HealthReport))
     t_decode = tt() - t0
-    pipe = EstimatorPipeline(cfg, np.asarray(initial_alpha, float), identification=True)
+    pipe = EstimatorPipeline(cfg, np.asarray(initial_alpha, float), identification=True,
+                             hub_kernel=kernel)
     put = publisher.publish
     st = {"hub_loads": 0, "publish hub_loads": 0, "rest": 0, "publish rest": 0}
     p0 = time.process_time_ns()
@@ -109,7 +110,8 @@ def replay_round(cfg, frames, initial_alpha, publisher) -> dict:
     us["hub path"] = us["decode: _pass_on"] + us["hub_loads"] + us["publish hub_loads"]
     us["service"] = us["decode"] + sum(v for k, v in us.items() if k in st)
     us["process, estimator + publishing (Zenoh threads included)"] = (p1 - p0) / n / 1e3
-    return {"samples": len(samples), "us": us}
+    return {"samples": len(samples), "us": us, "kernel": pipe.hub_kernel_status,
+            "kernel_samples": 0 if pipe.hub_kernel is None else pipe.hub_kernel.samples}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -134,19 +136,34 @@ def main(argv: list[str] | None = None) -> int:
     try:
         publisher = TelemetryPublisher(session, cfg.telemetry.prefix)
         try:
-            runs = [replay_round(cfg, frames, alpha0, publisher) for _ in range(rounds)]
+            # the compiled hub path and the pure-Python reference, alternately, same run
+            runs, ref_runs = [], []
+            for _ in range(rounds):
+                runs.append(replay_round(cfg, frames, alpha0, publisher, kernel=True))
+                ref_runs.append(replay_round(cfg, frames, alpha0, publisher, kernel=False))
         finally:
             publisher.close()
     finally:
         session.close()
     best = min(runs, key=lambda r: r["us"]["service"])
+    ref = min(ref_runs, key=lambda r: r["us"]["service"])
     us = {k: round(v, 1) for k, v in best["us"].items()}
     details = {"stages_us": us, "samples": best["samples"], "rounds": rounds,
                "all_rounds_service_us": [round(r["us"]["service"], 1) for r in runs],
                "all_rounds_hub_path_us": [round(r["us"]["hub path"], 1) for r in runs],
                "statistic": "best of rounds (by service total)",
                "clock": "time.thread_time_ns (this thread's CPU time)",
-               "scenario": "ground-test, lock-step recording replayed"}
+               "scenario": "ground-test, lock-step recording replayed",
+               "hub_kernel": best["kernel"], "hub_kernel_samples": best["kernel_samples"],
+               "reference_path_stages_us": {k: round(v, 1) for k, v in ref["us"].items()},
+               "reference_all_rounds_service_us": [round(r["us"]["service"], 1)
+                                                   for r in ref_runs],
+               "reference_all_rounds_hub_path_us": [round(r["us"]["hub path"], 1)
+                                                    for r in ref_runs],
+               "kernel_over_reference_hub_path": ratio(best["us"]["hub path"],
+                                                       ref["us"]["hub path"]),
+               "kernel_over_reference_service": ratio(best["us"]["service"],
+                                                      ref["us"]["service"])}
     hub = best["us"]["hub path"]
     w.add("hub_path_cpu", hub, "CPU µs/sample", peer="P5b p50 target (wall time)",
           peer_figure=P5B_P50_TARGET_US, ratio_value=ratio(P5B_P50_TARGET_US, hub),

@@ -76,6 +76,9 @@ COB_MAX_11BIT = 0x7FF
 # the rotor-speed band the load filter is designed for at start-up (flight: +-2 %); every
 # modelled harmonic must stay below Nyquist over it (daq.pipeline prefills it)
 DESIGN_BAND = 0.02
+# a position farther than this from the reference point is a typing mistake (1e308 would
+# overflow the geometry's arithmetic): no rotor transmission is 100 m across
+POSITION_MAX_M = 100.0
 
 
 def predefined_cob_ids(node_id: int) -> dict[int, str]:
@@ -145,7 +148,7 @@ class Section:
         return v
 
     def vector(self, name: str, length: int | None = None, default: Any = _MISSING, *,
-               positive: bool = False, unit: str = "") -> np.ndarray:
+               positive: bool = False, unit: str = "", max_abs: float | None = None) -> np.ndarray:
         v = self.get(name, default)
         if not isinstance(v, list) or not all(
             isinstance(x, (int, float)) and not isinstance(x, bool) for x in v
@@ -162,6 +165,11 @@ class Section:
             if positive and x <= 0:
                 raise ConfigError(f"{self.key(name)}[{i}]", float(x), "must be > 0",
                                   f"give a positive value{unit}", self.source)
+            if max_abs is not None and abs(x) > max_abs:
+                u = unit.replace(" in ", " ").rstrip()
+                raise ConfigError(f"{self.key(name)}[{i}]", float(x),
+                                  f"is more than {max_abs:g}{u} from the reference point",
+                                  f"give the position{unit}, within +-{max_abs:g}", self.source)
         return a
 
     def table(self, name: str, default: Any = _MISSING) -> "Section":
@@ -228,6 +236,9 @@ class RotorConfig:
     redesign_band: float
     cache_resolution: float
     stopped: bool
+    # issue 25: "design" (the harmonic states advance by the design's Ω, the default) or
+    # "azimuth" (by the measured azimuth of the rotor-speed node; gain held ±5 %)
+    harmonic_phase: str = "design"
 
 
 @dataclass(frozen=True)
@@ -596,7 +607,7 @@ def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = No
     rig.finish()
 
     geo = top.table("geometry")
-    hub = geo.vector("hub_centre_m", 3, unit=" in m")
+    hub = geo.vector("hub_centre_m", 3, unit=" in m", max_abs=POSITION_MAX_M)
     tilt = math.radians(geo.number("shaft_tilt_deg", 0.0))
     frame = geo.string("hub_frame", "body", ("body", "shaft"))
     geo.finish()
@@ -619,7 +630,8 @@ def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = No
         if nrm == 0:
             raise c.error("nominal_axis", axis.tolist(), "is zero", "give the cell's direction")
         cells.append(CellConfig(
-            name=name, node=c.string("node"), position_m=c.vector("position_m", 3, unit=" in m"),
+            name=name, node=c.string("node"), position_m=c.vector("position_m", 3, unit=" in m",
+                                                                max_abs=POSITION_MAX_M),
             nominal_axis=axis / nrm,
             full_scale_N=c.number("full_scale_N", positive=True),
             accuracy_fs=c.number("accuracy_fs", positive=True),
@@ -644,7 +656,7 @@ def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = No
     for a in top.tables("accelerometers"):
         accs.append(AccelerometerConfig(
             name=a.string("name"), node=a.string("node"),
-            position_m=a.vector("position_m", 3, unit=" in m"),
+            position_m=a.vector("position_m", 3, unit=" in m", max_abs=POSITION_MAX_M),
             full_scale_g=a.number("full_scale_g", positive=True),
             accuracy_fs=a.number("accuracy_fs", positive=True),
         ))
@@ -662,7 +674,11 @@ def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = No
         redesign_band=rot.number("redesign_band", 0.005, positive=True),
         cache_resolution=rot.number("cache_resolution", 0.001, positive=True),
         stopped=rot.boolean("stopped", False),
+        harmonic_phase=rot.string("harmonic_phase", "design", ("design", "azimuth")),
     )
+    if rotor.harmonic_phase == "azimuth" and not rotor.node:
+        raise rot.error("harmonic_phase", "azimuth", "needs the rotor-speed node's azimuth",
+                        'set rotor.node, or harmonic_phase = "design"')
     rot.finish()
 
     bal = top.table("balance", {})

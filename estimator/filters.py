@@ -46,6 +46,15 @@ PREDICT_ONLY = "predict_only"
 INVALID = "invalid"
 LOST_BEFORE = "lost_before"
 ROTOR_STOPPED = "rotor_stopped"
+AZIMUTH_MISSING = "azimuth_missing"  # azimuth mode: the harmonics advanced by the design's Ω
+
+# Harmonic phase (config ``rotor.harmonic_phase``): "design" — the harmonic states advance by
+# the design's kΩΔt every sample (model §5 as the report had it); "azimuth" — by k times the
+# rotor's measured turn Δψ since the last sample (issue 25), the gain held constant.
+HARMONIC_PHASES = ("design", "azimuth")
+# azimuth mode: the gain is held while Ω stays within this band of the design point
+# (the rotation per sample follows the azimuth; the gain only sets how fast amplitudes move)
+AZIMUTH_GAIN_BAND = 0.05
 
 
 @dataclass(frozen=True, eq=False)
@@ -465,6 +474,92 @@ def map_state(old: FilterDesign, new: FilterDesign, x: np.ndarray) -> np.ndarray
     return xn
 
 
+class HarmonicPairs(NamedTuple):
+    """The (H_k,c, Ḣ_k,c) state pairs of a design: indices, harmonic order k, and k Ω_d."""
+
+    i0: np.ndarray  # (P,) index of H_k,c
+    i1: np.ndarray  # (P,) index of Ḣ_k,c
+    k: np.ndarray  # (P,) harmonic order
+    w: np.ndarray  # (P,) k Ω_d (rad/s)
+
+
+def harmonic_pairs(design: FilterDesign) -> HarmonicPairs:
+    i0 = [i for i, (k, _c, o) in enumerate(design.labels) if k > 0 and o == 0]
+    i1 = [i + 1 for i in i0]
+    assert all(design.labels[j][2] == 1 for j in i1)
+    k = np.array([design.labels[i][0] for i in i0], float)
+    return HarmonicPairs(np.array(i0, int), np.array(i1, int), k, k * design.omega)
+
+
+def azimuth_transition(design: FilterDesign, dpsi) -> np.ndarray:
+    """Φ of one step in which the rotor turned by ``dpsi`` (rad; scalar → (n, n), array (N,)
+    → (N, n, n)): per harmonic k the block [[c, s/w], [−w s, c]], c, s = cos, sin(k Δψ),
+    w = k Ω_d — in (H, Ḣ/(kΩ_d)) the rotation by kΔψ, exactly the design's Φ at
+    Δψ = Ω_d Δt; identity on the random walks (model §5, issue 25)."""
+    d = np.atleast_1d(np.asarray(dpsi, float))
+    hp = harmonic_pairs(design)
+    n = design.n_states
+    Phi = np.broadcast_to(np.eye(n), (len(d), n, n)).copy()
+    a = d[:, None] * hp.k[None, :]
+    c, s = np.cos(a), np.sin(a)
+    Phi[:, hp.i0, hp.i0] = c
+    Phi[:, hp.i1, hp.i1] = c
+    Phi[:, hp.i0, hp.i1] = s / hp.w
+    Phi[:, hp.i1, hp.i0] = -s * hp.w
+    return Phi[0] if np.ndim(dpsi) == 0 else Phi
+
+
+class AzimuthTracker:
+    """The rotor's turn Δψ since the last sample from the measured azimuth (mod 2π).
+
+    ``step(azimuth, omega, steps)``: ``steps`` sample periods since the last call (1 + lost).
+    The turn is unwrapped around the expected ``steps·Ω·Δt`` (Ω the measured speed when given,
+    else ``omega_ref``) and refused (None) when it differs from it by more than ``tolerance``
+    of it — a frozen, jumping or stale azimuth — or when the azimuth or the previous one is
+    missing: the caller then advances by the design's Ω (today's behaviour) and flags it.
+    """
+
+    def __init__(self, omega_ref: float, dt: float, tolerance: float = 0.1) -> None:
+        self.omega_ref, self.dt, self.tolerance = float(omega_ref), float(dt), float(tolerance)
+        self._last: float | None = None
+        self.refused = 0  # implausible turns (counted)
+
+    def reset(self) -> None:
+        self._last = None
+
+    def step(self, azimuth: float | None, omega: float | None = None, steps: int = 1
+             ) -> float | None:
+        last, self._last = self._last, None
+        if azimuth is None or not np.isfinite(azimuth):
+            return None
+        az = float(azimuth)
+        self._last = az
+        if last is None:
+            return None
+        w = omega if omega is not None and np.isfinite(omega) and omega > 0 else self.omega_ref
+        expected = w * self.dt * steps
+        d = expected + float(np.remainder(az - last - expected + np.pi, 2 * np.pi) - np.pi)
+        if not abs(d - expected) <= self.tolerance * expected:
+            self.refused += 1
+            return None
+        return d
+
+    def turns(self, azimuth: np.ndarray, omega: np.ndarray | None = None,
+              seq: np.ndarray | None = None) -> np.ndarray:
+        """Δψ of every sample of a window (NaN where refused or missing; the first is NaN
+        unless the tracker saw the sample before it): the batch form of :meth:`step`."""
+        az = np.asarray(azimuth, float)
+        om = np.full(len(az), np.nan) if omega is None else np.asarray(omega, float)
+        steps = np.ones(len(az), int) if seq is None else np.diff(
+            np.concatenate([[seq[0] - 1], seq])).astype(int)
+        out = np.full(len(az), np.nan)
+        for i in range(len(az)):
+            v = self.step(az[i], om[i], int(max(steps[i], 1)))
+            if v is not None:
+                out[i] = v
+        return out
+
+
 class LoadFilter:
     """The per-sample fixed-gain filter (live service, bit-exact replay).
 
@@ -473,8 +568,11 @@ class LoadFilter:
     """
 
     def __init__(self, cache: DesignCache, alpha: np.ndarray, invalid_after_samples: int,
-                 *, omega: float | None = None) -> None:
+                 *, omega: float | None = None, azimuth: bool = False) -> None:
         self._cache = cache
+        # azimuth mode (issue 25): x⁻ = Φ(Δψ) x⁺(n−1) from the rotor's measured turn, then
+        # the fused product on [x⁻; z; T]; the gain is the design's, held (AZIMUTH_GAIN_BAND)
+        self.azimuth = bool(azimuth)
         self._invalid_after = int(invalid_after_samples)
         self._S = _wrench(cache.model.geometry, alpha)
         self._design = cache.design_for(omega, current=None)
@@ -489,8 +587,15 @@ class LoadFilter:
         # [x⁺(n−1); z; T]: the state lives in the first n entries between steps.
         self._buf = np.zeros(n + N_COMPONENTS + self._S.shape[1])
         self._buf[:n] = x
-        JPhi = d.J @ d.Phi
-        A = d.Phi - d.K @ JPhi
+        if self.azimuth:  # G acts on [x⁻; z; T]: Φ(Δψ) is applied before it
+            JPhi = d.J
+            A = np.eye(n) - d.K @ d.J
+            hp = harmonic_pairs(d)
+            self._pairs = hp
+            self._kset, self._kidx = np.unique(hp.k, return_inverse=True)
+        else:
+            JPhi = d.J @ d.Phi
+            A = d.Phi - d.K @ JPhi
         Linv = np.linalg.inv(cholesky(d.B, lower=True))
         S = self._S
         I6 = np.eye(N_COMPONENTS)
@@ -557,6 +662,10 @@ class LoadFilter:
         self._build(x)
 
     def set_omega(self, omega: float | None) -> None:
+        if (self.azimuth and omega is not None and not self._design.rotor_stopped
+                and not self._cache.is_stopped(omega)
+                and abs(omega / self._design.omega - 1.0) <= AZIMUTH_GAIN_BAND):
+            return  # the azimuth turns the harmonics: the gain is held
         new = self._cache.design_for(omega, current=self._design)
         if new is self._design:
             return
@@ -564,11 +673,31 @@ class LoadFilter:
         self._design = new
         self._build(x)
 
-    def step(self, T: np.ndarray, z: np.ndarray, measured: bool = True, lost: int = 0) -> StepResult:
+    def _advance(self, dpsi: float | None, steps: int) -> bool:
+        """Azimuth mode: x⁻ = Φ(Δψ) x⁺ in place (``dpsi`` the turn over ``steps`` sample
+        periods), or Φ_d^steps when it is None (returns False: flag ``azimuth_missing``)."""
+        buf, n = self._buf, self._n
+        if dpsi is None or self._design.rotor_stopped:
+            buf[:n] = self._phi_power(steps).dot(buf[:n]) if steps > 1 else self._Phi.dot(buf[:n])
+            return dpsi is not None or self._design.rotor_stopped
+        hp = self._pairs
+        a = self._kset * dpsi
+        c, s = np.cos(a)[self._kidx], np.sin(a)[self._kidx]
+        h, hd = buf[hp.i0], buf[hp.i1]
+        buf[hp.i0] = c * h + (s / hp.w) * hd
+        buf[hp.i1] = c * hd - (s * hp.w) * h
+        return True
+
+    def step(self, T: np.ndarray, z: np.ndarray, measured: bool = True, lost: int = 0,
+             dpsi: float | None = None) -> StepResult:
         """One sample. ``lost``: samples lost just before this one (predicted through with
         Φ^lost); ``measured`` False: a predict-only step (a required channel missing,
         over-range or faulted). Ĥ is None after ``invalid_after_samples`` such samples.
+        ``dpsi`` (azimuth mode): the rotor's turn since the last sample, over the lost ones
+        too (``AzimuthTracker``); None: the design's Ω, flagged ``azimuth_missing``.
         The arrays returned are fresh each step (not the filter's own state)."""
+        if self.azimuth:
+            return self._step_azimuth(T, z, measured, lost, dpsi)
         buf, n = self._buf, self._n
         if lost:
             buf[:n] = self._phi_power(lost).dot(buf[:n])
@@ -590,6 +719,30 @@ class LoadFilter:
                               self._flags_inv_lost if lost else self._flags_inv)
         return StepResult(self._C.dot(x), x, None, None,
                           self._flags_pred_lost if lost else self._flags_pred)
+
+
+    def _step_azimuth(self, T, z, measured: bool, lost: int, dpsi: float | None) -> StepResult:
+        buf, n = self._buf, self._n
+        ok = self._advance(dpsi, lost + 1)
+        extra = () if ok else (AZIMUTH_MISSING,)
+        if lost:
+            self._run += lost
+        if measured:
+            buf[n:n + 6] = z
+            buf[n + 6:] = T
+            y = self._G.dot(buf)
+            buf[:n] = y[:n]
+            self._run = 0
+            w = y[n + 12:]
+            return StepResult(y[n:n + 6], y[:n], y[n + 6:n + 12], w.dot(w),
+                              (self._flags_lost if lost else self._flags) + extra)
+        x = buf[:n].copy()
+        self._run += 1
+        if self._run >= self._invalid_after:
+            return StepResult(None, x, None, None,
+                              (self._flags_inv_lost if lost else self._flags_inv) + extra)
+        return StepResult(self._C.dot(x), x, None, None,
+                          (self._flags_pred_lost if lost else self._flags_pred) + extra)
 
 
 class BatchResult:

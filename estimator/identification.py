@@ -446,6 +446,7 @@ class FilterErrorProblem:
         state: FilterErrorState | None = None,
         discontinuity: bool | None = None,
         method: str = "loop",
+        Phi_n: np.ndarray | None = None,
     ) -> None:
         if par.known_loads:
             raise ValueError("filter-error mode has no known loads: build the parameterisation "
@@ -469,6 +470,13 @@ class FilterErrorProblem:
         self._Acl = (np.eye(ns) - self.K @ self.J) @ self.Phi
         self._JPhi = self.J @ self.Phi
         self.method = method
+        # azimuth mode (issue 25): Φ of every sample (N, ns, ns), from the rotor's measured
+        # turn (``filters.azimuth_transition``); the time-varying recursion runs as the loop
+        self.Phi_n = None if Phi_n is None else np.asarray(Phi_n, float)
+        if self.Phi_n is not None:
+            if self.Phi_n.shape != (N, ns, ns):
+                raise ValueError(f"Phi_n must have shape ({N}, {ns}, {ns}), got {self.Phi_n.shape}")
+            self.method = "loop"
         lam, V = np.linalg.eig(self._Acl)
         self._modal = bool(np.linalg.cond(V) < 1e8)  # a defective closed loop: use the loop
         if not self._modal:
@@ -522,7 +530,17 @@ class FilterErrorProblem:
         for s, e in self._segments:
             L = int(e - s)
             if not self.valid[s]:
+                if self.Phi_n is not None:
+                    for n in range(s, e):
+                        X = self.Phi_n[n] @ X
+                    continue
                 X = np.linalg.matrix_power(self.Phi, L) @ X  # predict through
+                continue
+            if self.Phi_n is not None:
+                for n in range(s, e):
+                    Xm = self.Phi_n[n] @ X
+                    E[n] = Y[n] - self.J @ Xm
+                    X = Xm + self.K @ E[n]
                 continue
             if self.method == "loop":  # the per-sample reference, literally Eq 2.22–2.24
                 for n in range(s, e):

@@ -127,6 +127,10 @@ class AnglesRecord:
     structure_verdict: StructureVerdict | None = None
     # the selected structure the hub-load estimate uses (structure.fit_payload), None: none
     structure_fit: dict | None = None
+    # the run's cost J at its start (the prior mean) and after each iteration (how a run
+    # that did not converge was going: the shell's explanation of a rejection)
+    cost_start: float | None = None
+    cost_history: tuple[float, ...] | None = None
 
     def to_dict(self) -> dict:
         """The telemetry ``angles`` payload (SI: radians), values as computed (numpy arrays,
@@ -549,6 +553,8 @@ class SequentialPosterior:
             / checks.innovation.mean,
             innovation_limit=None if checks is None else checks.innovation.limit
             / checks.innovation.mean,
+            cost_start=None if result is None else float(result.cost_start),
+            cost_history=None if result is None else tuple(float(c) for c in result.history),
         )
 
     def update(
@@ -854,7 +860,11 @@ class PeriodicIdentification:
         valid: np.ndarray | None = None,
         t: float | None = None,
         arrived_seq: int | None = None,
+        dpsi: np.ndarray | None = None,
     ) -> AnglesRecord:
+        """One window. ``dpsi`` (filter error, azimuth mode): the rotor's measured turn since
+        the previous sample, per sample (NaN: the design's Ω) — the calibration filter's
+        harmonic states turn with it (``filters.azimuth_transition``, issue 25)."""
         N = len(T)
         valid = np.ones(N, bool) if valid is None else np.asarray(valid, bool)
         seq1 = seq0 + N - 1
@@ -886,9 +896,16 @@ class PeriodicIdentification:
                 prob = prob.with_moments(post.G_held, post.n_held)
             moments = (prob.G, prob.n_scored)
         else:
+            Phi_n = None
+            if dpsi is not None:
+                from .filters import azimuth_transition
+
+                d = self.design
+                dp = np.asarray(dpsi, float)
+                Phi_n = azimuth_transition(d, np.where(np.isfinite(dp), dp, d.omega * d.dt))
             prob = FilterErrorProblem(
                 self.par, self.design.Phi, self.design.K, self.design.J, self.design.Qd, z, T, q,
-                valid=valid, state=self.filter_state, discontinuity=False)
+                valid=valid, state=self.filter_state, discontinuity=False, Phi_n=Phi_n)
             prob.scored &= scored
             prob.n_scored = int(prob.scored.sum())
         self._settle_pending = max(self._settle_pending - N, 0)

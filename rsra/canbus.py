@@ -93,6 +93,133 @@ class EchoFirstVirtualBus(VirtualBus):
             raise can.CanOperationError("Could not send message to one or more recipients")
 
 
+    # -- batches (one wake-up per sample: docs/performance.md "One wake-up per sample") -------
+    def recv_pending(self, limit: int) -> list[can.Message]:
+        """Every frame already queued for this bus (at most ``limit``), in order, taken under
+        the queue's lock once instead of one ``recv(0)`` each; ``[]`` when none. A bus with
+        software filters gets them applied per frame, as ``recv`` does."""
+        self._check_if_open()
+        q = self.queue
+        with q.mutex:
+            items = q.queue
+            n = min(len(items), limit)
+            if not n:
+                return []
+            out = [items.popleft() for _ in range(n)]
+            q.not_full.notify(n)
+        if self._filters is None:
+            return out
+        return [m for m in out if self._matches_filters(m)]
+
+    def send_many(self, msgs: list[can.Message]) -> None:
+        """Send ``msgs`` in order as :meth:`send` would, each receiver getting all of them in
+        one put (one wake-up of a waiting reader instead of one per frame). A bounded
+        receiver queue (``rx_queue_size``) falls back to :meth:`send` frame by frame."""
+        self._check_if_open()
+        preserve = self.preserve_timestamps
+        now = time.time()
+        own = [self.queue] if self.receive_own_messages else []
+        queues = own + [q for q in self.channel if q is not self.queue]
+        if any(q.maxsize > 0 for q in queues):
+            for m in msgs:
+                self.send(m)
+            return
+        for bus_queue in queues:
+            is_rx = bus_queue is not self.queue
+            copies = []
+            for msg in msgs:
+                copy = deepcopy(msg)
+                copy.timestamp = msg.timestamp if preserve else now
+                copy.channel = self.channel_id
+                copy.is_rx = is_rx
+                copies.append(copy)
+            with bus_queue.mutex:
+                bus_queue.queue.extend(copies)
+                bus_queue.unfinished_tasks += len(copies)
+                bus_queue.not_empty.notify()
+
+
+def recv_batch(bus: can.BusABC, limit: int) -> list[can.Message]:
+    """The frames ``bus`` has already received (at most ``limit``; ``[]``: none), without
+    waiting: the interface's own batch read where it has one (:class:`EchoFirstVirtualBus`),
+    else python-can's ``recv`` with a zero timeout until it returns nothing."""
+    # (looked up on the class: a wrapper that forwards attributes, such as the lock-step
+    # HandoffBus, must not have its own recv/send bypassed)
+    if getattr(type(bus), "recv_pending", None) is not None:
+        return bus.recv_pending(limit)
+    out = []
+    recv = bus.recv
+    while len(out) < limit and (m := recv(0.0)) is not None:
+        out.append(m)
+    return out
+
+
+def send_batch(bus: can.BusABC, msgs: list[can.Message]) -> None:
+    """Send ``msgs`` in order: in one call where the interface allows
+    (:meth:`EchoFirstVirtualBus.send_many`), else one ``send`` each."""
+    if getattr(type(bus), "send_many", None) is not None:
+        bus.send_many(msgs)
+        return
+    for m in msgs:
+        bus.send(m)
+
+
+BATCH_MAX = 1024  # frames taken per batch read (a burst is taken in several, in order)
+
+
+class BatchNotifier(can.Notifier):
+    """python-can's Notifier, reading in batches: when its thread wakes for a frame it also
+    takes every frame the bus has received meanwhile (:func:`recv_batch`) and hands them all
+    to the listeners, in order, before it waits again — one wake-up per burst (a sample's
+    SYNC answer) instead of one per frame. Listeners, errors, ``stop`` and the registry are
+    python-can's; only the receive loop differs. ``wakeups`` counts the waits that returned
+    a frame, ``frames`` the frames handed on."""
+
+    def __init__(self, bus: can.BusABC, listeners: Any, timeout: float = 1.0) -> None:
+        self.wakeups = 0
+        self.frames = 0
+        super().__init__(bus, listeners, timeout)
+
+    def _rx_thread(self, bus: can.BusABC) -> None:
+        if self._loop is not None:  # (an asyncio loop: python-can's own loop)
+            super()._rx_thread(bus)
+            return
+        listeners = self.listeners  # (python-can changes this list in place)
+        lock = self._lock
+        timeout = self.timeout
+        while not self._stopped:
+            try:
+                msg = bus.recv(timeout)
+            except Exception as exc:  # a read failed
+                self._failed(exc)
+                continue
+            if msg is None:
+                continue
+            self.wakeups += 1
+            with lock:
+                batch = [msg]
+                while batch:
+                    for m in batch:
+                        try:
+                            for cb in listeners:
+                                cb(m)
+                        except Exception as exc:  # the rest of the batch still goes on
+                            self._failed(exc)
+                    self.frames += len(batch)
+                    try:
+                        batch = recv_batch(bus, BATCH_MAX)  # what came meanwhile
+                    except Exception as exc:
+                        self._failed(exc)
+                        batch = []
+
+    def _failed(self, exc: Exception) -> None:
+        """As python-can's loop: kept in ``exception``; raised unless a listener handled it."""
+        self.exception = exc
+        if not self._on_error(exc):
+            raise exc
+        log.debug("suppressed exception: %s", exc)
+
+
 _IFNAME = re.compile(r"^[A-Za-z0-9_.-]{1,15}$")  # a Linux interface name (IFNAMSIZ 16)
 
 

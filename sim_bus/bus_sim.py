@@ -70,7 +70,7 @@ import numpy as np
 from canopen.objectdictionary import datatypes as od_types
 
 from rsra.config.rig import RigConfig
-from rsra.canbus import recording_channel, shutdown_bus
+from rsra.canbus import recording_channel, send_batch, shutdown_bus
 from rsra.sim_bus.faults import (
     EMCY_OVER_RANGE,
     EMCY_SENSOR_FAULT,
@@ -720,6 +720,21 @@ class Simulator:
         msg.timestamp = self.clock.stamp(None, self._frame_time(len(msg.data)))
         self._emit(msg)
 
+    def _send_built_many(self, msgs: list[_TxMessage]) -> None:
+        """Send messages built ahead, in order, each stamped as :meth:`_send_built` does, in
+        one call where the bus allows (rsra.canbus.send_batch: a receiver waiting on the
+        in-process virtual bus wakes once for all of them)."""
+        stamp, frame_time = self.clock.stamp, self._frame_time
+        for msg in msgs:
+            msg.timestamp = stamp(None, frame_time(len(msg.data)))
+        send_batch(self.bus, msgs)
+        self.frames_sent += len(msgs)
+        if self._logger is not None:
+            for msg in msgs:
+                self._logger.on_message_received(msg)
+        if self._capture is not None:
+            self._capture.extend(msgs)
+
     def _emit(self, msg: _TxMessage) -> None:
         self.bus.send(msg)
         self.frames_sent += 1
@@ -1105,11 +1120,14 @@ class Simulator:
         self.sync_info.append((k, -1 if counter is None else counter, t, False))
         for node, carried in plan.carried:
             node.carry(carried)
+        sends = []
         for a in plan.actions:
             if a[0] == "send":
-                self._send_built(a[1])
+                sends.append(a[1])
             else:
                 fi.record(*a[1], **a[2])
+        if sends:  # the whole answer in one send where the bus allows (one wake-up)
+            self._send_built_many(sends)
         self.prepared += 1
         if fi:
             fi.end_sample(st)
@@ -1192,8 +1210,10 @@ class Simulator:
         arrs["sync_lost"] = sync["sync_lost"][:n]
         return arrs
 
-    def write_truth(self, path: str | Path, meta: dict | None = None) -> Path:
-        """Write the truth file (sim_bus.truth format) with the injected faults."""
+    def write_truth(self, path: str | Path, meta: dict | None = None,
+                    write: Callable[[Path, bytes], None] | None = None) -> Path:
+        """Write the truth file (sim_bus.truth format) with the injected faults; ``write``
+        as in :func:`sim_bus.truth.write_truth` (an atomic write)."""
         from rsra.sim_bus.offline import run_meta
         from rsra.sim_bus.truth import write_truth
 
@@ -1207,7 +1227,7 @@ class Simulator:
                     autostart=self.autostart, **(meta or {}))
         arrs = self.truth_arrays()
         return write_truth(path, arrs, faults=self.fault_log, meta=full,
-                           sync_counter=arrs["sync_counter"])
+                           sync_counter=arrs["sync_counter"], write=write)
 
 
 class RecordError(OSError):

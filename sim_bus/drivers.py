@@ -53,7 +53,7 @@ from typing import Any, Protocol
 
 import can
 
-from rsra.canbus import EndOnBusFailure, bus_failure
+from rsra.canbus import BatchNotifier, EndOnBusFailure, bus_failure
 from rsra.sim_bus.bus_sim import SimulatedTime, Simulator, WallClock
 
 log = logging.getLogger(__name__)
@@ -260,7 +260,7 @@ class _Served(_Driven):
             if not self._started:
                 self._started = True
                 # a bus that fails ends the thread quietly; check() raises the failure
-                sim.network.notifier = can.Notifier(
+                sim.network.notifier = BatchNotifier(
                     sim.bus, [*sim.network.listeners, EndOnBusFailure()], 0.1)
                 sim.start()
         return self

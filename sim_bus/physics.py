@@ -42,7 +42,7 @@ from scipy.spatial.transform import Rotation
 
 from rsra.config.rig import G0, RigConfig
 
-from .scenarios import Scenario, load_scenario
+from .scenarios import Scenario, check_against_rig, load_scenario
 
 BLOCK_SIZE = 1000  # samples per computed block (fixed: it makes streaming == off-line exact)
 LFILTER_MIN_RUN = 256  # runs of constant angles this long use lfilter, shorter ones a scan
@@ -388,6 +388,7 @@ class AircraftPhysics:
         blades = cfg.rotor.blades
         self.blades = blades
         self.omega0 = cfg.rotor.omega_nominal_rad_s
+        check_against_rig(scenario, cfg.sample_rate_hz, self.omega0, blades)
         frame_rot = hub_matrix(np.zeros(3), cfg.shaft_tilt_rad, scenario.loads.frame)
         self.load_frame = frame_rot  # scenario axes -> body axes (block-diagonal)
 
@@ -552,14 +553,21 @@ class AircraftPhysics:
             f = self.shaker_freq.value(t % sc.duration_s)[:, 0]
             turns = self.shaker_freq.integral(t)[:, 0] / self.blades
             return 2 * np.pi * f / self.blades, turns
-        v = sc.rotor.omega_variation
-        if v == 0.0:
+        v, g = sc.rotor.omega_variation, sc.rotor.governor_amplitude
+        if v == 0.0 and g == 0.0:
             return np.full(t.shape, self.omega0), self.omega0 / (2 * np.pi) * t
-        w, p, c = self.omega_slow
-        arg = t[:, None] * w + p
-        eps = v * (np.sin(arg) @ c)
-        # exact integral of Omega0 (1 + eps): azimuth is continuous whatever the variation
-        integ = v * ((np.cos(p) - np.cos(arg)) / w) @ c
+        eps = np.zeros(t.shape)
+        integ = np.zeros(t.shape)
+        if v != 0.0:
+            w, p, c = self.omega_slow
+            arg = t[:, None] * w + p
+            eps = v * (np.sin(arg) @ c)
+            # exact integral of Omega0 (1 + eps): azimuth is continuous whatever the variation
+            integ = v * ((np.cos(p) - np.cos(arg)) / w) @ c
+        if g != 0.0:  # the governor's oscillation: g sin(wg t), its integral exact too
+            wg = 2 * np.pi * sc.rotor.governor_hz
+            eps = eps + g * np.sin(wg * t)
+            integ = integ + g * (1.0 - np.cos(wg * t)) / wg
         return self.omega0 * (1 + eps), self.omega0 / (2 * np.pi) * (t + integ)
 
     def _rotor_substeps(self, t_samp: np.ndarray, ts: np.ndarray, n: int):
@@ -567,7 +575,8 @@ class AircraftPhysics:
         variation is evaluated at the sample instants and its azimuth correction interpolated
         linearly in between (exact at every sample instant)."""
         sc = self.scenario
-        if sc.rotor.follow_shaker or sc.rotor.omega_variation == 0.0:
+        if sc.rotor.follow_shaker or (sc.rotor.omega_variation == 0.0
+                                      and sc.rotor.governor_amplitude == 0.0):
             omega, turns = self._rotor(ts)
             return omega[::n], turns
         omega, turns_s = self._rotor(t_samp)

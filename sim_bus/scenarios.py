@@ -106,6 +106,10 @@ class RotorMotion:
     omega_variation: float  # fraction: Omega = Omega_nominal (1 + v m(t)), |m| <= 1
     omega_period_s: float
     follow_shaker: bool  # Omega = 2 pi f_shaker / N_b (the shaker is the N_b/rev harmonic)
+    # a governor-like oscillation on top (issue 25): + amplitude sin(2 pi f t), fraction of
+    # Omega_nominal; 0 = none
+    governor_amplitude: float = 0.0
+    governor_hz: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -389,7 +393,13 @@ def parse_scenario(raw: dict, source: str = "<scenario>", variants: dict | None 
         omega_variation=ro.number("omega_variation", 0.0, nonneg=True),
         omega_period_s=ro.number("omega_period_s", 30.0, positive=True),
         follow_shaker=ro.boolean("follow_shaker", False),
+        governor_amplitude=ro.number("governor_amplitude", 0.0, nonneg=True),
+        governor_hz=ro.number("governor_hz", 1.0, positive=True),
     )
+    if rotor.omega_variation + rotor.governor_amplitude >= 0.5:
+        raise ro.error("governor_amplitude", rotor.governor_amplitude,
+                       "omega_variation + governor_amplitude must be < 0.5 (fractions)",
+                       "e.g. governor_amplitude = 0.003")
     if rotor.omega_variation >= 0.5:
         raise ro.error("omega_variation", rotor.omega_variation, "must be < 0.5 (a fraction)",
                        "e.g. omega_variation = 0.02 for +-2 %")
@@ -487,3 +497,32 @@ def parse_scenario(raw: dict, source: str = "<scenario>", variants: dict | None 
                     base_vibration=base_vibration, unmodelled=unmodelled, drive=drive,
                     rig_overrides=overrides, variants=dict(variants or {}),
                     turbulence=turbulence, rig_errors=rig_errors)
+
+
+def check_against_rig(sc: Scenario, sample_rate_hz: float, omega_nominal_rad_s: float,
+                      blades: int) -> None:
+    """Content the rig's sample rate cannot represent, refused when the scenario meets the rig
+    (a simulated harmonic or shaker frequency at or above Nyquist would alias silently): a
+    :class:`ConfigError` naming the scenario's line and the fix."""
+    nyquist = sample_rate_hz / 2
+    omega_max = omega_nominal_rad_s * (1 + sc.rotor.omega_variation)
+    for i, h in enumerate(sc.harmonics):
+        order = h.resolve_order(blades)
+        f = order * omega_max / (2 * math.pi)
+        if f >= nyquist:
+            raise ConfigError(
+                f"harmonics[{i}].order", h.order,
+                f"harmonic {order}/rev reaches {f:.3g} Hz at the scenario's highest rotor speed, "
+                f"at or above the Nyquist frequency {nyquist:g} Hz of rig.sample_rate_hz = "
+                f"{sample_rate_hz:g} (it would alias)",
+                f"remove that harmonic or raise rig.sample_rate_hz above {2 * f:.3g}",
+                source=sc.source)
+    if sc.shaker is not None:
+        f = max(sc.shaker.f_start_hz, sc.shaker.f_stop_hz)
+        if f >= nyquist:
+            key = "f_stop_hz" if sc.shaker.f_stop_hz >= sc.shaker.f_start_hz else "f_start_hz"
+            raise ConfigError(
+                f"shaker.{key}", f, f"at or above the Nyquist frequency {nyquist:g} Hz of "
+                f"rig.sample_rate_hz = {sample_rate_hz:g} (it would alias)",
+                f"sweep below {nyquist:g} Hz or raise rig.sample_rate_hz above {2 * f:g}",
+                source=sc.source)

@@ -14,8 +14,9 @@ Nothing is pickled: `read_truth` loads with allow_pickle=False.
 """
 from __future__ import annotations
 
+import io
 import json
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -56,8 +57,11 @@ def _jsonable(x: Any) -> Any:
 
 def write_truth(path: str | Path, run_or_arrays: SimRun | Mapping[str, np.ndarray],
                 faults: Iterable[Mapping[str, Any]] = (), meta: Mapping[str, Any] | None = None,
-                sync_counter: np.ndarray | None = None, counter_overflow: int = 240) -> Path:
-    """Write a truth file; returns its path (".npz" appended if missing)."""
+                sync_counter: np.ndarray | None = None, counter_overflow: int = 240,
+                write: Callable[[Path, bytes], None] | None = None) -> Path:
+    """Write a truth file; returns its path (".npz" appended if missing). ``write(path,
+    data)`` writes the file's bytes (the command line passes its atomic write: temporary
+    file, fsync, rename); by default the file is written in place."""
     if isinstance(run_or_arrays, SimRun):
         arrays = run_or_arrays.arrays()
         meta = {**run_or_arrays.meta, **(meta or {})}
@@ -86,8 +90,13 @@ def write_truth(path: str | Path, run_or_arrays: SimRun | Mapping[str, np.ndarra
     path = Path(path)
     if path.suffix != ".npz":
         path = path.with_name(path.name + ".npz")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(path, **out)
+    if write is None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(path, **out)
+        return path
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **out)
+    write(path, buf.getvalue())
     return path
 
 

@@ -272,7 +272,7 @@ def test_the_health_record_is_frozen_typed_and_serialised_in_the_payloads_order(
     assert list(d) == ["t", "nodes", "bus", "samples", "queues", "recording", "sync"]
     assert "last_callback_error" not in d["bus"] and "master_events" not in d["queues"]
     assert list(d["sync"]) == ["duplicate", "bad_timestamp", "late_received", "rate_hz",
-                              "rate_low"]
+                              "rate_low", "discontinuities", "gaps", "gap_longest_s"]
     assert d["recording"] == {"active": False}
     assert list(d["nodes"]["cell_A"]) == ["state", "heartbeat_age", "emcy", "required", "boots",
                                           "losses", "emcy_count"]

@@ -111,6 +111,11 @@ def harmonic_200(tmp, rec):
     return _sim_run(_rig(tmp, "harmonics = [1, 5]", "harmonics = [1, 5, 200]"))
 
 
+def position_1e308(tmp, rec):  # issue 27: leaked a raw numpy overflow warning before
+    return _sim_run(_rig(tmp, "position_m = [0.738, -0.945, 0.354]",
+                         "position_m = [1e308, -0.945, 0.354]"))
+
+
 def rate_7(tmp, rec):
     return _sim_run(_rig(tmp, "sample_rate_hz = 200.0", "sample_rate_hz = 7.0"))
 
@@ -142,6 +147,14 @@ def nan_loads(tmp, rec):
     (tmp / "nan.toml").write_text(GROUND.replace(old, old.replace("0.0],", "nan],"), 1))
     return ["run", "--sim", str(tmp / "nan.toml"), "--speed", "max", "--duration", "1",
             "--zenoh-listen", f"tcp/127.0.0.1:{free_tcp_port()}"]
+
+
+def scenario_above_nyquist(tmp, rec):  # issue 27: aliased silently before
+    old = 'order = "blades"'
+    assert old in GROUND
+    (tmp / "alias.toml").write_text(GROUND.replace(old, "order = 40", 1))
+    return ["run", "--sim", str(tmp / "alias.toml"), "--speed", "max", "--duration", "1",
+            "--record", str(tmp / "R"), "--zenoh-listen", f"tcp/127.0.0.1:{free_tcp_port()}"]
 
 
 def config_folder(tmp, rec):
@@ -197,6 +210,8 @@ CASES = {
         harmonic_200, 2, ["filter.harmonics", "harmonic 200", "Nyquist", "sample_rate_hz"]),
     "sample_rate_hz = 7.0": (rate_7, 2, ["filter.harmonics", "harmonic 5",
                                          "Nyquist frequency 3.5 Hz"]),
+    "cell position 1e308": (position_1e308, 2, ["cells[0].position_m[0] = 1e+308",
+                                                "more than 100 m", "fix:"]),
     "gain = 0.0": (zero_gain, 2, ["calibration.cell_A.force.gain", "fix:"]),
     "window_s = 0.001": (tiny_window, 2, ["identification.window_s", "one sample"]),
     "sync cob_id on a TPDO": (sync_on_a_tpdo, 2, ["sync.cob_id", "TPDO1", "cell_A"]),
@@ -204,6 +219,8 @@ CASES = {
                                                            "accel_1"]),
     "demo --faults drop:cell_Q": (demo_bad_fault, 2, ["cell_Q", "did you mean 'cell_G'"]),
     "scenario with NaN loads": (nan_loads, 2, ["loads.conditions[0][5]", "finite"]),
+    "scenario harmonic above Nyquist": (scenario_above_nyquist, 2, [
+        "alias.toml: harmonics[1].order = 40", "Nyquist frequency 100 Hz", "fix:"]),
     "--config naming a folder": (config_folder, 2, ["--config", "Is a directory", "fix:"]),
     "--log-file in a missing folder": (log_file_nowhere, 2, ["--log-file", "fix:"]),
     "sweep of a junk file": (sweep_junk, 2, ["junk.blf", "BLFParseError"]),
@@ -292,8 +309,9 @@ def test_replay_out_on_a_full_disk_is_one_line_exit_1(recording, capsys):
 
 
 def test_a_replay_that_publishes_nothing_still_writes_its_empty_out(tmp_path, capsys):
-    (tmp_path / "empty.log").write_text("")
-    assert main(["replay", str(tmp_path / "empty.log"), "--out", str(tmp_path / "o.jsonl")]) == 0
+    # frames, but no SYNC: no sample (an empty recording is refused: test_no_overwrite.py)
+    (tmp_path / "hb.log").write_text("(1700000000.000000) can0 701#05\n")
+    assert main(["replay", str(tmp_path / "hb.log"), "--out", str(tmp_path / "o.jsonl")]) == 0
     assert (tmp_path / "o.jsonl").read_text() == ""
 
 

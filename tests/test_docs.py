@@ -599,3 +599,30 @@ def test_the_citation_check_fails_on_a_section_that_does_not_resolve():
                ("no section 9", "no section 7.9", "Nodez", "not written there", "names no doc",
                 "No such part"))
     assert any("nowhere.md is not in docs/" in p for p in problems)
+
+
+def test_readme_demo_picture_has_the_columns_and_phases_the_demo_prints(cfg):
+    """The README's demo picture is the view the code draws today (issue 28): the hub-load
+    table's columns and the summary's phase lines, not an older view's."""
+    import io
+
+    from rich.console import Console
+
+    from rsra.daq.cli.demo_view import DemoState, render
+    from rsra.estimator.noise_budget import noise_budget
+
+    model = cfg.rig_model()
+    state = DemoState(cfg, noise_budget(model, cfg.identification.initial_angles_rad).total,
+                      model.geometry.angle_names)
+    con = Console(file=io.StringIO(), width=128)
+    con.print(render(state, "ground-test", "si"))
+    drawn = con.file.getvalue()
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    picture = readme[readme.index("```\n╭"):readme.index("(Above: `rsra demo")]
+    header = next(x for x in drawn.splitlines() if "┃ axis" in x)
+    cols = [c.strip() for c in header.split("┃")[1:-1] if c.strip()][:7]
+    assert cols == ["axis", "truth", "Ĥ", "static", "σ Ĥ", "err/σ", ">3σ"], cols
+    for c in cols:
+        assert c in picture
+    for phase in ("H start", "H steady", "H_static steady", "steady: calibrated steady state"):
+        assert phase in picture, phase

@@ -461,6 +461,6 @@ def test_bad_input_is_refused_in_one_line_and_leaves_no_file(results, tmp_path, 
     assert "nothing to write" in _one_line_exit_2(capsys, ["export", str(results)])
     assert "need the telemetry" in _one_line_exit_2(capsys, ["export", "--mcap",
                                                              str(out / "m.mcap")])
-    assert "cannot write" in _one_line_exit_2(
+    assert "no folder" in _one_line_exit_2(
         capsys, ["export", "--dbc", str(tmp_path / "no" / "such" / "dir.dbc")])
     assert sorted(os.listdir(out)) == before

@@ -517,6 +517,16 @@ def test_a_bad_window_never_replaces_the_angles(cfg, window_job, corrupt, reason
     np.testing.assert_array_equal(post.theta, theta0)
     np.testing.assert_array_equal(post.P, P0)
     assert json.loads(dumps(rec))["reason"] == rec["reason"]  # strict JSON, publishable
+    # every rejection says why in figures and what to do, one line each (issue 28)
+    for key in ("explanation", "hint"):
+        assert isinstance(rec[key], str) and rec[key] and "\n" not in rec[key], rec
+    if rec["reason"] == "stale_input":
+        assert "allowed 5.0 %" in rec["explanation"]
+        what = "the balance absent in 10" if bad["known"][550] == 0 else \
+            "a non-finite reading (no flag) in 10.0 %"
+        assert what in rec["explanation"], rec["explanation"]
+    if rec["reason"] in ("not_converged", "diverged"):
+        assert f"{rec['iterations']}" in rec["explanation"] and "cost" in rec["explanation"]
     # delivered to the estimator: published at its sample, angles in force unchanged
     from rsra.daq.runtime.pipeline import PipelineOutput
 
@@ -532,15 +542,25 @@ def test_a_bad_window_never_replaces_the_angles(cfg, window_job, corrupt, reason
     np.testing.assert_array_equal(pipe.alpha, alpha)
 
 
-def test_stale_input_through_the_service(cfg):
+def test_stale_input_through_the_service(cfg, caplog):
     """accel_1 silent for 20 % of the first window: the run is refused as stale_input, the
     record is published at its sample, and the angles in force stay the configured ones."""
+    import logging
+
+    caplog.set_level(logging.INFO, logger="rsra")
     svc = Service(cfg, ServiceOptions(sim="ground-test", seed=SEED, speed=None, duration=6.5,
                                       zenoh=False, faults="silent:accel_1@1-2"))
     angles = []
     svc.add_sink(lambda k, p: angles.append(json.loads(dumps(p))) if k == "angles" else None)
     summary = svc.run()
     assert [a["reason"] for a in angles] == ["stale_input"] and not angles[0]["accepted"]
+    # it names the input and the fraction of the window it was missing in (issue 28)
+    n = angles[0]["window"][1] - angles[0]["window"][0] + 1
+    assert f"accel_1 missing in {100 * 200 / n:.1f} %" in angles[0]["explanation"], angles[0]
+    assert "accel_1 silent" in angles[0]["hint"]
+    logged = [r.getMessage() for r in caplog.records if "identification rejected" in
+              r.getMessage()]  # the log says the same, with the hint
+    assert logged and angles[0]["explanation"] in logged[0] and "hint: accel_1" in logged[0]
     assert angles[0]["applies_from_seq"] == angles[0]["window"][1] + round(
         cfg.identification.apply_delay_s * cfg.sample_rate_hz)
     np.testing.assert_array_equal(summary["alpha_applied"], cfg.identification.initial_angles_rad)

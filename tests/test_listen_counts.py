@@ -50,6 +50,24 @@ def test_the_table_shows_a_dash_where_nothing_is_counted():
     assert " 1 " in row
 
 
+def test_a_rejected_run_shows_why_and_the_hint():
+    """`rsra listen` under the angles table: the record's explanation and hint (issue 28)."""
+    from rich.console import Console
+
+    st = KeyStats("angles")
+    st.add({"seq": 999, "mode": "known_loads", "content": "static", "accepted": False,
+            "reason": "stale_input", "detail": "missing_samples",
+            "explanation": "20.0 % of the window's 1000 samples unusable (allowed 5.0 %): "
+                           "accel_1 missing in 20.0 %",
+            "hint": "accel_1 silent or dropping frames: check its power", "names": ["a"],
+            "alpha": [0.0], "sigma_cr": [None], "determined": 0}, 0.0)
+    con = Console(width=200, record=True)
+    con.print(render({"angles": st}, "rsra/bench", "si", 1.0))
+    text = con.export_text()
+    assert "why: 20.0 % of the window's 1000 samples unusable" in text
+    assert "hint: accel_1 silent or dropping frames" in text
+
+
 def test_the_health_line_rounds_its_floats():
     """Issue 29: `latency p50 0.8273124694824219 ms`."""
     import re

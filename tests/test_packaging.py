@@ -14,7 +14,8 @@ ROOT = Path(__file__).resolve().parents[1]
 def built(tmp_path_factory):
     """One `pip wheel` of the repository for the tests of this file: (its output, the wheel)."""
     wheel_dir = tmp_path_factory.mktemp("wheel")
-    out = subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps",
+    # -v: the compiler's own output (the hub kernel's build) is in it
+    out = subprocess.run([sys.executable, "-m", "pip", "wheel", "-v", "--no-deps",
                           "-w", str(wheel_dir), str(ROOT)], capture_output=True, text=True,
                          check=False)
     assert out.returncode == 0, out.stderr
@@ -91,6 +92,39 @@ def test_editable_install_the_way_make_runs_it_is_quiet(tmp_path):
                          shell=True, cwd=ROOT, capture_output=True, text=True, check=False)
     assert out.returncode == 0, out.stderr
     assert out.stderr.strip() == "" and out.stdout.strip() == "", out.stderr + out.stdout
+
+
+def test_the_wheel_builds_the_hub_kernel_with_no_compiler_warning_and_a_fresh_venv_loads_it(
+        tmp_path, built):
+    """The compiled hub path (issue 26) is built by `pip install .` / `pip wheel .` with the
+    C compiler setuptools finds (gcc here, -Wall), with no warning, and a fresh venv that
+    installs the wheel finds it and numpy's BLAS (rsra.daq.runtime.hubpath.load)."""
+    out, wheel = built
+    log = out.stdout + out.stderr
+    assert "_hubkernel.c" in log, "the kernel was not compiled"
+    compiler = [line for line in log.splitlines()
+                if "_hubkernel" in line and ("warning:" in line or "error:" in line)]
+    assert compiler == [], compiler
+    assert any(n.startswith("rsra/daq/_hubkernel.") and n.endswith(".so")
+               for n in zipfile.ZipFile(wheel).namelist())
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
+    vpy = venv / "bin" / "python"
+    site = subprocess.run([str(vpy), "-c", "import sysconfig; print(sysconfig.get_paths()"
+                           "['purelib'])"], capture_output=True, text=True, check=True)
+    target = Path(site.stdout.strip())
+    subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target",
+                    str(target), str(wheel)], check=True, capture_output=True)
+    # numpy and the rest from this environment, after the fresh venv's own site-packages
+    deps = next(p for p in sys.path if p.endswith("site-packages"))
+    code = ("from rsra.daq.runtime.hubpath import load; import rsra.daq._hubkernel as k; "
+            "assert k.__file__.startswith(%r), k.__file__; kernel, why = load(); "
+            "assert kernel is not None, why; print(why)" % str(target))
+    env = {"PATH": os.environ.get("PATH", ""), "PYTHONPATH": deps}
+    ran = subprocess.run([str(vpy), "-c", code], cwd=tmp_path, capture_output=True, text=True,
+                         env=env)
+    assert ran.returncode == 0, ran.stderr
+    assert ran.stdout.startswith("compiled ("), ran.stdout
 
 
 def test_rsra_version_prints_the_installed_version(capsys):

@@ -470,3 +470,70 @@ def test_an_old_posterior_without_a_structure_section_still_loads(cfg, tmp_path)
     path.write_text(json.dumps(raw))
     with pytest.raises(PosteriorFileError, match="structure"):
         load_posterior(path)
+
+
+def test_run_state_file_option_then_angles_show_reads_it_and_the_recording(tmp_path, capsys):
+    """`rsra run --state-file PATH` (the option beside identification.state_file) saves the
+    posterior; `rsra angles show` reads it, and reads the recording's angles.jsonl (its last
+    applied record) and the recording folder alike (issue 28)."""
+    state, rec = tmp_path / "p.json", tmp_path / "R"
+    assert main(["run", "--sim", "ground-test", "--speed", "max", "--duration", "8",
+                 "--record", str(rec), "--state-file", str(state), *_listen()]) == 0
+    capsys.readouterr()
+    assert load_posterior(state).applies_from_seq is not None  # an accepted run was saved
+    assert main(["angles", "show", str(state), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["applies_from_seq"] is not None
+    lines = [json.loads(x) for x in (rec / "angles.jsonl").read_text().splitlines()]
+    last = [r for r in lines if r.get("accepted")][-1]
+    for arg in (rec / "angles.jsonl", rec):
+        assert main(["angles", "show", str(arg), "--json"]) == 0
+        d = json.loads(capsys.readouterr().out)
+        assert d["source"]["record"] == "last_applied"
+        np.testing.assert_allclose(d["angles_deg"], np.degrees(last["alpha"]), rtol=1e-12)
+        assert d["applies_from_seq"] == last["applies_from_seq"]
+    assert main(["angles", "show", str(rec / "angles.jsonl")]) == 0
+    assert "last applied angles record" in capsys.readouterr().out
+
+
+def test_angles_show_recording_last_applied_and_the_records_after_it(cfg, tmp_path, capsys):
+    names = list(cfg.rig_model().geometry.angle_names)
+    P = (np.eye(14) * DEG**2).tolist()
+    lines = [{"initial": True, "names": names, "alpha": [0.0] * 14, "P": P,
+              "alpha_all": [0.0] * 14, "applies_from_seq": None},
+             {"accepted": True, "reason": None, "names": names, "alpha": [0.01] * 14, "P": P,
+              "applies_from_seq": 1199, "t": 6.0},
+             {"accepted": False, "reason": "reset", "names": names, "alpha": [0.01] * 14,
+              "P": (np.eye(14) * 4 * DEG**2).tolist(), "applies_from_seq": 1199, "t": 11.0}]
+    f = tmp_path / "angles.jsonl"
+    f.write_text("".join(json.dumps(x) + "\n" for x in lines))
+    assert main(["angles", "show", str(f), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["source"] == {"record": "last_applied", "index": 1, "records": 2, "after": 1,
+                           "reset_after": True}
+    np.testing.assert_allclose(d["angles_deg"], np.degrees(0.01))
+    np.testing.assert_allclose(d["sigma_deg"], 1.0)
+    f.write_text(json.dumps(lines[0]) + "\n" + json.dumps(lines[2]) + "\n")
+    assert main(["angles", "show", str(f), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["source"]["record"] == "initial" and d["applies_from_seq"] is None
+    f.write_text("")
+    assert main(["angles", "show", str(f)]) == 2
+    assert "holds no angles record" in capsys.readouterr().err
+
+
+def test_angles_show_prints_each_angles_95_percent_range_and_the_physical_limit(cfg, tmp_path,
+                                                                                capsys):
+    """issue 27 item 3: a range per angle (± 1.96 σ) beside σ, and one line saying what it is."""
+    path = tmp_path / "p.json"
+    st = _state(cfg)
+    save_posterior(path, st)
+    assert main(["angles", "show", str(path), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    a, s = np.array(d["angles_deg"]), np.array(d["sigma_deg"])
+    lo, hi = np.array(d["range_deg"]).T
+    assert np.allclose(lo, a - 1.959964 * s) and np.allclose(hi, a + 1.959964 * s)
+    assert d["angle_limit_deg"] == pytest.approx(10.0)
+    assert main(["angles", "show", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "95 % range (deg)" in out and f"{lo[0]:+.3f} … {hi[0]:+.3f}" in out
+    assert "range: angle ± 1.96 σ" in out and "within ±10°" in out

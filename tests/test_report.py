@@ -70,12 +70,13 @@ def test_report_end_to_end(e2e, capsys):
     assert main(["report", str(e2e / "results.jsonl"), "--truth", str(e2e / "truth.npz"),
                  "--out", str(out)]) == 0
     printed = capsys.readouterr().out
-    assert "RMS error / static σ" in printed
+    assert "by phase" in printed and "H start" in printed  # issue 28: never mixed
     # the innovations with their verdict, overall and per state of the load (issue 19)
     inn = json.loads((out / "summary.json").read_text())["innovations"]
     assert inn["verdict"] in ("consistent", "conservative", "inconsistent")
     assert set(inn["by_state"]) == {"held", "transient"}
-    line = [ln for ln in printed.splitlines() if "innovations: mean NIS" in ln][0]
+    assert set(inn["by_phase"]) == {"start", "transient", "steady"}
+    line = [ln for ln in printed.splitlines() if "innovations, whole run" in ln][0]
     assert line.endswith(("consistent", "CONSERVATIVE", "INCONSISTENT"))
     for name in ("hub_loads.png", "hub_load_errors.png", "angles.png", "innovations.png",
                  "spectra.png"):
@@ -308,3 +309,72 @@ def test_help(capsys):
     out = capsys.readouterr().out
     for opt in ("--truth", "--out", "--units", "--config", "RESULTS.jsonl"):
         assert opt in out
+
+
+def test_accuracy_by_phase_against_the_published_sigma(synth_truth, cfg, tmp_path, capsys):
+    """The hub-load errors split by phase — before the first accepted calibration, transient,
+    calibrated steady state — each sample judged against the σ its record published
+    (sqrt(sigma_angles² + bound²); sigma_filter in place of the bound for H when carried),
+    not the static bound; the innovations split the same way (issue 28)."""
+    from rsra.daq.analysis.report import load_records, load_truth, summarise
+    from rsra.estimator.noise_budget import noise_budget
+
+    tr = load_truth(synth_truth, read_truth)
+    bound = noise_budget(cfg.rig_model(), cfg.identification.initial_angles_rad, "body").total
+    rng = np.random.default_rng(28)
+    H, t = np.asarray(tr["H_true"]), np.asarray(tr["t"])
+    cal, moving = 400, range(700, 800)  # calibrated from sample 400; a ramp at 700-799
+    lines = []
+    for seq in range(len(t)):
+        sa = (10.0 if seq < cal else 0.5) * bound  # the uncalibrated start: large sigma_angles
+        sf = 0.3 * bound  # the filter's own σ, carried: H's σ uses it, H_static's the bound
+        sH, sS = np.sqrt(sa**2 + sf**2), np.sqrt(sa**2 + bound**2)
+        k = 5.0 if seq in moving else 1.0  # the filter lags the ramp: 5 σ
+        lines.append({"key": "hub_loads", "seq": seq, "sync": 0, "t": float(t[seq] + 4e-4),
+                      "frame": "body", "H": H[seq] + k * sH * rng.standard_normal(6),
+                      "H_static": H[seq] + sS * rng.standard_normal(6), "omega": 19.4,
+                      "sigma_angles": sa, "sigma_filter": sf,
+                      "flags": (["transient"] if seq in moving else [])
+                      + (["angles_uncertain"] if seq < cal else [])})
+        if seq % 10 == 0:
+            nis = float(rng.chisquare(6)) * (20.0 if seq in moving else 1.0)
+            lines.append({"key": "innovations", "seq": seq, "t": float(t[seq] + 4e-4),
+                          "e": [0.0] * 6, "nis": nis})
+    names = list(cfg.rig_model().geometry.angle_names)
+    lines.append({"key": "angles", "t": float(t[cal - 1]), "seq": cal - 100, "accepted": True,
+                  "reason": None, "mode": "known_loads", "content": "static", "names": names,
+                  "alpha": [0.0] * 14, "P": (np.eye(14) * 1e-6).tolist(), "determined": 14,
+                  "applies_from_seq": cal})
+    p = tmp_path / "phases.jsonl"
+    p.write_text("\n".join(dumps(x) for x in lines) + "\n")
+    _, s = summarise(cfg, load_records(p), tr)
+    bp = s["hub_loads"]["by_phase"]
+    assert bp["calibrated_from_seq"] == cal
+    settle_n = round(s["hub_loads"]["settle_s"] * cfg.sample_rate_hz)
+    assert abs(bp["H"]["start"]["samples"] - (cal - settle_n)) <= 1  # once the filter settled
+    assert bp["H_static"]["start"]["samples"] == cal
+    assert bp["H"]["transient"]["samples"] == len(moving)
+    assert bp["H"]["steady"]["samples"] == len(t) - cal - len(moving)
+    for name in ("H", "H_static"):
+        for phase in ("start", "steady"):
+            v = bp[name][phase]
+            tol = 3.3 / np.sqrt(2 * v["samples"])  # RMS of n Gaussians: 1e-3 either side
+            np.testing.assert_allclose(v["rms_over_sigma"], 1.0, atol=tol)
+            assert max(v["beyond_3sigma"]) <= 0.02  # 0.27 % expected
+    assert min(bp["H"]["transient"]["rms_over_sigma"]) > 4.0
+    assert min(bp["H"]["transient"]["beyond_3sigma"]) > 0.3
+    ph = s["innovations"]["by_phase"]
+    assert ph["transient"]["verdict"] == "inconsistent"
+    assert ph["steady"]["verdict"] == "consistent" and ph["start"]["records"] > 0
+    from rsra.daq.analysis.report import Report
+
+    text = Report(tmp_path, [], {}, s).markdown_brief()
+    assert "H steady" in text and "calibrated steady state" in text and "beyond" in text
+    # a run started from calibrated angles (a saved posterior: its first sample not flagged
+    # angles_uncertain) has no start phase
+    first = json.loads(lines and dumps(lines[0]))
+    first["flags"] = []
+    p.write_text("\n".join([dumps(first)] + [dumps(x) for x in lines[1:]]) + "\n")
+    _, s = summarise(cfg, load_records(p), tr)
+    assert s["hub_loads"]["by_phase"]["calibrated_from_seq"] == 0
+    assert s["hub_loads"]["by_phase"]["H_static"]["start"] is None

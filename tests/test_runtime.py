@@ -118,7 +118,8 @@ def test_the_angles_record_declares_todays_keys_in_todays_order():
     # the estimator's keys, the service's two, then issue 19's known-load fields: the
     # structure test and the experiment design (docs/telemetry.md §2.4)
     assert AnglesRecord.FIELDS == (*_estimator_keys(), "restarted", "condition", "structure",
-                                   "candidates", "next_conditions", "structure_fit")
+                                   "candidates", "next_conditions", "structure_fit",
+                                   "explanation", "hint")  # issue 28: why, in words
 
 
 def test_the_angles_record_serialises_byte_for_byte_as_the_dict_did():

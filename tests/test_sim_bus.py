@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import configparser
 import math
+import os
 import re
 import signal
 import struct
@@ -531,3 +532,39 @@ def test_cli_sim_ctrl_c_is_clean(tmp_path):
     assert "stopped (Ctrl-C)" in err and "Traceback" not in err
     frames = read_candump(rec)  # the log is complete and parses
     assert sum(cob == 0x80 for _, cob, _ in frames) >= 100
+
+
+def _ignore_sigint() -> None:  # what a shell does to a background job `rsra sim … &`
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("how", ["SIGINT", "SIGINT-background", "SIGTERM"])
+def test_cli_sim_truth_written_on_stop(tmp_path, how):
+    """`rsra sim --truth` stopped by Ctrl-C or SIGTERM (also when started as a background job,
+    SIGINT ignored) writes the truth so far, atomically, and says where (issue 28)."""
+    from rsra.sim_bus.truth import read_truth
+
+    truth_path = tmp_path / "t.npz"
+    p = subprocess.Popen([sys.executable, "-m", "rsra", "sim", "--scenario", "ground-test",
+                          "--autostart", "--truth", str(truth_path),
+                          "--channel", f"truth-stop-{how}-{os.getpid()}"], cwd=ROOT,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=_ignore_sigint if how == "SIGINT-background" else None)
+    try:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and "samples" not in (p.stderr.readline() or "samples"):
+            pass  # wait for the first progress line (1 s of running)
+        p.send_signal(signal.SIGTERM if how == "SIGTERM" else signal.SIGINT)
+        out, err = p.communicate(timeout=20)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait(timeout=10)
+    assert p.returncode == 0, err
+    stopped = "SIGTERM" if how == "SIGTERM" else "Ctrl-C"
+    assert f"stopped ({stopped})" in err and "Traceback" not in err, err
+    assert f"truth in {truth_path}" in err, err
+    truth = read_truth(truth_path)
+    assert len(truth["index"]) >= 100 and truth["meta"]["scenario"] == "ground-test"
+    assert [f.name for f in tmp_path.iterdir()] == ["t.npz"]  # no temporary file left

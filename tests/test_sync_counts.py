@@ -232,3 +232,21 @@ def test_any_true_sync_sequence_is_numbered_and_counted_exactly(cfg, steps, jitt
     assert r.assembler.duplicate_sync == len(ks) - len(uniq)
     assert r.assembler.clock.bad_timestamp == 0
     assert np.all(np.diff([s.t for s in got]) > 0)
+
+
+def test_a_stall_between_syncs_is_counted_as_a_gap_with_its_length(cfg, caplog):
+    """issue 27 item 3: the SYNC producer (the service itself, stopped 15 s) stalls — the gap
+    is counted (health sync.gaps, the longest) and logged as it is seen, live and in replay
+    alike (the same frames, the same tap); no sample is counted lost for it."""
+    frames = clean(cfg, 50)
+    pause = 7.3  # s
+    stepped = [copy(m, timestamp=m.timestamp + (pause if m.timestamp >= T0 + 25 * DT else 0))
+               for m in frames]
+    with caplog.at_level("WARNING", logger="rsra.daq.bus.assembler"):
+        r, got = run(cfg, stepped)
+    sync = r.health().to_dict()["sync"]
+    assert sync["gaps"] == 1 and abs(sync["gap_longest_s"] - (pause + DT)) < 1e-6
+    assert r.assembler.lost == 0 and len(got) == 50
+    assert sum("no SYNC for 7.3 s" in m for m in caplog.messages) == 1
+    r0, _ = run(cfg, frames)  # and none without the pause
+    assert r0.health().to_dict()["sync"]["gaps"] == 0

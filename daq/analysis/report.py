@@ -26,6 +26,7 @@ from scipy import signal, stats
 
 from rsra.config.rig import RigConfig
 from rsra.daq.jsonout import dumps
+from rsra.daq.runtime.persistence import save_figure, write_text_atomic
 from rsra.config.units import axis_units, to_units
 from rsra.estimator.geometry import shaft_rotation
 from rsra.estimator.noise_budget import AXES, noise_budget
@@ -76,7 +77,7 @@ def load_records(path: str | Path) -> Records:
     counts: dict[str, int] = {}
     ch: dict[str, list] = {"seq": [], "t": [], "T": [], "omega": []}
     hub: dict[str, list] = {"seq": [], "sync": [], "t": [], "H": [], "H_static": [],
-                            "omega": [], "flags": []}
+                            "omega": [], "flags": [], "sigma_angles": [], "sigma_filter": []}
     inn: dict[str, list] = {"seq": [], "t": [], "e": [], "nis": []}
     frames: set[str] = set()
     angles: list[dict] = []
@@ -111,6 +112,9 @@ def load_records(path: str | Path) -> Records:
                     hub["H_static"].append(_vec(rec.get("H_static"), 6))
                     hub["omega"].append(_num(rec.get("omega")))
                     hub["flags"].append(tuple(rec.get("flags") or ()))
+                    # the σ the record publishes (NaN: absent, an older recording)
+                    hub["sigma_angles"].append(_vec(rec.get("sigma_angles"), 6))
+                    hub["sigma_filter"].append(_vec(rec.get("sigma_filter"), 6))
                     frames.add(rec.get("frame") or "body")
                 elif key == "innovations":
                     inn["seq"].append(int(rec["seq"]))
@@ -139,6 +143,8 @@ def load_records(path: str | Path) -> Records:
                    "t": np.array(hub["t"]), "H": np.array(hub["H"], float).reshape(-1, 6),
                    "H_static": np.array(hub["H_static"], float).reshape(-1, 6),
                    "omega": np.array(hub["omega"]), "flags": hub["flags"],
+                   "sigma_angles": np.array(hub["sigma_angles"], float).reshape(-1, 6),
+                   "sigma_filter": np.array(hub["sigma_filter"], float).reshape(-1, 6),
                    "frame": frames.pop() if frames else "body"}
     if inn["seq"]:
         out.innovations = {"seq": np.array(inn["seq"], np.int64), "t": np.array(inn["t"]),
@@ -364,6 +370,73 @@ def _hub_summary(d: ReportData) -> dict:
                      "rms_over_sigma_static": (rms / d.sigma_static).tolist()}
     out.update(truth={"alignment": d.hub_align.method, "matched": d.hub_align.matched},
                settle_s=settle, errors=res)
+    out["by_phase"] = _hub_by_phase(d)
+    return out
+
+
+def calibrated_from_seq(angles: list[dict]) -> int | None:
+    """The sample the first accepted calibration applies from (None: none accepted)."""
+    seqs = [int(a["applies_from_seq"]) for a in angles
+            if a.get("accepted") and isinstance(a.get("applies_from_seq"), int)]
+    return min(seqs) if seqs else None
+
+
+def calibrated_from(d: ReportData) -> int | None:
+    """The first sample of the calibrated state: the first accepted calibration's, or the
+    run's first sample when it started from calibrated angles (daq.analysis.accuracy)."""
+    from rsra.daq.analysis.accuracy import starts_calibrated
+
+    hub = d.rec.hub
+    if hub is not None and len(hub["seq"]) and starts_calibrated(
+            hub["flags"][int(np.argmin(hub["seq"]))]):
+        return int(np.min(hub["seq"]))  # a saved posterior: no start phase
+    return calibrated_from_seq(d.rec.angles)
+
+
+def record_phases(d: ReportData, seq: np.ndarray) -> np.ndarray:
+    """The phase (daq.analysis.accuracy) of each record by its sample number: ``start``
+    before the first accepted calibration, then ``transient`` where the hub_loads record at
+    that sample is flagged, else ``steady``."""
+    from rsra.daq.analysis.accuracy import TRANSIENT_FLAG
+
+    hub = d.rec.hub
+    cal = calibrated_from(d)
+    moving = ({int(q) for q, f in zip(hub["seq"], hub["flags"]) if TRANSIENT_FLAG in f}
+              if hub is not None else set())
+    seq = np.asarray(seq, np.int64)
+    tr = np.fromiter((int(q) in moving for q in seq), bool, len(seq))
+    started = np.zeros(len(seq), bool) if cal is None else seq >= cal
+    return np.where(~started, "start", np.where(tr, "transient", "steady"))
+
+
+def _hub_by_phase(d: ReportData) -> dict:
+    """H and H_static against truth per phase, each sample against the σ its record published
+    (daq.analysis.accuracy)."""
+    from rsra.daq.analysis.accuracy import MEANING, PhaseAccuracy
+
+    hub = d.rec.hub
+    phases = record_phases(d, hub["seq"])
+    sa2 = np.nan_to_num(hub["sigma_angles"], nan=0.0) ** 2
+    sf = hub["sigma_filter"]
+    bound = d.sigma_static[None, :]
+    sig = {"H": np.sqrt(sa2 + np.where(np.isfinite(sf), sf, bound) ** 2),
+           "H_static": np.sqrt(sa2 + bound ** 2)}
+    scale = to_units(np.ones(6), d.units)
+    out: dict = {"meaning": dict(MEANING),
+                 "calibrated_from_seq": calibrated_from(d),
+                 "sigma": ("published: sqrt(sigma_angles² + sigma_filter²) for H"
+                           if np.isfinite(sf).any() else
+                           "published: sqrt(sigma_angles² + static bound²) for H")
+                 + "; sqrt(sigma_angles² + static bound²) for H_static"}
+    settling = hub["t"] - d.t0 < d.settle_s  # the filter's own start (from a zero state)
+    out["settle_s"] = d.settle_s
+    for name in ("H", "H_static"):
+        acc = PhaseAccuracy()
+        err = hub[name] - d.H_truth
+        if name == "H":  # H scored after the filter has settled, as above
+            err = np.where(settling[:, None], np.nan, err)
+        acc.add_many(phases, err, sig[name])
+        out[name] = acc.summary(scale)
     return out
 
 
@@ -467,6 +540,13 @@ def _innovations_summary(d: ReportData) -> dict:
     # per state of the load: held, or `transient` (the hub_loads flag at the record's sample)
     sel = ok & (inn["t"] - d.t0 >= d.settle_s)
     hub = d.rec.hub
+    # and per phase, as the hub loads (daq.analysis.accuracy): the start, transients, steady
+    from rsra.daq.analysis.accuracy import PHASES
+
+    ph = record_phases(d, inn["seq"][sel])
+    out["by_phase"] = {p: {"records": int((ph == p).sum()),
+                           "mean_nis": float(nis[ph == p].mean()) if (ph == p).any() else None,
+                           **nis_consistency(nis[ph == p], lo, hi)} for p in PHASES}
     if hub is not None:
         moving = {int(q) for q, f in zip(hub["seq"], hub["flags"]) if "transient" in f}
         tr = np.array([int(q) in moving for q in inn["seq"][sel]], bool)
@@ -528,7 +608,7 @@ def _plt():
 
 
 def _save(fig, path: Path) -> Path:
-    fig.savefig(path, dpi=DPI)
+    save_figure(fig, path, dpi=DPI)
     _plt().close(fig)
     return path
 
@@ -805,12 +885,19 @@ class Report:
         s = self.summary
         lines = [f"report: {len(self.plots)} plots and summary.md/summary.json in {self.out}"]
         hub = s.get("hub_loads", {})
-        errs = (hub.get("errors") or {}) if isinstance(hub, dict) else {}
-        for name in ("H", "H_static"):
-            e = errs.get(name)
-            if e:
-                r = ", ".join(f"{a} {v:.2f}" for a, v in zip(AXES, e["rms_over_sigma_static"]))
-                lines.append(f"  RMS error / static σ, {name}: {r}")
+        bp = (hub.get("by_phase") or {}) if isinstance(hub, dict) else {}
+        if bp:
+            from rsra.daq.analysis.accuracy import phase_lines
+
+            lines.append("  hub-load error against truth, by phase (RMS error/σ and the "
+                         "fraction beyond 3σ per axis, σ as published for each sample):")
+            for name in ("H", "H_static"):
+                lines += [x for x in phase_lines(bp.get(name) or {}, name, "    ")
+                          if not x.lstrip().startswith("(")]
+            from rsra.daq.analysis.accuracy import MEANING
+
+            lines += [f"    {p}: {m}" for p, m in MEANING.items()
+                      if (bp.get("H") or {}).get(p) or (bp.get("H_static") or {}).get(p)]
         ang = s.get("angles", {})
         if "joint_chi2" in ang and ang["joint_chi2"]:
             j = ang["joint_chi2"]
@@ -819,10 +906,11 @@ class Report:
                          + ("consistent" if j["consistent"] else "INCONSISTENT"))
         inn = s.get("innovations", {})
         if "mean_nis" in inn:
-            lines.append(f"  innovations: mean NIS {inn['mean_nis']:.2f} (expected 6), "
+            lines.append(f"  innovations, whole run (the phases below mixed): mean NIS "
+                         f"{inn['mean_nis']:.2f} (expected 6), "
                          f"{inn['fraction_outside'] * 100:.2f} % outside the χ²₆ band: "
                          f"{inn['verdict'].upper() if inn['verdict'] != 'consistent' else 'consistent'}")
-            for state, v in (inn.get("by_state") or {}).items():
+            for state, v in (inn.get("by_phase") or inn.get("by_state") or {}).items():
                 if v["records"]:
                     lines.append(f"    {state}: {v['records']} records, mean NIS "
                                  f"{v['mean_nis']:.2f}, {v['above'] * 100:.2f} % above / "
@@ -865,6 +953,23 @@ def _markdown(s: dict, units: str) -> str:
                             if h else "– | –") + " | "
                          + (f"{hs['rms_error'][i]:.1f} | {hs['rms_over_sigma_static'][i]:.3f}"
                             if hs else "– | –") + " |")
+            bp = hub.get("by_phase") or {}
+            if bp:
+                L += ["", "By phase, each sample against the σ its record published "
+                      f"({bp['sigma']}): RMS error, RMS error/σ and the fraction beyond 3σ "
+                      "(0.27 % for an error of that σ).", ""]
+                for p, m in bp["meaning"].items():
+                    L.append(f"* **{p}**: {m}")
+                L += ["", "| estimate | phase | samples | axis | RMS error | RMS error / σ "
+                      "| beyond 3σ |", "|---|---|---|---|---|---|---|"]
+                for name in ("H", "H_static"):
+                    for p, v in (bp.get(name) or {}).items():
+                        if not v:
+                            continue
+                        for i, a in enumerate(AXES):
+                            L.append(f"| {name} | {p} | {v['samples']} | {a} [{u[i]}] | "
+                                     f"{v['rms_error'][i]:.1f} | {v['rms_over_sigma'][i]:.3f} | "
+                                     f"{100 * v['beyond_3sigma'][i]:.2f} % |")
         else:
             L.append("No truth: errors not computed.")
     L += ["", "## Angles"]
@@ -902,6 +1007,13 @@ def _markdown(s: dict, units: str) -> str:
                  f"{j['value']:.1f} on {j['dof']} dof (band [{j['band'][0]:.1f}, "
                  f"{j['band'][1]:.1f}]; records are correlated, so this is indicative): "
                  + (f"**{inn['verdict']}**." if inn["verdict"] != "consistent" else "consistent."))
+        for state, v in (inn.get("by_phase") or {}).items():
+            if v["records"]:
+                L.append(f"* phase {state}: {v['records']} records, mean NIS "
+                         f"{v['mean_nis']:.3f}, {v['above'] * 100:.3f} % above and "
+                         f"{v['below'] * 100:.3f} % below the band: "
+                         + (f"**{v['verdict']}**" if v["verdict"] != "consistent"
+                            else "consistent") + ".")
         for state, v in (inn.get("by_state") or {}).items():
             if v["records"]:
                 L.append(f"* {state} load ({'hub_loads flagged `transient`' if state == 'transient' else 'not flagged'}): "
@@ -992,8 +1104,8 @@ def build_report(cfg: RigConfig, rec: Records, truth: dict | None, out: str | Pa
         skipped["spectra.png"] = why
     summary["plots"] = [p.name for p in plots]
     summary["skipped"] = skipped
-    (out / "summary.json").write_text(dumps(summary) + "\n", encoding="utf-8")
-    (out / "summary.md").write_text(_markdown(summary, units), encoding="utf-8")
+    write_text_atomic(out / "summary.json", dumps(summary) + "\n")
+    write_text_atomic(out / "summary.md", _markdown(summary, units))
     return Report(out=out, plots=plots, skipped=skipped, summary=summary)
 
 

@@ -31,6 +31,7 @@ from scipy import signal
 
 from rsra.config.rig import RigConfig
 from rsra.config.units import axis_units, to_units
+from rsra.daq.runtime.persistence import save_figure
 from rsra.estimator.balance import inertial_load_matrix
 from rsra.estimator.geometry import hub_transfer_matrix, wrench_matrix
 from rsra.estimator.noise_budget import AXES, NoiseBudget, noise_budget
@@ -617,7 +618,7 @@ def plot_sweep(result: SweepResult, out_dir: str | Path, units: str = "si") -> l
             a.legend(fontsize=8, ncol=2, loc="best")
     fig.suptitle("Transfer functions to the shaker excitation (H1 estimate, report Figs 4-5)")
     p = out / "sweep_transfer_functions.png"
-    fig.savefig(p, dpi=100)
+    save_figure(fig, p, dpi=100)
     plt.close(fig)
     paths.append(p)
 
@@ -645,7 +646,7 @@ def plot_sweep(result: SweepResult, out_dir: str | Path, units: str = "si") -> l
         fig.suptitle(f"Static-model estimation error for {AXES[axis]} excitation "
                      f"(report Eq 1.5, Figs 6-17; nominal angles, {result.frame} axes)")
         p = out / f"sweep_error_{AXES[axis]}.png"
-        fig.savefig(p, dpi=100)
+        save_figure(fig, p, dpi=100)
         plt.close(fig)
         paths.append(p)
 
@@ -680,7 +681,7 @@ def plot_sweep(result: SweepResult, out_dir: str | Path, units: str = "si") -> l
                 a.legend(fontsize=8, loc="best")
         fig.suptitle("Reconstructed unmodelled load at the CG, I − S T − R H (report Fig 18)")
         p = out / "sweep_unmodelled_phase.png"
-        fig.savefig(p, dpi=100)
+        save_figure(fig, p, dpi=100)
         plt.close(fig)
         paths.append(p)
     return paths

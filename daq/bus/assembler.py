@@ -14,6 +14,7 @@ sample, with everything that depends only on which nodes reported cached per pat
 """
 from __future__ import annotations
 
+import logging
 import math
 import operator
 from collections.abc import Callable
@@ -27,8 +28,18 @@ from rsra.daq import stagetiming
 from rsra.daq.bus.decoder import STATUS_FAULT, STATUS_OVERRANGE, DecodeTable
 from rsra.daq.jsonout import sanitise
 
+log = logging.getLogger(__name__)
+
 FrameCallback = Callable[[int, Any, float], None]
 _CACHE_MAX = 256  # distinct (reported, expected) patterns remembered (bounded)
+# a SYNC stamped this far before the last one, with a counter that does not follow it, is a
+# discontinuity (time went back: recordings joined, a clock stepped back), not a bad stamp:
+# far above any delay of a frame, far below the gap of a recording replayed after itself
+DISCONTINUITY_S = 1.0
+# SYNCs further apart than this are a gap (the SYNC producer — the service itself, or the
+# bus — stalled or paused): counted with its length, whatever else the counter says
+GAP_S = 1.0
+GAP_LOG_MAX = 10  # gaps logged per run (all are counted)
 TIME_TOLERANCE_PERIODS = 4  # "a few periods": a frame time further than this from where the
 #                             SYNC counter puts it is a bad timestamp (docs/reliability.md)
 
@@ -75,6 +86,13 @@ class SyncClock:
         # the result for the SYNC just stamped (read by the assembler): lost, duplicate
         self.lost = 0
         self.duplicate = False
+        self.jumped = False  # the SYNC just stamped started afresh: time went back
+        #: SYNC gaps longer than GAP_S (frame times): how many, the longest and the total, s
+        self.gaps = 0
+        self.gap_longest_s = 0.0
+        self.gap_total_s = 0.0
+        self.on_gap: Callable[[float, float], None] = lambda t, gap: None
+        self._last_sync_t: float | None = None
 
     def _gap(self, x: float, lost_c: int, same: bool) -> int | None:
         """Samples lost for a SYNC ``x`` periods after the base whose counter says ``lost_c``
@@ -114,13 +132,28 @@ class SyncClock:
 
     def stamp_sync(self, counter: int, t: float, clock: float) -> float:
         """A SYNC with a valid counter (1…overflow) at raw time ``t``."""
-        self.lost, self.duplicate = 0, False
+        self.lost, self.duplicate, self.jumped = 0, False, False
+        last, self._last_sync_t = self._last_sync_t, t
+        if last is not None and t - last > GAP_S:
+            gap = t - last
+            self.gaps += 1
+            self.gap_longest_s = max(self.gap_longest_s, gap)
+            self.gap_total_s += gap
+            self.on_gap(t, gap)
         if self.base_t is None:
             self.base_t, self.base_c = t, counter
             return t
         ov, dt = self.overflow, self.period
         same = counter == self.base_c
         lost_c = (counter - (self.base_c % ov + 1)) % ov
+        if t < self.base_t - DISCONTINUITY_S and lost_c and not same:
+            # time went back and the counter does not follow (a single SYNC stamped far back
+            # with the next counter is a bad timestamp, below): a discontinuity — counted by
+            # the tap, no sample lost for it, the SYNC taken at its own time as the new base
+            self._suspect = None
+            self.base_t, self.base_c = t, counter
+            self.jumped = True
+            return t
         lost = self._gap((t - self.base_t) / dt, lost_c, same)
         if lost is None and self._suspect is not None:
             st, sc = self._suspect
@@ -293,6 +326,7 @@ class SampleAssembler:
         self._prev_have = 0
         self.clock = SyncClock(1.0 / cfg.sample_rate_hz, self.overflow)
         self.clock.on_late = self._late_sync
+        self.clock.on_gap = self._gap_seen
         self._stamped: tuple[Any, float] | None = None  # (data, t) the tap stamped last
         # counters (health)
         self.complete = 0
@@ -432,6 +466,16 @@ class SampleAssembler:
             t = self.clock.stamp_frame(t, clock, sync=True)
         self._stamped = (data, t)
         return t
+
+    def _gap_seen(self, t: float, gap: float) -> None:
+        """A SYNC gap (SyncClock.GAP_S): logged as it happens, live and in replay alike (the
+        first GAP_LOG_MAX of a run; every one is counted in health sync.gaps)."""
+        n = self.clock.gaps
+        if n <= GAP_LOG_MAX:
+            log.warning("no SYNC for %.1f s before the SYNC at %.6f (the SYNC producer — this "
+                        "service, or the one on the bus — stalled or the bus paused)%s", gap, t,
+                        "; further gaps only counted (health sync.gaps)" if n == GAP_LOG_MAX
+                        else "")
 
     def _late_sync(self, t: float) -> None:
         """The next frame confirmed the open sample's SYNC late: the sample takes the SYNC's

@@ -151,6 +151,9 @@ class SyncHealth(_Part):
     periods_not_taken: Any = OMIT
     rate_hz: float | None = None
     rate_low: bool = False
+    discontinuities: int = 0  # SYNCs whose time went back (two recordings joined, a clock step)
+    gaps: int = 0  # SYNCs more than 1 s after the one before (a stalled producer, a paused bus)
+    gap_longest_s: float = 0.0
 
 
 @_part

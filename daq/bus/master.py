@@ -175,6 +175,17 @@ class Supervisor:
                 nxt = deadline
         self.next_deadline = nxt
 
+    def rebase(self, now: float) -> None:
+        """Time went back to ``now`` (a discontinuity): every node heard is taken as heard
+        then, so its watchdog runs from there (no loss invented, none missed for ever)."""
+        for ns in self.nodes.values():
+            if ns.last_heartbeat is not None and ns.last_heartbeat > now:
+                ns.last_heartbeat = now
+        self.next_deadline = min((ns.last_heartbeat + self.timeout_s
+                                  for ns in self.nodes.values()
+                                  if ns.last_heartbeat is not None
+                                  and ns.state not in ("lost", "missing")), default=float("inf"))
+
     def snapshot(self, now: float) -> Mapping[str, NodeHealth]:
         """Every node's part of the health record (read-only)."""
         out = {}

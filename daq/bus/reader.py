@@ -2,7 +2,7 @@
 
 ::
 
-    python-can bus ─▶ one Notifier ─▶ FrameTap ─▶ canopen Network.subscribe callbacks
+    python-can bus ─▶ one BatchNotifier ─▶ FrameTap ─▶ canopen Network.subscribe callbacks
                                   │  (clock, counts,  ├─ SampleAssembler (SYNC, TPDOs)
                                   │   unknown IDs)    ├─ Supervisor (heartbeat, EMCY)
                                   │        │          └─ canopen SDO/NMT (master)
@@ -86,7 +86,7 @@ from rsra.daq.bus.master import (
     Supervisor,
 )
 from rsra.daq.bus.recorder import Recorder
-from rsra.canbus import open_bus, recording_channel, shutdown_bus
+from rsra.canbus import BatchNotifier, open_bus, recording_channel, shutdown_bus
 
 log = logging.getLogger(__name__)
 
@@ -156,6 +156,13 @@ class Deadlines:
         if t < self.next:
             self.next = t
 
+    def rebase(self, t: float) -> None:
+        """The acquisition clock went back to ``t`` (a discontinuity): every task's schedule
+        starts again from there."""
+        for task in self.tasks:
+            task.rebase(t)
+        self.next = min(task.due for task in self.tasks)
+
 
 class _Watchdog:
     """The supervisor's heartbeat watchdog as a timed task."""
@@ -169,6 +176,9 @@ class _Watchdog:
 
     def run(self, t: float) -> None:
         self.sup.check(t)
+
+    def rebase(self, t: float) -> None:
+        self.sup.rebase(t)
 
 
 class FrameTap(can.Listener):
@@ -196,7 +206,8 @@ class FrameTap(can.Listener):
         self._failing = False  # a read failed and no frame has been read since
         self.pause: Callable[[float], Any] = time.sleep  # a bus reader's: its stop event's wait
         self.recovered: Callable[[], None] | None = None  # a frame read after a failure
-        self.frame_time = -math.inf  # monotone, quantised frame time
+        self.frame_time = -math.inf  # monotone, quantised frame time (but at a discontinuity)
+        self.discontinuities = 0
         self.tick_time = -math.inf  # live idle tick (wall clock)
         self.lock = threading.Lock()
 
@@ -213,6 +224,8 @@ class FrameTap(can.Listener):
         if cid == self.sync_cob and not (msg.is_extended_id or msg.is_error_frame
                                          or msg.is_remote_frame):
             ts = self.stamp_sync(msg.data, t, self.frame_time)
+            if self._clock.jumped:
+                self._discontinuity(t)
         elif self._clock._suspect is None and t <= self.frame_time + self._ahead_s:
             ts = t  # stamp_frame's common case, inline (nothing pending, not far ahead)
         else:
@@ -245,6 +258,20 @@ class FrameTap(can.Listener):
                 self.last_callback_error = f"0x{cid:03X}: {type(e).__name__}: {e}"
 
     __call__ = on_message_received  # the Notifier calls listeners directly: one frame less
+
+    def _discontinuity(self, t: float) -> None:
+        """The SYNC clock found time going back at this SYNC (``SyncClock.jumped``: two
+        recordings joined, a clock stepped back). Counted and reported, never turned into
+        lost samples or rewritten times: the clock, the watchdog and the health schedule
+        start afresh from it, its sample takes its own time (docs/reliability.md)."""
+        self.discontinuities += 1
+        if self.discontinuities == 1:
+            log.warning("time goes back %.3f s at frame %d (SYNC at %.6f after %.6f): a "
+                        "discontinuity (recordings joined? a clock stepped back?); counted in "
+                        "health sync.discontinuities, no sample invented", self.frame_time - t,
+                        self.frames, t, self.frame_time)
+        self.frame_time = t
+        self.deadlines.rebase(t)
 
     def _classify(self, msg: can.Message, cid: int, cbs: list | None) -> None:
         if msg.is_error_frame:
@@ -615,6 +642,11 @@ class HealthMonitor:
         self._rate_hist: deque[tuple[float, int]] = deque(maxlen=RATE_WINDOW + 1)
         self._rate_hz: float | None = None
 
+    def rebase(self, t: float) -> None:
+        """A discontinuity: the next report one period after ``t``, the rate measured afresh."""
+        self.due = math.floor(t) + self.period_s
+        self._rate_hist.clear()
+
     def run(self, t: float) -> None:
         """The acquisition clock passed ``due`` (bus thread / replay loop, frame order)."""
         if self.due == -math.inf:
@@ -658,6 +690,8 @@ class HealthMonitor:
         rate = self._rate_hz
         return SyncHealth(duplicate=asm.duplicate_sync, bad_timestamp=asm.clock.bad_timestamp,
                           late_received=asm.clock.late,
+                          discontinuities=self.tap.discontinuities,
+                          gaps=asm.clock.gaps, gap_longest_s=round(asm.clock.gap_longest_s, 6),
                           late=late, periods_not_taken=periods, rate_hz=rate,
                           rate_low=rate is not None
                           and rate < RATE_LOW_FRACTION * self.cfg.sample_rate_hz)
@@ -809,7 +843,10 @@ class _BusReader(ReaderBase):
             self.nodes.attach(self.cfg, self.table, self.network, self.supervisor,
                               clock=lambda: self.tap.now)
             if thread:
-                self.network.connect()
+                # canopen's Network.connect, with python-can's Notifier reading in batches:
+                # one wake-up takes every frame received meanwhile (rsra.canbus.BatchNotifier)
+                self.network.notifier = BatchNotifier(self._bus, self.network.listeners,
+                                                      self.network.NOTIFIER_CYCLE)
                 # a failed read pauses on the stop event (close() ends it at once), and once
                 # frames come again the failure python-can keeps in notifier.exception is
                 # cleared: canopen's send_message raises it otherwise (NMT, SDO) for ever
@@ -820,6 +857,15 @@ class _BusReader(ReaderBase):
         except BaseException:
             self.close()
             raise
+
+    @property
+    def wakeups(self) -> tuple[int, int] | None:
+        """(wake-ups, frames) of the bus thread so far: how often it woke for a frame and
+        how many frames it took (docs/performance.md P6b); None without a bus thread."""
+        notifier = self.network.notifier
+        if not isinstance(notifier, BatchNotifier):
+            return None
+        return notifier.wakeups, notifier.frames
 
     def _bus_recovered(self) -> None:
         notifier = self.network.notifier

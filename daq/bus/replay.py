@@ -46,6 +46,9 @@ def expand(paths: Sequence[str | Path]) -> list[Path]:
             if not files:
                 raise ReplayError(f"{p}: no frames.* recording files in this folder")
             out.extend(files)
+        elif p.exists() and not p.is_file():
+            raise ReplayError(f"{p}: not a regular file (a device, a pipe or a socket); fix: give "
+                              "a recording file or folder")
         elif p.is_file():
             suffixes = [s.lower() for s in p.suffixes]
             if not suffixes or not ({*suffixes} & {*LOG_SUFFIXES}):
@@ -89,41 +92,68 @@ def read_frames(paths: Sequence[str | Path]) -> Iterator[can.Message]:
     A file that cannot be read — not the format its name says, damaged, a line that is not a
     frame, a time stamp that is not a finite number — raises :class:`ReplayError` naming the
     file (and the line of a text log) where it stops; the frames before it have been
-    yielded."""
+    yielded. Recordings that hold no frame at all raise :class:`ReplayError` at their end (an
+    empty recording is an error, not an empty replay)."""
+    n = 0
     for f in expand(paths):
-        if f.suffix.lower() == ".log":
-            lines = _CompleteLines(f)
-            try:
-                with can.CanutilsLogReader(lines) as reader:
-                    for msg in reader:
-                        if not math.isfinite(msg.timestamp):
-                            raise ValueError(f"time stamp {msg.timestamp} is not a finite number")
-                        yield msg
-            except ReplayError:
-                raise
-            except Exception as e:  # python-can raises assorted errors on a bad line
-                raise ReplayError(
-                    f"{f}:{lines.lineno}: not a candump frame ({_why(e)}): "
-                    f"{lines.line.strip()[:60]!r}; fix: repair or delete that line (a candump "
-                    "line reads '(1700000000.000000) can0 181#0102')") from None
-            continue
-        n = 0
+        for msg in read_file(f):
+            n += 1
+            yield msg
+    if n == 0:
+        raise ReplayError(f"{', '.join(map(str, paths))}: no CAN frames in it (an empty "
+                          "recording); fix: give a recording that holds frames")
+
+
+def check_readable(paths: Sequence[str | Path]) -> None:
+    """Each recording file readable at its start and the recordings not empty, checked before
+    any work (:func:`read_frames` would find either only when it gets there)."""
+    empty = True
+    for f in expand(paths):
+        frames = read_file(f)
         try:
-            with can.LogReader(f) as reader:
+            empty = next(frames, None) is None and empty
+        finally:
+            frames.close()
+    if empty:
+        raise ReplayError(f"{', '.join(map(str, paths))}: no CAN frames in it (an empty "
+                          "recording); fix: give a recording that holds frames")
+
+
+def read_file(f: Path) -> Iterator[can.Message]:
+    """The frames of one recording file (see :func:`read_frames`)."""
+    if f.suffix.lower() == ".log":
+        lines = _CompleteLines(f)
+        try:
+            with can.CanutilsLogReader(lines) as reader:
                 for msg in reader:
                     if not math.isfinite(msg.timestamp):
-                        raise ValueError(f"frame {n + 1}: time stamp {msg.timestamp} is not a "
-                                         "finite number")
-                    n += 1
+                        raise ValueError(f"time stamp {msg.timestamp} is not a finite number")
                     yield msg
         except ReplayError:
             raise
-        except Exception as e:  # BLFParseError, zlib.error, struct.error, …
-            where = f"after {n} frames" if n else "at its start"
+        except Exception as e:  # python-can raises assorted errors on a bad line
             raise ReplayError(
-                f"{f}: not a readable {f.suffix.lstrip('.').lower()} recording {where} "
-                f"({_why(e)}); fix: give an undamaged recording (rename it if its suffix "
-                "names the wrong format)") from None
+                f"{f}:{lines.lineno}: not a candump frame ({_why(e)}): "
+                f"{lines.line.strip()[:60]!r}; fix: repair or delete that line (a candump "
+                "line reads '(1700000000.000000) can0 181#0102')") from None
+        return
+    n = 0
+    try:
+        with can.LogReader(f) as reader:
+            for msg in reader:
+                if not math.isfinite(msg.timestamp):
+                    raise ValueError(f"frame {n + 1}: time stamp {msg.timestamp} is not a "
+                                     "finite number")
+                n += 1
+                yield msg
+    except ReplayError:
+        raise
+    except Exception as e:  # BLFParseError, zlib.error, struct.error, …
+        where = f"after {n} frames" if n else "at its start"
+        raise ReplayError(
+            f"{f}: not a readable {f.suffix.lstrip('.').lower()} recording {where} "
+            f"({_why(e)}); fix: give an undamaged recording (rename it if its suffix "
+            "names the wrong format)") from None
 
 
 def _why(e: BaseException) -> str:

@@ -60,7 +60,8 @@ def build_parser() -> argparse.ArgumentParser:
     for name, module in COMMANDS.items():
         mod = importlib.import_module(f"rsra.daq.cli.commands.{module}")
         p = mod.add_parser(sub, name)
-        p.set_defaults(_run=mod.run)
+        p.set_defaults(_run=mod.run, _outputs={"log_file": "file", **getattr(mod, "OUTPUTS", {})},
+                       _inputs=getattr(mod, "INPUTS", ()))
     return parser
 
 
@@ -78,6 +79,9 @@ def _main(argv: list[str] | None) -> int:
         parser.print_help()
         return 2
     try:
+        from rsra.daq.cli.outputs import check_outputs
+
+        check_outputs(args, args._outputs, args._inputs)  # an output never replaces an input: before any work
         return int(args._run(args) or 0)
     except KeyboardInterrupt:
         return 130

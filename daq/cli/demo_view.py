@@ -14,13 +14,15 @@ import numpy as np
 from rsra.config.units import axis_units, to_units
 
 AXES = ("X", "Y", "Z", "L", "M", "N")
-HELD_FRACTION = 0.1  # a load is "held" when its revolution mean moved less than this × bound
+SETTLE_S = 1.0  # the filtered H is scored once the filter has settled from its zero start
 
 
 class DemoState:
     """The latest records, updated from the service thread, read by the view thread."""
 
     def __init__(self, cfg, static_bound: np.ndarray, angle_names: tuple[str, ...]):
+        from rsra.daq.analysis.accuracy import PhaseAccuracy
+
         self.cfg = cfg
         self.lock = threading.Lock()
         self.hub: dict | None = None
@@ -34,49 +36,45 @@ class DemoState:
         self.samples = 0
         self.first_t: float | None = None
         self.wall0 = time.monotonic()
-        self.err2 = np.zeros(6)
-        self.err_n = 0
-        # "held" loads: the truth's mean over the last rotor revolution differs from the
-        # revolution before by less than HELD_FRACTION of the static bound (the mean over a
-        # revolution removes the rotor harmonics) — the figure to compare with the bound;
-        # ramps between conditions are scored too, in err2, but a τ = 0.1 s filter lags them
-        rev = 2 * math.pi / max(cfg.rotor.omega_nominal_rad_s, 1e-9) * cfg.sample_rate_hz
-        self._rev_n = max(1, int(round(rev)))
-        self.held_err2 = np.zeros(6)
-        self.held_n = 0
-        self._recent_truth: deque[np.ndarray] = deque(maxlen=2 * self._rev_n)
+        # the error against truth by phase (daq.analysis.accuracy: before the first accepted
+        # calibration, transient, calibrated steady state), each sample against the σ its
+        # hub_loads record published
+        self.calibrated = False
+        self.acc = {"H": PhaseAccuracy(), "H_static": PhaseAccuracy()}
+        self.sigma_H: np.ndarray | None = None  # the latest record's published σ of H
         self.accepted = 0
         self.rejected: dict[str, int] = {}
         self.flags: dict[str, int] = {}
         self.rate_marks: deque[tuple[float, int]] = deque(maxlen=40)  # (wall, samples)
 
     def on_record(self, key: str, payload: dict, truth=None) -> None:
+        from rsra.daq.analysis.accuracy import phase_of, published_sigma, starts_calibrated
+
         with self.lock:
             if key == "hub_loads":
                 self.hub = payload
                 self.samples += 1
                 if self.first_t is None:
                     self.first_t = payload["t"]
-                for f in payload.get("flags") or []:
+                flags = payload.get("flags") or []
+                if self.samples == 1 and starts_calibrated(flags):
+                    self.calibrated = True  # a saved posterior: no start phase
+                for f in flags:
                     self.flags[f] = self.flags.get(f, 0) + 1
+                H, Hs = payload.get("H"), payload.get("H_static")
+                self.sigma_H = (None if H is None
+                                else published_sigma(payload, self.static_bound, "H"))
                 if truth is not None:
                     self.truth_H = np.asarray(truth.H_true, float)
                     self.truth_alpha = np.asarray(truth.alpha_true, float)
-                    H = payload.get("H")
-                    # score after the filter has settled (1 s)
-                    if H is not None and payload["t"] - self.first_t > 1.0:
-                        e = np.asarray(H, float) - self.truth_H
-                        self.err2 += e * e
-                        self.err_n += 1
-                    self._recent_truth.append(self.truth_H)
-                    rt = self._recent_truth
-                    if (H is not None and payload["t"] - self.first_t > 1.0
-                            and len(rt) == rt.maxlen):
-                        a = np.array(rt)
-                        step = a[self._rev_n:].mean(0) - a[: self._rev_n].mean(0)
-                        if np.all(np.abs(step) <= HELD_FRACTION * self.static_bound):
-                            self.held_err2 += e * e
-                            self.held_n += 1
+                    phase = phase_of(self.calibrated, flags)
+                    if H is not None and payload["t"] - self.first_t > SETTLE_S:
+                        self.acc["H"].add(phase, np.asarray(H, float) - self.truth_H,
+                                          self.sigma_H)
+                    if Hs is not None:
+                        self.acc["H_static"].add(
+                            phase, np.asarray(Hs, float) - self.truth_H,
+                            published_sigma(payload, self.static_bound, "H_static"))
             elif key == "health":
                 self.health = payload
             elif key == "angles":
@@ -84,9 +82,34 @@ class DemoState:
                 self.runs.append(payload)
                 if payload.get("accepted"):
                     self.accepted += 1
+                    self.calibrated = True  # (published at the sample it applies from)
                 else:
                     r = str(payload.get("reason"))
                     self.rejected[r] = self.rejected.get(r, 0) + 1
+
+    def by_phase(self) -> dict:
+        """{"H": …, "H_static": …}: PhaseAccuracy.summary() of each (call under the lock)."""
+        return {k: a.summary() for k, a in self.acc.items()}
+
+
+PHASE_WORDS = {"start": "uncalibrated angles", "transient": "ramps, manoeuvres",
+               "steady": "calibrated: the claim"}
+
+
+def phase_line(by_phase: dict) -> str:
+    """The filtered H per phase: worst axis RMS error/σ, fraction beyond 3σ, samples, and
+    what the phase is — one line each."""
+    from rsra.daq.analysis.accuracy import PHASES
+
+    rows = []
+    for p in PHASES:
+        v = (by_phase.get("H") or {}).get(p)
+        if v:
+            rows.append(f"  {p:9s} {max(v['rms_over_sigma']):5.2f} "
+                        f"{100 * max(v['beyond_3sigma']):5.1f} % {v['samples']:>7d}  "
+                        f"{PHASE_WORDS[p]}")
+    return "Ĥ vs published σ: worst-axis err/σ, beyond 3σ, samples" + (
+        "\n" + "\n".join(rows) if rows else ": —")
 
 
 def _f(x, fmt="{:9.1f}") -> str:
@@ -123,7 +146,8 @@ def render(state: DemoState, title: str, units: str):
         tH = None if state.truth_H is None else state.truth_H.copy()
         ta = None if state.truth_alpha is None else state.truth_alpha.copy()
         n, first_t = state.samples, state.first_t
-        rms = np.sqrt(state.held_err2 / state.held_n) if state.held_n else None
+        bp = state.by_phase()
+        sH = None if state.sigma_H is None else state.sigma_H.copy()
         acc, rej = state.accepted, dict(state.rejected)
     parts = []
     now = time.monotonic()
@@ -144,10 +168,11 @@ def render(state: DemoState, title: str, units: str):
     parts.append(head)
 
     u = axis_units(units)
-    t = Table(title="hub loads (" + (hub or {}).get("frame", "body") + " axes)", expand=False)
-    for c in ("axis", "truth", "Ĥ", "static", "RMS held", "bound σ"):
+    t = Table(title="hub loads (" + (hub or {}).get("frame", "body") + " axes); err/σ, >3σ: "
+              "steady state", expand=False)
+    for c in ("axis", "truth", "Ĥ", "static", "σ Ĥ", "err/σ", ">3σ"):
         t.add_column(c, justify="left" if c == "axis" else "right", no_wrap=True,
-                     min_width=7 if c == "axis" else 8)
+                     min_width=7 if c == "axis" else 5 if c in ("err/σ", ">3σ") else 8)
 
     def conv(v):
         return None if v is None else to_units(np.asarray(v, float), units)
@@ -155,15 +180,18 @@ def render(state: DemoState, title: str, units: str):
     H = conv(None if hub is None else hub.get("H"))
     Hs = conv(None if hub is None else hub.get("H_static"))
     T = conv(tH)
-    R = conv(rms)
-    B = conv(state.static_bound)
+    S = conv(sH)
+    st = (bp.get("H") or {}).get("steady")
     g = "{:8.0f}"
     for i, ax in enumerate(AXES):
         t.add_row(f"{ax} [{u[i]}]", _f(None if T is None else T[i], g),
                   _f(None if H is None else H[i], g), _f(None if Hs is None else Hs[i], g),
-                  _f(None if R is None else R[i], g), _f(B[i], g))
+                  _f(None if S is None else S[i], g),
+                  _f(None if st is None else st["rms_over_sigma"][i], "{:.2f}"),
+                  _f(None if st is None else 100 * st["beyond_3sigma"][i], "{:.1f}%"))
     flags = (hub or {}).get("flags") or []
-    flag_text = Text("flags: " + (", ".join(flags) if flags else "none"))
+    flag_text = Text("flags: " + (", ".join(flags) if flags else "none") + "\n"
+                     + phase_line(bp))
 
     at = Table(title="load-cell angles (deg)", expand=False)
     for c in ("angle", "truth", "estimate", "± σ", "err/σ"):
@@ -223,3 +251,59 @@ def render(state: DemoState, title: str, units: str):
         parts.append(Text("sync: " + sync_text(health)))
     return Panel(Group(*parts), title="rsra demo — Ctrl-C to stop", expand=False)
 
+
+
+def render_plain(state: DemoState, title: str, units: str) -> str:
+    """What the live view shows, as compact plain text for a pipe or a file (no box drawing,
+    no colour): one block per interval."""
+    with state.lock:
+        hub, health, ang = state.hub, state.health, state.angles
+        tH = None if state.truth_H is None else state.truth_H.copy()
+        sH = None if state.sigma_H is None else state.sigma_H.copy()
+        n, first_t = state.samples, state.first_t
+        bp = state.by_phase()
+        acc, rej = state.accepted, dict(state.rejected)
+        last = state.runs[-1] if state.runs else None
+    acq = 0.0 if hub is None or first_t is None else hub["t"] - first_t
+    smp = (health or {}).get("samples") or {}
+    u = axis_units(units)
+
+    def conv(v):
+        return None if v is None else to_units(np.asarray(v, float), units)
+
+    H, Hs = conv((hub or {}).get("H")), conv((hub or {}).get("H_static"))
+    T, S = conv(tH), conv(sH)
+    st = (bp.get("H") or {}).get("steady")
+    lines = [f"{title}: acquisition {acq:.1f} s, {n} samples, lost {smp.get('lost', 0)}, "
+             f"identification {acc} accepted"
+             + (", " + ", ".join(f"{v} {k}" for k, v in rej.items()) if rej else "")]
+    lines.append(f"  {'axis':10s} {'truth':>9s} {'H':>9s} {'static':>9s} {'sigma H':>9s} "
+                 f"{'steady err/sigma':>16s} {'>3sigma':>8s}")
+    g = "{:9.0f}"
+
+    def cell(v, i, fmt=g, width=9):
+        return _f(None if v is None else v[i], fmt).rjust(width)
+
+    z = None if st is None else st["rms_over_sigma"]
+    b = None if st is None else [100 * x for x in st["beyond_3sigma"]]
+    for i, ax in enumerate(AXES):
+        lines.append(f"  {ax + ' [' + u[i] + ']':10s} {cell(T, i)} {cell(H, i)} {cell(Hs, i)} "
+                     f"{cell(S, i)} {cell(z, i, '{:.2f}', 16)} {cell(b, i, '{:.1f} %', 8)}")
+    lines.append("  " + phase_line(bp).replace("\n", "\n  "))
+    flags = (hub or {}).get("flags") or []
+    if flags:
+        lines.append("  flags: " + ", ".join(flags))
+    if last is not None:
+        verdict = "accepted" if last.get("accepted") else f"rejected ({last.get('reason')})"
+        lines.append(f"  last run: {last.get('mode')}/{last.get('content')} {verdict}, "
+                     f"{last.get('determined')}/{len(last.get('names') or [])} determined"
+                     + ("" if last.get("accepted") or not last.get("explanation")
+                        else f": {last['explanation']}"))
+    if ang is not None and ang.get("alpha") is not None and ang.get("P"):
+        worst = max(math.degrees(math.sqrt(max(ang["P"][i][i], 0.0)))
+                    for i in range(len(ang["alpha"])))
+        lines.append(f"  angles: largest σ {worst:.3f}° ({ang.get('determined')} of "
+                     f"{len(ang['alpha'])} directions determined)")
+    if health:
+        lines.append("  sync: " + sync_text(health))
+    return "\n".join(lines)

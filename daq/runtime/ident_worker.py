@@ -100,9 +100,16 @@ def run_job(cfg, runs: dict, cache, job: dict) -> dict:
     ident = runs[mode]
     seq = job["seq"]
     valid = job["ok"] & (job["known"] if mode == "known_loads" else True)
+    dpsi = job.get("dpsi") if mode == "filter_error" else None
     if mode == "filter_error":
         omega = float(np.median(job["omega"]))
-        design = cache.design_for(omega)
+        from rsra.estimator.filters import AZIMUTH_GAIN_BAND
+
+        held = (dpsi is not None and ident.design is not None and not ident.design.rotor_stopped
+                and not cache.is_stopped(omega)
+                and abs(omega / ident.design.omega - 1.0) <= AZIMUTH_GAIN_BAND)
+        # azimuth mode: the harmonics turn with the measured azimuth, the gain is held
+        design = ident.design if held else cache.design_for(omega)
         if design is not ident.design:
             ident.design = design  # an Ω redesign is not a discontinuity (the state carries over)
     # a window that skips samples (lost, or the start) is a discontinuity for the filter
@@ -114,13 +121,18 @@ def run_job(cfg, runs: dict, cache, job: dict) -> dict:
     n_ext = ident.par.model.external.wrenches.shape[1]
     q = np.zeros((len(job["T"]), n_ext)) if n_ext else None
     rec = ident.run_window(job["z"], job["T"], job["known_H"] if mode == "known_loads" else None,
-                           q, seq0=int(seq[0]), valid=valid, t=float(job["t"][-1]))
+                           q, seq0=int(seq[0]), valid=valid, t=float(job["t"][-1]), dpsi=dpsi)
     # when the other mode runs next, its state must restart after new angles
     if rec.accepted:
         for other in runs.values():
             if other is not ident:
                 other.mark_discontinuity()
     out = sanitise(rec.to_dict())  # strict JSON values, as they cross the process boundary
+    from rsra.daq.runtime.reasons import explain, input_labels
+
+    # the figures behind the decision and the likely cause, in words (never the decision)
+    out["explanation"], out["hint"] = explain(rec, {**job, "mode": mode}, cfg.identification,
+                                              input_labels(cfg))
     out["applies_from_seq"] = int(job["applies_from_seq"])
     out["late"] = False
     out["restarted"] = False

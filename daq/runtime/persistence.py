@@ -20,10 +20,11 @@ from __future__ import annotations
 import json
 import os
 import re
+import stat
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import IO, TYPE_CHECKING
 
 from rsra.daq.jsonout import sanitise
 
@@ -47,33 +48,105 @@ def own_temp_pid(name: str, target_name: str) -> int | None:
 
 
 def write_text_atomic(path: str | Path, text: str) -> None:
-    path = Path(os.path.realpath(path))  # through a symbolic link: the link stays the user's
+    _write_atomic(path, text.encode("utf-8"))
+
+
+def write_bytes_atomic(path: str | Path, data: bytes) -> None:
+    """The same atomic write for a binary file (the simulator's truth .npz)."""
+    _write_atomic(path, data)
+
+
+def _write_atomic(path: str | Path, data: bytes) -> None:
     # no parent folder is created (nothing the user did not name): a missing one fails here
-    fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path), suffix=".tmp", dir=path.parent)
+    out = AtomicOutput(path, "wb")
     try:
-        try:  # the mode of the file it replaces, else what open() would give (not mkstemp's 0600)
-            mode = os.stat(path).st_mode & 0o7777
+        out.open().write(data)
+        out.commit()
+    finally:
+        out.discard()
+
+
+class AtomicOutput:
+    """A file written under a temporary name beside ``path`` and renamed into place by
+    :meth:`commit`; :meth:`discard` removes it and leaves the old file (if any) whole. Opened
+    on the first :meth:`open` (an output refused before anything is written leaves nothing).
+    A symbolic link is written through: the file it points to is replaced, the link stays. A
+    target that is not a regular file (``/dev/stdout``, a named pipe) is written in place."""
+
+    def __init__(self, path: str | os.PathLike[str], mode: str = "w"):
+        self.path = Path(path)
+        self.target = Path(os.path.realpath(self.path))
+        self.mode = mode
+        self.tmp: Path | None = None
+        self.file: IO | None = None
+
+    def open(self) -> IO:
+        if self.file is None and self._special():  # a device or a pipe: written in place
+            self.file = open(self.target, self.mode, **({} if "b" in self.mode
+                                                        else {"encoding": "utf-8"}))
+        if self.file is None:
+            fd, tmp = tempfile.mkstemp(prefix=temp_prefix(self.target), suffix=".tmp",
+                                       dir=self.target.parent)
+            self.tmp = Path(tmp)
+            try:
+                mode = os.stat(self.target).st_mode & 0o7777
+            except OSError:
+                umask = os.umask(0)
+                os.umask(umask)
+                mode = 0o666 & ~umask
+            os.fchmod(fd, mode)
+            self.file = (os.fdopen(fd, self.mode, encoding="utf-8") if "b" not in self.mode
+                         else os.fdopen(fd, self.mode))
+        return self.file
+
+    def commit(self) -> None:
+        if self.file is None:
+            self.open()
+        assert self.file is not None
+        self.file.flush()
+        if self.tmp is None:  # written in place (a device or a pipe)
+            self.file.close()
+            self.file = None
+            return
+        os.fsync(self.file.fileno())
+        self.file.close()
+        os.replace(self.tmp, self.target)
+        self.file = self.tmp = None
+        try:  # make the rename durable
+            dfd = os.open(self.target.parent, os.O_RDONLY)
+            try:
+                os.fsync(dfd)
+            finally:
+                os.close(dfd)
         except OSError:
-            umask = os.umask(0)
-            os.umask(umask)
-            mode = 0o666 & ~umask
-        os.fchmod(fd, mode)
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    try:  # make the rename durable
-        dfd = os.open(path.parent, os.O_RDONLY)
+            pass
+
+    def _special(self) -> bool:
         try:
-            os.fsync(dfd)
-        finally:
-            os.close(dfd)
-    except OSError:
-        pass
+            return not stat.S_ISREG(os.stat(self.target).st_mode)
+        except OSError:
+            return False
+
+    def discard(self) -> None:
+        if self.file is not None:
+            try:
+                self.file.close()
+            except OSError:
+                pass
+        if self.tmp is not None:
+            self.tmp.unlink(missing_ok=True)
+        self.file = self.tmp = None
+
+
+def save_figure(fig, path: str | Path, **kwargs) -> None:
+    """A matplotlib figure written atomically (:class:`AtomicOutput`), in the format of the
+    target's suffix."""
+    out = AtomicOutput(path, "wb")
+    try:
+        fig.savefig(out.open(), format=Path(path).suffix.lstrip(".") or "png", **kwargs)
+        out.commit()
+    finally:
+        out.discard()
 
 
 def save_posterior(path: str | Path, state: PosteriorState) -> None:

@@ -19,6 +19,9 @@ import numpy as np
 from rsra.config.rig import DESIGN_BAND, ConfigError, RigConfig
 from rsra.daq.bus.assembler import channels_payload
 from rsra.daq.bus.decoder import DecodeTable
+from rsra.daq.runtime.hubpath import HubKernel
+from rsra.daq.runtime.hubpath import load as load_hub_kernel
+from rsra.daq.runtime.reasons import input_labels
 from rsra.daq.runtime.records import ABSENT, AnglesRecord, IdentJob
 from rsra.daq.runtime.stuck import StuckMonitor
 from rsra.estimator.balance import inertial_load_matrix
@@ -29,7 +32,7 @@ from rsra.estimator.angle_uncertainty import (
     HubAngleVariance,
     angle_covariance,
 )
-from rsra.estimator.filters import LoadFilter
+from rsra.estimator.filters import AZIMUTH_MISSING, AzimuthTracker, LoadFilter
 from rsra.estimator.geometry import hub_transfer_matrix, wrench_matrix
 from rsra.estimator.noise_budget import noise_budget
 from rsra.estimator.structure import StructureCorrection
@@ -59,12 +62,18 @@ class WindowBuffer:
         self.ok = np.zeros(n, dtype=bool)  # load cells and accelerometers present
         self.known = np.zeros(n, dtype=bool)  # balance present
         self.omega = np.zeros(n)
+        self.dpsi = np.full(n, np.nan)  # the rotor's turn since the last sample (azimuth mode)
+        # what each sample lacked (bits of EstimatorPipeline.input_labels): reported in a
+        # rejected run's explanation (daq.runtime.reasons), never used to decide
+        self.missing = np.zeros(n, dtype=np.uint64)
         self.count = 0
 
-    def add(self, seq, t, T, z, H, ok, known, omega) -> None:
+    def add(self, seq, t, T, z, H, ok, known, omega, dpsi=None, missing: int = 0) -> None:
         i = self.count % self.n
         self.T[i], self.z[i], self.H[i] = T, z, H
+        self.dpsi[i] = np.nan if dpsi is None else dpsi
         self.seq[i], self.t[i], self.ok[i], self.known[i], self.omega[i] = seq, t, ok, known, omega
+        self.missing[i] = missing
         self.count += 1
 
     def window(self) -> dict:
@@ -73,14 +82,16 @@ class WindowBuffer:
         idx = (np.arange(self.count - m, self.count)) % self.n
         return {"T": self.T[idx].copy(), "z": self.z[idx].copy(), "known_H": self.H[idx].copy(),
                 "seq": self.seq[idx].copy(), "t": self.t[idx].copy(), "ok": self.ok[idx].copy(),
-                "known": self.known[idx].copy(), "omega": self.omega[idx].copy()}
+                "known": self.known[idx].copy(), "omega": self.omega[idx].copy(),
+                "dpsi": self.dpsi[idx].copy(),
+                "missing": self.missing[idx].copy()}
 
 
 class EstimatorPipeline:
     """Per-sample estimation for the live service and for replay (one code path)."""
 
     def __init__(self, cfg: RigConfig, alpha0: np.ndarray, *, identification: bool = True,
-                 table: DecodeTable | None = None):
+                 table: DecodeTable | None = None, hub_kernel: bool = True):
         self.cfg = cfg
         self.model = cfg.rig_model()
         self.fs = cfg.sample_rate_hz
@@ -93,13 +104,18 @@ class EstimatorPipeline:
         self._Mf = inertial_load_matrix(self.model)
         self._D = self.model.external.wrenches
         f = cfg.filter
+        # issue 25: the harmonic states turn with the rotor's measured azimuth
+        self.azimuth_mode = cfg.rotor.harmonic_phase == "azimuth"
+        self.azimuth = AzimuthTracker(cfg.rotor.omega_nominal_rad_s, 1.0 / self.fs)
+        self.azimuth_missing = 0  # samples advanced by the design's Ω (health)
         self.cache = design_cache(cfg, model=self.model)
         # a redesign takes 10-60 ms, longer than a sample: design the expected band now
         w0 = cfg.rotor.omega_nominal_rad_s
         try:
             self.cache.prefill(w0 * (1 - PREFILL_BAND), w0 * (1 + PREFILL_BAND))
             self.load_filter = LoadFilter(
-                self.cache, self.alpha, invalid_after_samples=int(round(f.invalid_after_s * self.fs)))
+                self.cache, self.alpha, invalid_after_samples=int(round(f.invalid_after_s * self.fs)),
+                azimuth=self.azimuth_mode)
         except (np.linalg.LinAlgError, ValueError) as e:  # the config check (Nyquist) passed
             if isinstance(e, ConfigError):
                 raise
@@ -125,6 +141,10 @@ class EstimatorPipeline:
         self.window_n = int(round(idc.window_s * self.fs))
         self.apply_delay_n = int(round(idc.apply_delay_s * self.fs))
         self.buffer = WindowBuffer(self.window_n, 3 * len(cfg.accelerometers))
+        # the inputs a sample may lack, as its flags name them (bit k of WindowBuffer.missing);
+        # the last bit: unusable without a flag naming why (a non-finite reading)
+        self.input_labels = input_labels(cfg)
+        self._input_bit = {lab: k for k, lab in enumerate(self.input_labels[:-1])}
         omega0 = cfg.rotor.omega_nominal_rad_s
         harm = tuple(cfg.filter.harmonics)
         n_ch = 7 + 6 + 6
@@ -163,6 +183,19 @@ class EstimatorPipeline:
         self._angle_var = HubAngleVariance(self.model.geometry, self.alpha, self._P_angles)
         self._sigma_angles = None  # the last measured sample's (predict-only samples keep it)
         self._angles_uncertain = False
+        # the compiled hub path (daq/runtime/hubpath.py): measured samples' first step in one
+        # call, the same records bit for bit; None: the reference path only (why: below)
+        self.hub_kernel: HubKernel | None = None
+        self.hub_kernel_status = "off (not asked)"
+        if hub_kernel and self.azimuth_mode:  # the kernel's filter step is the design's Φ
+            self.hub_kernel_status = "not used (rotor.harmonic_phase = azimuth)"
+        elif hub_kernel:
+            k, self.hub_kernel_status = load_hub_kernel()
+            if k is not None:
+                try:
+                    self.hub_kernel = HubKernel(k, self)
+                except ValueError as e:
+                    self.hub_kernel_status = f"not used ({e})"
 
     # --- identification results -------------------------------------------------------
     def deliver(self, rec: AnglesRecord, arrival_seq: int | None = None,
@@ -323,6 +356,36 @@ class EstimatorPipeline:
             q = None if s.drive is None else np.asarray(s.drive, float)
             drive_ok = q is not None and np.count_nonzero(np.isfinite(q)) == q.size
         measured = cells_ok and acc_ok and drive_ok and not bad_status
+        fast = None
+        dpsi = None
+        if measured and not flags and self.hub_kernel is not None and self.structure is None:
+            # the compiled hub path (daq/runtime/hubpath.py): the same records bit for bit;
+            # None where this sample needs the reference path below
+            fast = self.hub_kernel.first_step(s, seq, T, accel, q)
+        if fast is not None:
+            I, z, e, nis, omega, rec = fast
+            out.records.append(("hub_loads", rec))
+        else:
+            I, z, e, nis, omega, dpsi = self._first_reference(s, seq, T, accel, q, flags,
+                                                              measured, acc_ok, drive_ok, out)
+        yield out
+        out = PipelineOutput()
+        status = s.cell_status
+        if not isinstance(status, dict):
+            status = {n: int(b) for n, b in zip(self.cell_names, status)}
+        out.records.append(("channels", channels_payload(s, I=I, status=status)))
+        if (seq - self.first_seq) % self.innov_every == 0:
+            out.records.append(("innovations", {"seq": seq, "t": float(s.t), "e": e,
+                                                "nis": nis}))
+        if self.identification:
+            out.job = self._calibration_branch(s, seq, T, z, measured, omega, alpha, dpsi,
+                                               flags)
+        yield out
+
+    def _first_reference(self, s, seq, T, accel, q, flags, measured, acc_ok, drive_ok,
+                         out) -> tuple:
+        """The first step's reference path (numpy): every sample the compiled hub path does
+        not take, and all of them without it. Returns (I, z, e, nis, omega, dpsi)."""
         # (ndarray.dot: the same BLAS gemv as @, at half the call cost on these sizes, P5b)
         I = self._Mf.dot(accel) if acc_ok else np.full(6, np.nan)
         z = I - self._D.dot(q) if (q is not None and drive_ok) else I
@@ -356,11 +419,14 @@ class EstimatorPipeline:
         if self._last_seq is not None and seq - self._last_seq - 1 > lost:
             lost = seq - self._last_seq - 1
         self._last_seq = seq
+        dpsi = (self.azimuth.step(s.azimuth, omega, lost + 1) if self.azimuth_mode else None)
         res = self.load_filter.step(T if measured else np.zeros(7), zh if measured else np.zeros(6),
-                                    measured=measured, lost=lost)
+                                    measured=measured, lost=lost, dpsi=dpsi)
         for fl in res.flags:
             if fl not in flags:
                 flags.append(fl)
+        if self.azimuth_mode and dpsi is None and AZIMUTH_MISSING in res.flags:
+            self.azimuth_missing += 1
         if res.e is not None and self.transient.update(self.load_filter.design, res.e):
             flags.append(TRANSIENT)
         if self.identification_off:
@@ -378,38 +444,46 @@ class EstimatorPipeline:
             "seq": seq, "sync": int(s.sync), "t": float(s.t), "frame": self.frame,
             "H": None if res.H is None else res.H, "H_static": H_static,
             "sigma_angles": sigma_angles, "omega": omega_pub, "flags": flags}))
-        yield out
-        out = PipelineOutput()
-        status = s.cell_status
-        if not isinstance(status, dict):
-            status = {n: int(b) for n, b in zip(self.cell_names, status)}
-        out.records.append(("channels", channels_payload(s, I=I, status=status)))
-        if (seq - self.first_seq) % self.innov_every == 0:
-            out.records.append(("innovations", {"seq": seq, "t": float(s.t), "e": res.e,
-                                                "nis": res.nis}))
-        if self.identification:
-            out.job = self._calibration_branch(s, seq, T, z, measured, omega, alpha)
-        yield out
+        return I, z, res.e, res.nis, omega, dpsi
 
-    def _calibration_branch(self, s, seq, T, z, measured, omega, alpha) -> IdentJob | None:
+    def _missing_bits(self, flags, measured: bool) -> int:
+        m = 0
+        for f in flags:  # (usually none)
+            k = self._input_bit.get(f)
+            if k is not None:
+                m |= 1 << k
+        if not measured and not m:
+            m = 1 << (len(self.input_labels) - 1)
+        return m
+
+    def _calibration_branch(self, s, seq, T, z, measured, omega, alpha,
+                            dpsi=None, flags=()) -> IdentJob | None:
         known = s.known_H is not None and bool(np.isfinite(np.asarray(s.known_H, float)).all())
         if known:
             self.last_known_seq = seq
         Hk = np.asarray(s.known_H, float) if known else np.zeros(6)
         x = np.concatenate([T if measured else np.zeros(7), z if measured else np.zeros(6), Hk])
         # one causal content filter per mode; both see every sample so either can take over
-        yk = self.content["known_loads"].process(x[None, :])[0]
-        yf = self.content["filter_error"].process(x[None, :])[0]
+        hk = self.hub_kernel
+        if hk is not None:  # the same sections in C (daq/runtime/hubpath.py), bit for bit
+            yk = hk.content_step(self.content["known_loads"], x)
+            yf = hk.content_step(self.content["filter_error"], x)
+        else:
+            yk = self.content["known_loads"].process(x[None, :])[0]
+            yf = self.content["filter_error"].process(x[None, :])[0]
         fresh = self.last_known_seq is not None and seq - self.last_known_seq < self.fs * 0.5
         mode = "known_loads" if fresh else "filter_error"
         y = yk if mode == "known_loads" else yf
         if omega is None:
             omega = self.cfg.rotor.omega_nominal_rad_s
-        self.buffer.add(seq, s.t, y[:7], y[7:13], y[13:], measured, known, omega)
+        self.buffer.add(seq, s.t, y[:7], y[7:13], y[13:], measured, known, omega, dpsi,
+                        self._missing_bits(flags, measured) if flags or not measured else 0)
         since = seq - self.first_seq + 1
         if since < self.period_n or since % self.period_n != 0:
             return None
         w = self.buffer.window()
+        if not self.azimuth_mode:
+            w.pop("dpsi")
         job_id = self.next_job_id
         self.next_job_id += 1
         planned = int(w["seq"][-1]) + self.apply_delay_n

@@ -82,6 +82,8 @@ class AnglesRecord:
     candidates: Any = ABSENT
     next_conditions: Any = ABSENT  # known loads: the experiment design (issue 19)
     structure_fit: Any = ABSENT  # known loads: the structure the hub loads use (issue 19)
+    explanation: Any = ABSENT  # one line: the figures behind reason/detail (issue 28)
+    hint: Any = ABSENT  # one line: the likely cause and what to do (null when accepted)
     extra: tuple[tuple[str, Any], ...] = ()  # keys not declared above, in their order
 
     FIELDS: ClassVar[tuple[str, ...]]
@@ -153,6 +155,10 @@ class IdentJob:
     ok: np.ndarray
     known: np.ndarray
     omega: np.ndarray
+    # the rotor's turn since the previous sample (rad; NaN where the azimuth was missing or
+    # refused), azimuth mode only (issue 25): the calibration filter's Φ(Δψ)
+    dpsi: np.ndarray | None = None
+    missing: np.ndarray | None = None  # what each sample lacked (bits: pipeline.input_labels)
 
     def as_mapping(self) -> dict[str, Any]:
         """The job as the numerics take it (``daq.ident_worker.run_job``; no copies)."""

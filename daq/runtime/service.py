@@ -456,6 +456,13 @@ class Service:
                     log.warning("%s", warning)
                     self.warnings.append(warning)
             self.pipeline = EstimatorPipeline(cfg, alpha0, identification=use_ident)
+            # the compiled hub path (daq/runtime/hubpath.py) or why not (health too)
+            if self.pipeline.hub_kernel is not None:
+                log.info("hub path: %s", self.pipeline.hub_kernel_status)
+            else:
+                log.warning("hub path: the compiled kernel is %s; the pure-Python path runs "
+                            "(the same records, more CPU per sample)",
+                            self.pipeline.hub_kernel_status)
             # the covariance of the starting angles (hub_loads sigma_angles): the recording's
             # starting posterior in a replay, else the saved posterior's or the prior
             start = (recorded_initial if recorded_initial is not None and not opts.angles
@@ -656,8 +663,9 @@ class Service:
                      math.degrees(worst), rec.get("applies_from_seq"),
                      " (late)" if rec.get("late") else "")
         else:
-            log.info("identification rejected (%s, %s): %s", rec.get("mode"), rec.get("content"),
-                     rec.get("reason"))
+            log.info("identification rejected (%s, %s): %s: %s%s", rec.get("mode"),
+                     rec.get("content"), rec.get("reason"), rec.get("explanation") or
+                     rec.get("detail"), f"; hint: {rec.get('hint')}" if rec.get("hint") else "")
 
     def _on_health(self, item) -> None:
         """The reader's health record (daq.bus.health) with the service's parts, replaced
@@ -685,8 +693,16 @@ class Service:
         if self.outputs is not None and self.outputs.foxglove is not None:
             more["foxglove"] = frozen_map(self.outputs.foxglove.health())
         if self.pipeline is not None:  # readings the estimator refused (bad input, counted)
-            est = {"implausible_omega": self.pipeline.implausible_omega,
-                   "design_errors": self.pipeline.design_errors}
+            p = self.pipeline
+            est = {"implausible_omega": p.implausible_omega,
+                   "design_errors": p.design_errors,
+                   "inertial": p.cfg.angular,
+                   "harmonic_phase": p.cfg.rotor.harmonic_phase,
+                   "hub_kernel": p.hub_kernel_status,
+                   "hub_kernel_samples": 0 if p.hub_kernel is None else p.hub_kernel.samples}
+            if p.azimuth_mode:
+                est["azimuth_missing"] = p.azimuth_missing
+                est["azimuth_refused"] = p.azimuth.refused
             if self.pipeline.stuck is not None:
                 est.update(self.pipeline.stuck.health())
             more["estimator"] = frozen_map(est)
@@ -708,6 +724,12 @@ class Service:
                "accepted": self.ident_runs - sum(rej.values()),
                "rejected": rej, "published": dict(self.outputs.counts) if self.outputs else {},
                "deadline_misses": self.deadline_misses}
+        if self.reader is not None:  # the reader's counts, as a replay of the run reports them
+            h = self.reader.health()
+            out["samples_complete"] = h.samples.complete
+            out["samples_incomplete"] = h.samples.incomplete
+            if h.sync.gaps:
+                out["sync_gaps"] = {"count": h.sync.gaps, "longest_s": h.sync.gap_longest_s}
         if self.warnings:
             out["warnings"] = list(self.warnings)
         if self.pipeline is not None and (self.pipeline.implausible_omega

@@ -393,9 +393,11 @@ def make_source(cfg: RigConfig, opts: Any) -> Source:
 
 
 # -- the recorded angle schedule (replay) -------------------------------------------------------
-def read_angles_schedule(folder: Path) -> tuple[dict | None, list[dict]]:
-    """The starting posterior and the recorded angles records of a recording folder."""
-    p = folder / "angles.jsonl"
+def read_angles_schedule(folder: Path, file: Path | None = None
+                         ) -> tuple[dict | None, list[dict]]:
+    """The starting posterior and the recorded angles records of a recording folder (or of
+    ``file``, an ``angles.jsonl`` by another name)."""
+    p = folder / "angles.jsonl" if file is None else file
     if not p.is_file():
         return None, []
     initial, records = None, []

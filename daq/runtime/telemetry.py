@@ -139,7 +139,8 @@ class TelemetryPublisher:
 
     def publish(self, key: str, payload: dict) -> bytes:
         """Publish one record; returns its JSON text (UTF-8 bytes, as put)."""
-        data = dumpb(payload)
+        # a record the compiled hub path encoded carries its text (daq/runtime/hubpath.py)
+        data = getattr(payload, "encoded", None) or dumpb(payload)
         timer = stagetiming.TIMER  # None unless a benchmark asked (docs/performance.md P5b)
         if timer is not None and key == "hub_loads":
             timer.handed_on(payload["seq"])

@@ -21,7 +21,8 @@ from rsra.config.rig import RigConfig
 from rsra.estimator.posterior import PosteriorFileError, PosteriorState, determined_directions
 
 DIRECTION_COMPONENT_MIN = 0.1  # components of an undetermined direction worth naming
-SHOW_DIRECTIONS = 5  # undetermined directions listed in the table view (largest σ first)
+SHOW_DIRECTIONS = 5
+RANGE_Z = 1.959964  # the 95 % two-sided range of a Gaussian: ± 1.96 σ  # undetermined directions listed in the table view (largest σ first)
 
 
 def _configured_names(cfg: RigConfig) -> tuple[tuple[str, ...], tuple[str, ...]]:
@@ -57,6 +58,11 @@ def describe(state: PosteriorState, cfg: RigConfig) -> dict:
         "angles_deg": np.degrees(state.theta).tolist(),
         "sigma_deg": np.degrees(sigma).tolist(),
         "sigma_max_deg": math.degrees(smax),
+        # each angle's 95 % range (± RANGE_Z σ, the Gaussian posterior) and the physical
+        # range every angle is held to (identification.angle_limit_deg)
+        "range_deg": [[math.degrees(a - RANGE_Z * sg), math.degrees(a + RANGE_Z * sg)]
+                      for a, sg in zip(state.theta, sigma)],
+        "angle_limit_deg": math.degrees(cfg.identification.angle_limit_rad),
         "determined": det,
         "parameters": len(state.names),
         "determined_parameters": (sigma <= smax).tolist(),
@@ -119,7 +125,9 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
         "number of the covariance scaled by sigma_max. A corrupt or unreadable file: one-line "
         "error, exit 2.")
     common_options(show)
-    show.add_argument("state", metavar="STATE", help="the posterior file (JSON)")
+    show.add_argument("state", metavar="STATE",
+                      help="the posterior file (JSON), or a recording's angles.jsonl (or its "
+                      "folder): its last applied record, else its starting posterior")
     show.add_argument("--json", action="store_true",
                       help='print {"file", "names", "angles_deg", "sigma_deg", "sigma_max_deg", '
                       '"determined", "parameters", "determined_parameters", '
@@ -156,9 +164,72 @@ def _load(path: str) -> PosteriorState:
         raise UsageError(str(e)) from None
 
 
+def _is_recording(path: Path) -> bool:
+    """A recording's angles schedule (a folder holding angles.jsonl, or a JSON-lines file whose
+    first line is an angles record), not a saved posterior."""
+    if path.is_dir():
+        return (path / "angles.jsonl").is_file()
+    if path.suffix == ".jsonl":
+        return True
+    try:
+        with open(path, encoding="utf-8") as f:
+            first = f.readline()
+        rec = json.loads(first)
+    except (OSError, UnicodeDecodeError, ValueError):
+        return False
+    return isinstance(rec, dict) and ("initial" in rec or "accepted" in rec)
+
+
+def _from_recording(path: Path) -> tuple[PosteriorState, dict]:
+    """The posterior of a recording's last applied ``angles`` record (accepted; else its
+    starting posterior) and what to say about where it came from."""
+    from rsra.daq.cli.options import UsageError
+    from rsra.daq.runtime.sources import read_angles_schedule
+
+    file = path / "angles.jsonl" if path.is_dir() else path
+    initial, records = read_angles_schedule(file.parent, file)
+    applied = [(i, r) for i, r in enumerate(records) if r.get("accepted")]
+    if applied:
+        i, rec = applied[-1]
+        source = {"record": "last_applied", "index": i + 1, "records": len(records),
+                  "after": len(records) - i - 1,
+                  "reset_after": any(r.get("reason") == "reset" for r in records[i + 1:])}
+    elif initial is not None:
+        rec = initial
+        source = {"record": "initial", "index": 0, "records": len(records),
+                  "after": len(records), "reset_after": False}
+    else:
+        raise UsageError(f"{file}: holds no angles record (an empty schedule); fix: give a "
+                         "recording made with identification on, or a posterior file")
+    names, alpha, P = rec.get("names"), rec.get("alpha"), rec.get("P")
+    try:
+        theta = np.asarray(alpha, float).reshape(-1)
+        Pm = np.asarray(P, float)
+        if (not isinstance(names, list) or len(names) != theta.size
+                or Pm.shape != (theta.size, theta.size) or not np.all(np.isfinite(Pm))):
+            raise ValueError
+    except (TypeError, ValueError):
+        raise UsageError(f"{file}: its {'starting' if rec is initial else 'last applied'} "
+                         "record has no usable names, alpha and P; fix: give a posterior "
+                         "file") from None
+    seq = rec.get("applies_from_seq")
+    state = PosteriorState(names=tuple(names), theta=theta, P=Pm,
+                           applies_from_seq=seq if isinstance(seq, int) else None, t=rec.get("t"),
+                           structure=rec.get("structure_fit"))
+    return state, source
+
+
 def _show(cfg: RigConfig, args: argparse.Namespace) -> int:
-    state = _load(args.state)
+    path = Path(args.state)
+    source = None
+    if _is_recording(path):
+        state, source = _from_recording(path)
+    else:
+        state = _load(args.state)
     d = describe(state, cfg)
+    if source is not None:
+        d["source"] = source
+        d["version"] = None  # a recording's record: no file format, no rig fingerprint
     if args.json:
         print(json.dumps({"file": str(args.state), **d}, allow_nan=False))
         return 0
@@ -168,13 +239,24 @@ def _show(cfg: RigConfig, args: argparse.Namespace) -> int:
 
     console = make_console()
     smax = d["sigma_max_deg"]
-    t = Table(title=f"Posterior {args.state} (rig {cfg.rig_name!r})")
-    for col in ("parameter", "angle (deg)", "σ (deg)", f"σ ≤ {smax:g}°"):
+    title = f"Posterior {args.state} (rig {cfg.rig_name!r})"
+    if source is not None:
+        title = (f"Recording {args.state}: "
+                 + (f"the last applied angles record ({source['index']} of {source['records']})"
+                    if source["record"] == "last_applied" else
+                    "no record applied: the starting posterior")
+                 + f" (rig {cfg.rig_name!r})")
+    t = Table(title=title)
+    for col in ("parameter", "angle (deg)", "σ (deg)", "95 % range (deg)", f"σ ≤ {smax:g}°"):
         t.add_column(col, justify="left" if col == "parameter" else "right")
-    for n, a, s, ok in zip(d["names"], d["angles_deg"], d["sigma_deg"],
-                           d["determined_parameters"]):
-        t.add_row(n, f"{a:+.4f}", f"{s:.4f}", "[green]yes[/green]" if ok else "[yellow]no[/yellow]")
+    for n, a, s, (lo, hi), ok in zip(d["names"], d["angles_deg"], d["sigma_deg"],
+                                     d["range_deg"], d["determined_parameters"]):
+        t.add_row(n, f"{a:+.4f}", f"{s:.4f}", f"{lo:+.3f} … {hi:+.3f}",
+                  "[green]yes[/green]" if ok else "[yellow]no[/yellow]")
     console.print(t)
+    console.print(f"range: angle ± 1.96 σ, where the true angle lies with 95 % probability (the "
+                  f"posterior is Gaussian); every angle is held within ±{d['angle_limit_deg']:g}° "
+                  "(identification.angle_limit_deg)", highlight=False)
     cond = "inf" if d["condition"] is None else f"{d['condition']:.3g}"
     applies = ("from the start" if d["applies_from_seq"] is None
                else f"from sample {d['applies_from_seq']}")
@@ -189,10 +271,14 @@ def _show(cfg: RigConfig, args: argparse.Namespace) -> int:
     if len(undet) > SHOW_DIRECTIONS:
         console.print(f"  … and {len(undet) - SHOW_DIRECTIONS} more (--json lists them all)",
                       highlight=False)
+    if source is not None and source["after"]:
+        console.print(f"note: {source['after']} later record(s) not applied"
+                      + ("; a later reset reopened the σ (the last record's P is the current "
+                         "posterior)" if source["reset_after"] else ""), highlight=False)
     if d["rig_difference"] is not None:
         console.print(f"note: saved on another rig ({d['rig_difference']}): --angles refuses "
                       "it without --accept-rig-mismatch", highlight=False)
-    elif d["version"] == 1:
+    elif d["version"] == 1 and source is None:
         console.print("note: format version 1, without a rig fingerprint", highlight=False)
     if not d["matches_config"]:
         console.print("note: the config identifies other parameters: the service would refuse "

@@ -14,6 +14,9 @@ from rsra.daq.runtime.persistence import write_text_atomic
 from rsra.estimator.content import KINDS
 
 
+OUTPUTS = {"out": "file"}  # checked against the inputs before any work (daq.cli.outputs)
+
+
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
     from rsra.daq.cli.options import common_options
 

@@ -11,7 +11,11 @@ import threading
 import time
 from pathlib import Path
 
+from rsra.daq.cli.outputs import REPORT_FILES
+
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+PLAIN_INTERVAL_S = 5.0  # off a terminal: the plain-text view every this many wall seconds
+OUTPUTS = {"report": REPORT_FILES, "record": "folder"}  # against the inputs (daq.cli.outputs)
 
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
@@ -49,6 +53,9 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
 
     add_foxglove_options(p)
     add_realtime_priority(p)
+    p.add_argument("--json", action="store_true",
+                   help='also print the final summary as one JSON line {"summary": …} on '
+                   "stdout (for scripts)")
     p.add_argument("--log-level", default="warning",
                    choices=("debug", "info", "warning", "error"), help="default warning")
     return p
@@ -78,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
     from rsra.daq.cli.options import UsageError
     from rsra.daq.cli.options import check_sim_faults, config_for_run, setup_logging
     from rsra.daq.cli.console import make_console
-    from rsra.daq.cli.demo_view import DemoState, render
+    from rsra.daq.cli.demo_view import DemoState, render, render_plain
     from rsra.daq.runtime.service import Service, ServiceOptions, initial_angles
     from rsra.estimator.noise_budget import noise_budget
     from rsra.estimator.posterior import PosteriorFileError
@@ -163,12 +170,10 @@ def run(args: argparse.Namespace) -> int:
             th.join(timeout=0.25)
             if live is not None:
                 live.update(render(state, title, args.units))
-            elif time.monotonic() - last_line > 5.0:  # not a terminal: a progress line
+            elif time.monotonic() - last_line > PLAIN_INTERVAL_S and state.samples:
+                # not a terminal: what the view shows, as a compact plain-text table
                 last_line = time.monotonic()
-                with state.lock:
-                    n, acc, rej = state.samples, state.accepted, dict(state.rejected)
-                print(f"demo: {n} samples, identification accepted {acc}, rejected {rej}",
-                      flush=True)
+                print(render_plain(state, title, args.units), flush=True)
     except KeyboardInterrupt:
         svc.stop()
         th.join()
@@ -176,12 +181,14 @@ def run(args: argparse.Namespace) -> int:
         if live is not None:
             live.update(render(state, title, args.units))
             live.stop()
+        elif state.samples:  # the last state, as the terminal view leaves it
+            print(render_plain(state, title, args.units), flush=True)
         for c in closers:
             c()
     if "error" in result:
         raise result["error"]
     summary = result.get("summary", {})
-    _print_summary(console, summary, state)
+    _print_summary(console, summary, state, as_json=args.json)
     if args.report:
         from rsra.daq.analysis.report import write_report
         from rsra.sim_bus.truth import read_truth
@@ -193,22 +200,29 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _print_summary(console, summary: dict, state) -> None:
+def _print_summary(console, summary: dict, state, as_json: bool = False) -> None:
+    """The final summary as readable text (the JSON behind --json)."""
     import numpy as np
 
+    from rsra.daq.analysis.accuracy import MEANING, phase_lines
+
+    rej = summary.get("rejected") or {}
     lines = [f"samples {summary.get('samples', 0)}, lost {summary.get('lost', 0)}, "
              f"identification runs {summary.get('identification_runs', 0)} "
-             f"(accepted {summary.get('accepted', 0)}, rejected {summary.get('rejected', {})})"]
+             f"(accepted {summary.get('accepted', 0)}"
+             + (", rejected " + ", ".join(f"{v} {k}" for k, v in rej.items()) if rej else "")
+             + ")"]
     with state.lock:
-        if state.held_n:
-            ratio = np.sqrt(state.held_err2 / state.held_n) / state.static_bound
-            lines.append(f"hub-load RMS error / static bound, held loads ({state.held_n} "
-                         "samples; X Y Z L M N): " + " ".join(f"{r:.2f}" for r in ratio))
-        if state.err_n:
-            ratio = np.sqrt(state.err2 / state.err_n) / state.static_bound
-            lines.append(f"hub-load RMS error / static bound, every sample after 1 s, ramps "
-                         f"included ({state.err_n}): " + " ".join(f"{r:.2f}" for r in ratio))
+        bp = state.by_phase()
         ang, ta = state.angles, state.truth_alpha
+    if any(bp["H"].values()) or any(bp["H_static"].values()):
+        lines.append("hub-load error against truth by phase, each sample against the σ "
+                     "published for it (RMS error/σ and beyond 3σ per axis):")
+        for name in ("H", "H_static"):
+            lines += [x for x in phase_lines(bp[name], name, "  ")
+                      if not x.lstrip().startswith("(")]
+        lines += [f"  {p}: {m}" for p, m in MEANING.items() if bp["H"].get(p)
+                  or bp["H_static"].get(p)]
     if ang and ang.get("alpha") and ta is not None:
         names = ang["names"]
         e = np.degrees([ang["alpha"][i] - ta[state.angle_names.index(n)]
@@ -221,6 +235,6 @@ def _print_summary(console, summary: dict, state) -> None:
         e = np.degrees(np.asarray(summary["alpha_applied"], float) - ta)
         lines.append(f"angles (held, no identification run): max |error| "
                      f"{np.abs(e).max():.3f} deg")
-    console.print("[bold]summary[/]: " + "\n  ".join(lines))
-    if not console.is_terminal:
-        print(json.dumps({"summary": summary}, default=str), file=sys.stdout)
+    console.print("[bold]summary[/]: " + "\n  ".join(lines), highlight=False)
+    if as_json:
+        print(json.dumps({"summary": summary}, default=str), file=sys.stdout, flush=True)

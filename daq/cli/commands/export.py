@@ -15,6 +15,9 @@ from pathlib import Path
 TELEMETRY_SUFFIXES = (".jsonl", ".json")
 
 
+OUTPUTS = {"dbc": "file", "mcap": "file", "parquet": "folder"}  # against the inputs (daq.cli.outputs)
+
+
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
     from rsra.daq.cli.options import common_options
 

@@ -7,7 +7,6 @@ Writes one JSON object per published message with ``--out`` (``{"key": "channels
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
 import sys
 from pathlib import Path
@@ -16,6 +15,8 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from rsra.daq.bus.health import Health
 
+
+OUTPUTS = {"out": "file"}  # checked against the inputs before any work (daq.cli.outputs)
 
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
@@ -68,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
     from rsra.daq.cli.options import UsageError
     from rsra.daq.cli.options import setup_logging
     from rsra.daq.jsonout import dumps
-    from rsra.daq.bus.replay import ReplayError, config_for, expand, read_frames
+    from rsra.daq.bus.replay import ReplayError, check_readable, config_for, expand
     from rsra.daq.runtime.service import Service, ServiceOptions
 
     setup_logging(args.log_level, None)
@@ -78,9 +79,10 @@ def run(args: argparse.Namespace) -> int:
         files = expand(args.logs)
     except ReplayError as e:
         raise UsageError(str(e)) from None
-    for f in files:  # a file that is not a recording at all: refused before any work
-        with contextlib.closing(read_frames([f])) as frames:
-            next(frames, None)
+    try:  # a file that is not a recording at all, or no frame at all: refused before any work
+        check_readable(files)
+    except ReplayError as e:
+        raise UsageError(str(e)) from None
     cfg = config_for(args.logs, args.config)
     from rsra.daq.runtime.foxglove_out import check_option
 
@@ -111,9 +113,10 @@ def run(args: argparse.Namespace) -> int:
     try:
         summary = service.run()
         if isinstance(out, _LazyFile):
-            out.touch()  # a replay that published nothing still gives its (empty) output
+            out.commit()  # Ctrl-C included: what was replayed is kept
     except ReplayError as e:  # a damaged recording: what was replayed before it is kept
         if isinstance(out, _LazyFile) and out.records:
+            out.commit()
             raise ReplayError(f"{e} ({args.out} holds the {out.records} records before "
                               "it)") from None
         raise
@@ -135,15 +138,16 @@ def run(args: argparse.Namespace) -> int:
 
 
 class _LazyFile:
-    """The --out file, created at the first record: a replay refused before it publishes
-    anything (a damaged recording, a bad config, a Zenoh port in use) leaves no empty file and
+    """The --out file, written under a temporary name beside it (daq.cli.outputs) and renamed
+    into place when the replay ends: a replay refused before it publishes anything (a damaged
+    recording, a bad config, a Zenoh port in use) or one that fails leaves no empty file and
     leaves an existing one as it was. Where it cannot be written is checked at once."""
 
     def __init__(self, path: Path):
         from rsra.daq.cli.options import UsageError
+        from rsra.daq.runtime.persistence import AtomicOutput
 
         self.path = path
-        self.file = None
         self.records = 0
         parent = path.parent if str(path.parent) else Path(".")
         if path.is_dir():
@@ -153,24 +157,24 @@ class _LazyFile:
         if not os.access(path if path.exists() else parent, os.W_OK):
             raise UsageError(f"--out {path}: cannot write there (permission denied); fix: "
                              "write elsewhere")
+        self.output = AtomicOutput(path)
 
     def write(self, text: str) -> None:
         try:
-            if self.file is None:
-                self.file = open(self.path, "w", encoding="utf-8")
-            self.file.write(text)
+            self.output.open().write(text)
         except OSError as e:  # a full disk: exit 1, one line naming the file
             raise OSError(e.errno, f"--out cannot be written ({e.strerror or e})",
                           str(self.path)) from None
         self.records += 1
 
-    def touch(self) -> None:
-        if self.file is None:
-            self.file = open(self.path, "w", encoding="utf-8")
+    def commit(self) -> None:
+        """The records written so far become the file (an empty replay gives an empty file)."""
+        self.output.commit()
 
     def close(self) -> None:
-        if self.file is not None:
-            self.file.close()
+        self.output.discard()  # after commit: nothing left to remove
+
+
 def schedule_note(sch: dict | None) -> str | None:
     """One line: where the replay's angles came from (recomputed, or the recorded schedule,
     and whether that schedule was empty or partial)."""
@@ -209,6 +213,15 @@ def _summary(counts: dict, health: Health | None) -> str:
         s += (f"; frames {b.frames}, unknown {b.unknown}, malformed {b.malformed}, "
               f"error frames {b.errors}; samples complete {sm.complete}, incomplete "
               f"{sm.incomplete}, lost {sm.lost}")
+        g = health.sync.gaps
+        if g:
+            s += (f"; {g} SYNC gap{'s' if g != 1 else ''} over 1 s (the longest "
+                  f"{health.sync.gap_longest_s:.1f} s: the SYNC producer stalled or the bus "
+                  "paused)")
+        n = health.sync.discontinuities
+        if n:
+            s += (f"; time went back {n} time{'s' if n != 1 else ''} (a discontinuity: "
+                  "recordings joined?), no sample invented")
     return s
 
 

@@ -4,6 +4,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from rsra.daq.cli.outputs import REPORT_FILES
+
+OUTPUTS = {"out": REPORT_FILES}  # checked against the inputs before any work (daq.cli.outputs)
+INPUTS = ("truth",)
+
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
     from rsra.daq.cli.options import common_options

@@ -16,6 +16,9 @@ from rsra.daq.cli.options import (
 )
 
 
+OUTPUTS = {"truth": "file", "record": "folder"}  # checked against the inputs (daq.cli.outputs)
+
+
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
     p = sub.add_parser(name, help="run the service (real bus, or the simulator in-process)",
                        description="The DAQ service: CANopen master, real-time hub-load "
@@ -33,6 +36,10 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
     p.add_argument("--truth", metavar="FILE", default=None,
                    help="with --sim: write the simulator's truth here (default: beside the "
                    "recording)")
+    p.add_argument("--state-file", metavar="PATH", default=None,
+                   help="save the posterior of the angles here after every accepted "
+                   "identification run (the TOML key identification.state_file; `rsra angles "
+                   "show PATH` reads it, `--angles PATH` starts the next run from it)")
     return p
 
 
@@ -78,8 +85,17 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError("--truth needs --sim (the truth is the simulator's); fix: add "
                              "--sim SCENARIO or leave --truth out")
         check_output_file("--truth", args.truth)
+    if args.state_file is not None:
+        if not args.state_file:
+            raise UsageError("--state-file: give a file name")
+        check_output_file("--state-file", args.state_file)
     opts = options_from_args(args)
     cfg = config_for_run(args.config, args.sim)
+    if args.state_file is not None:  # the option over the TOML key (the same checks follow)
+        import dataclasses
+
+        cfg = dataclasses.replace(cfg, identification=dataclasses.replace(
+            cfg.identification, state_file=args.state_file))
     check_sim_faults(cfg, args.sim, args.faults, args.speed)
     from rsra.daq.runtime.foxglove_out import check_option
 

@@ -21,6 +21,9 @@ FAULT_HELP = (
     "NODE may be '*'. See docs/simulator.md, 'Faults'")
 
 
+OUTPUTS = {"truth": "file", "record": "file"}  # checked against the inputs (daq.cli.outputs)
+
+
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
     from rsra.daq.cli.options import common_options
     from rsra.daq.cli.options import positive_float, seed
@@ -105,21 +108,22 @@ def run(args: argparse.Namespace) -> int:
                       f"{sim.frames_sent:9d} frames sent  {sim.faults.events:6d} faults",
                       highlight=False)
 
-    interrupted = False
-    terminated = threading.Event()
+    stopped_by: list[str] = []
 
-    def on_term(signum, frame):  # noqa: ARG001 - SIGTERM: the same clean stop as Ctrl-C
-        terminated.set()
+    def on_signal(signum, frame):  # noqa: ARG001 - Ctrl-C and SIGTERM: the same clean stop
+        stopped_by.append("Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name)
         stop.set()
 
-    old_term = signal.signal(signal.SIGTERM, on_term)
+    # both handled explicitly: a background `rsra sim … &` of a script starts with SIGINT
+    # ignored, and `kill -INT` must still stop it and write the truth
+    old_handlers = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     failed: BaseException | None = None
     try:
         with sim:
             try:
                 sim.run(args.duration, stop=stop, progress=progress)
-            except KeyboardInterrupt:
-                interrupted = True
+            except KeyboardInterrupt:  # (a handler restored by a library)
+                stopped_by.append("Ctrl-C")
                 stop.set()
             except Exception as e:  # the bus went away (e.g. `rsra bus` stopped): say so
                 if not bus_failure(e):
@@ -128,14 +132,28 @@ def run(args: argparse.Namespace) -> int:
                 stop.set()
     finally:
         sim.close()
-        signal.signal(signal.SIGTERM, old_term)
-    # the truth so far is written whatever ended the run (nothing lost)
-    truth = sim.write_truth(Path(args.truth)) if args.truth and len(sim.samples) else None
-    how = ("stopped (Ctrl-C)" if interrupted else "stopped (SIGTERM)" if terminated.is_set()
+    try:
+        # the truth so far is written whatever ended the run (nothing lost), atomically: a
+        # second Ctrl-C or a kill during the write leaves the old file or the new one
+        truth = None
+        if args.truth and len(sim.samples):
+            from rsra.daq.runtime.persistence import write_bytes_atomic
+
+            truth = sim.write_truth(Path(args.truth), write=write_bytes_atomic)
+    finally:
+        for s, h in old_handlers.items():
+            signal.signal(s, h)
+    how = (f"stopped ({stopped_by[0]})" if stopped_by
            else f"the bus failed ({type(failed).__name__}: {failed}; was it closed?)"
            if failed is not None else "done")
     console.print(f"rsra sim: {how}: {len(sim.sync_info)} samples, {sim.frames_sent} frames sent, "
                   f"{sim.faults.events} fault events"
                   + (f", frames in {args.record}" if args.record else "")
-                  + (f", truth in {truth}" if truth else ""))
+                  + (f", truth in {truth}" if truth else ""), highlight=False)
+    if args.truth and truth is None:  # said, not silently skipped
+        console.print(f"rsra sim: no truth written to {args.truth}: no sample was simulated — "
+                      + ("nothing started the nodes (no master's NMT start and SYNC on "
+                         f"{args.interface}:{args.channel}); fix: run `rsra run` on the same bus "
+                         "or give --autostart" if not args.autostart else
+                         "the run ended before the first SYNC"), highlight=False)
     return 1 if failed is not None else 0

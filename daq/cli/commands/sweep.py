@@ -8,6 +8,12 @@ import sys
 from pathlib import Path
 
 
+# what --out DIR receives (daq.analysis.sweep), checked against the inputs before any work
+OUTPUTS = {"out": ("sweep_table.txt", "sweep.json", "sweep_transfer_functions.png",
+                   "sweep_unmodelled_phase.png",
+                   *(f"sweep_error_{a}.png" for a in ("X", "Y", "Z", "L", "M", "N")))}
+
+
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
     from rsra.daq.cli.options import common_options
 
@@ -53,6 +59,7 @@ def _check_writable(out: Path) -> None:
 def run(args: argparse.Namespace) -> int:
     from rsra.daq.cli.options import UsageError
     from rsra.daq.jsonout import dumps
+    from rsra.daq.runtime.persistence import write_text_atomic
     from rsra.daq.bus.replay import ReplayError, config_for, expand
     from rsra.daq.analysis.sweep import (SweepError, analyse_sweep, load_sweep_data, plot_sweep, sweep_json,
                            sweep_table)
@@ -88,9 +95,8 @@ def run(args: argparse.Namespace) -> int:
     finally:
         status.close()
     table = sweep_table(result, args.units)
-    (out / "sweep_table.txt").write_text(table + "\n", encoding="utf-8")
-    (out / "sweep.json").write_text(dumps(sweep_json(result, args.units)) + "\n",
-                                    encoding="utf-8")
+    write_text_atomic(out / "sweep_table.txt", table + "\n")
+    write_text_atomic(out / "sweep.json", dumps(sweep_json(result, args.units)) + "\n")
     print(table)
     print(f"\nwrote {out / 'sweep_table.txt'}, {out / 'sweep.json'} and "
           f"{len(plots)} plots in {out}")

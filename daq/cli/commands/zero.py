@@ -30,6 +30,9 @@ from rsra.daq.analysis.tare import (
 )
 
 
+OUTPUTS = {"out": "file"}  # checked against the inputs before any work (daq.cli.outputs)
+
+
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
     from rsra.daq.cli.options import common_options
 

@@ -1,0 +1,160 @@
+"""An output never replaces an input (docs/cli.md §16).
+
+Every command that writes a file checks each output it was given against every input it
+reads — recording files, the files of a recording folder, results, posteriors, the rig file —
+before it reads anything: the same path, a symbolic link to an input, a hard link to one
+(compared by device and inode, so no spelling of a path gets through), or a name that would
+become part of an input recording folder (``frames*.log``, ``angles.jsonl``, …) is refused
+with one line, exit 2.
+
+The files are then written under a temporary name beside the target and renamed into place
+only when complete (:class:`daq.runtime.persistence.AtomicOutput`), so a failed run leaves the old file whole.
+"""
+from __future__ import annotations
+
+import os
+import re
+import stat
+import tempfile
+from collections.abc import Iterable
+from pathlib import Path
+
+from rsra.daq.cli.options import UsageError
+from rsra.daq.runtime.persistence import temp_prefix
+
+# the arguments that name inputs, over every command (absent ones are skipped)
+INPUT_OPTIONS = {"logs": None, "inputs": None, "results": None, "config": "--config",
+                 "angles": "--angles", "zenoh_config": "--zenoh-config"}
+# names that belong to a recording folder (daq/bus/recorder.py): an output of that name in an
+# input recording folder would become part of that recording on its next replay
+_RECORDING_NAME = re.compile(r"^(frames(_\d+)?\.[A-Za-z0-9]+|angles\.jsonl|config\.json|"
+                             r"truth\.npz|eds)$")
+FOLDER_FILES_MAX = 100_000
+# what `rsra report --out DIR` and `rsra demo --report DIR` write there (daq.analysis.report)
+REPORT_FILES = ("summary.json", "summary.md", "hub_loads.png", "hub_load_errors.png",
+                "angles.png", "innovations.png", "spectra.png")  # a folder given as input is looked through to this many entries
+
+
+class Inputs:
+    """The files a command reads, by (device, inode), with the name the user gave."""
+
+    def __init__(self) -> None:
+        self._files: dict[tuple[int, int], str] = {}
+        self._folders: dict[tuple[int, int], str] = {}
+        self._inner: dict[tuple[int, int], str] = {}  # folders inside an input folder (eds/)
+
+    def add(self, path: str | os.PathLike[str], label: str | None = None) -> None:
+        name = label or str(path)
+        try:
+            st = os.stat(path)
+        except (OSError, ValueError):  # not there: the command's own check says so
+            return
+        if stat.S_ISDIR(st.st_mode):
+            self._folders[(st.st_dev, st.st_ino)] = name
+            for n, f in enumerate(Path(path).rglob("*")):
+                if n >= FOLDER_FILES_MAX:
+                    break
+                try:
+                    fst = os.stat(f)
+                except OSError:
+                    continue
+                if stat.S_ISREG(fst.st_mode):
+                    self._files.setdefault((fst.st_dev, fst.st_ino), f"{f}")
+                elif stat.S_ISDIR(fst.st_mode):
+                    self._inner.setdefault((fst.st_dev, fst.st_ino), name)
+        elif stat.S_ISREG(st.st_mode):
+            self._files.setdefault((st.st_dev, st.st_ino), name)
+
+    def add_args(self, args: object, extra: Iterable[str | None] = ()) -> Inputs:
+        for attr, option in INPUT_OPTIONS.items():
+            value = getattr(args, attr, None)
+            for v in value if isinstance(value, list) else [value]:
+                if v and v != "-":
+                    self.add(v, f"{option} {v}" if option else str(v))
+        for v in extra:
+            if v:
+                self.add(v)
+        return self
+
+    def check(self, option: str, path: str | os.PathLike[str]) -> None:
+        """Refuse ``path`` as the output of ``option`` if it is, or links to, an input."""
+        p = Path(path)
+        try:
+            st = os.stat(p)
+        except (OSError, ValueError):
+            st = None
+        if st is not None and (st.st_dev, st.st_ino) in self._files:
+            what = self._files[(st.st_dev, st.st_ino)]
+            if p.is_symlink():
+                how = "is a symbolic link to"
+            elif os.path.realpath(p) == os.path.realpath(what.split(" ")[-1]):
+                how = "is"
+            else:
+                how = "is the same file as (a hard link to)"
+            raise UsageError(f"{option} {path}: {how} the input {what}; an output never "
+                             "replaces an input; fix: give another file name")
+        try:
+            pst = os.stat(p.resolve().parent)
+        except (OSError, ValueError, RuntimeError):
+            return
+        key = (pst.st_dev, pst.st_ino)
+        folder = self._folders.get(key)
+        if key in self._inner or (folder is not None and _RECORDING_NAME.match(p.resolve().name)):
+            folder = folder or self._inner[key]
+            raise UsageError(f"{option} {path}: would become part of the input recording "
+                             f"{folder}; fix: give another file name or folder")
+
+    def check_folder(self, option: str, folder: str | os.PathLike[str],
+                     names: Iterable[str] = ()) -> None:
+        """Refuse an output folder that is (or is inside) an input folder, or where a file the
+        command writes there is an input."""
+        try:
+            st = os.stat(folder)
+        except (OSError, ValueError):
+            st = None
+        if st is not None:
+            key = (st.st_dev, st.st_ino)
+            what = self._folders.get(key) or self._inner.get(key)
+            if what is not None:
+                raise UsageError(f"{option} {folder}: is (inside) the input folder {what}; an "
+                                 "output never goes into an input; fix: give another folder")
+        for name in names:
+            self.check(option, Path(folder) / name)
+
+
+def check_outputs(args: object, outputs: dict[str, str | tuple[str, ...]],
+                  more_inputs: Iterable[str] = ()) -> None:
+    """The command's outputs against its inputs, before it reads anything. ``outputs`` maps an
+    argument to ``"file"``, ``"folder"`` or the names it writes into a folder."""
+    inputs: Inputs | None = None
+    for attr, kind in outputs.items():
+        value = getattr(args, attr, None)
+        if not value or value == "-":
+            continue
+        if inputs is None:
+            inputs = Inputs().add_args(args, [getattr(args, a, None) for a in more_inputs])
+        option = "--" + attr.replace("_", "-")
+        if kind == "file":
+            inputs.check(option, value)
+            probe_file(option, value)
+        else:
+            inputs.check_folder(option, value, () if kind == "folder" else kind)
+
+
+def probe_file(option: str, path: str | os.PathLike[str]) -> None:
+    """An output file that cannot be written there (a read-only or virtual file system such as
+    /proc, no permission, no such folder) refused at once: a temporary file is made beside it
+    and removed again. A folder, or a device or pipe written in place, is left to the command."""
+    p = Path(os.path.realpath(path))
+    if p.exists() and not p.is_file():
+        return
+    parent = p.parent
+    if not parent.is_dir():
+        raise UsageError(f"{option} {path}: no folder {parent}; fix: create it or write elsewhere")
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=temp_prefix(p), suffix=".tmp", dir=parent)
+    except OSError as e:
+        raise UsageError(f"{option} {path}: cannot be written there ({e.strerror or e}); fix: "
+                         "write elsewhere") from None
+    os.close(fd)
+    os.unlink(tmp)

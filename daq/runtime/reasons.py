@@ -1,0 +1,222 @@
+"""Why an identification run was rejected, in words: the ``explanation`` and ``hint`` of an
+``angles`` record (docs/telemetry.md "angles", issue 28).
+
+The decision is the estimator's (estimator.posterior: ``reason`` and ``detail``); this module
+only reports the figures behind it — which input the window's incomplete samples lacked and in
+what fraction of the window, the iterations and the cost trend of a run that did not converge,
+the gate statistic against its limit — and the likely cause, each in one line."""
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+SHOWN_INPUTS = 3  # inputs named in a stale_input explanation (the most often missing first)
+MANY_NODES = 3  # this many nodes missing in the same window: the bus, not a node
+
+
+def input_labels(cfg: Any) -> tuple[str, ...]:
+    """The flags that name an input a sample lacks (``missing:<node>``, ``overrange:<cell>``,
+    ``fault:<cell or accelerometer>``), then ``"unusable"`` (no flag says why). At most 64."""
+    labels = [f"missing:{n.name}" for n in cfg.nodes]
+    for c in cfg.cells:
+        labels += [f"overrange:{c.name}", f"fault:{c.name}"]
+    labels += [f"fault:{a.name}" for a in cfg.accelerometers]
+    labels = list(dict.fromkeys(labels))[:63]
+    return (*labels, "unusable")
+
+
+def _pct(x: float) -> str:
+    return f"{100 * x:.1f} %" if x < 0.995 else f"{100 * x:.0f} %"
+
+
+def _input_words(label: str) -> str:
+    kind, _, name = label.partition(":")
+    return {"missing": f"{name} missing", "overrange": f"{name} over range",
+            "fault": f"{name} stuck or faulty", "unusable": "a non-finite reading (no flag)"
+            }.get(kind, label)
+
+
+def missing_inputs(job: Mapping[str, Any], labels: Sequence[str]) -> list[tuple[str, float]]:
+    """(label, fraction of the window's samples) for every input some sample lacked, the most
+    often missing first; the balance (``balance``) for a known-load window."""
+    n = len(job["T"])
+    if n == 0:
+        return []
+    out: list[tuple[str, float]] = []
+    bits = job.get("missing")
+    bits = (np.zeros(n, np.uint64) if bits is None or len(bits) != n
+            else np.asarray(bits, np.uint64))
+    # a sample refused with no bit naming why counts as "unusable" (the last label)
+    bits = bits | np.where(~np.asarray(job["ok"], bool) & (bits == 0),
+                           np.uint64(1 << (len(labels) - 1)), np.uint64(0))
+    for k, lab in enumerate(labels):
+        c = int(np.count_nonzero(bits & np.uint64(1 << k)))
+        if c:
+            out.append((lab, c / n))
+    if job.get("mode") == "known_loads":
+        c = int(np.count_nonzero(~np.asarray(job["known"], bool)))
+        if c:
+            out.append(("balance", c / n))
+    out.sort(key=lambda x: -x[1])
+    return out
+
+
+def _stale(job: Mapping[str, Any], labels: Sequence[str], stale_fraction: float
+           ) -> tuple[str, str]:
+    n = len(job["T"])
+    if n == 0:
+        return ("the window holds no sample", "no sample reached the identification: is the "
+                "bus delivering complete samples? (rsra listen)")
+    valid = np.asarray(job["ok"], bool)
+    if job.get("mode") == "known_loads":
+        valid = valid & np.asarray(job["known"], bool)
+    bad = 1.0 - float(np.count_nonzero(valid)) / n
+    items = missing_inputs(job, labels)
+    shown = ", ".join(f"{_input_words(lab) if lab != 'balance' else 'the balance absent'} in "
+                      f"{_pct(f)}" for lab, f in items[:SHOWN_INPUTS])
+    more = len(items) - SHOWN_INPUTS
+    text = (f"{_pct(bad)} of the window's {n} samples unusable (allowed "
+            f"{_pct(stale_fraction)})" + (f": {shown}" if shown else "")
+            + (f" and {more} more input(s)" if more > 0 else ""))
+    if not items:
+        return text, "samples unusable without a flag naming why: check the decoding (rsra listen)"
+    top, _ = items[0]
+    nodes = [lab.split(":", 1)[1] for lab, _ in items if lab.startswith("missing:")]
+    if top == "balance":
+        hint = ("the balance stopped (or started) reporting during a known-load window, which "
+                "needs it throughout: check the balance node, or hold the known load until "
+                "the window is complete")
+    elif len(nodes) >= MANY_NODES:
+        hint = (f"samples incomplete across {len(nodes)} nodes: their frames arrive too late "
+                "for the SYNC — a bus or a machine too slow for rig.sample_rate_hz (a shared "
+                "or loaded bus, a busy machine): lower the rate, lighten the bus or give the "
+                "service --realtime-priority")
+    elif top.startswith("missing:"):
+        who = " and ".join(nodes[:2])
+        hint = (f"{who} silent or dropping frames: check its power, wiring and node id "
+                "(rsra nodes; health shows its state)")
+    elif top.startswith("overrange:"):
+        hint = (f"{top.split(':', 1)[1]} reports over range: the load exceeds its full scale "
+                "(or the cell's zero drifted: rsra zero)")
+    elif top.startswith("fault:"):
+        hint = (f"{top.split(':', 1)[1]} reads stuck or reports a fault: check the sensor and "
+                "its cable")
+    else:
+        hint = "non-finite readings without a flag: check the decoding (rsra listen)"
+    return text, hint
+
+
+def _trend(rec: Any) -> str:
+    hist = list(getattr(rec, "cost_history", None) or ())
+    j0 = getattr(rec, "cost_start", None)
+    if j0 is None or not hist:
+        return "no cost recorded"
+    j1 = hist[-1]
+    text = f"cost {j0:.6g} → {j1:.6g}"
+    if math.isfinite(j0) and math.isfinite(j1) and j0 != 0:
+        text += f" ({100 * (j1 - j0) / abs(j0):+.3g} %)"
+    if len(hist) >= 2 and math.isfinite(hist[-2]) and hist[-2] != 0 and math.isfinite(j1):
+        text += f", last iteration {100 * (j1 - hist[-2]) / abs(hist[-2]):+.2g} %"
+    return text
+
+
+STILL_FALLING = 1e-4  # a last iteration that lowered J by more than this (relative; the
+# search's own tolerance, estimator.identification.levenberg_marquardt rel_tol): still falling
+
+
+def _still_falling(rec: Any) -> bool:
+    hist = list(getattr(rec, "cost_history", None) or ())
+    return (len(hist) >= 2 and all(math.isfinite(x) for x in hist[-2:])
+            and hist[-2] - hist[-1] > STILL_FALLING * abs(hist[-2]))
+
+
+def explain(rec: Any, job: Mapping[str, Any], idc: Any, labels: Sequence[str]
+            ) -> tuple[str, str | None]:
+    """(explanation, hint) of an estimator record (estimator.posterior.AnglesRecord) for the
+    window ``job`` (IdentJob.as_mapping()); ``idc``: the IdentificationConfig. The hint is
+    None for an accepted run."""
+    from scipy.stats import chi2
+
+    from rsra.estimator.posterior import GATE_PROBABILITY
+
+    reason, detail = rec.reason, rec.detail
+    n_par = len(rec.names)
+
+    def gate_text() -> str:
+        d = int(getattr(rec, "gate_dof", 0) or 0)
+        if rec.nu is None or d == 0:
+            return "no gate (no direction to test)"
+        lim = float(chi2.ppf(GATE_PROBABILITY, d))
+        return f"gate ν {rec.nu:.3g} {'≤' if rec.nu <= lim else '>'} {lim:.3g} (χ², {d} dof, 10⁻³)"
+
+    if rec.accepted:
+        info = "" if rec.information is None else f"information ratio {rec.information:.3g}; "
+        return (f"{rec.determined} of {n_par} directions determined; {info}{gate_text()}", None)
+    if reason == "stale_input":
+        return _stale(job, labels, idc.stale_fraction)
+    if reason == "not_converged":
+        text = (f"stopped after {rec.iterations} iterations (identification.max_iterations "
+                f"{idc.max_iterations} per stage: a warm start, then the full search) without "
+                f"meeting the tolerance; {_trend(rec)}")
+        if _still_falling(rec):
+            return text, ("the cost was still falling at the limit: the starting angles were "
+                          "far off; the next window continues from here (or raise "
+                          "identification.max_iterations)")
+        return text, ("the cost barely moves but the steps do not settle: a flat direction "
+                      "(the window's loads too little varied, or a ramp in it); the next "
+                      "window is tried")
+    if reason == "diverged":
+        return (f"the run diverged after {rec.iterations} iterations; {_trend(rec)}",
+                "the run left the region where the model holds (a transient in the window, or "
+                "starting angles far off); the next window is tried")
+    if reason == "not_identifiable":
+        smax = math.degrees(idc.sigma_max_rad)
+        if detail == "information_ratio":
+            info = rec.information if rec.information is not None else float("nan")
+            return (f"largest information ratio {info:.3g} below identification."
+                    f"min_information {idc.min_information:g}",
+                    "the loads did not vary enough in this window: apply the load conditions "
+                    "the record's next_conditions lists (known loads), or wait for manoeuvres")
+        if detail == "own_information":
+            return (f"the window alone determines no direction to σ ≤ {smax:g}° "
+                    "(identification.sigma_max_deg)",
+                    "more load variation (manoeuvres, rotor-speed changes) or a longer window "
+                    "(identification.window_s)")
+        return ("no direction stays determined once the score's variance is taken from the "
+                "data (sandwich), not assumed white",
+                "the innovations are coloured beyond the filter model: load content outside "
+                "the model (a resonance, a transient); steadier excitation helps")
+    if reason == "inconsistent":
+        if detail == "innovations":
+            inn, lim = getattr(rec, "innovation", None), getattr(rec, "innovation_limit", None)
+            fig = ("" if inn is None or lim is None else
+                   f": {inn:.3g}× their predicted mean, limit {lim:.3g}×")
+            return (f"the innovations exceed what the filter model predicts{fig}",
+                    "load content the filter model does not hold (a manoeuvre, a ramp, a "
+                    "resonance): no evidence about the angles; the reset streak is unchanged")
+        if detail == "structure":
+            return ("the structure test rejects constant angles (structure not_constant)",
+                    "the angles change with the load: see the record's candidates; rsra "
+                    "calibrate fits a structure")
+        return (f"this window's angles disagree with the posterior: {gate_text()}",
+                f"a change in the rig (a cell moved, a load path changed) or an unmodelled "
+                f"load; {idc.reset_after} in a row reset the posterior")
+    if reason == "reset":
+        return (f"{idc.reset_after} inconsistent runs in a row ({gate_text()}): the posterior "
+                "σ reopened to the prior around the current mean",
+                "a real change of the rig is likely: the next runs identify the angles again")
+    if reason == "out_of_range":
+        lim = math.degrees(idc.angle_limit_rad)
+        theta = getattr(rec, "run_theta", None)
+        worst = ""
+        if theta is not None and len(theta) == n_par:
+            k = int(np.argmax(np.abs(theta)))
+            worst = f": {rec.names[k]} at {math.degrees(float(theta[k])):+.3g}°"
+        return (f"the run's angles leave the physical range ±{lim:g}° "
+                f"(identification.angle_limit_deg){worst}",
+                "a wrong rig description (cell positions, nominal axes) or a bad channel: "
+                "check --config and the cells' readings")
+    return f"rejected: {reason} ({detail})", "see docs/identification.md"

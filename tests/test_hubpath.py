@@ -1,0 +1,134 @@
+"""The compiled hub path (issue 26, daq/runtime/hubpath.py) against the pure-Python reference:
+the same recordings through both give the same published records, bit for bit — the kernel
+calls numpy's own BLAS as ndarray.dot does and does the elementwise steps in numpy's order.
+
+Recordings: a ground test, and a faulted flight (lost frames, malformed and unknown frames,
+error frames, lost SYNCs, a stuck channel, an over-range cell and a node reboot), both made
+by the lock-step simulator. New angles are delivered half-way (the kernel's plan is rebuilt
+on the new S). These tests need the kernel: they fail (never skip) when it is not built."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rsra.config.rig import load_config
+from rsra.daq.bus.reader import HealthReport, OfflineReader
+from rsra.daq.bus.replay import read_frames
+from rsra.daq.jsonout import dumpb
+from rsra.daq.runtime import hubpath
+from rsra.daq.runtime.pipeline import EstimatorPipeline
+from rsra.daq.runtime.records import AnglesRecord
+from rsra.daq.runtime.service import Service, ServiceOptions
+
+DURATION_S = 6.0
+FLIGHT_FAULTS = ("drop:cell_B:0.1@0.5-1.5;malformed:cell_D:0.1@1-2;unknown:0.2@1-2;"
+                 "errorframe:0.1@1.5-2.5;lostsync:0.05@2-3;stuck:cell_E@3-3.4;"
+                 "overrange:cell_A@3.5-3.7;reboot:cell_G@4.5")
+
+
+def _record(tmp_path_factory, scenario: str, faults: str | None) -> list:
+    folder = tmp_path_factory.mktemp(f"rec-{scenario}") / "rec"
+    Service(load_config(), ServiceOptions(sim=scenario, seed=26, faults=faults, speed=None,
+                                          duration=DURATION_S, zenoh=False,
+                                          identification=False, record=str(folder))).run()
+    return list(read_frames([str(folder)]))
+
+
+@pytest.fixture(scope="module")
+def recordings(tmp_path_factory):
+    return {"ground": _record(tmp_path_factory, "ground-test", None),
+            "faulted flight": _record(tmp_path_factory, "flight", FLIGHT_FAULTS)}
+
+
+def _samples(cfg, frames) -> list:
+    r = OfflineReader(cfg)
+    out = []
+    for m in frames:
+        r.feed(m)
+        out.extend(x for x in r.poll() if not isinstance(x, HealthReport))
+    r.assembler.finish()
+    out.extend(x for x in r.poll() if not isinstance(x, HealthReport))
+    return out
+
+
+def _run(cfg, samples, kernel: bool):
+    """Every record the pipeline gives, as published (JSON text), and the pipeline."""
+    p = EstimatorPipeline(cfg, np.asarray(cfg.identification.initial_angles_rad, float),
+                          identification=True, hub_kernel=kernel)
+    names = list(p.model.geometry.angle_names)
+    half = samples[len(samples) // 2].seq
+    alpha = (np.asarray(cfg.identification.initial_angles_rad, float) + 1e-3).tolist()
+    p.deliver(AnglesRecord(seq=half - 1, accepted=True, names=names, alpha=alpha,
+                           applies_from_seq=half))
+    text = []
+    for s in samples:
+        for key, payload in p.process(s).records:
+            text.append((key, dumpb(payload if isinstance(payload, dict)
+                                    else payload.to_dict())))
+    return text, p
+
+
+def test_the_kernel_is_built_and_uses_numpys_blas():
+    kernel, why = hubpath.load()
+    assert kernel is not None, f"the compiled hub path is missing: {why}"
+    assert why.startswith("compiled (")
+
+
+@pytest.mark.parametrize("name", ["ground", "faulted flight"])
+def test_compiled_and_reference_paths_publish_the_same_records(recordings, name):
+    cfg = load_config()
+    samples = _samples(cfg, recordings[name])
+    ref, p_ref = _run(cfg, samples, kernel=False)
+    fast, p_fast = _run(cfg, samples, kernel=True)
+    assert p_ref.hub_kernel is None
+    assert p_fast.hub_kernel is not None, p_fast.hub_kernel_status
+    assert len(ref) == len(fast) and [k for k, _ in ref] == [k for k, _ in fast]
+    diff = [i for i, (a, b) in enumerate(zip(ref, fast)) if a != b]
+    assert diff == [], f"{len(diff)} records differ, first {ref[diff[0]]} / {fast[diff[0]]}"
+    assert sum(k == "angles" for k, _ in fast) == 1  # the delivered angles applied
+    # the calibration branch (the content filters run in the kernel): the identification
+    # window and the filters' states, bit for bit
+    for a in ("T", "z", "H", "seq", "ok", "known", "omega"):
+        assert getattr(p_ref.buffer, a).tobytes() == getattr(p_fast.buffer, a).tobytes(), a
+    for mode, cf in p_ref.content.items():
+        assert cf._zi.tobytes() == p_fast.content[mode]._zi.tobytes(), mode
+    # the kernel computed the measured samples (the rest took the reference path)
+    n = len(samples)
+    share = p_fast.hub_kernel.samples / n
+    assert share > (0.95 if name == "ground" else 0.5), share
+    assert p_fast.hub_kernel.samples < n if name == "faulted flight" else True
+
+
+def test_the_kernels_own_json_text_is_the_encoders(recordings):
+    """The kernel can write the record's text itself (off by default: orjson is faster);
+    that text is dumpb's, byte for byte."""
+    cfg = load_config()
+    samples = _samples(cfg, recordings["faulted flight"])
+    p = EstimatorPipeline(cfg, np.asarray(cfg.identification.initial_angles_rad, float),
+                          identification=False)
+    p.hub_kernel.encode = True
+    n = 0
+    for s in samples:
+        for key, payload in p.process(s).records:
+            if key == "hub_loads" and isinstance(payload, hubpath.EncodedRecord):
+                assert payload.encoded == dumpb(dict(payload)), payload
+                n += 1
+    assert n > len(samples) // 2
+
+
+def test_without_the_kernel_the_reference_runs_and_says_why(monkeypatch, recordings):
+    monkeypatch.setattr(hubpath, "_STATE", {})
+    monkeypatch.setenv(hubpath.OFF_ENV, "off")
+    cfg = load_config()
+    p = EstimatorPipeline(cfg, np.asarray(cfg.identification.initial_angles_rad, float))
+    assert p.hub_kernel is None and p.hub_kernel_status == f"off ({hubpath.OFF_ENV}=off)"
+    for s in _samples(cfg, recordings["ground"])[:50]:
+        assert [k for k, _ in p.process(s).records][:1] == ["hub_loads"]
+
+
+def test_the_kernel_follows_the_estimator_code_it_mirrors():
+    """The kernel does what LoadFilter.step/_build, TransientDetector.update,
+    HubAngleVariance and ContentFilter._step do; when they change (issue 25: the harmonic states in the rotor's
+    frame), the kernel is off until it is brought in line and the tests above pass again
+    with the new fingerprint in daq/runtime/hubpath.py."""
+    assert hubpath.estimator_fingerprint() == hubpath.MIRRORS_FINGERPRINT
