@@ -8,9 +8,12 @@ The loader builds the numerical core's parameter objects (estimator.params) from
 """
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import math
+import re
 import tomllib
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -391,6 +394,9 @@ class RigConfig:
     simulator: SimulatorConfig
     stuck: StuckConfig = field(default_factory=StuckConfig)
     raw: dict = field(repr=False, default_factory=dict)
+    #: dotted key -> the file its value came from ("default": the packaged rig); empty when
+    #: the rig was not loaded from layered files (config.rig.merge_layers)
+    origins: dict = field(repr=False, default_factory=dict, compare=False)
 
     @property
     def sample_period_s(self) -> float:
@@ -453,9 +459,11 @@ def build_rig_model(cfg: RigConfig) -> RigModel:
     )
 
 
-def load_config(path: str | Path | None = None, overrides: dict | None = None) -> RigConfig:
-    """Load and check a rig TOML (default: the packaged rig). Raises ConfigError."""
-    p = Path(path) if path is not None else default_config_path()
+ConfigPaths = str | Path | Sequence[str | Path] | None
+DEFAULT_SOURCE = "default"  # the origin of a value the packaged rig gives
+
+
+def _read_toml(p: Path) -> dict:
     try:
         text = p.read_text(encoding="utf-8")
     except FileNotFoundError:
@@ -466,12 +474,115 @@ def load_config(path: str | Path | None = None, overrides: dict | None = None) -
         raise ConfigError("--config", str(p), f"cannot be read ({why})",
                           "give the path of a rig TOML, or omit --config for the default rig") from None
     try:
-        raw = tomllib.loads(text)
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ConfigError("<file>", str(p), f"not valid TOML ({e})", "fix the TOML syntax") from None
+
+
+def _layer_files(p: Path, chain: tuple[Path, ...] = ()) -> list[tuple[Path, dict]]:
+    """The layers a rig TOML stands for, base first: its ``extends`` chain (a rig TOML it
+    names, relative to it; ``"default"`` or none: the packaged rig, not listed), then
+    itself (without ``extends``)."""
+    rp = p.resolve()
+    if rp in chain:
+        raise ConfigError("extends", str(p), "the files extend each other in a circle",
+                          "make one of them extend \"default\"", str(chain[-1]))
+    raw = _read_toml(p)
+    base = raw.pop("extends", DEFAULT_SOURCE)
+    if not isinstance(base, str) or not base:
+        raise ConfigError("extends", base, "must be a path or \"default\"",
+                          "name the rig TOML this one extends", p.name)
+    out: list[tuple[Path, dict]] = []
+    if base != DEFAULT_SOURCE:
+        bp = Path(base) if Path(base).is_absolute() else p.parent / base
+        if not bp.is_file():
+            raise ConfigError("extends", base, f"file not found (looked in {p.parent})",
+                              "give the path of the rig TOML this one extends", p.name)
+        out = _layer_files(bp, chain + (rp,))
+    return out + [(p, raw)]
+
+
+def absolute_eds(raw: dict, base_dir: Path) -> dict:
+    """A layer's node EDS paths made absolute (relative to its own file), so that layers
+    from several folders can mix."""
+    nodes = raw.get("nodes")
+    if not isinstance(nodes, list):
+        return raw
+    out = []
+    for n in nodes:
+        if isinstance(n, dict) and isinstance(n.get("eds"), str) \
+                and not Path(n["eds"]).is_absolute() and (base_dir / n["eds"]).is_file():
+            n = {**n, "eds": str(base_dir / n["eds"])}  # (else: the packaged folder's)
+        out.append(n)
+    return {**raw, "nodes": out}
+
+
+def merge_layers(paths: ConfigPaths) -> tuple[dict, dict[str, str]]:
+    """The effective raw rig of ``--config`` files applied in order over the packaged rig
+    (each after the bases it ``extends``), and the origin of every value: dotted key →
+    the file that set it last (``default``: the packaged rig).
+
+    The rule: tables merge key by key; a value, an array, an array of tables (``[[cells]]``,
+    ``[[nodes]]``, …) is replaced whole by the last layer that gives it."""
+    files = [paths] if isinstance(paths, (str, Path)) else list(paths or ())
+    dflt = default_config_path()
+    raw = _read_toml(dflt)  # its EDS paths stay relative (to the package's config folder)
+    origins: dict[str, str] = {}
+    _note(raw, "", DEFAULT_SOURCE, origins)
+    for f in files:
+        for lp, layer in _layer_files(Path(f)):
+            layer = absolute_eds(layer, lp.parent)
+            raw = _merge(raw, layer)
+            _note(layer, "", str(lp), origins)
+    return raw, origins
+
+
+def _note(layer: dict, prefix: str, source: str, origins: dict[str, str]) -> None:
+    for k, v in layer.items():
+        key = f"{prefix}.{k}" if prefix else str(k)
+        if isinstance(v, dict) and v:
+            _note(v, key, source, origins)
+        else:
+            for old in [o for o in origins if o.startswith(key + ".")]:
+                del origins[old]  # a layer's value replaces what a table held below it
+            origins[key] = source
+
+
+def origin_of(key: str, origins: dict[str, str]) -> str | None:
+    """The file a dotted key (``cells[2].position_m``, ``geometry.hub_centre_m``) came from."""
+    k = re.sub(r"\[\d+\]", "", key)
+    while k:
+        if k in origins:
+            return origins[k]
+        k = k.rpartition(".")[0]
+    return None
+
+
+def load_config(path: ConfigPaths = None, overrides: dict | None = None) -> RigConfig:
+    """Load and check a rig: the packaged rig, with the ``--config`` files (one path or a
+    list) applied over it in order (:func:`merge_layers`). Raises ConfigError naming the
+    file the faulty value came from."""
+    files = [path] if isinstance(path, (str, Path)) else list(path or ())
+    if not files:  # the packaged rig alone, exactly as before
+        p = default_config_path()
+        raw = _read_toml(p)
+        if overrides:
+            raw = _merge(raw, overrides)
+        return parse_config(raw, source=p.name, base_dir=p.parent)
+    raw, origins = merge_layers(files)
     if overrides:
         raw = _merge(raw, overrides)
-    return parse_config(raw, source=p.name, base_dir=p.parent)
+        _note(overrides, "", "<overrides>", origins)
+    source = ", ".join(Path(f).name for f in files)
+    try:
+        cfg = parse_config(raw, source=source, base_dir=config_dir())
+    except ConfigError as e:
+        where = origin_of(e.key, origins)
+        if where is None or where == e.source:
+            raise
+        raise ConfigError(e.key, e.value, e.problem, e.fix,
+                          "the packaged rig" if where == DEFAULT_SOURCE else where) from None
+    return dataclasses.replace(cfg, origins=origins)
 
 
 def _merge(a: dict, b: dict) -> dict:

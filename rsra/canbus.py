@@ -10,6 +10,7 @@ copy delivered first (see there); :func:`open_bus` opens it wherever ``virtual``
 from __future__ import annotations
 
 import logging
+import re
 import time
 
 from copy import deepcopy
@@ -217,6 +218,24 @@ class BatchNotifier(can.Notifier):
         if not self._on_error(exc):
             raise exc
         log.debug("suppressed exception: %s", exc)
+
+
+_IFNAME = re.compile(r"^[A-Za-z0-9_.-]{1,15}$")  # a Linux interface name (IFNAMSIZ 16)
+
+
+def recording_channel(interface: str | None, channel: Any, *, sim: bool = False) -> str:
+    """The channel name written on every frame of a recording (docs/bus.md §5): stable,
+    short and true — ``sim`` for the simulator's own bus, else the interface's channel when
+    it is a name candump and canplayer can take (at most 15 characters, no ``/`` or ``:``),
+    else the interface's name (``remote`` for python-can-remote, whose channel is a URL)."""
+    if sim:
+        return "sim"
+    name = "" if channel is None else str(channel)
+    if _IFNAME.match(name):
+        return name
+    if interface and _IFNAME.match(str(interface)):
+        return str(interface)
+    return "can"
 
 
 def open_bus(**args: Any) -> can.BusABC:

@@ -70,7 +70,7 @@ import numpy as np
 from canopen.objectdictionary import datatypes as od_types
 
 from rsra.config.rig import RigConfig
-from rsra.canbus import send_batch, shutdown_bus
+from rsra.canbus import recording_channel, send_batch, shutdown_bus
 from rsra.sim_bus.faults import (
     EMCY_OVER_RANGE,
     EMCY_SENSOR_FAULT,
@@ -401,6 +401,19 @@ class _SimNetwork(canopen.Network):
                             can_id, bytes(data), None, remote=remote)
 
 
+class _Logged:
+    """A sent frame as the simulator's log writes it: the frame's fields with the
+    recording's channel name (the frame itself, sent and perhaps captured, is unchanged)."""
+
+    __slots__ = ("_msg", "channel")
+
+    def __init__(self, msg: can.Message, channel: str):
+        self._msg, self.channel = msg, channel
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._msg, name)
+
+
 class _Recorder(can.Listener):
     """Frames received from the other bus users go to the simulator's log."""
 
@@ -522,6 +535,11 @@ class Simulator:
                 raise
         self.bus = bus
         self.channel = str(getattr(bus, "channel_id", None) or getattr(bus, "channel", None) or channel)
+        # the name its recording writes on every frame: the interface's channel when it is a
+        # real interface's name (vcan0), else "sim" (a virtual bus's generated name, a URL)
+        self.log_channel = recording_channel(
+            interface, self.channel, sim=interface in ("virtual", "remote")
+            or recording_channel(interface, self.channel) != self.channel)
         self.network = _SimNetwork(bus, self)
         self.network.listeners.append(_Recorder(self))
         for n in self.nodes:
@@ -721,7 +739,7 @@ class Simulator:
         self.bus.send(msg)
         self.frames_sent += 1
         if self._logger is not None:
-            self._logger.on_message_received(msg)
+            self._logger.on_message_received(_Logged(msg, self.log_channel))
         if self._capture is not None:
             self._capture.append(msg)
 
@@ -736,6 +754,7 @@ class Simulator:
             if msg.is_error_frame:
                 self.error_frames_received += 1
             if self._logger is not None:
+                msg.channel = self.log_channel  # one name for the whole recording
                 self._logger.on_message_received(msg)
 
     def pump(self) -> int:

@@ -242,7 +242,7 @@ def test_plausibility_flags_each_kind_of_implausible_value_and_nothing_else(cfg)
     assert flags["m_y"] == "not positive" and "50%" in flags["m_x"] and "0.2 m" in flags["hub_z"]
 
 
-def test_fragment_for_geometry_and_mass_parameters_loads_with_the_estimates(cfg):
+def test_fragment_for_geometry_and_mass_parameters_loads_with_the_estimates(cfg, tmp_path):
     """The [geometry], [mass] and complete [[cells]] blocks merge into the packaged config."""
     from rsra.daq.analysis.calibrate import CalibrationData, CalibrationResult, fragment_toml
     from rsra.estimator.identification import IdentificationResult
@@ -261,6 +261,14 @@ def test_fragment_for_geometry_and_mass_parameters_loads_with_the_estimates(cfg)
     res = CalibrationResult(names, start, np.ones(5), ident, np.ones(6), np.ones(6), 5,
                             np.ones(5), 1.0, [], (1.0, 1.0), [], alpha, data, 1.0)
     merged = load_config(overrides=tomllib.loads(fragment_toml(cfg, res)))
+    # the fragment is a rig layer as it stands (issue 29): `--config fragment.toml` gives the
+    # same rig, each value it sets named as coming from it
+    frag = tmp_path / "calibrated.toml"
+    frag.write_text(fragment_toml(cfg, res))
+    layered = load_config([frag])
+    assert layered.effective() == merged.effective()
+    assert layered.origins["geometry.hub_centre_m"] == str(frag)
+    assert layered.origins["rig.name"] == "default"
     assert math.isclose(merged.identification.initial_angles_rad[3], est[0], abs_tol=1e-7)
     assert math.isclose(merged.cells[2].position_m[0], est[1], abs_tol=1e-6)
     assert math.isclose(merged.hub_centre_m[2], est[2], abs_tol=1e-6)

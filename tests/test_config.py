@@ -100,3 +100,83 @@ def test_cli_config_error_is_one_line_exit_2(tmp_path):
     assert r.returncode == 2
     assert r.stderr.count("\n") == 1 and "mass.effective_mass_kg[0]" in r.stderr
     assert "Traceback" not in r.stderr
+
+
+# -- layers (issue 29): a rig TOML holds only what differs --------------------------------------
+def _cli(*argv) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "rsra", *argv], capture_output=True,
+                          text=True, timeout=120, check=False)
+
+
+def test_an_empty_rig_file_is_the_default_rig(cfg, tmp_path):
+    """Before: `geometry = None: is missing; fix: add geometry = … to []`."""
+    empty = tmp_path / "empty.toml"
+    empty.write_text("")
+    got = load_config(empty)
+    assert got.effective() == cfg.effective()
+    assert set(got.origins.values()) == {"default"}
+
+
+def test_a_rig_file_of_one_key_works_and_config_show_names_its_origin(cfg, tmp_path):
+    one = tmp_path / "tilt.toml"
+    one.write_text("[geometry]\nshaft_tilt_deg = 3.5\n")
+    got = load_config(one)
+    assert np.isclose(np.degrees(got.shaft_tilt_rad), 3.5)
+    assert np.array_equal(got.hub_centre_m, cfg.hub_centre_m)  # the rest: the default's
+    assert [c.position_m.tolist() for c in got.cells] == [c.position_m.tolist() for c in cfg.cells]
+    assert got.origins["geometry.shaft_tilt_deg"] == str(one)
+    assert got.origins["geometry.hub_centre_m"] == "default"
+    r = _cli("config", "show", "--config", str(one))
+    assert r.returncode == 0, r.stderr
+    line = next(ln for ln in r.stdout.splitlines() if ln.startswith("shaft_tilt_deg"))
+    assert line.split("#")[1].strip() == str(one)
+    hub = next(ln for ln in r.stdout.splitlines() if ln.startswith("hub_centre_m"))
+    assert hub.split("#")[1].strip() == "default"
+    # what it prints is a complete rig TOML: given back as --config, the same rig
+    shown = tmp_path / "shown.toml"
+    shown.write_text(r.stdout)
+    again = load_config(shown)
+    assert np.isclose(again.shaft_tilt_rad, got.shaft_tilt_rad)
+    assert [n.eds for n in again.nodes] == [n.eds for n in got.nodes]
+
+
+def test_several_config_files_apply_in_order_and_extends_names_a_base(tmp_path):
+    base = tmp_path / "base.toml"
+    base.write_text('[rig]\nname = "base"\n[geometry]\nshaft_tilt_deg = 1.0\n')
+    ext = tmp_path / "ext.toml"
+    ext.write_text('extends = "base.toml"\n[geometry]\nshaft_tilt_deg = 2.0\n')
+    late = tmp_path / "late.toml"
+    late.write_text('[rig]\nname = "late"\n')
+    got = load_config([ext, late])
+    assert got.rig_name == "late" and np.isclose(np.degrees(got.shaft_tilt_rad), 2.0)
+    assert got.origins["rig.name"] == str(late)
+    assert got.origins["geometry.shaft_tilt_deg"] == str(ext)
+    assert load_config(ext).rig_name == "base"  # from the base it extends
+    loop = tmp_path / "loop.toml"
+    loop.write_text('extends = "loop.toml"\n')
+    with pytest.raises(ConfigError) as ei:
+        load_config(loop)
+    assert "circle" in str(ei.value) and "; fix: " in str(ei.value)
+
+
+def test_a_bad_value_in_a_layer_is_refused_in_one_line_naming_that_file(tmp_path):
+    good = tmp_path / "good.toml"
+    good.write_text("[geometry]\nshaft_tilt_deg = 3.0\n")
+    badf = tmp_path / "bad.toml"
+    badf.write_text('[filter]\nharmonics = "x"\n')
+    r = _cli("config", "show", "--config", str(good), "--config", str(badf))
+    assert r.returncode == 2 and r.stdout == ""
+    err = r.stderr.strip()
+    assert "\n" not in err and str(badf) in err and "filter.harmonics" in err and "fix:" in err
+    typo = tmp_path / "typo.toml"
+    typo.write_text("[geometry]\nshaft_tilt_degs = 3.0\n")
+    with pytest.raises(ConfigError) as ei:
+        load_config([good, typo])
+    assert ei.value.source == str(typo) and 'rename it to "shaft_tilt_deg"' in str(ei.value)
+
+
+def test_the_packaged_rig_as_a_layer_is_the_packaged_rig(cfg):
+    got = load_config(default_config_path())
+    strip = lambda d: {k: v for k, v in d.items() if k != "nodes"}  # noqa: E731
+    assert strip(got.effective()) == strip(cfg.effective())
+    assert [n.eds for n in got.nodes] == [n.eds for n in cfg.nodes]

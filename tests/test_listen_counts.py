@@ -66,3 +66,20 @@ def test_a_rejected_run_shows_why_and_the_hint():
     text = con.export_text()
     assert "why: 20.0 % of the window's 1000 samples unusable" in text
     assert "hint: accel_1 silent or dropping frames" in text
+
+
+def test_the_health_line_rounds_its_floats():
+    """Issue 29: `latency p50 0.8273124694824219 ms`."""
+    import re
+
+    from rich.console import Console
+
+    st = KeyStats("health")
+    st.add({"t": 1.0, "nodes": {}, "bus": {"frames": 10}, "samples": {"complete": 3},
+            "latency_ms": {"p50": 0.8273124694824219, "p99": 12.43917236328125},
+            "sync": {"duplicate": 0, "bad_timestamp": 0, "rate_hz": 199.12345678}}, 0.0)
+    con = Console(width=200, record=True)
+    con.print(render({"health": st}, "rsra/bench", "si", 2.0))
+    text = con.export_text()
+    assert "p50 0.827 ms p99 12.4 ms" in text, text
+    assert not re.search(r"\d\.\d{5,}", text), text

@@ -125,3 +125,17 @@ def test_the_wheel_builds_the_hub_kernel_with_no_compiler_warning_and_a_fresh_ve
                          env=env)
     assert ran.returncode == 0, ran.stderr
     assert ran.stdout.startswith("compiled ("), ran.stdout
+
+
+def test_rsra_version_prints_the_installed_version(capsys):
+    """Issue 29: there was no `rsra --version`."""
+    from importlib.metadata import version
+
+    import pytest
+
+    from rsra.daq.cli import main
+
+    with pytest.raises(SystemExit) as ei:
+        main(["--version"])
+    assert ei.value.code == 0
+    assert capsys.readouterr().out.strip() == f"rsra {version('rsra')}"

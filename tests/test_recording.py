@@ -333,3 +333,42 @@ def test_a_last_line_cut_anywhere_is_dropped_never_read_as_a_wrong_frame(cfg, tm
         got = list(read_frames([cut_file]))
         assert len(got) == len(whole) - 1, n
         assert all(a.equals(b) for a, b in zip(got, whole)), n
+
+
+def test_recording_channel_names_are_stable_short_and_true():
+    """Issue 29: `rsra-7f5122f5bc50` (17 characters, new every run) with --sim, `vcan0`
+    (wrong) with --interface remote, `ws://127.0.0.1:P/` from `sim --record`: can-utils'
+    canplayer refuses interface names of 16 characters or more."""
+    from rsra.canbus import recording_channel
+
+    assert recording_channel("socketcan", "can0") == "can0"
+    assert recording_channel("socketcan", "vcan0") == "vcan0"
+    assert recording_channel("remote", "ws://127.0.0.1:54701/") == "remote"
+    assert recording_channel("virtual", "rsra-7f5122f5bc50") == "virtual"
+    assert recording_channel("virtual", "rsra-7f5122f5bc50", sim=True) == "sim"
+    assert recording_channel("pcan", "PCAN_USBBUS1") == "PCAN_USBBUS1"
+    assert recording_channel("kvaser", 0) == "0"
+
+
+def test_the_service_with_the_simulator_records_channel_sim(tmp_path):
+    from rsra.daq.runtime.service import Service, ServiceOptions
+
+    cfg = load_config()
+    rec = tmp_path / "rec"
+    Service(cfg, ServiceOptions(sim="ground-test", speed=None, duration=0.3, zenoh=False,
+                                identification=False, record=str(rec))).run()
+    lines = (rec / "frames.log").read_text().splitlines()
+    assert len(lines) > 100
+    assert {ln.split()[1] for ln in lines} == {"sim"}  # every frame, ours and the nodes'
+    # the simulator's own recording (`rsra sim --record`) names its bus the same way
+    from helpers_canopen import make_sim
+
+    sim_rec = tmp_path / "sim.log"
+    sim = make_sim(cfg, channel_name("simrec"), record=sim_rec, autostart=True)
+    try:
+        for _ in range(20):
+            sim.step()
+    finally:
+        sim.close()
+    names = {ln.split()[1] for ln in sim_rec.read_text().splitlines()}
+    assert names <= {"sim"} and names

@@ -59,6 +59,11 @@ def test_dictionary_is_built_from_the_rig_config(cfg, dic):
     for n in angles:
         m = ids[f"angle.{n}"]
         assert m.unit == "deg" and "sigma" in [e[0] for e in m.extra]
+        # issue 29: shown to 0.1° while their σ is 0.05°: three decimals, used by the plugin
+        assert m.as_json()["decimals"] == 3
+    assert ids["hub.H.Z"].as_json()["decimals"] == 1
+    plugin = (Path(D.__file__).parent / "web-static" / "rsra-plugin.js").read_text()
+    assert "m.decimals" in plugin
     assert ids["nis"].limits["yellow"] == pytest.approx(list(D.NIS_YELLOW))
     assert {f"node.{n.name}" for n in cfg.nodes} <= set(ids)
     assert {"ident.verdict", "ident.determined", "health.bus.errors",

@@ -86,7 +86,7 @@ from rsra.daq.bus.master import (
     Supervisor,
 )
 from rsra.daq.bus.recorder import Recorder
-from rsra.canbus import BatchNotifier, open_bus, shutdown_bus
+from rsra.canbus import BatchNotifier, open_bus, recording_channel, shutdown_bus
 
 log = logging.getLogger(__name__)
 
@@ -403,8 +403,9 @@ class FrameClock:
     def listener(self, tap: FrameTap) -> can.Listener:
         return tap
 
-    def recorder(self, folder: Path, cfg: RigConfig, fmt: str | None) -> Recorder:
-        return Recorder(folder, cfg, fmt=fmt, threaded=False)
+    def recorder(self, folder: Path, cfg: RigConfig, fmt: str | None,
+                 channel: str = "can") -> Recorder:
+        return Recorder(folder, cfg, fmt=fmt, threaded=False, channel=channel)
 
     def start(self, tap: FrameTap, recorder: Recorder | None) -> None:
         pass
@@ -426,8 +427,9 @@ class WallClock(FrameClock):
     def listener(self, tap: FrameTap) -> can.Listener:
         return _LockedTap(tap)
 
-    def recorder(self, folder: Path, cfg: RigConfig, fmt: str | None) -> Recorder:
-        return Recorder(folder, cfg, fmt=fmt, threaded=True)
+    def recorder(self, folder: Path, cfg: RigConfig, fmt: str | None,
+                 channel: str = "can") -> Recorder:
+        return Recorder(folder, cfg, fmt=fmt, threaded=True, channel=channel)
 
     def start(self, tap: FrameTap, recorder: Recorder | None) -> None:
         def tick() -> None:
@@ -793,9 +795,13 @@ class _BusReader(ReaderBase):
     def __init__(self, cfg: RigConfig, bus: can.BusABC | None, *, interface: str | None,
                  channel: Any, record: str | Path | None, record_format: str | None,
                  table: DecodeTable | None, items: ItemQueue, nodes: NodePolicy,
-                 clock: FrameClock):
+                 clock: FrameClock, record_channel: str | None = None):
         super().__init__(cfg, table, items, nodes)
         self.clock = clock
+        #: the channel name of the recording's frames (``sim``: the in-process simulator's bus)
+        self.record_channel = record_channel or recording_channel(
+            interface, channel if channel is not None or bus is None
+            else getattr(bus, "channel_id", getattr(bus, "channel", None)))
         self._bus = bus
         self._own_bus = False
         self._bus_args: dict[str, Any] = {}
@@ -830,7 +836,7 @@ class _BusReader(ReaderBase):
             listeners: list[can.Listener] = [self.clock.listener(self.tap)]
             if self.record_dir is not None:
                 self.recorder = self.clock.recorder(self.record_dir, self.cfg,
-                                                    self.record_format)
+                                                    self.record_format, self.record_channel)
                 self.monitor.recorder = self.recorder
                 listeners.append(self.recorder)
             self.network.listeners = listeners
@@ -902,12 +908,14 @@ class Reader(_BusReader):
                  interface: str | None = None, channel: Any = None,
                  record: str | Path | None = None, record_format: str | None = None,
                  table: DecodeTable | None = None, items: ItemQueue | None = None,
-                 nodes: NodePolicy | None = None, clock: FrameClock | None = None):
+                 nodes: NodePolicy | None = None, clock: FrameClock | None = None,
+                 record_channel: str | None = None):
         super().__init__(cfg, bus, interface=interface, channel=channel, record=record,
                          record_format=record_format, table=table,
                          items=items if items is not None else DropQueue(),
                          nodes=nodes if nodes is not None else BootNodes(),
-                         clock=clock if clock is not None else WallClock())
+                         clock=clock if clock is not None else WallClock(),
+                         record_channel=record_channel)
 
     def start(self) -> Reader:
         """Connect, start recording, the bus thread, the clock; the node policy's start
@@ -938,11 +946,12 @@ class LockstepReader(_BusReader):
                  interface: str | None = None, channel: Any = None,
                  record: str | Path | None = None, record_format: str | None = None,
                  table: DecodeTable | None = None, items: ItemQueue | None = None,
-                 nodes: LockstepNodes | None = None):
+                 nodes: LockstepNodes | None = None, record_channel: str | None = None):
         super().__init__(cfg, bus, interface=interface, channel=channel, record=record,
                          record_format=record_format, table=table,
                          items=items if items is not None else BlockQueue(),
-                         nodes=nodes if nodes is not None else Listen(), clock=FrameClock())
+                         nodes=nodes if nodes is not None else Listen(), clock=FrameClock(),
+                         record_channel=record_channel)
 
     def start(self) -> LockstepReader:
         """Connect the bus (no thread) and start recording."""

@@ -73,8 +73,10 @@ class Recorder(can.Listener):
     def __init__(self, folder: str | Path, cfg: RigConfig, fmt: str | None = None,
                  rotate_mb: float | None = None, cap_mb: float | None = None,
                  flush_s: float | None = None, threaded: bool = False,
-                 queue_size: int = WRITER_QUEUE):
+                 queue_size: int = WRITER_QUEUE, channel: str = "can"):
         self.folder = Path(folder)
+        #: the channel name written on every frame (rsra.canbus.recording_channel)
+        self.channel = channel
         self.fmt = (fmt or cfg.recording.format).lstrip(".")
         if self.fmt not in FORMATS:
             raise RecordingError(f"recording format {self.fmt!r} is not available here; "
@@ -227,6 +229,7 @@ class Recorder(can.Listener):
         written = False
         try:
             n_rot = len(self._rotated)
+            msg.channel = self.channel  # stable and short, whatever the interface put there
             self._logger.on_message_received(msg)
             self.frames += 1
             written = True

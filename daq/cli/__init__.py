@@ -31,6 +31,7 @@ COMMANDS = {
     "calibrate": "calibrate",
     "export": "export",
     "web": "web",
+    "config": "config",
 }
 
 
@@ -39,10 +40,22 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
+def _version() -> str:
+    """The installed distribution's version (pyproject.toml), or 'unknown' outside one."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("rsra")
+    except PackageNotFoundError:
+        return "unknown"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="rsra", description=(
         "Rotor hub loads from the load cells of an isolated transmission: CANopen DAQ, "
         "fixed-gain Kalman filter, on-line calibration of the load-cell angles, Zenoh telemetry."))
+    parser.add_argument("--version", action="version", version=f"rsra {_version()}",
+                        help="print the version of rsra and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for name, module in COMMANDS.items():
         mod = importlib.import_module(f"rsra.daq.cli.commands.{module}")
@@ -74,7 +87,7 @@ def _main(argv: list[str] | None) -> int:
         return 130
     except BrokenPipeError:
         return 0
-    except Exception as e:  # the one error path: every failure is one line (docs/cli.md §16)
+    except Exception as e:  # the one error path: every failure is one line (docs/cli.md §17)
         if os.environ.get("RSRA_DEBUG"):
             raise
         status, line = describe_error(e)
@@ -99,7 +112,7 @@ def zenoh_error_line(e: BaseException) -> str:
 
 def describe_error(e: BaseException) -> tuple[int, str]:
     """(exit status, one line) for any exception that ends a command: 2 for a usage,
-    configuration or bad-input error, 1 for anything else (docs/cli.md §16)."""
+    configuration or bad-input error, 1 for anything else (docs/cli.md §17)."""
     from rsra.daq.bus.master import BootError
     from rsra.daq.bus.recorder import RecordingError
     from rsra.daq.bus.replay import ReplayError

@@ -22,8 +22,10 @@ class UsageError(Exception):
 
 
 def common_options(p: argparse.ArgumentParser, units: bool = True) -> None:
-    p.add_argument("--config", metavar="PATH", default=None,
-                   help="rig TOML (default: the packaged default rig)")
+    p.add_argument("--config", metavar="PATH", default=None, action="append",
+                   help="rig TOML holding what differs from the packaged default rig (or from "
+                   "the rig it names in extends = \"...\"); repeat to apply several in order, "
+                   "the last one's value winning (docs/configuration.md)")
     if units:
         p.add_argument("--units", choices=("si", "us"), default="si",
                        help="display units: si (N, N·m) or us (lbf, ft·lbf); default si")

@@ -166,6 +166,8 @@ class BusSource(_Base):
     """A CANopen bus through python-can; the reader boots the nodes, produces SYNC and
     supervises them; samples come from its bus thread through a bounded queue."""
 
+    record_channel: str | None = None  # the recording's channel name (None: the interface's)
+
     def __init__(self, cfg: RigConfig, *, interface: str | None,
                  channel: str | None, record: str | None = None):
         super().__init__(cfg)
@@ -182,7 +184,8 @@ class BusSource(_Base):
         # the live master (BootNodes), the wall clock, a queue that never blocks the bus thread
         reader = Reader(self.cfg, interface=self.interface, channel=self.channel,
                         record=self.record, table=self.table,
-                        items=DropQueue(first_step=self.first_step))
+                        items=DropQueue(first_step=self.first_step),
+                        record_channel=self.record_channel)
         self.reader = reader
         self._close_quietly(reader.close)
         try:
@@ -222,6 +225,8 @@ class SimOptions:
 
 class RealtimeSimSource(BusSource):
     """The simulator in real time on a virtual bus (its own threads), the reader its master."""
+
+    record_channel = "sim"  # the bus is the simulator's, its generated name new every run
 
     def __init__(self, cfg: RigConfig, sim: SimOptions,
                  record: str | None = None):
@@ -286,7 +291,7 @@ class LockstepSource(_Base):
         handoff = HandoffBus(bus)
         restart = RestartNodes()  # the simulator boots the nodes; a reboot is restarted
         reader = LockstepReader(cfg, handoff, record=self.record, table=self.table,
-                                items=BlockQueue(), nodes=restart)
+                                items=BlockQueue(), nodes=restart, record_channel="sim")
         self.reader = reader
         self._close_quietly(reader.close)
         self.driver = driver = LockstepDriver(self.sim, reader, handoff)

@@ -75,12 +75,13 @@ class Measurement:
     extra: tuple[tuple[str, str, str], ...] = ()  # (key, name, unit) more values of a datum
     limits: dict[str, Any] | None = None  # absolute limit lines (Open MCT getLimits)
     value_name: str = ""  # the value's column name where it differs from the name
+    decimals: int = 1  # digits after the point Open MCT shows ("float")
 
 
     def as_json(self) -> dict:
         d = {"id": self.id, "name": self.name, "group": self.group, "source": self.source,
              "unit": self.unit, "format": self.format,
-             "value_name": self.value_name or self.name,
+             "value_name": self.value_name or self.name, "decimals": self.decimals,
              "extra": [{"key": k, "name": n, "unit": u} for k, n, u in self.extra]}
         if self.limits is not None:
             d["limits"] = self.limits
@@ -147,7 +148,10 @@ def build_dictionary(cfg, prefix: str | None = None) -> Dictionary:
     ms.append(Measurement("nis", "NIS (χ², 6 dof)", "Innovations", "innovations", "",
                           limits={"yellow": list(NIS_YELLOW), "red": [None, NIS_RED_HIGH]}))
     for n in angles:
+        # three decimals: an identified angle's σ is a few hundredths of a degree (0.05°), so
+        # 0.1° would hide what the estimate knows
         ms.append(Measurement(f"angle.{n}", n, "Angles", "angles", "deg", value_name="angle",
+                              decimals=3,
                               extra=(("sigma", "σ", "deg"), ("lo", "−1σ", "deg"),
                                      ("hi", "+1σ", "deg"))))
     ms.append(Measurement("ident.verdict", "identification verdict", "Identification", "angles",

@@ -315,4 +315,5 @@ def _print_tables(cfg, result, units: str, notes: list[str], wrote: str | None,
         for k, c in enumerate(nxt, 1):
             con.print(f"  {k}. {describe(c['H'], c['information_gain'])}")
     if wrote:
-        con.print(f"wrote {wrote}: merge it into the rig config (or load_rig(overrides=…))")
+        con.print(f"wrote {wrote}: a rig layer — use it as --config {wrote} (after the rig's own "
+                  "--config, if any); `rsra config show` names each value's file")

@@ -32,7 +32,7 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
                        "another terminal shows the same telemetry.")
     common_options(p)
     p.add_argument("--scenario", default="ground-test",
-                   choices=("ground-test", "flight", "paper", "sweep"),
+                   choices=("ground-test", "flight", "paper", "sweep", "calibration"),
                    help="the simulated aircraft's scenario (default ground-test: known loads)")
     add_sim_options(p)
     p.add_argument("--report", metavar="DIR", default=None,

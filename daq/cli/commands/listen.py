@@ -19,6 +19,11 @@ from rsra.config.units import axis_units, to_units
 AXES = ("X", "Y", "Z", "L", "M", "N")
 
 
+def _ms(v) -> str:
+    """A latency for the view: 3 significant digits (0.827, 12.4), '—' when absent."""
+    return "—" if not isinstance(v, (int, float)) or isinstance(v, bool) else f"{v:.3g}"
+
+
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
     from rsra.daq.cli.options import common_options
 
@@ -177,7 +182,7 @@ def render(stats: dict[str, KeyStats], prefix: str, units: str, now: float):
             f"bus: frames {bus.get('frames')} errors {bus.get('errors')} bus-off {bus.get('bus_off')} "
             f"unknown {bus.get('unknown')} malformed {bus.get('malformed')} | samples: complete "
             f"{smp.get('complete')} incomplete {smp.get('incomplete')} lost {smp.get('lost')} | "
-            f"latency p50 {lat.get('p50')} ms p99 {lat.get('p99')} ms")
+            f"latency p50 {_ms(lat.get('p50'))} ms p99 {_ms(lat.get('p99'))} ms")
         from rsra.daq.cli.demo_view import sync_text
 
         parts.append("sync: " + sync_text(h))

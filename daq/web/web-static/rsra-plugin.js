@@ -20,7 +20,8 @@
 
   function valueMeta(m) {
     const fmt = m.format === 'string' ? { format: 'string' }
-      : m.format === 'integer' ? { formatString: '%d' } : { formatString: '%0.1f' };
+      : m.format === 'integer' ? { formatString: '%d' }
+        : { formatString: '%0.' + (m.decimals === undefined ? 1 : m.decimals) + 'f' };
     const values = [
       { key: 'utc', source: 'utc', name: 'Time', format: 'utc', hints: { domain: 1 } },
       Object.assign({ key: 'value', name: m.value_name || m.name, unit: m.unit,
