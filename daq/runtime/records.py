@@ -82,6 +82,7 @@ class AnglesRecord:
     candidates: Any = ABSENT
     next_conditions: Any = ABSENT  # known loads: the experiment design (issue 19)
     structure_fit: Any = ABSENT  # known loads: the structure the hub loads use (issue 19)
+    drift: Any = ABSENT  # known loads: the drift test, angles on a trend (issue 27)
     extra: tuple[tuple[str, Any], ...] = ()  # keys not declared above, in their order
 
     FIELDS: ClassVar[tuple[str, ...]]
