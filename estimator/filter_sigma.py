@@ -26,7 +26,13 @@ lag). The error's part from e_u is exactly −G e_u, so the error covariance is
   80 kN of thrust to reach — is not a load the model misses; the fast average covers those
   samples). Bounded: two 6 × 6 matrices of state, no history.
 
-The published σ is per axis ``sqrt(diag Σ)`` (``sigma_filter`` of the `hub_loads` record,
+**The floor:** the published σ is never below the static bound (``floor``): the filter averages
+the noise, but what H_s and Ĥ share at the frequencies the filter follows — an unmodelled load
+path at a modelled harmonic (``sweep``'s external load, measured 2.5 % of L beyond 3 ×
+sqrt(diag Σ) without it) — is in no innovation; the static bound is the accuracy the noise
+budget states for both.
+
+The published σ is per axis ``sqrt(diag Σ)``, floored (``sigma_filter`` of the `hub_loads` record,
 docs/telemetry.md): the error σ of the filtered H is ``sqrt(sigma_angles² + sigma_filter²)``
 (docs/identification.md). The class takes the design's matrices (Φ, K, J, C, W, R, P⁻, B) and
 nothing else of the filter's formulation, so another state layout with the same measurement
@@ -79,9 +85,13 @@ class FilterSigma:
     sample with the load filter's design and innovation (None on a predict-only sample: σ
     stays, the averages are not fed); ``sigma`` the (6,) σ, N and N·m, hub axes."""
 
-    def __init__(self, dt: float, time_constant_s: float) -> None:
+    def __init__(self, dt: float, time_constant_s: float,
+                 floor: np.ndarray | None = None) -> None:
         if not (dt > 0 and time_constant_s > 0):
             raise ValueError("FilterSigma needs a positive dt and time constant")
+        # σ never below this (6,): the static bound — the filter averages the noise, not what
+        # H_static and H share (an unmodelled load path at a modelled frequency, module doc)
+        self.floor = None if floor is None else np.asarray(floor, float).copy()
         self.beta_fast = min(1.0, dt / (FAST_FRACTION * time_constant_s))
         self.beta_slow = min(1.0, dt / (SLOW_FRACTION * time_constant_s))
         self._Mf = np.zeros((6, 6))
@@ -135,10 +145,13 @@ class FilterSigma:
             es = np.einsum("ij,jk,ik->i", c.G, Ds, c.G)
             var = c.modelled + np.maximum(np.maximum(ef, es), 0.0)
         self.sigma = np.sqrt(var)
+        if self.floor is not None:
+            np.maximum(self.sigma, self.floor, out=self.sigma)
         return self.sigma
 
 
-def filter_sigma_batch(design, e: np.ndarray, dt: float, time_constant_s: float) -> np.ndarray:
+def filter_sigma_batch(design, e: np.ndarray, dt: float, time_constant_s: float,
+                       floor: np.ndarray | None = None) -> np.ndarray:
     """The σ of :class:`FilterSigma` for a whole array of innovations (N, 6) of one design,
     every sample measured (off-line: bench, tests). Equal to the per-sample path to rounding."""
     from scipy.signal import lfilter
@@ -178,4 +191,5 @@ def filter_sigma_batch(design, e: np.ndarray, dt: float, time_constant_s: float)
         ef = np.einsum("ij,njk,ik->ni", c.G, mf, c.G)
         es = np.einsum("ij,njk,ik->ni", c.G, ms, c.G)
         var = c.modelled + np.maximum(np.maximum(ef, es), 0.0)
-    return np.sqrt(var)
+    out = np.sqrt(var)
+    return out if floor is None else np.maximum(out, np.asarray(floor, float))

@@ -116,7 +116,9 @@ class EstimatorPipeline:
                                            TIME_CONSTANT_FRACTION * f.time_constant_s)
         # the filter's own error σ (`sigma_filter`): its design's covariance plus what the
         # innovations show it does not follow (estimator/filter_sigma.py)
-        self.filter_sigma = FilterSigma(1.0 / self.fs, f.time_constant_s)
+        self.filter_sigma = FilterSigma(
+            1.0 / self.fs, f.time_constant_s,
+            floor=noise_budget(self.model, cfg.identification.initial_angles_rad).total)
         self.cell_names = [c.name for c in cfg.cells]
         self.innov_every = max(1, int(round(self.fs / cfg.telemetry.innovations_hz)))
         # calibration branch
