@@ -122,8 +122,9 @@ class AnglesRecord:
     innovation_limit: float | None = None  # the 1 − 10⁻³ point of the same ratio
     window_determined: int = 0  # directions the window's own (robust) information determines
     # known loads: the structure test (estimator.structure; None in filter-error mode)
-    structure: str | None = None  # "constant", "not_constant", "undetermined"
+    structure: str | None = None  # "constant", "not_constant", "undetermined", "drifting"
     candidates: list | None = None  # ranked, with their evidence (not_constant only)
+    drift: dict | None = None  # the drift test (structure.DriftVerdict.to_dict), known loads
     structure_verdict: StructureVerdict | None = None
     # the selected structure the hub-load estimate uses (structure.fit_payload), None: none
     structure_fit: dict | None = None
@@ -144,6 +145,7 @@ class AnglesRecord:
             out["structure"] = self.structure
             out["candidates"] = self.candidates or []
             out["structure_fit"] = self.structure_fit
+            out["drift"] = self.drift
         return out
 
 
@@ -419,7 +421,54 @@ class SequentialPosterior:
         self.relinearise = bool(relinearise)
         self.max_accumulated_windows = int(max_accumulated_windows)
         self.max_held_windows = int(max_held_windows)
+        # angles on a trend (the structure test's `drifting`, issue 27): the trend's rates
+        # (rad/s over ``names``; None: constant angles with the random walk) and, per run,
+        # the drift fit's prediction of the angles at the run's window (set_prediction)
+        self.trend: np.ndarray | None = None
+        self.prediction: tuple[np.ndarray, np.ndarray] | None = None
         self.fold()
+
+    def _over_names(self, names: Sequence[str], v: np.ndarray, P: np.ndarray | None,
+                    fill_v: np.ndarray, fill_P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        idx = {n: i for i, n in enumerate(names)}
+        out_v, out_P = fill_v.copy(), fill_P.copy()
+        sel = [(i, idx[n]) for i, n in enumerate(self.names) if n in idx]
+        for i, j in sel:
+            out_v[i] = v[j]
+            if P is not None:
+                for k, m in sel:
+                    out_P[i, k] = P[j, m]
+        return out_v, out_P
+
+    def set_trend(self, names: Sequence[str] | None, rate: np.ndarray | None = None) -> None:
+        """Track angles on a trend (``names``: the rates' parameters, e.g. the 14 angles;
+        ``None`` ends it). While a trend is in force each run's prior is the drift fit's
+        prediction at its window (:meth:`set_prediction`) when there is one, no window
+        moments are accumulated (they assume constant angles), and a run that is not
+        accepted still moves the posterior to that prediction."""
+        if names is None or rate is None:
+            self.trend = None
+            self.prediction = None
+            return
+        p = len(self.names)
+        r, _ = self._over_names(names, np.asarray(rate, float), None, np.zeros(p),
+                                np.zeros((p, p)))
+        if self.trend is None:
+            self.fold()  # the accumulated windows were fitted as constant angles
+        self.trend = r
+
+    def set_prediction(self, names: Sequence[str] | None, theta: np.ndarray | None = None,
+                       P: np.ndarray | None = None) -> None:
+        """The next run's prior under a trend: the angles the drift fit (of the windows
+        before this one) predicts at its window, with the prediction's covariance (the
+        rates' uncertainty included); parameters it does not name keep the posterior's
+        (uncorrelated). None: the random-walk prior."""
+        if names is None or theta is None or P is None:
+            self.prediction = None
+            return
+        th, Pp = self._over_names(names, np.asarray(theta, float), np.asarray(P, float),
+                                  self.theta, np.diag(np.diag(self.P)))
+        self.prediction = (th, 0.5 * (Pp + Pp.T))
 
     # ------------------------------------------------------------- re-linearisation (known loads)
     def fold(self) -> None:
@@ -450,12 +499,15 @@ class SequentialPosterior:
         self.windows_held += 1
 
     def anchor_prior(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
-        """The prior of a re-linearised run: the anchor, inflated by the random walk since."""
+        """The prior of a re-linearised run: the anchor, inflated by the random walk since
+        (and moved along the trend in force)."""
+        if self.prediction is not None:
+            return self.prediction[0].copy(), self.prediction[1].copy()
         return self.anchor_theta.copy(), self.anchor_P + np.diag(
             self.drift * (self.anchor_dt + max(float(dt), 0.0)))
 
     def _after_accepted(self, moments: tuple[np.ndarray, int] | None, dt: float) -> None:
-        if not (self.relinearise and moments is not None):
+        if not (self.relinearise and moments is not None) or self.trend is not None:
             self.fold()
             return
         G, n = moments
@@ -522,7 +574,10 @@ class SequentialPosterior:
         self.fold()
 
     def prior(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
-        """The next run's prior: the posterior, its covariance inflated by q·Δt."""
+        """The next run's prior: the posterior, its covariance inflated by q·Δt (and, under a
+        trend, moved by rate·Δt with the rates' covariance·Δt² added)."""
+        if self.prediction is not None:
+            return self.prediction[0].copy(), self.prediction[1].copy()
         return self.theta.copy(), self.P + np.diag(self.drift * max(float(dt), 0.0))
 
     def _record(self, *, accepted: bool, reason: str | None, mode: str, content: str,
@@ -535,6 +590,8 @@ class SequentialPosterior:
         return AnglesRecord(
             structure=None if structure is None else structure.structure,
             candidates=None if structure is None else structure.candidates,
+            drift=None if structure is None or structure.drift is None
+            else structure.drift.to_dict(),
             structure_verdict=structure,
             t=t, seq=int(window[1]), mode=mode, content=content, accepted=accepted,
             reason=reason, names=self.names, alpha=self.theta.copy(), P=self.P.copy(),
@@ -557,7 +614,17 @@ class SequentialPosterior:
             cost_history=None if result is None else tuple(float(c) for c in result.history),
         )
 
-    def update(
+    def update(self, result: IdentificationResult | None, **kw: Any) -> AnglesRecord:
+        """Judge one run (:meth:`_judge`). Under a trend a run that is not accepted still
+        moves the posterior to its window (the drift fit's prediction), so the mean keeps up
+        with the angles through rejected runs."""
+        rec = self._judge(result, **kw)
+        if self.trend is not None and self.prediction is not None and not rec.accepted:
+            self.theta, self.P = self.prior(kw.get("dt", 0.0))
+            self.fold()
+        return rec
+
+    def _judge(
         self,
         result: IdentificationResult | None,
         *,
@@ -845,6 +912,25 @@ class PeriodicIdentification:
         filter both settle at the start of the next window."""
         self._settle_pending = int(self.content_settle_samples) + self.filter_settle_samples
 
+    def _follow_drift(self, verdict: StructureVerdict) -> None:
+        """The trend the posterior tracks with (issue 27): the drift test's while it selects
+        it; none once the test finds the angles constant again (testable, not rejected) or
+        restarts (a step is not a trend); otherwise the one in force stays."""
+        d = verdict.drift
+        post = self.posterior
+        names = self.model.geometry.angle_names
+        if d is not None and d.selected:
+            post.set_trend(names, d.rate)
+        elif post.trend is not None and (
+                (d is not None and d.restarted)
+                or (d is not None and d.dof > 0 and not d.rejects_constant)):
+            post.set_trend(None)
+        pred = self.structure.drift.prediction if self.structure.drift is not None else None
+        if post.trend is not None and pred is not None:
+            post.set_prediction(names, *pred)
+        else:
+            post.set_prediction(None)
+
     def alpha(self) -> np.ndarray:
         """The 14 angles of the current posterior."""
         return self.par.alpha(self.posterior.theta)
@@ -877,7 +963,7 @@ class PeriodicIdentification:
         if missing > self.posterior.stale_fraction:
             return self.posterior.update(None, window=window, mode=self.mode,
                                          content=self.content, t=t, missing_fraction=missing,
-                                         structure=verdict)
+                                         structure=verdict, dt=dt)
         max_lag = int(math.ceil(5.0 * self.correlation_time_s * self.fs))
         gap = N + 1 if self.gap_samples is None else self.gap_samples
         # a gap inside the window settles the content filter (and the calibration filter)
@@ -889,7 +975,11 @@ class PeriodicIdentification:
         if self.mode == "known_loads":
             if self.structure is not None:
                 x = self.par.stack(z, T, H, q)[scored]
-                verdict = self.structure.add_window(x, self.par.alpha(post.theta))
+                # the window's middle (s) for the drift test
+                verdict = self.structure.add_window(x, self.par.alpha(post.theta),
+                                                    t=0.5 * (seq0 + seq1) / self.fs)
+                self._follow_drift(verdict)
+                theta_p, P_p = post.prior(dt)
             prob = KnownLoadProblem(self.par, z, T, H, q, scored=scored)
             if post.relinearise and post.G_held is not None:
                 # windows held back as not identifiable on their own count with this one

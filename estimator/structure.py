@@ -86,7 +86,9 @@ from .geometry import (
 from .params import RigModel
 
 STRUCTURES = ("cell_load_angles", "hub_position", "balance", "external_load")
-VERDICTS = ("constant", "not_constant", "undetermined")
+VERDICTS = ("constant", "not_constant", "undetermined", "drifting")
+DRIFTING = "drifting"  # the time-varying candidate (DriftTest, issue 27)
+MAX_DRIFT_WINDOWS = 96  # the drift test's history: 8 min of 5-s windows (bounded)
 # (smaller, larger): the larger structure contains the smaller one whatever the conditions
 # (δp × F is an external load U F)
 NESTED = frozenset({("hub_position", "external_load")})
@@ -680,6 +682,171 @@ def spend(look: int, total: float = FALSE_ALARM) -> float:
 
 
 # ------------------------------------------------------------------------------------------
+# The time-varying candidate: angles on a slow trend (issue 27)
+# ------------------------------------------------------------------------------------------
+@dataclass
+class DriftVerdict:
+    """The drift test at one look (the ``drift`` object of the ``angles`` record)."""
+
+    rate: np.ndarray  # (14,) rad/s, the trend of each angle (0 where not determined)
+    rate_sigma: np.ndarray  # (14,) rad/s, NaN where not determined
+    rate_P: np.ndarray  # (14, 14) rad²/s², covariance of the rates
+    statistic: float
+    dof: int
+    limit: float
+    rejects_constant: bool  # at this look or earlier since the last restart
+    explains: bool
+    misfit: float
+    misfit_dof: int
+    windows: int
+    span_s: float
+    restarted: bool
+    selected: bool  # the posterior may track with this trend
+
+    def to_dict(self) -> dict:
+        return {"rate": self.rate, "rate_sigma": self.rate_sigma, "statistic": self.statistic,
+                "dof": self.dof, "limit": self.limit, "rejects_constant": self.rejects_constant,
+                "explains": self.explains, "misfit": self.misfit, "misfit_dof": self.misfit_dof,
+                "windows": self.windows, "span_s": self.span_s, "restarted": self.restarted,
+                "selected": self.selected}
+
+
+class DriftTest:
+    """Constant angles against angles on a linear trend in time, α(t) = α0 + ρ (t − t̄)
+    (docs/identification.md, "Angles that drift"). Unlike the load structures it cannot pool
+    windows by load — a trend predicts different residuals at the same load — so it keeps
+    every window's mean and time (bounded: ``max_windows``).
+
+    At each look: the constant fit α̂ of every window's mean (Gauss–Newton, as the load
+    test), the whitened, √n-weighted residuals ê and angle Jacobians A (6W × 14), and the
+    trend's columns B = A_w τ_w (τ_w the window's time from the count-weighted mean time).
+    B is projected off the span of A (columns to unit length first); r = its rank (singular
+    values ≥ ``RANK_TOLERANCE`` of the largest) is the number of testable rate directions and
+    ``q = ‖U_Bᵀ ê‖²`` the likelihood-ratio statistic of the linearised model, χ²_r under
+    constant angles. Alpha spending of its own (``spend``, Σ = ``false_alarm``): the
+    probability that a run of constant angles is ever called drifting is at most that. The
+    rates and their covariance come from the joint least squares of [α0, ρ]; the misfit left
+    must pass at the look's level (``explains``) and every rate be determined (r = 14) for the
+    trend to be *selected*. A step is not a trend: a new window the trend (fitted before it)
+    mispredicts by more than χ²₆(1 − ``time_level``) restarts the history."""
+
+    def __init__(self, model: RigModel, moment_floor: float, *, false_alarm: float = FALSE_ALARM,
+                 time_level: float = TIME_LEVEL, max_windows: int = MAX_DRIFT_WINDOWS) -> None:
+        self.model, self.moment_floor = model, float(moment_floor)
+        self.false_alarm, self.time_level = float(false_alarm), float(time_level)
+        self.max_windows = int(max_windows)
+        self.n_a = 2 * model.geometry.n_cells
+        self.look = 0
+        self.restarts = 0
+        self.rejected = False
+        self.windows: list[tuple[float, np.ndarray, int]] = []  # (t, x̄, n)
+        self._fit: tuple | None = None  # (α̂, θ̂ = [δα0, ρ], Pθ, t̄, determined)
+        self.last: DriftVerdict | None = None
+        # the angles the fit of the windows before the last one predicts at the last one's
+        # time, with the prediction's covariance (α (14,), P (14, 14)); None: not determined
+        self.prediction: tuple[np.ndarray, np.ndarray] | None = None
+
+    def restart(self) -> None:
+        self.windows = []
+        self.rejected = False
+        self._fit = None
+        self.restarts += 1
+
+    def _predict(self, t: float) -> tuple[np.ndarray, np.ndarray] | None:
+        if self._fit is None or not self._fit[4]:
+            return None
+        a_hat, th, Pth, tbar, _ = self._fit
+        na = self.n_a
+        L = np.hstack([np.eye(na), (t - tbar) * np.eye(na)])
+        a = a_hat + L @ th
+        P = L @ Pth @ L.T
+        return a, 0.5 * (P + P.T)
+
+    def _mispredicts(self, xbar: np.ndarray, n: int, t: float) -> bool:
+        a_hat, th, Pth, tbar, determined = self._fit
+        if not determined:
+            return False
+        Li = _whitener(self.model, a_hat, self.moment_floor)
+        r, A, _ = _stack(self.model, a_hat, xbar[None, :], np.array([n], float), Li, ())
+        M = np.hstack([A, A * (t - tbar)])
+        d = r - M @ th
+        C = np.eye(6) + M @ Pth @ M.T
+        return float(d @ np.linalg.solve(C, d)) > float(chi2.isf(self.time_level, 6))
+
+    def add_window(self, x: np.ndarray, alpha: np.ndarray, t: float) -> DriftVerdict | None:
+        """One known-load window: x (n, ncol) its scored rows ``[z, T, H, q]``, α the angles
+        in force, t its time (s, the window's middle)."""
+        x = np.asarray(x, float)
+        xbar, n = x.mean(axis=0), len(x)
+        self.look += 1
+        restarted = False
+        self.prediction = self._predict(float(t))
+        if self._fit is not None and self._mispredicts(xbar, n, float(t)):
+            self.restart()
+            self.prediction = None
+            restarted = True
+        self.windows.append((float(t), xbar, n))
+        if len(self.windows) > self.max_windows:
+            self.windows.pop(0)
+        self.last = self._verdict(np.asarray(alpha, float), restarted)
+        return self.last
+
+    def _verdict(self, alpha: np.ndarray, restarted: bool) -> DriftVerdict | None:
+        if len(self.windows) < 2:
+            self._fit = None
+            return None
+        ts = np.array([w[0] for w in self.windows])
+        means = np.array([w[1] for w in self.windows])
+        counts = np.array([w[2] for w in self.windows], float)
+        a_hat, converged = fit_constant_converged(self.model, alpha, means, counts,
+                                                  self.moment_floor)
+        if not converged:
+            self._fit = None
+            return None
+        tbar = float(np.average(ts, weights=counts))
+        tau = ts - tbar
+        Li = _whitener(self.model, a_hat, self.moment_floor)
+        e, A, _ = _stack(self.model, a_hat, means, counts, Li, ())
+        na = self.n_a
+        B = A * np.repeat(tau, 6)[:, None]
+        UA = _range_basis(A)
+        Bu, _ = _unit_columns(B)
+        Bp = Bu - UA @ (UA.T @ Bu)
+        UB = _range_basis(Bp) if np.any(Bp) else np.zeros((len(e), 0))
+        r = UB.shape[1]
+        level = spend(self.look, self.false_alarm)
+        M = np.hstack([A, B])
+        Mu, scale = _unit_columns(M)
+        th_u, *_ = np.linalg.lstsq(Mu, e, rcond=RANK_TOLERANCE)
+        th = th_u / scale
+        res = e - M @ th
+        rank_all = UA.shape[1] + r
+        misfit = float(res @ res)
+        misfit_dof = len(e) - rank_all
+        Pu = np.linalg.pinv(Mu.T @ Mu, rcond=RANK_TOLERANCE ** 2)
+        Pth = Pu / np.outer(scale, scale)
+        determined = r == na
+        self._fit = (a_hat, th, Pth, tbar, determined)
+        if r == 0:
+            return DriftVerdict(np.zeros(na), np.full(na, np.nan), np.zeros((na, na)), 0.0, 0,
+                                0.0, self.rejected, False, misfit, misfit_dof, len(ts),
+                                float(ts[-1] - ts[0]), restarted, False)
+        q = float(np.sum((UB.T @ e) ** 2))
+        limit = float(chi2.isf(level, r))
+        if q > limit:
+            self.rejected = True
+        explains = misfit_dof > 0 and misfit <= float(chi2.isf(level, misfit_dof))
+        P_rate = Pth[na:, na:]
+        rate = th[na:] if determined else np.zeros(na)
+        sig = np.sqrt(np.maximum(np.diag(P_rate), 0.0)) if determined else np.full(na, np.nan)
+        selected = bool(self.rejected and explains and determined
+                        and np.all(np.isfinite(sig)))
+        return DriftVerdict(rate.copy(), sig, 0.5 * (P_rate + P_rate.T), q, r, limit,
+                            self.rejected, explains, misfit, misfit_dof, len(ts),
+                            float(ts[-1] - ts[0]), restarted, selected)
+
+
+# ------------------------------------------------------------------------------------------
 # The sequential test
 # ------------------------------------------------------------------------------------------
 @dataclass
@@ -706,9 +873,11 @@ class StructureVerdict:
     restarted: bool = False  # a change in time restarted the accumulation at this window
     selected: dict | None = None  # the structure the estimator may use (determined, separable)
     fits: list[StructureFit] = field(default_factory=list)
+    drift: DriftVerdict | None = None  # the time-varying candidate (DriftTest)
 
     def to_dict(self) -> dict:
-        return {"structure": self.structure, "candidates": self.candidates}
+        return {"structure": self.structure, "candidates": self.candidates,
+                "drift": None if self.drift is None else self.drift.to_dict()}
 
 
 class StructureTest:
@@ -720,7 +889,8 @@ class StructureTest:
     def __init__(self, model: RigModel, moment_floor: float, *, false_alarm: float = FALSE_ALARM,
                  time_level: float = TIME_LEVEL, structures: Sequence[str] = STRUCTURES,
                  cluster_tolerance: tuple[float, float] = CLUSTER_TOLERANCE,
-                 max_clusters: int = MAX_CLUSTERS, min_samples: int = 50) -> None:
+                 max_clusters: int = MAX_CLUSTERS, min_samples: int = 50,
+                 drift: bool = True) -> None:
         for s in structures:
             parameter_names(s, model)
         self.model, self.moment_floor = model, float(moment_floor)
@@ -740,6 +910,9 @@ class StructureTest:
         self.joint_fits = True
         self.alpha: np.ndarray | None = None
         self.last = StructureVerdict("undetermined")
+        # the time-varying candidate beside the load structures (its own history and spending)
+        self.drift = DriftTest(model, moment_floor, false_alarm=false_alarm,
+                               time_level=time_level) if drift else None
 
     def restart(self) -> None:
         """Forget the accumulated conditions (a change in time); the looks keep counting."""
@@ -768,7 +941,12 @@ class StructureTest:
         w = Li @ d / math.sqrt(1.0 / n + 1.0 / c.n)
         return float(w @ w) > float(chi2.isf(self.time_level, 6))
 
-    def add_window(self, x: np.ndarray, alpha: np.ndarray) -> StructureVerdict:
+    def add_window(self, x: np.ndarray, alpha: np.ndarray, t: float | None = None
+                   ) -> StructureVerdict:
+        """One window (module doc); ``t`` its time (s, the window's middle) for the drift
+        test — None: no drift test at this look. The verdict is ``drifting`` when the drift
+        test selects its trend and the load test has not rejected the constant model (a
+        load dependence is not a trend: ``not_constant`` stays)."""
         x = np.asarray(x, float)
         alpha = np.asarray(alpha, float)
         if len(x) < self.min_samples or not np.isfinite(x).all() or not np.isfinite(alpha).all():
@@ -789,7 +967,12 @@ class StructureTest:
             c.sum_x += x.sum(axis=0)
             c.n += n
             c.windows += 1
-        self.last = self._verdict(alpha, restarted)
+        v = self._verdict(alpha, restarted)
+        if self.drift is not None and t is not None:
+            v.drift = self.drift.add_window(x, alpha, float(t))
+            if v.drift is not None and v.drift.selected and v.structure != "not_constant":
+                v.structure = DRIFTING
+        self.last = v
         return self.last
 
     def _verdict(self, alpha: np.ndarray, restarted: bool) -> StructureVerdict:

@@ -684,6 +684,11 @@ class AircraftPhysics:
             d = T[:, np.arange(14) // 2] * self.cell_gain
             res = ang.resolution_rad
             alpha += res * np.rint(d / res)
+        elif ang.mode == "drift" and ang.drift_angles:
+            # linear in time (a temperature-like drift), held on the resolution grid
+            res = ang.resolution_rad
+            d = (ang.drift_rad / ang.drift_over_s) * np.asarray(t, float)
+            alpha[:, list(ang.drift_angles)] += (res * np.rint(d / res))[:, None]
         return alpha
 
     def _base_motion(self, B: int, n: int):

@@ -27,7 +27,7 @@ from rsra.config.rig import ConfigError, Section, config_dir
 from rsra.config.units import LBF_N
 
 AXES = ("X", "Y", "Z", "L", "M", "N")
-ANGLE_MODES = ("constant", "step", "linear", "cell_load")
+ANGLE_MODES = ("constant", "step", "linear", "cell_load", "drift")
 LOAD_FRAMES = ("body", "shaft")
 OPTIONAL_NODE_ROLES = ("rotor_speed", "balance", "drive_load")
 SCENARIO_KEYS = ("noise", "seed", "gravity", "quasi_static", "duration_s", "run_s")
@@ -124,6 +124,11 @@ class AngleModel:
     # "cell_load": every angle moves with the static load of its own cell (issue 19), by this
     # much per N, random sign per angle: the estimator's ``cell_load_angles`` structure
     cell_gain_rad_per_N: float = 0.0
+    # "drift": the angles ``drift_angles`` (indices in model order) move linearly in time,
+    # ``drift_rad`` over ``drift_over_s`` (a temperature-like drift, issue 27)
+    drift_rad: float = 0.0
+    drift_over_s: float = 240.0
+    drift_angles: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -285,6 +290,16 @@ def _order(sec: Section, name: str, default: Any) -> int | str:
                     f'write {name} = 1 for 1/rev or {name} = "blades" for N_b/rev')
 
 
+def _angle_indices(sec: Section, name: str, default: list[int]) -> tuple[int, ...]:
+    v = sec.get(name, default)
+    if (not isinstance(v, list) or any(isinstance(i, bool) or not isinstance(i, int)
+                                       or not 0 <= i < 14 for i in v)
+            or len(set(v)) != len(v)):
+        raise sec.error(name, v, "must be a list of distinct angle indices 0-13 (model order)",
+                        f"e.g. {name} = [0, 6, 11]")
+    return tuple(int(i) for i in v)
+
+
 def parse_scenario(raw: dict, source: str = "<scenario>", variants: dict | None = None) -> Scenario:
     top = Section(raw, "", source)
 
@@ -429,6 +444,9 @@ def parse_scenario(raw: dict, source: str = "<scenario>", variants: dict | None 
         resolution_rad=math.radians(an.number("resolution_deg", 0.01, positive=True)),
         cell_gain_rad_per_N=math.radians(an.number("cell_gain_deg_per_kN", 0.0, nonneg=True))
         / 1000.0,
+        drift_rad=math.radians(an.number("drift_deg", 0.5)),
+        drift_over_s=an.number("drift_over_s", 240.0, positive=True),
+        drift_angles=_angle_indices(an, "drift_angles", [0, 6, 11]),
     )
     if mode == "step" and not angles.step_at_s:
         raise an.error("step_at_s", [], 'mode = "step" needs at least one step time',

@@ -13,7 +13,7 @@ from rsra.daq.runtime.service import Service, ServiceOptions
 from rsra.daq.runtime.telemetry import viewer_config
 from tests.helpers_net import free_tcp_port
 
-HUB_KEYS = {"seq", "sync", "t", "frame", "H", "H_static", "sigma_angles", "omega", "flags"}
+HUB_KEYS = {"seq", "sync", "t", "frame", "H", "H_static", "sigma_angles", "sigma_filter", "omega", "flags"}
 CHANNEL_KEYS = {"seq", "t", "T", "accel", "I", "omega", "azimuth", "known_H", "drive", "status"}
 ANGLES_KEYS = {"t", "seq", "mode", "content", "accepted", "reason", "names", "alpha", "P",
                "sigma_cr", "sigma_cr_corrected", "determined", "information", "nu", "cost",

@@ -236,14 +236,16 @@ def write_mcap(records: Iterable[tuple[str, dict]], out, prefix: str,
 def _components(key: str, path: str, value: list, payload: dict,
                 names: dict[str, tuple[str, ...]]) -> tuple[str, ...] | None:
     """Names of the elements of a list field that becomes one column per element."""
-    if path in ("H", "H_static", "sigma_angles", "I", "known_H", "e") and len(value) == 6:
+    if path in ("H", "H_static", "sigma_angles", "sigma_filter", "I", "known_H", "e") \
+            and len(value) == 6:
         return AXES
     if key == "channels" and path in ("T", "accel", "drive"):
         comp = names.get(path, ())
         return comp if len(comp) == len(value) else None
     if key == "channels" and path.startswith("accel.") and len(value) == 3:
         return ("x", "y", "z")
-    if key == "angles" and path in ("alpha", "sigma_cr", "sigma_cr_corrected"):
+    if key == "angles" and path in ("alpha", "sigma_cr", "sigma_cr_corrected", "drift.rate",
+                                    "drift.rate_sigma"):
         comp = tuple(payload.get("names") or ())
         return comp if len(comp) == len(value) else None
     return None

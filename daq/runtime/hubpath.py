@@ -241,15 +241,12 @@ class HubKernel:
         sigma = out[24:30]
         p._sigma_angles = sigma
         p._angles_uncertain = uncertain
-        if text is None:
-            rec = {"seq": seq, "sync": sync, "t": t, "frame": p.frame, "H": out[12:18],
-                   "H_static": out[6:12], "sigma_angles": sigma, "omega": omega_pub,
-                   "flags": flags}
-        else:
-            rec = EncodedRecord(seq=seq, sync=sync, t=t, frame=p.frame, H=out[12:18],
-                                H_static=out[6:12], sigma_angles=sigma, omega=omega_pub,
-                                flags=flags)
-            rec.encoded = text
+        # the filter's own error σ (estimator/filter_sigma.py): the same Python call on the
+        # same innovation as the reference path (the kernel's text has no sigma_filter)
+        sigma_filter = p.filter_sigma.update(lf.design, out[18:24])
+        rec = {"seq": seq, "sync": sync, "t": t, "frame": p.frame, "H": out[12:18],
+               "H_static": out[6:12], "sigma_angles": sigma, "sigma_filter": sigma_filter,
+               "omega": omega_pub, "flags": flags}
         self.samples += 1
         return out[0:6], out[30:36], out[18:24], nis, omega, rec
 

@@ -32,6 +32,7 @@ from rsra.estimator.angle_uncertainty import (
     HubAngleVariance,
     angle_covariance,
 )
+from rsra.estimator.filter_sigma import FilterSigma
 from rsra.estimator.filters import AZIMUTH_MISSING, AzimuthTracker, LoadFilter
 from rsra.estimator.geometry import hub_transfer_matrix, wrench_matrix
 from rsra.estimator.noise_budget import noise_budget
@@ -129,6 +130,11 @@ class EstimatorPipeline:
         # the filter's lag behind a moving static load: flag `transient` (estimator/transient.py)
         self.transient = TransientDetector(1.0 / self.fs,
                                            TIME_CONSTANT_FRACTION * f.time_constant_s)
+        # the filter's own error σ (`sigma_filter`): its design's covariance plus what the
+        # innovations show it does not follow (estimator/filter_sigma.py)
+        self.filter_sigma = FilterSigma(
+            1.0 / self.fs, f.time_constant_s,
+            floor=noise_budget(self.model, cfg.identification.initial_angles_rad).total)
         self.cell_names = [c.name for c in cfg.cells]
         self.innov_every = max(1, int(round(self.fs / cfg.telemetry.innovations_hz)))
         # calibration branch
@@ -427,8 +433,10 @@ class EstimatorPipeline:
                 flags.append(fl)
         if self.azimuth_mode and dpsi is None and AZIMUTH_MISSING in res.flags:
             self.azimuth_missing += 1
-        if res.e is not None and self.transient.update(self.load_filter.design, res.e):
+        design = self.load_filter.design
+        if res.e is not None and self.transient.update(design, res.e):
             flags.append(TRANSIENT)
+        sigma_filter = self.filter_sigma.update(design, res.e)
         if self.identification_off:
             flags.append("identification_off")
         if measured:  # (predict-only: H comes from earlier samples, and so does their σ)
@@ -443,7 +451,9 @@ class EstimatorPipeline:
         out.records.append(("hub_loads", {
             "seq": seq, "sync": int(s.sync), "t": float(s.t), "frame": self.frame,
             "H": None if res.H is None else res.H, "H_static": H_static,
-            "sigma_angles": sigma_angles, "omega": omega_pub, "flags": flags}))
+            "sigma_angles": sigma_angles,
+            "sigma_filter": None if res.H is None else sigma_filter,
+            "omega": omega_pub, "flags": flags}))
         return I, z, res.e, res.nis, omega, dpsi
 
     def _missing_bits(self, flags, measured: bool) -> int:

@@ -84,6 +84,7 @@ class AnglesRecord:
     structure_fit: Any = ABSENT  # known loads: the structure the hub loads use (issue 19)
     explanation: Any = ABSENT  # one line: the figures behind reason/detail (issue 28)
     hint: Any = ABSENT  # one line: the likely cause and what to do (null when accepted)
+    drift: Any = ABSENT  # known loads: the drift test, angles on a trend (issue 27)
     extra: tuple[tuple[str, Any], ...] = ()  # keys not declared above, in their order
 
     FIELDS: ClassVar[tuple[str, ...]]

@@ -15,7 +15,7 @@ FIELDS: dict[str, list[tuple[str, str, str]]] = {
     "hub_loads": [
         ("seq", "integer", ""), ("sync", "integer", ""), ("t", "number", "s (UNIX)"),
         ("frame", "string", ""), ("H", "array:number", VEC6), ("H_static", "array:number", VEC6),
-        ("sigma_angles", "array:number", VEC6),
+        ("sigma_angles", "array:number", VEC6), ("sigma_filter", "array:number", VEC6),
         ("omega", "number", "rad/s"), ("flags", "array:string", "")],
     "channels": [
         ("seq", "integer", ""), ("t", "number", "s (UNIX)"), ("T", "array:number", "N"),
@@ -51,7 +51,14 @@ FIELDS: dict[str, list[tuple[str, str, str]]] = {
         ("structure_fit.alpha0_sigma", "array:number", "rad"),
         ("structure_fit.beta_sigma", "array:number", "SI"),
         ("structure_fit.T_ref", "array:number", "N"),
-        ("explanation", "string", ""), ("hint", "string", "")],
+        ("explanation", "string", ""), ("hint", "string", ""),
+        ("drift", "object", ""), ("drift.rate", "array:number", "rad/s"),
+        ("drift.rate_sigma", "array:number", "rad/s"), ("drift.statistic", "number", ""),
+        ("drift.dof", "integer", ""), ("drift.limit", "number", ""),
+        ("drift.rejects_constant", "boolean", ""), ("drift.explains", "boolean", ""),
+        ("drift.misfit", "number", ""), ("drift.misfit_dof", "integer", ""),
+        ("drift.windows", "integer", ""), ("drift.span_s", "number", "s"),
+        ("drift.restarted", "boolean", ""), ("drift.selected", "boolean", "")],
     "health": [
         ("t", "number", "s (UNIX)"), ("nodes", "object", ""),
         ("nodes.<node>.state", "string", ""), ("nodes.<node>.heartbeat_age", "number", "s"),

@@ -1,0 +1,111 @@
+"""The filtered hub loads' σ from what the filter can and cannot follow (issue 27;
+estimator/filter_sigma.py, docs/identification.md "The σ of the filtered hub loads")."""
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from rsra.config.rig import load_config
+from rsra.estimator.filter_sigma import (
+    FilterSigma,
+    error_gain,
+    filter_sigma_batch,
+    modelled_covariance,
+)
+from rsra.estimator.balance import inertial_loads
+from rsra.estimator.filters import filter_batch
+from rsra.estimator.noise_budget import noise_budget
+from rsra.daq.rigmodel import design_cache
+from rsra.sim_bus import load_scenario, simulate
+
+# The claim (docs/identification.md): ≤ 0.5 % of the samples beyond 3σ on every axis. Monte
+# Carlo of this test's run (20 s turbulent flight, 20 seeds): at most 0.19 % on any axis of any
+# seed (mean 0.004–0.09 %); the former σ (the static bound alone) 43–47 % on the worst axis.
+LIMIT_PCT = 0.5
+SKIP_S = 2.0
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return load_config()
+
+
+def _pipeline(cfg, run):
+    from rsra.daq.runtime.pipeline import EstimatorPipeline
+
+    p = EstimatorPipeline(cfg, run.alpha_true[0], identification=False)
+    p.set_angles_covariance(cfg.rig_model().geometry.angle_names, np.eye(14) * 1e-16)
+    n = len(run.t)
+    H, sf, sa = (np.full((n, 6), np.nan) for _ in range(3))
+    for i in range(n):
+        s = SimpleNamespace(seq=i, sync=i % 240 + 1, t=float(run.t[i]), T=run.T[i],
+                            accel=run.accel[i], flags=[], drive=None, omega=float(run.omega[i]),
+                            azimuth=float(run.azimuth[i]), known_H=run.H_balance[i],
+                            cell_status=np.zeros(7, int), lost_before=0)
+        hub = [r for k, r in p.process(s).records if k == "hub_loads"][0]
+        if hub["H"] is not None:
+            H[i], sf[i], sa[i] = hub["H"], hub["sigma_filter"], hub["sigma_angles"]
+    return H, sf, sa
+
+
+def test_turbulent_flight_within_three_sigma_on_every_axis(cfg):
+    """A short turbulent flight (broadband hub loads the filter does not model, 2–3 kN) from
+    the simulator through the service's per-sample path: the fraction of samples beyond 3σ
+    of the published σ of H (sqrt(sigma_angles² + sigma_filter²)) is within the limit on
+    every axis; with the former σ (the static bound, no filter term) it is not — break check
+    (measured: removing the innovation term from FilterSigma fails this test too)."""
+    sc = load_scenario("flight", angles="constant", turbulence=True)
+    run = simulate(cfg, sc, seed=5, duration_s=12.0)
+    H, sf, sa = _pipeline(cfg, run)
+    m = run.t - run.t[0] >= SKIP_S
+    err = np.abs(H - run.H_true)[m]
+    frac = 100 * (err / np.sqrt(sf ** 2 + sa ** 2)[m] > 3).mean(axis=0)
+    assert np.all(frac <= LIMIT_PCT), frac
+    bound = noise_budget(cfg.rig_model(), run.alpha_true[0]).total
+    former = 100 * (err / bound > 3).mean(axis=0)
+    assert former.max() > LIMIT_PCT  # the σ without the filter's term is exceeded
+    # the filter's term widens σ where the loads are broadband (Z: 3 kN), not on a quiet axis
+    assert np.median(sf[m][:, 2]) > 1.3 * bound[2]
+
+
+def test_quiet_ground_test_sigma_is_the_design_covariance(cfg):
+    """Loads the model describes (held conditions, modelled harmonics): σ stays at its
+    floor, the static bound (the design's own steady-state covariance is about half of it: the
+    filter averages the noise), and the errors are inside it — from 10 s on: the filter's start from zero
+    (80 kN of thrust to reach) is in the innovations, and σ says so for a few seconds."""
+    sc = load_scenario("ground-test")
+    run = simulate(cfg, sc, seed=3, duration_s=9.4)
+    H, sf, sa = _pipeline(cfg, run)
+    m = run.t - run.t[0] >= 7.0
+    design = design_cache(cfg).design_for(cfg.rotor.omega_nominal_rad_s)
+    base = np.sqrt(np.diag(modelled_covariance(design)))
+    bound = noise_budget(cfg.rig_model(), cfg.identification.initial_angles_rad).total
+    assert np.all(base < 0.7 * bound)
+    assert np.all(sf[m] >= bound * (1 - 1e-12))
+    assert np.median(sf[m] / bound, axis=0).max() < 1.05
+    err = np.abs(H - run.H_true)[m]
+    assert (err / sf[m] > 3).mean() <= LIMIT_PCT / 100
+
+
+def test_the_error_identity_and_the_batch_path(cfg):
+    """Ĥ = H_static − G' R⁻¹ e exactly (the relation the σ rests on), and the batch σ equals
+    the per-sample one."""
+    model = cfg.rig_model()
+    sc = load_scenario("flight", angles="constant", turbulence=True)
+    run = simulate(cfg, sc, seed=2, duration_s=3.0)
+    design = design_cache(cfg).design_for(cfg.rotor.omega_nominal_rad_s)
+    alpha = run.alpha_true[0]
+    z = inertial_loads(model, run.accel)
+    res = filter_batch(design, alpha, run.T, z)
+    from rsra.estimator.balance import static_estimate
+    Hs = static_estimate(model, alpha, run.T, z)
+    G = error_gain(design)
+    Rinv = np.linalg.inv(design.R)
+    np.testing.assert_allclose(res.H, Hs - (res.e @ Rinv.T) @ G.T, rtol=0, atol=1e-6)
+    dt, tau = 1.0 / cfg.sample_rate_hz, cfg.filter.time_constant_s
+    fs = FilterSigma(dt, tau)
+    per = np.array([fs.update(design, e).copy() for e in res.e])
+    np.testing.assert_allclose(filter_sigma_batch(design, res.e, dt, tau), per, rtol=1e-9)
+    assert fs.update(design, None) is fs.sigma  # predict-only: σ stays
