@@ -99,23 +99,6 @@ def test_compiled_and_reference_paths_publish_the_same_records(recordings, name)
     assert p_fast.hub_kernel.samples < n if name == "faulted flight" else True
 
 
-def test_the_kernels_own_json_text_is_the_encoders(recordings):
-    """The kernel can write the record's text itself (off by default: orjson is faster);
-    that text is dumpb's, byte for byte."""
-    cfg = load_config()
-    samples = _samples(cfg, recordings["faulted flight"])
-    p = EstimatorPipeline(cfg, np.asarray(cfg.identification.initial_angles_rad, float),
-                          identification=False)
-    p.hub_kernel.encode = True
-    n = 0
-    for s in samples:
-        for key, payload in p.process(s).records:
-            if key == "hub_loads" and isinstance(payload, hubpath.EncodedRecord):
-                assert payload.encoded == dumpb(dict(payload)), payload
-                n += 1
-    assert n > len(samples) // 2
-
-
 def test_without_the_kernel_the_reference_runs_and_says_why(monkeypatch, recordings):
     monkeypatch.setattr(hubpath, "_STATE", {})
     monkeypatch.setenv(hubpath.OFF_ENV, "off")

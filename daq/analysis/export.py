@@ -348,7 +348,7 @@ def _arrow_type(kinds: set[str]):
 
 
 # -- the declared Arrow schema of each key (FIELDS and the rig's names; never the data) ---------
-_VEC6_PATHS = ("H", "H_static", "sigma_angles", "I", "known_H", "e")
+_VEC6_PATHS = ("H", "H_static", "sigma_angles", "sigma_filter", "I", "known_H", "e")
 _BY_NAME = {("channels", "T"): "T", ("channels", "drive"): "drive",
             ("angles", "alpha"): "angles", ("angles", "sigma_cr"): "angles",
             ("angles", "sigma_cr_corrected"): "angles"}

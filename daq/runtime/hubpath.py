@@ -64,13 +64,6 @@ def estimator_fingerprint() -> str:
     return h.hexdigest()[:16]
 
 
-class EncodedRecord(dict):
-    """A record payload (a plain dict to every reader) that carries its JSON text as the
-    kernel wrote it (``encoded``: what :func:`rsra.daq.jsonout.dumpb` gives for it)."""
-
-    __slots__ = ("encoded",)
-
-
 def _numpy_blas_paths() -> list[str]:
     """The shared libraries numpy loaded that may be its BLAS (numpy's own first)."""
     base = os.path.dirname(os.path.dirname(np.__file__))
@@ -179,8 +172,8 @@ class HubKernel:
         self.samples = 0  # samples the kernel computed
         # the kernel can write the record's JSON text too (float.__repr__'s digits through
         # PyOS_double_to_string), but that costs ≈ 1 µs a double where orjson's encoder
-        # (rsra.daq.jsonout.dumpb) takes ≈ 0.2: off, measured (docs/performance.md)
-        self.encode = False
+        # (rsra.daq.jsonout.dumpb) takes ≈ 0.2: off, measured (docs/performance.md); and the
+        # record now carries sigma_filter (issue 27), which that text has not: not used
         self._frame_json = ('"' + pipeline.frame + '"').encode()
         if not pipeline.frame.isascii() or any(c in pipeline.frame for c in '"\\'):
             raise ValueError("the hub frame's name needs escaping")
@@ -234,7 +227,7 @@ class HubKernel:
         t = float(s.t)
         sync = int(s.sync)
         text, nis, tq, _transient, uncertain = plan.step(T, accel, q, out, seq, sync, t,
-                                                         omega_pub, flags, tail, self.encode)
+                                                         omega_pub, flags, tail, False)
         p._last_seq = seq
         lf._run = 0
         tr.q = tq
