@@ -9,7 +9,8 @@ PIP_INSTALL := PYTHONWARNINGS="ignore:Editable installation" $(BIN)/pip install 
 
 .PHONY: setup web demo test test-all bench lint clean
 
-$(STAMP): pyproject.toml
+# (setup.py and the C kernel too: an edited kernel is rebuilt into the venv by the next make)
+$(STAMP): pyproject.toml setup.py daq/_hubkernel.c
 	@echo "make: installing rsra into $(VENV) (once, about a minute): a virtual environment, then"
 	@echo "      numpy, scipy, python-can, canopen, eclipse-zenoh, rich, matplotlib and the test and"
 	@echo "      bench tools from PyPI (pyproject.toml); then the demo starts"
