@@ -119,7 +119,8 @@ def test_the_angles_record_declares_todays_keys_in_todays_order():
     # structure test and the experiment design (docs/telemetry.md §2.4)
     assert AnglesRecord.FIELDS == (*_estimator_keys(), "restarted", "condition", "structure",
                                    "candidates", "next_conditions", "structure_fit",
-                                   "explanation", "hint")  # issue 28: why, in words
+                                   "explanation", "hint",  # issue 28: why, in words
+                                   "drift")  # issue 27: the drift test
 
 
 def test_the_angles_record_serialises_byte_for_byte_as_the_dict_did():
