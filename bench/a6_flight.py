@@ -370,16 +370,7 @@ def main(argv: list[str] | None = None) -> int:
             _report_rig_arm(w, arm, [r[arm] for r in res])
             continue
         rows = [r[arm] for r in res]
-        runs = [x for r in rows for x in r["runs"]]
-        n_tested = max(len(runs), 1)
-        limit = float(stats.chi2.isf(FALSE_ALARM / n_tested, 14))  # seeds × runs tested
-        acc = [x for x in runs if x["accepted"]]
-        worst_acc = max((x["chi2"] for x in acc), default=0.0)
-        final = np.array([r["final_chi2"] for r in rows])
-        empty_acc = sum(1 for x in acc if x["window_determined"] == 0)
-        reasons: Counter = Counter()
-        for r in rows:
-            reasons.update(r["reasons"])
+        runs, n_tested, limit, acc, worst_acc, final, empty_acc, reasons = _run_stats(rows)
         pw = paired_not_worse(np.array([r["rms_with"] for r in rows]),
                               np.array([r["rms_without"] for r in rows]), FALSE_ALARM)
         common = {"arm": arm, "seeds": len(rows), "runs": len(runs), "accepted": len(acc),
@@ -407,10 +398,13 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _report_rig_arm(w, arm: str, rows: list[dict]) -> None:
+def _run_stats(rows: list[dict]) -> tuple:
+    """An arm's runs over its seeds: (runs, n tested, χ²₁₄ limit at 10⁻³ over seeds × runs,
+    accepted runs, worst accepted χ², final χ² per seed, accepted runs whose window determined
+    nothing, rejection reasons)."""
     runs = [x for r in rows for x in r["runs"]]
     n_tested = max(len(runs), 1)
-    limit = float(stats.chi2.isf(FALSE_ALARM / n_tested, 14))
+    limit = float(stats.chi2.isf(FALSE_ALARM / n_tested, 14))  # seeds × runs tested
     acc = [x for x in runs if x["accepted"]]
     worst_acc = max((x["chi2"] for x in acc), default=0.0)
     final = np.array([r["final_chi2"] for r in rows])
@@ -418,6 +412,11 @@ def _report_rig_arm(w, arm: str, rows: list[dict]) -> None:
     reasons: Counter = Counter()
     for r in rows:
         reasons.update(r["reasons"])
+    return runs, n_tested, limit, acc, worst_acc, final, empty_acc, reasons
+
+
+def _report_rig_arm(w, arm: str, rows: list[dict]) -> None:
+    runs, n_tested, limit, acc, worst_acc, final, empty_acc, reasons = _run_stats(rows)
     t_sig = []
     for k in range(3):
         ts = [r["time_to_sigma"][k] for r in rows]
