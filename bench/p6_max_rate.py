@@ -183,6 +183,23 @@ def _lockstep_entry(n: int, out) -> None:
         out.put({"error": f"{type(e).__name__}: {e}"})
 
 
+def _floor_entry(duration: float, tries: int, tiny: bool, out) -> None:
+    """The one-process floor's ceiling (bench/floor.py), in a fresh process."""
+    from bench.floor import ceiling, default_frames, run_floor
+
+    try:
+        frames = default_frames(True)
+        if tiny:
+            r = run_floor(START_RATE, duration, frames, warmup=WARMUP_S)
+            out.put({"samples_per_s": START_RATE if r["ok"] else 0.0, "trials": [r]})
+        else:
+            out.put(ceiling(frames, duration, start=START_RATE, cap=2 * MAX_RATE,
+                            bisect=BISECT_STEPS, attempts=tries,
+                            log=lambda m: print(m, flush=True)))
+    except Exception as e:  # noqa: BLE001 - reported to the parent, which raises it
+        out.put({"error": f"{type(e).__name__}: {e}"})
+
+
 def _trial_entry(rate: float, duration: float, out) -> None:
     try:
         out.put(trial(rate, duration))
@@ -269,12 +286,17 @@ def main(argv: list[str] | None = None) -> int:
     # the one-process ceiling, same run: lock-step (no waiting) — what real time cannot exceed
     n_ls = 400 if args.tiny else 6000
     ceiling = run_trial(0.0, n_ls / 200.0, target=_lockstep_entry, args=(n_ls,))
+    # the one-process floor, same run: a do-nothing master + responder with the service's
+    # threads and transport calls (bench/floor.py) — what real time in one process allows
+    floor = run_trial(0.0, 30 * duration * tries, target=_floor_entry,
+                      args=(duration, tries, args.tiny))
     w.add("max_sustained_rate", best, "samples/s", peer="1 Mbit/s bus, default nodes, "
           "worst-case stuffing", peer_figure=limit, ratio_value=r, ratio_is="figure/peer",
           target="≥ 1 × the bus limit", met=r is not None and r >= 1.0,
           bits_per_sample_worst=bits, first_failing_rate=bad, trial_s=duration,
           warmup_s=WARMUP_S, attempts_per_rate=tries, trials=trials, search_capped_at=MAX_RATE,
           search_floor=MIN_RATE, lockstep_ceiling=ceiling,
+          one_process_floor=floor["samples_per_s"],
           wakeups_per_sample_at_best=at_best[0]["wakeups_per_sample"] if at_best else None,
           wakeups_per_sample_range=[min(wps), max(wps)] if wps else None,
           note="a tiny run tries 200 samples/s only" if args.tiny else None)
@@ -283,6 +305,13 @@ def main(argv: list[str] | None = None) -> int:
           ratio_value=ratio(ceiling["samples_per_s"], limit), ratio_is="figure/peer",
           target="reported: the same process in lock-step (no waiting), the most one process "
                  "can do on this CPU", met=True, **ceiling)
+    w.add("one_process_floor", floor["samples_per_s"], "samples/s",
+          peer="the service, same run (P6b)", peer_figure=best,
+          ratio_value=ratio(best, floor["samples_per_s"]), ratio_is="peer/figure",
+          target="reported: a do-nothing master and responder in one process on the same "
+                 "virtual bus, the service's threads and batch calls, same criterion "
+                 "(bench/floor.py): what real time in one process allows",
+          met=True, **floor)
     return 0
 
 
