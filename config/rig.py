@@ -21,6 +21,20 @@ from typing import Any
 
 import numpy as np
 
+from rsra.config.rigfile import (  # noqa: F401  (names the loader's users import from here)
+    CONTENTS,
+    COB_MAX_11BIT,
+    DESIGN_BAND,
+    MAX_SAMPLE_RATE_HZ,
+    MISSING,
+    POSITION_MAX_M,
+    ROLES,
+    STRUCTURE_PARAMETERS,
+    RigFile,
+    predefined_cob_ids,
+    validate,
+    zenoh_endpoint_problem,
+)
 from rsra.estimator.params import (
     Accelerometers,
     ExternalLoads,
@@ -29,37 +43,7 @@ from rsra.estimator.params import (
     RigModel,
 )
 
-MAX_SAMPLE_RATE_HZ = 10_000.0  # a SYNC every 100 µs: more than any CAN bus carries
-
 G0 = 9.80665  # standard gravity, m/s^2
-ROLES = ("load_cell", "accelerometer", "rotor_speed", "balance", "drive_load")
-CONTENTS = ("static", "harmonics", "broadband", "vibration")
-
-
-# Zenoh's link protocols (zenoh-link) and those whose address is <host>:<port>
-ZENOH_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream", "unixpipe", "serial",
-                   "vsock")
-_IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
-
-
-def zenoh_endpoint_problem(ep: str) -> str | None:
-    """What is wrong with a Zenoh endpoint ``<protocol>/<address>[?<metadata>][#<config>]``,
-    or None. Zenoh itself accepts an unknown protocol or a bad address in its config and
-    fails only when the session opens (or, for some, listens nowhere without a word)."""
-    proto, sep, rest = ep.partition("/")
-    address = rest.split("?", 1)[0].split("#", 1)[0]
-    if not sep or not address:
-        return "not a Zenoh endpoint (<protocol>/<address>)"
-    if proto not in ZENOH_PROTOCOLS:
-        return f"unknown Zenoh protocol {proto!r} (one of {', '.join(ZENOH_PROTOCOLS)})"
-    if proto in _IP_PROTOCOLS:
-        host, colon, port = address.rpartition(":")
-        if not colon or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
-            return "the address must be <host>:<port> with a port 0…65535"
-        bracketed = host.startswith("[") and host.endswith("]")
-        if (":" in host or "[" in host or "]" in host) and not bracketed:
-            return "an IPv6 address goes in brackets: [::1]:7447"
-    return None
 
 
 class ConfigError(ValueError):
@@ -68,31 +52,17 @@ class ConfigError(ValueError):
     def __init__(self, key: str, value: Any, problem: str, fix: str, source: str = ""):
         self.key, self.value, self.problem, self.fix, self.source = key, value, problem, fix, source
         where = f"{source}: " if source else ""
-        super().__init__(f"{where}{key} = {value!r}: {problem}; fix: {fix}")
+        shown = "" if value is MISSING else f" = {value!r}"
+        super().__init__(f"{where}{key}{shown}: {problem}; fix: {fix}")
 
 
 _MISSING = object()
-COB_MAX_11BIT = 0x7FF
-# the rotor-speed band the load filter is designed for at start-up (flight: +-2 %); every
-# modelled harmonic must stay below Nyquist over it (daq.pipeline prefills it)
-DESIGN_BAND = 0.02
-# a position farther than this from the reference point is a typing mistake (1e308 would
-# overflow the geometry's arithmetic): no rotor transmission is 100 m across
-POSITION_MAX_M = 100.0
-
-
-def predefined_cob_ids(node_id: int) -> dict[int, str]:
-    """COB-ID -> use, for a node's CiA 301 predefined connection set (and NMT)."""
-    ids = {0x000: "NMT", 0x080 + node_id: "EMCY", 0x580 + node_id: "SDO response",
-           0x600 + node_id: "SDO request", 0x700 + node_id: "heartbeat"}
-    for n in range(4):
-        ids[0x180 + 0x100 * n + node_id] = f"TPDO{n + 1}"
-        ids[0x200 + 0x100 * n + node_id] = f"RPDO{n + 1}"
-    return ids
 
 
 class Section:
-    """Typed access to one TOML table, tracking the dotted key path and unknown keys."""
+    """Typed access to one TOML table, tracking the dotted key path and unknown keys (the
+    simulator's scenario files, sim_bus.scenarios; the rig TOML is validated by pydantic:
+    config.rigfile)."""
 
     def __init__(self, data: dict, path: str, source: str):
         if not isinstance(data, dict):
@@ -299,24 +269,6 @@ class IdentificationConfig:
     structure_fit: dict | None = None
 
 
-# [identification.structure]: the number of parameters β of each structure
-# (estimator.structure.parameter_names; config may import estimator.params only)
-STRUCTURE_PARAMETERS = {"cell_load_angles": 14, "hub_position": 3, "balance": 9,
-                        "external_load": 18}
-
-
-def _structure_fit(st: "Section") -> dict:
-    """``[identification.structure]`` → the structure's fit payload (SI)."""
-    name = st.string("structure", choices=tuple(STRUCTURE_PARAMETERS))
-    p = STRUCTURE_PARAMETERS[name]
-    fit = {"structure": name,
-           "alpha0": np.radians(st.vector("alpha0_deg", 14, unit=" in degrees")).tolist(),
-           "beta": st.vector("beta", p, unit=" (SI: rad/N, m, fraction and rad, N/N)").tolist(),
-           "T_ref": st.vector("T_ref_N", 7, unit=" in N").tolist()}
-    st.finish()
-    return fit
-
-
 @dataclass(frozen=True)
 class SyncConfig:
     producer: str
@@ -512,7 +464,8 @@ def absolute_eds(raw: dict, base_dir: Path) -> dict:
     for n in nodes:
         if isinstance(n, dict) and isinstance(n.get("eds"), str) \
                 and not Path(n["eds"]).is_absolute() and (base_dir / n["eds"]).is_file():
-            n = {**n, "eds": str(base_dir / n["eds"])}  # (else: the packaged folder's)
+            # absolute: a layer named by a relative path is looked up from the working folder
+            n = {**n, "eds": str(base_dir.absolute() / n["eds"])}  # (else: the packaged folder's)
         out.append(n)
     return {**raw, "nodes": out}
 
@@ -593,376 +546,72 @@ def _merge(a: dict, b: dict) -> dict:
 
 
 def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = None) -> RigConfig:
+    """Validate a whole rig (config.rigfile's pydantic schema) and build its RigConfig.
+    Raises ConfigError naming the key, the value and the fix."""
     base_dir = base_dir or config_dir()
-    top = Section(raw, "", source)
-
-    rig = top.table("rig", {})
-    rig_name = rig.string("name", "bench")
-    if not rig_name or "/" in rig_name or any(c in rig_name for c in "*?$#"):
-        raise rig.error("name", rig_name, "must be a plain name", "use letters, digits, - or _")
-    rate = rig.number("sample_rate_hz", 200.0, positive=True)
-    if rate > MAX_SAMPLE_RATE_HZ:  # beyond any CAN bus (1 Mbit/s: ~1 100 samples/s here)
-        raise rig.error("sample_rate_hz", rate, f"must be at most {MAX_SAMPLE_RATE_HZ:g} Hz",
-                        "set rig.sample_rate_hz to the SYNC rate of the bus (200 by default)")
-    rig.finish()
-
-    geo = top.table("geometry")
-    hub = geo.vector("hub_centre_m", 3, unit=" in m", max_abs=POSITION_MAX_M)
-    tilt = math.radians(geo.number("shaft_tilt_deg", 0.0))
-    frame = geo.string("hub_frame", "body", ("body", "shaft"))
-    geo.finish()
-
-    mass = top.table("mass")
-    m = mass.vector("effective_mass_kg", 3, positive=True, unit=" in kg")
-    inertia = mass.vector("inertia_kg_m2", 3, positive=True, unit=" in kg m^2")
-    mass.finish()
-
-    cells = []
-    seen: dict[str, str] = {}
-    for c in top.tables("cells"):
-        name = c.string("name")
-        if name in seen:
-            raise c.error("name", name, f"cell listed twice (also at {seen[name]})",
-                          "give every cell its own name")
-        seen[name] = c.path
-        axis = c.vector("nominal_axis", 3)
-        nrm = float(np.linalg.norm(axis))
-        if nrm == 0:
-            raise c.error("nominal_axis", axis.tolist(), "is zero", "give the cell's direction")
-        cells.append(CellConfig(
-            name=name, node=c.string("node"), position_m=c.vector("position_m", 3, unit=" in m",
-                                                                max_abs=POSITION_MAX_M),
-            nominal_axis=axis / nrm,
-            full_scale_N=c.number("full_scale_N", positive=True),
-            accuracy_fs=c.number("accuracy_fs", positive=True),
-            stiffness_N_per_m=c.number("stiffness_N_per_m", 1.0e8, positive=True),
-        ))
-        c.finish()
-    if len(cells) != 7:
-        raise ConfigError("cells", len(cells), "the model has exactly seven load cells (14 angles)",
-                          "list seven [[cells]] blocks", source)
-    kinds = sorted(int(np.argmax(np.abs(c.nominal_axis))) for c in cells)
-    if kinds != [0, 1, 1, 2, 2, 2, 2]:
-        raise ConfigError("cells[*].nominal_axis", [c.nominal_axis.round(3).tolist() for c in cells],
-                          "need four vertical, two lateral and one longitudinal cell",
-                          "check the nominal axes (vertical along z, lateral along y, longitudinal along x)",
-                          source)
-
-    inertial = top.table("inertial", {})
-    angular = inertial.string("angular", "neglect", ("neglect", "least_squares"))
-    inertial.finish()
-
-    accs = []
-    for a in top.tables("accelerometers"):
-        accs.append(AccelerometerConfig(
-            name=a.string("name"), node=a.string("node"),
-            position_m=a.vector("position_m", 3, unit=" in m", max_abs=POSITION_MAX_M),
-            full_scale_g=a.number("full_scale_g", positive=True),
-            accuracy_fs=a.number("accuracy_fs", positive=True),
-        ))
-        a.finish()
-    if not accs:
-        raise ConfigError("accelerometers", [], "at least one triaxial accelerometer is needed",
-                          "add an [[accelerometers]] block", source)
-
-    rot = top.table("rotor")
-    rotor = RotorConfig(
-        blades=rot.number("blades", integer=True, positive=True),
-        omega_nominal_rad_s=rot.number("omega_nominal_rad_s", positive=True),
-        node=rot.string("node", ""),
-        omega_min_fraction=rot.number("omega_min_fraction", 0.1, positive=True),
-        redesign_band=rot.number("redesign_band", 0.005, positive=True),
-        cache_resolution=rot.number("cache_resolution", 0.001, positive=True),
-        stopped=rot.boolean("stopped", False),
-        harmonic_phase=rot.string("harmonic_phase", "design", ("design", "azimuth")),
+    f = validate(raw, base_dir=base_dir, packaged_dir=config_dir())
+    if not isinstance(f, RigFile):
+        raise ConfigError(*f, source)
+    rig, rot, flt, idt = f.rig, f.rotor, f.filter, f.identification
+    rate = rig.sample_rate_hz
+    cells = tuple(CellConfig(
+        name=c.name, node=c.node, position_m=np.asarray(c.position_m, float),
+        nominal_axis=np.asarray(c.nominal_axis, float) / np.linalg.norm(c.nominal_axis),
+        full_scale_N=c.full_scale_N, accuracy_fs=c.accuracy_fs,
+        stiffness_N_per_m=c.stiffness_N_per_m) for c in f.cells)
+    accs = tuple(AccelerometerConfig(
+        name=a.name, node=a.node, position_m=np.asarray(a.position_m, float),
+        full_scale_g=a.full_scale_g, accuracy_fs=a.accuracy_fs) for a in f.accelerometers)
+    init = idt.initial_angles_deg
+    st = idt.structure
+    return RigConfig(
+        source=source, rig_name=rig.name, sample_rate_hz=rate,
+        hub_centre_m=np.asarray(f.geometry.hub_centre_m, float),
+        shaft_tilt_rad=math.radians(f.geometry.shaft_tilt_deg), hub_frame=f.geometry.hub_frame,
+        effective_mass_kg=np.asarray(f.mass.effective_mass_kg, float),
+        inertia_kg_m2=np.asarray(f.mass.inertia_kg_m2, float),
+        cells=cells, angular=f.inertial.angular, accelerometers=accs,
+        rotor=RotorConfig(**rot.model_dump()),
+        balance=BalanceConfig(**f.balance.model_dump()),
+        external_loads=tuple(ExternalLoadConfig(
+            name=e.name, node=e.node, wrench_per_unit=np.asarray(e.wrench_per_unit, float),
+            sigma=e.sigma) for e in f.external_loads),
+        filter=FilterConfig(
+            harmonics=tuple(sorted(flt.harmonics)),
+            low_frequency_states=flt.low_frequency_states, tuning=flt.tuning,
+            time_constant_s=flt.time_constant_s,
+            process_noise_psd=flt.process_noise_psd if isinstance(flt.process_noise_psd, str)
+            else np.asarray(flt.process_noise_psd, float),
+            invalid_after_s=flt.invalid_after_s),
+        identification=IdentificationConfig(
+            parameters=idt.parameters,
+            initial_angles_rad=np.radians(np.broadcast_to(np.asarray(init, float), (14,))),
+            prior_sigma_rad=math.radians(idt.prior_sigma_deg),
+            period_s=idt.period_s, window_s=idt.window_s,
+            drift_rate_rad2_s=idt.drift_rate_rad2_s, min_information=idt.min_information,
+            sigma_max_rad=math.radians(idt.sigma_max_deg), apply_delay_s=idt.apply_delay_s,
+            content_known_loads=idt.content_known_loads,
+            content_filter_error=idt.content_filter_error,
+            moment_floor_Nm=idt.moment_floor_Nm, max_iterations=idt.max_iterations,
+            reset_after=idt.reset_after, stale_fraction=idt.stale_fraction,
+            settle_time_constants=idt.settle_time_constants, gap_s=idt.gap_s,
+            state_file=idt.state_file, angle_limit_rad=math.radians(idt.angle_limit_deg),
+            # as estimator.structure.fit_payload (SI); None: the constant structure
+            structure_fit=None if st is None else {
+                "structure": st.structure, "alpha0": np.radians(st.alpha0_deg).tolist(),
+                "beta": [float(b) for b in st.beta], "T_ref": [float(t) for t in st.T_ref_N]}),
+        sync=SyncConfig(**f.sync.model_dump()),
+        heartbeat=HeartbeatConfig(**f.heartbeat.model_dump()),
+        nodes=tuple(NodeConfig(name=n.name, role=n.role, node_id=n.node_id, eds=n._eds_path,
+                               required=n.required) for n in f.nodes),
+        calibration={k: (e.gain, e.offset) for k, e in f.calibration.items()},
+        telemetry=TelemetryConfig(
+            prefix=f.telemetry.prefix or f"rsra/{rig.name}", mode=f.telemetry.mode,
+            listen=tuple(f.telemetry.listen), connect=tuple(f.telemetry.connect),
+            multicast_scouting=f.telemetry.multicast_scouting,
+            innovations_hz=f.telemetry.innovations_hz, zenoh_config=f.telemetry.zenoh_config),
+        recording=RecordingConfig(**f.recording.model_dump()),
+        simulator=SimulatorConfig(**f.simulator.model_dump()),
+        stuck=StuckConfig(**f.stuck.model_dump()),
+        raw=raw,
     )
-    if rotor.harmonic_phase == "azimuth" and not rotor.node:
-        raise rot.error("harmonic_phase", "azimuth", "needs the rotor-speed node's azimuth",
-                        'set rotor.node, or harmonic_phase = "design"')
-    rot.finish()
-
-    bal = top.table("balance", {})
-    balance = BalanceConfig(
-        node=bal.string("node", ""),
-        full_scale_force_N=bal.number("full_scale_force_N", 200000.0, positive=True),
-        full_scale_moment_Nm=bal.number("full_scale_moment_Nm", 50000.0, positive=True),
-        accuracy_fs=bal.number("accuracy_fs", 0.0002, positive=True),
-    )
-    bal.finish()
-
-    ext = []
-    for e in top.tables("external_loads", []):
-        ext.append(ExternalLoadConfig(
-            name=e.string("name"), node=e.string("node"),
-            wrench_per_unit=e.vector("wrench_per_unit", 6),
-            sigma=e.number("sigma", positive=True),
-        ))
-        e.finish()
-
-    flt = top.table("filter", {})
-    harm_raw = flt.get("harmonics", [1, rotor.blades])
-    if (not isinstance(harm_raw, list) or not harm_raw
-            or not all(isinstance(h, int) and not isinstance(h, bool) and h > 0 for h in harm_raw)
-            or len(set(harm_raw)) != len(harm_raw)):
-        raise flt.error("harmonics", harm_raw, "must be a list of distinct positive whole numbers",
-                        f"e.g. harmonics = [1, {rotor.blades}] for 1/rev and N_b/rev")
-    psd_raw = flt.get("process_noise_psd", "auto")
-    if isinstance(psd_raw, str):
-        if psd_raw != "auto":
-            raise flt.error("process_noise_psd", psd_raw, "unknown value",
-                            'use "auto" or a list of six positive PSDs')
-        psd: str | np.ndarray = "auto"
-    else:
-        psd = flt.vector("process_noise_psd", 6, positive=True)
-    # every harmonic below Nyquist over the rotor-speed band designed at start-up: above it
-    # the load filter cannot be designed (the Riccati solver fails; model §5)
-    for h in sorted(harm_raw, reverse=True):
-        f_h = h * rotor.omega_nominal_rad_s * (1 + DESIGN_BAND) / (2 * math.pi)
-        if f_h >= rate / 2:
-            f_rot = rotor.omega_nominal_rad_s / (2 * math.pi)
-            raise flt.error("harmonics", harm_raw,
-                            f"harmonic {h} is at {f_h:.3g} Hz ({h} × {f_rot:.3g} Hz rotor "
-                            f"frequency, +{DESIGN_BAND:.0%} design band), at or above the "
-                            f"Nyquist frequency {rate / 2:g} Hz of rig.sample_rate_hz = {rate:g}",
-                            f"remove harmonic {h} or raise rig.sample_rate_hz above "
-                            f"{2 * f_h:.3g} Hz")
-    filt = FilterConfig(
-        harmonics=tuple(sorted(harm_raw)),
-        low_frequency_states=flt.boolean("low_frequency_states", True),
-        tuning=flt.string("tuning", "time_constant", ("time_constant", "noise")),
-        time_constant_s=flt.number("time_constant_s", 0.1, positive=True),
-        process_noise_psd=psd,
-        invalid_after_s=flt.number("invalid_after_s", 0.5, positive=True),
-    )
-    flt.finish()
-
-    idt = top.table("identification", {})
-    params = idt.get("parameters", "angles")
-    if isinstance(params, list):
-        if not params or not all(isinstance(x, str) for x in params) or len(set(params)) != len(params):
-            raise idt.error("parameters", params, "must be distinct parameter names",
-                            'use "angles" or a list such as ["delta_A", "theta_A"]')
-        params = tuple(params)
-    elif params != "angles":
-        raise idt.error("parameters", params, "unknown value", 'use "angles" or a list of names')
-    ia = idt.get("initial_angles_deg", 0.0)
-    if isinstance(ia, (int, float)) and not isinstance(ia, bool):
-        # one value for all 14 (checked finite like every number: nan made S singular)
-        init = np.full(14, math.radians(idt.number("initial_angles_deg", 0.0)))
-    else:
-        init = np.radians(idt.vector("initial_angles_deg", 14, unit=" in degrees"))
-    window = idt.number("window_s", 5.0, positive=True)
-    period = idt.number("period_s", 5.0, positive=True)
-    if window > period:
-        raise idt.error("window_s", window, f"exceeds period_s = {period} (samples would count twice)",
-                        "make window_s <= period_s")
-    for key, v in (("window_s", window), ("period_s", period)):
-        if round(v * rate) < 1:
-            raise idt.error(key, v, f"is less than one sample at rig.sample_rate_hz = {rate:g}",
-                            f"give at least {1 / rate:g} s (one sample); the default is 5.0")
-    ident = IdentificationConfig(
-        parameters=params,
-        initial_angles_rad=init,
-        prior_sigma_rad=math.radians(idt.number("prior_sigma_deg", 5.0, positive=True)),
-        period_s=period,
-        window_s=window,
-        drift_rate_rad2_s=idt.number("drift_rate_rad2_s", 1e-9, nonneg=True),
-        min_information=idt.number("min_information", 1.0, positive=True),
-        sigma_max_rad=math.radians(idt.number("sigma_max_deg", 0.2, positive=True)),
-        apply_delay_s=idt.number("apply_delay_s", 1.0, nonneg=True),
-        content_known_loads=idt.string("content_known_loads", "static", CONTENTS),
-        content_filter_error=idt.string("content_filter_error", "harmonics", CONTENTS),
-        moment_floor_Nm=idt.number("moment_floor_Nm", 100.0, nonneg=True),
-        max_iterations=idt.number("max_iterations", 10, integer=True, positive=True),
-        reset_after=idt.number("reset_after", 3, integer=True, positive=True),
-        stale_fraction=idt.number("stale_fraction", 0.05, nonneg=True),
-        settle_time_constants=idt.number("settle_time_constants", 5.0, nonneg=True),
-        gap_s=idt.number("gap_s", 0.5, positive=True),
-        state_file=idt.string("state_file", ""),
-        angle_limit_rad=math.radians(idt.number("angle_limit_deg", 10.0, positive=True)),
-        structure_fit=_structure_fit(idt.table("structure")) if "structure" in idt.data
-        else None,
-    )
-    over = np.flatnonzero(~(np.abs(init) <= ident.angle_limit_rad))
-    if over.size:
-        raise idt.error("initial_angles_deg", float(np.degrees(init[over[0]])),
-                        f"outside the physical range ±{math.degrees(ident.angle_limit_rad):g}° "
-                        "(identification.angle_limit_deg)",
-                        "give angles within the range, or widen angle_limit_deg")
-    idt.finish()
-
-    sy = top.table("sync", {})
-    sync = SyncConfig(
-        producer=sy.string("producer", "service", ("service", "external")),
-        cob_id=sy.number("cob_id", 0x80, integer=True, positive=True),
-        counter_overflow=sy.number("counter_overflow", 240, integer=True, nonneg=True),
-    )
-    if sync.cob_id > COB_MAX_11BIT:
-        raise sy.error("cob_id", sync.cob_id, "is not an 11-bit COB-ID",
-                       "use 0x80 (the CANopen default)")
-    if not (sync.counter_overflow == 0 or 2 <= sync.counter_overflow <= 240):
-        raise sy.error("counter_overflow", sync.counter_overflow, "CiA 301 allows 0 or 2…240",
-                       "use 240 (the default)")
-    sy.finish()
-
-    hb = top.table("heartbeat", {})
-    heartbeat = HeartbeatConfig(
-        producer_ms=hb.number("producer_ms", 100, integer=True, positive=True),
-        timeout_factor=hb.number("timeout_factor", 2.5, positive=True),
-        boot_timeout_s=hb.number("boot_timeout_s", 2.0, positive=True),
-    )
-    hb.finish()
-
-    nodes = []
-    names: dict[str, str] = {}
-    ids: dict[int, str] = {}
-    for n in top.tables("nodes"):
-        name = n.string("name")
-        if name in names:
-            raise n.error("name", name, f"node listed twice (also at {names[name]})",
-                          "give every node its own name")
-        names[name] = n.path
-        nid = n.number("node_id", integer=True)
-        if not 1 <= nid <= 127:
-            raise n.error("node_id", nid, "CANopen node ids are 1…127", "choose an id in 1…127")
-        if nid in ids:
-            raise n.error("node_id", nid, f"id already used by node {ids[nid]!r}",
-                          "give every node its own id")
-        ids[nid] = name
-        eds = Path(n.string("eds"))
-        eds_path = eds if eds.is_absolute() else base_dir / eds
-        if not eds_path.is_file():
-            # fall back to the packaged EDS folder
-            alt = config_dir() / eds
-            if alt.is_file():
-                eds_path = alt
-            else:
-                raise n.error("eds", str(eds), f"file not found (looked in {base_dir})",
-                              "give the EDS path relative to the config file")
-        nodes.append(NodeConfig(name=name, role=n.string("role", choices=ROLES), node_id=nid,
-                                eds=eds_path, required=n.boolean("required", True)))
-        n.finish()
-
-    # the SYNC COB-ID against every COB-ID of the configured nodes' predefined connection set
-    # (CiA 301: a SYNC on a node's COB-ID is taken for that node's frame, and the reverse, so
-    # no sample is ever assembled); the TPDO COB-IDs the EDS files give are checked against
-    # it again with the decode table (daq.decoder)
-    for nc in nodes:
-        owner = predefined_cob_ids(nc.node_id).get(sync.cob_id)
-        if owner is not None:
-            raise ConfigError("sync.cob_id", hex(sync.cob_id),
-                              f"is the {owner} COB-ID of node {nc.name!r} (id 0x{nc.node_id:02X})",
-                              "use 0x80 (the CANopen default), or a COB-ID no node uses", source)
-
-    def need_node(key: str, node: str, role: str, optional: bool = False) -> None:
-        if optional and not node:
-            return
-        nc = next((x for x in nodes if x.name == node), None)
-        if nc is None:
-            raise ConfigError(key, node, "no [[nodes]] entry with that name",
-                              f'add a [[nodes]] block with name = "{node}" and role = "{role}"', source)
-        if nc.role != role:
-            raise ConfigError(key, node, f"node has role {nc.role!r}, expected {role!r}",
-                              "point it at the right node", source)
-
-    used_nodes: dict[str, str] = {}
-    for i, c in enumerate(cells):
-        need_node(f"cells[{i}].node", c.node, "load_cell")
-        if c.node in used_nodes:
-            raise ConfigError(f"cells[{i}].node", c.node, f"node already used by {used_nodes[c.node]}",
-                              "give each cell its own node", source)
-        used_nodes[c.node] = f"cells[{i}]"
-    for i, a in enumerate(accs):
-        need_node(f"accelerometers[{i}].node", a.node, "accelerometer")
-    need_node("rotor.node", rotor.node, "rotor_speed", optional=True)
-    need_node("balance.node", balance.node, "balance", optional=True)
-    for i, e in enumerate(ext):
-        need_node(f"external_loads[{i}].node", e.node, "drive_load")
-
-    cal_sec = top.table("calibration", {})
-    calibration: dict[str, tuple[float, float]] = {}
-    for k in list(cal_sec.data):
-        entry = cal_sec.table(k)
-        node_name = k.split(".")[0]
-        if node_name not in names:
-            raise cal_sec.error(k, cal_sec.data[k], f"no node named {node_name!r}",
-                                'use keys "<node>.<channel>", e.g. "cell_A.force"')
-        gain = entry.number("gain", 1.0)
-        if gain == 0:
-            raise entry.error("gain", gain, "a zero gain erases the channel",
-                              "give the channel's gain (value = gain * raw + offset), e.g. 1.0")
-        calibration[k] = (gain, entry.number("offset", 0.0))
-        entry.finish()
-    cal_sec.finish()
-
-    tel = top.table("telemetry", {})
-    prefix = tel.string("prefix", "") or f"rsra/{rig_name}"
-    if prefix.startswith("/") or prefix.endswith("/") or any(c in prefix for c in "*$?#"):
-        raise tel.error("prefix", prefix, "not a valid Zenoh key prefix",
-                        'use e.g. "rsra/bench" (no wildcards, no leading or trailing /)')
-    listen = tel.get("listen", ["tcp/127.0.0.1:7447"])
-    connect = tel.get("connect", [])
-    for key, eps in (("listen", listen), ("connect", connect)):
-        if not isinstance(eps, list) or not all(isinstance(x, str) for x in eps):
-            raise tel.error(key, eps, "must be a list of Zenoh endpoints",
-                            f'e.g. {key} = ["tcp/127.0.0.1:7447"]')
-        for ep in eps:
-            problem = zenoh_endpoint_problem(ep)
-            if problem:
-                raise tel.error(key, ep, problem, f'e.g. {key} = ["tcp/127.0.0.1:7447"]')
-    telemetry = TelemetryConfig(
-        prefix=prefix,
-        mode=tel.string("mode", "peer", ("peer", "client", "router")),
-        listen=tuple(listen), connect=tuple(connect),
-        multicast_scouting=tel.boolean("multicast_scouting", False),
-        innovations_hz=tel.number("innovations_hz", 20.0, positive=True),
-        zenoh_config=tel.string("zenoh_config", ""),
-    )
-    tel.finish()
-
-    rec = top.table("recording", {})
-    recording = RecordingConfig(
-        dir=rec.string("dir", ""),
-        format=rec.string("format", "log", ("log", "blf", "asc", "mf4")),
-        rotate_mb=rec.number("rotate_mb", 64.0, positive=True),
-        cap_mb=rec.number("cap_mb", 4096.0, positive=True),
-        flush_s=rec.number("flush_s", 1.0, positive=True),
-    )
-    if recording.flush_s > 1.0:
-        raise rec.error("flush_s", recording.flush_s, "recordings flush at least once a second",
-                        "set flush_s <= 1")
-    rec.finish()
-
-    sim = top.table("simulator", {})
-    simulator = SimulatorConfig(
-        damping_ratio=sim.number("damping_ratio", 0.02, nonneg=True),
-        damping_reference_hz=sim.number("damping_reference_hz", 50.0, positive=True),
-        substeps=sim.number("substeps", 10, integer=True, positive=True),
-    )
-    sim.finish()
-
-    stk = top.table("stuck", {})
-    stuck = StuckConfig(
-        enabled=stk.boolean("enabled", True),
-        false_alarm_per_hour=stk.number(
-            "false_alarm_per_hour", 1.0e-6, positive=True,
-            fix="give the accepted false alarms per channel-hour, e.g. 1e-6"),
-        max_delay_s=stk.number("max_delay_s", 0.5, positive=True,
-                               fix="give the longest run to wait for, in s, e.g. 0.5"),
-    )
-    if stuck.false_alarm_per_hour >= 1.0:
-        raise stk.error("false_alarm_per_hour", stuck.false_alarm_per_hour,
-                        "must be below 1 (a probability per channel-hour)",
-                        "use e.g. 1e-6")
-    stk.finish()
-    top.finish()
-
-    cfg = RigConfig(
-        source=source, rig_name=rig_name, sample_rate_hz=rate, hub_centre_m=hub,
-        shaft_tilt_rad=tilt, hub_frame=frame, effective_mass_kg=m, inertia_kg_m2=inertia,
-        cells=tuple(cells), angular=angular, accelerometers=tuple(accs), rotor=rotor,
-        balance=balance, external_loads=tuple(ext), filter=filt, identification=ident,
-        sync=sync, heartbeat=heartbeat, nodes=tuple(nodes), calibration=calibration,
-        telemetry=telemetry, recording=recording, simulator=simulator, stuck=stuck, raw=raw,
-    )
-    return cfg

@@ -180,3 +180,115 @@ def test_the_packaged_rig_as_a_layer_is_the_packaged_rig(cfg):
     strip = lambda d: {k: v for k, v in d.items() if k != "nodes"}  # noqa: E731
     assert strip(got.effective()) == strip(cfg.effective())
     assert [n.eds for n in got.nodes] == [n.eds for n in cfg.nodes]
+
+
+def test_a_missing_key_says_where_to_add_it_and_prints_no_none(raw, tmp_path):
+    """Only a rig given whole (parse_config) or an array of tables a layer replaces can lack a
+    key; the line names it and its block, never `= None`."""
+    e = bad(raw, lambda r: r.pop("geometry"))
+    assert e.key == "geometry" and "None" not in str(e) and "is missing" in str(e)
+    assert "[geometry]" in e.fix
+    e = bad(raw, lambda r: r["cells"][3].pop("full_scale_N"))
+    assert str(e) == ("rig.toml: cells[3].full_scale_N: is missing; fix: add full_scale_N = … "
+                      "to this [[cells]] block")
+    e = bad(raw, lambda r: r["geometry"].pop("hub_centre_m"))
+    assert str(e).endswith("geometry.hub_centre_m: is missing; fix: add hub_centre_m = … to "
+                           "[geometry]")
+    # a layer replacing [[accelerometers]] with an incomplete block: named with its file
+    layer = tmp_path / "acc.toml"
+    layer.write_text('[[accelerometers]]\nname = "acc1"\nnode = "accel_1"\n'
+                     'position_m = [0.0, 0.0, 0.0]\nfull_scale_g = 7.0\n')
+    with pytest.raises(ConfigError) as ei:
+        load_config(layer)
+    assert str(ei.value) == (f"{layer}: accelerometers[0].accuracy_fs: is missing; fix: add "
+                             "accuracy_fs = … to this [[accelerometers]] block")
+
+
+def test_types_are_not_coerced(raw):
+    """pydantic's strict mode: a string is not a number, a number is not a boolean."""
+    e = bad(raw, lambda r: r["rig"].__setitem__("sample_rate_hz", "200"))
+    assert e.key == "rig.sample_rate_hz" and "must be a finite number" in str(e)
+    e = bad(raw, lambda r: r["rotor"].__setitem__("stopped", 1))
+    assert e.key == "rotor.stopped" and "true or false" in str(e)
+    e = bad(raw, lambda r: r["rotor"].__setitem__("blades", 5.5))
+    assert e.key == "rotor.blades" and "whole number" in str(e)
+    e = bad(raw, lambda r: r["cells"][2].__setitem__("position_m", [0.0, "x", 0.0]))
+    assert e.key == "cells[2].position_m[1]" and "fix:" in str(e)
+    cfg = parse_rig({**copy.deepcopy(raw), "heartbeat": {"producer_ms": 100.0}},
+                    source="rig.toml", base_dir=default_config_path().parent)
+    assert cfg.heartbeat.producer_ms == 100 and isinstance(cfg.heartbeat.producer_ms, int)
+
+
+def _same(x, y, path=""):
+    """Field-by-field equality of two RigConfig values (arrays exactly, EDS paths as files)."""
+    import dataclasses
+    from pathlib import Path
+
+    if dataclasses.is_dataclass(x):
+        assert type(x) is type(y), path
+        for f in dataclasses.fields(x):
+            if f.name not in ("origins", "raw", "source"):
+                _same(getattr(x, f.name), getattr(y, f.name), f"{path}.{f.name}")
+    elif isinstance(x, np.ndarray):
+        assert x.dtype == y.dtype and np.array_equal(x, y), (path, x, y)
+    elif isinstance(x, (tuple, list)):
+        assert type(x) is type(y) and len(x) == len(y), (path, x, y)
+        for i, (u, v) in enumerate(zip(x, y)):
+            _same(u, v, f"{path}[{i}]")
+    elif isinstance(x, dict):
+        assert x.keys() == y.keys(), path
+        for k in x:
+            _same(x[k], y[k], f"{path}.{k}")
+    elif isinstance(x, Path):
+        assert x.resolve() == Path(y).resolve(), (path, x, y)
+    else:
+        assert type(x) is type(y) and x == y, (path, x, y)
+
+
+def test_the_flight_rig_layer_is_the_full_copy_it_replaced(tmp_path):
+    """config/flight-rig.toml was a 293-line copy of the default rig; as a layer holding only
+    what differs it gives the same rig, value for value (tests/fixtures/flight-rig-full.json:
+    the copy as it was, read by tomllib)."""
+    import json
+    from pathlib import Path
+
+    from rsra.config.rig import config_dir, parse_config
+
+    flight = config_dir() / "flight-rig.toml"
+    full = json.loads((Path(__file__).parent / "fixtures" / "flight-rig-full.json").read_text())
+    layer = load_config(flight)
+    _same(layer, parse_config(full, base_dir=config_dir()))
+    strip = lambda d: {k: v for k, v in d.items() if k != "nodes"}  # noqa: E731
+    assert strip(layer.raw) == strip(full)
+    assert [{**n, "eds": Path(n["eds"]).name} for n in layer.raw["nodes"]] == \
+        [{**n, "eds": Path(n["eds"]).name} for n in full["nodes"]]
+    assert len(flight.read_text().splitlines()) < 150  # was 297
+    assert layer.origins["accelerometers"] == str(flight)
+    assert layer.origins["rotor.harmonic_phase"] == str(flight)
+    assert layer.origins["rotor.blades"] == "default"
+    assert layer.origins["geometry.hub_centre_m"] == "default"
+    r = _cli("config", "show", "--config", str(flight))
+    assert r.returncode == 0, r.stderr
+    origin = {ln.split("=")[0].strip(): ln.split("#")[-1].strip()
+              for ln in r.stdout.splitlines() if "=" in ln and "#" in ln}
+    assert origin["harmonic_phase"] == origin["content_filter_error"] == str(flight)
+    assert origin["shaft_tilt_deg"] == origin["omega_nominal_rad_s"] == "default"
+
+
+def test_a_layer_named_by_a_relative_path_finds_its_eds_files(tmp_path):
+    """`rsra config show --config config/flight-rig.toml` from the source tree said
+    `nodes[0].eds = 'config/eds/load_cell.eds': file not found` (the layer's EDS paths were
+    made relative to the working folder, then looked up in the package's)."""
+    from rsra.config.rig import config_dir
+
+    layer = tmp_path / "sub" / "rig.toml"
+    (layer.parent / "eds").mkdir(parents=True)
+    for name in ("load_cell.eds", "accelerometer.eds"):
+        (layer.parent / "eds" / name).write_bytes((config_dir() / "eds" / name).read_bytes())
+    layer.write_text((config_dir() / "flight-rig.toml").read_text())
+    r = subprocess.run([sys.executable, "-m", "rsra", "config", "show", "--config",
+                        "sub/rig.toml"], cwd=tmp_path, capture_output=True, text=True,
+                       timeout=120, check=False)
+    assert r.returncode == 0, r.stderr
+    eds = [ln for ln in r.stdout.splitlines() if ln.startswith("eds =")]
+    assert len(eds) == 12 and str(layer.parent / "eds" / "load_cell.eds") in eds[0]

@@ -1,8 +1,7 @@
 """The user documentation stays honest (docs/configuration.md, docs/cli.md, docs/telemetry.md).
 
-* every key of the packaged rig TOML, and every key the loader reads (traced through
-  `rsra.config.rig.Section.get` while loading configs that use every optional section, and every
-  literal key name in daq/config.py), is documented in its section of configuration.md;
+* every key of the packaged rig TOML, and every key of the rig schema (config/rigfile.py, the
+  pydantic models the loader validates with), is documented in its section of configuration.md;
 * every `rsra` command, and every option, positional argument and choice of its argparse
   parser, appears in that command's section of cli.md;
 * every Zenoh key and every payload field the service publishes — found by running a short
@@ -29,7 +28,8 @@ from pathlib import Path
 
 import pytest
 
-from rsra.config.rig import CONTENTS, ROLES, Section, config_dir, load_config, parse_config
+from rsra.config.rig import CONTENTS, ROLES, config_dir, load_config, parse_config
+from rsra.config.rigfile import schema_keys
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
@@ -104,39 +104,14 @@ def _full_raw() -> dict:
     return raw
 
 
-def _traced_reads(raws: list[dict]) -> set[tuple[str, str]]:
-    """(table, key) of every key the loader reads — present in the file or defaulted."""
-    seen: list[tuple[str, str]] = []
-    original = Section.get
-
-    def get(self, name, *a, **kw):
-        seen.append((self.path, name))
-        return original(self, name, *a, **kw)
-
-    Section.get = get
-    try:
-        for raw in raws:
-            parse_config(copy.deepcopy(raw), base_dir=config_dir())
-    finally:
-        Section.get = original
-    out = set()
-    for path, name in seen:
-        if path == "":
-            continue  # a top-level table name: checked as a section heading
-        table = re.sub(r"\[\d+\]$", "", path.split(".")[0])
-        if path == "calibration":
-            name = '"<node>.<channel>"'  # the entry itself
-        out.add((table, name))
-    return out
-
-
 def test_every_config_key_is_documented_in_its_section():
     doc = _read("configuration.md")
     packaged = load_config().raw
-    traced = _traced_reads([packaged, _full_raw()])
-    # the tracing sees every key the files hold (and the defaulted ones besides)
-    assert _toml_keys(packaged) | _toml_keys(_full_raw()) <= traced and len(traced) > 80
-    wanted = traced
+    parse_config(copy.deepcopy(_full_raw()), base_dir=config_dir())  # a valid rig
+    known = schema_keys()
+    # the schema knows every key the files hold (and the defaulted ones besides)
+    assert _toml_keys(packaged) | _toml_keys(_full_raw()) <= known and len(known) > 80
+    wanted = known
     missing = []
     for table, key in sorted(wanted):
         body = _config_section(doc, table)
@@ -146,19 +121,14 @@ def test_every_config_key_is_documented_in_its_section():
 
 
 def test_every_key_name_the_loader_knows_is_documented():
-    """Literal names passed to the typed readers in daq/config.py (also keys of code paths
-    the configs above do not take)."""
-    tree = ast.parse((ROOT / "config" / "rig.py").read_text(encoding="utf-8"))
-    readers = {"get", "number", "string", "boolean", "vector", "table", "tables"}
-    names = {node.args[0].value for node in ast.walk(tree)
-             if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
-             and node.func.attr in readers and node.args
-             and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str)}
-    assert {"sample_rate_hz", "state_file", "zenoh_config"} <= names
+    """Every key name of the rig schema (config.rigfile), also those of tables the packaged
+    rig leaves out, appears in configuration.md."""
+    names = {key for _, key in schema_keys()} | {table for table, _ in schema_keys()}
+    assert {"sample_rate_hz", "state_file", "zenoh_config", "alpha0_deg"} <= names
     documented = code_names(_read("configuration.md"))
     tables = {n for n in names if f"[{n}]" in documented or f"[[{n}]]" in documented}
     missing = sorted(n for n in names - tables if n not in documented)
-    assert not missing, f"config keys read in daq/config.py but not documented: {missing}"
+    assert not missing, f"config keys of config/rigfile.py not documented: {missing}"
 
 
 def test_config_doc_names_every_role_choice_and_channel():

@@ -109,12 +109,10 @@ def test_angular_acceleration_from_three_triaxes_against_the_simulator_truth():
 
 
 def test_collinear_accelerometers_are_refused_with_a_clear_error():
-    import tomllib
-
-    from rsra.config.rig import ConfigError
+    from rsra.config.rig import ConfigError, merge_layers
     from rsra.daq.rigmodel import parse_rig
 
-    raw = tomllib.loads(FLIGHT_RIG.read_text(encoding="utf-8"))
+    raw, _ = merge_layers(FLIGHT_RIG)  # the flight rig is a layer over the default
     for k, acc in enumerate(raw["accelerometers"]):
         acc["position_m"] = [0.7 - 0.7 * k, 0.0, 0.35]  # on one line
     with pytest.raises(ConfigError, match="non-collinear") as e:
