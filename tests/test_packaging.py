@@ -1,4 +1,5 @@
-"""A plain, non-editable install carries the packages, the default config, EDS and scenarios."""
+"""A plain, non-editable install carries the packages, the default config, EDS and scenarios;
+the editable install is a link tree static tools read."""
 import os
 import subprocess
 import sys
@@ -79,19 +80,107 @@ def test_building_the_wheel_prints_no_warning_and_matplotlib_is_a_dependency(bui
                for r in requires), requires
 
 
-def test_editable_install_the_way_make_runs_it_is_quiet(tmp_path):
-    cmd = subprocess.run(["make", "-s", "-C", str(ROOT), "--eval",
-                          "show-pip-install: ; @printf '%s\\n' '$(PIP_INSTALL)'",
-                          "show-pip-install"], capture_output=True, text=True, check=True)
-    pip_install = cmd.stdout.strip()
-    assert "pip install" in pip_install, pip_install
-    # the Makefile's command, into a throwaway prefix; --ignore-installed keeps pip from
+def _make_variable(name: str, *args: str, cwd: Path = ROOT) -> str:
+    cmd = subprocess.run(["make", "-s", "-C", str(cwd), *args, "--eval",
+                          f"show-var: ; @printf '%s\\n' '$({name})'", "show-var"],
+                         capture_output=True, text=True, check=True)
+    return cmd.stdout.strip()
+
+
+_SOURCES = ("rsra", "daq", "estimator", "sim_bus", "config")
+
+
+def _copy_sources(dest: Path) -> Path:
+    """The package folders, pyproject.toml, setup.py, README.md and the Makefile, copied."""
+    import shutil
+
+    skip = shutil.ignore_patterns("__pycache__", "*.so", "openmct-dist")
+    for d in _SOURCES:
+        shutil.copytree(ROOT / d, dest / d, ignore=skip)
+    for f in ("pyproject.toml", "setup.py", "README.md", "Makefile"):
+        shutil.copy2(ROOT / f, dest / f)
+    return dest
+
+
+def _site_python(venv: Path, code: str, cwd: Path) -> subprocess.CompletedProcess:
+    """`code` run by the fresh `venv` (its site-packages, .pth files and all), with numpy and
+    the rest from this environment on PYTHONPATH (whose own .pth files are not read)."""
+    deps = next(p for p in sys.path if p.endswith("site-packages"))
+    env = {"PATH": os.environ.get("PATH", ""), "PYTHONPATH": deps}
+    return subprocess.run([str(venv / "bin" / "python"), "-c", code], cwd=cwd,
+                          capture_output=True, text=True, env=env)
+
+
+def test_editable_install_the_way_make_runs_it_is_quiet_and_a_link_tree_static_tools_read(
+        tmp_path):
+    """Issue 27: the Makefile's editable install is setuptools' strict mode, a tree of links
+    on a .pth path (mypy, pyright and an IDE follow it) and no import-hook finder (they cannot);
+    rsra.daq (daq/) and the compiled kernel are found through it, also from the top of the
+    checkout (where rsra/ comes first on sys.path); a file added to a package is importable
+    once the install runs again (what the next `make` does, test below), and not before."""
+    pip_editable = _make_variable("PIP_EDITABLE")
+    assert "pip install" in pip_editable, pip_editable
+    # the Makefile's command on a copy of the sources (the link tree goes into the copy's
+    # build/, not this checkout's), into a throwaway prefix; --ignore-installed keeps pip from
     # uninstalling the project from the environment running this test
-    prefix = tmp_path / "p"
-    out = subprocess.run(f"{pip_install} --no-deps --ignore-installed --prefix {prefix} -e {ROOT}",
-                         shell=True, cwd=ROOT, capture_output=True, text=True, check=False)
+    src = _copy_sources(tmp_path / "src")
+    prefix = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(prefix)], check=True)
+    install = f"{pip_editable} {src} --no-deps --ignore-installed --prefix {prefix}"
+    out = subprocess.run(install, shell=True, cwd=ROOT, capture_output=True, text=True,
+                         check=False)
     assert out.returncode == 0, out.stderr
     assert out.stderr.strip() == "" and out.stdout.strip() == "", out.stderr + out.stdout
+    site = next(prefix.glob("lib/python*/site-packages"))
+    assert not list(site.glob("__editable__*finder*")), sorted(p.name for p in site.iterdir())
+    # the .pth holds one folder and no code: a static tool reads it as a search path
+    (pth,) = site.glob("__editable__*.pth")
+    lines = pth.read_text().split()
+    assert len(lines) == 1 and not lines[0].startswith("import"), lines
+    tree = Path(lines[0])
+    assert (tree / "rsra" / "daq" / "__init__.py").resolve() == src / "daq" / "__init__.py"
+    assert (tree / "rsra" / "estimator" / "filters.py").resolve() == \
+        src / "estimator" / "filters.py"
+    code = ("import rsra.daq, rsra.daq._hubkernel as k, rsra.canbus, rsra.config.rig as c; "
+            "from pathlib import Path; print(Path(k.__file__).resolve().parent); "
+            "print(c.load_config().nodes[0].eds.is_file())")
+    for cwd in (tmp_path, src):
+        ran = _site_python(prefix, code, cwd)
+        assert ran.returncode == 0, ran.stderr
+        assert ran.stdout.split() == [str(src / "daq"), "True"], ran.stdout
+    # a new file: not linked until the install runs again
+    (src / "estimator" / "brand_new.py").write_text("VALUE = 7\n")
+    probe = "import rsra.estimator.brand_new as b; print(b.VALUE)"
+    assert "No module named" in _site_python(prefix, probe, tmp_path).stderr
+    subprocess.run(install, shell=True, cwd=ROOT, check=True, capture_output=True)
+    ran = _site_python(prefix, probe, tmp_path)
+    assert ran.returncode == 0 and ran.stdout.strip() == "7", ran.stderr
+
+
+def test_a_file_added_to_a_package_makes_the_next_make_relink(tmp_path):
+    """The link tree holds the files there were when it was made: the Makefile keeps a list
+    of the package files and the install depends on it, so a new (or removed) file makes
+    `make setup` run the install again, an edited one does not."""
+    src = _copy_sources(tmp_path / "src")
+    stamp = Path(_make_variable("STAMP", cwd=src))
+    venv = src / ".venv"
+
+    def up_to_date() -> bool:
+        return subprocess.run(["make", "-q", "-C", str(src), "setup"],
+                              capture_output=True).returncode == 0
+
+    assert (venv / ".package-files").is_file()  # made by reading the Makefile (above)
+    (src / stamp).touch()
+    assert up_to_date()
+    with open(src / "estimator" / "filters.py", "a") as f:
+        f.write("\n# edited\n")
+    assert up_to_date()
+    (src / "sim_bus" / "brand_new.py").write_text("VALUE = 7\n")
+    assert not up_to_date()
+    (src / stamp).touch()
+    assert up_to_date()
+    (src / "sim_bus" / "brand_new.py").unlink()
+    assert not up_to_date()
 
 
 def test_the_wheel_builds_the_hub_kernel_with_no_compiler_warning_and_a_fresh_venv_loads_it(
