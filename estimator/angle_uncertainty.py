@@ -13,7 +13,10 @@ Q is computed when the angles in force or their covariance change, and a sample 
 small matrix-vector products. Pure numerics (no I/O)."""
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .geometry import hub_transfer_matrix, wrench_matrix_jacobian
 from .params import Geometry
@@ -28,7 +31,8 @@ def hub_angle_sensitivity(geometry: Geometry, alpha: np.ndarray,
     that ∂H_static/∂α_j = −A[:, :, j] @ T (the hub loads in ``frame``, default the rig's)."""
     Rinv = np.linalg.inv(hub_transfer_matrix(geometry, frame))
     dS = wrench_matrix_jacobian(geometry, alpha)  # (14, 6, 7)
-    return np.einsum("kl,jli->kij", Rinv, dS)
+    result: np.ndarray = np.einsum("kl,jli->kij", Rinv, dS)
+    return result
 
 
 def hub_angle_jacobian(A: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -41,7 +45,8 @@ def hub_angle_quadratic(A: np.ndarray, P: np.ndarray) -> np.ndarray:
     covariance P (14 × 14) is ``Tᵀ Q_k T`` — ``diag(J P Jᵀ)`` without forming J."""
     P = np.asarray(P, float)
     Q = np.einsum("kij,jl,kml->kim", A, P, A)
-    return 0.5 * (Q + Q.transpose(0, 2, 1))
+    result: np.ndarray = 0.5 * (Q + Q.transpose(0, 2, 1))
+    return result
 
 
 class HubAngleVariance:
@@ -58,10 +63,12 @@ class HubAngleVariance:
 
     def variance(self, T: np.ndarray) -> np.ndarray:
         """(6,) per-axis variance of the hub-load error due to the angles (N², (N·m)²)."""
-        return self._Q2.dot(T).reshape(self._rows, -1).dot(T)
+        result: np.ndarray = self._Q2.dot(T).reshape(self._rows, -1).dot(T)
+        return result
 
 
-def angle_covariance(angle_names: tuple[str, ...] | list[str], names, P,
+def angle_covariance(angle_names: tuple[str, ...] | list[str],
+                     names: Sequence[str] | None, P: ArrayLike | None,
                      base: np.ndarray) -> np.ndarray:
     """The angles' covariance (n × n, in ``angle_names`` order) after a posterior over
     ``names`` with covariance ``P``: the angles it names take its block, their

@@ -37,14 +37,16 @@ def inertia_matrix(mass: MassProperties) -> np.ndarray:
 
 def inertial_load_matrix(model: RigModel) -> np.ndarray:
     """M_f (6, 3K): inertial loads I = M_f @ stacked accelerometer readings (m/s^2)."""
-    return inertia_matrix(model.mass) @ accel_solution_matrix(model.accelerometers)
+    Mf: np.ndarray = inertia_matrix(model.mass) @ accel_solution_matrix(model.accelerometers)
+    return Mf
 
 
 def inertial_loads(model: RigModel, accel: np.ndarray) -> np.ndarray:
     """I (N, 6) from readings (N, K, 3) or (N, 3K) of specific force in body axes."""
     accel = np.asarray(accel, dtype=float)
     flat = accel.reshape(accel.shape[0], -1)
-    return flat @ inertial_load_matrix(model).T
+    result: np.ndarray = flat @ inertial_load_matrix(model).T
+    return result
 
 
 def static_estimate(
@@ -71,7 +73,8 @@ def balance_residual(
     """I - S T - R H - D q (N, 6): zero when the balance of Eq 1.1 holds."""
     S = wrench_matrix(model.geometry, alpha)
     R = hub_transfer_matrix(model.geometry, frame)
-    r = np.asarray(I, float) - np.asarray(T, float) @ S.T - np.asarray(H, float) @ R.T
+    r: np.ndarray = (np.asarray(I, float) - np.asarray(T, float) @ S.T
+                     - np.asarray(H, float) @ R.T)
     if q is not None and model.external.wrenches.shape[1]:
         r = r - np.asarray(q, float) @ model.external.wrenches.T
     return r
@@ -82,7 +85,8 @@ def accelerometer_covariance(model: RigModel) -> np.ndarray:
     acc = model.accelerometers
     Qa = np.diag(np.repeat(np.asarray(acc.sigma, float) ** 2, 3))
     Mf = inertial_load_matrix(model)
-    return Mf @ Qa @ Mf.T
+    result: np.ndarray = Mf @ Qa @ Mf.T
+    return result
 
 
 def measurement_covariance(
@@ -99,7 +103,7 @@ def measurement_covariance(
     C_s = I: the reference balance measures in body axes. Always the unfiltered covariance.
     """
     S = wrench_matrix(model.geometry, alpha)
-    W = accelerometer_covariance(model) + np.diag([0, 0, 0, 1.0, 1.0, 1.0]) * moment_floor**2
+    W: np.ndarray = accelerometer_covariance(model) + np.diag([0, 0, 0, 1.0, 1.0, 1.0]) * moment_floor**2
     W = W + S @ np.diag(np.asarray(model.cell_sigma, float) ** 2) @ S.T
     if model.external.wrenches.shape[1]:
         E = model.external.wrenches

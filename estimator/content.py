@@ -146,6 +146,7 @@ class ContentFilter:
             self._zi = self._zi_unit[:, :, None] * X[0][None, None, :]
         if X.shape[0] == 1:
             return self._step(X[0])[None, :]
+        Y: np.ndarray
         Y, self._zi = sosfilt(self.sos, X, axis=0, zi=self._zi)
         return Y
 
@@ -153,6 +154,7 @@ class ContentFilter:
         """One sample through every section, the state updated in place: scipy's sosfilt
         loop (``y = b0 x + z0; z0 = b1 x − a1 y + z1; z1 = b2 x − a2 y``), elementwise."""
         zi = self._zi
+        assert zi is not None  # process() sets it before the first step
         for s, (b0, b1, b2, _, a1, a2) in enumerate(self._sections):
             z = zi[s]
             y = b0 * x + z[0]

@@ -87,7 +87,7 @@ class Recommendation:
     information_gain: float
     by_structure: dict[str, float]
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, object]:
         return {"H": [float(x) for x in self.H], "information_gain": float(self.information_gain),
                 "by_structure": {k: float(v) for k, v in self.by_structure.items()}}
 
@@ -97,7 +97,8 @@ def rest_inertial_loads(model: RigModel) -> np.ndarray:
     """I at rest and level (6,): the accelerometers read specific force (0, 0, −g)."""
     K = model.accelerometers.positions.shape[0]
     f = np.tile([0.0, 0.0, -STANDARD_GRAVITY], K)
-    return inertial_load_matrix(model) @ f
+    result: np.ndarray = inertial_load_matrix(model) @ f
+    return result
 
 
 def cell_loads(model: RigModel, alpha: np.ndarray, H: np.ndarray,
@@ -111,7 +112,8 @@ def cell_loads(model: RigModel, alpha: np.ndarray, H: np.ndarray,
     Kd = np.diag(k)
     split = Kd @ S.T @ np.linalg.inv(S @ Kd @ S.T)  # (7, 6)
     w = rest_inertial_loads(model)[None, :] - H @ R0.T
-    return w @ split.T
+    result: np.ndarray = w @ split.T
+    return result
 
 
 def feasible(model: RigModel, alpha: np.ndarray, H: np.ndarray, *, cell_full_scale: np.ndarray,
@@ -120,7 +122,7 @@ def feasible(model: RigModel, alpha: np.ndarray, H: np.ndarray, *, cell_full_sca
     """Mask (k,) of the conditions within the balance's and every cell's full scale."""
     H = np.atleast_2d(np.asarray(H, float))
     T = cell_loads(model, alpha, H, stiffness)
-    ok = np.all(np.abs(T) <= np.asarray(cell_full_scale, float)[None, :], axis=1)
+    ok: np.ndarray = np.all(np.abs(T) <= np.asarray(cell_full_scale, float)[None, :], axis=1)
     ok &= np.all(np.abs(H[:, :3]) <= force_limit, axis=1)
     ok &= np.all(np.abs(H[:, 3:]) <= moment_limit, axis=1)
     return ok
@@ -140,7 +142,8 @@ def candidate_grid(limits: Sequence[float], levels: Sequence[float] = GRID_LEVEL
 # ------------------------------------------------------------------ information functions
 def _gauss_newton(D: np.ndarray, Winv: np.ndarray, n: float) -> np.ndarray:
     """n · Dᵀ W⁻¹ D for D (k, 6, p) → (k, p, p)."""
-    return n * np.einsum("kip,ij,kjq->kpq", D, Winv, D)
+    result: np.ndarray = n * np.einsum("kip,ij,kjq->kpq", D, Winv, D)
+    return result
 
 
 def parameterisation_information(par: Parameterisation, theta: np.ndarray, n_samples: float,

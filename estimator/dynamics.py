@@ -46,7 +46,7 @@ class HubLoadDynamics:
 
     @property
     def n_states(self) -> int:
-        return self.F.shape[0]
+        return int(self.F.shape[0])
 
     @property
     def state_labels(self) -> tuple[tuple[int, int, int], ...]:

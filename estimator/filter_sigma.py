@@ -40,7 +40,12 @@ form keeps it valid. Pure numerics.
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+
+if TYPE_CHECKING:
+    from .filters import FilterDesign
 
 FAST_FRACTION = 1.0  # fast average: this × the filter's time constant
 SLOW_FRACTION = 20.0  # slow average: this × the filter's time constant
@@ -48,24 +53,27 @@ SETTLE_FRACTION = 5.0  # the slow average takes samples from this × τ after th
 MAX_DESIGNS = 64  # cached constants (bounded, as the design cache)
 
 
-def modelled_covariance(design) -> np.ndarray:
+def modelled_covariance(design: FilterDesign) -> np.ndarray:
     """C P⁺ Cᵀ (6, 6): the design's steady-state covariance of Ĥ − H for its own model."""
     n = design.n_states
     IKJ = np.eye(n) - design.K @ design.J
     P = IKJ @ design.P_minus @ IKJ.T + design.K @ design.W @ design.K.T
     S = design.C @ P @ design.C.T
-    return 0.5 * (S + S.T)
+    out: np.ndarray = 0.5 * (S + S.T)
+    return out
 
 
-def error_gain(design) -> np.ndarray:
+def error_gain(design: FilterDesign) -> np.ndarray:
     """G' (6, 6) with Ĥ − H = (H_s − H) − G' u, u = R⁻¹ e: G' = (R⁻¹ − C K) R = I − C K R."""
-    return np.eye(6) - design.C @ design.K @ design.R
+    G: np.ndarray = np.eye(6) - design.C @ design.K @ design.R
+    return G
 
 
 class _Consts:
     __slots__ = ("B_u", "G", "Rinv", "design", "diag", "g2", "modelled")
 
-    def __init__(self, design) -> None:
+    def __init__(self, design: FilterDesign) -> None:
+        assert design.R is not None  # design_filter sets it
         Rinv = np.linalg.inv(design.R)
         self.design = design
         self.Rinv = Rinv
@@ -102,7 +110,7 @@ class FilterSigma:
         self._consts: dict[int, _Consts] = {}
         self.sigma: np.ndarray | None = None
 
-    def _for(self, design) -> _Consts:
+    def _for(self, design: FilterDesign) -> _Consts:
         c = self._consts.get(id(design))
         if c is None or c.design is not design:
             if len(self._consts) >= MAX_DESIGNS:
@@ -118,11 +126,11 @@ class FilterSigma:
         self._n = 0
         self.sigma = None
 
-    def modelled_sigma(self, design) -> np.ndarray:
+    def modelled_sigma(self, design: FilterDesign) -> np.ndarray:
         """The design's term alone: sqrt(diag C P⁺ Cᵀ)."""
         return np.sqrt(self._for(design).modelled)
 
-    def update(self, design, e: np.ndarray | None) -> np.ndarray | None:
+    def update(self, design: FilterDesign, e: np.ndarray | None) -> np.ndarray | None:
         c = self._for(design)
         if e is None:
             return self.sigma
@@ -150,7 +158,7 @@ class FilterSigma:
         return self.sigma
 
 
-def filter_sigma_batch(design, e: np.ndarray, dt: float, time_constant_s: float,
+def filter_sigma_batch(design: FilterDesign, e: np.ndarray, dt: float, time_constant_s: float,
                        floor: np.ndarray | None = None) -> np.ndarray:
     """The σ of :class:`FilterSigma` for a whole array of innovations (N, 6) of one design,
     every sample measured (off-line: bench, tests). Equal to the per-sample path to rounding."""
@@ -166,7 +174,8 @@ def filter_sigma_batch(design, e: np.ndarray, dt: float, time_constant_s: float,
     def ewma(x: np.ndarray, beta: float, x0: np.ndarray) -> np.ndarray:
         # m(n) = (1 − β) m(n−1) + β x(n), m(−1) = x0
         zi = ((1.0 - beta) * x0)[None, :]
-        return lfilter([beta], [1.0, -(1.0 - beta)], x, axis=0, zi=zi)[0]
+        m: np.ndarray = lfilter([beta], [1.0, -(1.0 - beta)], x, axis=0, zi=zi)[0]
+        return m
 
     k = min(fs.settle, N)  # the slow average's settling: held at its start
 
@@ -191,5 +200,5 @@ def filter_sigma_batch(design, e: np.ndarray, dt: float, time_constant_s: float,
         ef = np.einsum("ij,njk,ik->ni", c.G, mf, c.G)
         es = np.einsum("ij,njk,ik->ni", c.G, ms, c.G)
         var = c.modelled + np.maximum(np.maximum(ef, es), 0.0)
-    out = np.sqrt(var)
+    out: np.ndarray = np.sqrt(var)
     return out if floor is None else np.maximum(out, np.asarray(floor, float))

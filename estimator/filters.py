@@ -102,12 +102,13 @@ class FilterDesign:
 
     @property
     def n_states(self) -> int:
-        return self.Phi.shape[0]
+        return int(self.Phi.shape[0])
 
     @property
     def closed_loop(self) -> np.ndarray:
         """(I − K J) Φ: x⁺(n) = (I − K J) Φ x⁺(n−1) + K (z − S T)."""
-        return self.Phi - self.K @ (self.J @ self.Phi)
+        result: np.ndarray = self.Phi - self.K @ (self.J @ self.Phi)
+        return result
 
 
 def _closed_loop_time_constants(A: np.ndarray, dt: float) -> np.ndarray:
@@ -123,7 +124,8 @@ def _closed_loop_time_constants(A: np.ndarray, dt: float) -> np.ndarray:
 def _riccati_gain_1(Phi_c: np.ndarray, C_c: np.ndarray, Q: np.ndarray) -> np.ndarray:
     """Steady-state (a posteriori) Kalman gain of a single-output system with r = 1."""
     P = solve_discrete_are(Phi_c.T, C_c.T, Q, np.eye(1))
-    return P @ C_c.T / (C_c @ P @ C_c.T + 1.0)
+    result: np.ndarray = P @ C_c.T / (C_c @ P @ C_c.T + 1.0)
+    return result
 
 
 def auto_psd_ratio(Phi_c: np.ndarray, C_c: np.ndarray, Qd_unit: np.ndarray,
@@ -140,7 +142,7 @@ def auto_psd_ratio(Phi_c: np.ndarray, C_c: np.ndarray, Qd_unit: np.ndarray,
         return float(np.max(_closed_loop_time_constants((eye - K @ C_c) @ Phi_c, dt)))
 
     def f(log_rho: float) -> float:
-        return np.log(slowest(log_rho)) - np.log(time_constant_s)
+        return float(np.log(slowest(log_rho)) - np.log(time_constant_s))
 
     # Continuous random-walk Kalman filter: τ = sqrt(r dt / q) → start from q/r = dt/τ².
     return float(np.exp(_root_log(f, np.log(dt / time_constant_s**2), time_constant_s)))
@@ -794,7 +796,8 @@ def _modal_states(A: np.ndarray, K: np.ndarray, u: np.ndarray, x0: np.ndarray) -
         else:
             xi[j] = lfilter([1.0], [1.0, -lj], drive[j], zi=[lj * xi0[j]])[0]
     Vk = V[:, keep] * np.where(lam[keep].imag > 0, 2.0, 1.0)  # a pair adds 2 Re(v ξ)
-    return (xi.real.T @ Vk.real.T) - (xi.imag.T @ Vk.imag.T)
+    result: np.ndarray = (xi.real.T @ Vk.real.T) - (xi.imag.T @ Vk.imag.T)
+    return result
 
 
 def _x_plus_modal(design: FilterDesign, u: np.ndarray, x0: np.ndarray) -> np.ndarray:

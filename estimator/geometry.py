@@ -38,7 +38,8 @@ def rot(axis: str, angle: float) -> np.ndarray:
 
 
 def _drot(axis: str, angle: float) -> np.ndarray:
-    return skew(_E[axis]) @ rot(axis, angle)
+    result: np.ndarray = skew(_E[axis]) @ rot(axis, angle)
+    return result
 
 
 # rot(axis, a) as a flat 3×3: where 1, c, c, s and −s go
@@ -81,7 +82,8 @@ def angle_axes(geometry: Geometry) -> tuple[tuple[str, ...], tuple[str, ...]]:
     return _frames(geometry)[:2]
 
 
-def _frames(geometry: Geometry):
+def _frames(geometry: Geometry) -> tuple[tuple[str, ...], tuple[str, ...], np.ndarray,
+                                         np.ndarray]:
     return _cell_frames(np.ascontiguousarray(geometry.cell_axes, dtype=float).tobytes())
 
 
@@ -90,7 +92,8 @@ def cell_axes(geometry: Geometry, alpha: np.ndarray) -> np.ndarray:
     alpha = np.asarray(alpha, dtype=float)
     first, second, _, _ = _frames(geometry)
     R = np.matmul(rot_cells(second, alpha[1::2]), rot_cells(first, alpha[0::2]))
-    return np.matmul(R, np.asarray(geometry.cell_axes, float)[:, :, None])[:, :, 0]
+    result: np.ndarray = np.matmul(R, np.asarray(geometry.cell_axes, float)[:, :, None])[:, :, 0]
+    return result
 
 
 def cell_axes_jacobian(geometry: Geometry, alpha: np.ndarray) -> np.ndarray:

@@ -110,7 +110,7 @@ class Parameterisation:
     @property
     def n_columns(self) -> int:
         q = self.model.external.wrenches.shape[1]
-        return 6 + self.n_cells + (6 if self.known_loads else 0) + q
+        return int(6 + self.n_cells + (6 if self.known_loads else 0) + q)
 
     def stack(self, z: np.ndarray, T: np.ndarray, H: np.ndarray | None = None,
               q: np.ndarray | None = None) -> np.ndarray:
@@ -274,7 +274,8 @@ def _gradient_information(
 def _sensitivities(x: np.ndarray, dA: np.ndarray) -> np.ndarray:
     """∂(A x_n)/∂θ_j for every sample: (N, 6, p), as one matrix product."""
     p, m, k = dA.shape
-    return (x @ dA.transpose(2, 1, 0).reshape(k, m * p)).reshape(len(x), m, p)
+    result: np.ndarray = (x @ dA.transpose(2, 1, 0).reshape(k, m * p)).reshape(len(x), m, p)
+    return result
 
 
 class KnownLoadProblem:
@@ -353,7 +354,8 @@ class AccumulatedKnownLoadProblem:
         Winv = np.linalg.inv(t.W)
         WdAG = np.einsum("ac,jcd->jad", Winv, t.dA) @ self.G_extra
         M = np.einsum("iab,jab->ij", t.dA, WdAG)
-        return 0.5 * (M + M.T)
+        result: np.ndarray = 0.5 * (M + M.T)
+        return result
 
 
 # ------------------------------------------------------------------------------------------
@@ -509,7 +511,8 @@ class FilterErrorProblem:
         U, Ui, den = self._U, self._Uinv, self._lyap_den
 
         def lyap(q: np.ndarray) -> np.ndarray:
-            return (U @ ((Ui @ q @ Ui.conj().T) / den) @ U.conj().T).real
+            result: np.ndarray = (U @ ((Ui @ q @ Ui.conj().T) / den) @ U.conj().T).real
+            return result
 
         P = lyap(PK @ W @ PK.T + self.Qd)
         B = self.J @ P @ self.J.T + W
@@ -674,7 +677,8 @@ def _score_quadratic(gamma: np.ndarray, G: np.ndarray, L: int) -> np.ndarray:
     RG = Rf @ Gf
     Gw = np.conj(Gf) * w[:, None, None]
     Q = (Gw.reshape(-1, p).T @ RG.reshape(-1, p)).real
-    return 0.5 * (Q + Q.T)
+    result: np.ndarray = 0.5 * (Q + Q.T)
+    return result
 
 
 # ------------------------------------------------------------------------------------------
@@ -704,7 +708,8 @@ class IdentificationResult:
 
     @property
     def sigma_cr(self) -> np.ndarray:
-        return np.sqrt(np.clip(np.diag(self.P), 0.0, None))
+        result: np.ndarray = np.sqrt(np.clip(np.diag(self.P), 0.0, None))
+        return result
 
     @property
     def sigma_cr_corrected(self) -> np.ndarray | None:
@@ -1043,7 +1048,8 @@ def score_covariance_hac(e: np.ndarray, de: np.ndarray, weight: np.ndarray,
     cross = np.fft.irfft(np.conj(F)[:, :, None] * F[:, None, :], n=M, axis=0)[: L + 1]
     w = 1.0 - np.arange(L + 1) / (L + 1.0)
     Q = cross[0] + np.einsum("k,kab->ab", w[1:], cross[1:] + cross[1:].transpose(0, 2, 1))
-    return 0.5 * (Q + Q.T)
+    result: np.ndarray = 0.5 * (Q + Q.T)
+    return result
 
 
 def predicted_score_covariance(de: np.ndarray, weight: np.ndarray, gamma: np.ndarray
@@ -1072,7 +1078,8 @@ def expected_welch_spectrum(gamma: np.ndarray, segment: int = SPECTRUM_SEGMENT) 
     Gt = gamma[1:L].transpose(0, 2, 1) * c[1:, None, None]
     F = L // 2 + 1
     ph = np.exp(-2j * np.pi * np.outer(np.arange(F), np.arange(L)) / L)  # (F, L)
-    return (ph @ G + ph[:, 1:].conj() @ Gt.reshape(L - 1, 36)).reshape(F, 6, 6)
+    result: np.ndarray = (ph @ G + ph[:, 1:].conj() @ Gt.reshape(L - 1, 36)).reshape(F, 6, 6)
+    return result
 
 
 def innovation_spectrum_test(e: np.ndarray, scored: np.ndarray, gamma: np.ndarray | None,

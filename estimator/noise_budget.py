@@ -26,7 +26,8 @@ class NoiseBudget:
 
 def load_cell_covariance(model: RigModel, alpha: np.ndarray) -> np.ndarray:
     S = wrench_matrix(model.geometry, alpha)
-    return S @ np.diag(np.asarray(model.cell_sigma, float) ** 2) @ S.T
+    result: np.ndarray = S @ np.diag(np.asarray(model.cell_sigma, float) ** 2) @ S.T
+    return result
 
 
 def noise_budget(model: RigModel, alpha: np.ndarray | None = None,

@@ -141,7 +141,8 @@ def per_kN(structure: str, beta: np.ndarray) -> np.ndarray:
     """β expressed per kN of load in :func:`parameter_units` (deg/kN for angle gains)."""
     beta = np.asarray(beta, float)
     if structure == "cell_load_angles":
-        return np.degrees(beta) * 1e3
+        result: np.ndarray = np.degrees(beta) * 1e3
+        return result
     return beta * 1e3
 
 
@@ -154,7 +155,7 @@ def _split(model: RigModel, xbar: np.ndarray) -> tuple[np.ndarray, ...]:
 def residual(model: RigModel, alpha: np.ndarray, xbar: np.ndarray) -> np.ndarray:
     """r = z − S(α) T − R₀ H − E q of one condition's mean ``x̄ = [z, T, H, q]``."""
     z, T, H, q = _split(model, xbar)
-    r = z - wrench_matrix(model.geometry, alpha) @ T - hub_transfer_matrix(model.geometry,
+    r: np.ndarray = z - wrench_matrix(model.geometry, alpha) @ T - hub_transfer_matrix(model.geometry,
                                                                             "body") @ H
     if q.size:
         r = r - model.external.wrenches @ q
@@ -182,14 +183,16 @@ def structure_residual(structure: str | None, model: RigModel, alpha: np.ndarray
         m = wrench_matrix(g, alpha) @ T + structure_matrices(structure, beta, model)["R"] @ H
     if q.size:
         m = m + model.external.wrenches @ q
-    return z - m
+    result: np.ndarray = z - m
+    return result
 
 
 def angle_jacobian(model: RigModel, alpha: np.ndarray, xbar: np.ndarray) -> np.ndarray:
     """∂m/∂α (6, 14) of one condition: column k is ∂S/∂α_k T."""
     _, T, _, _ = _split(model, xbar)
     dS = wrench_matrix_jacobian(model.geometry, alpha)  # (14, 6, 7)
-    return np.einsum("kac,c->ak", dS, T)
+    result: np.ndarray = np.einsum("kac,c->ak", dS, T)
+    return result
 
 
 def structure_jacobian(structure: str, model: RigModel, alpha: np.ndarray,
@@ -353,7 +356,8 @@ def _white_residual(st: str, model: RigModel, alpha: np.ndarray, beta: np.ndarra
     if q.shape[1]:
         m = m + q @ model.external.wrenches.T
     r = (z - m) @ Li.T * np.sqrt(np.asarray(counts, float))[:, None]
-    return r.reshape(-1)
+    result: np.ndarray = r.reshape(-1)
+    return result
 
 
 def _unit_columns(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -431,7 +435,8 @@ def _white_jacobian(st: str, model: RigModel, alpha: np.ndarray, beta: np.ndarra
             raise ValueError(f"unknown structure {st!r}; choose from {STRUCTURES}")
     Jm = np.concatenate([Ja, Jb], axis=2)  # ∂m/∂[α, β]; the residual is z − m
     sw = np.sqrt(np.asarray(counts, float))[:, None, None]
-    return -(np.einsum("ab,nbk->nak", Li, Jm) * sw).reshape(6 * C, -1)
+    result: np.ndarray = -(np.einsum("ab,nbk->nak", Li, Jm) * sw).reshape(6 * C, -1)
+    return result
 
 
 @dataclass
@@ -525,7 +530,8 @@ def hub_sigma(structure: str, model: RigModel, alpha: np.ndarray, beta: np.ndarr
     J = _white_jacobian(structure, model, alpha, beta, means, np.ones(C), np.eye(6))
     Ri = np.linalg.inv(hub_transfer_matrix(model.geometry, "body"))
     JH = np.einsum("ab,nbk->nak", Ri, J.reshape(C, 6, -1))
-    return np.sqrt(np.maximum(np.einsum("nak,kl,nal->na", JH, P, JH), 0.0))
+    result: np.ndarray = np.sqrt(np.maximum(np.einsum("nak,kl,nal->na", JH, P, JH), 0.0))
+    return result
 
 
 def fit_constant(model: RigModel, alpha: np.ndarray, means: np.ndarray, counts: np.ndarray,
@@ -1152,7 +1158,9 @@ class StructureCorrection:
 
     def correct(self, z: np.ndarray, T: np.ndarray) -> np.ndarray:
         if self.B is not None:
-            return z - self.B @ (T * (T - self.T_ref))
+            result: np.ndarray = z - self.B @ (T * (T - self.T_ref))
+            return result
         if self.M is not None:
-            return z - self.M @ (z - self.S @ T)
+            result: np.ndarray = z - self.M @ (z - self.S @ T)
+            return result
         return z

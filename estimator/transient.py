@@ -22,11 +22,16 @@ samples. Pure numerics; one design's constants are cached per design.
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import scipy.linalg
 from scipy.stats import chi2
 
 from .identification import innovation_model
+
+if TYPE_CHECKING:
+    from .filters import FilterDesign
 
 TRANSIENT = "transient"  # the hub_loads flag (docs/telemetry.md)
 FALSE_ALARM = 1e-3
@@ -34,7 +39,7 @@ TIME_CONSTANT_FRACTION = 0.25  # τ_d = this × the filter's time constant
 MAX_DESIGNS = 64  # cached constants (bounded, as the design cache)
 
 
-def smoothed_innovation_covariance(design, beta: float) -> np.ndarray:
+def smoothed_innovation_covariance(design: FilterDesign, beta: float) -> np.ndarray:
     """Σ_s (6, 6): the stationary covariance of s' = (1 − β) s + β L⁻¹ e under the filter's
     own model (held load, white measurement noise W, process noise Q_d, fixed gain K)."""
     A, G, C, D, U = innovation_model(design.Phi, design.K, design.J, design.Qd, design.W, None)
@@ -47,7 +52,8 @@ def smoothed_innovation_covariance(design, beta: float) -> np.ndarray:
     Ga = np.vstack([G, beta * Linv @ D])
     Sig = scipy.linalg.solve_discrete_lyapunov(Aa, Ga @ U @ Ga.T)
     S = Sig[n:, n:]
-    return 0.5 * (S + S.T)
+    out: np.ndarray = 0.5 * (S + S.T)
+    return out
 
 
 class TransientDetector:
@@ -64,11 +70,11 @@ class TransientDetector:
         self.threshold = float(chi2.isf(false_alarm, 6))
         self._s = np.zeros(6)
         self._consts: dict[int, tuple[object, np.ndarray]] = {}
-        self._design = None
+        self._design: FilterDesign | None = None
         self._M = self._Mb = np.zeros((6, 6))
         self.q = 0.0
 
-    def _matrix(self, design) -> np.ndarray:
+    def _matrix(self, design: FilterDesign) -> np.ndarray:
         c = self._consts.get(id(design))
         if c is None or c[0] is not design:
             if len(self._consts) >= MAX_DESIGNS:
@@ -83,7 +89,7 @@ class TransientDetector:
         self._s[:] = 0.0
         self.q = 0.0
 
-    def update(self, design, e: np.ndarray | None) -> bool:
+    def update(self, design: FilterDesign, e: np.ndarray | None) -> bool:
         """One sample's innovation ``e`` (None: predict-only — the state is kept, no flag)."""
         if e is None:
             return False
