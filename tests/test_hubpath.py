@@ -115,3 +115,17 @@ def test_the_kernel_follows_the_estimator_code_it_mirrors():
     frame), the kernel is off until it is brought in line and the tests above pass again
     with the new fingerprint in daq/runtime/hubpath.py."""
     assert hubpath.estimator_fingerprint() == hubpath.MIRRORS_FINGERPRINT
+
+
+def test_the_fingerprint_reads_the_code_not_its_annotations():
+    """Annotating the mirrored estimator steps (mypy) keeps the kernel on; changing what they
+    compute turns it off (daq/runtime/hubpath.py, _code_only)."""
+    from rsra.daq.runtime.hubpath import _code_only
+
+    plain = "def f(self, x, k=2):\n    y = x * k\n    return y + 1\n"
+    typed = ('def f(self, x: np.ndarray, k: int = 2) -> np.ndarray:\n'
+             '    """Doc."""\n    z: float\n    y: np.ndarray = x * k  # a comment\n'
+             '    return y + 1\n')
+    assert _code_only(plain) == _code_only(typed)
+    assert _code_only(plain) != _code_only(plain.replace("y + 1", "1 + y"))
+    assert _code_only(plain) != _code_only(plain.replace("k=2", "k=3"))
