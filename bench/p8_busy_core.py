@@ -66,8 +66,7 @@ def one_run(burn: bool, seconds: float, warmup: float = WARMUP_S,
         h0, q0 = rx.health, rx.last_seq()
         t0 = time.monotonic()
         if burn:
-            burner = subprocess.Popen(["timeout", f"{seconds:g}", sys.executable, "-c",
-                                       "while True: pass"])
+            burner = start_burner(seconds)
         time.sleep(seconds)
         q1 = rx.last_seq()
         if burner is not None:
@@ -76,8 +75,7 @@ def one_run(burn: bool, seconds: float, warmup: float = WARMUP_S,
         h1 = rx.health
         wall = time.monotonic() - t0
     finally:
-        if burner is not None and burner.poll() is None:
-            burner.kill()
+        end_burner(burner)
         if rx is not None:
             rx.close()
         rc = stop(svc)
@@ -102,6 +100,24 @@ def one_run(burn: bool, seconds: float, warmup: float = WARMUP_S,
     return d
 
 
+def start_burner(seconds: float) -> subprocess.Popen:
+    """``python -c 'while True: pass'`` for at most ``seconds`` (coreutils ``timeout``), in its
+    own process group so that :func:`end_burner` ends the loop too, not only ``timeout``."""
+    return subprocess.Popen(["timeout", f"{seconds:g}", sys.executable, "-c", "while True: pass"],
+                            start_new_session=True)
+
+
+def end_burner(burner: subprocess.Popen | None) -> None:
+    if burner is None:
+        return
+    if burner.poll() is None:
+        try:
+            os.killpg(burner.pid, 9)
+        except ProcessLookupError:
+            pass
+    burner.wait(10)
+
+
 def floor_run(seconds: float, warmup: float) -> dict:
     """The one-process floor (bench/floor.py: a do-nothing master and responder with the
     service's SYNC producer, threads and batch calls) at 200 samples/s in its own process,
@@ -114,14 +130,11 @@ def floor_run(seconds: float, warmup: float) -> dict:
         proc = spawn(["-m", "bench.floor", "--all-nodes", "--rate", "200", "--warmup",
                       f"{warmup:g}", "--duration", f"{warmup + seconds:g}", "--out", out])
         time.sleep(warmup + 0.5)  # its start-up (imports) is not scored: it starts the clock
-        burner = subprocess.Popen(["timeout", f"{seconds + 5:g}", sys.executable, "-c",
-                                   "while True: pass"])
+        burner = start_burner(seconds + 5)
         try:
             proc.wait(seconds + warmup + 120)
         finally:
-            if burner.poll() is None:
-                burner.kill()
-            burner.wait(10)
+            end_burner(burner)
             stop(proc)
         with open(out, encoding="utf-8") as f:
             r = json.load(f)

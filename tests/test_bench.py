@@ -146,3 +146,36 @@ def test_stage_profile_quick(capsys):
     line = json.loads([s for s in capsys.readouterr().out.splitlines() if s.startswith("{")][-1])
     assert line["configuration"] == "inproc-200" and line["samples"] > 0
     assert line["process"]["cpu_us_per_sample"] > 0
+
+
+def test_the_p8_burner_ends_with_its_loop():
+    """Ending the burner early ends the busy loop too, not only coreutils' timeout (a loop
+    left behind burned a core for an hour)."""
+    import os
+    import time
+
+    from bench.p8_busy_core import end_burner, start_burner
+
+    b = start_burner(30)
+    time.sleep(0.5)
+    kids = [int(p) for p in os.listdir("/proc") if p.isdigit()
+            and _sid(int(p)) == b.pid and int(p) != b.pid]
+    assert kids, "the loop did not start"
+    end_burner(b)
+    time.sleep(0.2)
+    alive = [k for k in kids if os.path.exists(f"/proc/{k}") and _state(k) != "Z"]
+    assert not alive
+
+
+def _sid(pid: int) -> int | None:
+    try:
+        return int(open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[3])
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+def _state(pid: int) -> str:
+    try:
+        return open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return "gone"
