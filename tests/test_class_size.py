@@ -15,16 +15,17 @@ ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("daq", "estimator", "sim_bus", "config", "rsra")
 LIMIT = 300
 # Classes still over the limit whose split is pending, with the reason (each entry must still be
-# over the limit: a split class leaves this list). estimator/ is another change's file now.
+# over the limit: a split class leaves this list, and the test says so).
+_NOT_YET = "not split yet (issue 27 item 4): the next change splits it along its jobs"
 PENDING = {
     "estimator/posterior.py SequentialPosterior": "estimator/posterior.py is being changed by "
     "the calibration-with-missing-samples work; its split follows that change",
-    "sim_bus/physics.py AircraftPhysics": "split next",
-    "sim_bus/nodes.py SimNode": "split next",
-    "daq/runtime/service.py Service": "split next",
-    "daq/runtime/pipeline.py EstimatorPipeline": "split next",
-    "daq/bus/assembler.py SampleAssembler": "split next",
-    "daq/bus/recorder.py Recorder": "split next",
+    "sim_bus/physics.py AircraftPhysics": _NOT_YET + " (load model, true angles, mount "
+    "dynamics, sensor models; the draws of _draw_parameters keep their order)",
+    "sim_bus/nodes.py SimNode": _NOT_YET,
+    "daq/runtime/service.py Service": _NOT_YET,
+    "daq/runtime/pipeline.py EstimatorPipeline": _NOT_YET,
+    "daq/bus/assembler.py SampleAssembler": _NOT_YET,
 }
 
 

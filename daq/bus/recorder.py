@@ -67,6 +67,63 @@ def frame_files(folder: Path) -> list[Path]:
     return [p for _, p in sorted(rotated)] + sorted(current)
 
 
+class _FolderStart:
+    """The files and folders one recording's start creates in ``folder`` (the folder and its
+    missing parents, the effective configuration and its EDS files, then the recording's own
+    files), noted as they are made so that a start that fails removes exactly them: never
+    anything that was there before."""
+
+    def __init__(self, folder: Path):
+        self.folder = folder
+        #: created by this start, outermost first
+        self.created: list[Path] = []
+
+    def new(self, path: Path) -> Path:
+        """``path``, noted as created by this start unless it was there already."""
+        if not (path.exists() or path.is_symlink()):
+            self.created.append(path)
+        return path
+
+    def make_folder(self) -> None:
+        missing = []
+        p = self.folder
+        while not p.exists():
+            missing.append(p)
+            p = p.parent
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.created.extend(reversed(missing))  # outermost first
+
+    def write_config(self, cfg: RigConfig) -> None:
+        """The effective configuration (config.json) with copies of its EDS files."""
+        eff = cfg.effective()
+        eds_dir = self.new(self.folder / EDS_DIR)
+        eds_dir.mkdir(exist_ok=True)
+        nodes = []
+        for raw_node, nc in zip(eff.get("nodes", []), cfg.nodes):
+            d = dict(raw_node)
+            target = eds_dir / nc.eds.name
+            if not target.exists():
+                shutil.copyfile(nc.eds, self.new(target))
+            d["eds"] = f"{EDS_DIR}/{nc.eds.name}"
+            nodes.append(d)
+        if nodes:
+            eff["nodes"] = nodes
+        with open(self.new(self.folder / CONFIG_FILE), "w", encoding="utf-8") as f:
+            json.dump(sanitise(eff), f, indent=1, allow_nan=False)
+
+    def remove_created(self) -> None:
+        """Remove what this start created, innermost first (a folder only if empty)."""
+        for p in reversed(self.created):
+            try:
+                if p.is_dir() and not p.is_symlink():
+                    p.rmdir()  # only if empty: never anything we did not write
+                else:
+                    p.unlink()
+            except OSError:
+                pass
+        self.created = []
+
+
 class Recorder(can.Listener):
     """Writes every frame it is given to a rotating log in ``folder`` (see module docstring)."""
 
@@ -93,14 +150,19 @@ class Recorder(can.Listener):
                                  "overwritten: give a new folder")
         # what this start creates, removed again if the start fails (a full disk, no
         # permission): a recording that never started leaves nothing behind
-        self._created: list[Path] = []
+        start = _FolderStart(self.folder)
         try:
-            self._start_files(cfg)
+            self._start_files(cfg, start)
         except OSError as e:
-            self._remove_created()
+            for fh in (getattr(self, "_angles", None),):
+                if fh is not None:
+                    try:
+                        fh.close()
+                    except OSError:
+                        pass
+            start.remove_created()
             raise OSError(e.errno, f"cannot start the recording ({e.strerror or e}); nothing "
                           "was recorded", str(self.folder)) from None
-        self._created = []
         self._lock = threading.Lock()  # angles.jsonl is written from the service thread
         self._io_lock = threading.Lock()  # frames: bus thread, and the live idle tick
         self._rotated: list[Path] = []
@@ -126,59 +188,12 @@ class Recorder(can.Listener):
             self._writer.start()
 
     # -- files -------------------------------------------------------------------------------
-    def _new(self, path: Path) -> Path:
-        """``path``, noted as created by this start unless it was there already."""
-        if not (path.exists() or path.is_symlink()):
-            self._created.append(path)
-        return path
-
-    def _start_files(self, cfg: RigConfig) -> None:
-        missing = []
-        p = self.folder
-        while not p.exists():
-            missing.append(p)
-            p = p.parent
-        self.folder.mkdir(parents=True, exist_ok=True)
-        self._created.extend(reversed(missing))  # outermost first
-        self._write_config(cfg)
-        self._angles = open(self._new(self.folder / ANGLES_FILE), "w", encoding="utf-8")
-        base = self._new(self.folder / f"{FRAMES_STEM}.{self.fmt}")
+    def _start_files(self, cfg: RigConfig, start: _FolderStart) -> None:
+        start.make_folder()
+        start.write_config(cfg)
+        self._angles = open(start.new(self.folder / ANGLES_FILE), "w", encoding="utf-8")
+        base = start.new(self.folder / f"{FRAMES_STEM}.{self.fmt}")
         self._logger = can.SizedRotatingLogger(base_filename=base, max_bytes=self.rotate_bytes)
-
-    def _remove_created(self) -> None:
-        for f in ("_angles",):
-            fh = getattr(self, f, None)
-            if fh is not None:
-                try:
-                    fh.close()
-                except OSError:
-                    pass
-        for p in reversed(self._created):  # innermost first
-            try:
-                if p.is_dir() and not p.is_symlink():
-                    p.rmdir()  # only if empty: never anything we did not write
-                else:
-                    p.unlink()
-            except OSError:
-                pass
-        self._created = []
-
-    def _write_config(self, cfg: RigConfig) -> None:
-        eff = cfg.effective()
-        eds_dir = self._new(self.folder / EDS_DIR)
-        eds_dir.mkdir(exist_ok=True)
-        nodes = []
-        for raw_node, nc in zip(eff.get("nodes", []), cfg.nodes):
-            d = dict(raw_node)
-            target = eds_dir / nc.eds.name
-            if not target.exists():
-                shutil.copyfile(nc.eds, self._new(target))
-            d["eds"] = f"{EDS_DIR}/{nc.eds.name}"
-            nodes.append(d)
-        if nodes:
-            eff["nodes"] = nodes
-        with open(self._new(self.folder / CONFIG_FILE), "w", encoding="utf-8") as f:
-            json.dump(sanitise(eff), f, indent=1, allow_nan=False)
 
     def _name_rotated(self, default_name: str) -> str:
         # deterministic, sortable names (python-can's default uses the wall-clock date)
