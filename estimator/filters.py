@@ -21,7 +21,8 @@ from __future__ import annotations
 import weakref
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import NamedTuple
+from collections.abc import Callable, Iterator
+from typing import Any, NamedTuple
 
 import numpy as np
 from scipy.linalg import cholesky, eigh, solve_discrete_are, solve_discrete_lyapunov
@@ -148,7 +149,7 @@ def auto_psd_ratio(Phi_c: np.ndarray, C_c: np.ndarray, Qd_unit: np.ndarray,
     return float(np.exp(_root_log(f, np.log(dt / time_constant_s**2), time_constant_s)))
 
 
-def _root_log(f, centre: float, time_constant_s: float) -> float:
+def _root_log(f: Callable[[float], float], centre: float, time_constant_s: float) -> float:
     """Root of a decreasing f(log ρ), bracketed outwards from ``centre``."""
     lo, hi = centre - 4.0, centre + 4.0
     for _ in range(20):
@@ -218,6 +219,7 @@ def design_filter(
     if stopped:
         harmonics, low_frequency, omega_d = (), True, 0.0
     else:
+        assert omega is not None  # not stopped
         harmonics, omega_d = tuple(int(k) for k in harmonics), float(omega)
 
     R = hub_transfer_matrix(geometry, frame)
@@ -358,7 +360,8 @@ class DesignCache:
         self.omega_min = float(omega_min)
         self.omega_default = omega_default
         self.max_designs = int(max_designs)
-        self._kw = {"harmonics": self.harmonics, "dt": self.dt, "tuning": tuning,
+        # design_filter's keyword arguments (each of its own type)
+        self._kw: dict[str, Any] = {"harmonics": self.harmonics, "dt": self.dt, "tuning": tuning,
                     "time_constant_s": time_constant_s, "low_frequency": self.low_frequency,
                     "psd": psd, "alpha": alpha, "moment_floor": moment_floor, "frame": frame}
         self._designs: OrderedDict[int, FilterDesign] = OrderedDict()
@@ -397,7 +400,7 @@ class DesignCache:
         ref = self._last if current is None else current
         if omega is None:
             omega = self.omega_default
-        if self.is_stopped(omega):
+        if omega is None or self.is_stopped(omega):
             return self._stopped is not None
         if (ref is not None and not ref.rotor_stopped
                 and abs(omega / ref.omega - 1.0) <= self.redesign_band):
@@ -413,7 +416,7 @@ class DesignCache:
         ref = self._last if current is None else current
         if omega is None:
             omega = self.omega_default
-        if self.is_stopped(omega):
+        if omega is None or self.is_stopped(omega):
             if self._stopped is None:
                 self._stopped = design_filter(self.model, omega=None, **self._kw)
                 self.designs_made += 1
@@ -493,7 +496,7 @@ def harmonic_pairs(design: FilterDesign) -> HarmonicPairs:
     return HarmonicPairs(np.array(i0, int), np.array(i1, int), k, k * design.omega)
 
 
-def azimuth_transition(design: FilterDesign, dpsi) -> np.ndarray:
+def azimuth_transition(design: FilterDesign, dpsi: float | np.ndarray) -> np.ndarray:
     """Φ of one step in which the rotor turned by ``dpsi`` (rad; scalar → (n, n), array (N,)
     → (N, n, n)): per harmonic k the block [[c, s/w], [−w s, c]], c, s = cos, sin(k Δψ),
     w = k Ω_d — in (H, Ḣ/(kΩ_d)) the rotation by kΔψ, exactly the design's Φ at
@@ -657,6 +660,7 @@ class LoadFilter:
         lf = [i for i, (k, _c, _o) in enumerate(d.labels) if k == 0]
         if lf:
             T_last = self._buf[self._n + N_COMPONENTS:]
+            assert d.R is not None  # design_filter sets it
             dH = np.linalg.solve(d.R, (self._S - S_new) @ T_last)
             comps = [d.labels[i][1] for i in lf]
             x[lf] += dH[comps]
@@ -723,7 +727,7 @@ class LoadFilter:
                           self._flags_pred_lost if lost else self._flags_pred)
 
 
-    def _step_azimuth(self, T, z, measured: bool, lost: int, dpsi: float | None) -> StepResult:
+    def _step_azimuth(self, T: np.ndarray, z: np.ndarray, measured: bool, lost: int, dpsi: float | None) -> StepResult:
         buf, n = self._buf, self._n
         ok = self._advance(dpsi, lost + 1)
         extra = () if ok else (AZIMUTH_MISSING,)
@@ -758,18 +762,19 @@ class BatchResult:
     __slots__ = ("H", "_make", "_x_plus", "e", "x_last")
 
     def __init__(self, x_plus: np.ndarray | None, e: np.ndarray, H: np.ndarray,
-                 x_last: np.ndarray, make=None) -> None:
+                 x_last: np.ndarray, make: Callable[[], np.ndarray] | None = None) -> None:
         self.e, self.H, self.x_last = e, H, x_last
         self._x_plus, self._make = x_plus, make
 
     @property
     def x_plus(self) -> np.ndarray:
         if self._x_plus is None:
+            assert self._make is not None  # given with x_plus=None
             self._x_plus = self._make()
             self._make = None
         return self._x_plus
 
-    def __iter__(self):
+    def __iter__(self) -> Iterator[np.ndarray]:
         return iter((self.x_plus, self.e, self.H, self.x_last))
 
 
@@ -814,7 +819,9 @@ def _siso_sos(A: np.ndarray, b: np.ndarray, c: np.ndarray, d: float) -> np.ndarr
     invariant zeros eig(A − b c / d) — eigenvalues, not polynomial roots, for accuracy."""
     zeros = np.linalg.eigvals(A - np.outer(b, c) / d)
     poles = np.linalg.eigvals(A)
-    return zpk2sos(zeros, poles, d)
+    # complex zeros and poles (conjugate pairs): scipy takes them, scipy-stubs types them real
+    sos: np.ndarray = zpk2sos(zeros, poles, d)  # type: ignore[arg-type]  # complex z, p: above
+    return sos
 
 
 def _decay_samples(lam: np.ndarray, V: np.ndarray, N: int, tail: float = 1e-20) -> int:
@@ -854,7 +861,7 @@ class _Plan(NamedTuple):
     groups: tuple[_Group, ...]
 
 
-_PLANS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # bounded by live designs
+_PLANS: weakref.WeakKeyDictionary[FilterDesign, _Plan | None] = weakref.WeakKeyDictionary()  # bounded by live designs
 
 
 def _make_plan(design: FilterDesign) -> _Plan | None:
@@ -944,6 +951,7 @@ def _dot_cols(A: np.ndarray, X: np.ndarray, A2: np.ndarray | None = None,
     for s in range(0, N, _CHUNK):
         blk = np.dot(A, X[:, s:s + _CHUNK])
         if A2 is not None:
+            assert X2 is not None  # given with A2
             blk += np.dot(A2, X2[:, s:s + _CHUNK])
         out[:, s:s + _CHUNK] = blk
     return out
@@ -986,6 +994,7 @@ def _batch_rotated(design: FilterDesign, plan: _Plan, S: np.ndarray, T: np.ndarr
         else:
             e[g.rows] = er
     del yr, er  # views that would keep the pre-mixing arrays alive
+    assert e is not None  # a plan has one group at least
     if plan.Mi is not None:
         y = _dot_cols(plan.Mi, y)
         X_last = plan.Mi @ X_last

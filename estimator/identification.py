@@ -619,6 +619,7 @@ class FilterErrorProblem:
 
     def residual_series(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         e, de, _ = self.innovations(theta)
+        assert de is not None  # derivatives=True
         e = np.where(self.scored[:, None], e, 0.0)
         de = np.where(self.scored[:, None, None], de, 0.0)
         B, _ = self._innovation_covariance(self.par.terms(theta).W, None)
@@ -715,7 +716,8 @@ class IdentificationResult:
     def sigma_cr_corrected(self) -> np.ndarray | None:
         if self.P_corrected is None:
             return None
-        return np.sqrt(np.clip(np.diag(self.P_corrected), 0.0, None))
+        result: np.ndarray = np.sqrt(np.clip(np.diag(self.P_corrected), 0.0, None))
+        return result
 
     @property
     def sound(self) -> bool:
@@ -776,7 +778,8 @@ def levenberg_marquardt(
     except (np.linalg.LinAlgError, ValueError, FloatingPointError):
         ev = None
     names = problem.par.names
-    if ev is None or not np.isfinite(ev.cost) or not np.all(np.isfinite(ev.gradient)):
+    if (ev is None or ev.gradient is None or not np.isfinite(ev.cost)
+            or not np.all(np.isfinite(ev.gradient))):
         nanP = np.full((p, p), np.nan)
         return IdentificationResult(names, problem.mode, theta, nanP, None, nanP, theta_p,
                                     prior_cov, np.nan, np.nan, 0, "diverged", 0)
@@ -794,7 +797,8 @@ def levenberg_marquardt(
                 J_w = total(ev_w, stage.theta)
             except (np.linalg.LinAlgError, ValueError, FloatingPointError):
                 J_w = np.inf
-            if np.isfinite(J_w) and J_w <= Jc and np.all(np.isfinite(ev_w.gradient)):
+            if (np.isfinite(J_w) and J_w <= Jc and ev_w.gradient is not None
+                    and np.all(np.isfinite(ev_w.gradient))):
                 theta, ev, Jc = stage.theta.copy(), ev_w, J_w
     history = [Jc]
     lam = lambda0
@@ -873,6 +877,7 @@ def levenberg_marquardt(
             Q = Q + extra(theta)
         P_corr = P @ (Q + Pinv) @ P
         P_corr = 0.5 * (P_corr + P_corr.T)
+    assert ev.information is not None  # evaluated with derivatives
     return IdentificationResult(
         names=names, mode=problem.mode, theta=theta, P=P, P_corrected=P_corr,
         information=ev.information, prior_mean=theta_p, prior_cov=prior_cov, cost=Jc,
@@ -894,7 +899,7 @@ class _FrozenWeight:
                  fixed_weight: np.ndarray | None = None) -> Evaluation:
         return self.problem.evaluate(theta, derivatives, fixed_weight=self.weight)
 
-    def residual_series(self, theta: np.ndarray):
+    def residual_series(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return self.problem.residual_series(theta)
 
 
@@ -916,6 +921,7 @@ def relaxation_estimate(
     for it in range(1, max_iterations + 1):
         W = problem.evaluate(theta, derivatives=False).residual_sum / problem_n(problem)
         ev = problem.evaluate(theta, fixed_weight=W)
+        assert ev.information is not None and ev.gradient is not None  # derivatives=True
         step = -np.linalg.solve(ev.information, ev.gradient)
         theta = theta + step
         sig = np.sqrt(np.diag(np.linalg.inv(ev.information)))
@@ -923,6 +929,7 @@ def relaxation_estimate(
             break
     W = problem.evaluate(theta, derivatives=False).residual_sum / problem_n(problem)
     ev = problem.evaluate(theta, fixed_weight=W)
+    assert ev.information is not None  # derivatives=True
     return theta, np.linalg.inv(ev.information), it
 
 
@@ -1109,13 +1116,17 @@ def innovation_spectrum_test(e: np.ndarray, scored: np.ndarray, gamma: np.ndarra
     step = L // 2
     starts = range(0, len(x) - L + 1, step)
     K = len(starts)
-    if K < 2 or (expected is None and len(gamma) < L):
+    if K < 2 or (expected is None and gamma is not None and len(gamma) < L):
         return InnovationTest(0.0, 1.0, np.inf, True)
     w = np.hanning(L)
     w2 = float(w @ w)
     X = np.fft.rfft(np.stack([w[:, None] * x[s:s + L] for s in starts]), axis=1)  # (K, F, 6)
     S = np.einsum("kfa,kfb->fab", X, X.conj()) / (K * w2)
-    E = expected_welch_spectrum(gamma, L) if expected is None else expected
+    if expected is None:
+        assert gamma is not None, "innovation_spectrum_test needs gamma or expected"
+        E = expected_welch_spectrum(gamma, L)
+    else:
+        E = expected
     tr = np.real(np.einsum("faa->f", E))
     keep = tr >= SPECTRUM_FLOOR * tr.max()
     t = np.real(np.einsum("faa->f", np.linalg.solve(E[keep], S[keep]))) / 6.0

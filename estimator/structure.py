@@ -66,7 +66,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -254,6 +254,7 @@ def hub_loads(structure: str | None, model: RigModel, alpha: np.ndarray, beta: n
     if structure in (None, "constant", "balance"):
         S = wrench_matrix(g, alpha)
         return np.linalg.solve(hub_transfer_matrix(g, "body"), (z - T @ S.T).T).T
+    assert beta is not None  # a structure other than constant has parameters
     m = structure_matrices(structure, beta, model)
     if structure == "cell_load_angles":
         cell = np.arange(2 * g.n_cells) // 2
@@ -292,7 +293,7 @@ def _batched(model: RigModel, alpha: np.ndarray, means: np.ndarray, structures: 
     C = len(X)
     F, Mo = H[:, :3], H[:, 3:]
 
-    def skews(v):  # (C, 3, 3): −skew(v) · x = x × v … the batched skew(v)
+    def skews(v: np.ndarray) -> np.ndarray:  # (C, 3, 3): −skew(v) · x = x × v … the batched skew(v)
         o = np.zeros((len(v), 3, 3))
         o[:, 0, 1], o[:, 0, 2], o[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
         o[:, 1, 0], o[:, 2, 0], o[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
@@ -325,12 +326,14 @@ def _batched(model: RigModel, alpha: np.ndarray, means: np.ndarray, structures: 
 
 
 def _stack(model: RigModel, alpha: np.ndarray, means: np.ndarray, counts: np.ndarray,
-           Li: np.ndarray, structures: Sequence[str]):
+           Li: np.ndarray, structures: Sequence[str]
+           ) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     sw = np.sqrt(np.asarray(counts, float))[:, None, None]
     r, Ja, Js = _batched(model, alpha, means, structures)
 
-    def white(A):  # (C, 6, k) → (6C, k), whitened and weighted by √n
-        return (np.einsum("ab,nbk->nak", Li, A) * sw).reshape(-1, A.shape[2])
+    def white(A: np.ndarray) -> np.ndarray:  # (C, 6, k) → (6C, k), whitened and weighted by √n
+        out: np.ndarray = (np.einsum("ab,nbk->nak", Li, A) * sw).reshape(-1, A.shape[2])
+        return out
 
     return (white(r[:, :, None])[:, 0], white(Ja), {st: white(J) for st, J in Js.items()})
 
@@ -476,7 +479,7 @@ def fit_structure(structure: str, model: RigModel, alpha: np.ndarray, means: np.
     na = len(alpha)
     Li = _whitener(model, alpha, moment_floor)
 
-    def split(th):
+    def split(th: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return th[:na], th[na:]
 
     J0 = _white_jacobian(structure, model, alpha, beta0, means, counts, Li)
@@ -494,12 +497,13 @@ def fit_structure(structure: str, model: RigModel, alpha: np.ndarray, means: np.
                                  np.zeros(na + p, bool), 0, start_cost, start_cost, False, 0,
                                  "nothing determined")
 
-    def fun(xi):
+    def fun(xi: np.ndarray) -> np.ndarray:
         return _white_residual(structure, model, *split(theta0 + B @ xi), means, counts, Li)
 
-    def jac(xi):
-        return _white_jacobian(structure, model, *split(theta0 + B @ xi), means, counts,
-                               Li) @ B
+    def jac(xi: np.ndarray) -> np.ndarray:
+        Jx: np.ndarray = _white_jacobian(structure, model, *split(theta0 + B @ xi), means,
+                                         counts, Li) @ B
+        return Jx
 
     with np.errstate(all="ignore"):
         sol = least_squares(fun, np.zeros(r), jac=jac, method="lm", xtol=FIT_TOLERANCE,
@@ -508,7 +512,9 @@ def fit_structure(structure: str, model: RigModel, alpha: np.ndarray, means: np.
     cost = float(sol.fun @ sol.fun)
     ok = bool(sol.status > 0 and np.isfinite(theta).all() and np.isfinite(cost)
               and cost <= start_cost * (1 + 1e-9) + 1e-9)
-    Jr = sol.jac if np.isfinite(sol.jac).all() else jac(sol.x)
+    Jr = np.asarray(sol.jac)  # method="lm": a dense array
+    if not np.isfinite(Jr).all():
+        Jr = jac(sol.x)
     Pxi = np.linalg.pinv(Jr.T @ Jr, hermitian=True)
     P = B @ Pxi @ B.T
     # a parameter is determined when its unit vector lies in the span of B (scaled columns)
@@ -592,7 +598,8 @@ class StructureFit:
 def test_structures(model: RigModel, alpha: np.ndarray, means: np.ndarray, counts: np.ndarray,
                     moment_floor: float, level: float,
                     structures: Sequence[str] = STRUCTURES, joint: bool | None = True,
-                    starts: dict | None = None) -> tuple[list[StructureFit], dict]:
+                    starts: dict[str, Any] | None = None
+                    ) -> tuple[list[StructureFit], dict[str, Any]]:
     """Every structure against the constant-angle model on condition means at α (already the
     constant fit); ``level``: the false-alarm rate of this look (split over the structures).
     ``joint``: fit every structure's [α0, β] exactly (:func:`fit_structure`); ``None``: only
@@ -659,7 +666,7 @@ def test_structures(model: RigModel, alpha: np.ndarray, means: np.ndarray, count
 
 def design_ranks(model: RigModel, alpha: np.ndarray, means: np.ndarray,
                  counts: np.ndarray | None = None, moment_floor: float = 100.0,
-                 structures: Sequence[str] = STRUCTURES) -> dict:
+                 structures: Sequence[str] = STRUCTURES) -> dict[str, Any]:
     """What a design (its condition means) can tell: the rank of the angles, per structure
     the rank left after the angles, and per pair of structures the rank of their union — a
     union rank below the sum means directions the design cannot tell apart."""
@@ -668,11 +675,12 @@ def design_ranks(model: RigModel, alpha: np.ndarray, means: np.ndarray,
     _, Ja, Js = _stack(model, alpha, means, counts, Li, structures)
     Ua = _range_basis(Ja)
 
-    def after(X):
-        return X - Ua @ (Ua.T @ X)
+    def after(X: np.ndarray) -> np.ndarray:
+        out: np.ndarray = X - Ua @ (Ua.T @ X)
+        return out
 
     ranks = {st: _range_basis(after(Js[st])).shape[1] for st in structures}
-    pairs = {}
+    pairs: dict[str, dict[str, int]] = {}
     for i, a in enumerate(structures):
         for b in structures[i + 1:]:
             u = _range_basis(after(np.hstack([Js[a], Js[b]]))).shape[1]
@@ -709,7 +717,7 @@ class DriftVerdict:
     restarted: bool
     selected: bool  # the posterior may track with this trend
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         return {"rate": self.rate, "rate_sigma": self.rate_sigma, "statistic": self.statistic,
                 "dof": self.dof, "limit": self.limit, "rejects_constant": self.rejects_constant,
                 "explains": self.explains, "misfit": self.misfit, "misfit_dof": self.misfit_dof,
@@ -746,7 +754,7 @@ class DriftTest:
         self.restarts = 0
         self.rejected = False
         self.windows: list[tuple[float, np.ndarray, int]] = []  # (t, x̄, n)
-        self._fit: tuple | None = None  # (α̂, θ̂ = [δα0, ρ], Pθ, t̄, determined)
+        self._fit: tuple[np.ndarray, np.ndarray, np.ndarray, float, bool] | None = None  # (α̂, θ̂ = [δα0, ρ], Pθ, t̄, determined)
         self.last: DriftVerdict | None = None
         # the angles the fit of the windows before the last one predicts at the last one's
         # time, with the prediction's covariance (α (14,), P (14, 14)); None: not determined
@@ -769,6 +777,7 @@ class DriftTest:
         return a, 0.5 * (P + P.T)
 
     def _mispredicts(self, xbar: np.ndarray, n: int, t: float) -> bool:
+        assert self._fit is not None  # called after a fit
         a_hat, th, Pth, tbar, determined = self._fit
         if not determined:
             return False
@@ -872,16 +881,16 @@ class StructureVerdict:
     ``candidates``, plus the test's own numbers."""
 
     structure: str  # VERDICTS
-    candidates: list[dict] = field(default_factory=list)
+    candidates: list[dict[str, Any]] = field(default_factory=list)
     look: int = 0
     conditions: int = 0
     level: float = 0.0
     restarted: bool = False  # a change in time restarted the accumulation at this window
-    selected: dict | None = None  # the structure the estimator may use (determined, separable)
+    selected: dict[str, Any] | None = None  # the structure the estimator may use (determined, separable)
     fits: list[StructureFit] = field(default_factory=list)
     drift: DriftVerdict | None = None  # the time-varying candidate (DriftTest)
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         return {"structure": self.structure, "candidates": self.candidates,
                 "drift": None if self.drift is None else self.drift.to_dict()}
 
@@ -909,7 +918,7 @@ class StructureTest:
         self.rejected = False
         self.restarts = 0
         self.clusters: list[_Cluster] = []
-        self._starts: dict = {}  # per structure, the last converged joint fit (α0, β)
+        self._starts: dict[str, Any] = {}  # per structure, the last converged joint fit (α0, β)
         self.bound: np.ndarray | None = None  # the static bound per axis (noise budget)
         # the joint fits (estimate, misfit, selection) at this look; off, a look gives the
         # verdict from the linear statistics only (a Monte Carlo that judges the last look)
@@ -1002,8 +1011,8 @@ class StructureTest:
                                   starts=self._starts)
         # the next look's joint fits start from these (a restart forgets them)
         self._starts = {f.structure: (f.alpha, f.beta) for f in fits if f.converged}
-        base = dict(look=self.look, conditions=len(self.clusters), level=level,
-                    restarted=restarted, fits=fits)
+        base: dict[str, Any] = dict(look=self.look, conditions=len(self.clusters),
+                                    level=level, restarted=restarted, fits=fits)
         if any(f.rejects_constant for f in fits):
             self.rejected = True
         if not self.rejected:
@@ -1028,6 +1037,7 @@ class StructureTest:
                 (top.structure, f.structure) in NESTED
                 or (f.misfit_dof > 0 and f.misfit - top.misfit > margin)
                 for f in others) and self._precise(top, means):
+            assert top.alpha is not None and top.P is not None  # _precise: a joint fit
             na = len(top.alpha)
             sig_all = np.concatenate([np.sqrt(np.maximum(np.diag(top.P)[:na], 0.0)),
                                       top.sigma])
@@ -1042,13 +1052,15 @@ class StructureTest:
     def _precise(self, f: StructureFit, means: np.ndarray) -> bool:
         """The fit determines the hub loads: at every condition seen, the σ its parameters'
         uncertainty adds is at most ``HUB_SIGMA_FRACTION`` of the static bound per axis."""
+        if f.alpha is None or f.P is None:  # no joint fit
+            return False
         if self.bound is None:
             from .noise_budget import noise_budget
             self.bound = noise_budget(self.model, f.alpha, "body").total
         sig = hub_sigma(f.structure, self.model, f.alpha, f.beta, f.P, means)
         return bool(np.all(sig <= HUB_SIGMA_FRACTION * self.bound))
 
-    def _candidate(self, f: StructureFit, explaining: list[str]) -> dict:
+    def _candidate(self, f: StructureFit, explaining: list[str]) -> dict[str, Any]:
         names = parameter_names(f.structure, self.model)
         units = parameter_units(f.structure, self.model)
         pk = per_kN(f.structure, f.beta)
@@ -1076,7 +1088,7 @@ class StructureTest:
 APPLIED = ("cell_load_angles", "hub_position", "balance", "external_load")
 
 
-def fit_payload(selected: dict, model: RigModel) -> dict:
+def fit_payload(selected: dict[str, Any], model: RigModel) -> dict[str, Any]:
     """The JSON-ready ``structure_fit`` (angles record, posterior file, config fragment;
     docs/telemetry.md) of a :attr:`StructureVerdict.selected`: the structure, α0 (rad), β in
     its SI units, their σ (None: not determined — held at the prior, never invented), and
@@ -1093,7 +1105,7 @@ def fit_payload(selected: dict, model: RigModel) -> dict:
             "T_ref": [float(v) for v in selected["T_ref"]]}
 
 
-def check_fit_payload(d: object, model: RigModel) -> dict:
+def check_fit_payload(d: object, model: RigModel) -> dict[str, Any]:
     """A ``structure_fit`` read from a file or a record, checked (ValueError naming what is
     wrong); returns it with float lists."""
     if not isinstance(d, dict):
@@ -1132,7 +1144,7 @@ class StructureCorrection:
     the mount modes); the simulator moves them with the static load, which differs at the
     harmonics only (their mean is unchanged)."""
 
-    def __init__(self, model: RigModel, fit: dict) -> None:
+    def __init__(self, model: RigModel, fit: dict[str, Any]) -> None:
         fit = check_fit_payload(fit, model)
         g = model.geometry
         self.structure = fit["structure"]
@@ -1161,6 +1173,6 @@ class StructureCorrection:
             result: np.ndarray = z - self.B @ (T * (T - self.T_ref))
             return result
         if self.M is not None:
-            result: np.ndarray = z - self.M @ (z - self.S @ T)
-            return result
+            corrected: np.ndarray = z - self.M @ (z - self.S @ T)
+            return corrected
         return z
