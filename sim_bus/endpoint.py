@@ -227,9 +227,9 @@ class BusEndpoint:
             msg.timestamp = stamp(None, frame_time(len(msg.data)))
         send_batch(self.bus, msgs)
         self.frames_sent += len(msgs)
-        if self.logger is not None:
+        if self.logger is not None:  # under the recording's one channel name, as emit()
             for msg in msgs:
-                self.logger.on_message_received(msg)
+                self.logger.on_message_received(_Logged(msg, self.log_channel))
         if self.capture is not None:
             self.capture.extend(msgs)
 

@@ -372,3 +372,33 @@ def test_the_service_with_the_simulator_records_channel_sim(tmp_path):
         sim.close()
     names = {ln.split()[1] for ln in sim_rec.read_text().splitlines()}
     assert names <= {"sim"} and names
+
+
+def test_answers_built_ahead_are_recorded_under_the_channel_sim(tmp_path):
+    """The real-time simulator sends most answers built ahead (``prepare_next``,
+    ``send_built_many``); `rsra sim --record` must name those frames `sim` too."""
+    import can
+
+    from rsra.sim_bus.bus_sim import Simulator
+    from rsra.sim_bus.physics import AircraftPhysics
+    from rsra.sim_bus.scenarios import load_scenario
+
+    cfg = load_config()
+    chan = channel_name("built")
+    log = tmp_path / "sim.log"
+    master = can.Bus(interface="virtual", channel=chan, receive_own_messages=False)
+    try:
+        sim = Simulator(cfg, physics=AircraftPhysics(cfg, load_scenario("ground-test"), seed=3),
+                        seed=3, channel=chan, record=log)
+        with sim:
+            master.send(can.Message(arbitration_id=0, is_extended_id=False, data=[1, 0]))
+            sim.pump()
+            for k in range(1, 8):
+                sim.prepare_next()
+                sim.pump()
+                sim.answer_sync(k, k * sim.dt)
+        assert sim.prepared >= 1  # answers did go out as built ahead
+    finally:
+        master.shutdown()
+    names = {ln.split()[1] for ln in log.read_text().splitlines()}
+    assert names == {"sim"}
