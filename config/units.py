@@ -1,7 +1,10 @@
 """Display units: SI inside, US (lbf, ft lbf) as a presentation option."""
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 LBF_N = 4.4482216152605  # N per lbf
 FT_LBF_NM = 1.3558179483314004  # N m per ft lbf
@@ -14,10 +17,11 @@ def axis_units(units: str) -> list[str]:
     return [f if k == "force" else m for k in AXIS_KIND]
 
 
-def to_units(values, units: str, kinds=AXIS_KIND) -> np.ndarray:
+def to_units(values: ArrayLike, units: str, kinds: Sequence[str] = AXIS_KIND) -> np.ndarray:
     """Convert SI values per axis (force/moment) to the display units."""
     v = np.asarray(values, dtype=float)
     if units == "si":
         return v
     scale = np.array([1 / LBF_N if k == "force" else 1 / FT_LBF_NM for k in kinds])
-    return v * scale
+    out: np.ndarray = v * scale
+    return out

@@ -127,8 +127,8 @@ def add_service_options(p: argparse.ArgumentParser) -> None:
 
 def setup_logging(level: str, log_file: str | None) -> None:
     root = logging.getLogger()
-    for h in list(root.handlers):
-        root.removeHandler(h)
+    for old in list(root.handlers):
+        root.removeHandler(old)
     if log_file:
         try:
             h: logging.Handler = logging.handlers.RotatingFileHandler(

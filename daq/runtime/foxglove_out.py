@@ -69,6 +69,7 @@ def parse_address(text: str) -> tuple[str, int]:
     why, addr = address_problem(text)
     if why:
         raise FoxgloveAddressError(f"--foxglove: {why}; {FIX}")
+    assert addr is not None  # no problem: an address
     return addr
 
 

@@ -83,7 +83,7 @@ def remove_own_temp_files(path: str | Path) -> list[Path]:
     their exact name (``.<name>.rsra-tmp.<pid>.<random>.tmp``, daq.persistence), regular
     files only, and only when the process that made it is gone. Returns what was removed."""
     target = Path(os.path.realpath(path))
-    removed = []
+    removed: list[Path] = []
     try:
         entries = list(os.scandir(target.parent))
     except OSError:
