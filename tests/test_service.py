@@ -334,3 +334,26 @@ def test_realtime_priority_refused_is_one_line_naming_the_option(cfg, monkeypatc
     assert code == 2 and "\n" not in line
     assert "--realtime-priority = 10" in line and "Operation not permitted" in line
     assert "CAP_SYS_NICE" in line
+
+
+def test_the_last_windows_result_is_published_recorded_and_what_the_state_file_holds(tmp_path):
+    """A window still being identified when acquisition ends: the worker saves its accepted
+    result to the state file, so the run publishes and records it too (it applies from a
+    sample after the last one: to the next run). Issue 29: the demo said "determined 11/14"
+    from the last record shown while `angles show` read 12 of 14 from the state file."""
+    from rsra.config.rig import load_config
+    from rsra.daq.runtime.persistence import load_posterior
+
+    state = tmp_path / "posterior.json"
+    rec = tmp_path / "rec"
+    cfg = load_config(overrides={"identification": {"state_file": str(state)}})
+    svc = Service(cfg, ServiceOptions(sim="ground-test", speed=None, duration=10.0, seed=3,
+                                      zenoh=False, record=str(rec)))
+    summary = svc.run()
+    last = svc.angles_log[-1]
+    assert last.accepted and last.applies_from_seq > svc.last_seq  # the window at the end
+    saved = load_posterior(str(state))
+    assert np.array_equal(saved.theta, np.asarray(last.alpha))
+    lines = (rec / "angles.jsonl").read_text().splitlines()
+    assert json.loads(lines[-1])["applies_from_seq"] == last.applies_from_seq
+    assert summary["identification_runs"] == len(lines) - 1  # (the first: the start)

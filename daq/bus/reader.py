@@ -804,6 +804,8 @@ class _BusReader(ReaderBase):
             else getattr(bus, "channel_id", getattr(bus, "channel", None)))
         self._bus = bus
         self._own_bus = False
+        # the service writes the last windows' results after the bus stops (Service._close_worker)
+        self.keep_angles_open = False
         self._bus_args: dict[str, Any] = {}
         if interface is not None:
             self._bus_args["interface"] = interface
@@ -881,8 +883,8 @@ class _BusReader(ReaderBase):
         if self.network.notifier is not None:
             self.network.notifier.stop(2.0)  # also stops the recorder (a listener)
             self.network.notifier = None
-        if self.recorder is not None:
-            self.recorder.stop()
+        if self.recorder is not None:  # angles.jsonl stays open when the service asks
+            self.recorder.stop(angles=not self.keep_angles_open)
         if self._own_bus and self._bus is not None:
             shutdown_bus(self._bus)
             self._bus = None

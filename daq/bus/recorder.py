@@ -369,7 +369,10 @@ class Recorder(can.Listener):
                             "max_depth": self.max_depth, "overflow": self.overflow}
         return out
 
-    def stop(self) -> None:
+    def stop(self, *, angles: bool = True) -> None:
+        """Stop recording frames (the queued ones written first) and — unless ``angles`` is
+        False, when the service still writes the results of the last windows (it then calls
+        :meth:`close_angles`) — close angles.jsonl."""
         if self._writer is not None:
             try:  # the frames still queued are written first
                 self._queue.put(None, timeout=WRITER_STOP_S)
@@ -387,6 +390,10 @@ class Recorder(can.Listener):
             self._writer = None
         with self._io_lock:
             self._close_frames()
+        if angles:
+            self.close_angles()
+
+    def close_angles(self) -> None:
         with self._lock:
             if not self._angles.closed:
                 self._angles.close()

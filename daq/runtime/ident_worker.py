@@ -25,6 +25,7 @@ import threading
 import time
 import traceback
 from collections import deque
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
@@ -521,5 +522,24 @@ class SupervisedIdentification:
     def close(self) -> None:
         if self.worker is not None:
             self.worker.close()
+
+    def finish(self, pending: Callable[[], int], timeout: float) -> list[IdentResult | IdentError]:
+        """At the end of a run: the results of the jobs still in hand, as they arrive, while
+        ``pending()`` says some are outstanding, for at most ``timeout`` s. A job not done by
+        then is abandoned with the worker (terminated, so it saves nothing the run did not
+        publish); the caller says so."""
+        out: list[IdentResult | IdentError] = []
+        deadline = time.monotonic() + timeout
+        while self.worker is not None and pending() > len(out):
+            left = deadline - time.monotonic()
+            if left <= 0 or not self.worker.alive():
+                break
+            r = self.worker.wait(timeout=min(left, 0.5))
+            if r is not None and (r := self._received(r)) is not None:
+                out.append(r)
+        if self.worker is not None and pending() > len(out) and self.worker.alive():
+            self.worker.proc.terminate()  # mid-job: nothing saved after what was published
+            self.worker.proc.join(5.0)
+        return out
 
 

@@ -239,6 +239,16 @@ class EstimatorPipeline:
             self.pending.append(rec)
             self.pending.sort(key=lambda r: r.applies_from_seq)
 
+    def final_records(self, after_seq: int) -> list[AnglesRecord]:
+        """At the end of a run: the results handed over that no sample applied — they apply
+        from a sample after the last one (``after_seq``), i.e. to the next run through the
+        state file the worker saved them to. Returned in order so that they are published and
+        recorded like the others, and the run's summary and its saved posterior agree."""
+        if self._inbox:
+            self._take_in(after_seq + 1)
+        out, self.pending = self.pending, []
+        return out
+
     def _apply_due(self, seq: int, out: PipelineOutput) -> None:
         if self._inbox:
             self._take_in(seq)

@@ -53,6 +53,7 @@ log = logging.getLogger("rsra.service")
 
 LOW_RATE_QUEUE = 64
 LATENCY_HISTORY = 2000
+FINAL_RESULTS_WAIT_S = 10.0  # at the end: the wait for windows still being identified
 ANGLES_HISTORY = 16  # recent angles records kept in memory (~15 kB each with P)
 
 
@@ -476,12 +477,17 @@ class Service:
             self.outputs = Outputs(cfg, opts)
             _close_logged(stack, self.outputs.close)
             self.outputs.sinks.extend(self._extra_sinks)
+            # (after _close_worker, which records the last windows' results there)
+            _close_logged(stack, self._close_recorded_angles)
+            _close_logged(stack, self._close_worker)
             if use_ident:
                 self._setup_identification(alpha0, state)
-                _close_logged(stack, self._close_worker)
             if not self.source.deterministic:  # hub_loads from the bus thread (P5b)
                 self.source.first_step = self._first_step
             stack.enter_context(self.source)
+            if self.source.reader is not None and hasattr(self.source.reader,
+                                                          "keep_angles_open"):
+                self.source.reader.keep_angles_open = True
             if self.recorder is not None:
                 self.recorder.write_angles(self._initial_record(alpha0, state).to_dict())
             log.info("service started: %s", self.source.describe())
@@ -497,7 +503,29 @@ class Service:
         self.summary = self._summary()
         return self.summary
 
+    def _close_recorded_angles(self) -> None:
+        if self.recorder is not None:
+            self.recorder.close_angles()
+
     def _close_worker(self) -> None:
+        """The windows still being identified when acquisition ended: their results are
+        taken in (for at most FINAL_RESULTS_WAIT_S) and published, recorded and counted
+        before the outputs close — the worker saves accepted ones to the state file, so
+        what the run says last is what the state file holds (issue 29); one not done by then
+        is abandoned unsaved, and the log says so. Then the worker stops."""
+        p = self.pipeline
+        if p is not None and self.last_seq is not None and self.outputs is not None:
+            if self.worker is not None:
+                for r in self.worker.finish(lambda: len(p.outstanding), FINAL_RESULTS_WAIT_S):
+                    self._deliver(r, self.last_seq)
+                if p.outstanding:
+                    log.warning("%d identification window(s) still running at the end: "
+                                "abandoned (not applied, not saved)", len(p.outstanding))
+                    p.outstanding.clear()
+            # (a replay's recorded records that apply after its last sample, the same way)
+            for rec in p.final_records(self.last_seq):
+                self.outputs.publish("angles", rec)
+                self._on_angles(rec)
         if self.worker is not None:
             self.worker.close()
 
