@@ -775,7 +775,7 @@ def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = No
         moment_floor_Nm=idt.number("moment_floor_Nm", 100.0, nonneg=True),
         max_iterations=idt.number("max_iterations", 10, integer=True, positive=True),
         reset_after=idt.number("reset_after", 3, integer=True, positive=True),
-        stale_fraction=idt.number("stale_fraction", 0.05, nonneg=True),
+        stale_fraction=idt.number("stale_fraction", 0.5, nonneg=True),
         settle_time_constants=idt.number("settle_time_constants", 5.0, nonneg=True),
         gap_s=idt.number("gap_s", 0.5, positive=True),
         state_file=idt.string("state_file", ""),
