@@ -42,14 +42,18 @@ SWEEPS = 2
 
 
 # ------------------------------------------------------------------------------ the harness
-def run_calibration(cfg, run, *, known_loads: bool, initial_state=None
+def run_calibration(cfg, run, *, known_loads: bool, initial_state=None,
+                    lacking: np.ndarray | None = None
                     ) -> Iterator[tuple[int, dict, np.ndarray, np.ndarray]]:
     """The service's calibration branch over an off-line run: yields, per window,
     (last sample, the angles record, posterior θ, posterior P) in window order.
-    ``initial_state``: a saved posterior to start from (``--angles``)."""
+    ``initial_state``: a saved posterior to start from (``--angles``). ``lacking``: samples
+    that lack an input (a dropped frame: the sample is not measured), as the pipeline
+    treats them: the content filter's input holds the last complete sample
+    (estimator.content.hold_missing), the sample is not ``ok`` (not scored)."""
     from rsra.daq.runtime.ident_worker import build_identification, run_job
     from rsra.estimator.balance import inertial_loads
-    from rsra.estimator.content import ContentFilter
+    from rsra.estimator.content import ContentFilter, hold_missing
 
     model = cfg.rig_model()
     idc, fs = cfg.identification, cfg.sample_rate_hz
@@ -61,7 +65,8 @@ def run_calibration(cfg, run, *, known_loads: bool, initial_state=None
                        7 + 6 + 6)
     z = inertial_loads(model, run.accel)
     H = run.H_balance if known_loads else np.zeros((len(z), 6))
-    Y = cf.process(np.hstack([run.T, z, H]))
+    ok = np.ones(len(z), bool) if lacking is None else ~np.asarray(lacking, bool)
+    Y = cf.process(hold_missing(np.hstack([run.T, z, H]), ok))
     period, window = round(idc.period_s * fs), round(idc.window_s * fs)
     delay = round(idc.apply_delay_s * fs)
     n = len(Y)
@@ -77,7 +82,7 @@ def run_calibration(cfg, run, *, known_loads: bool, initial_state=None
         m = end - sl.start
         job = {"job_id": j, "mode": mode, "content": content, "applies_from_seq": end - 1 + delay,
                "alpha": post.theta.copy(), "T": Y[sl, :7], "z": Y[sl, 7:13],
-               "known_H": Y[sl, 13:], "seq": seq[sl], "t": run.t[sl], "ok": np.ones(m, bool),
+               "known_H": Y[sl, 13:], "seq": seq[sl], "t": run.t[sl], "ok": ok[sl].copy(),
                "known": np.full(m, known_loads), "omega": run.omega[sl]}
         if dpsi is not None:
             job["dpsi"] = dpsi[sl]

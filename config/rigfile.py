@@ -274,7 +274,7 @@ class IdentificationTable(Table):
     moment_floor_Nm: NonNeg = 100.0
     max_iterations: PosWhole = 10
     reset_after: PosWhole = 3
-    stale_fraction: NonNeg = 0.05
+    stale_fraction: NonNeg = 0.5
     settle_time_constants: NonNeg = 5.0
     gap_s: Pos = 0.5
     state_file: str = ""

@@ -132,6 +132,9 @@ class AnglesRecord:
     # that did not converge was going: the shell's explanation of a rejection)
     cost_start: float | None = None
     cost_history: tuple[float, ...] | None = None
+    # the window's samples the likelihood used (scored; samples lacking an input are left
+    # out, issue 29); None: not set by the caller
+    samples_used: int | None = None
 
     def to_dict(self) -> dict:
         """The telemetry ``angles`` payload (SI: radians), values as computed (numpy arrays,
@@ -141,6 +144,8 @@ class AnglesRecord:
                 "P", "sigma_cr", "sigma_cr_corrected", "determined", "window_determined",
                 "information", "nu", "cost", "iterations", "window", "applies_from_seq", "late")
         out = {k: getattr(self, k) for k in keys}
+        if self.samples_used is not None:
+            out["samples_used"] = int(self.samples_used)
         if self.mode == "known_loads":
             out["structure"] = self.structure
             out["candidates"] = self.candidates or []
@@ -960,16 +965,20 @@ class PeriodicIdentification:
         missing = 1.0 - float(valid.mean()) if N else 1.0
         window = (seq0, seq1)
         verdict = None if self.structure is None else self.structure.last
-        if missing > self.posterior.stale_fraction:
-            return self.posterior.update(None, window=window, mode=self.mode,
-                                         content=self.content, t=t, missing_fraction=missing,
-                                         structure=verdict, dt=dt)
         max_lag = int(math.ceil(5.0 * self.correlation_time_s * self.fs))
         gap = N + 1 if self.gap_samples is None else self.gap_samples
         # a gap inside the window settles the content filter (and the calibration filter)
         scored = valid & scored_mask(valid, int(self.content_settle_samples)
                                      + self.filter_settle_samples, gap, False)
         scored[: self._settle_pending] = False
+        if missing > self.posterior.stale_fraction:
+            # what is left determines too little (issue 29: below, the run uses the samples
+            # it has — those lacking an input are left out, the information reduced so)
+            rec = self.posterior.update(None, window=window, mode=self.mode,
+                                        content=self.content, t=t, missing_fraction=missing,
+                                        structure=verdict, dt=dt)
+            rec.samples_used = 0
+            return rec
         post = self.posterior
         moments = None
         if self.mode == "known_loads":
@@ -1050,6 +1059,8 @@ class PeriodicIdentification:
             rec.structure_fit = self.posterior.structure_fit
         if self.mode == "filter_error" and res.end_state is not None and res.status != "diverged":
             self.filter_state = res.end_state
+        rec.samples_used = int(prob.scored.sum() if self.mode == "filter_error"
+                               else np.count_nonzero(scored))
         if rec.accepted:
             # new angles applied: the calibration filter settles again
             self._settle_pending = max(self._settle_pending, self.filter_settle_samples)

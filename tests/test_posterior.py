@@ -143,7 +143,8 @@ def test_sound_runs_only_and_every_rejection_keeps_the_posterior(cfg, model):
     rec = post.update(None, **kw)
     assert rec.reason == "stale_input"
     res2, _ = _linear_run(post, rng, M)
-    rec = post.update(res2, missing_fraction=0.06, **kw)  # > 5 % of samples lacking
+    # more than stale_fraction (50 %) of samples lacking an input: what is left is too little
+    rec = post.update(res2, missing_fraction=0.51, **kw)
     assert rec.reason == "stale_input" and not rec.accepted
     np.testing.assert_array_equal(post.theta, theta0)
     # a run whose data add little is not_identifiable (and passes the gate)

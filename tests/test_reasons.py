@@ -48,7 +48,7 @@ def test_stale_input_names_the_input_its_fraction_and_the_cause(cfg, missing, ba
     job, labels = _job(cfg, missing, "known_loads", balance)
     text, h = explain(_rec("stale_input", detail="missing_samples"), job, cfg.identification,
                       labels)
-    assert "allowed 5.0 %" in text and "\n" not in text + h
+    assert "allowed 50.0 %" in text and "\n" not in text + h
     pos = [text.index(n) for n in names]  # every input named, the most often missing first
     assert pos == sorted(pos), text
     assert hint in h, h

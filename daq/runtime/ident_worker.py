@@ -129,11 +129,15 @@ def run_job(cfg, runs: dict, cache, job: dict) -> dict:
             if other is not ident:
                 other.mark_discontinuity()
     out = sanitise(rec.to_dict())  # strict JSON values, as they cross the process boundary
-    from rsra.daq.runtime.reasons import explain, input_labels
+    from rsra.daq.runtime.reasons import explain, input_labels, missing_inputs
 
     # the figures behind the decision and the likely cause, in words (never the decision)
+    labels = input_labels(cfg)
     out["explanation"], out["hint"] = explain(rec, {**job, "mode": mode}, cfg.identification,
-                                              input_labels(cfg))
+                                              labels)
+    # the samples the likelihood used and the inputs the others lacked (issue 29)
+    out["missing_inputs"] = [{"input": lab, "fraction": f}
+                             for lab, f in missing_inputs({**job, "mode": mode}, labels)]
     out["applies_from_seq"] = int(job["applies_from_seq"])
     out["late"] = False
     out["restarted"] = False

@@ -25,7 +25,7 @@ from rsra.daq.runtime.reasons import input_labels
 from rsra.daq.runtime.records import ABSENT, AnglesRecord, IdentJob
 from rsra.daq.runtime.stuck import StuckMonitor
 from rsra.estimator.balance import inertial_load_matrix
-from rsra.estimator.content import ContentFilter
+from rsra.estimator.content import ContentFilter, MissingHold
 from rsra.daq.rigmodel import design_cache
 from rsra.estimator.angle_uncertainty import (
     ANGLES_UNCERTAIN,
@@ -158,6 +158,7 @@ class EstimatorPipeline:
             "known_loads": ContentFilter(idc.content_known_loads, self.fs, omega0, harm, n_ch),
             "filter_error": ContentFilter(idc.content_filter_error, self.fs, omega0, harm, n_ch),
         }
+        self._hold = {"known_loads": MissingHold(), "filter_error": MissingHold()}
         self.first_seq: int | None = None
         self.last_known_seq: int | None = None
         self.pending: list[AnglesRecord] = []  # results waiting for their apply sample
@@ -483,14 +484,17 @@ class EstimatorPipeline:
             self.last_known_seq = seq
         Hk = np.asarray(s.known_H, float) if known else np.zeros(6)
         x = np.concatenate([T if measured else np.zeros(7), z if measured else np.zeros(6), Hk])
-        # one causal content filter per mode; both see every sample so either can take over
+        # one causal content filter per mode; both see every sample so either can take over.
+        # A sample lacking an input enters as the last complete one, held (issue 29: the
+        # identification leaves it out and uses the samples it has; estimator.content)
+        xk = self._hold["known_loads"].input(x, measured and known)
+        xf = self._hold["filter_error"].input(x, measured)
         hk = self.hub_kernel
+        ck, cf = self.content["known_loads"], self.content["filter_error"]
         if hk is not None:  # the same sections in C (daq/runtime/hubpath.py), bit for bit
-            yk = hk.content_step(self.content["known_loads"], x)
-            yf = hk.content_step(self.content["filter_error"], x)
+            yk, yf = hk.content_step(ck, xk), hk.content_step(cf, xf)
         else:
-            yk = self.content["known_loads"].process(x[None, :])[0]
-            yf = self.content["filter_error"].process(x[None, :])[0]
+            yk, yf = ck.process(xk[None, :])[0], cf.process(xf[None, :])[0]
         fresh = self.last_known_seq is not None and seq - self.last_known_seq < self.fs * 0.5
         mode = "known_loads" if fresh else "filter_error"
         y = yk if mode == "known_loads" else yf

@@ -85,6 +85,8 @@ class AnglesRecord:
     explanation: Any = ABSENT  # one line: the figures behind reason/detail (issue 28)
     hint: Any = ABSENT  # one line: the likely cause and what to do (null when accepted)
     drift: Any = ABSENT  # known loads: the drift test, angles on a trend (issue 27)
+    samples_used: Any = ABSENT  # the window's samples the likelihood used (issue 29)
+    missing_inputs: Any = ABSENT  # the inputs the window's other samples lacked (issue 29)
     extra: tuple[tuple[str, Any], ...] = ()  # keys not declared above, in their order
 
     FIELDS: ClassVar[tuple[str, ...]]

@@ -58,7 +58,9 @@ FIELDS: dict[str, list[tuple[str, str, str]]] = {
         ("drift.rejects_constant", "boolean", ""), ("drift.explains", "boolean", ""),
         ("drift.misfit", "number", ""), ("drift.misfit_dof", "integer", ""),
         ("drift.windows", "integer", ""), ("drift.span_s", "number", "s"),
-        ("drift.restarted", "boolean", ""), ("drift.selected", "boolean", "")],
+        ("drift.restarted", "boolean", ""), ("drift.selected", "boolean", ""),
+        ("samples_used", "integer", ""), ("missing_inputs", "array:object", ""),
+        ("missing_inputs[].input", "string", ""), ("missing_inputs[].fraction", "number", "")],
     "health": [
         ("t", "number", "s (UNIX)"), ("nodes", "object", ""),
         ("nodes.<node>.state", "string", ""), ("nodes.<node>.heartbeat_age", "number", "s"),
