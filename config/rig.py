@@ -294,6 +294,11 @@ class IdentificationConfig:
     gap_s: float
     state_file: str
     angle_limit_rad: float = math.radians(10.0)
+    # filter-error runs (issue 25): the update rule ("consider": only along the window's
+    # determined directions; "bayes": its information in full) and the windows' systematic
+    # error σ_b, a floor on the fused σ along each window's determined directions
+    filter_error_update: str = "consider"
+    filter_error_floor_rad: float = 0.0
     # [identification.structure] (issue 19; `rsra calibrate` writes it): the structure the
     # hub loads use from the start, as estimator.structure.fit_payload (SI); None: constant
     structure_fit: dict | None = None
@@ -780,6 +785,9 @@ def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = No
         gap_s=idt.number("gap_s", 0.5, positive=True),
         state_file=idt.string("state_file", ""),
         angle_limit_rad=math.radians(idt.number("angle_limit_deg", 10.0, positive=True)),
+        filter_error_update=idt.string("filter_error_update", "consider", ("consider", "bayes")),
+        filter_error_floor_rad=math.radians(idt.number("filter_error_floor_deg", 0.0,
+                                                       nonneg=True)),
         structure_fit=_structure_fit(idt.table("structure")) if "structure" in idt.data
         else None,
     )
