@@ -264,6 +264,11 @@ class IdentificationConfig:
     gap_s: float
     state_file: str
     angle_limit_rad: float = math.radians(10.0)
+    # filter-error runs (issue 25): the update rule ("consider": only along the window's
+    # determined directions; "bayes": its information in full) and the windows' systematic
+    # error σ_b, a floor on the fused σ along each window's determined directions
+    filter_error_update: str = "consider"
+    filter_error_floor_rad: float = 0.0
     # [identification.structure] (issue 19; `rsra calibrate` writes it): the structure the
     # hub loads use from the start, as estimator.structure.fit_payload (SI); None: constant
     structure_fit: dict | None = None
@@ -596,6 +601,8 @@ def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = No
             reset_after=idt.reset_after, stale_fraction=idt.stale_fraction,
             settle_time_constants=idt.settle_time_constants, gap_s=idt.gap_s,
             state_file=idt.state_file, angle_limit_rad=math.radians(idt.angle_limit_deg),
+            filter_error_update=idt.filter_error_update,
+            filter_error_floor_rad=math.radians(idt.filter_error_floor_deg),
             # as estimator.structure.fit_payload (SI); None: the constant structure
             structure_fit=None if st is None else {
                 "structure": st.structure, "alpha0": np.radians(st.alpha0_deg).tolist(),

@@ -279,6 +279,8 @@ class IdentificationTable(Table):
     gap_s: Pos = 0.5
     state_file: str = ""
     angle_limit_deg: Pos = 10.0
+    filter_error_update: Literal["consider", "bayes"] = "consider"
+    filter_error_floor_deg: NonNeg = 0.0
     structure: StructureTable | None = None
 
     @field_validator("parameters", mode="before")

@@ -344,6 +344,10 @@ def out_of_range(theta: np.ndarray, limit: np.ndarray) -> bool:
     return not bool(np.all(np.abs(np.asarray(theta, float)) <= limit))
 
 
+# how an accepted filter-error run updates the posterior (identification.filter_error_update)
+FILTER_ERROR_UPDATES = ("consider", "bayes")
+
+
 def information_ratio(prior_cov: np.ndarray, M: np.ndarray) -> float:
     """Largest eigenvalue of P_p^{1/2} M P_p^{1/2} (data information relative to the prior)."""
     L = np.linalg.cholesky(prior_cov)
@@ -369,6 +373,37 @@ def _moment_cost(par: Parameterisation, G: np.ndarray, theta: np.ndarray) -> flo
     """V(θ) = ½ tr(W⁻¹ A G Aᵀ) of windows given by their moments G (known loads)."""
     t = par.terms(theta)
     return 0.5 * float(np.sum(np.linalg.inv(t.W) * (t.A @ G @ t.A.T)))
+
+
+def consider_update(P_p: np.ndarray, theta_p: np.ndarray, s: np.ndarray, Vk: np.ndarray,
+                    proj: np.ndarray, use: np.ndarray, floor_s: float
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """The filter-error update restricted to the window's determined directions (issue 25,
+    docs/identification.md "The consider update"), in coordinates scaled by ``s``
+    (sigma_max): ``Vk`` (p, k) orthonormal directions, ``proj`` the window's estimate along
+    them, ``use`` its information there. A Schmidt (consider) Kalman update: the gain is
+    restricted to span(Vk), so the estimate moves only along the directions the window
+    determines and every other direction keeps the prior's mean and variance; Joseph form,
+    so the covariance is that of this (sub-optimal) estimate. ``floor_s``: the window's
+    systematic error σ_b (scaled) — added to its variance (1/use + σ_b²) and a floor on the
+    fused variance along Vk (a bias common to the windows does not average out).
+    Returns (P_new, φ_new) scaled."""
+    Ps = P_p / s[:, None] / s[None, :]
+    phi_p = theta_p / s
+    a_p = Vk.T @ phi_p
+    Paa = Vk.T @ Ps @ Vk
+    R = np.diag(1.0 / use + floor_s**2)
+    G = Paa @ np.linalg.inv(Paa + R)
+    Kf = Vk @ G
+    phi = phi_p + Kf @ (proj - a_p)
+    A = np.eye(len(s)) - Kf @ Vk.T
+    P_new = A @ Ps @ A.T + Kf @ R @ Kf.T
+    if floor_s > 0:
+        B = Vk.T @ P_new @ Vk
+        mu, U = np.linalg.eigh(0.5 * (B + B.T))
+        VU = Vk @ U
+        P_new = P_new + (VU * np.maximum(floor_s**2 - mu, 0.0)) @ VU.T
+    return 0.5 * (P_new + P_new.T), phi
 
 
 def determined_directions(P: np.ndarray, sigma_max: np.ndarray) -> tuple[int, np.ndarray, float]:
@@ -403,8 +438,16 @@ class SequentialPosterior:
         max_held_windows: int = MAX_HELD_WINDOWS,
         limit: np.ndarray | float = math.inf,
         rig: dict | None = None,
+        filter_error_update: str = "consider",
+        filter_error_floor: float = 0.0,
     ) -> None:
         self.names = tuple(names)
+        if filter_error_update not in FILTER_ERROR_UPDATES:
+            raise ValueError(f"filter_error_update must be one of {FILTER_ERROR_UPDATES}")
+        # the filter-error update (consider_update) and its systematic floor σ_b in units of
+        # sigma_max (docs/identification.md, "The consider update")
+        self.filter_error_update = filter_error_update
+        self.filter_error_floor = float(filter_error_floor)
         p = len(self.names)
         # the physical range |θ_k| ≤ limit_k (angles: identification.angle_limit_deg)
         self.limit = np.broadcast_to(np.asarray(limit, float), (p,)).copy()
@@ -560,7 +603,9 @@ class SequentialPosterior:
         return cls(names, theta0, np.array(sig0), drift_rate=np.array(drift),
                    min_information=ident.min_information, sigma_max=np.array(smax),
                    reset_after=ident.reset_after, stale_fraction=ident.stale_fraction,
-                   limit=np.array(limit), rig=rig)
+                   limit=np.array(limit), rig=rig,
+                   filter_error_update=ident.filter_error_update,
+                   filter_error_floor=ident.filter_error_floor_rad / ident.sigma_max_rad)
 
     # ---------------------------------------------------------------------------------
     def state(self) -> PosteriorState:
@@ -761,12 +806,16 @@ class SequentialPosterior:
         Pp_inv = np.linalg.inv(P_p)
         b = np.linalg.solve(result.P, result.theta) - Pp_inv @ theta_p
         proj = (Vk.T @ (s * b)) / lk  # window estimate along each kept direction (scaled)
-        Mk = (Vk * use) @ Vk.T  # scaled coordinates
-        hk = Vk @ (use * proj)
-        Pinv_s = Pp_inv * s[:, None] * s[None, :]  # prior information in scaled coordinates
-        P_new_s = np.linalg.inv(Pinv_s + Mk)
-        P_new_s = 0.5 * (P_new_s + P_new_s.T)
-        phi = P_new_s @ (Pinv_s @ (theta_p / s) + hk)
+        if self.filter_error_update == "consider":
+            P_new_s, phi = consider_update(P_p, theta_p, s, Vk, proj, use,
+                                           self.filter_error_floor)
+        else:  # "bayes": the window's information in full (moves undetermined directions)
+            Mk = (Vk * use) @ Vk.T  # scaled coordinates
+            hk = Vk @ (use * proj)
+            Pinv_s = Pp_inv * s[:, None] * s[None, :]  # prior information in scaled coordinates
+            P_new_s = np.linalg.inv(Pinv_s + Mk)
+            P_new_s = 0.5 * (P_new_s + P_new_s.T)
+            phi = P_new_s @ (Pinv_s @ (theta_p / s) + hk)
         theta_new = s * phi
         P_new = P_new_s * s[:, None] * s[None, :]
         wd = int(keep.sum())

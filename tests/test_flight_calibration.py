@@ -159,3 +159,88 @@ def test_flight_rig_calibrates_in_flight_and_the_default_rig_does_not():
     res1 = _calibrate(base, run1)
     assert len(res1) == 6 and not any(r["accepted"] for r, *_ in res1), [
         (r["reason"], r.get("detail")) for r, *_ in res1]
+
+
+def _sharp_and_loose(eps_deg=1.0):
+    """A posterior sharp along v (σ 0.02 in scaled units... here 0.1) and loose along u (σ 25),
+    and a window determining v′ = cos ε v + sin ε u (scaled coordinates, sigma_max = 1)."""
+    p = 4
+    v, u = np.eye(p)[0], np.eye(p)[1]
+    P = np.diag([0.1**2, 25.0**2, 25.0**2, 25.0**2])
+    e = np.radians(eps_deg)
+    vk = (np.cos(e) * v + np.sin(e) * u)[:, None]
+    return P, vk, v, u
+
+
+def test_consider_update_moves_only_along_the_window_s_determined_directions():
+    """Issue 25 (a): a window determining v′, 1° from the posterior's sharp direction v, with
+    an estimate 4 of its σ off: the consider update moves the estimate only along v′ (the
+    loose direction u by at most sin ε of the step); the full Bayes update of the same window
+    reads it as information about u through the small angle and walks u by many σ_w. Break
+    check: with the gain not restricted to span(Vk) (Bayes) the first assertion fails."""
+    from rsra.estimator.posterior import consider_update
+
+    P, vk, v, u = _sharp_and_loose()
+    s = np.ones(4)
+    use = np.array([4.0])  # σ_w = 0.5
+    proj = np.array([4 * 0.5])  # the window's estimate along v′: 4 σ_w from the prior's 0
+    P_new, phi = consider_update(P, np.zeros(4), s, vk, proj, use, 0.0)
+    step = phi - 0.0
+    assert np.allclose(step, vk[:, 0] * (vk[:, 0] @ step), atol=1e-12)  # along v′ only
+    assert abs(step @ u) <= np.sin(np.radians(1.0)) * abs(vk[:, 0] @ step) + 1e-12
+    # Bayes with the same window: u moves by most of the window's offset / sin ε
+    Pinv = np.linalg.inv(P) + use[0] * vk @ vk.T
+    phi_b = np.linalg.solve(Pinv, vk[:, 0] * use[0] * proj[0])
+    assert abs(phi_b @ u) > 20 * abs(step @ u)
+
+
+def test_consider_update_covariance_is_that_of_its_estimate_by_monte_carlo():
+    """The consider update's Joseph-form covariance is the covariance of its error (a linear
+    Gaussian window: truth from the prior, the window's estimate with its σ_w): every
+    direction's error variance within its 10⁻³ Monte Carlo band (8 directions' variances ×
+    2 sides), and the loose directions keep the prior's variance."""
+    from rsra.estimator.posterior import consider_update
+
+    rng = np.random.default_rng(5)
+    p, n = 4, 4000
+    A = rng.normal(size=(p, p))
+    P = A @ A.T + np.diag([0.01, 1, 4, 9])
+    Vk = np.linalg.qr(rng.normal(size=(p, 2)))[0]
+    use = np.array([25.0, 4.0])
+    s = np.ones(p)
+    L = np.linalg.cholesky(P)
+    err = np.empty((n, p))
+    P_new = None
+    for i in range(n):
+        truth = L @ rng.normal(size=p)
+        proj = Vk.T @ truth + rng.normal(size=2) / np.sqrt(use)
+        P_new, phi = consider_update(P, np.zeros(p), s, Vk, proj, use, 0.0)
+        err[i] = phi - truth
+    lam, V = np.linalg.eigh(P_new)
+    ratio = ((err @ V) ** 2).mean(0) / lam
+    lo, hi = stats.chi2.ppf(1e-3 / 8, n) / n, stats.chi2.isf(1e-3 / 8, n) / n
+    assert np.all((ratio > lo) & (ratio < hi)), ratio
+    C = np.linalg.qr(np.hstack([Vk, rng.normal(size=(p, 2))]))[0][:, 2:]  # ⟂ span(Vk)
+    assert np.allclose(C.T @ P_new @ C, C.T @ P @ C)
+
+
+def test_systematic_floor_keeps_the_fused_sigma_above_a_common_bias():
+    """Issue 25 (b): windows that share a bias b along their direction do not average it out;
+    with the floor σ_b the fused σ along it stays ≥ σ_b and the fused error stays within
+    3 σ; without it 50 windows shrink σ to σ_w/√50 and the bias is 5 σ off. Break check:
+    floor 0 fails the first assertion."""
+    from rsra.estimator.posterior import consider_update
+
+    P, vk, v, u = _sharp_and_loose(0.0)
+    P = np.diag([25.0**2] * 4)
+    s, use = np.ones(4), np.array([4.0])  # σ_w = 0.5
+    bias, floor = 0.3, 0.3
+    rng = np.random.default_rng(1)
+    for floor_, ok in ((floor, True), (0.0, False)):
+        Pk, phi = P.copy(), np.zeros(4)
+        for _ in range(50):
+            proj = np.array([bias + rng.normal() * 0.5])
+            Pk, phi = consider_update(Pk, phi, s, vk, proj, use, floor_)
+        sig = float(np.sqrt(vk[:, 0] @ Pk @ vk[:, 0]))
+        z = abs(vk[:, 0] @ phi) / sig
+        assert (sig >= floor - 1e-12 and z < 3.0) == ok, (floor_, sig, z)
