@@ -480,3 +480,137 @@ def _read(f) -> str:
     f.flush()
     f.seek(0)
     return f.read()
+
+
+# -- a gap breaks the line; the node table fits (issue 29) ---------------------------------
+H_BLUE = (0x35, 0xC7, 0xFF)  # the filter estimate's colour in the hub-load plots
+
+
+def _hub_run(t0: float, n: int, rate: float = 20.0, seq0: int = 0) -> list[dict]:
+    """``n`` hub-load records from ``t0`` at ``rate``, X swinging ±5 kN (a visible line)."""
+    return [_hub(seq0 + i, t0 + i / rate, H=[5000.0 * (-1) ** i, 0.0, -80000.0, 0.0, 0.0, 0.0])
+            for i in range(n)]
+
+
+def _blue_columns(png: bytes) -> np.ndarray:
+    """Per pixel column of a plot screenshot: how many pixels have the filter's colour."""
+    import io
+
+    from PIL import Image
+
+    a = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=int)
+    near = np.all(np.abs(a - np.array(H_BLUE)) < 40, axis=2)
+    return near.sum(axis=0)
+
+
+def _strip(cols: np.ndarray, lo: float, hi: float) -> int:
+    n = len(cols)
+    return int(cols[int(lo * n):int(hi * n)].sum())
+
+
+_NODE_VALUE_VISIBLE = """() => {
+  const td = Array.from(document.querySelectorAll('.c-lad-table td'))
+    .find((d) => d.textContent.trim() === 'operational');
+  if (!td) { return 'no node value shown'; }
+  const r = td.getBoundingClientRect();
+  const x = r.left + r.width / 2, y = r.top + r.height / 2;
+  if (x > window.innerWidth || y > window.innerHeight) { return 'outside the window at ' + x; }
+  const hit = document.elementFromPoint(x, y);
+  return hit && (hit === td || td.contains(hit)) ? 'visible'
+    : 'covered at x=' + Math.round(x) + ' by ' + (hit ? hit.className : 'nothing');
+}"""
+
+
+@pytest.mark.timeout(300)
+def test_browser_breaks_the_line_at_a_gap_and_shows_the_node_values(cfg, tmp_path):
+    """A 30-s gap (a restarted service) in history and live: the plot's line stops at the
+    gap (no filter-coloured pixel in the middle of it, where the old straight line ran);
+    and the node table's value column is on screen at 1600 px (it was cut off)."""
+    why = _browser_skip_reason()
+    if why:
+        pytest.skip(why)
+    import time
+
+    import zenoh
+    from playwright.sync_api import sync_playwright
+
+    from rsra.daq.runtime.telemetry import viewer_config
+
+    prefix = cfg.telemetry.prefix
+    now = time.time()
+    t_hist = now - 3600.0  # history from a file: 10 s, a 30-s gap, 10 s
+    recs = [("hub_loads", r) for r in _hub_run(t_hist, 200) + _hub_run(t_hist + 40, 200, seq0=0)]
+    nodes = {n.name: {"state": "operational", "required": n.required} for n in cfg.nodes}
+    recs += [("health", {"t": t_hist + s, "nodes": nodes}) for s in range(0, 50, 5)]
+    jl = tmp_path / "gap.jsonl"
+    jl.write_text("".join(json.dumps({"key": k, **p}) + "\n" for k, p in recs))
+    zport, wport = free_tcp_port(), free_tcp_port()
+    ep = f"tcp/127.0.0.1:{zport}"
+    log = open(tmp_path / "web.log", "w+")
+    web = None
+    with zenoh.open(viewer_config([], listen=[ep])) as z:
+        try:
+            web = _spawn(["web", "--port", str(wport), "--zenoh-connect", ep, str(jl)],
+                         stdout=subprocess.PIPE, stderr=log)
+            line = web.stdout.readline()
+            assert f"http://127.0.0.1:{wport}/" in line, line + _read(log)
+            url = line.split("open ", 1)[1].split()[0].rstrip("/")
+            with sync_playwright() as pw:
+                ctx = pw.chromium.launch_persistent_context(
+                    str(tmp_path / "profile"), executable_path=CHROMIUM, headless=True,
+                    args=CHROMIUM_FLAGS, viewport={"width": 1600, "height": 1000})
+                try:
+                    page = ctx.new_page()
+                    page.set_default_timeout(120_000)  # a loaded machine: no timing asserted
+                    errors = []
+                    page.on("pageerror", lambda e: errors.append(str(e)))
+                    s, e = int(t_hist * 1000), int((t_hist + 50) * 1000)
+                    page.goto(f"{url}/#/browse/rsra:root/rsra:layout?tc.mode=fixed"
+                              f"&tc.startBound={s}&tc.endBound={e}&tc.timeSystem=utc")
+                    page.wait_for_function(
+                        "() => (window.rsraStats.history['hub.H.X'] || 0) >= 400")
+                    assert page.evaluate("() => window.rsraStats.gaps['hub.H.X']") == 1
+                    page.wait_for_function("() => document.querySelectorAll("
+                                           "'.c-lad-table td').length > 0")
+                    page.wait_for_timeout(1500)  # the plot draws (nothing timed)
+                    area = page.locator(".gl-plot-chart-area").first
+                    cols = _blue_columns(area.screenshot())
+                    # data over 0-20 % and 80-100 % of the width, the gap between
+                    assert _strip(cols, 0.03, 0.17) > 50 and _strip(cols, 0.83, 0.97) > 50
+                    assert _strip(cols, 0.25, 0.75) == 0, "a line drawn across the gap"
+                    page.screenshot(path=str(tmp_path / "history-gap.png"))
+                    assert page.evaluate(_NODE_VALUE_VISIBLE) == "visible"
+
+                    # live: two runs of points 95 s apart in time, sent one after the other
+                    page.goto(f"{url}/#/browse/rsra:root/rsra:layout?tc.mode=local"
+                              "&tc.startDelta=120000&tc.endDelta=5000&tc.timeSystem=utc")
+                    page.reload()
+                    page.get_by_text("REAL-TIME", exact=False).first.wait_for()
+                    page.locator(".gl-plot-chart-area").first.wait_for()
+                    key = f"{prefix}/hub_loads"
+                    t1 = time.time()
+                    for r in _hub_run(t1 - 115, 200):
+                        z.put(key, json.dumps(r))
+                    page.wait_for_function(
+                        "() => (window.rsraStats.delivered['hub.H.X'] || 0) >= 200")
+                    for r in _hub_run(t1 - 20, 200, seq0=200):
+                        z.put(key, json.dumps(r))
+                    page.wait_for_function(
+                        "() => (window.rsraStats.delivered['hub.H.X'] || 0) >= 400")
+                    assert page.evaluate("() => window.rsraStats.liveGaps['hub.H.X']") == 1
+                    page.wait_for_timeout(1500)
+                    cols = _blue_columns(area.screenshot())
+                    page.screenshot(path=str(tmp_path / "live-gap.png"))
+                    # the window is the last 125 s: the gap spans about 12-84 % of it
+                    assert _strip(cols, 0.0, 0.2) > 50 and _strip(cols, 0.7, 1.0) > 50
+                    assert _strip(cols, 0.35, 0.55) == 0, "a line drawn across the gap"
+                    assert not errors, errors
+                finally:
+                    ctx.close()
+        finally:
+            if web is not None:
+                _stop(web)
+                web.stdout.close()
+    out = _read(log)
+    log.close()
+    assert "Traceback" not in out, out

@@ -76,6 +76,9 @@ class Measurement:
     limits: dict[str, Any] | None = None  # absolute limit lines (Open MCT getLimits)
     value_name: str = ""  # the value's column name where it differs from the name
     decimals: int = 1  # digits after the point Open MCT shows ("float")
+    # a plotted series' line breaks where no point came for longer than this (ms; a stopped
+    # or restarted service); None: never (tables, strings, low-rate keys)
+    gap_ms: float | None = None
 
 
     def as_json(self) -> dict:
@@ -85,6 +88,8 @@ class Measurement:
              "extra": [{"key": k, "name": n, "unit": u} for k, n, u in self.extra]}
         if self.limits is not None:
             d["limits"] = self.limits
+        if self.gap_ms is not None:
+            d["gap_ms"] = self.gap_ms
         return d
 
 
@@ -146,7 +151,8 @@ def build_dictionary(cfg, prefix: str | None = None) -> Dictionary:
             ms.append(Measurement(f"accel.{a}.{ax}", f"{a} {ax}", "Accelerations", "channels",
                                   "m/s²"))
     ms.append(Measurement("nis", "NIS (χ², 6 dof)", "Innovations", "innovations", "",
-                          limits={"yellow": list(NIS_YELLOW), "red": [None, NIS_RED_HIGH]}))
+                          limits={"yellow": list(NIS_YELLOW), "red": [None, NIS_RED_HIGH]},
+                          gap_ms=gap_ms(cfg.telemetry.innovations_hz)))
     for n in angles:
         # three decimals: an identified angle's σ is a few hundredths of a degree (0.05°), so
         # 0.1° would hide what the estimate knows
@@ -168,8 +174,23 @@ def build_dictionary(cfg, prefix: str | None = None) -> Dictionary:
     for path, name, unit, _ in COUNTERS:
         fmt = "float" if unit else "integer"
         ms.append(Measurement(f"health.{path}", name, "Health", "health", unit, format=fmt))
+    plotted = ("hub.H.", "hub.static.", "hub.upper.", "hub.lower.", "hub.angles.", "cell.",
+               "accel.")
+    for m in ms:
+        if m.id.startswith(plotted):
+            m.gap_ms = gap_ms(cfg.sample_rate_hz)
     return Dictionary(cfg.rig_name, prefix or cfg.telemetry.prefix, cfg.hub_frame, ms, sigma,
                       cells, accs, nodes, angles)
+
+
+GAP_MIN_S = 1.0  # a break in a plotted line: at least this long without a point
+
+
+def gap_ms(rate_hz: float) -> float:
+    """The longest time between two points of a series at ``rate_hz`` that a plot still joins
+    by a line: ten periods, at least GAP_MIN_S (a few lost samples stay one line; a stopped
+    or restarted service, or a filter without valid estimates, leaves a gap)."""
+    return 1000.0 * max(GAP_MIN_S, 10.0 / rate_hz)
 
 
 def _num(v: Any) -> float | None:

@@ -12,7 +12,68 @@
   };
 
   // counters of what reached the views (read by the browser test and handy in the console)
-  window.rsraStats = { delivered: {}, history: {}, messages: 0 };
+  // gaps: breaks put into history answers, liveGaps: into real-time points (per series)
+  window.rsraStats = { delivered: {}, history: {}, gaps: {}, liveGaps: {}, messages: 0 };
+
+  // A gap in a plotted series (a stopped or restarted service): a point with no value between
+  // the two points around it, which the plot does not join (Open MCT keeps one invalid value
+  // between valid ones; its WebGL line leaves out the segments to it). The measurement's
+  // gap_ms (dictionary) is the longest time the line still joins; a thinned history answer
+  // joins up to 3 times its median spacing, whichever is longer.
+  function gapPoint(key, a, b, live) {
+    const st = live ? window.rsraStats.liveGaps : window.rsraStats.gaps;
+    st[key] = (st[key] || 0) + 1;
+    return { utc: (a.utc + b.utc) / 2, value: NaN, gap: true };
+  }
+  function withGaps(key, data, gapMs) {
+    if (!gapMs || data.length < 2) {
+      return data;
+    }
+    const dt = [];
+    for (let i = 1; i < data.length; i++) {
+      dt.push(data[i].utc - data[i - 1].utc);
+    }
+    const median = dt.slice().sort((a, b) => a - b)[dt.length >> 1];
+    const limit = Math.max(gapMs, 3 * median);
+    const out = [data[0]];
+    for (let i = 1; i < data.length; i++) {
+      if (dt[i - 1] > limit) {
+        out.push(gapPoint(key, data[i - 1], data[i]));
+      }
+      out.push(data[i]);
+    }
+    return out;
+  }
+
+  // Without WebGL Open MCT draws plots on a 2D canvas, whose lineTo ignores a NaN point
+  // (HTML spec) and so joins the line across a gap: there a lineTo after one with NaN starts
+  // a new piece of line (moveTo). Only calls the spec makes no-ops change meaning.
+  (function () {
+    const proto = window.CanvasRenderingContext2D && window.CanvasRenderingContext2D.prototype;
+    if (!proto || proto.rsraGaps) {
+      return;
+    }
+    const lineTo = proto.lineTo;
+    const moveTo = proto.moveTo;
+    const beginPath = proto.beginPath;
+    const lifted = new WeakSet();
+    proto.lineTo = function (x, y) {
+      if (Number.isNaN(x) || Number.isNaN(y)) {
+        lifted.add(this);
+        return undefined;
+      }
+      if (lifted.has(this)) {
+        lifted.delete(this);
+        return moveTo.call(this, x, y);
+      }
+      return lineTo.call(this, x, y);
+    };
+    proto.beginPath = function () {
+      lifted.delete(this);
+      return beginPath.call(this);
+    };
+    proto.rsraGaps = true;
+  })();
 
   function id(key) {
     return { namespace: NS, key: key };
@@ -75,32 +136,35 @@
       'lad.nodes': { type: 'LadTable', name: 'Nodes and health',
         composition: dic.nodes.map((n) => id('node.' + n))
           .concat([id('hub.flags'), id('hub.omega')])
-          .concat(dic.measurements.filter((m) => m.group === 'Health').map((m) => id(m.id))) },
+          .concat(dic.measurements.filter((m) => m.group === 'Health').map((m) => id(m.id))),
+        configuration: { hiddenColumns: { timestamp: true, type: true }, isFixedLayout: false } },
       'lad.ident': { type: 'LadTable', name: 'Latest identification',
-        composition: [id('ident.verdict'), id('ident.determined')] },
+        composition: [id('ident.verdict'), id('ident.determined')],
+        configuration: { hiddenColumns: { timestamp: true, type: true }, isFixedLayout: false } },
       'table.angles': { type: 'table', name: 'Load-cell angles (deg, ±1σ)',
         composition: dic.angles.map((n) => id('angle.' + n)),
-        configuration: { hiddenColumns: {}, rowLimit: dic.angles.length } }
+        // (every unit is deg, said in the name: the unit columns would push ±1σ out of view)
+        configuration: { hiddenColumns: { 'value-unit': true, 'sigma-unit': true, 'lo-unit': true,
+          'hi-unit': true }, rowLimit: dic.angles.length } }
     };
     Object.keys(layoutParts).forEach(function (k) {
       objs[k] = Object.assign({ identifier: id(k), location: NS + ':layout' }, layoutParts[k]);
     });
-    function item(key, x, y, w, h) {
-      return { type: 'subobject-view', identifier: id(key), id: 'rsra-' + key, x: x, y: y,
-        width: w, height: h, hasFrame: true, fontSize: 'default', font: 'default' };
+    // a flexible layout (sizes in % of the page, not pixels: every part fits the width the
+    // browser gives it; the pixel grid of a display layout cut the right column at 1600 px)
+    function frame(key, size) {
+      return { id: 'rsra-' + key, domainObjectIdentifier: id(key), size: size, noFrame: false };
     }
     objs.layout = {
-      identifier: id('layout'), type: 'layout', location: NS + ':root',
+      identifier: id('layout'), type: 'flexible-layout', location: NS + ':root',
       name: 'Rig ' + dic.rig + ' — default layout',
       composition: Object.keys(layoutParts).map(id),
       configuration: {
-        layoutGrid: [10, 10], objectStyles: {},
-        items: [
-          item('plot.hub', 0, 0, 96, 86),
-          item('lad.nodes', 97, 0, 58, 36),
-          item('lad.ident', 97, 37, 58, 9),
-          item('table.angles', 97, 47, 58, 24),
-          item('plot.nis', 97, 72, 58, 14)
+        rowsLayout: false,
+        containers: [
+          { id: 'rsra-left', size: 60, frames: [frame('plot.hub', 100)] },
+          { id: 'rsra-right', size: 40, frames: [frame('lad.nodes', 38), frame('lad.ident', 10),
+            frame('table.angles', 32), frame('plot.nis', 20)] }
         ]
       }
     };
@@ -206,11 +270,23 @@
           return fetch('/api/history?' + q.toString()).then((r) => r.json()).then(function (d) {
             const st = window.rsraStats.history;
             st[o.identifier.key] = (st[o.identifier.key] || 0) + d.length;
-            return d;
+            return options.strategy === 'latest' ? d
+              : withGaps(o.identifier.key, d, o.rsra && o.rsra.gap_ms);
           });
         },
         supportsSubscribe: (o) => o.type === TYPE,
-        subscribe: (o, cb) => rt.subscribe(o.identifier.key, cb),
+        subscribe: function (o, cb) {
+          const key = o.identifier.key;
+          const gapMs = o.rsra && o.rsra.gap_ms;
+          let last = null;
+          return rt.subscribe(key, function (d) {
+            if (gapMs && last !== null && d.utc - last.utc > gapMs) {
+              cb(gapPoint(key, last, d, true));
+            }
+            last = d;
+            cb(d);
+          });
+        },
         supportsLimits: (o) => o.type === TYPE,
         getLimitEvaluator: function () {
           return { evaluate: function (datum, valueMetadata) {
