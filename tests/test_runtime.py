@@ -120,7 +120,9 @@ def test_the_angles_record_declares_todays_keys_in_todays_order():
     assert AnglesRecord.FIELDS == (*_estimator_keys(), "restarted", "condition", "structure",
                                    "candidates", "next_conditions", "structure_fit",
                                    "explanation", "hint",  # issue 28: why, in words
-                                   "drift")  # issue 27: the drift test
+                                   "drift",  # issue 27: the drift test
+                                   # issue 29: what a window with missing samples used
+                                   "samples_used", "missing_inputs")
 
 
 def test_the_angles_record_serialises_byte_for_byte_as_the_dict_did():
