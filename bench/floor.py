@@ -73,15 +73,9 @@ def run_floor(rate: float, duration: float, frames: list[tuple[int, int]], *,
     stop = threading.Event()
     pub = session = None
     if endpoint:
-        import zenoh
+        from bench.rig import floor_publisher
 
-        conf = zenoh.Config()
-        conf.insert_json5("mode", '"peer"')
-        conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
-        conf.insert_json5("scouting/multicast/enabled", "false")
-        session = zenoh.open(conf)
-        pub = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.DROP,
-                                        priority=zenoh.Priority.REAL_TIME, express=True)
+        session, pub = floor_publisher(endpoint, key)
     pad = "x" * max(0, size - 40)
 
     def answer_loop() -> None:

@@ -264,6 +264,21 @@ def responder_main(channel: str, frames: list[tuple[int, int]], stop_after: floa
         shutdown_bus(bus)
 
 
+def floor_publisher(endpoint: str, key: str):
+    """(session, publisher) of a do-nothing master: a Zenoh peer listening on ``endpoint``
+    (loopback, scouting off), the publisher declared as the service declares its own."""
+    import zenoh
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    session = zenoh.open(conf)
+    return session, session.declare_publisher(
+        key, congestion_control=zenoh.CongestionControl.DROP,
+        priority=zenoh.Priority.REAL_TIME, express=True)
+
+
 def floor_master_main(channel: str, frames: list[tuple[int, int]], rate: float, duration: float,
                       endpoint: str | None, key: str, size: int, result_path: str) -> None:
     """Do-nothing master: SYNC every period from a thread (the service's re-phasing rule,
@@ -279,15 +294,7 @@ def floor_master_main(channel: str, frames: list[tuple[int, int]], rate: float, 
     bus = can.Bus(channel=channel, interface="remote")
     pub = session = None
     if endpoint:
-        import zenoh
-
-        conf = zenoh.Config()
-        conf.insert_json5("mode", '"peer"')
-        conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
-        conf.insert_json5("scouting/multicast/enabled", "false")
-        session = zenoh.open(conf)
-        pub = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.DROP,
-                                        priority=zenoh.Priority.REAL_TIME, express=True)
+        session, pub = floor_publisher(endpoint, key)
         deadline = time.monotonic() + 2.0  # the subscriber connects (at most 2 s)
         while not pub.matching_status.matching and time.monotonic() < deadline:
             time.sleep(0.02)
