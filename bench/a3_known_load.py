@@ -86,6 +86,9 @@ def run_calibration(cfg, run, *, known_loads: bool, initial_state=None,
                "known": np.full(m, known_loads), "omega": run.omega[sl]}
         if dpsi is not None:
             job["dpsi"] = dpsi[sl]
+        okw = ok[sl]
+        if okw.any():  # the pipeline's WindowBuffer: the raw means of the complete samples
+            job["T_mean"], job["z_mean"] = run.T[sl][okw].mean(0), z[sl][okw].mean(0)
         rec = run_job(cfg, runs, cache, job)
         yield end - 1, rec, post.theta.copy(), post.P.copy()
 

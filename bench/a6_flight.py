@@ -228,9 +228,12 @@ def one_rig_arm(seed: int, arm: str, tiny: bool = False) -> dict:
                                               initial_state=initial):
         truth = run.alpha_true[max(0, end + 1 - w):end + 1].mean(0)
         err = theta - truth
+        # the window's truth is the posterior's angles moved by its load excursion (issue 25)
+        le = rec.get("load_excursion")
+        Pw = P + (le["sigma"] ** 2 if le else 0.0) * np.eye(len(P))
         out["reasons"][f"{rec['reason'] or 'accepted'}:{rec.get('detail')}"] += 1
         out["runs"].append({"accepted": bool(rec["accepted"]),
-                            "chi2": float(err @ np.linalg.solve(P, err)),
+                            "chi2": float(err @ np.linalg.solve(Pw, err)),
                             "window_determined": int(rec.get("window_determined") or 0)})
         P_hist.append(((end + 1) / fs, P.copy()))
         if rec["accepted"]:

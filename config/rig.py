@@ -269,6 +269,9 @@ class IdentificationConfig:
     # error σ_b, a floor on the fused σ along each window's determined directions
     filter_error_update: str = "consider"
     filter_error_floor_rad: float = 0.0
+    # a bound (1 σ, rad per N / N·m) on the angles' dependence on the static hub load away
+    # from the reference (trim) load: filter-error windows away from trim carry it (issue 25)
+    angle_load_sensitivity_rad_per_unit: tuple[float, ...] = (0.0,) * 6
     # [identification.structure] (issue 19; `rsra calibrate` writes it): the structure the
     # hub loads use from the start, as estimator.structure.fit_payload (SI); None: constant
     structure_fit: dict | None = None
@@ -603,6 +606,8 @@ def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = No
             state_file=idt.state_file, angle_limit_rad=math.radians(idt.angle_limit_deg),
             filter_error_update=idt.filter_error_update,
             filter_error_floor_rad=math.radians(idt.filter_error_floor_deg),
+            angle_load_sensitivity_rad_per_unit=tuple(
+                math.radians(float(k)) for k in idt.angle_load_sensitivity_deg_per_unit),
             # as estimator.structure.fit_payload (SI); None: the constant structure
             structure_fit=None if st is None else {
                 "structure": st.structure, "alpha0": np.radians(st.alpha0_deg).tolist(),

@@ -281,6 +281,11 @@ class IdentificationTable(Table):
     angle_limit_deg: Pos = 10.0
     filter_error_update: Literal["consider", "bayes"] = "consider"
     filter_error_floor_deg: NonNeg = 0.0
+    # filter-error runs (issue 25): a bound (1 σ) on how far each angle moves per unit of
+    # static hub load X Y Z (N) L M N (N·m) away from the flight's reference (trim) load
+    angle_load_sensitivity_deg_per_unit: Annotated[
+        list[NonNeg], Field(min_length=6, max_length=6),
+        _meta(unit=" in ° per N (X, Y, Z) and per N·m (L, M, N)")] = [0.0] * 6
     structure: StructureTable | None = None
 
     @field_validator("parameters", mode="before")

@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections import deque
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -83,6 +84,7 @@ GATE_PROBABILITY = 0.999  # model §7: accepted when ν ≤ χ²_{d, 0.999}
 GATE_RELATIVE_EIGENVALUE = 1e-6  # directions of D kept by the gate, relative to the largest
 SIGMA_MAX_OTHER_FRACTION = 0.04  # non-angle parameters: determined at 0.04 × prior σ (model §7.4)
 MAX_ACCUMULATED_WINDOWS = 64  # re-linearisation: fold at the latest after this many windows
+LOAD_REFERENCE_WINDOWS = 24  # filter error: the reference (trim) load's windows (2 min)
 MAX_HELD_WINDOWS = 12  # not-identifiable windows held for the next run (one sweep of 60 s)
 
 
@@ -135,6 +137,10 @@ class AnglesRecord:
     # the window's samples the likelihood used (scored; samples lacking an input are left
     # out, issue 29); None: not set by the caller
     samples_used: int | None = None
+    # filter error with angle_load_sensitivity configured (issue 25): the window's static
+    # load away from the reference (trim) load and the σ (rad, each angle) of the angles'
+    # move that far — the window's truth is the posterior's α ± this beside P
+    load_excursion: dict | None = None
 
     def to_dict(self) -> dict:
         """The telemetry ``angles`` payload (SI: radians), values as computed (numpy arrays,
@@ -151,6 +157,8 @@ class AnglesRecord:
             out["candidates"] = self.candidates or []
             out["structure_fit"] = self.structure_fit
             out["drift"] = self.drift
+        if self.load_excursion is not None:
+            out["load_excursion"] = self.load_excursion
         return out
 
 
@@ -376,7 +384,8 @@ def _moment_cost(par: Parameterisation, G: np.ndarray, theta: np.ndarray) -> flo
 
 
 def consider_update(P_p: np.ndarray, theta_p: np.ndarray, s: np.ndarray, Vk: np.ndarray,
-                    proj: np.ndarray, use: np.ndarray, floor_s: float
+                    proj: np.ndarray, use: np.ndarray, floor_s: float,
+                    extra_R: np.ndarray | None = None
                     ) -> tuple[np.ndarray, np.ndarray]:
     """The filter-error update restricted to the window's determined directions (issue 25,
     docs/identification.md "The consider update"), in coordinates scaled by ``s``
@@ -387,12 +396,14 @@ def consider_update(P_p: np.ndarray, theta_p: np.ndarray, s: np.ndarray, Vk: np.
     so the covariance is that of this (sub-optimal) estimate. ``floor_s``: the window's
     systematic error σ_b (scaled) — added to its variance (1/use + σ_b²) and a floor on the
     fused variance along Vk (a bias common to the windows does not average out).
+    ``extra_R`` (k, k, scaled): more error of the window's estimate as a measurement of the
+    posterior's angles — the load excursion's (:func:`window_measurement_cov`).
     Returns (P_new, φ_new) scaled."""
     Ps = P_p / s[:, None] / s[None, :]
     phi_p = theta_p / s
     a_p = Vk.T @ phi_p
     Paa = Vk.T @ Ps @ Vk
-    R = np.diag(1.0 / use + floor_s**2)
+    R = window_measurement_cov(use, floor_s, extra_R)
     G = Paa @ np.linalg.inv(Paa + R)
     Kf = Vk @ G
     phi = phi_p + Kf @ (proj - a_p)
@@ -404,6 +415,42 @@ def consider_update(P_p: np.ndarray, theta_p: np.ndarray, s: np.ndarray, Vk: np.
         VU = Vk @ U
         P_new = P_new + (VU * np.maximum(floor_s**2 - mu, 0.0)) @ VU.T
     return 0.5 * (P_new + P_new.T), phi
+
+
+def window_measurement_cov(use: np.ndarray, floor_s: float,
+                           extra_R: np.ndarray | None = None) -> np.ndarray:
+    """R (k, k, scaled): the error of a filter-error window's estimate along its kept
+    directions as a measurement of the posterior's angles — its noise (1/use), the windows'
+    systematic floor σ_b² and ``extra_R`` (the load excursion's, issue 25)."""
+    R = np.diag(1.0 / use + floor_s**2)
+    return R if extra_R is None else R + extra_R
+
+
+def consider_gate(P_p: np.ndarray, theta_p: np.ndarray, s: np.ndarray, Vk: np.ndarray,
+                  proj: np.ndarray, R: np.ndarray, probability: float
+                  ) -> tuple[float, int, bool]:
+    """The consistency gate of the consider update (issue 25): the window's estimate along
+    its kept directions against the prior's prediction there, ν = rᵀ (Vkᵀ P_p Vk + R)⁻¹ r,
+    χ²_k under consistency (k = the kept directions). Unlike model §7's Δθᵀ D⁺ Δθ it counts
+    the window's systematic floor and load excursion (R), which the fused covariance's
+    floor otherwise turns into a D that is not positive (measured: a ground posterior of
+    σ 0.005–0.02° along the sharpest directions rejected 9 of 66 consistent flight windows
+    and was reset to the prior). Returns (ν, k, passed)."""
+    Ps = P_p / s[:, None] / s[None, :]
+    r = proj - Vk.T @ (theta_p / s)
+    C = Vk.T @ Ps @ Vk + R
+    nu = float(r @ np.linalg.solve(0.5 * (C + C.T), r))
+    k = int(len(r))
+    return nu, k, bool(k == 0 or nu <= float(chi2.ppf(probability, k)))
+
+
+def load_excursion_variance(sensitivity: np.ndarray, delta: np.ndarray) -> float:
+    """The variance (rad², each angle) of the angles' move between the reference (trim) load
+    and a window's static load ``delta`` away from it, given a bound (1 σ) on their
+    sensitivity per unit of load on each axis (``identification.angle_load_sensitivity_deg_
+    per_unit``): Σ_k (s_k Δ_k)² (issue 25; docs/identification.md, "Load excursions")."""
+    d = np.asarray(delta, float) * np.asarray(sensitivity, float)
+    return float(d @ d)
 
 
 def determined_directions(P: np.ndarray, sigma_max: np.ndarray) -> tuple[int, np.ndarray, float]:
@@ -662,6 +709,9 @@ class SequentialPosterior:
             / checks.innovation.mean,
             cost_start=None if result is None else float(result.cost_start),
             cost_history=None if result is None else tuple(float(c) for c in result.history),
+            load_excursion=None if checks is None or checks.load_delta is None else {
+                "delta": [float(x) for x in checks.load_delta],
+                "sigma": math.sqrt(max(float(checks.load_variance), 0.0))},
         )
 
     def update(self, result: IdentificationResult | None, **kw: Any) -> AnglesRecord:
@@ -806,9 +856,13 @@ class SequentialPosterior:
         Pp_inv = np.linalg.inv(P_p)
         b = np.linalg.solve(result.P, result.theta) - Pp_inv @ theta_p
         proj = (Vk.T @ (s * b)) / lk  # window estimate along each kept direction (scaled)
+        # the load excursion (issue 25): the window's angles are the reference (trim) load's
+        # moved by up to the configured sensitivity × the window's static load away from it
+        lv = float(checks.load_variance)
+        extra_R = None if lv <= 0 else lv * (Vk.T / s**2) @ Vk
         if self.filter_error_update == "consider":
             P_new_s, phi = consider_update(P_p, theta_p, s, Vk, proj, use,
-                                           self.filter_error_floor)
+                                           self.filter_error_floor, extra_R)
         else:  # "bayes": the window's information in full (moves undetermined directions)
             Mk = (Vk * use) @ Vk.T  # scaled coordinates
             hk = Vk @ (use * proj)
@@ -822,7 +876,13 @@ class SequentialPosterior:
         if out_of_range(theta_new, self.limit):  # the physical range (docs/identification.md)
             return self._record(accepted=False, reason="out_of_range", nu=None, d=0,
                                 detail="range", window_determined=wd, **base)
-        nu, d, ok = consistency_gate(theta_new - theta_p, P_p, P_new, self.gate_probability)
+        if self.filter_error_update == "consider":
+            nu, d, ok = consider_gate(P_p, theta_p, s, Vk, proj,
+                                      window_measurement_cov(use, self.filter_error_floor,
+                                                             extra_R), self.gate_probability)
+        else:
+            nu, d, ok = consistency_gate(theta_new - theta_p, P_p, P_new,
+                                         self.gate_probability)
         if not ok:
             self.inconsistent_in_a_row += 1
             if self.inconsistent_in_a_row >= self.reset_after:
@@ -853,6 +913,10 @@ class FilterErrorChecks:
     innovation: InnovationTest
     score_covariance: np.ndarray  # (p, p) from the window's own score series (Newey–West)
     score_covariance_model: np.ndarray | None = None  # (p, p) from the predicted Γ(k)
+    # the window's static load away from the reference (trim) load (6,; None: not known) and
+    # the variance (rad², each angle) of the angles' move that far (load_excursion_variance)
+    load_delta: np.ndarray | None = None
+    load_variance: float = 0.0
 
 
 @dataclass
@@ -891,6 +955,10 @@ class PeriodicIdentification:
     robust_filter_error: bool = True  # False: model §7's decisions only (for comparison)
     false_alarm: float = 1e-3  # the innovation test's
     structure_test: bool = True  # known loads: test constant angles (estimator.structure)
+    # filter error (issue 25): a bound (1 σ, rad per N / N·m) on the angles' move per unit of
+    # static hub load away from the reference load — the median of the last
+    # LOAD_REFERENCE_WINDOWS windows' static loads (the trim); None or zeros: constant angles
+    angle_load_sensitivity: np.ndarray | None = None
     filter_state: FilterErrorState | None = field(default=None, init=False)
     _settle_pending: int = field(default=0, init=False)
     _last_end: int | None = field(default=None, init=False)
@@ -903,6 +971,7 @@ class PeriodicIdentification:
         self.par = Parameterisation(self.model, self.posterior.names, self.alpha_base,
                                     moment_floor=self.moment_floor,
                                     known_loads=self.mode == "known_loads")
+        self._window_loads: deque[np.ndarray] = deque(maxlen=LOAD_REFERENCE_WINDOWS)
         self.structure: StructureTest | None = None
         if self.mode == "known_loads" and self.structure_test and self.content == "static":
             # the test compares window means: static content only (docs/identification.md)
@@ -954,6 +1023,21 @@ class PeriodicIdentification:
         Q_model = predicted_score_covariance(de, B, gamma)
         return FilterErrorChecks(test, Q_data, Q_model)
 
+    def _load_excursion(self, checks: FilterErrorChecks, static_load: np.ndarray | None
+                        ) -> None:
+        """The window's static load against the reference (trim) load, and the variance of
+        the angles' move that far (docs/identification.md, "Load excursions", issue 25)."""
+        k = self.angle_load_sensitivity
+        if k is None or not np.any(np.asarray(k) > 0) or static_load is None:
+            return
+        h = np.asarray(static_load, float)
+        if h.shape != (6,) or not np.all(np.isfinite(h)):
+            return
+        self._window_loads.append(h.copy())
+        delta = h - np.median(np.array(self._window_loads), axis=0)
+        checks.load_delta = delta
+        checks.load_variance = load_excursion_variance(np.asarray(k, float), delta)
+
     @property
     def filter_settle_samples(self) -> int:
         if self.mode != "filter_error":
@@ -1001,10 +1085,13 @@ class PeriodicIdentification:
         t: float | None = None,
         arrived_seq: int | None = None,
         dpsi: np.ndarray | None = None,
+        static_load: np.ndarray | None = None,
     ) -> AnglesRecord:
         """One window. ``dpsi`` (filter error, azimuth mode): the rotor's measured turn since
         the previous sample, per sample (NaN: the design's Ω) — the calibration filter's
-        harmonic states turn with it (``filters.azimuth_transition``, issue 25)."""
+        harmonic states turn with it (``filters.azimuth_transition``, issue 25).
+        ``static_load`` (filter error): the window's mean static hub-load estimate (6,), for
+        the load excursion (``angle_load_sensitivity``)."""
         N = len(T)
         valid = np.ones(N, bool) if valid is None else np.asarray(valid, bool)
         seq1 = seq0 + N - 1
@@ -1091,6 +1178,7 @@ class PeriodicIdentification:
         checks = None
         if self.mode == "filter_error" and self.robust_filter_error and res.sound:
             checks = self.filter_error_checks(prob, res.theta)
+            self._load_excursion(checks, static_load)
         rec = post.update(res, window=window, mode=self.mode, content=self.content,
                           t=t, missing_fraction=missing,
                           apply_delay_samples=self.apply_delay_samples,

@@ -244,3 +244,74 @@ def test_systematic_floor_keeps_the_fused_sigma_above_a_common_bias():
         sig = float(np.sqrt(vk[:, 0] @ Pk @ vk[:, 0]))
         z = abs(vk[:, 0] @ phi) / sig
         assert (sig >= floor - 1e-12 and z < 3.0) == ok, (floor_, sig, z)
+
+
+def test_consider_gate_has_its_size_and_counts_the_systematic_floor():
+    """The consider update's gate (issue 25): the window's estimate along its directions
+    against the prior's prediction, ν = rᵀ (Vkᵀ P_p Vk + R)⁻¹ r with R = 1/use + σ_b².
+    Monte Carlo: windows consistent with the prior (truth from the prior, the estimate with
+    its noise and a common bias within σ_b) are rejected at the 10⁻³ rate (binomial limit at
+    10⁻³); a prior 10× sharper than the floor (a ground posterior) does not turn such windows
+    into rejections. Break check: without σ_b² in R (R = 1/use) the rejection rate is ~30 %."""
+    from rsra.estimator.posterior import GATE_PROBABILITY, consider_gate, window_measurement_cov
+
+    rng = np.random.default_rng(11)
+    p, n = 6, 20000
+    P = np.diag([0.01**2, 0.02**2, 1.0, 1.0, 1.0, 1.0])  # sharp along the first two
+    Vk = np.eye(p)[:, :2]
+    use, floor = np.array([100.0, 100.0]), 0.1  # σ_w 0.1, bias up to σ_b 0.1
+    s = np.ones(p)
+    R = window_measurement_cov(use, floor)
+    L = np.linalg.cholesky(P)
+    rejected = 0
+    for _ in range(n):
+        truth = L @ rng.normal(size=p)
+        bias = rng.normal(size=2) * floor
+        proj = Vk.T @ truth + bias + rng.normal(size=2) / np.sqrt(use)
+        rejected += not consider_gate(P, np.zeros(p), s, Vk, proj, R, GATE_PROBABILITY)[2]
+    limit = stats.binom.isf(1e-3, n, 1 - GATE_PROBABILITY)
+    assert rejected <= limit, (rejected, limit)
+
+
+def test_load_excursion_keeps_a_pull_up_window_consistent_with_its_truth():
+    """Issue 25 (c): from a sharp posterior at trim (σ 0.02°, as a ground calibration gives),
+    20 s of `flight` whose pull-up (15–19 s, 30 kN) moves the thrust-dependent angles by
+    0.3°: with the flight rig's `angle_load_sensitivity_deg_per_unit` the pull-up window's
+    record carries the load excursion (its mean static load 12 kN on Z from trim, σ 0.12° on
+    each angle) and every accepted run is consistent with its window's truth against P + σ²;
+    without the sensitivity the same window is accepted with χ²₁₄ in the hundreds (what the
+    term fixes). Break check: the load variance left out of the record's σ → fails."""
+    from bench.a3_known_load import run_calibration
+    from rsra.estimator.posterior import PosteriorState
+
+    def chi2s(sens):
+        ov = {"rotor": {"harmonic_phase": "azimuth"},
+              "identification": {"angle_load_sensitivity_deg_per_unit": sens}}
+        cfg0 = load_config(FLIGHT_RIG, overrides=ov)
+        from rsra.sim_bus import load_scenario, simulate
+
+        run = simulate(cfg0, load_scenario("flight"), seed=3, duration_s=20.0)
+        a0 = run.alpha_true[0]
+        names = tuple(cfg0.rig_model().geometry.angle_names)
+        initial = PosteriorState(names, a0.copy(), np.eye(14) * np.radians(0.02) ** 2)
+        w = round(cfg0.identification.window_s * FS)
+        out = []
+        for end, rec, theta, P in run_calibration(cfg0, run, known_loads=False,
+                                                  initial_state=initial):
+            truth = run.alpha_true[end + 1 - w:end + 1].mean(0)
+            le = rec.get("load_excursion")
+            Pw = P + (le["sigma"] ** 2 if le else 0.0) * np.eye(14)
+            err = theta - truth
+            out.append((rec, float(err @ np.linalg.solve(Pw, err))))
+        return out
+
+    res = chi2s([0.0, 0.0, 1.0e-5, 0.0, 0.0, 0.0])
+    limit = stats.chi2.isf(1e-3 / len(res), 14)
+    acc = [(r, c) for r, c in res if r["accepted"]]
+    assert acc, [(r["reason"], r.get("detail")) for r, _ in res]
+    assert max(c for _, c in acc) <= limit, [round(c, 1) for _, c in res]
+    pull = res[-1][0]["load_excursion"]
+    assert abs(pull["delta"][2]) > 5e3 and np.degrees(pull["sigma"]) > 0.05, pull
+    bare = chi2s([0.0] * 6)
+    assert "load_excursion" not in bare[-1][0]
+    assert max(c for r, c in bare if r["accepted"]) > limit, [round(c, 1) for _, c in bare]

@@ -90,6 +90,8 @@ def build_identification(cfg, initial_state=None):
                                   content_sos=ContentFilter(idc.content_filter_error, fs, w0,
                                                             harm, 1).sos,
                                   content_settle_samples=settle(idc.content_filter_error),
+                                  angle_load_sensitivity=np.asarray(
+                                      idc.angle_load_sensitivity_rad_per_unit, float),
                                   **common)
     return post, {"known_loads": known, "filter_error": ferr}, cache
 
@@ -121,8 +123,16 @@ def run_job(cfg, runs: dict, cache, job: dict) -> dict:
     # (and W carries their noise), so their columns of the stacked data are zero here
     n_ext = ident.par.model.external.wrenches.shape[1]
     q = np.zeros((len(job["T"]), n_ext)) if n_ext else None
+    static_load = None
+    if mode == "filter_error" and job.get("T_mean") is not None:
+        from rsra.estimator.balance import static_estimate
+
+        static_load = static_estimate(ident.par.model, np.asarray(job["alpha"], float),
+                                      np.asarray(job["T_mean"], float)[None, :],
+                                      np.asarray(job["z_mean"], float)[None, :])[0]
     rec = ident.run_window(job["z"], job["T"], job["known_H"] if mode == "known_loads" else None,
-                           q, seq0=int(seq[0]), valid=valid, t=float(job["t"][-1]), dpsi=dpsi)
+                           q, seq0=int(seq[0]), valid=valid, t=float(job["t"][-1]), dpsi=dpsi,
+                           static_load=static_load)
     # when the other mode runs next, its state must restart after new angles
     if rec.accepted:
         for other in runs.values():

@@ -67,11 +67,18 @@ class WindowBuffer:
         # what each sample lacked (bits of EstimatorPipeline.input_labels): reported in a
         # rejected run's explanation (daq.runtime.reasons), never used to decide
         self.missing = np.zeros(n, dtype=np.uint64)
+        # the raw (not content-filtered) cell loads and z: the window's mean static load, for
+        # the filter-error load excursion (issue 25)
+        self.T_raw = np.zeros((n, 7))
+        self.z_raw = np.zeros((n, 6))
         self.count = 0
 
-    def add(self, seq, t, T, z, H, ok, known, omega, dpsi=None, missing: int = 0) -> None:
+    def add(self, seq, t, T, z, H, ok, known, omega, dpsi=None, missing: int = 0,
+            raw: tuple | None = None) -> None:
         i = self.count % self.n
         self.T[i], self.z[i], self.H[i] = T, z, H
+        if raw is not None:
+            self.T_raw[i], self.z_raw[i] = raw
         self.dpsi[i] = np.nan if dpsi is None else dpsi
         self.seq[i], self.t[i], self.ok[i], self.known[i], self.omega[i] = seq, t, ok, known, omega
         self.missing[i] = missing
@@ -85,7 +92,16 @@ class WindowBuffer:
                 "seq": self.seq[idx].copy(), "t": self.t[idx].copy(), "ok": self.ok[idx].copy(),
                 "known": self.known[idx].copy(), "omega": self.omega[idx].copy(),
                 "dpsi": self.dpsi[idx].copy(),
-                "missing": self.missing[idx].copy()}
+                "missing": self.missing[idx].copy(),
+                **self._raw_means(idx)}
+
+    def _raw_means(self, idx: np.ndarray) -> dict:
+        """The window's mean raw cell loads and z over its complete samples (None: none)."""
+        ok = self.ok[idx]
+        if not ok.any():
+            return {"T_mean": None, "z_mean": None}
+        return {"T_mean": self.T_raw[idx][ok].mean(axis=0),
+                "z_mean": self.z_raw[idx][ok].mean(axis=0)}
 
 
 class EstimatorPipeline:
@@ -501,7 +517,8 @@ class EstimatorPipeline:
         if omega is None:
             omega = self.cfg.rotor.omega_nominal_rad_s
         self.buffer.add(seq, s.t, y[:7], y[7:13], y[13:], measured, known, omega, dpsi,
-                        self._missing_bits(flags, measured) if flags or not measured else 0)
+                        self._missing_bits(flags, measured) if flags or not measured else 0,
+                        (x[:7], x[7:13]) if measured else None)
         since = seq - self.first_seq + 1
         if since < self.period_n or since % self.period_n != 0:
             return None

@@ -162,6 +162,10 @@ class IdentJob:
     # refused), azimuth mode only (issue 25): the calibration filter's Φ(Δψ)
     dpsi: np.ndarray | None = None
     missing: np.ndarray | None = None  # what each sample lacked (bits: pipeline.input_labels)
+    # the window's mean raw cell loads (7,) and z (6,) over its complete samples: its static
+    # load, for the filter-error load excursion (issue 25); None: no complete sample
+    T_mean: np.ndarray | None = None
+    z_mean: np.ndarray | None = None
 
     def as_mapping(self) -> dict[str, Any]:
         """The job as the numerics take it (``daq.ident_worker.run_job``; no copies)."""
