@@ -221,3 +221,32 @@ def candidates_from(accelerometers: Sequence[tuple[str, Sequence[float], float]]
         manoeuvres=tuple(ManoeuvreCandidate(str(a), float(r)) for a, r in manoeuvres),
         band_hz=(float(band_hz[0]), float(band_hz[1])),
         stiffness=None if stiffness is None else np.asarray(stiffness, float))
+
+
+def advice_summary(advice: dict | None) -> str | None:
+    """One line for people (``rsra listen``, the browser view) from an ``advice`` object
+    (:func:`advise`; a record's JSON): what the window determines, the best addition and its
+    gain, the best accelerometer, and how much longer a window would have to be."""
+    if not isinstance(advice, dict):
+        return None
+
+    def num(x: object, fmt: str) -> str:
+        return format(x, fmt) if isinstance(x, (int, float)) and not isinstance(x, bool) else "—"
+
+    parts = [f"window determines {advice.get('determined')}, "
+             f"next direction at {num(advice.get('next'), '.2f')} of 1"]
+    best = advice.get("best")
+    if isinstance(best, dict):
+        what = "excite" if best.get("kind") == "manoeuvre" else "accelerometer"
+        parts.append(f"best: {what} {best.get('name')} +{best.get('gain')} "
+                     f"(next {num(best.get('next'), '.2f')})")
+    accs = [a for a in advice.get("accelerometers") or [] if isinstance(a, dict)]
+    if accs and not (isinstance(best, dict) and best.get("kind") == "accelerometer"):
+        a = max(accs, key=lambda c: _rank(c) if isinstance(c.get("next"), (int, float)) else
+                (-1, 0.0))
+        parts.append(f"accelerometer {a.get('name')} +{a.get('gain')} "
+                     f"(next {num(a.get('next'), '.2f')})")
+    w = advice.get("window")
+    if isinstance(w, dict):
+        parts.append(f"window +{num(w.get('extra_s'), '.1f')} s")
+    return "; ".join(parts)
