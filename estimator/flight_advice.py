@@ -10,7 +10,7 @@ would determine then (``gain`` = newly determined ones) and the (k+1)-th eigenva
 can only grow). Three kinds of addition, each a bounded computation:
 
 * **an accelerometer** (a triaxial one at a named candidate position, with the noise of the
-  rig's own): the inertial loads' covariance of model §3/§4 with the candidate appended
+  rig's own): the inertial loads' covariance of model §3 and model §4 with the candidate appended
   (:func:`~estimator.balance.measurement_covariance`, the same angular regime), the
   innovation covariance B of the same fixed-gain calibration filter, and the window's own
   sensitivities re-weighted, ``Σ ∂eᵀ B_c⁻¹ ∂e``. Exact for the fixed gain (the sensitivities
@@ -36,6 +36,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 from scipy.signal import sosfreqz
@@ -149,19 +150,20 @@ def excitation_information(par: Parameterisation, theta: np.ndarray, Phi: np.nda
     return result
 
 
-def _summary(lam: np.ndarray, k0: int) -> dict:
+def _summary(lam: np.ndarray, k0: int) -> dict[str, Any]:
     nxt = float(lam[k0]) if k0 < len(lam) else None
     return {"determined": int(np.sum(lam >= 1.0)), "gain": int(np.sum(lam >= 1.0)) - k0,
             "next": nxt}
 
 
-def _rank(item: dict) -> tuple[int, float]:
+def _rank(item: dict[str, Any]) -> tuple[int, float]:
     return (int(item["gain"]), float(item["next"] or 0.0))
 
 
 def advise(par: Parameterisation, theta: np.ndarray, de: np.ndarray, B: np.ndarray,
-           design: object, W_args: dict, sigma_max: np.ndarray, n_scored: int, fs: float,
-           candidates: AdviceCandidates, content_sos: np.ndarray | None = None) -> dict | None:
+           design: object, W_args: dict[str, Any], sigma_max: np.ndarray, n_scored: int, fs: float,
+           candidates: AdviceCandidates, content_sos: np.ndarray | None = None
+           ) -> dict[str, Any] | None:
     """The advice of one filter-error window at the run's estimate ``theta``: ``de`` (N, 6, p)
     its sensitivities (zero where not scored), ``B`` its innovation covariance, ``design`` the
     calibration filter (``Phi, K, J, Qd``), ``W_args`` the keywords of
@@ -175,7 +177,7 @@ def advise(par: Parameterisation, theta: np.ndarray, de: np.ndarray, B: np.ndarr
     if k0 >= p:
         return None
     Phi, K, J, Qd = (np.asarray(getattr(design, a), float) for a in ("Phi", "K", "J", "Qd"))
-    out: dict = {"determined": k0, "next": float(lam0[k0]), "n_scored": int(n_scored)}
+    out: dict[str, Any] = {"determined": k0, "next": float(lam0[k0]), "n_scored": int(n_scored)}
     alpha = par.alpha(theta)
     acc = []
     for c in candidates.accelerometers[:MAX_CANDIDATES]:
@@ -189,9 +191,9 @@ def advise(par: Parameterisation, theta: np.ndarray, de: np.ndarray, B: np.ndarr
     if candidates.manoeuvres:
         unit = excitation_information(par, theta, Phi, K, J, B, n_scored, fs,
                                       candidates.band_hz, content_sos, candidates.stiffness)
-        for c in candidates.manoeuvres[:MAX_CANDIDATES]:
-            lam = scaled_eigenvalues(M0 + c.rms**2 * unit[AXES.index(c.axis)], s)
-            man.append({"axis": c.axis, "rms": float(c.rms), **_summary(lam, k0)})
+        for mc in candidates.manoeuvres[:MAX_CANDIDATES]:
+            lam = scaled_eigenvalues(M0 + mc.rms**2 * unit[AXES.index(mc.axis)], s)
+            man.append({"axis": mc.axis, "rms": float(mc.rms), **_summary(lam, k0)})
     out["accelerometers"], out["manoeuvres"] = acc, man
     nxt = float(lam0[k0])
     extra = n_scored / fs * (1.0 / nxt - 1.0) if nxt > 0 and n_scored > 0 else None
@@ -223,7 +225,7 @@ def candidates_from(accelerometers: Sequence[tuple[str, Sequence[float], float]]
         stiffness=None if stiffness is None else np.asarray(stiffness, float))
 
 
-def advice_summary(advice: dict | None) -> str | None:
+def advice_summary(advice: dict[str, Any] | None) -> str | None:
     """One line for people (``rsra listen``, the browser view) from an ``advice`` object
     (:func:`advise`; a record's JSON): what the window determines, the best addition and its
     gain, the best accelerometer, and how much longer a window would have to be."""
