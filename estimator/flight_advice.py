@@ -227,28 +227,32 @@ def candidates_from(accelerometers: Sequence[tuple[str, Sequence[float], float]]
 
 def advice_summary(advice: dict[str, Any] | None) -> str | None:
     """One line for people (``rsra listen``, the browser view) from an ``advice`` object
-    (:func:`advise`; a record's JSON): what the window determines, the best addition and its
-    gain, the best accelerometer, and how much longer a window would have to be."""
+    (:func:`advise`; a record's JSON), the best addition first: its gain in directions and the
+    next eigenvalue now → with it, the best accelerometer (when the best is not one), how many
+    seconds more the window would need, and what the window determines."""
     if not isinstance(advice, dict):
         return None
 
     def num(x: object, fmt: str) -> str:
         return format(x, fmt) if isinstance(x, (int, float)) and not isinstance(x, bool) else "—"
 
-    parts = [f"window determines {advice.get('determined')}, "
-             f"next direction at {num(advice.get('next'), '.2f')} of 1"]
+    now = num(advice.get("next"), ".2f")
+    parts = []
     best = advice.get("best")
     if isinstance(best, dict):
         what = "excite" if best.get("kind") == "manoeuvre" else "accelerometer"
-        parts.append(f"best: {what} {best.get('name')} +{best.get('gain')} "
-                     f"(next {num(best.get('next'), '.2f')})")
-    accs = [a for a in advice.get("accelerometers") or [] if isinstance(a, dict)]
+        parts.append(f"{what} {best.get('name')}: +{best.get('gain')} "
+                     f"(next {now} → {num(best.get('next'), '.2f')})")
+    else:
+        parts.append(f"next {now}")
+    accs = [a for a in advice.get("accelerometers") or [] if isinstance(a, dict)
+            and isinstance(a.get("gain"), int) and isinstance(a.get("next"), (int, float))]
     if accs and not (isinstance(best, dict) and best.get("kind") == "accelerometer"):
-        a = max(accs, key=lambda c: _rank(c) if isinstance(c.get("next"), (int, float)) else
-                (-1, 0.0))
-        parts.append(f"accelerometer {a.get('name')} +{a.get('gain')} "
-                     f"(next {num(a.get('next'), '.2f')})")
+        a = max(accs, key=_rank)
+        parts.append(f"accelerometer {a.get('name')}: +{a.get('gain')} "
+                     f"(→ {num(a.get('next'), '.2f')})")
     w = advice.get("window")
     if isinstance(w, dict):
         parts.append(f"window +{num(w.get('extra_s'), '.1f')} s")
+    parts.append(f"{advice.get('determined')} determined (at 1)")
     return "; ".join(parts)

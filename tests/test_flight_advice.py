@@ -172,10 +172,12 @@ def test_the_summary_line_says_the_best_addition_and_the_window():
            "window": {"extra_s": 1.57, "gain": 1},
            "best": {"kind": "manoeuvre", "name": "Y", "gain": 1, "next": 1.41}}
     line = fa.advice_summary(adv)
-    assert line == ("window determines 2, next direction at 0.74 of 1; best: excite Y +1 "
-                    "(next 1.41); accelerometer deck_aft_right +0 (next 0.88); window +1.6 s")
+    assert line == ("excite Y: +1 (next 0.74 → 1.41); accelerometer deck_aft_right: +0 "
+                    "(→ 0.88); window +1.6 s; 2 determined (at 1)")
     assert fa.advice_summary(None) is None
     assert "window +— s" in fa.advice_summary({**adv, "window": {"extra_s": None}})
+    assert fa.advice_summary({"determined": 0, "next": 0.1, "best": None}) == \
+        "next 0.10; 0 determined (at 1)"
 
 
 def test_bad_candidates_are_refused():

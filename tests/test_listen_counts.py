@@ -84,8 +84,7 @@ def test_a_filter_error_run_shows_its_advice():
         con = Console(width=200, record=True)
         con.print(render({"angles": st}, "rsra/bench", "si", 1.0))
         text = con.export_text()
-        line = ("advice: window determines 2, next direction at 0.74 of 1; best: excite Y +1 "
-                "(next 1.41); window +1.6 s")
+        line = "advice: excite Y: +1 (next 0.74 → 1.41); window +1.6 s; 2 determined (at 1)"
         assert (line in text) is shown, text
         assert ("advice:" in text) is shown
 

@@ -164,8 +164,8 @@ def test_points_of_every_key(dic, cfg):
     adv = {"determined": 2, "next": 0.74, "window": {"extra_s": 1.57, "gain": 1},
            "best": {"kind": "manoeuvre", "name": "Y", "gain": 1, "next": 1.41}}
     pts = dict(D.points(dic, "angles", {**ang, "advice": adv}))
-    assert pts["ident.advice"]["value"] == ("window determines 2, next direction at 0.74 of 1; "
-                                            "best: excite Y +1 (next 1.41); window +1.6 s")
+    assert pts["ident.advice"]["value"] == ("excite Y: +1 (next 0.74 → 1.41); window +1.6 s; "
+                                            "2 determined (at 1)")
     health = {"t": 6.0, "nodes": {"cell_A": {"state": "lost", "required": True},
                                   "balance": {"state": "missing", "required": False}},
               "bus": {"errors": 2, "frames": 10}, "samples": {"lost": 0}}

@@ -157,6 +157,7 @@ def run_job(cfg, runs: dict, cache, job: dict) -> dict:
         out["next_conditions"] = nc.recommend(rec.names, ident.alpha(), rec.P)
     adv = getattr(ident, "advice", None)
     out["advice"] = adv.for_window(ident) if adv is not None else None
+    ident.last_window = None  # its problem (azimuth mode: Φ per sample, ~18 MB) is not kept
     return out
 
 
