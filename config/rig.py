@@ -275,6 +275,16 @@ class IdentificationConfig:
     # [identification.structure] (issue 19; `rsra calibrate` writes it): the structure the
     # hub loads use from the start, as estimator.structure.fit_payload (SI); None: constant
     structure_fit: dict | None = None
+    # [identification.advice] (issue 25 item 5): the additions a filter-error window's advice
+    # weighs; None: no advice
+    advice: "AdviceConfig | None" = None
+
+
+@dataclass(frozen=True)
+class AdviceConfig:
+    band_hz: tuple[float, float]
+    manoeuvre_rms: tuple[float, ...]  # (6,) N, N·m on X Y Z L M N; 0: not a candidate
+    accelerometers: tuple[tuple[str, np.ndarray, float], ...]  # (name, position m, σ m/s²)
 
 
 @dataclass(frozen=True)
@@ -572,6 +582,15 @@ def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = No
         full_scale_g=a.full_scale_g, accuracy_fs=a.accuracy_fs) for a in f.accelerometers)
     init = idt.initial_angles_deg
     st = idt.structure
+    adv = idt.advice
+    a0 = f.accelerometers[0]
+    advice = None if not adv.enabled else AdviceConfig(
+        band_hz=(float(adv.band_hz[0]), float(adv.band_hz[1])),
+        manoeuvre_rms=tuple(float(x) for x in adv.manoeuvre_rms),
+        accelerometers=tuple(
+            (a.name, np.asarray(a.position_m, float),
+             (a.full_scale_g or a0.full_scale_g) * G0 * (a.accuracy_fs or a0.accuracy_fs))
+            for a in adv.accelerometers))
     return RigConfig(
         source=source, rig_name=rig.name, sample_rate_hz=rate,
         hub_centre_m=np.asarray(f.geometry.hub_centre_m, float),
@@ -611,7 +630,8 @@ def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = No
             # as estimator.structure.fit_payload (SI); None: the constant structure
             structure_fit=None if st is None else {
                 "structure": st.structure, "alpha0": np.radians(st.alpha0_deg).tolist(),
-                "beta": [float(b) for b in st.beta], "T_ref": [float(t) for t in st.T_ref_N]}),
+                "beta": [float(b) for b in st.beta], "T_ref": [float(t) for t in st.T_ref_N]},
+            advice=advice),
         sync=SyncConfig(**f.sync.model_dump()),
         heartbeat=HeartbeatConfig(**f.heartbeat.model_dump()),
         nodes=tuple(NodeConfig(name=n.name, role=n.role, node_id=n.node_id, eds=n._eds_path,

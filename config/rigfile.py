@@ -259,6 +259,40 @@ class StructureTable(Table):
         return self
 
 
+class AdviceAccelerometerTable(Table):
+    """A candidate accelerometer position (``[[identification.advice.accelerometers]]``);
+    its noise is the rig's first accelerometer's unless given."""
+
+    name: str
+    position_m: Position
+    full_scale_g: Pos | None = None
+    accuracy_fs: Pos | None = None
+
+
+class AdviceTable(Table):
+    """``[identification.advice]`` (issue 25 item 5): the additions the filter-error windows'
+    advice weighs (docs/identification.md "Which additions would determine the rest")."""
+
+    enabled: bool = True
+    band_hz: Annotated[list[Pos], Field(min_length=2, max_length=2), _meta(unit=" in Hz")] = \
+        [5.0, 40.0]
+    manoeuvre_rms: Annotated[list[NonNeg], Field(min_length=6, max_length=6),
+                             _meta(unit=" in N, N m")] = [3000.0, 3000.0, 3000.0,
+                                                           200.0, 200.0, 200.0]
+    accelerometers: list[AdviceAccelerometerTable] = []
+
+    @model_validator(mode="after")
+    def _check(self) -> "AdviceTable":
+        if not self.band_hz[0] < self.band_hz[1]:
+            raise Invalid("band_hz", self.band_hz, "must be [low, high] with low < high",
+                          "give the excitation band, e.g. [5.0, 40.0]")
+        names = [a.name for a in self.accelerometers]
+        if len(set(names)) != len(names) or not all(names):
+            raise Invalid("accelerometers", names, "need distinct, non-empty names",
+                          "name each candidate position once")
+        return self
+
+
 class IdentificationTable(Table):
     parameters: Any = "angles"
     initial_angles_deg: Any = 0.0
@@ -287,6 +321,7 @@ class IdentificationTable(Table):
         list[NonNeg], Field(min_length=6, max_length=6),
         _meta(unit=" in ° per N (X, Y, Z) and per N·m (L, M, N)")] = [0.0] * 6
     structure: StructureTable | None = None
+    advice: AdviceTable = Field(default_factory=AdviceTable)
 
     @field_validator("parameters", mode="before")
     @classmethod

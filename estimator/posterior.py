@@ -962,6 +962,10 @@ class PeriodicIdentification:
     filter_state: FilterErrorState | None = field(default=None, init=False)
     _settle_pending: int = field(default=0, init=False)
     _last_end: int | None = field(default=None, init=False)
+    # filter error: the last window's problem and the θ its run ended at (the prior mean when
+    # the run was not sound), for what reads the window's information afterwards
+    # (estimator.flight_advice, issue 25 item 5); None after a known-load or stale window
+    last_window: tuple[FilterErrorProblem, np.ndarray] | None = field(default=None, init=False)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -1107,6 +1111,7 @@ class PeriodicIdentification:
         scored = valid & scored_mask(valid, int(self.content_settle_samples)
                                      + self.filter_settle_samples, gap, False)
         scored[: self._settle_pending] = False
+        self.last_window = None
         if missing > self.posterior.stale_fraction:
             # what is left determines too little (issue 29: below, the run uses the samples
             # it has — those lacking an input are left out, the information reduced so)
@@ -1175,6 +1180,8 @@ class PeriodicIdentification:
         else:
             res = levenberg_marquardt(prob, theta_p, P_p, max_iterations=self.max_iterations,
                                       max_lag=max_lag)
+        if isinstance(prob, FilterErrorProblem):
+            self.last_window = (prob, res.theta if res.sound else theta_p)
         checks = None
         if self.mode == "filter_error" and self.robust_filter_error and res.sound:
             checks = self.filter_error_checks(prob, res.theta)

@@ -263,6 +263,14 @@ def test_the_flight_rig_layer_is_the_full_copy_it_replaced(tmp_path):
                                   filter_error_floor_deg=0.05,
                                   angle_load_sensitivity_deg_per_unit=[0.0, 0.0, 1.0e-5,
                                                                        0.0, 0.0, 0.0])
+    # issue 25 item 5: the advice's candidates (the default's band and excitations, the
+    # flight rig's own accelerometer positions)
+    full["identification"]["advice"] = {
+        "enabled": True, "band_hz": [5.0, 40.0],
+        "manoeuvre_rms": [3000.0, 3000.0, 3000.0, 200.0, 200.0, 200.0],
+        "accelerometers": [{"name": "deck_aft_left", "position_m": [-0.7, -0.9, 0.35]},
+                           {"name": "deck_aft_right", "position_m": [-0.7, 0.9, 0.35]},
+                           {"name": "gearbox_top", "position_m": [0.0, 0.0, -0.35]}]}
     layer = load_config(flight)
     _same(layer, parse_config(full, base_dir=config_dir()))
     strip = lambda d: {k: v for k, v in d.items() if k != "nodes"}  # noqa: E731

@@ -68,6 +68,27 @@ def test_a_rejected_run_shows_why_and_the_hint():
     assert "hint: accel_1 silent or dropping frames" in text
 
 
+def test_a_filter_error_run_shows_its_advice():
+    """`rsra listen` under the angles table: what would determine the rest (issue 25 item 5);
+    a record without advice (known loads, older recordings) shows no such line."""
+    from rich.console import Console
+
+    rec = {"seq": 999, "mode": "filter_error", "content": "vibration", "accepted": True,
+           "reason": None, "names": ["a"], "alpha": [0.0], "sigma_cr": [0.001],
+           "determined": 2,
+           "advice": {"determined": 2, "next": 0.74, "window": {"extra_s": 1.57, "gain": 1},
+                      "best": {"kind": "manoeuvre", "name": "Y", "gain": 1, "next": 1.41}}}
+    for advice, shown in ((rec["advice"], True), (None, False)):
+        st = KeyStats("angles")
+        st.add({**rec, "advice": advice}, 0.0)
+        con = Console(width=200, record=True)
+        con.print(render({"angles": st}, "rsra/bench", "si", 1.0))
+        text = con.export_text()
+        line = "advice: excite Y: +1 (next 0.74 → 1.41); window +1.6 s; 2 determined (at 1)"
+        assert (line in text) is shown, text
+        assert ("advice:" in text) is shown
+
+
 def test_the_health_line_rounds_its_floats():
     """Issue 29: `latency p50 0.8273124694824219 ms`."""
     import re

@@ -122,7 +122,8 @@ def test_the_angles_record_declares_todays_keys_in_todays_order():
                                    "explanation", "hint",  # issue 28: why, in words
                                    "drift",  # issue 27: the drift test
                                    # issue 29: what a window with missing samples used
-                                   "samples_used", "missing_inputs")
+                                   "samples_used", "missing_inputs",
+                                   "advice")  # issue 25 item 5: what would determine the rest
 
 
 def test_the_angles_record_serialises_byte_for_byte_as_the_dict_did():

@@ -160,6 +160,12 @@ def test_points_of_every_key(dic, cfg):
     assert a["lo"] == pytest.approx(1.9) and a["hi"] == pytest.approx(2.1)
     assert pts["ident.verdict"]["value"] == "rejected: inconsistent"
     assert pts["ident.verdict"]["lim"] == "red" and pts["ident.determined"]["value"] == 14
+    assert "ident.advice" not in pts  # known loads: no advice
+    adv = {"determined": 2, "next": 0.74, "window": {"extra_s": 1.57, "gain": 1},
+           "best": {"kind": "manoeuvre", "name": "Y", "gain": 1, "next": 1.41}}
+    pts = dict(D.points(dic, "angles", {**ang, "advice": adv}))
+    assert pts["ident.advice"]["value"] == ("excite Y: +1 (next 0.74 → 1.41); window +1.6 s; "
+                                            "2 determined (at 1)")
     health = {"t": 6.0, "nodes": {"cell_A": {"state": "lost", "required": True},
                                   "balance": {"state": "missing", "required": False}},
               "bus": {"errors": 2, "frames": 10}, "samples": {"lost": 0}}

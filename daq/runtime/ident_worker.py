@@ -93,6 +93,10 @@ def build_identification(cfg, initial_state=None):
                                   angle_load_sensitivity=np.asarray(
                                       idc.angle_load_sensitivity_rad_per_unit, float),
                                   **common)
+    from rsra.daq.runtime.flight_advice import FlightAdvice
+
+    # what would determine the rest (filter-error records: `advice`, issue 25 item 5)
+    ferr.advice = FlightAdvice(cfg)
     return post, {"known_loads": known, "filter_error": ferr}, cache
 
 
@@ -161,6 +165,9 @@ def run_job(cfg, runs: dict, cache, job: dict) -> dict:
         elif rec.reason in (None, "not_identifiable"):  # the data the posterior holds
             nc.add_window(ident.alpha(), job["T"][valid], int(np.count_nonzero(valid)))
         out["next_conditions"] = nc.recommend(rec.names, ident.alpha(), rec.P)
+    adv = getattr(ident, "advice", None)
+    out["advice"] = adv.for_window(ident) if adv is not None else None
+    ident.last_window = None  # its problem (azimuth mode: Φ per sample, ~18 MB) is not kept
     return out
 
 

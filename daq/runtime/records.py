@@ -87,6 +87,7 @@ class AnglesRecord:
     drift: Any = ABSENT  # known loads: the drift test, angles on a trend (issue 27)
     samples_used: Any = ABSENT  # the window's samples the likelihood used (issue 29)
     missing_inputs: Any = ABSENT  # the inputs the window's other samples lacked (issue 29)
+    advice: Any = ABSENT  # filter error: what would determine the rest (issue 25 item 5)
     extra: tuple[tuple[str, Any], ...] = ()  # keys not declared above, in their order
 
     FIELDS: ClassVar[tuple[str, ...]]

@@ -166,6 +166,8 @@ def build_dictionary(cfg, prefix: str | None = None) -> Dictionary:
                                                   ("content", "content", ""))))
     ms.append(Measurement("ident.determined", "directions determined", "Identification",
                           "angles", format="integer"))
+    ms.append(Measurement("ident.advice", "what would determine the rest", "Identification",
+                          "angles", format="string"))
     for n in nodes:
         ms.append(Measurement(f"node.{n}", f"{n} state", "Nodes", "health", format="string",
                               value_name="state",
@@ -320,6 +322,11 @@ def points(dic: Dictionary, key: str, p: dict) -> list[tuple[str, dict]]:
         det = p.get("determined")
         if isinstance(det, int) and not isinstance(det, bool):
             out.append(("ident.determined", _datum(utc, det)))
+        from rsra.estimator.flight_advice import advice_summary
+
+        adv = advice_summary(p.get("advice"))  # filter error (issue 25 item 5)
+        if adv:
+            out.append(("ident.advice", _datum(utc, adv)))
     elif key == "health":
         nodes = p.get("nodes") or {}
         for n in dic.nodes:

@@ -159,6 +159,11 @@ def render(stats: dict[str, KeyStats], prefix: str, units: str, now: float):
             at.add_row(n, "—" if x is None else f"{np.degrees(x):7.3f}",
                        "—" if s is None else f"{np.degrees(s):6.3f}")
         parts.append(at)
+        from rsra.estimator.flight_advice import advice_summary
+
+        adv = advice_summary(a.get("advice"))  # filter error: what would determine the rest
+        if adv:
+            parts.append(f"advice: {adv}")
         if not a.get("accepted") and (a.get("explanation") or a.get("hint")):
             # why, in one line each (issue 28; records of older recordings carry neither)
             parts.append(f"why: {a.get('explanation') or a.get('detail')}")

@@ -139,7 +139,7 @@
           .concat(dic.measurements.filter((m) => m.group === 'Health').map((m) => id(m.id))),
         configuration: { hiddenColumns: { timestamp: true, type: true }, isFixedLayout: false } },
       'lad.ident': { type: 'LadTable', name: 'Latest identification',
-        composition: [id('ident.verdict'), id('ident.determined')],
+        composition: [id('ident.verdict'), id('ident.determined'), id('ident.advice')],
         configuration: { hiddenColumns: { timestamp: true, type: true }, isFixedLayout: false } },
       'table.angles': { type: 'table', name: 'Load-cell angles (deg, ±1σ)',
         composition: dic.angles.map((n) => id('angle.' + n)),
@@ -163,7 +163,7 @@
         rowsLayout: false,
         containers: [
           { id: 'rsra-left', size: 60, frames: [frame('plot.hub', 100)] },
-          { id: 'rsra-right', size: 40, frames: [frame('lad.nodes', 38), frame('lad.ident', 10),
+          { id: 'rsra-right', size: 40, frames: [frame('lad.nodes', 36), frame('lad.ident', 12),
             frame('table.angles', 32), frame('plot.nis', 20)] }
         ]
       }

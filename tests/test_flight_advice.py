@@ -1,0 +1,237 @@
+"""Which addition would determine the rest (issue 25 item 5; estimator.flight_advice,
+docs/identification.md "Which additions would determine the rest"): on filter-error windows
+of the flight rig's calibration filter, made directly (lock-step, no simulator): inertially
+balanced transmission vibration on chosen axes, carried by the cells with their noise."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.signal import butter, sosfilt
+
+from rsra.config.rig import config_dir, load_config
+from rsra.estimator import flight_advice as fa
+
+FS = 200.0
+SETTLE = 100
+# the flight scenario's transmission vibration, per axis at the CG (content-filtered RMS of
+# its inertial loads: X Y Z in N, L M N in N·m, seed 2): X and Y carry the information
+LEVELS = np.array([7000.0, 3000.0, 1500.0, 140.0, 280.0, 50.0])
+
+
+@pytest.fixture(scope="module")
+def rig():
+    from rsra.daq.runtime.ident_worker import build_identification
+
+    cfg = load_config(config_dir() / "flight-rig.toml")
+    post, runs, _ = build_identification(cfg)
+    ident = runs["filter_error"]
+    stiffness = np.array([c.stiffness_N_per_m for c in cfg.cells])
+    return cfg, post, ident, stiffness
+
+
+def _window(rig, rms, n, seed=1):
+    """(problem, θ): ``n`` samples of band-limited (5–40 Hz) inertial loads of RMS ``rms`` per
+    axis, the cells carrying them (minimum strain energy) with their noise; the first SETTLE
+    not scored."""
+    cfg, _, ident, stiffness = rig
+    from rsra.estimator.identification import FilterErrorProblem
+
+    model = cfg.rig_model()
+    rng = np.random.default_rng(seed)
+    sos = butter(4, [5.0, 40.0], "bandpass", fs=FS, output="sos")
+    u = sosfilt(sos, rng.standard_normal((n + 400, 6)), axis=0)[400:]
+    w = u / u.std(axis=0) * np.asarray(rms, float)
+    theta = ident.par.initial()
+    T = w @ fa.cell_split(model, ident.par.alpha(theta), stiffness).T
+    T = T + rng.standard_normal(T.shape) * model.cell_sigma
+    z = w + rng.standard_normal(w.shape) * 10.0
+    d = ident.design
+    prob = FilterErrorProblem(ident.par, d.Phi, d.K, d.J, d.Qd, z, T, discontinuity=True,
+                              settle=SETTLE)
+    return prob, theta
+
+
+def _advice(rig, prob, theta, candidates):
+    cfg, post, ident, _ = rig
+    _, de, B = prob.residual_series(theta)
+    return fa.advise(ident.par, theta, de, B, ident.design,
+                     {"moment_floor": cfg.identification.moment_floor_Nm}, post.sigma_max,
+                     prob.n_scored, FS, candidates, None)
+
+
+def _candidates(rig, levels=LEVELS):
+    cfg, _, _, stiffness = rig
+    sigma = cfg.accelerometers[0].sigma_m_s2
+    accs = [(n, p, sigma) for n, p, _ in cfg.identification.advice.accelerometers]
+    return fa.candidates_from(accs, list(zip(fa.AXES, levels)), (5.0, 40.0), stiffness)
+
+
+def _information(rig, prob, theta):
+    _, de, B = prob.residual_series(theta)
+    return fa.window_information(de, B), B
+
+
+@pytest.mark.parametrize("axis", ["X", "Y"])
+def test_the_advice_names_the_excitation_of_the_axis_the_window_lacks(rig, axis):
+    """A window whose transmission is not shaken on ``axis`` lacks the information that axis
+    gives (X: both directions the shaken window determines; Y: most of its third); of the
+    excitations (each as strong as the flight's on its
+    axis) and the candidate accelerometers the advice names that axis's excitation. Break
+    check: the proxy's information taken from the wrong axis (``unit[(j + 1) % 6]``) names
+    another axis and fails."""
+    j = fa.AXES.index(axis)
+    rms = LEVELS.copy()
+    rms[j] = 1e-6
+    prob, theta = _window(rig, rms, 1000)
+    adv = _advice(rig, prob, theta, _candidates(rig))
+    full, _ = _information(rig, *_window(rig, LEVELS, 1000))
+    lam_full = fa.scaled_eigenvalues(full, rig[1].sigma_max)
+    k = adv["determined"]
+    assert adv["next"] < 0.8 * lam_full[k]  # the axis was needed (X: for 2 directions)
+    assert adv["best"]["kind"] == "manoeuvre" and adv["best"]["name"] == axis, adv["best"]
+    # shaking it as the flight does gives back what the shaken window determines
+    assert adv["best"]["gain"] == int(np.sum(lam_full >= 1.0)) - k
+    assert adv["best"]["next"] == pytest.approx(lam_full[k], rel=0.05)
+    others = [m for m in adv["manoeuvres"] + adv["accelerometers"]
+              if m.get("axis", m.get("name")) != axis]
+    assert all(m["next"] < adv["best"]["next"] for m in others)
+
+
+def test_the_excitation_proxy_predicts_the_information_an_excitation_adds(rig):
+    """The linearised proxy (transfer function of the calibration filter over the band)
+    against the same window with the axis really shaken: the three largest eigenvalues of
+    s M s agree within 5 % (they are 6.6, 3.0, 0.55 here)."""
+    cfg, post, ident, stiffness = rig
+    for j in (0, 1):
+        rms = LEVELS.copy()
+        rms[j] = 1e-6
+        prob, theta = _window(rig, rms, 1000)
+        M_without, B = _information(rig, prob, theta)
+        M_with, _ = _information(rig, *_window(rig, LEVELS, 1000))
+        d = ident.design
+        unit = fa.excitation_information(ident.par, theta, d.Phi, d.K, d.J, B, prob.n_scored,
+                                         FS, (5.0, 40.0), None, stiffness)
+        lam_p = fa.scaled_eigenvalues(M_without + LEVELS[j] ** 2 * unit[j], post.sigma_max)
+        lam_a = fa.scaled_eigenvalues(M_with, post.sigma_max)
+        assert np.allclose(lam_p[:3], lam_a[:3], rtol=0.05), (j, lam_p[:3], lam_a[:3])
+
+
+def test_a_longer_window_s_information_grows_as_its_duration(rig):
+    """Doubling the scored samples doubles the information (each of the four largest
+    eigenvalues within 10 % of the ratio of the scored samples), and a window longer by the
+    advice's ``extra_s`` determines its next direction (eigenvalue within 1 ± 0.15). Break
+    check: ``extra_s`` without the − 1 (the whole window again) puts it at 1.8 and fails."""
+    _, post, _, _ = rig
+    s = post.sigma_max
+    p1, th = _window(rig, LEVELS, 1000)
+    p2, _ = _window(rig, LEVELS, 2 * 1000 - SETTLE)
+    assert p2.n_scored == 2 * p1.n_scored
+    lam1 = fa.scaled_eigenvalues(_information(rig, p1, th)[0], s)
+    lam2 = fa.scaled_eigenvalues(_information(rig, p2, th)[0], s)
+    assert np.allclose(lam2[:4] / lam1[:4], 2.0, rtol=0.10), lam2[:4] / lam1[:4]
+    adv = _advice(rig, p1, th, fa.AdviceCandidates())
+    k = adv["determined"]
+    extra = adv["window"]["extra_s"]
+    assert extra > 0 and adv["window"]["gain"] == 1
+    p3, _ = _window(rig, LEVELS, 1000 + int(round(extra * FS)))
+    lam3 = fa.scaled_eigenvalues(_information(rig, p3, th)[0], s)
+    assert abs(lam3[k] - 1.0) < 0.15, (adv["next"], extra, lam3[k])
+    assert int(np.sum(lam3 >= 1.0)) in (k, k + 1)
+
+
+def test_an_accelerometer_candidate_can_only_add_information_and_a_copy_averages_noise(rig):
+    """One more triax never lowers an eigenvalue (Weyl), and one at the position of an
+    existing accelerometer halves that one's noise in the solve, raising the next
+    eigenvalue; the record of a window that determines every direction carries none."""
+    cfg, post, ident, stiffness = rig
+    prob, theta = _window(rig, LEVELS, 1000)
+    sigma = cfg.accelerometers[0].sigma_m_s2
+    same = [("twin", cfg.accelerometers[0].position_m, sigma)]
+    cands = fa.candidates_from(same + [(n, p, sigma) for n, p, _
+                                       in cfg.identification.advice.accelerometers], [],
+                               (5.0, 40.0), stiffness)
+    adv = _advice(rig, prob, theta, cands)
+    assert len(adv["accelerometers"]) == 4 and not adv["manoeuvres"]
+    for a in adv["accelerometers"]:
+        assert a["next"] >= adv["next"] * (1 - 1e-9) and a["gain"] >= 0
+    assert adv["accelerometers"][0]["next"] > 1.02 * adv["next"]
+    assert adv["best"]["kind"] == "accelerometer"
+    # every direction determined: nothing to advise
+    _, de, B = prob.residual_series(theta)
+    assert fa.advise(ident.par, theta, de * 1e3, B, ident.design,
+                     {"moment_floor": cfg.identification.moment_floor_Nm}, post.sigma_max,
+                     prob.n_scored, FS, cands) is None
+
+
+def test_the_summary_line_says_the_best_addition_and_the_window():
+    adv = {"determined": 2, "next": 0.74, "n_scored": 899,
+           "accelerometers": [{"name": "deck_aft_right", "determined": 2, "gain": 0,
+                               "next": 0.88}],
+           "manoeuvres": [{"axis": "Y", "rms": 3000.0, "determined": 3, "gain": 1,
+                           "next": 1.41}],
+           "window": {"extra_s": 1.57, "gain": 1},
+           "best": {"kind": "manoeuvre", "name": "Y", "gain": 1, "next": 1.41}}
+    line = fa.advice_summary(adv)
+    assert line == ("excite Y: +1 (next 0.74 → 1.41); accelerometer deck_aft_right: +0 "
+                    "(→ 0.88); window +1.6 s; 2 determined (at 1)")
+    assert fa.advice_summary(None) is None
+    assert "window +— s" in fa.advice_summary({**adv, "window": {"extra_s": None}})
+    assert fa.advice_summary({"determined": 0, "next": 0.1, "best": None}) == \
+        "next 0.10; 0 determined (at 1)"
+
+
+def test_bad_candidates_are_refused():
+    with pytest.raises(ValueError, match="axis"):
+        fa.candidates_from([], [("Q", 1.0)], (5.0, 40.0))
+    with pytest.raises(ValueError, match="positive"):
+        fa.candidates_from([], [("X", 0.0)], (5.0, 40.0))
+
+
+def test_the_worker_s_flight_records_carry_the_advice_and_ground_records_none():
+    """Two 5-s windows of the `flight` scenario on the flight rig through the worker's own
+    ``run_job`` (as the service cuts them: content-filtered, the azimuth's turns): each
+    filter-error record carries ``advice`` (strict JSON, its figures those of the window's
+    own information: ``determined`` ≥ the record's robust ``window_determined``, every
+    candidate listed); a known-load record carries ``advice: null``."""
+    import json
+
+    from rsra.daq.jsonout import dumps
+    from rsra.daq.runtime.ident_worker import build_identification, run_job
+    from rsra.estimator.balance import inertial_loads
+    from rsra.estimator.content import ContentFilter
+    from rsra.estimator.filters import AzimuthTracker
+    from rsra.sim_bus import load_scenario, simulate
+
+    cfg = load_config(config_dir() / "flight-rig.toml")
+    run = simulate(cfg, load_scenario("flight"), seed=2, duration_s=10.0)
+    model = cfg.rig_model()
+    idc = cfg.identification
+    z = inertial_loads(model, run.accel)
+    cf = ContentFilter(idc.content_filter_error, FS, cfg.rotor.omega_nominal_rad_s,
+                       tuple(cfg.filter.harmonics), 19)
+    Y = cf.process(np.hstack([run.T, z, np.zeros((len(z), 6))]))
+    dpsi = AzimuthTracker(cfg.rotor.omega_nominal_rad_s, 1 / FS).turns(run.azimuth, run.omega)
+    post, runs, cache = build_identification(cfg)
+    w = round(idc.window_s * FS)
+    records = []
+    for k, mode in enumerate(("filter_error", "filter_error", "known_loads")):
+        sl = slice(k * w, (k + 1) * w) if k < 2 else slice(w, 2 * w)
+        n = w
+        job = {"job_id": k, "mode": mode, "content": idc.content_filter_error,
+               "applies_from_seq": (k + 1) * w + 200, "alpha": post.theta.copy(),
+               "T": Y[sl, :7], "z": Y[sl, 7:13], "known_H": np.zeros((n, 6)),
+               "seq": np.arange(sl.start, sl.stop), "t": np.arange(sl.start, sl.stop) / FS,
+               "ok": np.ones(n, bool), "known": np.ones(n, bool), "omega": run.omega[sl],
+               "dpsi": dpsi[sl], "missing": None}
+        records.append(json.loads(dumps(run_job(cfg, runs, cache, job))))
+    names = [a[0] for a in idc.advice.accelerometers]
+    for rec in records[:2]:
+        adv = rec["advice"]
+        assert isinstance(adv, dict), rec["reason"]
+        assert adv["determined"] >= rec["window_determined"]
+        assert [a["name"] for a in adv["accelerometers"]] == names
+        assert [m["axis"] for m in adv["manoeuvres"]] == list(fa.AXES)
+        assert adv["best"]["kind"] in ("accelerometer", "manoeuvre")
+        assert adv["window"]["extra_s"] > 0
+        assert list(rec)[-1] == "advice"  # the addition goes at the end
+    assert records[2]["mode"] == "known_loads" and records[2]["advice"] is None
