@@ -269,6 +269,8 @@ class IdentificationConfig:
     # error σ_b, a floor on the fused σ along each window's determined directions
     filter_error_update: str = "consider"
     filter_error_floor_rad: float = 0.0
+    # filter-error windows: at most this fraction missing in short runs (issue 29)
+    filter_error_scattered_fraction: float = 0.02
     # [identification.structure] (issue 19; `rsra calibrate` writes it): the structure the
     # hub loads use from the start, as estimator.structure.fit_payload (SI); None: constant
     structure_fit: dict | None = None
@@ -603,6 +605,7 @@ def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = No
             state_file=idt.state_file, angle_limit_rad=math.radians(idt.angle_limit_deg),
             filter_error_update=idt.filter_error_update,
             filter_error_floor_rad=math.radians(idt.filter_error_floor_deg),
+            filter_error_scattered_fraction=idt.filter_error_scattered_fraction,
             # as estimator.structure.fit_payload (SI); None: the constant structure
             structure_fit=None if st is None else {
                 "structure": st.structure, "alpha0": np.radians(st.alpha0_deg).tolist(),

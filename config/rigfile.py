@@ -281,6 +281,7 @@ class IdentificationTable(Table):
     angle_limit_deg: Pos = 10.0
     filter_error_update: Literal["consider", "bayes"] = "consider"
     filter_error_floor_deg: NonNeg = 0.0
+    filter_error_scattered_fraction: NonNeg = 0.02
     structure: StructureTable | None = None
 
     @field_validator("parameters", mode="before")

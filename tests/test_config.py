@@ -257,9 +257,11 @@ def test_the_flight_rig_layer_is_the_full_copy_it_replaced(tmp_path):
     flight = config_dir() / "flight-rig.toml"
     full = json.loads((Path(__file__).parent / "fixtures" / "flight-rig-full.json").read_text())
     # what changed on purpose since: the default stale_fraction (issue 29 item 4: windows
-    # with missing samples are used) and the flight rig's update rule (issue 25)
+    # with missing samples are used; filter-error windows refuse scattered ones) and the
+    # flight rig's update rule (issue 25)
     full["identification"].update(stale_fraction=0.5, filter_error_update="consider",
-                                  filter_error_floor_deg=0.05)
+                                  filter_error_floor_deg=0.05,
+                                  filter_error_scattered_fraction=0.02)
     layer = load_config(flight)
     _same(layer, parse_config(full, base_dir=config_dir()))
     strip = lambda d: {k: v for k, v in d.items() if k != "nodes"}  # noqa: E731

@@ -90,6 +90,7 @@ def build_identification(cfg, initial_state=None):
                                   content_sos=ContentFilter(idc.content_filter_error, fs, w0,
                                                             harm, 1).sos,
                                   content_settle_samples=settle(idc.content_filter_error),
+                                  scattered_fraction=idc.filter_error_scattered_fraction,
                                   **common)
     return post, {"known_loads": known, "filter_error": ferr}, cache
 
