@@ -272,6 +272,8 @@ class IdentificationConfig:
     # a bound (1 σ, rad per N / N·m) on the angles' dependence on the static hub load away
     # from the reference (trim) load: filter-error windows away from trim carry it (issue 25)
     angle_load_sensitivity_rad_per_unit: tuple[float, ...] = (0.0,) * 6
+    # filter-error windows: at most this fraction missing in short runs (issue 29)
+    filter_error_scattered_fraction: float = 0.02
     # [identification.structure] (issue 19; `rsra calibrate` writes it): the structure the
     # hub loads use from the start, as estimator.structure.fit_payload (SI); None: constant
     structure_fit: dict | None = None
@@ -627,6 +629,7 @@ def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = No
             filter_error_floor_rad=math.radians(idt.filter_error_floor_deg),
             angle_load_sensitivity_rad_per_unit=tuple(
                 math.radians(float(k)) for k in idt.angle_load_sensitivity_deg_per_unit),
+            filter_error_scattered_fraction=idt.filter_error_scattered_fraction,
             # as estimator.structure.fit_payload (SI); None: the constant structure
             structure_fit=None if st is None else {
                 "structure": st.structure, "alpha0": np.radians(st.alpha0_deg).tolist(),

@@ -320,6 +320,7 @@ class IdentificationTable(Table):
     angle_load_sensitivity_deg_per_unit: Annotated[
         list[NonNeg], Field(min_length=6, max_length=6),
         _meta(unit=" in ° per N (X, Y, Z) and per N·m (L, M, N)")] = [0.0] * 6
+    filter_error_scattered_fraction: NonNeg = 0.02
     structure: StructureTable | None = None
     advice: AdviceTable = Field(default_factory=AdviceTable)
 

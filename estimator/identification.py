@@ -413,6 +413,18 @@ def scored_mask(valid: np.ndarray, settle: int, gap: int, start_discontinuity: b
     return scored
 
 
+def scattered_missing_fraction(valid: np.ndarray, gap: int) -> float:
+    """The fraction of a window's samples lacking an input in runs of at most ``gap`` samples
+    (single dropped frames): runs no settling follows (:func:`scored_mask`), whose held
+    samples perturb the content filter's output at the valid samples after them."""
+    valid = np.asarray(valid, bool)
+    if not len(valid):
+        return 0.0
+    flips = np.flatnonzero(np.diff(np.concatenate([[1], valid.astype(np.int8), [1]])))
+    short = sum(int(e - s) for s, e in zip(flips[0::2], flips[1::2]) if e - s <= gap)
+    return short / len(valid)
+
+
 class FilterErrorProblem:
     """Innovations of the fixed-gain calibration filter and their sensitivities (Eq 2.22–2.24):
 

@@ -527,11 +527,30 @@ _NODE_VALUE_VISIBLE = """() => {
 }"""
 
 
+# every header of the angle table inside the table's box (a cut column: its right edge out)
+_ANGLE_COLUMNS_VISIBLE = """() => {
+  const t = Array.from(document.querySelectorAll('.c-telemetry-table'))
+    .find((x) => x.querySelector('tbody td') !== null);
+  if (!t) { return 'no angle table with rows'; }
+  const box = t.getBoundingClientRect();
+  const cut = Array.from(t.querySelectorAll('thead th'))
+    .filter((th) => th.getBoundingClientRect().width > 0)
+    .filter((th) => th.getBoundingClientRect().right > Math.min(box.right, window.innerWidth) + 1)
+    .map((th) => th.textContent.trim() + ' cut by '
+      + Math.round(th.getBoundingClientRect().right - box.right) + ' px');
+  return cut.length ? cut.join(', ') : 'visible';
+}"""
+
+
 @pytest.mark.timeout(300)
 def test_browser_breaks_the_line_at_a_gap_and_shows_the_node_values(cfg, tmp_path):
     """A 30-s gap (a restarted service) in history and live: the plot's line stops at the
     gap (no filter-coloured pixel in the middle of it, where the old straight line ran);
-    and the node table's value column is on screen at 1600 px (it was cut off)."""
+    and the node table's value column and every column of the angle table are on screen at
+    1600 px (they were cut off: the angle table's +1σ by 37 px). Break-checked (issue 29):
+    without the gap points in history, then in live points, the strip assertion fails (60 and
+    25 filter-coloured pixels); with the former 60/40 layout and ∓1σ columns, the angle
+    table's check does."""
     why = _browser_skip_reason()
     if why:
         pytest.skip(why)
@@ -548,6 +567,10 @@ def test_browser_breaks_the_line_at_a_gap_and_shows_the_node_values(cfg, tmp_pat
     recs = [("hub_loads", r) for r in _hub_run(t_hist, 200) + _hub_run(t_hist + 40, 200, seq0=0)]
     nodes = {n.name: {"state": "operational", "required": n.required} for n in cfg.nodes}
     recs += [("health", {"t": t_hist + s, "nodes": nodes}) for s in range(0, 50, 5)]
+    names = list(cfg.rig_model().geometry.angle_names)
+    recs.append(("angles", {"t": t_hist + 5, "names": names, "alpha": [0.0123] * 14,
+                            "P": np.diag([np.radians(0.05) ** 2] * 14).tolist(),
+                            "accepted": True, "reason": None, "determined": 14}))
     jl = tmp_path / "gap.jsonl"
     jl.write_text("".join(json.dumps({"key": k, **p}) + "\n" for k, p in recs))
     zport, wport = free_tcp_port(), free_tcp_port()
@@ -586,6 +609,9 @@ def test_browser_breaks_the_line_at_a_gap_and_shows_the_node_values(cfg, tmp_pat
                     assert _strip(cols, 0.25, 0.75) == 0, "a line drawn across the gap"
                     page.screenshot(path=str(tmp_path / "history-gap.png"))
                     assert page.evaluate(_NODE_VALUE_VISIBLE) == "visible"
+                    page.wait_for_function("() => document.querySelectorAll("
+                                           "'.c-telemetry-table tbody td').length > 0")
+                    assert page.evaluate(_ANGLE_COLUMNS_VISIBLE) == "visible"
 
                     # live: two runs of points 95 s apart in time, sent one after the other
                     page.goto(f"{url}/#/browse/rsra:root/rsra:layout?tc.mode=local"

@@ -92,6 +92,7 @@ def build_identification(cfg, initial_state=None):
                                   content_settle_samples=settle(idc.content_filter_error),
                                   angle_load_sensitivity=np.asarray(
                                       idc.angle_load_sensitivity_rad_per_unit, float),
+                                  scattered_fraction=idc.filter_error_scattered_fraction,
                                   **common)
     from rsra.daq.runtime.flight_advice import FlightAdvice
 

@@ -64,8 +64,8 @@ def missing_inputs(job: Mapping[str, Any], labels: Sequence[str]) -> list[tuple[
     return out
 
 
-def _stale(job: Mapping[str, Any], labels: Sequence[str], stale_fraction: float
-           ) -> tuple[str, str]:
+def _stale(job: Mapping[str, Any], labels: Sequence[str], stale_fraction: float,
+           scattered_gap: int | None = None) -> tuple[str, str]:
     n = len(job["T"])
     if n == 0:
         return ("the window holds no sample", "no sample reached the identification: is the "
@@ -78,9 +78,15 @@ def _stale(job: Mapping[str, Any], labels: Sequence[str], stale_fraction: float
     shown = ", ".join(f"{_input_words(lab) if lab != 'balance' else 'the balance absent'} in "
                       f"{_pct(f)}" for lab, f in items[:SHOWN_INPUTS])
     more = len(items) - SHOWN_INPUTS
-    text = (f"{_pct(bad)} of the window's {n} samples unusable (allowed "
-            f"{_pct(stale_fraction)})" + (f": {shown}" if shown else "")
-            + (f" and {more} more input(s)" if more > 0 else ""))
+    if scattered_gap is None:
+        text = f"{_pct(bad)} of the window's {n} samples unusable (allowed {_pct(stale_fraction)})"
+    else:  # filter error: dropped frames bias the estimate (identification.md)
+        from rsra.estimator.identification import scattered_missing_fraction
+
+        text = (f"{_pct(scattered_missing_fraction(valid, scattered_gap))} of the window's {n} "
+                f"samples lacking an input in short gaps (≤ {scattered_gap} samples; allowed "
+                f"{_pct(stale_fraction)} in a filter-error window)")
+    text += (f": {shown}" if shown else "") + (f" and {more} more input(s)" if more > 0 else "")
     if not items:
         return text, "samples unusable without a flag naming why: check the decoding (rsra listen)"
     top, _ = items[0]
@@ -155,6 +161,11 @@ def explain(rec: Any, job: Mapping[str, Any], idc: Any, labels: Sequence[str]
     if rec.accepted:
         info = "" if rec.information is None else f"information ratio {rec.information:.3g}; "
         return (f"{rec.determined} of {n_par} directions determined; {info}{gate_text()}", None)
+    if reason == "stale_input" and detail == "scattered_samples":
+        seq, t = np.asarray(job["seq"], float), np.asarray(job["t"], float)
+        fs = (seq[-1] - seq[0]) / (t[-1] - t[0]) if len(t) > 1 and t[-1] > t[0] else 0.0
+        return _stale(job, labels, idc.filter_error_scattered_fraction,
+                      scattered_gap=int(round(idc.gap_s * fs)))
     if reason == "stale_input":
         return _stale(job, labels, idc.stale_fraction)
     if reason == "not_converged":

@@ -141,17 +141,20 @@
       'lad.ident': { type: 'LadTable', name: 'Latest identification',
         composition: [id('ident.verdict'), id('ident.determined'), id('ident.advice')],
         configuration: { hiddenColumns: { timestamp: true, type: true }, isFixedLayout: false } },
-      'table.angles': { type: 'table', name: 'Load-cell angles (deg, ±1σ)',
+      'table.angles': { type: 'table', name: 'Load-cell angles (deg) and their σ',
         composition: dic.angles.map((n) => id('angle.' + n)),
-        // (every unit is deg, said in the name: the unit columns would push ±1σ out of view)
-        configuration: { hiddenColumns: { 'value-unit': true, 'sigma-unit': true, 'lo-unit': true,
-          'hi-unit': true }, rowLimit: dic.angles.length } }
+        // name, time, angle, σ: every column on screen in the right column from 1280 px (the
+        // ∓1σ bounds, angle ∓ σ, pushed +1σ 37 px out of view at 1600 px; they stay in the
+        // telemetry for plots), every unit deg, said in the name
+        configuration: { hiddenColumns: { 'value-unit': true, 'sigma-unit': true, lo: true,
+          'lo-unit': true, hi: true, 'hi-unit': true }, rowLimit: dic.angles.length } }
     };
     Object.keys(layoutParts).forEach(function (k) {
       objs[k] = Object.assign({ identifier: id(k), location: NS + ':layout' }, layoutParts[k]);
     });
     // a flexible layout (sizes in % of the page, not pixels: every part fits the width the
-    // browser gives it; the pixel grid of a display layout cut the right column at 1600 px)
+    // browser gives it; the pixel grid of a display layout cut the right column at 1600 px);
+    // halves: the angle table's four columns need 360 px, which 40 % gave from 1600 px only
     function frame(key, size) {
       return { id: 'rsra-' + key, domainObjectIdentifier: id(key), size: size, noFrame: false };
     }
@@ -162,8 +165,8 @@
       configuration: {
         rowsLayout: false,
         containers: [
-          { id: 'rsra-left', size: 60, frames: [frame('plot.hub', 100)] },
-          { id: 'rsra-right', size: 40, frames: [frame('lad.nodes', 36), frame('lad.ident', 12),
+          { id: 'rsra-left', size: 50, frames: [frame('plot.hub', 100)] },
+          { id: 'rsra-right', size: 50, frames: [frame('lad.nodes', 36), frame('lad.ident', 12),
             frame('table.angles', 32), frame('plot.nis', 20)] }
         ]
       }
