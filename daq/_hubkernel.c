@@ -9,6 +9,12 @@
  *     v = (1 - beta) v + Mb e;  q = |v|^2;  transient = q > threshold
  *     var = (Q2 T as 6 x 7) T;  sigma = sqrt|var|;  uncertain = any(var > bound2)
  *
+ * and, for a design whose error gain is diagonal (estimator/filter_sigma.py, FilterSigma
+ * .update: the filtered loads' own error sigma, `sigma_filter`):
+ *
+ *     u = Rinv' e;  Mf += beta_fast (u u' - Mf);  [Ms += beta_slow (u u' - Ms)]
+ *     ex = max(diag Mf, diag Ms) - diag Bu;  s = sqrt(modelled + g2 max(ex, 0));  max(s, floor)
+ *
  * Every matrix comes from Python (the designs, the angles in force); this file only knows
  * small dense matrix-vector products, elementwise operations and the record's text. The
  * products are computed by numpy's own BLAS (cblas_dgemv / cblas_ddot, their addresses
@@ -81,9 +87,12 @@ static PyObject *set_blas(PyObject *self, PyObject *args) {
 }
 
 /* -- the plan: the matrices and state arrays of one design / angles ------------------------ */
-enum { B_MF, B_RINV, B_S, B_G, B_BUF, B_MB, B_V, B_Q2, B_D, B_BOUND, NB };
+enum { B_MF, B_RINV, B_S, B_G, B_BUF, B_MB, B_V, B_Q2, B_D, B_BOUND,
+       /* FilterSigma (optional): its design constants and its two averages */
+       B_FRINV, B_FBU, B_FMOD, B_FG2, B_FMF, B_FMS, B_FFLOOR, NB };
 static const char *B_NAMES[NB] = {"Mf", "Rinv", "S", "G", "buf", "Mb", "v", "Q2", "D",
-                                  "bound2"};
+                                  "bound2", "fs_Rinv", "fs_Bu", "fs_modelled", "fs_g2",
+                                  "fs_Mf", "fs_Ms", "fs_floor"};
 
 typedef struct {
     PyObject_HEAD
@@ -98,6 +107,8 @@ typedef struct {
     Py_ssize_t nb;     /* entries of buf = n + 6 + nt */
     Py_ssize_t nq;     /* rows of Q2 (6 * nt) */
     double one_minus_beta, threshold;
+    int have_fs;                 /* FilterSigma's step in the kernel (a diagonal error gain) */
+    double beta_fast, beta_slow; /* its two averages' weights */
     PyObject *frame_json; /* bytes: the frame name as a JSON string */
 } Plan;
 
@@ -146,14 +157,20 @@ static int dims(PyObject *obj, const char *name, Py_ssize_t *cols) {
 
 static PyObject *plan_new(PyTypeObject *type, PyObject *args, PyObject *kw) {
     static char *kwlist[] = {"Mf", "Rinv", "S", "G", "buf", "Mb", "v", "Q2", "D", "bound2",
-                             "n", "one_minus_beta", "threshold", "frame_json", NULL};
+                             "n", "one_minus_beta", "threshold", "frame_json", "fs_Rinv",
+                             "fs_Bu", "fs_modelled", "fs_g2", "fs_Mf", "fs_Ms", "fs_floor",
+                             "beta_fast", "beta_slow", NULL};
     PyObject *o[NB];
     Py_ssize_t n;
-    double omb, thr;
+    double omb, thr, bfast = 0.0, bslow = 0.0;
     PyObject *frame;
-    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOOOOOOOOnddS", kwlist, &o[0], &o[1], &o[2],
-                                     &o[3], &o[4], &o[5], &o[6], &o[7], &o[8], &o[9], &n, &omb,
-                                     &thr, &frame))
+    for (int i = B_FRINV; i < NB; i++)
+        o[i] = Py_None;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOOOOOOOOnddS|$OOOOOOOdd", kwlist, &o[0],
+                                     &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7], &o[8],
+                                     &o[9], &n, &omb, &thr, &frame, &o[B_FRINV], &o[B_FBU],
+                                     &o[B_FMOD], &o[B_FG2], &o[B_FMF], &o[B_FMS],
+                                     &o[B_FFLOOR], &bfast, &bslow))
         return NULL;
     Plan *p = (Plan *)type->tp_alloc(type, 0);
     if (p == NULL)
@@ -184,6 +201,22 @@ static PyObject *plan_new(PyTypeObject *type, PyObject *args, PyObject *kw) {
         goto fail;
     if (p->nd && get_buf(p, B_D, o[B_D], 0, 2, 6, p->nd))
         goto fail;
+    /* FilterSigma: all of its arrays (the floor optional) or none */
+    p->have_fs = o[B_FRINV] != Py_None;
+    if (p->have_fs) {
+        p->beta_fast = bfast;
+        p->beta_slow = bslow;
+        if (get_buf(p, B_FRINV, o[B_FRINV], 0, 2, 6, 6) || get_buf(p, B_FBU, o[B_FBU], 0, 2, 6, 6) ||
+            get_buf(p, B_FMOD, o[B_FMOD], 0, 1, 6, 0) || get_buf(p, B_FG2, o[B_FG2], 0, 1, 6, 0) ||
+            get_buf(p, B_FMF, o[B_FMF], 1, 2, 6, 6) || get_buf(p, B_FMS, o[B_FMS], 1, 2, 6, 6))
+            goto fail;
+        if (p->fortran[B_FBU]) { /* read elementwise: row-major */
+            PyErr_SetString(PyExc_ValueError, "plan: fs_Bu must be C-contiguous");
+            goto fail;
+        }
+        if (o[B_FFLOOR] != Py_None && get_buf(p, B_FFLOOR, o[B_FFLOOR], 0, 1, 6, 0))
+            goto fail;
+    }
     return (PyObject *)p;
 fail:
     Py_DECREF(p);
@@ -257,10 +290,60 @@ static int out_flag(Out *o, PyObject *s) {
 }
 
 /* -- the per-sample step ------------------------------------------------------------------ */
-/* step(T, accel, q, out, seq, sync, t, omega, flags) -> (json bytes, nis, tq, transient,
- * uncertain)
+/* numpy's maximum on doubles: NaN propagates (either side), else a >= b ? a : b */
+static inline double np_max(double a, double b) {
+    return (a >= b || isnan(a)) ? a : b;
+}
+
+/* FilterSigma.update (estimator/filter_sigma.py) for a design with a diagonal error gain,
+ * on the innovation e: the two averages updated in place, the published sigma into sf.
+ * `started`: the averages hold samples (else they start at Bu); `slow`: the slow one takes
+ * this sample (samples since the start >= settle). numpy's operations, in its order. */
+static void filter_sigma_step(Plan *p, const double *e, int started, int slow, double *sf) {
+    const int *F = p->fortran;
+    const double *Bu = p->b[B_FBU].buf, *mod = p->b[B_FMOD].buf, *g2 = p->b[B_FG2].buf;
+    double *Mf = p->b[B_FMF].buf, *Ms = p->b[B_FMS].buf;
+    double u[6];
+    gemv_o(p->b[B_FRINV].buf, 6, 6, F[B_FRINV], e, u); /* u = Rinv.dot(e) */
+    if (!started) {
+        memcpy(Mf, Bu, 36 * sizeof(double));
+        memcpy(Ms, Bu, 36 * sizeof(double));
+    }
+    double bf = p->beta_fast, bs = p->beta_slow;
+    for (int i = 0; i < 6; i++)
+        for (int j = 0; j < 6; j++) {
+            double uu = u[i] * u[j]; /* np.multiply.outer(u, u) */
+            double d = uu - Mf[6 * i + j];
+            d = bf * d;
+            Mf[6 * i + j] = Mf[6 * i + j] + d;
+        }
+    if (slow)
+        for (int i = 0; i < 6; i++)
+            for (int j = 0; j < 6; j++) {
+                double uu = u[i] * u[j];
+                double d = uu - Ms[6 * i + j];
+                d = bs * d;
+                Ms[6 * i + j] = Ms[6 * i + j] + d;
+            }
+    for (int i = 0; i < 6; i++) {
+        double ex = np_max(Mf[7 * i], Ms[7 * i]) - Bu[7 * i];
+        double t = g2[i] * np_max(ex, 0.0);
+        sf[i] = sqrt(mod[i] + t);
+    }
+    if (p->have[B_FFLOOR]) {
+        const double *fl = p->b[B_FFLOOR].buf;
+        for (int i = 0; i < 6; i++)
+            sf[i] = np_max(sf[i], fl[i]);
+    }
+}
+
+/* step(T, accel, q, out, seq, sync, t, omega, flags, tail[, encode[, fs]]) -> (json bytes,
+ * nis, tq, transient, uncertain)
  *   T (nt,), accel (na,), q (nd,) or None: the sample's measured values (all finite);
- *   out (36 + n,) float64, fresh: written [I | H_static | H | e | sigma | z | x];
+ *   out (42 + n,) float64, fresh: written [I | H_static | H | e | sigma | z | x | sigma_filter];
+ *   fs: FilterSigma's step here (bit 0; the plan must hold its arrays), its averages already
+ *   started (bit 1), the slow one taking this sample (bit 2); without bit 0 sigma_filter
+ *   is not written (the caller's Python computes it);
  *   flags: a list of str, the filter's flags; "transient", then the tail flags (tuple)
  *   are appended by the caller's order: this function appends "transient" and
  *   "angles_uncertain" at their places (tail: between them).
@@ -269,23 +352,31 @@ static PyObject *plan_step(Plan *p, PyObject *args) {
     Py_buffer bT, bA, bQ, bO;
     PyObject *qobj, *omega, *flags, *tail, *seq, *sync;
     double t;
-    int encode = 1;
-    if (!PyArg_ParseTuple(args, "y*y*Ow*OOdOO!O!|p", &bT, &bA, &qobj, &bO, &seq, &sync, &t,
-                          &omega, &PyList_Type, &flags, &PyTuple_Type, &tail, &encode))
+    int encode = 1, fs = 0;
+    if (!PyArg_ParseTuple(args, "y*y*Ow*OOdOO!O!|pi", &bT, &bA, &qobj, &bO, &seq, &sync, &t,
+                          &omega, &PyList_Type, &flags, &PyTuple_Type, &tail, &encode, &fs))
         return NULL;
     PyObject *result = NULL;
     int haveQ = 0;
     Out js = {NULL, 0, 0};
     Py_ssize_t n = p->n, nt = p->nt, na = p->na, nd = p->nd;
-    if (bT.len != nt * 8 || bA.len != na * 8 || bO.len != (36 + n) * 8 ||
+    if (bT.len != nt * 8 || bA.len != na * 8 || bO.len != (42 + n) * 8 ||
         !PyLong_Check(seq) || !PyLong_Check(sync)) {
         PyErr_SetString(PyExc_ValueError, "step: wrong sizes");
+        goto done;
+    }
+    if ((fs & 1) && !p->have_fs) {
+        PyErr_SetString(PyExc_ValueError, "step: the plan holds no FilterSigma");
+        goto done;
+    }
+    if (encode && !(fs & 1)) {
+        PyErr_SetString(PyExc_ValueError, "step: the record's text needs sigma_filter");
         goto done;
     }
     const double *T = (const double *)bT.buf, *acc = (const double *)bA.buf;
     double *out = (double *)bO.buf;
     double *I = out, *Hs = out + 6, *H = out + 12, *e = out + 18, *sig = out + 24,
-           *z = out + 30, *x = out + 36;
+           *z = out + 30, *x = out + 36, *sf = out + 36 + n;
     const double *Mf = p->b[B_MF].buf, *Rinv = p->b[B_RINV].buf, *S = p->b[B_S].buf,
                  *G = p->b[B_G].buf, *Mb = p->b[B_MB].buf, *Q2 = p->b[B_Q2].buf;
     double *buf = p->b[B_BUF].buf, *v = p->b[B_V].buf;
@@ -336,6 +427,9 @@ static PyObject *plan_step(Plan *p, PyObject *args) {
         v[i] += tmp[i];
     double tq = ddot(v, v, 6);
     int transient = tq > p->threshold;
+    /* the filtered loads' own error sigma */
+    if (fs & 1)
+        filter_sigma_step(p, e, fs & 2, fs & 4, sf);
     /* the angles' share of the hub-load variance */
     gemv_o(Q2, p->nq, nt, F[B_Q2], T, q2);
     gemv(q2, 6, nt, T, tmp);
@@ -371,7 +465,7 @@ static PyObject *plan_step(Plan *p, PyObject *args) {
         goto done;
     }
     /* the record's text: {"seq":…,"sync":…,"t":…,"frame":…,"H":[…],"H_static":[…],
-     * "sigma_angles":[…],"omega":…,"flags":[…]} */
+     * "sigma_angles":[…],"sigma_filter":[…],"omega":…,"flags":[…]} */
     {
         char num[32];
         long long sq = PyLong_AsLongLong(seq), sy = PyLong_AsLongLong(sync);
@@ -388,7 +482,8 @@ static PyObject *plan_step(Plan *p, PyObject *args) {
             out_put(&js, PyBytes_AS_STRING(p->frame_json), PyBytes_GET_SIZE(p->frame_json)) ||
             PUT(&js, ",\"H\":") || out_floats(&js, H, 6) || PUT(&js, ",\"H_static\":") ||
             out_floats(&js, Hs, 6) || PUT(&js, ",\"sigma_angles\":") ||
-            out_floats(&js, sig, 6) || PUT(&js, ",\"omega\":"))
+            out_floats(&js, sig, 6) || PUT(&js, ",\"sigma_filter\":") ||
+            out_floats(&js, sf, 6) || PUT(&js, ",\"omega\":"))
             goto done;
         if (omega == Py_None) {
             if (PUT(&js, "null"))
@@ -477,6 +572,130 @@ done:
     return r;
 }
 
+
+/* unpack_cal(data, codes, perm, gain, offset, out, status_idx) -> status values or None:
+ * a sample's TPDOs joined in bit order (daq/bus/assembler.py SampleAssembler._pass_on):
+ * every channel unpacked as struct's little-endian codes (one per channel, no padding),
+ * out[k] = raw[perm[k]] * gain[k] + offset[k] (numpy's *= then +=), the raw integers at
+ * status_idx returned. None, nothing written: a non-finite value (the caller's Python
+ * path marks it missing) or values so large that sum() could overflow. */
+static PyObject *k_unpack_cal(PyObject *self, PyObject *args) {
+    Py_buffer bd, bc, bp, bg, bo, bout;
+    PyObject *sidx;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*w*O!", &bd, &bc, &bp, &bg, &bo, &bout,
+                          &PyTuple_Type, &sidx))
+        return NULL;
+    PyObject *r = NULL;
+    Py_ssize_t nc = bc.len, no = bout.len / 8;
+    double raw[256];
+    long long iv[256];
+    const unsigned char *d = bd.buf, *codes = bc.buf;
+    if (nc > 256 || bp.len != no * (Py_ssize_t)sizeof(Py_ssize_t) || bg.len != no * 8 ||
+        bo.len != no * 8 || bout.len != no * 8) {
+        PyErr_SetString(PyExc_ValueError, "unpack_cal: wrong sizes");
+        goto done;
+    }
+    Py_ssize_t pos = 0;
+    int finite = 1;
+    double mag = 0.0;
+    for (Py_ssize_t i = 0; i < nc; i++) {
+        int sz;
+        switch (codes[i]) {
+        case '?': case 'b': case 'B': sz = 1; break;
+        case 'h': case 'H': sz = 2; break;
+        case 'i': case 'I': case 'f': sz = 4; break;
+        case 'q': case 'Q': case 'd': sz = 8; break;
+        default:
+            PyErr_SetString(PyExc_ValueError, "unpack_cal: unknown code");
+            goto done;
+        }
+        if (pos + sz > bd.len) {
+            PyErr_SetString(PyExc_ValueError, "unpack_cal: data too short");
+            goto done;
+        }
+        unsigned char b[8] = {0};
+        memcpy(b, d + pos, sz); /* little-endian host (x86-64, aarch64) */
+        pos += sz;
+        iv[i] = 0;
+        switch (codes[i]) {
+        case '?': raw[i] = b[0] != 0; iv[i] = b[0] != 0; break;
+        case 'b': { int8_t v; memcpy(&v, b, 1); raw[i] = v; iv[i] = v; break; }
+        case 'B': raw[i] = b[0]; iv[i] = b[0]; break;
+        case 'h': { int16_t v; memcpy(&v, b, 2); raw[i] = v; iv[i] = v; break; }
+        case 'H': { uint16_t v; memcpy(&v, b, 2); raw[i] = v; iv[i] = v; break; }
+        case 'i': { int32_t v; memcpy(&v, b, 4); raw[i] = v; iv[i] = v; break; }
+        case 'I': { uint32_t v; memcpy(&v, b, 4); raw[i] = v; iv[i] = v; break; }
+        case 'q': { int64_t v; memcpy(&v, b, 8); raw[i] = (double)v; iv[i] = v; break; }
+        case 'Q': { uint64_t v; memcpy(&v, b, 8); raw[i] = (double)v; iv[i] = (long long)v;
+                    if (v > (uint64_t)INT64_MAX) { PyErr_SetString(PyExc_ValueError,
+                        "unpack_cal: status too large"); goto done; } break; }
+        case 'f': { float v; memcpy(&v, b, 4); raw[i] = v; break; }
+        case 'd': { double v; memcpy(&v, b, 8); raw[i] = v; break; }
+        }
+        if (!isfinite(raw[i]))
+            finite = 0;
+        else
+            mag += fabs(raw[i]);
+    }
+    /* the reference's test is sum(raw) finite: the same as every value finite while no
+     * partial sum can overflow, in whatever order it adds (sum |raw| < 1e300); a sample
+     * beyond that goes to the reference */
+    if (!(mag < 1e300))
+        finite = 0;
+    if (pos != bd.len) {
+        PyErr_SetString(PyExc_ValueError, "unpack_cal: data too long");
+        goto done;
+    }
+    if (!finite) {
+        r = Py_None;
+        Py_INCREF(r);
+        goto done;
+    }
+    {
+        const Py_ssize_t *perm = bp.buf;
+        const double *g = bg.buf, *o = bo.buf;
+        double *out = bout.buf;
+        for (Py_ssize_t k = 0; k < no; k++) {
+            if (perm[k] < 0 || perm[k] >= nc) {
+                PyErr_SetString(PyExc_ValueError, "unpack_cal: perm out of range");
+                goto done;
+            }
+        }
+        Py_ssize_t ns = PyTuple_GET_SIZE(sidx);
+        PyObject *st = PyTuple_New(ns);
+        if (st == NULL)
+            goto done;
+        for (Py_ssize_t k = 0; k < ns; k++) {
+            Py_ssize_t i = PyLong_AsSsize_t(PyTuple_GET_ITEM(sidx, k));
+            if (i < 0 || i >= nc || strchr("?fd", codes[i]) != NULL) {
+                Py_DECREF(st);
+                if (!PyErr_Occurred())
+                    PyErr_SetString(PyExc_ValueError, "unpack_cal: not an integer status");
+                goto done;
+            }
+            PyObject *v = PyLong_FromLongLong(iv[i]);
+            if (v == NULL) {
+                Py_DECREF(st);
+                goto done;
+            }
+            PyTuple_SET_ITEM(st, k, v);
+        }
+        for (Py_ssize_t k = 0; k < no; k++) {
+            double v = raw[perm[k]] * g[k];
+            out[k] = v + o[k];
+        }
+        r = st;
+    }
+done:
+    PyBuffer_Release(&bd);
+    PyBuffer_Release(&bc);
+    PyBuffer_Release(&bp);
+    PyBuffer_Release(&bg);
+    PyBuffer_Release(&bo);
+    PyBuffer_Release(&bout);
+    return r;
+}
+
 /* gemv(A, x, y): y = A x with the kernel's BLAS (tests: the same bits as numpy's dot) */
 static PyObject *k_gemv(PyObject *self, PyObject *args) {
     Py_buffer bA, bx, by;
@@ -519,6 +738,8 @@ static PyMethodDef module_methods[] = {
      "set_blas(dgemv_address, ddot_address, ilp64): numpy's CBLAS functions."},
     {"sos_step", k_sos_step, METH_VARARGS,
      "sos_step(sos, zi, x, y): one sample through a content filter's sections."},
+    {"unpack_cal", k_unpack_cal, METH_VARARGS,
+     "unpack_cal(data, codes, perm, gain, offset, out, status_idx): a sample's decode."},
     {"gemv", k_gemv, METH_VARARGS, "gemv(A, m, k, fortran, x, y): y = A x as numpy's dot computes it (tests)."},
     {NULL, NULL, 0, NULL}};
 

@@ -5,13 +5,22 @@ calls numpy's own BLAS as ndarray.dot does and does the elementwise steps in num
 Recordings: a ground test, and a faulted flight (lost frames, malformed and unknown frames,
 error frames, lost SYNCs, a stuck channel, an over-range cell and a node reboot), both made
 by the lock-step simulator. New angles are delivered half-way (the kernel's plan is rebuilt
-on the new S). These tests need the kernel: they fail (never skip) when it is not built."""
+on the new S). These tests need the kernel: they fail (never skip) when it is not built.
+
+The records carry ``sigma_filter`` (estimator/filter_sigma.py), which the kernel computes for
+the report's tuning (a diagonal error gain) and leaves to FilterSigma.update for another
+(``tuning = "noise"``): both are compared, and so are FilterSigma's two averages, bit for bit.
+Break-checked: the kernel's FilterSigma step skipped, or its slow average not fed, fails the
+comparison."""
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import pytest
 
 from rsra.config.rig import load_config
+from rsra.daq.bus.decoder import DecodeTable
 from rsra.daq.bus.reader import HealthReport, OfflineReader
 from rsra.daq.bus.replay import read_frames
 from rsra.daq.jsonout import dumpb
@@ -51,6 +60,34 @@ def _samples(cfg, frames) -> list:
     return out
 
 
+def _equal_paths(cfg, samples, name: str):
+    """Both paths on ``samples``: every record and the states behind them the same bits.
+    Returns the kernel's pipeline."""
+    ref, p_ref = _run(cfg, samples, kernel=False)
+    fast, p_fast = _run(cfg, samples, kernel=True)
+    assert p_ref.hub_kernel is None
+    assert p_fast.hub_kernel is not None, p_fast.hub_kernel_status
+    assert len(ref) == len(fast) and [k for k, _ in ref] == [k for k, _ in fast]
+    diff = [i for i, (a, b) in enumerate(zip(ref, fast)) if a != b]
+    assert diff == [], f"{len(diff)} records differ, first {ref[diff[0]]} / {fast[diff[0]]}"
+    assert sum(k == "angles" for k, _ in fast) == 1  # the delivered angles applied
+    # every hub_loads record of a filtered sample has its sigma_filter (not a stale or
+    # missing one on either side)
+    hub = [payload for k, payload in fast if k == "hub_loads"]
+    assert sum(b'"sigma_filter":[' in t for t in hub) > 0.5 * len(hub)
+    # the calibration branch (the content filters run in the kernel): the identification
+    # window and the filters' states, bit for bit
+    for a in ("T", "z", "H", "seq", "ok", "known", "omega"):
+        assert getattr(p_ref.buffer, a).tobytes() == getattr(p_fast.buffer, a).tobytes(), a
+    for mode, cf in p_ref.content.items():
+        assert cf._zi.tobytes() == p_fast.content[mode]._zi.tobytes(), mode
+    # FilterSigma's state: its two averages and its sample count
+    fr, ff = p_ref.filter_sigma, p_fast.filter_sigma
+    assert fr._Mf.tobytes() == ff._Mf.tobytes() and fr._Ms.tobytes() == ff._Ms.tobytes()
+    assert (fr._n, fr._started) == (ff._n, ff._started) and fr._n > fr.settle
+    return p_fast
+
+
 def _run(cfg, samples, kernel: bool):
     """Every record the pipeline gives, as published (JSON text), and the pipeline."""
     p = EstimatorPipeline(cfg, np.asarray(cfg.identification.initial_angles_rad, float),
@@ -78,25 +115,61 @@ def test_the_kernel_is_built_and_uses_numpys_blas():
 def test_compiled_and_reference_paths_publish_the_same_records(recordings, name):
     cfg = load_config()
     samples = _samples(cfg, recordings[name])
-    ref, p_ref = _run(cfg, samples, kernel=False)
-    fast, p_fast = _run(cfg, samples, kernel=True)
-    assert p_ref.hub_kernel is None
-    assert p_fast.hub_kernel is not None, p_fast.hub_kernel_status
-    assert len(ref) == len(fast) and [k for k, _ in ref] == [k for k, _ in fast]
-    diff = [i for i, (a, b) in enumerate(zip(ref, fast)) if a != b]
-    assert diff == [], f"{len(diff)} records differ, first {ref[diff[0]]} / {fast[diff[0]]}"
-    assert sum(k == "angles" for k, _ in fast) == 1  # the delivered angles applied
-    # the calibration branch (the content filters run in the kernel): the identification
-    # window and the filters' states, bit for bit
-    for a in ("T", "z", "H", "seq", "ok", "known", "omega"):
-        assert getattr(p_ref.buffer, a).tobytes() == getattr(p_fast.buffer, a).tobytes(), a
-    for mode, cf in p_ref.content.items():
-        assert cf._zi.tobytes() == p_fast.content[mode]._zi.tobytes(), mode
-    # the kernel computed the measured samples (the rest took the reference path)
+    p_fast = _equal_paths(cfg, samples, name)
+    # the kernel computed the measured samples (the rest took the reference path), their
+    # sigma_filter included (the report's tuning: a diagonal error gain)
     n = len(samples)
     share = p_fast.hub_kernel.samples / n
     assert share > (0.95 if name == "ground" else 0.5), share
     assert p_fast.hub_kernel.samples < n if name == "faulted flight" else True
+    assert p_fast.hub_kernel.sigma_samples == p_fast.hub_kernel.samples
+
+
+def test_with_another_error_gain_the_kernel_leaves_sigma_filter_to_python(recordings):
+    """``tuning = "noise"`` (a Riccati gain: the error gain is not diagonal, FilterSigma's
+    einsum): the kernel does the rest of the first step and FilterSigma.update computes
+    sigma_filter on the kernel's innovation — the records are the reference's all the same."""
+    cfg = load_config()
+    cfg = dataclasses.replace(cfg, filter=dataclasses.replace(cfg.filter, tuning="noise"))
+    p_fast = _equal_paths(cfg, _samples(cfg, recordings["ground"]), "ground")
+    assert p_fast.hub_kernel.samples > 0.95 * p_fast.filter_sigma._n
+    assert p_fast.hub_kernel.sigma_samples == 0
+
+
+def _sample_key(s) -> tuple:
+    """Every field of a Sample, arrays as their bytes (bit for bit)."""
+    def b(x):
+        return None if x is None else (np.asarray(x).dtype.str, np.asarray(x).tobytes())
+    return (s.seq, s.sync, s.t, b(s.T), s.cell_status, b(s.accel), s.omega, s.azimuth,
+            b(s.known_H), b(s.drive), s.missing, s.lost_before, s.flags, s.complete)
+
+
+@pytest.mark.parametrize("name", ["ground", "faulted flight"])
+@pytest.mark.parametrize("calibrated", [False, True])
+def test_compiled_and_reference_decode_give_the_same_samples(monkeypatch, recordings, name,
+                                                             calibrated):
+    """The sample's decode (SampleAssembler._pass_on: the joined TPDOs unpacked and
+    calibrated) in the kernel (unpack_cal) and in Python (RSRA_HUB_KERNEL=off): the same
+    samples, every field bit for bit — with the packaged calibration (gain 1, offset 0) and
+    with a gain and an offset on every value channel. Break-checked: the offset not added
+    in the kernel fails it, and so does a status byte read from the next channel."""
+    cfg = load_config()
+    if calibrated:
+        keys = [c.key for c in DecodeTable(cfg).channels if not c.is_status]
+        cfg = dataclasses.replace(cfg, calibration={
+            k: (1.0 + 0.01 * (i + 1) / 3.0, 0.1 * (i + 1) / 7.0) for i, k in enumerate(keys)})
+    fast = _samples(cfg, recordings[name])
+    monkeypatch.setenv(hubpath.OFF_ENV, "off")
+    r = OfflineReader(cfg)
+    assert r.assembler._unpack_cal is None
+    ref = _samples(cfg, recordings[name])
+    monkeypatch.delenv(hubpath.OFF_ENV)
+    assert OfflineReader(cfg).assembler._unpack_cal is not None
+    assert len(ref) == len(fast) > 1000
+    diff = [i for i, (a, b) in enumerate(zip(ref, fast)) if _sample_key(a) != _sample_key(b)]
+    assert diff == [], f"{len(diff)} samples differ, first {ref[diff[0]]} / {fast[diff[0]]}"
+    if name == "faulted flight":  # flagged and incomplete samples among them
+        assert any(s.flags for s in fast) and not all(s.complete for s in fast)
 
 
 def test_without_the_kernel_the_reference_runs_and_says_why(monkeypatch, recordings):
@@ -111,7 +184,7 @@ def test_without_the_kernel_the_reference_runs_and_says_why(monkeypatch, recordi
 
 def test_the_kernel_follows_the_estimator_code_it_mirrors():
     """The kernel does what LoadFilter.step/_build, TransientDetector.update,
-    HubAngleVariance and ContentFilter._step do; when they change (issue 25: the harmonic states in the rotor's
+    HubAngleVariance, ContentFilter._step and FilterSigma.update do; when they change (issue 25: the harmonic states in the rotor's
     frame), the kernel is off until it is brought in line and the tests above pass again
     with the new fingerprint in daq/runtime/hubpath.py."""
     assert hubpath.estimator_fingerprint() == hubpath.MIRRORS_FINGERPRINT

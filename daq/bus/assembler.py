@@ -17,6 +17,8 @@ from __future__ import annotations
 import logging
 import math
 import operator
+import os
+import struct
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -42,6 +44,19 @@ GAP_S = 1.0
 GAP_LOG_MAX = 10  # gaps logged per run (all are counted)
 TIME_TOLERANCE_PERIODS = 4  # "a few periods": a frame time further than this from where the
 #                             SYNC counter puts it is a bad timestamp (docs/reliability.md)
+
+
+def _unpack_kernel() -> Callable[..., Any] | None:
+    """The compiled decode (rsra.daq._hubkernel.unpack_cal), or None: not built, or
+    ``RSRA_HUB_KERNEL=off`` (the pure-Python path, as for the hub path)."""
+    if os.environ.get("RSRA_HUB_KERNEL", "").lower() == "off":
+        return None
+    try:
+        from rsra.daq import _hubkernel
+    except ImportError:
+        return None
+    f: Callable[..., Any] | None = getattr(_hubkernel, "unpack_cal", None)
+    return f
 
 
 class SyncClock:
@@ -406,6 +421,16 @@ class SampleAssembler:
              for i in range(n)], dtype=int)
         self._node_names = [nl.name for nl in table.nodes]
         self._node_slices = [(nl.start, nl.stop, nl.mask) for nl in table.nodes]
+        # the compiled decode (daq/_hubkernel.c unpack_cal): a sample with every value
+        # finite unpacked and calibrated in one call, the same bits; every other sample,
+        # and all of them without it, the Python of _pass_on (the reference)
+        self._unpack_cal = _unpack_kernel() if self._status_is_int else None
+        self._codes = "".join(lay.codes for lay in table.layouts).encode("ascii")
+        if self._unpack_cal is not None and (
+                len(self._codes) != n or table.sample_struct.format[0] != "<"
+                or struct.calcsize(table.sample_struct.format) != table.sample_struct.size):
+            self._unpack_cal = None
+        self._n_out = len(perm)
 
     # -- liveness (from the supervisor, same thread, frame order) --------------------------
     def set_alive(self, node: str, alive: bool) -> None:
@@ -565,37 +590,46 @@ class SampleAssembler:
         self._wait = -1
         (unreported, missing, missing_flags, nan_idx, nan_out, cell_names, status_idx,
          status_flags, rotor_ok, balance_ok, drive_ok) = self._pattern(self._have, self._expect)
-        raw = self._unpack(b"".join(self._frames))  # every channel, channel order
-        total = sum(raw)
-        if total - total == 0.0:  # all finite (x - x is 0 for finite x, nan for inf/nan)
-            out = np.array(self._gather(raw), float)
-            out *= self._gain_out
-            out += self._offset_out
-            if nan_out is not None:
+        data = b"".join(self._frames)
+        sts = None
+        if self._unpack_cal is not None:  # (None back: a non-finite value, the Python below)
+            out = np.empty(self._n_out)
+            sts = self._unpack_cal(data, self._codes, self._perm, self._gain_out,
+                                   self._offset_out, out, status_idx)
+            if sts is not None and nan_out is not None:
                 out[nan_out] = np.nan
-        else:
-            cal = np.array(raw)
-            cal *= self.table.gain
-            cal += self.table.offset
-            bad = ~np.isfinite(cal)
-            bad[nan_idx] = False
-            bad_nodes = {self._node_names[k] for k in np.unique(self._node_of_channel[bad])}
-            bad_nodes -= unreported
-            if bad_nodes:
-                # non-finite values mark the channel missing (and its node flagged)
-                cal[bad] = np.nan
-                missing = tuple(sorted(set(missing) | bad_nodes, key=self._node_names.index))
-                missing_flags = tuple(f"missing:{m}" for m in missing)
-                unreported = unreported | bad_nodes
-                rotor_ok = rotor_ok and self._rotor[0] not in unreported
-                balance_ok = balance_ok and self._balance[0] not in unreported
-                drive_ok = drive_ok and not unreported.intersection(self._drive[0])
-            if len(nan_idx):
-                cal[nan_idx] = np.nan
-            out = cal[self._perm]
-        sts = [raw[i] for i in status_idx]
-        if not self._status_is_int:
-            sts = [int(x) for x in sts]
+        if sts is None:
+            raw = self._unpack(data)  # every channel, channel order
+            total = sum(raw)
+            if total - total == 0.0:  # all finite (x - x is 0 for finite x, nan for inf/nan)
+                out = np.array(self._gather(raw), float)
+                out *= self._gain_out
+                out += self._offset_out
+                if nan_out is not None:
+                    out[nan_out] = np.nan
+            else:
+                cal = np.array(raw)
+                cal *= self.table.gain
+                cal += self.table.offset
+                bad = ~np.isfinite(cal)
+                bad[nan_idx] = False
+                bad_nodes = {self._node_names[k] for k in np.unique(self._node_of_channel[bad])}
+                bad_nodes -= unreported
+                if bad_nodes:
+                    # non-finite values mark the channel missing (and its node flagged)
+                    cal[bad] = np.nan
+                    missing = tuple(sorted(set(missing) | bad_nodes, key=self._node_names.index))
+                    missing_flags = tuple(f"missing:{m}" for m in missing)
+                    unreported = unreported | bad_nodes
+                    rotor_ok = rotor_ok and self._rotor[0] not in unreported
+                    balance_ok = balance_ok and self._balance[0] not in unreported
+                    drive_ok = drive_ok and not unreported.intersection(self._drive[0])
+                if len(nan_idx):
+                    cal[nan_idx] = np.nan
+                out = cal[self._perm]
+            sts = [raw[i] for i in status_idx]
+            if not self._status_is_int:
+                sts = [int(x) for x in sts]
         status = dict(zip(cell_names, sts))
         if self._lost or any(sts):
             flags = list(missing_flags)

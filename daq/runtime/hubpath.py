@@ -3,8 +3,9 @@
 For a measured sample — every reading present and finite, no status, stuck, lost or
 missing flag, no structure correction, a rotor speed the filter has its design for — the
 estimator's first step (inertial loads, static estimate, load filter, transient test, the
-angles' share of the variance) and the ``hub_loads`` record's JSON text are computed by one
-call of the C kernel ``rsra.daq._hubkernel`` instead of ≈ 30 numpy calls. Every other sample
+angles' share of the variance, the filtered loads' own error σ ``sigma_filter`` —
+estimator/filter_sigma.py, for a design whose error gain is diagonal, the report's) are
+computed by one call of the C kernel ``rsra.daq._hubkernel`` instead of ≈ 45 numpy calls. Every other sample
 takes the pure-Python reference path (``EstimatorPipeline.stages``), which stays what the
 kernel is tested against: both give the same records bit for bit (tests/test_hubpath.py),
 because the kernel's matrix products are numpy's own BLAS functions, called as numpy's
@@ -40,7 +41,7 @@ OFF_ENV = "RSRA_HUB_KERNEL"  # "off": the pure-Python path (benchmarks' before/a
 # brought in line and tests/test_hubpath.py shows both paths equal again (then put the new
 # fingerprint here: ``python -c "from rsra.daq.runtime import hubpath; print(hubpath.
 # estimator_fingerprint())"``).
-MIRRORS_FINGERPRINT = "7e83895d18a4cd3c"  # design mode; azimuth mode takes the reference path
+MIRRORS_FINGERPRINT = "fdd135b476dbca4a"  # design mode; azimuth mode takes the reference path
 
 
 def _code_only(source: str) -> str:
@@ -80,13 +81,14 @@ def estimator_fingerprint() -> str:
 
     from rsra.estimator.angle_uncertainty import HubAngleVariance
     from rsra.estimator.content import ContentFilter
+    from rsra.estimator.filter_sigma import FilterSigma
     from rsra.estimator.filters import LoadFilter
     from rsra.estimator.transient import TransientDetector
 
     h = hashlib.sha256()
     for f in (LoadFilter._build, LoadFilter.step, TransientDetector.update,
               HubAngleVariance.variance, HubAngleVariance.__init__, ContentFilter._step,
-              ContentFilter.process):
+              ContentFilter.process, FilterSigma.update):
         try:
             h.update(_code_only(inspect.getsource(f)).encode())
         except (OSError, TypeError):  # no source (a frozen install): cannot tell
@@ -200,29 +202,35 @@ class HubKernel:
         self._plan = None
         self._held: tuple = ()
         self.samples = 0  # samples the kernel computed
+        self.sigma_samples = 0  # … and their sigma_filter (a diagonal error gain) too
         # the kernel can write the record's JSON text too (float.__repr__'s digits through
         # PyOS_double_to_string), but that costs ≈ 1 µs a double where orjson's encoder
-        # (rsra.daq.jsonout.dumpb) takes ≈ 0.2: off, measured (docs/performance.md); and the
-        # record now carries sigma_filter (issue 27), which that text has not: not used
+        # (rsra.daq.jsonout.dumpb) takes ≈ 0.2: off, measured (docs/performance.md)
         self._frame_json = ('"' + pipeline.frame + '"').encode()
         if not pipeline.frame.isascii() or any(c in pipeline.frame for c in '"\\'):
             raise ValueError("the hub frame's name needs escaping")
 
-    def _plan_for(self, lf, tr, av) -> Any:
+    def _plan_for(self, lf, tr, av, fs, c) -> Any:
         p = self.p
         h = self._held
         if h and (h[0] is lf._G and h[1] is lf._buf and h[2] is p._Mf and h[3] is p._Rinv
                   and h[4] is p._S and h[5] is tr._Mb and h[6] is tr._s and h[7] is av._Q2
-                  and h[8] is p._D and h[9] is p._angle_bound2):
+                  and h[8] is p._D and h[9] is p._angle_bound2 and h[10] is c
+                  and h[11] is fs._Mf and h[12] is fs._Ms and h[13] is fs.floor):
             return self._plan
         held = (lf._G, lf._buf, p._Mf, p._Rinv, p._S, tr._Mb, tr._s, av._Q2, p._D,
-                p._angle_bound2)
+                p._angle_bound2, c, fs._Mf, fs._Ms, fs.floor)
         self._plan = None
         self._held = held
         D = p._D if p._D.shape[1] else None
+        # FilterSigma's step (the diagonal error gain of the report's tuning; another gain's
+        # einsum stays in Python): its design constants and its averages, held as the rest
+        sig = ({"fs_Rinv": c.Rinv, "fs_Bu": c.B_u, "fs_modelled": c.modelled, "fs_g2": c.g2,
+                "fs_Mf": fs._Mf, "fs_Ms": fs._Ms, "fs_floor": fs.floor,
+                "beta_fast": fs.beta_fast, "beta_slow": fs.beta_slow} if c.diag else {})
         self._plan = self.k.Plan(p._Mf, p._Rinv, p._S, lf._G, lf._buf, tr._Mb, tr._s, av._Q2,
                                  D, p._angle_bound2, lf._n, 1.0 - tr.beta, tr.threshold,
-                                 self._frame_json)
+                                 self._frame_json, **sig)
         return self._plan
 
     def first_step(self, s, seq: int, T: np.ndarray, accel: np.ndarray, q) -> tuple | None:
@@ -234,39 +242,48 @@ class HubKernel:
             return None  # refused: the reference counts and flags it
         if p._last_seq is not None and seq - p._last_seq - 1 > 0:
             return None  # a gap to predict through
-        lf, tr, av = p.load_filter, p.transient, p._angle_var
+        lf, tr, av, fs = p.load_filter, p.transient, p._angle_var, p.filter_sigma
         try:
             lf.set_omega(omega)
         except (ValueError, np.linalg.LinAlgError):
             return None  # the reference counts the failure and keeps the design
         if tr._design is not lf._design:
             return None  # the detector converts its state to a new design (reference)
+        c = fs._for(lf.design)  # (FilterSigma.update's own lookup of the design's constants)
         try:
-            plan = self._plan_for(lf, tr, av)
+            plan = self._plan_for(lf, tr, av, fs, c)
         except (ValueError, BufferError) as e:  # an array the kernel cannot take as numpy does
             p.hub_kernel = None
             p.hub_kernel_status = f"off ({type(e).__name__}: {e})"
             log.warning("compiled hub path off: %s; the pure-Python path runs", e)
             return None
         n = lf._n
-        out = np.empty(36 + n)
+        out = np.empty(42 + n)
         flags = list(lf._flags)
         tail = ("identification_off",) if p.identification_off else ()
         omega_pub = omega if omega is not None else (
             None if p.cfg.rotor.stopped else p.cfg.rotor.omega_nominal_rad_s)
         t = float(s.t)
         sync = int(s.sync)
+        # FilterSigma.update's per-sample step in the kernel (bit 0), with its two flags:
+        # its averages started (bit 1), the slow one past its settling (bit 2)
+        fs_mode = (1 | (2 if fs._started else 0) | (4 if fs._n >= fs.settle else 0)
+                   if c.diag else 0)
         text, nis, tq, _transient, uncertain = plan.step(T, accel, q, out, seq, sync, t,
-                                                         omega_pub, flags, tail, False)
+                                                         omega_pub, flags, tail, False, fs_mode)
         p._last_seq = seq
         lf._run = 0
         tr.q = tq
         sigma = out[24:30]
         p._sigma_angles = sigma
         p._angles_uncertain = uncertain
-        # the filter's own error σ (estimator/filter_sigma.py): the same Python call on the
-        # same innovation as the reference path (the kernel's text has no sigma_filter)
-        sigma_filter = p.filter_sigma.update(lf.design, out[18:24])
+        if fs_mode:  # the rest of FilterSigma.update: its counters and its result
+            fs._started = True
+            fs._n += 1
+            sigma_filter = fs.sigma = out[36 + n:]
+            self.sigma_samples += 1
+        else:  # another error gain: the reference's own call on the same innovation
+            sigma_filter = fs.update(lf.design, out[18:24])
         rec = {"seq": seq, "sync": sync, "t": t, "frame": p.frame, "H": out[12:18],
                "H_static": out[6:12], "sigma_angles": sigma, "sigma_filter": sigma_filter,
                "omega": omega_pub, "flags": flags}
