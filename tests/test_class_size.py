@@ -23,7 +23,6 @@ PENDING = {
     "sim_bus/physics.py AircraftPhysics": _NOT_YET + " (load model, true angles, mount "
     "dynamics, sensor models; the draws of _draw_parameters keep their order)",
     "sim_bus/nodes.py SimNode": _NOT_YET,
-    "daq/runtime/service.py Service": _NOT_YET,
     "daq/runtime/pipeline.py EstimatorPipeline": _NOT_YET,
     "daq/bus/assembler.py SampleAssembler": _NOT_YET,
 }
