@@ -24,7 +24,6 @@ PENDING = {
     "dynamics, sensor models; the draws of _draw_parameters keep their order)",
     "sim_bus/nodes.py SimNode": _NOT_YET,
     "daq/runtime/pipeline.py EstimatorPipeline": _NOT_YET,
-    "daq/bus/assembler.py SampleAssembler": _NOT_YET,
 }
 
 
