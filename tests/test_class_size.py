@@ -22,7 +22,6 @@ PENDING = {
     "the calibration-with-missing-samples work; its split follows that change",
     "sim_bus/physics.py AircraftPhysics": _NOT_YET + " (load model, true angles, mount "
     "dynamics, sensor models; the draws of _draw_parameters keep their order)",
-    "sim_bus/nodes.py SimNode": _NOT_YET,
     "daq/runtime/pipeline.py EstimatorPipeline": _NOT_YET,
 }
 

@@ -457,3 +457,19 @@ def test_live_follow_mode_heartbeats_on_the_wall_clock_and_answers_sync(cfg):
         sim.close()
         net.disconnect()
     assert not sim._ticker.is_alive()
+
+
+def test_the_heartbeat_schedule_alone():
+    """HeartbeatSchedule without a node: due times base + n·period (no accumulated
+    rounding), nothing when off, at most one period's backlog after a long stall."""
+    from rsra.sim_bus.nodes import HeartbeatSchedule
+
+    hb = HeartbeatSchedule()
+    assert hb.next is None and hb.due(100.0) == []
+    hb.arm(1.0, 100)
+    assert hb.due(1.05) == [] and hb.next == pytest.approx(1.1)
+    assert hb.due(1.3) == [pytest.approx(1.1), pytest.approx(1.2), pytest.approx(1.3)]
+    due = hb.due(60.0)  # a stall: the backlog is cut to about a period, not 587 beats
+    assert 1 <= len(due) <= 2 and due[-1] == pytest.approx(60.0)
+    hb.arm(5.0, 0)
+    assert hb.next is None and hb.due(10.0) == []
