@@ -920,6 +920,30 @@ class FilterErrorChecks:
     load_variance: float = 0.0
 
 
+class LoadReference:
+    """The reference (trim) load of filter-error windows and each window's excursion from it
+    (docs/identification.md, "Load excursions", issue 25): the median of the last
+    LOAD_REFERENCE_WINDOWS windows' static loads (bounded)."""
+
+    def __init__(self, sensitivity: np.ndarray | None) -> None:
+        k = None if sensitivity is None else np.asarray(sensitivity, float)
+        self.sensitivity = k if k is not None and np.any(k > 0) else None
+        self.loads: deque[np.ndarray] = deque(maxlen=LOAD_REFERENCE_WINDOWS)
+
+    def judge(self, checks: FilterErrorChecks, static_load: np.ndarray | None) -> None:
+        """Set the window's ``load_delta`` and ``load_variance`` in ``checks`` (nothing
+        without a sensitivity or a finite static load)."""
+        if self.sensitivity is None or static_load is None:
+            return
+        h = np.asarray(static_load, float)
+        if h.shape != (6,) or not np.all(np.isfinite(h)):
+            return
+        self.loads.append(h.copy())
+        delta = h - np.median(np.array(self.loads), axis=0)
+        checks.load_delta = delta
+        checks.load_variance = load_excursion_variance(self.sensitivity, delta)
+
+
 @dataclass
 class PeriodicIdentification:
     """Windows of content-filtered data → identification → posterior (model §7, periodic runs).
@@ -979,7 +1003,7 @@ class PeriodicIdentification:
         self.par = Parameterisation(self.model, self.posterior.names, self.alpha_base,
                                     moment_floor=self.moment_floor,
                                     known_loads=self.mode == "known_loads")
-        self._window_loads: deque[np.ndarray] = deque(maxlen=LOAD_REFERENCE_WINDOWS)
+        self._load_reference = LoadReference(self.angle_load_sensitivity)
         self.structure: StructureTest | None = None
         if self.mode == "known_loads" and self.structure_test and self.content == "static":
             # the test compares window means: static content only (docs/identification.md)
@@ -1030,21 +1054,6 @@ class PeriodicIdentification:
         Q_data = score_covariance_hac(e, de, B, lag)
         Q_model = predicted_score_covariance(de, B, gamma)
         return FilterErrorChecks(test, Q_data, Q_model)
-
-    def _load_excursion(self, checks: FilterErrorChecks, static_load: np.ndarray | None
-                        ) -> None:
-        """The window's static load against the reference (trim) load, and the variance of
-        the angles' move that far (docs/identification.md, "Load excursions", issue 25)."""
-        k = self.angle_load_sensitivity
-        if k is None or not np.any(np.asarray(k) > 0) or static_load is None:
-            return
-        h = np.asarray(static_load, float)
-        if h.shape != (6,) or not np.all(np.isfinite(h)):
-            return
-        self._window_loads.append(h.copy())
-        delta = h - np.median(np.array(self._window_loads), axis=0)
-        checks.load_delta = delta
-        checks.load_variance = load_excursion_variance(np.asarray(k, float), delta)
 
     @property
     def filter_settle_samples(self) -> int:
@@ -1200,7 +1209,7 @@ class PeriodicIdentification:
         checks = None
         if self.mode == "filter_error" and self.robust_filter_error and res.sound:
             checks = self.filter_error_checks(prob, res.theta)
-            self._load_excursion(checks, static_load)
+            self._load_reference.judge(checks, static_load)
         rec = post.update(res, window=window, mode=self.mode, content=self.content,
                           t=t, missing_fraction=missing,
                           apply_delay_samples=self.apply_delay_samples,

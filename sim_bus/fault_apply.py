@@ -137,9 +137,9 @@ class FaultApplier:
         status = int(node.raw("status") or 0)
         out = []
         for bit, code in _STATUS_EMCY:
-            if status & bit and code not in node._active_errors:
+            if status & bit and not node.has_error(code):
                 out.append(node.raise_error(code, info=bytes([status])))
-            elif not status & bit and code in node._active_errors:
+            elif not status & bit and node.has_error(code):
                 fr = node.clear_error(code)
                 if fr is not None:
                     out.append(fr)

@@ -202,13 +202,237 @@ def role_channel_vars(od: "canopen.ObjectDictionary", role: str) -> list[tuple[s
     return list(zip(names, mapped))
 
 
+class HeartbeatSchedule:
+    """When a node's heartbeats are due (CiA 301 producer heartbeat time, 0x1017), on the
+    acquisition clock: due times are ``base + n·period`` (no accumulated rounding)."""
+
+    def __init__(self) -> None:
+        self.period = 0.0  # s; 0: no heartbeat
+        self._base, self._n = 0.0, 1
+        self.next: float | None = None  # the next due time (None: none produced)
+
+    def arm(self, t: float, ms: int) -> None:
+        """(Re)start at time ``t`` with a period of ``ms`` milliseconds (0: off): the first
+        heartbeat one period later."""
+        self.period = ms / 1000.0
+        self._base, self._n = t, 1
+        self.next = t + self.period if ms > 0 else None
+
+    def due(self, t: float) -> list[float]:
+        """The due times up to time ``t``, consumed. After a long gap (a stalled clock) at
+        most one period's worth of backlog is kept: a real node would not burst."""
+        out: list[float] = []
+        if self.next is None:
+            return out
+        p = self.period
+        if t - self.next > 10 * p:
+            self._n = int((t - self._base) / p)
+            self.next = self._base + self._n * p
+        while self.next <= t + TIME_EPS:
+            out.append(self.next)
+            self._n += 1
+            self.next = self._base + self._n * p
+        return out
+
+
+class TpdoProducer:
+    """A node's process image and its synchronous TPDOs, from the mapping *currently in its
+    dictionary* (0x1800…/0x1A00…, re-read after any change to them): which are due at a SYNC
+    (transmission type, SYNC start value), their bytes, and what the last ones carried (an
+    SDO read of a mapped process object returns that)."""
+
+    def __init__(self, od: "canopen.ObjectDictionary", local: canopen.LocalNode):
+        self.od, self.local = od, local
+        self.process: dict[tuple[int, int], int | float] = {}  # current raw process image
+        self.carried: dict[tuple[int, int], int | float] = {}  # what the last TPDOs carried
+        self._tpdos: list[TpdoConfig] | None = None  # cache, rebuilt after writes/resets
+        self._sync_count: dict[int, int] = {}
+        self._started_counting: dict[int, bool] = {}
+        self._last_sent: dict[int, bytes] = {}
+
+    def restart_counting(self) -> None:
+        """SYNC counting and change detection start afresh (boot, NMT start)."""
+        self._sync_count.clear()
+        self._started_counting.clear()
+        self._last_sent.clear()
+
+    def remapped(self) -> None:
+        """The communication or mapping parameters changed: re-read at the next SYNC."""
+        self._tpdos = None
+        self._started_counting.clear()
+        self._last_sent.clear()
+
+    def configs(self) -> list[TpdoConfig]:
+        """The TPDO configuration as the dictionary holds it now (SDO writes included)."""
+        if self._tpdos is None:
+            self._tpdos = self._read_tpdos()
+        return self._tpdos
+
+    def value(self, index: int, sub: int) -> int:
+        obj = self.od[index]
+        var = obj if isinstance(obj, ODVariable) else obj[sub]
+        return int(var.decode_raw(self.local.get_data(index, sub)))
+
+    def entry(self, word: int) -> MapEntry:
+        """A mapping entry (0x1A0x sub-index value); SdoAbortedError when not mappable."""
+        idx, sub, bits = word >> 16, (word >> 8) & 0xFF, word & 0xFF
+        if 1 <= idx <= 7:
+            return MapEntry(idx, sub, bits, None)
+        if idx not in self.od:
+            raise SdoAbortedError(ABORT_NOT_MAPPABLE)
+        obj = self.od[idx]
+        if not isinstance(obj, ODVariable):
+            if sub not in obj:
+                raise SdoAbortedError(ABORT_NOT_MAPPABLE)
+            obj = obj[sub]
+        if not obj.pdo_mappable or len(obj) != bits:
+            raise SdoAbortedError(ABORT_NOT_MAPPABLE)
+        return MapEntry(idx, sub, bits, obj)
+
+    def check_mapping_write(self, index: int, subindex: int, od: ODVariable,
+                            data: bytes) -> None:
+        """An SDO write to a mapping parameter (0x1A00…0x1BFF): aborted (SdoAbortedError)
+        when an entry is not mappable or the TPDO would exceed 64 bits."""
+        value = int(od.decode_raw(data))
+        if subindex == 0:
+            total = 0
+            for s in range(1, value + 1):
+                total += self.entry(self.value(index, s)).bits
+            if total > 64:
+                raise SdoAbortedError(ABORT_PDO_TOO_LONG)
+        elif value:
+            self.entry(value)  # aborts when not mappable
+
+    def _read_tpdos(self) -> list[TpdoConfig]:
+        out = []
+        for n in range(512):
+            com, mp = 0x1800 + n, 0x1A00 + n
+            if com not in self.od or mp not in self.od:
+                break
+            cob = self.value(com, 1)
+            trans = self.value(com, 2)
+            start = self.value(com, 6) if 6 in self.od[com] else 0
+            count = self.value(mp, 0)
+            entries = tuple(self.entry(self.value(mp, s)) for s in range(1, count + 1))
+            fmt: str | None = "<"
+            for e in entries:
+                st = ODVariable.STRUCT_TYPES.get(e.var.data_type) if e.var is not None else None
+                if st is None or not isinstance(st, struct.Struct) or e.bits != 8 * st.size:
+                    fmt = None
+                    break
+                fmt += st.format.lstrip("<")
+            out.append(TpdoConfig(number=n + 1, cob_id=cob & COB_ID_MASK,
+                                  valid=not cob & PDO_NOT_VALID, trans_type=trans,
+                                  sync_start=start, entries=entries,
+                                  packer=struct.Struct(fmt) if fmt else None))
+        return out
+
+    @staticmethod
+    def _default(e: MapEntry) -> int | float:
+        v = e.var.value if e.var.value is not None else e.var.default
+        return v if v is not None else 0
+
+    def _pack(self, cfg: TpdoConfig) -> tuple[bytes, list[tuple[tuple[int, int], int | float]]]:
+        vals = []
+        for e in cfg.entries:
+            key = (e.index, e.subindex)
+            if e.var is None:
+                vals.append((key, 0))
+            else:
+                v = self.process.get(key)
+                vals.append((key, self._default(e) if v is None else v))
+        if cfg.packer is not None:
+            return cfg.packer.pack(*(v for _, v in vals)), vals
+        # general bit-granular packing (CiA 301: entries are concatenated LSB first)
+        acc, shift = 0, 0
+        for e, (_, v) in zip(cfg.entries, vals):
+            if e.var is not None:
+                raw = int.from_bytes(e.var.encode_raw(v), "little")
+                acc |= (raw & ((1 << e.bits) - 1)) << shift
+            shift += e.bits
+        return acc.to_bytes(cfg.length, "little"), vals
+
+    def sync(self, counter: int | None,
+             carried: list[dict[tuple[int, int], int | float]] | None) -> list[Frame]:
+        """The TPDOs due at one SYNC, in TPDO order (the node is OPERATIONAL): see
+        :meth:`SimNode.sync`."""
+        frames = []
+        for cfg in self.configs():
+            if not cfg.valid or not cfg.entries:
+                continue
+            t = cfg.trans_type
+            if t > 240:
+                continue  # 241…251 reserved; 252…255 not synchronous
+            if not self._started_counting.get(cfg.number):
+                if cfg.sync_start and counter is not None and counter != cfg.sync_start:
+                    continue
+                self._started_counting[cfg.number] = True
+                self._sync_count[cfg.number] = 0
+            data, vals = self._pack(cfg)
+            if t == 0:
+                if self._last_sent.get(cfg.number) == data:
+                    continue
+            else:
+                c = self._sync_count[cfg.number] = self._sync_count[cfg.number] + 1
+                if c % t:
+                    continue
+            self._last_sent[cfg.number] = data
+            if carried is None:
+                self.carried.update(vals)
+            else:
+                carried.append(dict(vals))
+            frames.append(Frame("tpdo", cfg.cob_id, data, cfg.number))
+        return frames
+
+    def snapshot(self) -> tuple:
+        return (dict(self.process), dict(self._sync_count), dict(self._started_counting),
+                dict(self._last_sent), self._tpdos)
+
+    def restore(self, snap: tuple) -> None:
+        (self.process, self._sync_count, self._started_counting, self._last_sent,
+         self._tpdos) = (dict(snap[0]), dict(snap[1]), dict(snap[2]), dict(snap[3]), snap[4])
+
+
+class ErrorState:
+    """A node's active errors and its error register (0x1001), and the EMCY frames that
+    report them appearing and going away (CiA 301)."""
+
+    def __init__(self) -> None:
+        self.active: dict[int, int] = {}  # EMCY code -> register bits
+        self.register = 0
+
+    def _update(self) -> None:
+        self.register = 0
+        for bits in self.active.values():
+            self.register |= bits
+
+    def raise_error(self, cob_id: int, code: int, register_bits: int, info: bytes) -> Frame:
+        self.active[code] = register_bits | ERR_GENERIC
+        self._update()
+        return Frame("emcy", cob_id, EMCY_STRUCT.pack(code, self.register, info))
+
+    def clear_error(self, cob_id: int, code: int) -> Frame | None:
+        if self.active.pop(code, None) is None:
+            return None
+        self._update()
+        # CiA 301: code 0x0000 with the remaining error register; the cleared code as info
+        return Frame("emcy", cob_id, EMCY_STRUCT.pack(0, self.register, struct.pack("<H", code)))
+
+    def clear(self) -> None:
+        self.active.clear()
+        self.register = 0
+
+
 class SimNode:
     """One simulated CANopen slave: a LocalNode from the EDS with the NMT, heartbeat, SYNC/TPDO
     and EMCY behaviour of CiA 301 done properly (see the module docstring).
 
     ``clock`` is the acquisition clock (seconds): the node asks it when an SDO write re-arms
     the heartbeat. Frames the node wants to send are returned, never sent, except SDO
-    responses, which LocalNode's SDO server sends through ``network.send_message``.
+    responses, which LocalNode's SDO server sends through ``network.send_message``. The NMT
+    state machine and the canopen glue are here; the heartbeat schedule, the process image
+    with its TPDOs and the error state are parts (:class:`HeartbeatSchedule`,
+    :class:`TpdoProducer`, :class:`ErrorState`).
     """
 
     def __init__(self, name: str, role: str, node_id: int, eds: str | Path,
@@ -225,17 +449,9 @@ class SimNode:
         self._channel_key = {ch: (v.index, v.subindex) for ch, v in self.channels}
         self.state = INITIALISING
         self.silent = False  # fault: the node neither sends nor hears anything
-        self.error_register = 0
-        self._active_errors: dict[int, int] = {}  # EMCY code -> register bits
-        self._process: dict[tuple[int, int], int | float] = {}  # current raw process image
-        self._carried: dict[tuple[int, int], int | float] = {}  # what the last TPDOs carried
-        self._tpdos: list[TpdoConfig] | None = None  # cache, rebuilt after writes/resets
-        self._sync_count: dict[int, int] = {}
-        self._started_counting: dict[int, bool] = {}
-        self._last_sent: dict[int, bytes] = {}
-        self._hb_period = 0.0
-        self._hb_base, self._hb_n = 0.0, 1
-        self._hb_next: float | None = None
+        self.tpdos = TpdoProducer(self.od, self.local)
+        self.errors = ErrorState()
+        self._heartbeat = HeartbeatSchedule()
         self.network: canopen.Network | None = None
         # called before anything from outside a SYNC cycle (NMT, boot/reset, an SDO request)
         # changes what the node answers: the bus simulator undoes a cycle it built ahead of
@@ -288,10 +504,8 @@ class SimNode:
         if self.before_change is not None:
             self.before_change()
         self._set_state(INITIALISING)
-        self._sync_count.clear()
-        self._started_counting.clear()
-        self._last_sent.clear()
-        self._tpdos = None
+        self.tpdos.restart_counting()
+        self.tpdos.remapped()
         frames = [Frame("bootup", COB_HEARTBEAT + self.node_id, b"\x00")]
         self._set_state(PRE_OPERATIONAL)
         self._arm_heartbeat(t)
@@ -307,10 +521,9 @@ class SimNode:
             if not communication_only or 0x1000 <= index <= 0x1FFF:
                 del store[index]
         if not communication_only:
-            self._process.clear()
-            self._carried.clear()
-            self._active_errors.clear()
-            self.error_register = 0
+            self.tpdos.process.clear()
+            self.tpdos.carried.clear()
+            self.errors.clear()
         return self.boot(t)
 
     def nmt(self, command: int, target: int, t: float | None = None) -> list[Frame]:
@@ -321,9 +534,7 @@ class SimNode:
             return []
         if command == NMT_START:
             if self.state != OPERATIONAL:
-                self._sync_count.clear()
-                self._started_counting.clear()
-                self._last_sent.clear()
+                self.tpdos.restart_counting()
             self._set_state(OPERATIONAL)
         elif command == NMT_STOP:
             self._set_state(STOPPED)
@@ -343,131 +554,53 @@ class SimNode:
         return int(var.decode_raw(self.local.get_data(0x1017, 0)))
 
     def _arm_heartbeat(self, t: float) -> None:
-        ms = self._heartbeat_ms()
-        self._hb_period = ms / 1000.0
-        # due times are base + n·period (no accumulated rounding)
-        self._hb_base, self._hb_n = t, 1
-        self._hb_next = t + self._hb_period if ms > 0 else None
+        self._heartbeat.arm(t, self._heartbeat_ms())
 
     @property
     def heartbeat_period_s(self) -> float:
-        return self._hb_period
+        return self._heartbeat.period
 
     @property
     def next_heartbeat(self) -> float | None:
-        return self._hb_next
+        return self._heartbeat.next
 
     def heartbeats(self, t: float) -> list[tuple[float, Frame]]:
-        """Heartbeats due by time ``t``, each with its due time. After a long gap (a stalled
-        clock) at most one period's worth of backlog is kept: a real node would not burst."""
-        out: list[tuple[float, Frame]] = []
-        if self._hb_next is None or self.state == INITIALISING:
-            return out
-        p = self._hb_period
-        if t - self._hb_next > 10 * p:
-            self._hb_n = int((t - self._hb_base) / p)
-            self._hb_next = self._hb_base + self._hb_n * p
-        while self._hb_next <= t + TIME_EPS:
-            out.append((self._hb_next, Frame("heartbeat", COB_HEARTBEAT + self.node_id,
-                                             bytes([self.state]))))
-            self._hb_n += 1
-            self._hb_next = self._hb_base + self._hb_n * p
-        return out
+        """Heartbeats due by time ``t``, each with its due time (none while INITIALISING;
+        after a long gap at most one period's backlog: HeartbeatSchedule.due)."""
+        if self.state == INITIALISING:
+            return []
+        dues = self._heartbeat.due(t)
+        if not dues:
+            return []
+        frame = Frame("heartbeat", COB_HEARTBEAT + self.node_id, bytes([self.state]))
+        return [(due, frame) for due in dues]
 
     # ---- process data and TPDOs -------------------------------------------------------------
     def update(self, values: Sequence[float] | dict[str, float]) -> None:
         """New measured values in engineering units (ROLE_CHANNELS order or by name)."""
         items = values.items() if isinstance(values, dict) else zip(ROLE_CHANNELS[self.role], values)
         chans = dict(self.channels)
+        process = self.tpdos.process
         for ch, v in items:
             var = chans[ch]
-            self._process[(var.index, var.subindex)] = encode_channel(self.role, ch, v, var)
+            process[(var.index, var.subindex)] = encode_channel(self.role, ch, v, var)
 
     def set_raws(self, raws: Sequence[int | float]) -> None:
         """Raw bus values of every channel, in ROLE_CHANNELS order (already encoded)."""
+        process = self.tpdos.process
         for (ch, var), v in zip(self.channels, raws):
-            self._process[(var.index, var.subindex)] = v
+            process[(var.index, var.subindex)] = v
 
     def set_raw(self, channel: str, raw: int | float) -> None:
         """Set one channel's raw bus value directly (faults: a stuck or saturated channel)."""
-        self._process[self._channel_key[channel]] = raw
+        self.tpdos.process[self._channel_key[channel]] = raw
 
     def raw(self, channel: str) -> int | float | None:
-        return self._process.get(self._channel_key[channel])
+        return self.tpdos.process.get(self._channel_key[channel])
 
     def tpdo_configs(self) -> list[TpdoConfig]:
         """The TPDO configuration as the dictionary holds it now (SDO writes included)."""
-        if self._tpdos is None:
-            self._tpdos = self._read_tpdos()
-        return self._tpdos
-
-    def _value(self, index: int, sub: int) -> int:
-        obj = self.od[index]
-        var = obj if isinstance(obj, ODVariable) else obj[sub]
-        return int(var.decode_raw(self.local.get_data(index, sub)))
-
-    def _entry(self, word: int) -> MapEntry:
-        idx, sub, bits = word >> 16, (word >> 8) & 0xFF, word & 0xFF
-        if 1 <= idx <= 7:
-            return MapEntry(idx, sub, bits, None)
-        if idx not in self.od:
-            raise SdoAbortedError(ABORT_NOT_MAPPABLE)
-        obj = self.od[idx]
-        if not isinstance(obj, ODVariable):
-            if sub not in obj:
-                raise SdoAbortedError(ABORT_NOT_MAPPABLE)
-            obj = obj[sub]
-        if not obj.pdo_mappable or len(obj) != bits:
-            raise SdoAbortedError(ABORT_NOT_MAPPABLE)
-        return MapEntry(idx, sub, bits, obj)
-
-    def _read_tpdos(self) -> list[TpdoConfig]:
-        out = []
-        for n in range(512):
-            com, mp = 0x1800 + n, 0x1A00 + n
-            if com not in self.od or mp not in self.od:
-                break
-            cob = self._value(com, 1)
-            trans = self._value(com, 2)
-            start = self._value(com, 6) if 6 in self.od[com] else 0
-            count = self._value(mp, 0)
-            entries = tuple(self._entry(self._value(mp, s)) for s in range(1, count + 1))
-            fmt = "<"
-            for e in entries:
-                st = ODVariable.STRUCT_TYPES.get(e.var.data_type) if e.var is not None else None
-                if st is None or not isinstance(st, struct.Struct) or e.bits != 8 * st.size:
-                    fmt = None
-                    break
-                fmt += st.format.lstrip("<")
-            out.append(TpdoConfig(number=n + 1, cob_id=cob & COB_ID_MASK,
-                                  valid=not cob & PDO_NOT_VALID, trans_type=trans,
-                                  sync_start=start, entries=entries,
-                                  packer=struct.Struct(fmt) if fmt else None))
-        return out
-
-    def _default(self, e: MapEntry) -> int | float:
-        v = e.var.value if e.var.value is not None else e.var.default
-        return v if v is not None else 0
-
-    def _pack(self, cfg: TpdoConfig) -> tuple[bytes, list[tuple[tuple[int, int], int | float]]]:
-        vals = []
-        for e in cfg.entries:
-            key = (e.index, e.subindex)
-            if e.var is None:
-                vals.append((key, 0))
-            else:
-                v = self._process.get(key)
-                vals.append((key, self._default(e) if v is None else v))
-        if cfg.packer is not None:
-            return cfg.packer.pack(*(v for _, v in vals)), vals
-        # general bit-granular packing (CiA 301: entries are concatenated LSB first)
-        acc, shift = 0, 0
-        for e, (_, v) in zip(cfg.entries, vals):
-            if e.var is not None:
-                raw = int.from_bytes(e.var.encode_raw(v), "little")
-                acc |= (raw & ((1 << e.bits) - 1)) << shift
-            shift += e.bits
-        return acc.to_bytes(cfg.length, "little"), vals
+        return self.tpdos.configs()
 
     def sync(self, counter: int | None = None,
              carried: list[dict[tuple[int, int], int | float]] | None = None) -> list[Frame]:
@@ -480,99 +613,58 @@ class SimNode:
         still returns what the bus has carried so far."""
         if self.state != OPERATIONAL:
             return []
-        frames = []
-        for cfg in self.tpdo_configs():
-            if not cfg.valid or not cfg.entries:
-                continue
-            t = cfg.trans_type
-            if t > 240:
-                continue  # 241…251 reserved; 252…255 not synchronous
-            if not self._started_counting.get(cfg.number):
-                if cfg.sync_start and counter is not None and counter != cfg.sync_start:
-                    continue
-                self._started_counting[cfg.number] = True
-                self._sync_count[cfg.number] = 0
-            data, vals = self._pack(cfg)
-            if t == 0:
-                if self._last_sent.get(cfg.number) == data:
-                    continue
-            else:
-                c = self._sync_count[cfg.number] = self._sync_count[cfg.number] + 1
-                if c % t:
-                    continue
-            self._last_sent[cfg.number] = data
-            if carried is None:
-                self._carried.update(vals)
-            else:
-                carried.append(dict(vals))
-            frames.append(Frame("tpdo", cfg.cob_id, data, cfg.number))
-        return frames
+        return self.tpdos.sync(counter, carried)
 
     def carry(self, carried: list[dict[tuple[int, int], int | float]]) -> None:
         """What TPDOs built ahead of their SYNC (``sync(…, carried)``) carried, now sent."""
         for vals in carried:
-            self._carried.update(vals)
+            self.tpdos.carried.update(vals)
 
     def snapshot(self) -> tuple:
         """The state a SYNC cycle changes (process image, TPDO counting, errors), to undo a
         cycle built ahead of its SYNC that the SYNC cannot use (``restore``)."""
-        return (dict(self._process), dict(self._sync_count), dict(self._started_counting),
-                dict(self._last_sent), dict(self._active_errors), self.error_register, self._tpdos)
+        return self.tpdos.snapshot(), dict(self.errors.active), self.errors.register
 
     def restore(self, snap: tuple) -> None:
-        (self._process, self._sync_count, self._started_counting, self._last_sent,
-         self._active_errors, self.error_register, self._tpdos) = (
-            dict(snap[0]), dict(snap[1]), dict(snap[2]), dict(snap[3]), dict(snap[4]),
-            snap[5], snap[6])
+        tpdos, active, register = snap
+        self.tpdos.restore(tpdos)
+        self.errors.active, self.errors.register = dict(active), register
 
     # ---- EMCY ---------------------------------------------------------------------------------
     @property
     def emcy_cob_id(self) -> int:
         if 0x1014 in self.od:
-            return self._value(0x1014, 0) & COB_ID_MASK
+            return self.tpdos.value(0x1014, 0) & COB_ID_MASK
         return COB_EMCY_BASE + self.node_id
+
+    @property
+    def error_register(self) -> int:
+        return self.errors.register
+
+    def has_error(self, code: int) -> bool:
+        """The error ``code`` is active (raised, not cleared)."""
+        return code in self.errors.active
 
     def raise_error(self, code: int, register_bits: int = ERR_GENERIC,
                     info: bytes = b"") -> Frame:
         """An error appears: EMCY with the code, the updated error register and ``info``."""
-        self._active_errors[code] = register_bits | ERR_GENERIC
-        self.error_register = 0
-        for bits in self._active_errors.values():
-            self.error_register |= bits
-        return Frame("emcy", self.emcy_cob_id, EMCY_STRUCT.pack(code, self.error_register, info))
+        return self.errors.raise_error(self.emcy_cob_id, code, register_bits, info)
 
     def clear_error(self, code: int) -> Frame | None:
         """An error goes away; when none is left, the EMCY error reset (code 0x0000)."""
-        if self._active_errors.pop(code, None) is None:
-            return None
-        self.error_register = 0
-        for bits in self._active_errors.values():
-            self.error_register |= bits
-        # CiA 301: code 0x0000 with the remaining error register; the cleared code as info
-        return Frame("emcy", self.emcy_cob_id,
-                     EMCY_STRUCT.pack(0, self.error_register, struct.pack("<H", code)))
+        return self.errors.clear_error(self.emcy_cob_id, code)
 
     # ---- SDO server hooks ---------------------------------------------------------------------
     def _on_sdo_read(self, index: int, subindex: int, od: ODVariable):
         if index == 0x1001:
-            return self.error_register
-        return self._carried.get((index, subindex))
+            return self.errors.register
+        return self.tpdos.carried.get((index, subindex))
 
     def _on_sdo_write(self, index: int, subindex: int, od: ODVariable, data: bytes) -> None:
         if 0x1A00 <= index <= 0x1BFF:
-            value = int(od.decode_raw(data))
-            if subindex == 0:
-                total = 0
-                for s in range(1, value + 1):
-                    total += self._entry(self._value(index, s)).bits
-                if total > 64:
-                    raise SdoAbortedError(ABORT_PDO_TOO_LONG)
-            elif value:
-                self._entry(value)  # aborts when not mappable
+            self.tpdos.check_mapping_write(index, subindex, od, data)
         if 0x1800 <= index <= 0x1BFF:
-            self._tpdos = None  # re-read the maps at the next SYNC
-            self._started_counting.clear()
-            self._last_sent.clear()
+            self.tpdos.remapped()  # re-read the maps at the next SYNC
         if index == 0x1017:
             # store first so _arm_heartbeat reads the new value
             self.local.data_store.setdefault(index, {})[subindex] = bytes(data)

@@ -35,6 +35,7 @@ import math
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass, fields
+from typing import Any
 
 import numpy as np
 from scipy import linalg, signal
@@ -131,7 +132,7 @@ def minimum_strain_energy_split(S: np.ndarray, k: np.ndarray, wrench: np.ndarray
 class _Mounts:
     """The cells at one set of true angles: S, K, normal modes and the lifted sample map."""
 
-    def __init__(self, phys: AircraftPhysics, alpha: np.ndarray):
+    def __init__(self, phys: MountDynamics, alpha: np.ndarray):
         self.alpha = alpha
         self.S = wrench_matrix_true(phys.positions, cell_axes_true(phys.nominal_axes, alpha))
         self.K = (self.S * phys.k) @ self.S.T
@@ -330,28 +331,46 @@ class _BaseVibration:
 
 # --------------------------------------------------------------------------- the aircraft
 
-class AircraftPhysics:
-    """The simulated aircraft: `next_sample()` advances one sample period (1/sample_rate_hz).
+def _draw_parameters(sc: Scenario, blades: int, Q: int, rng: np.random.Generator,
+                     angles_rng: np.random.Generator) -> dict:
+    """All per-seed random parameters, drawn in a fixed order whatever the variant (the order
+    is the contract: every seed's aircraft stays the same); the base angles from their own
+    stream (the same aircraft in every scenario). The load model's and the true angles' draws
+    interleave, so they are drawn here, in one place, and handed to each."""
+    d: dict = {}
+    d["harm_orders"] = np.array([h.resolve_order(blades) for h in sc.harmonics], int)
+    d["harm_amp"] = np.array([rng.uniform(h.amplitude_min, h.amplitude_max)
+                              for h in sc.harmonics]).reshape(-1, 6)
+    d["harm_phase"] = rng.uniform(0, 2 * np.pi, (len(sc.harmonics), 6))
+    d["harm_slow"] = [(_slow_variation(rng, (6,), h.variation_period_s),
+                       _slow_variation(rng, (6,), h.variation_period_s))
+                      for h in sc.harmonics]
+    d["omega_slow"] = _slow_variation(rng, (), sc.rotor.omega_period_s)
+    ang = sc.angles
+    rng.uniform(-ang.range_rad, ang.range_rad, 14)  # the former draw: the rest unchanged
+    base_draw = angles_rng.uniform(-ang.range_rad, ang.range_rad, 14)
+    d["alpha_base"] = base_draw if isinstance(ang.base, str) else np.array(ang.base, float)
+    step_signs = rng.choice([-1.0, 1.0], (max(len(ang.step_at_s), 1), 14))
+    d["alpha_steps"] = step_signs[: len(ang.step_at_s)] * ang.step_rad
+    lin_signs = rng.choice([-1.0, 1.0], (14, 6))
+    d["alpha_gain"] = lin_signs * ang.linear_rad_per_unit  # (14, 6) rad per N, N·m
+    d["drive_phase"] = rng.uniform(0, 2 * np.pi, Q)
+    d["drive_order"] = (blades if sc.drive.order == "blades" else int(sc.drive.order))
+    d["cell_gain"] = np.zeros(14)
+    if ang.mode == "cell_load":  # the last draw of this stream: the others unchanged
+        d["cell_gain"] = rng.choice([-1.0, 1.0], 14) * ang.cell_gain_rad_per_N
+    return d
 
-    Deterministic for a given (cfg, scenario, seed): every random quantity comes from streams
-    spawned from the seed (default: the scenario's fixed seed).
-    """
 
-    def __init__(self, cfg: RigConfig, scenario: Scenario | str, seed: int | None = None,
-                 block_size: int = BLOCK_SIZE):
-        if isinstance(scenario, str):
-            scenario = load_scenario(scenario)
-        self.cfg, self.scenario = cfg, scenario
-        self.seed = int(scenario.seed if seed is None else seed)
-        self.dt = 1.0 / cfg.sample_rate_hz
-        self.block_size = int(block_size)
-        self.substeps = int(cfg.simulator.substeps)
-        if self.substeps < 10:
-            raise ValueError("simulator.substeps must be >= 10 (model §8: >= 10x the sample rate)")
+class MountDynamics:
+    """The transmission on its seven cells (model.md §8): the rig's masses, cell axes,
+    stiffness and damping, one discretisation per set of true angles (cached, bounded), and
+    the body's response to a block's CG wrench and base motion — the cell forces and the
+    body's acceleration, the state carried from block to block."""
+
+    def __init__(self, cfg: RigConfig, scenario: Scenario, dt: float, substeps: int):
+        self.dt, self.substeps = dt, substeps
         self.quasi_static = scenario.quasi_static
-        self.gravity = scenario.gravity
-        self.noise = scenario.noise
-
         # rig: positions, axes, stiffness, damping, masses (config only)
         self.positions = np.array([c.position_m for c in cfg.cells])
         self.nominal_axes = np.array([c.nominal_axis for c in cfg.cells])
@@ -360,98 +379,117 @@ class AircraftPhysics:
         self.beta = 2 * sim.damping_ratio / (2 * np.pi * sim.damping_reference_hz)
         self.c = self.beta * self.k
         self.mass_diag = np.concatenate([cfg.effective_mass_kg, cfg.inertia_kg_m2])
-        self.cell_fs = np.array([c.full_scale_N for c in cfg.cells])
-        self.cell_sigma = np.array([c.full_scale_N * c.accuracy_fs for c in cfg.cells])
         self.acc_pos = np.array([a.position_m for a in cfg.accelerometers])
-        self.acc_sigma = np.array([a.full_scale_g * G0 * a.accuracy_fs for a in cfg.accelerometers])
-        b = cfg.balance
-        fs = np.array([b.full_scale_force_N] * 3 + [b.full_scale_moment_Nm] * 3)
-        self.balance_sigma = fs * b.accuracy_fs
         rig_err = scenario.rig_errors
         # the true hub centre (a scenario's rig error moves it off the configured one)
         self.R_body = hub_matrix(np.asarray(cfg.hub_centre_m) + rig_err.hub_offset_m
                                  if np.any(rig_err.hub_offset_m) else cfg.hub_centre_m,
                                  cfg.shaft_tilt_rad, "body")
-        self.balance_read = None  # H_b = balance_read @ H_true when the balance is in error
-        if np.any(rig_err.balance_scale) or np.any(rig_err.balance_align_rad):
-            Rp = np.eye(3) + skew3(rig_err.balance_align_rad)
-            Dm = np.zeros((6, 6))
-            Dm[:3, :3] = Rp @ np.diag(1 + rig_err.balance_scale[:3])
-            Dm[3:, 3:] = Rp @ np.diag(1 + rig_err.balance_scale[3:])
-            self.balance_read = np.linalg.inv(Dm)
         self.D = (np.array([e.wrench_per_unit for e in cfg.external_loads]).T
                   if cfg.external_loads else np.zeros((6, 0)))
-        self.drive_sigma = np.array([e.sigma for e in cfg.external_loads])
         self.Q = self.D.shape[1]
-        self.g_vec = np.array([0.0, 0.0, G0]) if self.gravity else np.zeros(3)  # z down
+        self.g_vec = np.array([0.0, 0.0, G0]) if scenario.gravity else np.zeros(3)  # z down
         self.W_g = np.concatenate([cfg.effective_mass_kg * self.g_vec, np.zeros(3)])
-        blades = cfg.rotor.blades
-        self.blades = blades
-        self.omega0 = cfg.rotor.omega_nominal_rad_s
-        check_against_rig(scenario, cfg.sample_rate_hz, self.omega0, blades)
-        frame_rot = hub_matrix(np.zeros(3), cfg.shaft_tilt_rad, scenario.loads.frame)
-        self.load_frame = frame_rot  # scenario axes -> body axes (block-diagonal)
-
-        # independent random streams (chunk-invariant draws); the aircraft's base angles have a
-        # stream of their own, so that every scenario flies the same aircraft for a given seed
-        # (a ground test and a flight share their base angles whatever else they draw)
-        ss = np.random.SeedSequence(self.seed)
-        (params, r_cell, r_acc, r_bal, r_drive, r_base, r_angles) = [np.random.default_rng(s)
-                                                                     for s in ss.spawn(7)]
-        self._rng = {"cell": r_cell, "acc": r_acc, "bal": r_bal, "drive": r_drive, "base": r_base}
-        self._draw_parameters(params, r_angles)
-        self._build_schedules()
-
-        self._base = None
-        if scenario.base_vibration.enabled:
-            bv = scenario.base_vibration
-            self._base = _BaseVibration(bv.band_hz, self.dt / self.substeps, bv.rms_g * G0,
-                                        self._rng["base"])
-        self._turb = None
-        tb = scenario.turbulence
-        if tb.enabled:
-            if 2 * tb.band_hz[1] >= self.substeps * cfg.sample_rate_hz:
-                raise ValueError("turbulence band reaches the simulator's substep Nyquist")
-            r_turb = np.random.default_rng(ss.spawn(1)[0])  # a 7th stream: the others unchanged
-            # band-passed white noise of unit RMS on 3 + 3 axes (forces, moments)
-            self._turb = [_BaseVibration(tb.band_hz, self.dt / self.substeps, 1.0, r_turb)
-                          for _ in range(2)]
         self._mounts: OrderedDict[bytes, _Mounts] = OrderedDict()
         self._state: tuple[np.ndarray, np.ndarray] | None = None
-        self._k_next = 0  # index of the next block's first sample
-        self._block: dict | None = None
-        self._pos = 0
-        # the next block computed ahead by another thread (compute_ahead: a real-time driver,
-        # off the SYNC path); the lock orders it with next_sample's block boundary
-        self._next: dict | None = None
-        self._next_lock = threading.Lock()
 
-    # ------------------------------------------------------------------ set-up
-    def _draw_parameters(self, rng: np.random.Generator, angles_rng: np.random.Generator) -> None:
-        """All per-seed random parameters, drawn in a fixed order whatever the variant; the base
-        angles from their own stream (the same aircraft in every scenario)."""
-        sc = self.scenario
-        self.harm_orders = np.array([h.resolve_order(self.blades) for h in sc.harmonics], int)
-        self.harm_amp = np.array([rng.uniform(h.amplitude_min, h.amplitude_max)
-                                  for h in sc.harmonics]).reshape(-1, 6)
-        self.harm_phase = rng.uniform(0, 2 * np.pi, (len(sc.harmonics), 6))
-        self.harm_slow = [(_slow_variation(rng, (6,), h.variation_period_s),
-                           _slow_variation(rng, (6,), h.variation_period_s))
-                          for h in sc.harmonics]
-        self.omega_slow = _slow_variation(rng, (), sc.rotor.omega_period_s)
-        ang = sc.angles
-        rng.uniform(-ang.range_rad, ang.range_rad, 14)  # the former draw: the rest unchanged
-        base_draw = angles_rng.uniform(-ang.range_rad, ang.range_rad, 14)
-        self.alpha_base = base_draw if isinstance(ang.base, str) else np.array(ang.base, float)
-        step_signs = rng.choice([-1.0, 1.0], (max(len(ang.step_at_s), 1), 14))
-        self.alpha_steps = step_signs[: len(ang.step_at_s)] * ang.step_rad
-        lin_signs = rng.choice([-1.0, 1.0], (14, 6))
-        self.alpha_gain = lin_signs * ang.linear_rad_per_unit  # (14, 6) rad per N, N·m
-        self.drive_phase = rng.uniform(0, 2 * np.pi, self.Q)
-        self.drive_order = (self.blades if sc.drive.order == "blades" else int(sc.drive.order))
-        self.cell_gain = np.zeros(14)
-        if ang.mode == "cell_load":  # the last draw of this stream: the others unchanged
-            self.cell_gain = rng.choice([-1.0, 1.0], 14) * ang.cell_gain_rad_per_N
+    def mode_frequencies_hz(self, alpha: np.ndarray) -> np.ndarray:
+        """The six mount-mode frequencies at the angles ``alpha``."""
+        S = wrench_matrix_true(self.positions, cell_axes_true(self.nominal_axes, alpha))
+        w2 = linalg.eigh((S * self.k) @ S.T, np.diag(self.mass_diag), eigvals_only=True)
+        return np.sqrt(w2) / (2 * np.pi)
+
+    def mount(self, alpha: np.ndarray) -> _Mounts:
+        key = alpha.tobytes()
+        m = self._mounts.get(key)
+        if m is None:
+            m = _Mounts(self, alpha.copy())
+            self._mounts[key] = m
+            if len(self._mounts) > MOUNT_CACHE_SIZE:
+                self._mounts.popitem(last=False)
+        else:
+            self._mounts.move_to_end(key)
+        return m
+
+    def respond(self, alpha: np.ndarray, w: np.ndarray, d: np.ndarray,
+                v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The true cell forces (B, 7) and the body's acceleration q'' (B, 6) at the B sample
+        instants of a block: ``alpha`` the true angles per sample, ``w`` the CG wrench and
+        ``d``, ``v`` the base displacement and velocity at the B n + 1 substep points."""
+        B, n, dt = len(alpha), self.substeps, self.dt
+        S0 = slice(0, B * n, n)  # substep 0 of every sample: the sample instants
+        T_true = np.empty((B, 7))
+        qdd = np.zeros((B, 6))
+        change = np.flatnonzero(np.any(alpha[1:] != alpha[:-1], axis=1)) + 1
+        starts = [0, *change.tolist(), B]  # runs of samples with the same true angles
+        for a_, b_ in itertools.pairwise(starts):
+            m = self.mount(alpha[a_])
+            wk = w[a_ * n: b_ * n + 1: n][: b_ - a_]
+            if self.quasi_static:
+                q = np.linalg.solve(m.K, wk.T).T  # no inertia: static deflection
+                T_true[a_:b_] = -self.k * (q @ m.S)
+                continue  # qdd stays 0: the body does not accelerate
+            if self._state is None:
+                # start in (quasi-)static equilibrium: the deflection under the loads at t = 0
+                # and its rate (K q' = w'(0), a 2nd-order one-sided difference over substeps),
+                # so the harmonics start without a mount transient; the base is at rest
+                w_rate = (-3 * w[0] + 4 * w[1] - w[2]) / (2 * dt / n)
+                self._state = (np.linalg.solve(m.K, w[0]), np.linalg.solve(m.K, w_rate))
+            seg = slice(a_ * n, b_ * n + 1)
+            # M q'' + C q' + K q = w + K [d; 0] + C [d'; 0]: the base drives the cells
+            force = w[seg] + d[seg] @ m.K[:, :3].T + v[seg] @ m.C[:, :3].T
+            q, qd = m.propagate(self._state[0], self._state[1], force, n)
+            self._state = (q[-1], qd[-1])
+            q, qd = q[:-1], qd[:-1]
+            dq = q.copy()
+            dq[:, :3] -= d[S0][a_:b_]
+            dqd = qd.copy()
+            dqd[:, :3] -= v[S0][a_:b_]
+            T = -self.k * (dq @ m.S) - self.c * (dqd @ m.S)
+            T_true[a_:b_] = T
+            qdd[a_:b_] = (T @ m.S.T + wk) / self.mass_diag  # Newton-Euler at the sample instant
+        return T_true, qdd
+
+    def inertial(self, qdd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The inertial loads M [a - g; omega'] (B, 6) and the specific force at each
+        accelerometer (B, K, 3) from the body's acceleration q''."""
+        B = len(qdd)
+        I_true = self.mass_diag * qdd - self.W_g  # M [a - g; omega']
+        if self.quasi_static:
+            I_true = -np.broadcast_to(self.W_g, (B, 6)).copy()
+        lin, ang = qdd[:, :3], qdd[:, 3:]
+        accel_true = (lin[:, None, :] + np.cross(ang[:, None, :], self.acc_pos[None])
+                      - self.g_vec)  # specific force at each accelerometer (K, 3)
+        return I_true, accel_true
+
+
+class LoadModel:
+    """The hub loads a scenario applies (model.md §8): the static schedule and manoeuvres,
+    the rotor's speed and azimuth, the harmonics (slowly varying), turbulence, the shaker,
+    the unmodelled load and the external (drive) loads, at the substep points of a block."""
+
+    def __init__(self, cfg: RigConfig, scenario: Scenario, draws: dict, dt: float,
+                 substeps: int, Q: int, r_turb: np.random.Generator | None):
+        self.scenario = scenario
+        self.blades = cfg.rotor.blades
+        self.omega0 = cfg.rotor.omega_nominal_rad_s
+        self.Q = Q
+        # scenario axes -> body axes (block-diagonal)
+        self.load_frame = hub_matrix(np.zeros(3), cfg.shaft_tilt_rad, scenario.loads.frame)
+        self.harm_orders = draws["harm_orders"]
+        self.harm_amp = draws["harm_amp"]
+        self.harm_phase = draws["harm_phase"]
+        self.harm_slow = draws["harm_slow"]
+        self.omega_slow = draws["omega_slow"]
+        self.drive_phase = draws["drive_phase"]
+        self.drive_order = draws["drive_order"]
+        self._build_schedules()
+        self._turb = None
+        if r_turb is not None:
+            tb = scenario.turbulence
+            # band-passed white noise of unit RMS on 3 + 3 axes (forces, moments)
+            self._turb = [_BaseVibration(tb.band_hz, dt / substeps, 1.0, r_turb)
+                          for _ in range(2)]
 
     def _build_schedules(self) -> None:
         sc = self.scenario
@@ -488,70 +526,14 @@ class AircraftPhysics:
             self.shaker_freq = _Piecewise(np.array(kt), np.array(fv), D)
             self.shaker_amp = _Piecewise(np.array(kt), np.array(av), D)
 
-    # ------------------------------------------------------------------ public
-    @property
-    def index(self) -> int:
-        """Index of the sample the next call of next_sample() returns."""
-        if self._block is None:
-            return self._k_next
-        return self._k_next - self.block_size + self._pos
-
-    def next_sample(self) -> SimSample:
-        """Advance one sample period."""
-        if self._block is None or self._pos >= self.block_size:
-            self._block = self._take_block()
-            self._pos = 0
-        b, i = self._block, self._pos
-        self._pos += 1
-        vals = {}
-        for name in SAMPLE_FIELDS:
-            v = b[name][i]
-            vals[name] = v.copy() if isinstance(v, np.ndarray) else v.item()
-        return SimSample(**vals)
-
-    def next_block(self) -> dict[str, np.ndarray]:
-        """The next `block_size` samples as arrays (SimSample fields stacked). Do not mix with
-        next_sample() inside one block."""
-        if self._block is not None and 0 < self._pos < self.block_size:
-            raise RuntimeError("next_block() in the middle of a block consumed by next_sample()")
-        out = self._take_block()
-        self._block, self._pos = None, 0
-        return out
-
-    def compute_ahead(self) -> bool:
-        """Compute the next block now, unless it is computed already (a real-time driver's
-        thread between SYNCs, so that no SYNC waits for a whole block: 1-2 ms for 100
-        samples). The block is the one :meth:`next_sample` would compute at the boundary, bit
-        for bit (blocks are computed once each, in order). Returns whether it computed."""
-        with self._next_lock:
-            if self._next is not None:
-                return False
-            self._next = self._compute_block(self._k_next)
-            return True
-
-    def _take_block(self) -> dict[str, np.ndarray]:
-        """The next block: the one computed ahead, else computed now."""
-        with self._next_lock:
-            b, self._next = self._next, None
-            if b is None:
-                b = self._compute_block(self._k_next)
-            self._k_next += self.block_size
-        return b
-
-    def mode_frequencies_hz(self, alpha: np.ndarray | None = None) -> np.ndarray:
-        """The six mount-mode frequencies (model §8: clear of 1/rev and N_b/rev)."""
-        a = self.alpha_base if alpha is None else np.asarray(alpha, float)
-        S = wrench_matrix_true(self.positions, cell_axes_true(self.nominal_axes, a))
-        w2 = linalg.eigh((S * self.k) @ S.T, np.diag(self.mass_diag), eigvals_only=True)
-        return np.sqrt(w2) / (2 * np.pi)
-
-    # ------------------------------------------------------------------ the load model
     def _rotor(self, t: np.ndarray):
         """Omega (rad/s) and rotor turns (azimuth / 2 pi, unreduced) at times t."""
         sc = self.scenario
         if sc.rotor.follow_shaker:
-            f = self.shaker_freq.value(t % sc.duration_s)[:, 0]
-            turns = self.shaker_freq.integral(t)[:, 0] / self.blades
+            sf = self.shaker_freq
+            assert sf is not None  # (follow_shaker without a [shaker] is refused at load)
+            f = sf.value(t % sc.duration_s)[:, 0]
+            turns = sf.integral(t)[:, 0] / self.blades
             return 2 * np.pi * f / self.blades, turns
         v, g = sc.rotor.omega_variation, sc.rotor.governor_amplitude
         if v == 0.0 and g == 0.0:
@@ -612,7 +594,7 @@ class AircraftPhysics:
             out[:, j] = amp * np.exp(1j * ph)
         return out
 
-    def _loads(self, t_samp: np.ndarray, ts: np.ndarray, n: int):
+    def loads(self, t_samp: np.ndarray, ts: np.ndarray, n: int):
         """Hub loads at substep points ts (body axes), the phase-shifted copy for the
         unmodelled load, the static part, Omega and rotor turns at the substeps."""
         sc = self.scenario
@@ -643,6 +625,7 @@ class AircraftPhysics:
             turb = np.hstack([tv.block(nb)[2] for tv in self._turb])  # (B n + 1, 6)
             H += turb * sc.turbulence.rms
         if sc.shaker is not None:
+            assert self.shaker_amp is not None and self.shaker_freq is not None  # (built with it)
             tc = ts % sc.duration_s
             amp = self.shaker_amp.value(tc)
             phase = 2 * np.pi * np.mod(self.shaker_freq.integral(ts)[:, 0], 1.0)
@@ -658,14 +641,31 @@ class AircraftPhysics:
             Wu[:, 3] = um.roll_Nm_per_N_Y * shifted[:, 1]
         return H, Wu, static, omega, turns
 
-    def _drive(self, turns: np.ndarray) -> np.ndarray:
+    def drive(self, turns: np.ndarray) -> np.ndarray:
         if not self.Q:
             return np.zeros((len(turns), 0))
         dr = self.scenario.drive
         ph = 2 * np.pi * np.mod(turns * self.drive_order, 1.0)
         return dr.static + dr.amplitude * np.cos(ph[:, None] + self.drive_phase)
 
-    def _alpha(self, t: np.ndarray, static_body: np.ndarray) -> np.ndarray:
+
+class TrueAngles:
+    """The true deformation angles in time (model.md §8): the aircraft's base angles, and
+    as the scenario says steps, a linear dependence on the static load, each angle with its
+    own cell's load, or a slow drift — held on the resolution grid (one discretisation of
+    the mounts per value)."""
+
+    def __init__(self, scenario: Scenario, draws: dict, mounts: MountDynamics):
+        self.scenario = scenario
+        self._mounts = mounts  # (the cell_load mode splits the static wrench over the cells)
+        self.alpha_base = draws["alpha_base"]
+        self.alpha_steps = draws["alpha_steps"]
+        self.alpha_gain = draws["alpha_gain"]
+        self.cell_gain = draws["cell_gain"]
+
+    def at(self, t: np.ndarray, static_body: np.ndarray) -> np.ndarray:
+        """The true angles (len(t), 14) at the sample times ``t``, the static hub load
+        ``static_body`` (body axes) at those times."""
         ang = self.scenario.angles
         alpha = np.broadcast_to(self.alpha_base, (len(t), 14)).copy()
         if ang.mode == "step":
@@ -678,9 +678,9 @@ class AircraftPhysics:
         elif ang.mode == "cell_load":
             # each angle moves with its own cell's static load: the minimum-strain-energy split
             # of the static CG wrench at the base angles (S T + R H + W_g = 0 at rest)
-            S = wrench_matrix_true(self.positions, cell_axes_true(self.nominal_axes,
-                                                                  self.alpha_base))
-            T = minimum_strain_energy_split(S, self.k, static_body @ self.R_body.T + self.W_g).T
+            mt = self._mounts
+            S = wrench_matrix_true(mt.positions, cell_axes_true(mt.nominal_axes, self.alpha_base))
+            T = minimum_strain_energy_split(S, mt.k, static_body @ mt.R_body.T + mt.W_g).T
             d = T[:, np.arange(14) // 2] * self.cell_gain
             res = ang.resolution_rad
             alpha += res * np.rint(d / res)
@@ -691,83 +691,35 @@ class AircraftPhysics:
             alpha[:, list(ang.drift_angles)] += (res * np.rint(d / res))[:, None]
         return alpha
 
-    def _base_motion(self, B: int, n: int):
-        """Base displacement, velocity, acceleration at the B n + 1 substep points (3 axes)."""
-        if self._base is None:
-            z = np.zeros((B * n + 1, 3))
-            return z, z, z
-        d, v, a = self._base.block(B * n)
-        return d, v, a
 
-    def _mount(self, alpha: np.ndarray) -> _Mounts:
-        key = alpha.tobytes()
-        m = self._mounts.get(key)
-        if m is None:
-            m = _Mounts(self, alpha.copy())
-            self._mounts[key] = m
-            if len(self._mounts) > MOUNT_CACHE_SIZE:
-                self._mounts.popitem(last=False)
-        else:
-            self._mounts.move_to_end(key)
-        return m
+class SensorModels:
+    """What the instruments read of the truth (model.md §8): each load cell's, accelerometer's,
+    balance's and drive-load sensor's noise (from their accuracy in the config, each from its
+    own random stream), the balance's scale and alignment error, the cells' over-range bit."""
 
-    # ------------------------------------------------------------------ one block
-    def _compute_block(self, k0: int) -> dict[str, np.ndarray]:
-        B, n, dt = self.block_size, self.substeps, self.dt
-        idx = k0 + np.arange(B + 1)
-        t_samp = idx * dt  # sample instants (the last one is the next block's first)
-        sub = np.arange(n) * (dt / n)
-        ts = np.concatenate([(t_samp[:-1, None] + sub[None, :]).reshape(-1), t_samp[-1:]])
+    def __init__(self, cfg: RigConfig, scenario: Scenario, rng: dict):
+        self.noise = scenario.noise
+        self._rng = rng  # "cell", "acc", "bal", "drive": one stream each
+        self.cell_fs = np.array([c.full_scale_N for c in cfg.cells])
+        self.cell_sigma = np.array([c.full_scale_N * c.accuracy_fs for c in cfg.cells])
+        self.acc_sigma = np.array([a.full_scale_g * G0 * a.accuracy_fs for a in cfg.accelerometers])
+        b = cfg.balance
+        fs = np.array([b.full_scale_force_N] * 3 + [b.full_scale_moment_Nm] * 3)
+        self.balance_sigma = fs * b.accuracy_fs
+        rig_err = scenario.rig_errors
+        self.balance_read = None  # H_b = balance_read @ H_true when the balance is in error
+        if np.any(rig_err.balance_scale) or np.any(rig_err.balance_align_rad):
+            Rp = np.eye(3) + skew3(rig_err.balance_align_rad)
+            Dm = np.zeros((6, 6))
+            Dm[:3, :3] = Rp @ np.diag(1 + rig_err.balance_scale[:3])
+            Dm[3:, 3:] = Rp @ np.diag(1 + rig_err.balance_scale[3:])
+            self.balance_read = np.linalg.inv(Dm)
+        self.drive_sigma = np.array([e.sigma for e in cfg.external_loads])
 
-        H, Wu, static, omega_s, turns = self._loads(t_samp, ts, n)
-        q_drive = self._drive(turns)
-        w = H @ self.R_body.T + Wu + q_drive @ self.D.T + self.W_g  # CG wrench (B n + 1, 6)
-        d, v, a_base = self._base_motion(B, n)
-        S0 = slice(0, B * n, n)  # substep 0 of every sample: the sample instants
-        alpha = self._alpha(t_samp[:-1], static[S0])
-
-        T_true = np.empty((B, 7))
-        qdd = np.zeros((B, 6))
-        change = np.flatnonzero(np.any(alpha[1:] != alpha[:-1], axis=1)) + 1
-        starts = [0, *change.tolist(), B]  # runs of samples with the same true angles
-        for a_, b_ in itertools.pairwise(starts):
-            m = self._mount(alpha[a_])
-            wk = w[a_ * n: b_ * n + 1: n][: b_ - a_]
-            if self.quasi_static:
-                q = np.linalg.solve(m.K, wk.T).T  # no inertia: static deflection
-                T_true[a_:b_] = -self.k * (q @ m.S)
-                continue  # qdd stays 0: the body does not accelerate
-            if self._state is None:
-                # start in (quasi-)static equilibrium: the deflection under the loads at t = 0
-                # and its rate (K q' = w'(0), a 2nd-order one-sided difference over substeps),
-                # so the harmonics start without a mount transient; the base is at rest
-                w_rate = (-3 * w[0] + 4 * w[1] - w[2]) / (2 * dt / n)
-                self._state = (np.linalg.solve(m.K, w[0]), np.linalg.solve(m.K, w_rate))
-            seg = slice(a_ * n, b_ * n + 1)
-            # M q'' + C q' + K q = w + K [d; 0] + C [d'; 0]: the base drives the cells
-            force = w[seg] + d[seg] @ m.K[:, :3].T + v[seg] @ m.C[:, :3].T
-            q, qd = m.propagate(self._state[0], self._state[1], force, n)
-            self._state = (q[-1], qd[-1])
-            q, qd = q[:-1], qd[:-1]
-            dq = q.copy()
-            dq[:, :3] -= d[S0][a_:b_]
-            dqd = qd.copy()
-            dqd[:, :3] -= v[S0][a_:b_]
-            T = -self.k * (dq @ m.S) - self.c * (dqd @ m.S)
-            T_true[a_:b_] = T
-            qdd[a_:b_] = (T @ m.S.T + wk) / self.mass_diag  # Newton-Euler at the sample instant
-
-        I_true = self.mass_diag * qdd - self.W_g  # M [a - g; omega']
-        if self.quasi_static:
-            I_true = -np.broadcast_to(self.W_g, (B, 6)).copy()
-        lin, ang = qdd[:, :3], qdd[:, 3:]
-        accel_true = (lin[:, None, :] + np.cross(ang[:, None, :], self.acc_pos[None])
-                      - self.g_vec)  # specific force at each accelerometer (K, 3)
-
-        H_true = H[S0]
-        unmod = Wu[S0]
-        drive_true = q_drive[S0]
-        K = len(self.acc_pos)
+    def read(self, T_true: np.ndarray, accel_true: np.ndarray, H_true: np.ndarray,
+             drive_true: np.ndarray):
+        """(T, accel, H_balance, drive, cell_status) as read of a block's truth."""
+        B, K, Q = len(T_true), accel_true.shape[1], drive_true.shape[1]
         if self.noise:
             r = self._rng
             T = T_true + r["cell"].standard_normal((B, 7)) * self.cell_sigma
@@ -776,12 +728,178 @@ class AircraftPhysics:
             if self.balance_read is not None:
                 Hb = (H_true @ self.balance_read.T
                       + (Hb - H_true))  # the balance's reading error, its noise unchanged
-            drv = drive_true + r["drive"].standard_normal((B, self.Q)) * self.drive_sigma
+            drv = drive_true + r["drive"].standard_normal((B, Q)) * self.drive_sigma
         else:
             T, acc, Hb, drv = T_true.copy(), accel_true.copy(), H_true.copy(), drive_true.copy()
             if self.balance_read is not None:
                 Hb = H_true @ self.balance_read.T
         status = (np.abs(T) > self.cell_fs).astype(np.uint8)  # bit 0: over-range
+        return T, acc, Hb, drv, status
+
+
+class AircraftPhysics:
+    """The simulated aircraft: `next_sample()` advances one sample period (1/sample_rate_hz).
+
+    Deterministic for a given (cfg, scenario, seed): every random quantity comes from streams
+    spawned from the seed (default: the scenario's fixed seed). The parts: the load model
+    (:class:`LoadModel`), the true angles (:class:`TrueAngles`), the mount dynamics
+    (:class:`MountDynamics`), the sensor models (:class:`SensorModels`); this class holds the
+    random streams, the base vibration and the blocks (computed once each, in order).
+    """
+
+    def __init__(self, cfg: RigConfig, scenario: Scenario | str, seed: int | None = None,
+                 block_size: int = BLOCK_SIZE):
+        if isinstance(scenario, str):
+            scenario = load_scenario(scenario)
+        self.cfg, self.scenario = cfg, scenario
+        self.seed = int(scenario.seed if seed is None else seed)
+        self.dt = 1.0 / cfg.sample_rate_hz
+        self.block_size = int(block_size)
+        self.substeps = int(cfg.simulator.substeps)
+        if self.substeps < 10:
+            raise ValueError("simulator.substeps must be >= 10 (model §8: >= 10x the sample rate)")
+        self.mounts = MountDynamics(cfg, scenario, self.dt, self.substeps)
+        check_against_rig(scenario, cfg.sample_rate_hz, cfg.rotor.omega_nominal_rad_s,
+                          cfg.rotor.blades)
+
+        # independent random streams (chunk-invariant draws); the aircraft's base angles have a
+        # stream of their own, so that every scenario flies the same aircraft for a given seed
+        # (a ground test and a flight share their base angles whatever else they draw)
+        ss = np.random.SeedSequence(self.seed)
+        (params, r_cell, r_acc, r_bal, r_drive, r_base, r_angles) = [np.random.default_rng(s)
+                                                                     for s in ss.spawn(7)]
+        rng = {"cell": r_cell, "acc": r_acc, "bal": r_bal, "drive": r_drive, "base": r_base}
+        draws = _draw_parameters(scenario, cfg.rotor.blades, self.mounts.Q, params, r_angles)
+        self.angles = TrueAngles(scenario, draws, self.mounts)
+        self.sensors = SensorModels(cfg, scenario, rng)
+
+        self._base = None
+        if scenario.base_vibration.enabled:
+            bv = scenario.base_vibration
+            self._base = _BaseVibration(bv.band_hz, self.dt / self.substeps, bv.rms_g * G0,
+                                        rng["base"])
+        r_turb = None
+        tb = scenario.turbulence
+        if tb.enabled:
+            if 2 * tb.band_hz[1] >= self.substeps * cfg.sample_rate_hz:
+                raise ValueError("turbulence band reaches the simulator's substep Nyquist")
+            r_turb = np.random.default_rng(ss.spawn(1)[0])  # a 7th stream: the others unchanged
+        self.loads = LoadModel(cfg, scenario, draws, self.dt, self.substeps, self.mounts.Q,
+                               r_turb)
+        self._k_next = 0  # index of the next block's first sample
+        self._block: dict | None = None
+        self._pos = 0
+        # the next block computed ahead by another thread (compute_ahead: a real-time driver,
+        # off the SYNC path); the lock orders it with next_sample's block boundary
+        self._next: dict | None = None
+        self._next_lock = threading.Lock()
+
+    # the parameters drawn for this seed (tests and benchmarks read them)
+    @property
+    def alpha_base(self) -> np.ndarray:
+        return self.angles.alpha_base
+
+    @property
+    def alpha_gain(self) -> np.ndarray:
+        return self.angles.alpha_gain
+
+    @property
+    def cell_gain(self) -> np.ndarray:
+        return self.angles.cell_gain
+
+    @property
+    def harm_amp(self) -> np.ndarray:
+        return self.loads.harm_amp
+
+    @property
+    def harm_phase(self) -> np.ndarray:
+        return self.loads.harm_phase
+
+    # ------------------------------------------------------------------ public
+    @property
+    def index(self) -> int:
+        """Index of the sample the next call of next_sample() returns."""
+        if self._block is None:
+            return self._k_next
+        return self._k_next - self.block_size + self._pos
+
+    def next_sample(self) -> SimSample:
+        """Advance one sample period."""
+        if self._block is None or self._pos >= self.block_size:
+            self._block = self._take_block()
+            self._pos = 0
+        b, i = self._block, self._pos
+        self._pos += 1
+        vals: dict[str, Any] = {}
+        for name in SAMPLE_FIELDS:
+            v = b[name][i]
+            vals[name] = v.copy() if isinstance(v, np.ndarray) else v.item()
+        return SimSample(**vals)
+
+    def next_block(self) -> dict[str, np.ndarray]:
+        """The next `block_size` samples as arrays (SimSample fields stacked). Do not mix with
+        next_sample() inside one block."""
+        if self._block is not None and 0 < self._pos < self.block_size:
+            raise RuntimeError("next_block() in the middle of a block consumed by next_sample()")
+        out = self._take_block()
+        self._block, self._pos = None, 0
+        return out
+
+    def compute_ahead(self) -> bool:
+        """Compute the next block now, unless it is computed already (a real-time driver's
+        thread between SYNCs, so that no SYNC waits for a whole block: 1-2 ms for 100
+        samples). The block is the one :meth:`next_sample` would compute at the boundary, bit
+        for bit (blocks are computed once each, in order). Returns whether it computed."""
+        with self._next_lock:
+            if self._next is not None:
+                return False
+            self._next = self._compute_block(self._k_next)
+            return True
+
+    def _take_block(self) -> dict[str, np.ndarray]:
+        """The next block: the one computed ahead, else computed now."""
+        with self._next_lock:
+            b, self._next = self._next, None
+            if b is None:
+                b = self._compute_block(self._k_next)
+            self._k_next += self.block_size
+        return b
+
+    def mode_frequencies_hz(self, alpha: np.ndarray | None = None) -> np.ndarray:
+        """The six mount-mode frequencies (model §8: clear of 1/rev and N_b/rev)."""
+        a = self.alpha_base if alpha is None else np.asarray(alpha, float)
+        return self.mounts.mode_frequencies_hz(a)
+
+    def _base_motion(self, B: int, n: int):
+        """Base displacement, velocity, acceleration at the B n + 1 substep points (3 axes)."""
+        if self._base is None:
+            z = np.zeros((B * n + 1, 3))
+            return z, z, z
+        d, v, a = self._base.block(B * n)
+        return d, v, a
+
+    # ------------------------------------------------------------------ one block
+    def _compute_block(self, k0: int) -> dict[str, np.ndarray]:
+        B, n, dt = self.block_size, self.substeps, self.dt
+        mt = self.mounts
+        idx = k0 + np.arange(B + 1)
+        t_samp = idx * dt  # sample instants (the last one is the next block's first)
+        sub = np.arange(n) * (dt / n)
+        ts = np.concatenate([(t_samp[:-1, None] + sub[None, :]).reshape(-1), t_samp[-1:]])
+
+        H, Wu, static, omega_s, turns = self.loads.loads(t_samp, ts, n)
+        q_drive = self.loads.drive(turns)
+        w = H @ mt.R_body.T + Wu + q_drive @ mt.D.T + mt.W_g  # CG wrench (B n + 1, 6)
+        d, v, a_base = self._base_motion(B, n)
+        S0 = slice(0, B * n, n)  # substep 0 of every sample: the sample instants
+        alpha = self.angles.at(t_samp[:-1], static[S0])
+        T_true, qdd = mt.respond(alpha, w, d, v)
+        I_true, accel_true = mt.inertial(qdd)
+
+        H_true = H[S0]
+        unmod = Wu[S0]
+        drive_true = q_drive[S0]
+        T, acc, Hb, drv, status = self.sensors.read(T_true, accel_true, H_true, drive_true)
         az = 2 * np.pi * np.mod(turns[S0], 1.0)
         az[az >= 2 * np.pi] = 0.0
         return {

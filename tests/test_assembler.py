@@ -518,3 +518,31 @@ def test_the_first_sample_holds_everything_its_frames_hold(cfg, alive):
     assert samples(r2.poll()) == []
     s = samples(feed(r2, period_frames(cfg, 1, T0 + DT)))[0]
     assert s.seq == 0 and s.omega is None and s.known_H is None and s.missing == ()
+
+
+def test_the_layout_decodes_one_period_alone(cfg):
+    """SampleLayout without the assembler: a period's frames (one per TPDO, bit order), the
+    bits reported and expected in, the Sample out — calibrated, the unreported node missing
+    and NaN, the lost samples flagged, the SYNC's numbers as given."""
+    from rsra.daq.bus.assembler import SampleLayout
+    from rsra.daq.bus.decoder import DecodeTable
+
+    table = DecodeTable(cfg)
+    layout = SampleLayout(cfg, table)
+    forces = [100.0 * (i + 1) for i in range(7)]
+    frames, have = list(table.zero_frames), 0
+    for m in period_frames(cfg, 3, T0, forces=forces, status=[0, 1, 0, 0, 0, 0, 0],
+                           skip=("cell_D",))[1:]:  # (without its SYNC)
+        slot = next(k for k, lay in enumerate(table.layouts) if lay.cob_id == m.arbitration_id)
+        frames[slot] = bytes(m.data)
+        have |= table.layouts[slot].bit
+    required = sum(nl.mask for nl in table.nodes if nl.required)
+    s = layout.sample(frames, have, required, seq=7, counter=4, t=T0, lost=2)
+    assert (s.seq, s.sync, s.t, s.lost_before, s.missing, s.complete) == (
+        7, 4, T0, 2, ("cell_D",), False)
+    assert s.flags == ("missing:cell_D", "lost_before", "overrange:B")
+    assert math.isnan(s.T[3])
+    np.testing.assert_array_equal(np.delete(s.T, 3), np.delete(forces, 3))
+    assert "D" not in s.cell_status and s.cell_status["B"] == 1
+    again = layout.sample(frames, have | table.node("cell_D").mask, required, 8, 5, T0, 0)
+    assert again.complete and again.missing == () and again.flags == ("overrange:B",)

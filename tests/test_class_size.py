@@ -20,12 +20,7 @@ _NOT_YET = "not split yet (issue 27 item 4): the next change splits it along its
 PENDING = {
     "estimator/posterior.py SequentialPosterior": "estimator/posterior.py is being changed by "
     "the calibration-with-missing-samples work; its split follows that change",
-    "sim_bus/physics.py AircraftPhysics": _NOT_YET + " (load model, true angles, mount "
-    "dynamics, sensor models; the draws of _draw_parameters keep their order)",
-    "sim_bus/nodes.py SimNode": _NOT_YET,
-    "daq/runtime/service.py Service": _NOT_YET,
     "daq/runtime/pipeline.py EstimatorPipeline": _NOT_YET,
-    "daq/bus/assembler.py SampleAssembler": _NOT_YET,
 }
 
 

@@ -13,7 +13,9 @@ import pytest
 from rsra.config.rig import load_config
 from rsra.daq.runtime.pipeline import EstimatorPipeline
 from rsra.daq.runtime.records import AnglesRecord
+from rsra.daq.runtime.sample_loop import SampleLoop
 from rsra.daq.runtime.service import Service, ServiceOptions
+from rsra.daq.runtime.supervision import Supervision
 
 
 @pytest.fixture(scope="module")
@@ -149,23 +151,21 @@ def test_a_slow_first_step_goes_whole_to_the_service_thread_in_order(cfg, run):
     want = [_hub(ref.process(sample(i)).records)[0] for i in range(100)]
 
     published = []
-    svc = Service(cfg, ServiceOptions(sim="ground-test", speed=1.0, zenoh=False,
-                                      identification=False))
-    svc.pipeline = EstimatorPipeline(cfg, cfg.identification.initial_angles_rad,
-                                     identification=False)
-    svc.outputs = SimpleNamespace(publish=lambda k, p: published.append((k, p)))
-    svc.source = SimpleNamespace(deterministic=False, recorder=None,
-                                 reader=SimpleNamespace(items=SimpleNamespace(
-                                     queue=queue.Queue(16))))
+    pipeline = EstimatorPipeline(cfg, cfg.identification.initial_angles_rad,
+                                 identification=False)
+    source = SimpleNamespace(deterministic=False, recorder=None,
+                             reader=SimpleNamespace(items=SimpleNamespace(queue=queue.Queue(16))))
+    loop = SampleLoop(pipeline, SimpleNamespace(publish=lambda k, p: published.append((k, p))),
+                      Supervision(pipeline), source, threading.Event(), 1.0 / cfg.sample_rate_hz)
     kinds = []
     pending = []
     for i in range(100):
-        item = svc._first_step(sample(i))  # the bus thread
+        item = loop.first_step(sample(i))  # the bus thread
         kinds.append("whole" if item.rest is None else "step")
         pending.append(item)
         if i % 3 == 2 or i == 99:  # the service thread, behind by a few samples
             for it in pending:
-                svc._on_sample(it)
+                loop.on_sample(it)
             pending.clear()
     assert kinds[:40] == ["step"] * 40
     assert kinds[40] == "whole"  # the redesign: not in the bus thread

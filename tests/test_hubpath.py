@@ -161,10 +161,10 @@ def test_compiled_and_reference_decode_give_the_same_samples(monkeypatch, record
     fast = _samples(cfg, recordings[name])
     monkeypatch.setenv(hubpath.OFF_ENV, "off")
     r = OfflineReader(cfg)
-    assert r.assembler._unpack_cal is None
+    assert r.assembler.layout._unpack_cal is None
     ref = _samples(cfg, recordings[name])
     monkeypatch.delenv(hubpath.OFF_ENV)
-    assert OfflineReader(cfg).assembler._unpack_cal is not None
+    assert OfflineReader(cfg).assembler.layout._unpack_cal is not None
     assert len(ref) == len(fast) > 1000
     diff = [i for i, (a, b) in enumerate(zip(ref, fast)) if _sample_key(a) != _sample_key(b)]
     assert diff == [], f"{len(diff)} samples differ, first {ref[diff[0]]} / {fast[diff[0]]}"

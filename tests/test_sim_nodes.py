@@ -457,3 +457,37 @@ def test_live_follow_mode_heartbeats_on_the_wall_clock_and_answers_sync(cfg):
         sim.close()
         net.disconnect()
     assert not sim._ticker.is_alive()
+
+
+def test_the_heartbeat_schedule_alone():
+    """HeartbeatSchedule without a node: due times base + n·period (no accumulated
+    rounding), nothing when off, at most one period's backlog after a long stall."""
+    from rsra.sim_bus.nodes import HeartbeatSchedule
+
+    hb = HeartbeatSchedule()
+    assert hb.next is None and hb.due(100.0) == []
+    hb.arm(1.0, 100)
+    assert hb.due(1.05) == [] and hb.next == pytest.approx(1.1)
+    assert hb.due(1.3) == [pytest.approx(1.1), pytest.approx(1.2), pytest.approx(1.3)]
+    due = hb.due(60.0)  # a stall: the backlog is cut to about a period, not 587 beats
+    assert 1 <= len(due) <= 2 and due[-1] == pytest.approx(60.0)
+    hb.arm(5.0, 0)
+    assert hb.next is None and hb.due(10.0) == []
+
+
+def test_the_error_state_alone():
+    """ErrorState without a node: the register is the OR of the active errors' bits (generic
+    always set), clearing one sends the EMCY reset with what remains, an unknown code none."""
+    from rsra.sim_bus.nodes import EMCY_STRUCT, ERR_GENERIC, ERR_MANUFACTURER, ErrorState
+
+    es = ErrorState()
+    f1 = es.raise_error(0x81, 0x5000, ERR_MANUFACTURER, b"\x01")
+    assert f1.kind == "emcy" and f1.cob_id == 0x81
+    assert EMCY_STRUCT.unpack(f1.data)[:2] == (0x5000, ERR_MANUFACTURER | ERR_GENERIC)
+    es.raise_error(0x81, 0x6000, ERR_GENERIC, b"")
+    assert es.clear_error(0x81, 0x7777) is None
+    f2 = es.clear_error(0x81, 0x5000)
+    code, register, info = EMCY_STRUCT.unpack(f2.data)
+    assert (code, register, info[:2]) == (0, ERR_GENERIC, struct.pack("<H", 0x5000))
+    es.clear()
+    assert es.active == {} and es.register == 0

@@ -322,7 +322,7 @@ def test_true_angles_constant_step_and_linear(cfg):
     sc = load_scenario("ground-test", angles="linear")
     phys = AircraftPhysics(cfg, sc)
     lin = simulate(cfg, sc, duration_s=25.0)
-    static = np.array([phys._static(np.array([t]))[0] for t in lin.t[::50]])
+    static = np.array([phys.loads._static(np.array([t]))[0] for t in lin.t[::50]])
     pred = phys.alpha_base + static @ phys.alpha_gain.T
     res = sc.angles.resolution_rad
     assert np.abs(lin.alpha_true[::50] - pred).max() <= res / 2 + 1e-15

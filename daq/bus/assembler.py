@@ -306,63 +306,19 @@ def channels_payload(s: Sample, I: np.ndarray | None = None,
     return out
 
 
-class SampleAssembler:
-    """Assembles samples from SYNC and TPDO frames; ``emit`` receives every Sample.
+class SampleLayout:
+    """How a SYNC period's TPDO frames become a :class:`Sample` (the per-sample decode).
 
-    ``callbacks()`` gives the per-COB-ID frame callbacks (``cb(can_id, data, timestamp)``),
-    the SYNC one included, for canopen's ``Network.subscribe``.
-
-    Per frame only the length and the duplicate check run and the frame is kept (one list
-    store; the bytes are read when the sample is passed on, within the same SYNC period, so
-    the caller must not reuse a frame's buffer before the next SYNC — python-can and canopen
-    hand over a new one per frame). Per sample: one ``struct`` unpack of every TPDO joined
-    in bit order (DecodeTable.sample_struct), one gather into the output layout
-    ``[T | accel | balance | drive | omega, azimuth]`` and one multiply-add (calibration).
+    Built once from the rig and its decode table: the output layout ``[T | accel | balance |
+    drive | omega, azimuth]`` (one gather of struct's tuple), the calibration in that layout
+    (one multiply-add), and what depends only on which nodes reported (cached per pattern,
+    bounded). :meth:`sample` is the one call per sample; no state changes but the cache.
     """
 
-    def __init__(self, cfg: RigConfig, table: DecodeTable, emit: Callable[[Sample], None]):
-        self.cfg, self.table, self.emit = cfg, table, emit
-        self.sync_cob_id = cfg.sync.cob_id
-        self.overflow = cfg.sync.counter_overflow
+    def __init__(self, cfg: RigConfig, table: DecodeTable):
+        self.table = table
         n = table.n_channels
         self._unpack = table.sample_struct.unpack
-        self._zero_frames = list(table.zero_frames)  # an unreported TPDO decodes as zeros
-        self._frames: list[Any] = list(self._zero_frames)  # one per TPDO, bit order
-        self._have = table.all_bits  # TPDO bits reported since the last SYNC (all: none yet)
-        self._expect = 0  # TPDO bits that complete the current sample
-        self._wait = -1  # = _expect while the sample is open, -1 (matches nothing) otherwise
-        self._open = False  # the current sample is not passed on yet
-        self._in_sample = False  # a SYNC has been seen
-        self._sync_t = 0.0
-        self._sync_counter = 0
-        self._lost = 0
-        self._seq = 0  # seq of the current sample
-        self._next_seq = 0
-        self._prev_have = 0
-        self.clock = SyncClock(1.0 / cfg.sample_rate_hz, self.overflow)
-        self.clock.on_late = self._late_sync
-        self.clock.on_gap = self._gap_seen
-        self._stamped: tuple[Any, float] | None = None  # (data, t) the tap stamped last
-        # counters (health)
-        self.complete = 0
-        self.incomplete = 0
-        self.lost = 0
-        self.malformed = 0
-        self.duplicate = 0
-        self.orphan = 0  # TPDOs before the first SYNC
-        self.duplicate_sync = 0  # SYNCs repeating the last counter (no sample)
-        self.emitted = 0
-
-        self._required_bits = 0
-        self._optional_bits = 0
-        self._node_bits: dict[str, int] = {}
-        for nl in table.nodes:
-            self._node_bits[nl.name] = nl.mask
-            if nl.required:
-                self._required_bits |= nl.mask
-            else:
-                self._optional_bits |= nl.mask
-        self._alive_bits = 0  # optional nodes whose heartbeat says operational
         self._pattern_cache: dict[tuple[int, int], tuple] = {}
 
         # output layout (config order): T | accel | balance | drive | omega, azimuth; one
@@ -423,7 +379,7 @@ class SampleAssembler:
         self._node_slices = [(nl.start, nl.stop, nl.mask) for nl in table.nodes]
         # the compiled decode (daq/_hubkernel.c unpack_cal): a sample with every value
         # finite unpacked and calibrated in one call, the same bits; every other sample,
-        # and all of them without it, the Python of _pass_on (the reference)
+        # and all of them without it, the Python of sample() (the reference)
         self._unpack_cal = _unpack_kernel() if self._status_is_int else None
         self._codes = "".join(lay.codes for lay in table.layouts).encode("ascii")
         if self._unpack_cal is not None and (
@@ -431,6 +387,176 @@ class SampleAssembler:
                 or struct.calcsize(table.sample_struct.format) != table.sample_struct.size):
             self._unpack_cal = None
         self._n_out = len(perm)
+
+    def _pattern(self, have: int, expect: int) -> tuple:
+        """What depends only on which TPDOs came and which were expected (cached, bounded)."""
+        key = (have, expect)
+        p = self._pattern_cache.get(key)
+        if p is None:
+            unreported = []
+            missing = []
+            nan_idx = []
+            for name, (lo, hi, mask) in zip(self._node_names, self._node_slices):
+                if have & mask != mask:
+                    unreported.append(name)
+                    nan_idx.extend(range(lo, hi))
+                    if expect & mask:
+                        missing.append(name)
+            cells = [(name, si, fl) for name, node, si, fl in zip(
+                self._cell_names, self._cell_nodes, self._status_idx, self._status_flags)
+                if node not in unreported]
+            names = tuple(c[0] for c in cells)
+            sis = tuple(c[1] for c in cells)
+            flags = tuple(c[2] for c in cells)
+            nan_set = set(nan_idx)
+            nan_out = np.array([k for k, i in enumerate(self._perm.tolist()) if i in nan_set],
+                               dtype=np.intp)
+            un = frozenset(unreported)
+            p = (un, tuple(missing), tuple(f"missing:{m}" for m in missing),
+                 np.array(nan_idx, dtype=int), nan_out if len(nan_out) else None,
+                 names, sis, flags,
+                 self._rotor is not None and self._rotor[0] not in un,
+                 self._balance is not None and self._balance[0] not in un,
+                 self._drive is not None and not un.intersection(self._drive[0]))
+            if len(self._pattern_cache) >= _CACHE_MAX:
+                self._pattern_cache.clear()
+            self._pattern_cache[key] = p
+        return p
+
+    def sample(self, frames: list[Any], have: int, expect: int, seq: int, counter: int,
+               t: float, lost: int) -> Sample:
+        """The Sample of one SYNC period: ``frames`` one per TPDO (bit order; an unreported
+        one decodes as zeros), ``have`` the TPDO bits reported, ``expect`` those that
+        complete it; ``seq``, ``counter``, ``t`` its SYNC's, ``lost`` samples lost before."""
+        (unreported, missing, missing_flags, nan_idx, nan_out, cell_names, status_idx,
+         status_flags, rotor_ok, balance_ok, drive_ok) = self._pattern(have, expect)
+        data = b"".join(frames)
+        sts = None
+        if self._unpack_cal is not None:  # (None back: a non-finite value, the Python below)
+            out = np.empty(self._n_out)
+            sts = self._unpack_cal(data, self._codes, self._perm, self._gain_out,
+                                   self._offset_out, out, status_idx)
+            if sts is not None and nan_out is not None:
+                out[nan_out] = np.nan
+        if sts is None:
+            raw = self._unpack(data)  # every channel, channel order
+            total = sum(raw)
+            if total - total == 0.0:  # all finite (x - x is 0 for finite x, nan for inf/nan)
+                out = np.array(self._gather(raw), float)
+                out *= self._gain_out
+                out += self._offset_out
+                if nan_out is not None:
+                    out[nan_out] = np.nan
+            else:
+                cal = np.array(raw)
+                cal *= self.table.gain
+                cal += self.table.offset
+                bad = ~np.isfinite(cal)
+                bad[nan_idx] = False
+                bad_nodes = {self._node_names[k] for k in np.unique(self._node_of_channel[bad])}
+                bad_nodes -= unreported
+                if bad_nodes:
+                    # non-finite values mark the channel missing (and its node flagged)
+                    cal[bad] = np.nan
+                    missing = tuple(sorted(set(missing) | bad_nodes, key=self._node_names.index))
+                    missing_flags = tuple(f"missing:{m}" for m in missing)
+                    unreported = unreported | bad_nodes
+                    rotor_ok = rotor_ok and self._rotor[0] not in unreported
+                    balance_ok = balance_ok and self._balance[0] not in unreported
+                    drive_ok = drive_ok and not unreported.intersection(self._drive[0])
+                if len(nan_idx):
+                    cal[nan_idx] = np.nan
+                out = cal[self._perm]
+            sts = [raw[i] for i in status_idx]
+            if not self._status_is_int:
+                sts = [int(x) for x in sts]
+        status = dict(zip(cell_names, sts))
+        if lost or any(sts):
+            flags = list(missing_flags)
+            if lost:
+                flags.append("lost_before")
+            for st, (f_or, f_fault) in zip(sts, status_flags):
+                if st:
+                    if st & STATUS_OVERRANGE:
+                        flags.append(f_or)
+                    if st & STATUS_FAULT:
+                        flags.append(f_fault)
+            flags = tuple(flags)
+        else:
+            flags = missing_flags
+        omega = azimuth = None
+        if rotor_ok:
+            _, oi, ai, wrap = self._rotor
+            omega = out.item(oi)
+            azimuth = out.item(ai) % wrap if wrap else out.item(ai)
+        return Sample(
+            seq, counter, t, out[self._sl_T], status,
+            out[self._sl_acc].reshape(self._n_acc, 3), omega, azimuth,
+            out[self._balance[1]] if balance_ok else None,
+            out[self._drive[1]] if drive_ok else None,
+            missing, lost, flags, not missing)
+
+
+class SampleAssembler:
+    """Assembles samples from SYNC and TPDO frames; ``emit`` receives every Sample.
+
+    ``callbacks()`` gives the per-COB-ID frame callbacks (``cb(can_id, data, timestamp)``),
+    the SYNC one included, for canopen's ``Network.subscribe``.
+
+    Per frame only the length and the duplicate check run and the frame is kept (one list
+    store; the bytes are read when the sample is passed on, within the same SYNC period, so
+    the caller must not reuse a frame's buffer before the next SYNC — python-can and canopen
+    hand over a new one per frame). Per sample: one ``struct`` unpack of every TPDO joined
+    in bit order (DecodeTable.sample_struct), one gather into the output layout
+    ``[T | accel | balance | drive | omega, azimuth]`` and one multiply-add (calibration) —
+    :class:`SampleLayout`'s; this class frames the periods (SYNC, TPDOs, which nodes to wait
+    for) and counts them.
+    """
+
+    def __init__(self, cfg: RigConfig, table: DecodeTable, emit: Callable[[Sample], None]):
+        self.cfg, self.table, self.emit = cfg, table, emit
+        self.sync_cob_id = cfg.sync.cob_id
+        self.overflow = cfg.sync.counter_overflow
+        #: the decode of a period's frames into a Sample
+        self.layout = SampleLayout(cfg, table)
+        self._layout_sample = self.layout.sample
+        self._zero_frames = list(table.zero_frames)  # an unreported TPDO decodes as zeros
+        self._frames: list[Any] = list(self._zero_frames)  # one per TPDO, bit order
+        self._have = table.all_bits  # TPDO bits reported since the last SYNC (all: none yet)
+        self._expect = 0  # TPDO bits that complete the current sample
+        self._wait = -1  # = _expect while the sample is open, -1 (matches nothing) otherwise
+        self._open = False  # the current sample is not passed on yet
+        self._in_sample = False  # a SYNC has been seen
+        self._sync_t = 0.0
+        self._sync_counter = 0
+        self._lost = 0
+        self._seq = 0  # seq of the current sample
+        self._next_seq = 0
+        self._prev_have = 0
+        self.clock = SyncClock(1.0 / cfg.sample_rate_hz, self.overflow)
+        self.clock.on_late = self._late_sync
+        self.clock.on_gap = self._gap_seen
+        self._stamped: tuple[Any, float] | None = None  # (data, t) the tap stamped last
+        # counters (health)
+        self.complete = 0
+        self.incomplete = 0
+        self.lost = 0
+        self.malformed = 0
+        self.duplicate = 0
+        self.orphan = 0  # TPDOs before the first SYNC
+        self.duplicate_sync = 0  # SYNCs repeating the last counter (no sample)
+        self.emitted = 0
+
+        self._required_bits = 0
+        self._optional_bits = 0
+        self._node_bits: dict[str, int] = {}
+        for nl in table.nodes:
+            self._node_bits[nl.name] = nl.mask
+            if nl.required:
+                self._required_bits |= nl.mask
+            else:
+                self._optional_bits |= nl.mask
+        self._alive_bits = 0  # optional nodes whose heartbeat says operational
 
     # -- liveness (from the supervisor, same thread, frame order) --------------------------
     def set_alive(self, node: str, alive: bool) -> None:
@@ -547,120 +673,20 @@ class SampleAssembler:
         if wait == 0:
             self._pass_on(True)
 
-    # -- sample construction (once per SYNC) -----------------------------------------------
-    def _pattern(self, have: int, expect: int) -> tuple:
-        """What depends only on which TPDOs came and which were expected (cached, bounded)."""
-        key = (have, expect)
-        p = self._pattern_cache.get(key)
-        if p is None:
-            unreported = []
-            missing = []
-            nan_idx = []
-            for name, (lo, hi, mask) in zip(self._node_names, self._node_slices):
-                if have & mask != mask:
-                    unreported.append(name)
-                    nan_idx.extend(range(lo, hi))
-                    if expect & mask:
-                        missing.append(name)
-            cells = [(name, si, fl) for name, node, si, fl in zip(
-                self._cell_names, self._cell_nodes, self._status_idx, self._status_flags)
-                if node not in unreported]
-            names = tuple(c[0] for c in cells)
-            sis = tuple(c[1] for c in cells)
-            flags = tuple(c[2] for c in cells)
-            nan_set = set(nan_idx)
-            nan_out = np.array([k for k, i in enumerate(self._perm.tolist()) if i in nan_set],
-                               dtype=np.intp)
-            un = frozenset(unreported)
-            p = (un, tuple(missing), tuple(f"missing:{m}" for m in missing),
-                 np.array(nan_idx, dtype=int), nan_out if len(nan_out) else None,
-                 names, sis, flags,
-                 self._rotor is not None and self._rotor[0] not in un,
-                 self._balance is not None and self._balance[0] not in un,
-                 self._drive is not None and not un.intersection(self._drive[0]))
-            if len(self._pattern_cache) >= _CACHE_MAX:
-                self._pattern_cache.clear()
-            self._pattern_cache[key] = p
-        return p
-
+    # -- the sample, passed on (once per SYNC; decoded by SampleLayout) ---------------------
     def _pass_on(self, complete_trigger: bool) -> None:
         if stagetiming.TIMER is not None:  # off unless a benchmark asked (docs/performance.md P5b)
             stagetiming.TIMER.frame_done(self._seq, self._sync_t)
         self._open = False
         self._wait = -1
-        (unreported, missing, missing_flags, nan_idx, nan_out, cell_names, status_idx,
-         status_flags, rotor_ok, balance_ok, drive_ok) = self._pattern(self._have, self._expect)
-        data = b"".join(self._frames)
-        sts = None
-        if self._unpack_cal is not None:  # (None back: a non-finite value, the Python below)
-            out = np.empty(self._n_out)
-            sts = self._unpack_cal(data, self._codes, self._perm, self._gain_out,
-                                   self._offset_out, out, status_idx)
-            if sts is not None and nan_out is not None:
-                out[nan_out] = np.nan
-        if sts is None:
-            raw = self._unpack(data)  # every channel, channel order
-            total = sum(raw)
-            if total - total == 0.0:  # all finite (x - x is 0 for finite x, nan for inf/nan)
-                out = np.array(self._gather(raw), float)
-                out *= self._gain_out
-                out += self._offset_out
-                if nan_out is not None:
-                    out[nan_out] = np.nan
-            else:
-                cal = np.array(raw)
-                cal *= self.table.gain
-                cal += self.table.offset
-                bad = ~np.isfinite(cal)
-                bad[nan_idx] = False
-                bad_nodes = {self._node_names[k] for k in np.unique(self._node_of_channel[bad])}
-                bad_nodes -= unreported
-                if bad_nodes:
-                    # non-finite values mark the channel missing (and its node flagged)
-                    cal[bad] = np.nan
-                    missing = tuple(sorted(set(missing) | bad_nodes, key=self._node_names.index))
-                    missing_flags = tuple(f"missing:{m}" for m in missing)
-                    unreported = unreported | bad_nodes
-                    rotor_ok = rotor_ok and self._rotor[0] not in unreported
-                    balance_ok = balance_ok and self._balance[0] not in unreported
-                    drive_ok = drive_ok and not unreported.intersection(self._drive[0])
-                if len(nan_idx):
-                    cal[nan_idx] = np.nan
-                out = cal[self._perm]
-            sts = [raw[i] for i in status_idx]
-            if not self._status_is_int:
-                sts = [int(x) for x in sts]
-        status = dict(zip(cell_names, sts))
-        if self._lost or any(sts):
-            flags = list(missing_flags)
-            if self._lost:
-                flags.append("lost_before")
-            for st, (f_or, f_fault) in zip(sts, status_flags):
-                if st:
-                    if st & STATUS_OVERRANGE:
-                        flags.append(f_or)
-                    if st & STATUS_FAULT:
-                        flags.append(f_fault)
-            flags = tuple(flags)
-        else:
-            flags = missing_flags
-        omega = azimuth = None
-        if rotor_ok:
-            _, oi, ai, wrap = self._rotor
-            omega = out.item(oi)
-            azimuth = out.item(ai) % wrap if wrap else out.item(ai)
-        complete = not missing
-        if complete:
+        s = self._layout_sample(self._frames, self._have, self._expect, self._seq,
+                                self._sync_counter, self._sync_t, self._lost)
+        if s.complete:
             self.complete += 1
         else:
             self.incomplete += 1
         self.emitted += 1
-        self.emit(Sample(
-            self._seq, self._sync_counter, self._sync_t, out[self._sl_T], status,
-            out[self._sl_acc].reshape(self._n_acc, 3), omega, azimuth,
-            out[self._balance[1]] if balance_ok else None,
-            out[self._drive[1]] if drive_ok else None,
-            missing, self._lost, flags, complete))
+        self.emit(s)
 
     def finish(self) -> None:
         """Pass on a pending incomplete sample (end of a replay; no further SYNC will come)."""

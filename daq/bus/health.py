@@ -4,7 +4,7 @@
 
     HealthMonitor.snapshot(t)   (daq.bus.reader: the tap's 1 Hz deadline, or Reader.health())
         └▶ Health(t, nodes, bus, samples, queues, recording, sync)       ─▶ HealthReport
-    Service._on_health          (daq.runtime.service)
+    HealthReporter              (daq.runtime.run_report)
         └▶ dataclasses.replace(health, latency_ms=…, queues=…, identification=…, …)
     Outputs.publish("health", health)  ─▶ Health.to_dict()  ─▶ jsonout.dumps (strict JSON)
 
@@ -19,7 +19,7 @@ import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import Any, ClassVar
+from typing import Any, ClassVar, TypeVar, dataclass_transform
 
 
 class _Omit:
@@ -65,7 +65,11 @@ class _Part:
         return out
 
 
-def _part(cls: type) -> type:
+_P = TypeVar("_P", bound=type)
+
+
+@dataclass_transform(frozen_default=True)  # (type checkers see each part's fields)
+def _part(cls: _P) -> _P:
     cls = dataclass(frozen=True, slots=True)(cls)
     cls._FIELDS = tuple(f.name for f in dataclasses.fields(cls))
     return cls

@@ -26,35 +26,35 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import math
 import os
 import queue
 import signal
 import threading
-import time
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
 from rsra.config.rig import RigConfig
 from rsra.daq.jsonout import dumps
 from rsra.daq.runtime.pipeline import EstimatorPipeline
-from rsra.daq.runtime.records import AnglesRecord, IdentError, IdentResult, InitialAngles
+from rsra.daq.runtime.records import AnglesRecord
+from rsra.daq.runtime.run_report import HealthReporter, run_summary
+from rsra.daq.runtime.sample_loop import SampleLoop
 from rsra.daq.runtime.sources import SIM_BLOCK, BusOpenError, Source, make_source  # noqa: F401 (re-exported)
+from rsra.daq.runtime.start import initial_angles, plan_start  # noqa: F401 (re-exported)
+from rsra.daq.runtime.supervision import Supervision
 
 if TYPE_CHECKING:
+    import zenoh
+
     from rsra.daq.bus.health import Health
+    from rsra.daq.runtime.telemetry import TelemetryPublisher
 
 log = logging.getLogger("rsra.service")
 
 LOW_RATE_QUEUE = 64
-LATENCY_HISTORY = 2000
-FINAL_RESULTS_WAIT_S = 10.0  # at the end: the wait for windows still being identified
-ANGLES_HISTORY = 16  # recent angles records kept in memory (~15 kB each with P)
 
 
 @dataclass
@@ -137,8 +137,8 @@ class Outputs:
         # thread: one record at a time through the sinks, Foxglove and Zenoh
         self._lock = threading.Lock()
         self._stack = contextlib.ExitStack()
-        self.session = None
-        self.telemetry = None
+        self.session: zenoh.Session | None = None
+        self.telemetry: TelemetryPublisher | None = None
         self.low_rate: _LowRatePublisher | None = None
         self.sinks: list[Callable[[str, dict], None]] = []
         self.counts: dict[str, int] = {}
@@ -160,7 +160,8 @@ class Outputs:
     def _open_zenoh(self, cfg: RigConfig, opts: ServiceOptions) -> None:
         import zenoh
 
-        from rsra.config.rig import ConfigError, zenoh_endpoint_problem
+        from rsra.config.rig import ConfigError
+        from rsra.config.rigfile import zenoh_endpoint_problem
         from rsra.daq.runtime.telemetry import TelemetryPublisher, zenoh_config
 
         for opt, eps in (("--zenoh-listen", opts.zenoh_listen),
@@ -172,16 +173,16 @@ class Outputs:
         conf = zenoh_config(cfg.telemetry, listen=opts.zenoh_listen or None,
                             connect=opts.zenoh_connect or None,
                             config_file=opts.zenoh_config)
-        self.session = zenoh.open(conf)
-        self._stack.callback(self.session.close)
+        self.session = session = zenoh.open(conf)
+        self._stack.callback(session.close)
         # state/config tells the endpoints the session really uses (options, config file)
         effective = cfg.effective()
         tel = effective.setdefault("telemetry", {})
         for k in ("listen", "connect"):
             tel[k] = json.loads(conf.get_json(f"{k}/endpoints"))
-        self.telemetry = TelemetryPublisher(self.session, cfg.telemetry.prefix, effective)
-        self._stack.callback(self.telemetry.close)
-        self.low_rate = _LowRatePublisher(self.telemetry.publish)
+        self.telemetry = telemetry = TelemetryPublisher(session, cfg.telemetry.prefix, effective)
+        self._stack.callback(telemetry.close)
+        self.low_rate = _LowRatePublisher(telemetry.publish)
         self._stack.callback(self.low_rate.close)
 
     def publish(self, key: str, payload: dict | AnglesRecord | Health) -> None:
@@ -195,7 +196,7 @@ class Outputs:
                 self.foxglove.publish(key, payload)
             if self.telemetry is None:
                 return
-            if key in ("angles", "health"):
+            if key in ("angles", "health") and self.low_rate is not None:  # (opened with it)
                 self.low_rate.put(key, payload)
             else:
                 self.telemetry.publish(key, payload)
@@ -268,43 +269,12 @@ def jsonl_sink(path: str | Path):
     return sink, f.close
 
 
-def initial_angles(cfg: RigConfig, state_path: str | None, accept_rig_mismatch: bool = False):
-    """(alpha0, posterior state or None, warning or None) from the config or a saved
-    posterior (of this rig, within the angles' physical range: daq.posterior_file)."""
-    alpha0 = np.asarray(cfg.identification.initial_angles_rad, float).copy()
-    if not state_path:
-        return alpha0, None, None
-    from rsra.daq.runtime.posterior_file import load_checked
-
-    names = cfg.rig_model().geometry.angle_names
-    idc = cfg.identification
-    wanted = names if idc.parameters == "angles" else tuple(idc.parameters)
-    # PosteriorFileError on a corrupt file, another rig's, or angles out of range
-    state, warning = load_checked(cfg, state_path, wanted,
-                                  accept_rig_mismatch=accept_rig_mismatch)
-    for n, v in zip(state.names, state.theta):
-        if n in names:
-            alpha0[names.index(n)] = v
-    return alpha0, state, warning
-
-
-class _FirstStepDone:
-    """A live sample from the bus thread: its first step done there (hub_loads published;
-    ``rest`` the second step to take), or — ``rest`` None — the whole sample for the service
-    thread (a slow first step); ``error`` a first step that failed."""
-
-    __slots__ = ("sample", "rest", "records", "error")
-
-    def __init__(self, sample, rest, records, error=None):
-        self.sample, self.rest, self.records, self.error = sample, rest, records, error
-
-    @property
-    def seq(self) -> int:
-        return self.sample.seq
-
-
 class Service:
-    """Builds the sources, the pipeline, the worker and the outputs; `run()` until done."""
+    """Builds the sources, the pipeline, the worker and the outputs; `run()` until done.
+
+    The wiring only: the start is planned (daq.runtime.start), the items go through the
+    sample loop (daq.runtime.sample_loop), the identification worker is supervised
+    (daq.runtime.supervision), health and summary are composed by daq.runtime.run_report."""
 
     def __init__(self, cfg: RigConfig, opts: ServiceOptions):
         # the kind of source (bus, simulator in real time or lock-step, replay): chosen once
@@ -322,37 +292,19 @@ class Service:
         self.stop_event = threading.Event()
         self.fs = cfg.sample_rate_hz
         self.dt = 1.0 / self.fs
-        self.latencies: deque[float] = deque(maxlen=LATENCY_HISTORY)
-        self.deadline_misses = 0
-        self.worker = None
-        self.ident_errors = 0
-        self.outputs: Outputs | None = None
         self.summary: dict[str, Any] = {}
-        self.last_seq: int | None = None
-        self.first_t: float | None = None
-        self.last_t: float | None = None
-        # the latest angles records (bounded: a record with its P is ~10 kB, one per period
-        # for as long as the service runs) and running counts for the summary
-        self.angles_log: deque[AnglesRecord] = deque(maxlen=ANGLES_HISTORY)
-        self.ident_runs = 0
-        self.ident_rejected: dict[str, int] = {}
-        self.lost = 0
-        self.samples = 0
-        self.last_health: Health | None = None  # (daq.bus.health)
         self._extra_sinks: list[Callable[[str, dict], None]] = []
-        self.pipeline: EstimatorPipeline | None = None
         self.warnings: list[str] = []  # start-up problems the service went on with
         self.schedule: dict | None = None  # replay: where the angles come from
-        self.worker_initializer = None  # called first in the worker process (tests)
+        self.worker_initializer: Callable[[], None] | None = None  # first in the worker (tests)
+        # what run() builds, in this order (None before it has)
+        self.pipeline: EstimatorPipeline | None = None
+        self.supervision: Supervision | None = None
+        self.outputs: Outputs | None = None
+        self.loop: SampleLoop | None = None
+        self._health: HealthReporter | None = None
         # --duration in samples of acquisition time
         self._n_max = None if opts.duration is None else max(1, round(opts.duration * self.fs))
-        self._first_seq: int | None = None  # the first sample processed
-        # live: samples the bus thread passed on whole (a slow first step, or after one):
-        # counted by the bus thread when queued, by the service thread when done; the bus
-        # thread runs first steps again only once none is left (sample order kept)
-        self._whole_queued = 0
-        self._whole_done = 0
-        self._step_error: BaseException | None = None  # a first step failed (bus thread)
 
     @property
     def reader(self):
@@ -368,44 +320,40 @@ class Service:
     def recorder(self):
         return self.source.recorder
 
+    @property
+    def worker(self):
+        """The supervised identification worker (daq.runtime.ident_worker), if it runs."""
+        return self.supervision.worker if self.supervision is not None else None
+
+    # the loop's counts (0/None/empty before the run has started its loop)
+    @property
+    def samples(self) -> int:
+        return self.loop.samples if self.loop is not None else 0
+
+    @property
+    def lost(self) -> int:
+        return self.loop.lost if self.loop is not None else 0
+
+    @property
+    def last_seq(self) -> int | None:
+        return self.loop.last_seq if self.loop is not None else None
+
+    @property
+    def angles_log(self) -> deque[AnglesRecord]:
+        """The latest angles records applied (bounded)."""
+        return self.loop.angles.log if self.loop is not None else deque()
+
+    @property
+    def last_health(self) -> Health | None:
+        return self._health.last if self._health is not None else None
+
     def add_sink(self, sink: Callable[[str, dict], None]) -> None:
         self._extra_sinks.append(sink)
 
-    # -- set-up ----------------------------------------------------------------------------
-    def _setup_identification(self, alpha0, state) -> None:
-        from rsra.daq.runtime.ident_worker import SupervisedIdentification
-
-        self.worker = SupervisedIdentification(self.cfg, state, on_restart=self._worker_lost,
-                                               initializer=self.worker_initializer)
-
-    def _worker_lost(self) -> None:
-        """The identification worker died: the windows it held are lost (a restart is a
-        discontinuity; its first record says so), and when it is off for good the pipeline
-        stops cutting windows and flags every sample."""
-        p = self.pipeline
-        p.outstanding.clear()
-        if self.worker is not None and self.worker.off:
-            p.identification = False
-            p.identification_off = True
-
-    def _initial_record(self, alpha0, state) -> InitialAngles:
-        names = self.cfg.rig_model().geometry.angle_names
-        if state is not None:
-            P = state.P.tolist()
-            rec_names = list(state.names)
-            theta = state.theta.tolist()
-        else:
-            s = self.cfg.identification.prior_sigma_rad
-            rec_names = list(names)
-            theta = alpha0.tolist()
-            P = (np.eye(len(names)) * s * s).tolist()
-        return InitialAngles(names=rec_names, alpha=theta, P=P, alpha_all=alpha0.tolist(),
-                             structure_fit=getattr(self, "start_fit", None))
-
     def stop(self, *_: Any) -> None:
         self.stop_event.set()
-        if self.worker is not None:
-            self.worker.stopping = True
+        if self.supervision is not None:
+            self.supervision.stop()
 
     def install_signal_handlers(self) -> None:
         if threading.current_thread() is threading.main_thread():
@@ -426,377 +374,44 @@ class Service:
                 stack.callback(realtime_priority(opts.realtime_priority))
                 if self.worker_initializer is None:
                     self.worker_initializer = normal_scheduling
-            plan = self.source.angles_plan(opts.identification, opts.recompute)
+            plan = plan_start(cfg, opts, self.source)
             self.schedule = plan.schedule
-            recorded_initial, recorded, folder = plan.recorded_initial, plan.recorded, plan.folder
-            if recorded_initial is not None and not opts.angles:
-                alpha0 = np.asarray(recorded_initial.get("alpha_all", recorded_initial["alpha"]),
-                                    float)
-                n_angles = len(cfg.rig_model().geometry.angle_names)
-                if alpha0.shape != (n_angles,):
-                    from rsra.daq.bus.replay import ReplayError
-
-                    raise ReplayError(f"{folder / 'angles.jsonl'}: the starting record holds "
-                                      f"{alpha0.size} angles, the rig has {n_angles}; fix: "
-                                      "replay with --recompute or give the recording's --config")
-                state = None
-            else:
-                alpha0, state, warning = initial_angles(cfg, opts.angles,
-                                                        opts.accept_rig_mismatch)
-                if warning:
-                    log.warning("%s", warning)
-                    self.warnings.append(warning)
-            use_ident = opts.identification and (self.source.saves_posterior or plan.recompute)
-            if use_ident:
-                # the worker saves accepted runs there: only over a posterior of ours
-                # (ConfigError naming the key otherwise, before acquisition starts)
-                from rsra.daq.runtime.posterior_file import prepare_state_file
-
-                for warning in prepare_state_file(
-                        cfg, accept_rig_mismatch=opts.accept_rig_mismatch):
-                    log.warning("%s", warning)
-                    self.warnings.append(warning)
-            self.pipeline = EstimatorPipeline(cfg, alpha0, identification=use_ident)
-            # the covariance of the starting angles (hub_loads sigma_angles): the recording's
-            # starting posterior in a replay, else the saved posterior's or the prior
-            start = (recorded_initial if recorded_initial is not None and not opts.angles
-                     else self._initial_record(alpha0, state).to_dict())
-            self.pipeline.set_angles_covariance(start.get("names"), start.get("P"))
-            # the structure the hub loads use from the start (issue 19): the recording's
-            # first line in a replay; else the saved posterior's, else the config's
-            if recorded_initial is not None and not opts.angles:
-                self.start_fit = recorded_initial.get("structure_fit")
-            elif state is not None and state.structure is not None:
-                self.start_fit = state.structure
-            else:
-                self.start_fit = cfg.identification.structure_fit
-            if self.start_fit is not None:
-                self.pipeline.set_structure(self.start_fit)
-            for rec in recorded:
-                self.pipeline.deliver(rec)
-            self.outputs = Outputs(cfg, opts)
-            _close_logged(stack, self.outputs.close)
-            self.outputs.sinks.extend(self._extra_sinks)
-            # (after _close_worker, which records the last windows' results there)
+            self.warnings.extend(plan.warnings)
+            self.pipeline = pipeline = plan.pipeline()
+            self.supervision = supervision = Supervision(pipeline)
+            self.outputs = outputs = Outputs(cfg, opts)
+            _close_logged(stack, outputs.close)
+            outputs.sinks.extend(self._extra_sinks)
+            loop = SampleLoop(pipeline, outputs, supervision, self.source, self.stop_event,
+                              self.dt, self._n_max)
+            self._health = loop.on_health = HealthReporter(loop, self.warnings)
+            self.loop = loop
+            # (after loop.finish, which records the last windows' results there)
             _close_logged(stack, self._close_recorded_angles)
-            _close_logged(stack, self._close_worker)
-            if use_ident:
-                self._setup_identification(alpha0, state)
-            if not self.source.deterministic:  # hub_loads from the bus thread (P5b)
-                self.source.first_step = self._first_step
+            _close_logged(stack, loop.finish)
+            if plan.use_ident:
+                supervision.start(cfg, plan.state, initializer=self.worker_initializer)
+            if loop.live:  # hub_loads from the bus thread (P5b)
+                self.source.first_step = loop.first_step
             stack.enter_context(self.source)
             if self.source.reader is not None and hasattr(self.source.reader,
                                                           "keep_angles_open"):
                 self.source.reader.keep_angles_open = True
             if self.recorder is not None:
-                self.recorder.write_angles(self._initial_record(alpha0, state).to_dict())
+                self.recorder.write_angles(plan.initial_record().to_dict())
             log.info("service started: %s", self.source.describe())
             # the compiled hub path (daq/runtime/hubpath.py) or why not (health too): said once
             # everything has started (a start that fails stays one line)
-            if self.pipeline.hub_kernel is not None:
-                log.info("hub path: %s", self.pipeline.hub_kernel_status)
+            if pipeline.hub_kernel is not None:
+                log.info("hub path: %s", pipeline.hub_kernel_status)
             else:
                 log.warning("hub path: the compiled kernel is %s; the pure-Python path runs "
                             "(the same records, more CPU per sample)",
-                            self.pipeline.hub_kernel_status)
-            self._loop(self.source.items(self.stop_event))
-        self.summary = self._summary()
+                            pipeline.hub_kernel_status)
+            loop.run(self.source.items(self.stop_event))
+        self.summary = run_summary(loop, self.reader, self.warnings, self.schedule, cfg)
         return self.summary
 
     def _close_recorded_angles(self) -> None:
         if self.recorder is not None:
             self.recorder.close_angles()
-
-    def _close_worker(self) -> None:
-        """The windows still being identified when acquisition ended: their results are
-        taken in (for at most FINAL_RESULTS_WAIT_S) and published, recorded and counted
-        before the outputs close — the worker saves accepted ones to the state file, so
-        what the run says last is what the state file holds (issue 29); one not done by then
-        is abandoned unsaved, and the log says so. Then the worker stops."""
-        p = self.pipeline
-        if p is not None and self.last_seq is not None and self.outputs is not None:
-            if self.worker is not None:
-                for r in self.worker.finish(lambda: len(p.outstanding), FINAL_RESULTS_WAIT_S):
-                    self._deliver(r, self.last_seq)
-                if p.outstanding:
-                    log.warning("%d identification window(s) still running at the end: "
-                                "abandoned (not applied, not saved)", len(p.outstanding))
-                    p.outstanding.clear()
-            # (a replay's recorded records that apply after its last sample, the same way)
-            for rec in p.final_records(self.last_seq):
-                self.outputs.publish("angles", rec)
-                self._on_angles(rec)
-        if self.worker is not None:
-            self.worker.close()
-
-    # -- per item ------------------------------------------------------------------------------
-    def _loop(self, source: Iterator) -> None:
-        from rsra.daq.bus.reader import HealthReport
-
-        for item in source:
-            if item is None:
-                self._poll_results()
-            elif isinstance(item, HealthReport):
-                self._on_health(item)
-            else:
-                if self._first_seq is not None and self._past_last(item.seq):
-                    break  # (the last wanted sample was dropped from a full queue)
-                self._on_sample(item)
-                if self._last_wanted(item.seq):
-                    break
-            if self.stop_event.is_set():
-                break
-        if self._step_error is not None:
-            raise self._step_error
-
-    def _last_wanted(self, seq: int) -> bool:
-        """Sample ``seq`` is the last one --duration asks for (it counts samples of
-        acquisition time from the first one processed: lost ones included, they keep seq)."""
-        if self._first_seq is None:
-            self._first_seq = seq
-        if self._n_max is None:
-            return False
-        return seq - self._first_seq + 1 >= self._n_max
-
-    def _poll_results(self) -> None:
-        if self.worker is None or self.source.deterministic:
-            return
-        arrival = self.last_seq if self.last_seq is not None else 0
-        for r in self.worker.poll(self.last_seq):  # (and restarts a dead worker)
-            self._deliver(r, arrival)
-
-    def _deliver(self, r: IdentResult | IdentError, arrival: int | None) -> None:
-        if isinstance(r, IdentError):
-            self.ident_errors += 1
-            log.error("identification: %s", r.error)
-            if r.job_id is not None:
-                self.pipeline.outstanding.pop(r.job_id, None)
-            return
-        self.pipeline.deliver(r.record, arrival_seq=arrival, job_id=r.job_id)
-
-    def _wait_results(self, seq: int) -> None:
-        """Lock-step and replay: the result of every window due at this sample first; a dead
-        worker is seen at every sample (restarted, or identification off: deterministic)."""
-        if self.worker is None:
-            return
-        self.worker.check(seq, every_call=True)
-        while self.pipeline.waiting_for(seq):
-            r = self.worker.wait(seq, timeout=120.0)
-            if r is None:  # it died: restarted or off, its jobs forgotten (_worker_lost)
-                self.pipeline.outstanding.clear()
-                return
-            self._deliver(r, None)
-
-    def _first_step(self, s):
-        """The bus thread, as a sample completes (live): the pipeline's first step and the
-        publication of its records (hub_loads, and angles applied from this sample) at once,
-        with no hand-off to another thread (docs/performance.md P5b). The service thread
-        finishes the sample (:meth:`_on_sample`). Samples after the last one wanted, or
-        once stopping, are passed on untouched (the loop ends before them)."""
-        if self.stop_event.is_set() or self._past_last(s.seq):
-            return s
-        p = self.pipeline
-        if self._whole_queued != self._whole_done or not p.first_step_is_quick(s):
-            # slow work (new angles, a filter design), or such a sample still in the service
-            # thread: the whole sample goes there, in order (a full queue drops it: uncounted)
-            if not self.source.reader.items.queue.full():
-                self._whole_queued += 1
-            return _FirstStepDone(s, None, [])  # rest None: the whole sample
-        try:
-            rest = p.stages(s)
-            records = next(rest).records
-            self._publish_first(s, records)
-        except BaseException as e:  # the run stops; raised again in the service thread
-            self._step_error = e
-            self.stop_event.set()
-            return _FirstStepDone(s, None, [], e)
-        return _FirstStepDone(s, rest, records)
-
-    def _past_last(self, seq: int) -> bool:
-        if self._first_seq is None:
-            self._first_seq = seq
-        return self._n_max is not None and seq - self._first_seq + 1 > self._n_max
-
-    def _publish_first(self, s, records: list) -> None:
-        publish = self.outputs.publish
-        for key, payload in records:
-            publish(key, payload)
-            if key == "hub_loads":
-                lat = time.time() - s.t
-                self.latencies.append(lat)
-                if lat > self.dt:
-                    self.deadline_misses += 1
-            elif key == "angles":  # recorded where applied: never lost with a dropped sample
-                self._on_angles(payload)
-
-    def _on_sample(self, item) -> None:
-        p = self.pipeline
-        live = not self.source.deterministic
-        counted = False  # a whole sample the bus thread counted (_first_step)
-        if isinstance(item, _FirstStepDone):  # live: hub_loads is out (with its angles)
-            if item.error is not None:
-                raise item.error
-            s, stages = item.sample, item.rest
-            counted = stages is None
-        else:
-            s, stages = item, None
-        if not live:
-            self._wait_results(s.seq)
-
-        if stages is None:
-            if live:  # the hub loads are published before the rest of the sample
-                stages = p.stages(s)
-                self._publish_first(s, next(stages).records)
-                out = next(stages)
-            else:
-                out = p.process(s)
-        else:
-            out = next(stages)
-        publish = self.outputs.publish
-        for key, payload in out.records:
-            publish(key, payload)
-            if key == "angles":
-                self._on_angles(payload)
-        if out.job is not None and self.worker is not None:
-            if self.source.deterministic:
-                # deterministic: every window runs (unless the worker died meanwhile)
-                if not self.worker.put(out.job, s.seq):
-                    p.outstanding.pop(out.job.job_id, None)
-            elif not self.worker.submit(out.job, s.seq):  # busy, dead or off: logged
-                p.outstanding.pop(out.job.job_id, None)
-        self.samples += 1
-        self.lost += int(s.lost_before)
-        self.last_seq = s.seq
-        if self.first_t is None:
-            self.first_t = s.t
-        self.last_t = s.t
-        if live:  # after the sample, off the SYNC → hub_loads path (docs/performance.md P5b):
-            self._poll_results()  # a result in now applies from the next sample at the earliest
-            if counted:
-                self._whole_done += 1  # the bus thread may take first steps again
-
-    def _on_angles(self, rec: AnglesRecord) -> None:
-        if self.recorder is not None:  # (a replay records nothing)
-            self.recorder.write_angles(rec.to_dict())
-        self.angles_log.append(rec)
-        self.ident_runs += 1
-        if not rec.get("accepted"):
-            reason = str(rec.get("reason"))
-            self.ident_rejected[reason] = self.ident_rejected.get(reason, 0) + 1
-        if rec.get("accepted"):
-            sig = rec.get("sigma_cr") or []
-            worst = max((x for x in sig if x is not None), default=float("nan"))
-            log.info("identification accepted (%s, %s): %d of %d directions determined, "
-                     "worst sigma_CR %.3f deg, applies from sample %s%s", rec.get("mode"),
-                     rec.get("content"), rec.get("determined", 0), len(rec.get("names") or []),
-                     math.degrees(worst), rec.get("applies_from_seq"),
-                     " (late)" if rec.get("late") else "")
-        else:
-            log.info("identification rejected (%s, %s): %s: %s%s", rec.get("mode"),
-                     rec.get("content"), rec.get("reason"), rec.get("explanation") or
-                     rec.get("detail"), f"; hint: {rec.get('hint')}" if rec.get("hint") else "")
-
-    def _on_health(self, item) -> None:
-        """The reader's health record (daq.bus.health) with the service's parts, replaced
-        into it; published as it is (serialised once, ``Health.to_dict``)."""
-        import dataclasses
-
-        from rsra.daq.bus.health import IdentQueue, Latency, PublisherQueue, frozen_map
-
-        h = item.health
-        if self.latencies:
-            a = np.fromiter(self.latencies, float) * 1e3
-            latency = Latency(p50=float(np.percentile(a, 50)), p99=float(np.percentile(a, 99)),
-                              max=float(a.max()), deadline_misses=self.deadline_misses)
-        else:
-            latency = Latency(p50=None, p99=None)
-        queues, more = h.queues, {}
-        if self.worker is not None:
-            queues = dataclasses.replace(queues, identification=IdentQueue(
-                submitted=self.worker.submitted, dropped=self.worker.dropped,
-                errors=self.ident_errors))
-            more["identification"] = frozen_map(self.worker.health())
-        if self.outputs is not None and self.outputs.low_rate is not None:
-            queues = dataclasses.replace(queues, publisher=PublisherQueue(
-                depth=self.outputs.low_rate.queue.qsize(), dropped=self.outputs.low_rate.dropped))
-        if self.outputs is not None and self.outputs.foxglove is not None:
-            more["foxglove"] = frozen_map(self.outputs.foxglove.health())
-        if self.pipeline is not None:  # readings the estimator refused (bad input, counted)
-            p = self.pipeline
-            est = {"implausible_omega": p.implausible_omega,
-                   "design_errors": p.design_errors,
-                   "inertial": p.cfg.angular,
-                   "harmonic_phase": p.cfg.rotor.harmonic_phase,
-                   "hub_kernel": p.hub_kernel_status,
-                   "hub_kernel_samples": 0 if p.hub_kernel is None else p.hub_kernel.samples}
-            if p.azimuth_mode:
-                est["azimuth_missing"] = p.azimuth_missing
-                est["azimuth_refused"] = p.azimuth.refused
-            if self.pipeline.stuck is not None:
-                est.update(self.pipeline.stuck.health())
-            more["estimator"] = frozen_map(est)
-        if self.warnings:
-            more["warnings"] = tuple(self.warnings)
-        h = dataclasses.replace(h, latency_ms=latency, queues=queues, **more)
-        prev = self.last_health.recording.error if self.last_health is not None else None
-        err = h.recording.error
-        if err and err != prev:
-            log.error("recording stopped: %s", err)
-        self.last_health = h
-        self.outputs.publish("health", h)
-
-    def _summary(self) -> dict:
-        rej = dict(self.ident_rejected)
-        out = {"samples": self.samples, "lost": self.lost,
-               "duration_s": None if self.first_t is None else self.last_t - self.first_t,
-               "identification_runs": self.ident_runs,
-               "accepted": self.ident_runs - sum(rej.values()),
-               "rejected": rej, "published": dict(self.outputs.counts) if self.outputs else {},
-               "deadline_misses": self.deadline_misses}
-        if self.reader is not None:  # the reader's counts, as a replay of the run reports them
-            h = self.reader.health()
-            out["samples_complete"] = h.samples.complete
-            out["samples_incomplete"] = h.samples.incomplete
-            if h.sync.gaps:
-                out["sync_gaps"] = {"count": h.sync.gaps, "longest_s": h.sync.gap_longest_s}
-        if self.warnings:
-            out["warnings"] = list(self.warnings)
-        if self.pipeline is not None and (self.pipeline.implausible_omega
-                                          or self.pipeline.design_errors):
-            out["implausible_omega"] = self.pipeline.implausible_omega
-            out["design_errors"] = self.pipeline.design_errors
-        if self.pipeline is not None and self.pipeline.stuck is not None:
-            st = self.pipeline.stuck.health()
-            if st["stuck_episodes"]:
-                out["stuck"] = {"episodes": st["stuck_episodes"], "samples": st["stuck_samples"]}
-        if self.latencies:
-            a = np.fromiter(self.latencies, float) * 1e3
-            out["latency_ms"] = {"p50": float(np.percentile(a, 50)),
-                                 "p99": float(np.percentile(a, 99)), "max": float(a.max())}
-        if self.angles_log:
-            last = self.angles_log[-1]
-            out["angles"] = {"names": last.get("names"), "alpha": last.get("alpha"),
-                             "sigma": [math.sqrt(max(last.P[i][i], 0.0))
-                                       for i in range(len(last.get("names") or []))]
-                             if last.get("P") else None}
-        if self.pipeline is not None:
-            out["alpha_applied"] = self.pipeline.alpha.tolist()
-        if self.schedule is not None:
-            out["angles_schedule"] = self._schedule_summary()
-        return out
-
-    def _schedule_summary(self) -> dict:
-        """Replay: where the angles came from. A recorded schedule is partial when the
-        recording runs on for more than a period, the apply delay and a second past its last
-        record (a live run publishes one record per period)."""
-        sch = dict(self.schedule)
-        if sch["source"] != "recorded" or self.last_seq is None:
-            return sch
-        idc = self.cfg.identification
-        last = sch["last_applies_from_seq"]
-        sch["last_seq"] = self.last_seq
-        if last is not None:
-            sch["uncovered_s"] = max(0, self.last_seq - last) / self.fs
-            sch["partial"] = self.last_seq - last > (idc.period_s + idc.apply_delay_s
-                                                     + 1.0) * self.fs
-        return sch

@@ -80,6 +80,8 @@ class Source(Protocol):
     reader: ReaderBase | None  # Reader, LockstepReader or OfflineReader
     sim: Any  # the in-process simulator, if any (its truth, recent samples)
     recorder: Recorder | None
+    # live: the service's first step of each sample, run in the bus thread (set before open)
+    first_step: Callable[[Sample], Any] | None
 
     def describe(self) -> str: ...
 

@@ -1,0 +1,147 @@
+"""What a run says of itself: the health record with the service's parts (latency, queues,
+identification, Foxglove, the estimator's refusals, start-up warnings) and the end summary
+(`rsra run`/`replay` print it; docs/cli.md). Both read a :class:`SampleLoop`'s counts.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from collections.abc import Iterable
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from rsra.config.rig import RigConfig
+    from rsra.daq.bus.health import Health
+    from rsra.daq.runtime.sample_loop import SampleLoop
+
+log = logging.getLogger("rsra.service")
+
+
+def latency_percentiles(latencies: Iterable[float]) -> dict[str, float] | None:
+    """{"p50", "p99", "max"} in ms of latencies in seconds; None when there are none."""
+    a = np.fromiter(latencies, float) * 1e3
+    if not a.size:
+        return None
+    return {"p50": float(np.percentile(a, 50)), "p99": float(np.percentile(a, 99)),
+            "max": float(a.max())}
+
+
+class HealthReporter:
+    """The reader's health records (daq.bus.health) with the service's parts, replaced into
+    them; published as they are (serialised once, ``Health.to_dict``). A recording that
+    stops is logged once, when its error first appears."""
+
+    def __init__(self, loop: SampleLoop, warnings: list[str]):
+        self._loop = loop
+        self._warnings = warnings  # (the service's list: start-up problems it went on with)
+        #: the latest health record published
+        self.last: Health | None = None
+
+    def __call__(self, item: Any) -> None:
+        from rsra.daq.bus.health import IdentQueue, Latency, PublisherQueue, frozen_map
+
+        loop = self._loop
+        h = item.health
+        lat = latency_percentiles(loop.latencies)
+        latency = (Latency(deadline_misses=loop.deadline_misses, **lat) if lat is not None
+                   else Latency(p50=None, p99=None))
+        queues = h.queues
+        more: dict[str, Any] = {}
+        worker = loop.supervision.worker
+        if worker is not None:
+            queues = dataclasses.replace(queues, identification=IdentQueue(
+                submitted=worker.submitted, dropped=worker.dropped,
+                errors=loop.supervision.errors))
+            more["identification"] = frozen_map(worker.health())
+        outputs = loop.outputs
+        if outputs.low_rate is not None:
+            queues = dataclasses.replace(queues, publisher=PublisherQueue(
+                depth=outputs.low_rate.queue.qsize(), dropped=outputs.low_rate.dropped))
+        if outputs.foxglove is not None:
+            more["foxglove"] = frozen_map(outputs.foxglove.health())
+        p = loop.pipeline  # readings the estimator refused (bad input, counted)
+        est = {"implausible_omega": p.implausible_omega,
+               "design_errors": p.design_errors,
+               "inertial": p.cfg.angular,
+               "harmonic_phase": p.cfg.rotor.harmonic_phase,
+               "hub_kernel": p.hub_kernel_status,
+               "hub_kernel_samples": 0 if p.hub_kernel is None else p.hub_kernel.samples}
+        if p.azimuth_mode:
+            est["azimuth_missing"] = p.azimuth_missing
+            est["azimuth_refused"] = p.azimuth.refused
+        if p.stuck is not None:
+            est.update(p.stuck.health())
+        more["estimator"] = frozen_map(est)
+        if self._warnings:
+            more["warnings"] = tuple(self._warnings)
+        h = dataclasses.replace(h, latency_ms=latency, queues=queues, **more)
+        prev = self.last.recording.error if self.last is not None else None
+        err = h.recording.error
+        if err and err != prev:
+            log.error("recording stopped: %s", err)
+        self.last = h
+        outputs.publish("health", h)
+
+
+def run_summary(loop: SampleLoop, reader: Any, warnings: list[str],
+                schedule: dict | None, cfg: RigConfig) -> dict:
+    """The end summary of a run: the loop's counts, the reader's, what the estimator
+    refused, the latency, the last angles and (replay) where they came from."""
+    rej = dict(loop.angles.rejected)
+    out: dict[str, Any] = {
+        "samples": loop.samples, "lost": loop.lost,
+        "duration_s": (None if loop.first_t is None or loop.last_t is None
+                       else loop.last_t - loop.first_t),
+        "identification_runs": loop.angles.runs,
+        "accepted": loop.angles.runs - sum(rej.values()),
+        "rejected": rej, "published": dict(loop.outputs.counts),
+        "deadline_misses": loop.deadline_misses}
+    if reader is not None:  # the reader's counts, as a replay of the run reports them
+        h = reader.health()
+        out["samples_complete"] = h.samples.complete
+        out["samples_incomplete"] = h.samples.incomplete
+        if h.sync.gaps:
+            out["sync_gaps"] = {"count": h.sync.gaps, "longest_s": h.sync.gap_longest_s}
+    if warnings:
+        out["warnings"] = list(warnings)
+    p = loop.pipeline
+    if p.implausible_omega or p.design_errors:
+        out["implausible_omega"] = p.implausible_omega
+        out["design_errors"] = p.design_errors
+    if p.stuck is not None:
+        st = p.stuck.health()
+        if st["stuck_episodes"]:
+            out["stuck"] = {"episodes": st["stuck_episodes"], "samples": st["stuck_samples"]}
+    lat = latency_percentiles(loop.latencies)
+    if lat is not None:
+        out["latency_ms"] = lat
+    if loop.angles.log:
+        last = loop.angles.log[-1]
+        out["angles"] = {"names": last.get("names"), "alpha": last.get("alpha"),
+                         "sigma": [math.sqrt(max(last.P[i][i], 0.0))
+                                   for i in range(len(last.get("names") or []))]
+                         if last.get("P") else None}
+    out["alpha_applied"] = p.alpha.tolist()
+    if schedule is not None:
+        out["angles_schedule"] = schedule_summary(schedule, loop.last_seq, cfg)
+    return out
+
+
+def schedule_summary(schedule: dict, last_seq: int | None, cfg: RigConfig) -> dict:
+    """Replay: where the angles came from. A recorded schedule is partial when the
+    recording runs on for more than a period, the apply delay and a second past its last
+    record (a live run publishes one record per period)."""
+    sch = dict(schedule)
+    if sch["source"] != "recorded" or last_seq is None:
+        return sch
+    idc = cfg.identification
+    fs = cfg.sample_rate_hz
+    last = sch["last_applies_from_seq"]
+    sch["last_seq"] = last_seq
+    if last is not None:
+        sch["uncovered_s"] = max(0, last_seq - last) / fs
+        sch["partial"] = last_seq - last > (idc.period_s + idc.apply_delay_s + 1.0) * fs
+    return sch
