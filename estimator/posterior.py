@@ -516,6 +516,8 @@ class SequentialPosterior:
             return
         th, Pp = self._over_names(names, np.asarray(theta, float), np.asarray(P, float),
                                   self.theta, np.diag(np.diag(self.P)))
+        if self.G_acc is not None or self.G_held is not None:
+            self.fold()  # the prediction is a summary of those windows too
         self.prediction = (th, 0.5 * (Pp + Pp.T))
 
     # ------------------------------------------------------------- re-linearisation (known loads)
@@ -538,8 +540,8 @@ class SequentialPosterior:
 
     def _hold(self, moments: tuple[np.ndarray, int] | None) -> None:
         # ``moments`` already include the windows held so far (the run used them all)
-        if not (self.relinearise and moments is not None):
-            return
+        if not (self.relinearise and moments is not None) or self.prediction is not None:
+            return  # (a prediction: the next one holds this window already)
         if self.windows_held + 1 > self.max_held_windows:
             self.drop_held()  # bounded: start holding afresh from this window
             return
@@ -555,7 +557,8 @@ class SequentialPosterior:
             self.drift * (self.anchor_dt + max(float(dt), 0.0)))
 
     def _after_accepted(self, moments: tuple[np.ndarray, int] | None, dt: float) -> None:
-        if not (self.relinearise and moments is not None) or self.trend is not None:
+        if (not (self.relinearise and moments is not None) or self.trend is not None
+                or self.prediction is not None):
             self.fold()
             return
         G, n = moments
@@ -665,11 +668,11 @@ class SequentialPosterior:
         )
 
     def update(self, result: IdentificationResult | None, **kw: Any) -> AnglesRecord:
-        """Judge one run (:meth:`_judge`). Under a trend a run that is not accepted still
-        moves the posterior to its window (the drift fit's prediction), so the mean keeps up
-        with the angles through rejected runs."""
+        """Judge one run (:meth:`_judge`). Under a trend (or the drift bound's prediction) a
+        run that is not accepted still moves the posterior to its window (the drift fit's
+        prediction), so the mean keeps up with the angles through rejected runs."""
         rec = self._judge(result, **kw)
-        if self.trend is not None and self.prediction is not None and not rec.accepted:
+        if self.prediction is not None and not rec.accepted:
             self.theta, self.P = self.prior(kw.get("dt", 0.0))
             self.fold()
         return rec
@@ -979,8 +982,12 @@ class PeriodicIdentification:
                 (d is not None and d.restarted)
                 or (d is not None and d.dof > 0 and not d.rejects_constant)):
             post.set_trend(None)
-        pred = self.structure.drift.prediction if self.structure.drift is not None else None
-        if post.trend is not None and pred is not None:
+        drift = self.structure.drift
+        # under the trend its prediction; before one is selected, the prediction under the
+        # drift the windows cannot exclude (DriftTest.bounded_prediction, issue 27)
+        pred = None if drift is None else (drift.prediction if post.trend is not None
+                                           else drift.bounded_prediction)
+        if pred is not None:
             post.set_prediction(names, *pred)
         else:
             post.set_prediction(None)
