@@ -516,7 +516,7 @@ class SequentialPosterior:
             return
         th, Pp = self._over_names(names, np.asarray(theta, float), np.asarray(P, float),
                                   self.theta, np.diag(np.diag(self.P)))
-        if self.G_acc is not None or self.G_held is not None:
+        if self.G_acc is not None:
             self.fold()  # the prediction is a summary of those windows too
         self.prediction = (th, 0.5 * (Pp + Pp.T))
 
@@ -540,8 +540,8 @@ class SequentialPosterior:
 
     def _hold(self, moments: tuple[np.ndarray, int] | None) -> None:
         # ``moments`` already include the windows held so far (the run used them all)
-        if not (self.relinearise and moments is not None) or self.prediction is not None:
-            return  # (a prediction: the next one holds this window already)
+        if not (self.relinearise and moments is not None):
+            return
         if self.windows_held + 1 > self.max_held_windows:
             self.drop_held()  # bounded: start holding afresh from this window
             return
@@ -674,7 +674,10 @@ class SequentialPosterior:
         rec = self._judge(result, **kw)
         if self.prediction is not None and not rec.accepted:
             self.theta, self.P = self.prior(kw.get("dt", 0.0))
+            held = (self.G_held, self.n_held, self.windows_held)
             self.fold()
+            if self.trend is None:  # the bound's held windows count with the next run
+                self.G_held, self.n_held, self.windows_held = held
         return rec
 
     def _judge(
@@ -897,6 +900,9 @@ class PeriodicIdentification:
     filter_state: FilterErrorState | None = field(default=None, init=False)
     _settle_pending: int = field(default=0, init=False)
     _last_end: int | None = field(default=None, init=False)
+    # the drift bound's fit in use (DriftTest look) and the one held windows started from
+    _bound_look: int | None = field(default=None, init=False)
+    _held_look: int | None = field(default=None, init=False)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -969,7 +975,7 @@ class PeriodicIdentification:
         filter both settle at the start of the next window."""
         self._settle_pending = int(self.content_settle_samples) + self.filter_settle_samples
 
-    def _follow_drift(self, verdict: StructureVerdict) -> None:
+    def _follow_drift(self, verdict: StructureVerdict, t: float) -> None:
         """The trend the posterior tracks with (issue 27): the drift test's while it selects
         it; none once the test finds the angles constant again (testable, not rejected) or
         restarts (a step is not a trend); otherwise the one in force stays."""
@@ -985,8 +991,19 @@ class PeriodicIdentification:
         drift = self.structure.drift
         # under the trend its prediction; before one is selected, the prediction under the
         # drift the windows cannot exclude (DriftTest.bounded_prediction, issue 27)
-        pred = None if drift is None else (drift.prediction if post.trend is not None
-                                           else drift.bounded_prediction)
+        pred = None
+        self._bound_look = None
+        if drift is not None and post.trend is not None:
+            pred = drift.prediction
+        elif drift is not None and post.windows_held and self._held_look is not None:
+            # windows held since: the bound's fit from before them, the held moments added
+            pred = drift.predict_bounded(t, self._held_look)
+            self._bound_look = self._held_look
+        elif drift is not None:
+            pred = drift.bounded_prediction
+            self._bound_look = drift.bounded_look
+            if pred is not None and post.windows_held:
+                post.drop_held()  # the prediction holds them already
         if pred is not None:
             post.set_prediction(names, *pred)
         else:
@@ -1041,9 +1058,9 @@ class PeriodicIdentification:
             if self.structure is not None:
                 x = self.par.stack(z, T, H, q)[scored]
                 # the window's middle (s) for the drift test
-                verdict = self.structure.add_window(x, self.par.alpha(post.theta),
-                                                    t=0.5 * (seq0 + seq1) / self.fs)
-                self._follow_drift(verdict)
+                t_mid = 0.5 * (seq0 + seq1) / self.fs
+                verdict = self.structure.add_window(x, self.par.alpha(post.theta), t=t_mid)
+                self._follow_drift(verdict, t_mid)
                 theta_p, P_p = post.prior(dt)
             prob = KnownLoadProblem(self.par, z, T, H, q, scored=scored)
             if post.relinearise and post.G_held is not None:
@@ -1104,6 +1121,11 @@ class PeriodicIdentification:
                           arrived_seq=arrived_seq, moments=moments, dt=dt, gate=gate,
                           checks=checks, structure=verdict)
         if self.structure is not None:
+            # the bound's fit the held windows' next run starts from (windows since it held)
+            if post.windows_held == 0 or post.prediction is None:
+                self._held_look = None
+            elif self._held_look is None:
+                self._held_look = self._bound_look
             # the structure the hub-load estimate uses (docs/identification.md): the selected
             # one, while it stays selected; none once the constant model fits again; while
             # the test has not (re)selected one, the one in force stays (a restored one)

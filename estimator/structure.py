@@ -92,6 +92,7 @@ MAX_DRIFT_WINDOWS = 96  # the drift test's history: 8 min of 5-s windows (bounde
 # the drift the data cannot exclude (docs/identification.md, "Before the drift is detected"):
 # the rates' prior scale s at this one-sided upper confidence level of its likelihood
 DRIFT_BOUND_LEVEL = 0.8413  # Φ(1): one standard error above the ML estimate
+MAX_HELD_LOOKS = 16  # bounded fits kept (≥ the posterior's held windows, 12)
 # (smaller, larger): the larger structure contains the smaller one whatever the conditions
 # (δp × F is an external load U F)
 NESTED = frozenset({("hub_position", "external_load")})
@@ -810,6 +811,9 @@ class DriftTest:
         # (α̂, θ̃, Pθ̃, t̄) of the last look and its prediction at the last window
         self._bounded: tuple[np.ndarray, np.ndarray, np.ndarray, float] | None = None
         self.bounded_prediction: tuple[np.ndarray, np.ndarray] | None = None
+        self.bounded_look: int | None = None  # the look whose fit made bounded_prediction
+        # the fits of the last looks (bounded), for a prior that leaves out held windows
+        self._bounded_by_look: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, float]] = {}
         self.rate_scale: tuple[float, float] | None = None  # (ML, bound) of s², rad²/s²
 
     def restart(self) -> None:
@@ -817,6 +821,7 @@ class DriftTest:
         self.rejected = False
         self._fit = None
         self._bounded = None
+        self._bounded_by_look = {}
         self.restarts += 1
 
     def _predict(self, t: float) -> tuple[np.ndarray, np.ndarray] | None:
@@ -829,10 +834,14 @@ class DriftTest:
         P = L @ Pth @ L.T
         return a, 0.5 * (P + P.T)
 
-    def _predict_bounded(self, t: float) -> tuple[np.ndarray, np.ndarray] | None:
-        if self._bounded is None:
+    def predict_bounded(self, t: float, look: int | None = None
+                        ) -> tuple[np.ndarray, np.ndarray] | None:
+        """The bounded prediction at time t from the fit of ``look`` (default the last one;
+        None when that look made none or is no longer kept)."""
+        fit = self._bounded if look is None else self._bounded_by_look.get(look)
+        if fit is None:
             return None
-        a_hat, th, Pth, tbar = self._bounded
+        a_hat, th, Pth, tbar = fit
         na = self.n_a
         L = np.hstack([np.eye(na), (t - tbar) * np.eye(na)])
         P = L @ Pth @ L.T
@@ -884,7 +893,8 @@ class DriftTest:
         self.look += 1
         restarted = False
         self.prediction = self._predict(float(t))
-        self.bounded_prediction = self._predict_bounded(float(t))
+        self.bounded_prediction = self.predict_bounded(float(t))
+        self.bounded_look = self.look - 1 if self.bounded_prediction is not None else None
         if self._fit is not None and self._mispredicts(xbar, n, float(t)):
             self.restart()
             self.prediction = self.bounded_prediction = None
@@ -893,6 +903,10 @@ class DriftTest:
         if len(self.windows) > self.max_windows:
             self.windows.pop(0)
         self.last = self._verdict(np.asarray(alpha, float), restarted)
+        if self._bounded is not None:
+            self._bounded_by_look[self.look] = self._bounded
+        for k in [k for k in self._bounded_by_look if k < self.look - MAX_HELD_LOOKS]:
+            del self._bounded_by_look[k]
         return self.last
 
     def _verdict(self, alpha: np.ndarray, restarted: bool) -> DriftVerdict | None:
