@@ -89,7 +89,7 @@ STRUCTURES = ("cell_load_angles", "hub_position", "balance", "external_load")
 VERDICTS = ("constant", "not_constant", "undetermined", "drifting")
 DRIFTING = "drifting"  # the time-varying candidate (DriftTest, issue 27)
 MAX_DRIFT_WINDOWS = 96  # the drift test's history: 8 min of 5-s windows (bounded)
-# the drift the data cannot exclude (docs/identification.md, "Before the drift is detected"):
+# the drift the data cannot exclude (docs/identification.md, "Angles that drift"):
 # the rates' prior scale s at this one-sided upper confidence level of its likelihood
 DRIFT_BOUND_LEVEL = 0.8413  # Φ(1): one standard error above the ML estimate
 MAX_HELD_LOOKS = 16  # bounded fits kept (≥ the posterior's held windows, 12)
