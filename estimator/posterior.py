@@ -564,6 +564,8 @@ class SequentialPosterior:
             return
         th, Pp = self._over_names(names, np.asarray(theta, float), np.asarray(P, float),
                                   self.theta, np.diag(np.diag(self.P)))
+        if self.G_acc is not None:
+            self.fold()  # the prediction is a summary of those windows too
         self.prediction = (th, 0.5 * (Pp + Pp.T))
 
     # ------------------------------------------------------------- re-linearisation (known loads)
@@ -603,7 +605,8 @@ class SequentialPosterior:
             self.drift * (self.anchor_dt + max(float(dt), 0.0)))
 
     def _after_accepted(self, moments: tuple[np.ndarray, int] | None, dt: float) -> None:
-        if not (self.relinearise and moments is not None) or self.trend is not None:
+        if (not (self.relinearise and moments is not None) or self.trend is not None
+                or self.prediction is not None):
             self.fold()
             return
         G, n = moments
@@ -716,13 +719,16 @@ class SequentialPosterior:
         )
 
     def update(self, result: IdentificationResult | None, **kw: Any) -> AnglesRecord:
-        """Judge one run (:meth:`_judge`). Under a trend a run that is not accepted still
-        moves the posterior to its window (the drift fit's prediction), so the mean keeps up
-        with the angles through rejected runs."""
+        """Judge one run (:meth:`_judge`). Under a trend (or the drift bound's prediction) a
+        run that is not accepted still moves the posterior to its window (the drift fit's
+        prediction), so the mean keeps up with the angles through rejected runs."""
         rec = self._judge(result, **kw)
-        if self.trend is not None and self.prediction is not None and not rec.accepted:
+        if self.prediction is not None and not rec.accepted:
             self.theta, self.P = self.prior(kw.get("dt", 0.0))
+            held = (self.G_held, self.n_held, self.windows_held)
             self.fold()
+            if self.trend is None:  # the bound's held windows count with the next run
+                self.G_held, self.n_held, self.windows_held = held
         return rec
 
     def _judge(
@@ -920,6 +926,36 @@ class FilterErrorChecks:
     load_variance: float = 0.0
 
 
+def likelihood_ratio_gate(post: SequentialPosterior, par: Parameterisation,
+                          max_iterations: int, window_prob: Any, res: IdentificationResult,
+                          theta_a: np.ndarray, P_a: np.ndarray, theta_prev: np.ndarray,
+                          P_p: np.ndarray) -> tuple[float, int]:
+    """The consistency gate of a re-linearised run as a likelihood ratio:
+    ν = 2 [J_{prev+w}(θ_run) − J_prev(θ_prev) − min V_w], d = rank of the window's
+    information against the prior. For a linear model this is exactly model §7's
+    Δθᵀ D⁺ Δθ; unlike it, it does not assume the previous posterior is Gaussian, which it
+    is not while directions are still undetermined (the constraints of one load
+    condition are curved in α: a Gaussian around the mode puts the truth at χ² in the
+    hundreds after the first windows — measured)."""
+    Pinv_a = np.linalg.inv(P_a)
+    da = theta_prev - theta_a
+    J_prev = 0.5 * float(da @ Pinv_a @ da)
+    if post.G_acc is not None:
+        J_prev += _moment_cost(par, post.G_acc, theta_prev)
+    # the window alone: its minimum from the run's estimate (a broad prior keeps the
+    # rank-deficient problem solvable; it can only lower ν, by (Δ/σ₀)² ≈ 1e-4)
+    alone = levenberg_marquardt(window_prob, res.theta, post.P0,
+                                max_iterations=max_iterations)
+    th_w = alone.theta if np.all(np.isfinite(alone.theta)) else res.theta
+    V_w = min(_moment_cost(par, window_prob.G, th_w),
+              _moment_cost(par, window_prob.G, res.theta))
+    nu = max(2.0 * (res.cost - J_prev - V_w), 0.0)
+    L = np.linalg.cholesky(P_p)
+    lam = np.linalg.eigvalsh(L.T @ res.information @ L)
+    d = int(np.sum(lam > GATE_RELATIVE_EIGENVALUE * max(lam[-1], 0.0))) if lam[-1] > 0 else 0
+    return nu, d
+
+
 class LoadReference:
     """The reference (trim) load of filter-error windows and each window's excursion from it
     (docs/identification.md, "Load excursions", issue 25): the median of the last
@@ -994,6 +1030,9 @@ class PeriodicIdentification:
     # the run was not sound), for what reads the window's information afterwards
     # (estimator.flight_advice, issue 25 item 5); None after a known-load or stale window
     last_window: tuple[FilterErrorProblem, np.ndarray] | None = field(default=None, init=False)
+    # the drift bound's fit in use (DriftTest look) and the one held windows started from
+    _bound_look: int | None = field(default=None, init=False)
+    _held_look: int | None = field(default=None, init=False)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -1009,35 +1048,6 @@ class PeriodicIdentification:
             # the test compares window means: static content only (docs/identification.md)
             self.structure = StructureTest(self.model, self.moment_floor)
         self.mark_discontinuity()
-
-    def _likelihood_ratio_gate(self, window_prob: Any, res: IdentificationResult,
-                               theta_a: np.ndarray, P_a: np.ndarray, theta_prev: np.ndarray,
-                               P_p: np.ndarray) -> tuple[float, int]:
-        """The consistency gate of a re-linearised run as a likelihood ratio:
-        ν = 2 [J_{prev+w}(θ_run) − J_prev(θ_prev) − min V_w], d = rank of the window's
-        information against the prior. For a linear model this is exactly model §7's
-        Δθᵀ D⁺ Δθ; unlike it, it does not assume the previous posterior is Gaussian, which it
-        is not while directions are still undetermined (the constraints of one load
-        condition are curved in α: a Gaussian around the mode puts the truth at χ² in the
-        hundreds after the first windows — measured)."""
-        post = self.posterior
-        Pinv_a = np.linalg.inv(P_a)
-        da = theta_prev - theta_a
-        J_prev = 0.5 * float(da @ Pinv_a @ da)
-        if post.G_acc is not None:
-            J_prev += _moment_cost(self.par, post.G_acc, theta_prev)
-        # the window alone: its minimum from the run's estimate (a broad prior keeps the
-        # rank-deficient problem solvable; it can only lower ν, by (Δ/σ₀)² ≈ 1e-4)
-        alone = levenberg_marquardt(window_prob, res.theta, post.P0,
-                                    max_iterations=self.max_iterations)
-        th_w = alone.theta if np.all(np.isfinite(alone.theta)) else res.theta
-        V_w = min(_moment_cost(self.par, window_prob.G, th_w),
-                  _moment_cost(self.par, window_prob.G, res.theta))
-        nu = max(2.0 * (res.cost - J_prev - V_w), 0.0)
-        L = np.linalg.cholesky(P_p)
-        lam = np.linalg.eigvalsh(L.T @ res.information @ L)
-        d = int(np.sum(lam > GATE_RELATIVE_EIGENVALUE * max(lam[-1], 0.0))) if lam[-1] > 0 else 0
-        return nu, d
 
     def filter_error_checks(self, prob: FilterErrorProblem, theta: np.ndarray
                             ) -> FilterErrorChecks:
@@ -1067,7 +1077,7 @@ class PeriodicIdentification:
         filter both settle at the start of the next window."""
         self._settle_pending = int(self.content_settle_samples) + self.filter_settle_samples
 
-    def _follow_drift(self, verdict: StructureVerdict) -> None:
+    def _follow_drift(self, verdict: StructureVerdict, t: float) -> None:
         """The trend the posterior tracks with (issue 27): the drift test's while it selects
         it; none once the test finds the angles constant again (testable, not rejected) or
         restarts (a step is not a trend); otherwise the one in force stays."""
@@ -1080,8 +1090,23 @@ class PeriodicIdentification:
                 (d is not None and d.restarted)
                 or (d is not None and d.dof > 0 and not d.rejects_constant)):
             post.set_trend(None)
-        pred = self.structure.drift.prediction if self.structure.drift is not None else None
-        if post.trend is not None and pred is not None:
+        drift = self.structure.drift
+        # under the trend its prediction; before one is selected, the prediction under the
+        # drift the windows cannot exclude (DriftTest.bounded_prediction, issue 27)
+        pred = None
+        self._bound_look = None
+        if drift is not None and post.trend is not None:
+            pred = drift.prediction
+        elif drift is not None and post.windows_held and self._held_look is not None:
+            # windows held since: the bound's fit from before them, the held moments added
+            pred = drift.predict_bounded(t, self._held_look)
+            self._bound_look = self._held_look
+        elif drift is not None:
+            pred = drift.bounded_prediction
+            self._bound_look = drift.bounded_look
+            if pred is not None and post.windows_held:
+                post.drop_held()  # the prediction holds them already
+        if pred is not None:
             post.set_prediction(names, *pred)
         else:
             post.set_prediction(None)
@@ -1150,9 +1175,9 @@ class PeriodicIdentification:
             if self.structure is not None:
                 x = self.par.stack(z, T, H, q)[scored]
                 # the window's middle (s) for the drift test
-                verdict = self.structure.add_window(x, self.par.alpha(post.theta),
-                                                    t=0.5 * (seq0 + seq1) / self.fs)
-                self._follow_drift(verdict)
+                t_mid = 0.5 * (seq0 + seq1) / self.fs
+                verdict = self.structure.add_window(x, self.par.alpha(post.theta), t=t_mid)
+                self._follow_drift(verdict, t_mid)
                 theta_p, P_p = post.prior(dt)
             prob = KnownLoadProblem(self.par, z, T, H, q, scored=scored)
             if post.relinearise and post.G_held is not None:
@@ -1200,7 +1225,8 @@ class PeriodicIdentification:
                           n_scored=window_prob.n_scored,
                           status=res.status if np.all(np.isfinite(M_w)) else "diverged")
             if res.sound:
-                gate = self._likelihood_ratio_gate(window_prob, res, theta_a, P_a, theta_p, P_p)
+                gate = likelihood_ratio_gate(post, self.par, self.max_iterations, window_prob,
+                                             res, theta_a, P_a, theta_p, P_p)
         else:
             res = levenberg_marquardt(prob, theta_p, P_p, max_iterations=self.max_iterations,
                                       max_lag=max_lag)
@@ -1216,6 +1242,11 @@ class PeriodicIdentification:
                           arrived_seq=arrived_seq, moments=moments, dt=dt, gate=gate,
                           checks=checks, structure=verdict)
         if self.structure is not None:
+            # the bound's fit the held windows' next run starts from (windows since it held)
+            if post.windows_held == 0 or post.prediction is None:
+                self._held_look = None
+            elif self._held_look is None:
+                self._held_look = self._bound_look
             # the structure the hub-load estimate uses (docs/identification.md): the selected
             # one, while it stays selected; none once the constant model fits again; while
             # the test has not (re)selected one, the one in force stays (a restored one)

@@ -69,8 +69,8 @@ from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.stats import chi2
+from scipy.optimize import brentq, least_squares, minimize_scalar
+from scipy.stats import chi2, norm
 
 from .balance import measurement_covariance
 from .geometry import (
@@ -89,6 +89,10 @@ STRUCTURES = ("cell_load_angles", "hub_position", "balance", "external_load")
 VERDICTS = ("constant", "not_constant", "undetermined", "drifting")
 DRIFTING = "drifting"  # the time-varying candidate (DriftTest, issue 27)
 MAX_DRIFT_WINDOWS = 96  # the drift test's history: 8 min of 5-s windows (bounded)
+# the drift the data cannot exclude (docs/identification.md, "Angles that drift"):
+# the rates' prior scale s at this one-sided upper confidence level of its likelihood
+DRIFT_BOUND_LEVEL = 0.8413  # Φ(1): one standard error above the ML estimate
+MAX_HELD_LOOKS = 16  # bounded fits kept (≥ the posterior's held windows, 12)
 # (smaller, larger): the larger structure contains the smaller one whatever the conditions
 # (δp × F is an external load U F)
 NESTED = frozenset({("hub_position", "external_load")})
@@ -725,6 +729,41 @@ class DriftVerdict:
                 "selected": self.selected}
 
 
+def rate_scale_bound(s: np.ndarray, b: np.ndarray, level: float = DRIFT_BOUND_LEVEL
+                     ) -> tuple[float, float] | None:
+    """The rates' prior variance s² of ρ ~ N(0, s² I) that the windows cannot exclude: from
+    the rates' information S (r, r) after the constant angles are eliminated (Schur
+    complement) and its score b, the marginal likelihood ρ̂ ~ N(0, S⁻¹ + s² I) on the
+    determined directions; returns (ML estimate, the one-sided upper likelihood-ratio bound
+    at ``level``), rad²/s², or None when no rate direction is determined."""
+    lam, U = np.linalg.eigh(0.5 * (s + s.T))
+    keep = lam > RANK_TOLERANCE**2 * lam[-1] if len(lam) and lam[-1] > 0 else lam > np.inf
+    if not keep.any():
+        return None
+    v = 1.0 / lam[keep]
+    y = (U[:, keep].T @ b) / lam[keep]
+
+    def nll(ls: float) -> float:
+        c = v + math.exp(ls)
+        return 0.5 * float(np.sum(np.log(c) + y**2 / c))
+
+    lo = math.log(1e-6 * float(v.min()))
+    hi = math.log(10.0 * max(float(np.max(y**2)), float(v.max())))
+    r = minimize_scalar(nll, bounds=(lo, hi), method="bounded")
+    ls_ml, f_ml = float(r.x), float(r.fun)
+    if nll(lo) <= f_ml:  # the maximum at the boundary s² = 0
+        ls_ml, f_ml = lo, nll(lo)
+    z = float(norm.isf(1.0 - level)) if level > 0.5 else 0.0
+    if z <= 0.0:
+        return math.exp(ls_ml), math.exp(ls_ml)
+    target = f_ml + 0.5 * z * z
+    top = ls_ml + 1.0
+    while nll(top) < target:
+        top += 2.0
+    ls_u = brentq(lambda ls: nll(ls) - target, ls_ml, top, xtol=1e-6)
+    return (0.0 if ls_ml == lo else math.exp(ls_ml)), math.exp(ls_u)
+
+
 class DriftTest:
     """Constant angles against angles on a linear trend in time, α(t) = α0 + ρ (t − t̄)
     (docs/identification.md, "Angles that drift"). Unlike the load structures it cannot pool
@@ -742,12 +781,21 @@ class DriftTest:
     rates and their covariance come from the joint least squares of [α0, ρ]; the misfit left
     must pass at the look's level (``explains``) and every rate be determined (r = 14) for the
     trend to be *selected*. A step is not a trend: a new window the trend (fitted before it)
-    mispredicts by more than χ²₆(1 − ``time_level``) restarts the history."""
+    mispredicts by more than χ²₆(1 − ``time_level``) restarts the history.
+
+    Before a trend is selected, :attr:`bounded_prediction` is the angles at the next window
+    under the drift the windows cannot exclude: the same joint fit with the rates' prior
+    ρ ~ N(0, s² I), s² at the upper bound of :func:`rate_scale_bound` (``bound_level``),
+    from the look at which the windows determine all 14 angles and all 14 rates (before,
+    with few rate directions tested, the bound is unbounded in the others)."""
 
     def __init__(self, model: RigModel, moment_floor: float, *, false_alarm: float = FALSE_ALARM,
-                 time_level: float = TIME_LEVEL, max_windows: int = MAX_DRIFT_WINDOWS) -> None:
+                 time_level: float = TIME_LEVEL, max_windows: int = MAX_DRIFT_WINDOWS,
+                 bound_level: float | None = DRIFT_BOUND_LEVEL) -> None:
         self.model, self.moment_floor = model, float(moment_floor)
         self.false_alarm, self.time_level = float(false_alarm), float(time_level)
+        # None: no bounded prediction (the constant-angle posterior as it is)
+        self.bound_level = bound_level
         self.max_windows = int(max_windows)
         self.n_a = 2 * model.geometry.n_cells
         self.look = 0
@@ -759,11 +807,21 @@ class DriftTest:
         # the angles the fit of the windows before the last one predicts at the last one's
         # time, with the prediction's covariance (α (14,), P (14, 14)); None: not determined
         self.prediction: tuple[np.ndarray, np.ndarray] | None = None
+        # the same under the drift the windows cannot exclude (rate prior at its bound);
+        # (α̂, θ̃, Pθ̃, t̄) of the last look and its prediction at the last window
+        self._bounded: tuple[np.ndarray, np.ndarray, np.ndarray, float] | None = None
+        self.bounded_prediction: tuple[np.ndarray, np.ndarray] | None = None
+        self.bounded_look: int | None = None  # the look whose fit made bounded_prediction
+        # the fits of the last looks (bounded), for a prior that leaves out held windows
+        self._bounded_by_look: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, float]] = {}
+        self.rate_scale: tuple[float, float] | None = None  # (ML, bound) of s², rad²/s²
 
     def restart(self) -> None:
         self.windows = []
         self.rejected = False
         self._fit = None
+        self._bounded = None
+        self._bounded_by_look = {}
         self.restarts += 1
 
     def _predict(self, t: float) -> tuple[np.ndarray, np.ndarray] | None:
@@ -775,6 +833,45 @@ class DriftTest:
         a = a_hat + L @ th
         P = L @ Pth @ L.T
         return a, 0.5 * (P + P.T)
+
+    def predict_bounded(self, t: float, look: int | None = None
+                        ) -> tuple[np.ndarray, np.ndarray] | None:
+        """The bounded prediction at time t from the fit of ``look`` (default the last one;
+        None when that look made none or is no longer kept)."""
+        fit = self._bounded if look is None else self._bounded_by_look.get(look)
+        if fit is None:
+            return None
+        a_hat, th, Pth, tbar = fit
+        na = self.n_a
+        L = np.hstack([np.eye(na), (t - tbar) * np.eye(na)])
+        P = L @ Pth @ L.T
+        return a_hat + L @ th, 0.5 * (P + P.T)
+
+    def _bound(self, A: np.ndarray, B: np.ndarray, e: np.ndarray, a_hat: np.ndarray,
+               tbar: float) -> None:
+        """The joint fit of [δα0, ρ] under the rates' prior N(0, s² I), s² at its bound."""
+        self._bounded, self.rate_scale = None, None
+        if self.bound_level is None:
+            return
+        na = self.n_a
+        Laa, Lab, Lbb = A.T @ A, A.T @ B, B.T @ B
+        ga, gb = A.T @ e, B.T @ e
+        try:
+            ca = np.linalg.cholesky(Laa)
+        except np.linalg.LinAlgError:
+            return
+        X = np.linalg.solve(ca, Lab)
+        xa = np.linalg.solve(ca, ga)
+        S = Lbb - X.T @ X  # the rates' information, the constant angles eliminated
+        bound = rate_scale_bound(S, gb - X.T @ xa, self.bound_level)
+        if bound is None:
+            return
+        self.rate_scale = bound
+        Lam = np.block([[Laa, Lab], [Lab.T, Lbb + np.eye(na) / bound[1]]])
+        d = np.sqrt(np.diag(Lam))
+        Pn = np.linalg.inv(Lam / np.outer(d, d)) / np.outer(d, d)
+        th = Pn @ np.concatenate([ga, gb])
+        self._bounded = (a_hat, th, 0.5 * (Pn + Pn.T), tbar)
 
     def _mispredicts(self, xbar: np.ndarray, n: int, t: float) -> bool:
         assert self._fit is not None  # called after a fit
@@ -796,19 +893,25 @@ class DriftTest:
         self.look += 1
         restarted = False
         self.prediction = self._predict(float(t))
+        self.bounded_prediction = self.predict_bounded(float(t))
+        self.bounded_look = self.look - 1 if self.bounded_prediction is not None else None
         if self._fit is not None and self._mispredicts(xbar, n, float(t)):
             self.restart()
-            self.prediction = None
+            self.prediction = self.bounded_prediction = None
             restarted = True
         self.windows.append((float(t), xbar, n))
         if len(self.windows) > self.max_windows:
             self.windows.pop(0)
         self.last = self._verdict(np.asarray(alpha, float), restarted)
+        if self._bounded is not None:
+            self._bounded_by_look[self.look] = self._bounded
+        for k in [k for k in self._bounded_by_look if k < self.look - MAX_HELD_LOOKS]:
+            del self._bounded_by_look[k]
         return self.last
 
     def _verdict(self, alpha: np.ndarray, restarted: bool) -> DriftVerdict | None:
         if len(self.windows) < 2:
-            self._fit = None
+            self._fit = self._bounded = None
             return None
         ts = np.array([w[0] for w in self.windows])
         means = np.array([w[1] for w in self.windows])
@@ -816,7 +919,7 @@ class DriftTest:
         a_hat, converged = fit_constant_converged(self.model, alpha, means, counts,
                                                   self.moment_floor)
         if not converged:
-            self._fit = None
+            self._fit = self._bounded = None
             return None
         tbar = float(np.average(ts, weights=counts))
         tau = ts - tbar
@@ -842,6 +945,10 @@ class DriftTest:
         Pth = Pu / np.outer(scale, scale)
         determined = r == na
         self._fit = (a_hat, th, Pth, tbar, determined)
+        if determined and UA.shape[1] == na:
+            self._bound(A, B, e, a_hat, tbar)
+        else:
+            self._bounded = None
         if r == 0:
             return DriftVerdict(np.zeros(na), np.full(na, np.nan), np.zeros((na, na)), 0.0, 0,
                                 0.0, self.rejected, False, misfit, misfit_dof, len(ts),
