@@ -52,8 +52,13 @@ def test_ground_test_converges_from_4_degrees_and_beats_the_static_bound():
     assert np.degrees(sig.max()) <= 0.2
     # the angles in force match the last accepted record
     assert np.allclose(svc.pipeline.alpha, acc[-1]["alpha"])
-    # hub loads scored once converged: the last 20 s, after the last accepted angles applied
-    start = max(acc[-1]["applies_from_seq"], max(truth) - int(20 * cfg.sample_rate_hz))
+    # hub loads scored once converged: the last 20 s. Windows alternate between accepted and
+    # not_identifiable once the angles have converged (a window's information no longer
+    # adds), so an update may apply inside the span; converged updates move the angles by
+    # less than their σ, which the static bound covers
+    start = max(truth) - int(20 * cfg.sample_rate_hz)
+    late = [a for a in acc if a["applies_from_seq"] >= start]
+    assert late and all(a["applies_from_seq"] > acc[0]["applies_from_seq"] for a in late)
     # the load filter's random-walk states follow a 0.5 s ramp of 10–20 kN between two static
     # conditions (the last 0.5 s of each slot) with a lag of about τ = 0.1 s (3 kN·m on a
     # 15 kN·m yaw ramp): the static bound is for held loads, so the ramp and the second after

@@ -87,7 +87,7 @@ def _ground_test(cfg, seconds: float, seed: int, scenario: str = "ground-test"):
 
     sc = load_scenario(scenario)
     run = simulate(cfg, sc, seed=seed, duration_s=seconds)
-    Hs = AircraftPhysics(cfg, sc, seed=seed)._static(run.t - run.t[0])
+    Hs = AircraftPhysics(cfg, sc, seed=seed).loads._static(run.t - run.t[0])
     moving = np.any(np.abs(np.diff(Hs, axis=0, prepend=Hs[:1])) > 1e-9, axis=1)
     return sc, run, moving
 

@@ -61,6 +61,8 @@ FIELDS: dict[str, list[tuple[str, str, str]]] = {
         ("drift.restarted", "boolean", ""), ("drift.selected", "boolean", ""),
         ("samples_used", "integer", ""), ("missing_inputs", "array:object", ""),
         ("missing_inputs[].input", "string", ""), ("missing_inputs[].fraction", "number", ""),
+        ("load_excursion", "object", ""), ("load_excursion.delta", "array:number", "N, N·m"),
+        ("load_excursion.sigma", "array:number", "rad"),
         ("advice", "object", ""), ("advice.determined", "integer", ""),
         ("advice.next", "number", ""), ("advice.n_scored", "integer", ""),
         ("advice.accelerometers", "array:object", ""),
