@@ -321,6 +321,9 @@ class IdentificationTable(Table):
         list[NonNeg], Field(min_length=6, max_length=6),
         _meta(unit=" in ° per N (X, Y, Z) and per N·m (L, M, N)")] = [0.0] * 6
     filter_error_scattered_fraction: NonNeg = 0.02
+    # known loads: the Gaussian summary's curvature index above which a run is held
+    # (not_identifiable, detail nonlinear; estimator.curvature, issue 27)
+    nonlinearity_limit: NonNeg = 1.0
     structure: StructureTable | None = None
     advice: AdviceTable = Field(default_factory=AdviceTable)
 

@@ -71,6 +71,7 @@ from .identification import (
     scattered_missing_fraction,
     scored_mask,
 )
+from .curvature import nonlinearity
 from .params import RigModel
 from .structure import StructureTest, StructureVerdict, fit_payload
 
@@ -142,6 +143,9 @@ class AnglesRecord:
     # load away from the reference (trim) load and the σ (rad, each angle) of the angles'
     # move that far — the window's truth is the posterior's α ± this beside P
     load_excursion: dict | None = None
+    # known loads (issue 27): the run's curvature index (estimator.curvature); None: not
+    # computed (filter error, a run that did not converge, the limit off)
+    nonlinearity: float | None = None
 
     def to_dict(self) -> dict:
         """The telemetry ``angles`` payload (SI: radians), values as computed (numpy arrays,
@@ -160,6 +164,8 @@ class AnglesRecord:
             out["drift"] = self.drift
         if self.load_excursion is not None:
             out["load_excursion"] = self.load_excursion
+        if self.nonlinearity is not None:
+            out["nonlinearity"] = float(self.nonlinearity)
         return out
 
 
@@ -747,6 +753,7 @@ class SequentialPosterior:
         gate: tuple[float, int] | None = None,
         checks: "FilterErrorChecks | None" = None,
         structure: StructureVerdict | None = None,
+        nonlinear: bool = False,
     ) -> AnglesRecord:
         """Judge one run whose prior was :meth:`prior` (it is read from ``result``).
 
@@ -785,6 +792,12 @@ class SequentialPosterior:
                 nu, d = float(gate[0]), int(gate[1])
             return self._record(accepted=False, reason="inconsistent", result=result,
                                 information=info, nu=nu, d=d or 0, detail="structure", **kw)
+        if nonlinear:
+            # the Gaussian summary misses the likelihood's curvature (estimator.curvature):
+            # not accepted, the window's information held for the next run's exact solve
+            self._hold(moments)
+            return self._record(accepted=False, reason="not_identifiable", result=result,
+                                information=info, nu=None, d=0, detail="nonlinear", **kw)
         low = info < self.min_information
         if low and not self.gate_low_information:
             self._hold(moments)
@@ -1012,6 +1025,8 @@ class PeriodicIdentification:
     # filter error: more than this fraction of the window missing in short runs (dropped
     # frames) is stale_input, detail "scattered_samples" (issue 29; docs/identification.md)
     scattered_fraction: float = math.inf
+    # known loads: the curvature index (estimator.curvature) above which a run is held
+    nonlinearity_limit: float = math.inf
     design: Any = None
     alpha_base: np.ndarray | None = None
     # the content filter (filter error: Γ(k) of the information rule, docs/identification.md)
@@ -1214,6 +1229,7 @@ class PeriodicIdentification:
                                                            - window_prob.n_series + post.n_acc)
             res = levenberg_marquardt(prob, theta_a, P_a, max_iterations=self.max_iterations,
                                       max_lag=max_lag, start=theta_p)
+            lm_prior = (theta_a, P_a)
             if np.all(np.isfinite(res.theta)):
                 try:
                     M_w = window_prob.evaluate(res.theta).information
@@ -1230,6 +1246,14 @@ class PeriodicIdentification:
         else:
             res = levenberg_marquardt(prob, theta_p, P_p, max_iterations=self.max_iterations,
                                       max_lag=max_lag)
+            lm_prior = (theta_p, P_p)
+        nonlinear = None
+        if (self.mode == "known_loads" and math.isfinite(self.nonlinearity_limit)
+                and res.sound and lm_prior[1] is not None):
+            # does the run's Gaussian summary hold? (estimator.curvature: the cold start's
+            # curved valley; its window's information is held for the next run)
+            nonlinear = nonlinearity(prob, lm_prior[0], lm_prior[1], res.theta, res.P,
+                                     math.sqrt(float(np.max(np.diag(post.P0)))))
         if isinstance(prob, FilterErrorProblem):
             self.last_window = (prob, res.theta if res.sound else theta_p)
         checks = None
@@ -1240,7 +1264,9 @@ class PeriodicIdentification:
                           t=t, missing_fraction=missing,
                           apply_delay_samples=self.apply_delay_samples,
                           arrived_seq=arrived_seq, moments=moments, dt=dt, gate=gate,
-                          checks=checks, structure=verdict)
+                          checks=checks, structure=verdict,
+                          nonlinear=nonlinear is not None and nonlinear > self.nonlinearity_limit)
+        rec.nonlinearity = nonlinear
         if self.structure is not None:
             # the bound's fit the held windows' next run starts from (windows since it held)
             if post.windows_held == 0 or post.prediction is None:

@@ -79,7 +79,7 @@ def build_identification(cfg, initial_state=None):
 
     known = PeriodicIdentification(mode="known_loads", content=idc.content_known_loads,
                                    content_settle_samples=settle(idc.content_known_loads),
-                                   **common)
+                                   nonlinearity_limit=idc.nonlinearity_limit, **common)
     design = cache.design_for(w0)
     from rsra.daq.runtime.next_conditions import NextConditions
 

@@ -191,6 +191,13 @@ def explain(rec: Any, job: Mapping[str, Any], idc: Any, labels: Sequence[str]
                     f"min_information {idc.min_information:g}",
                     "the loads did not vary enough in this window: apply the load conditions "
                     "the record's next_conditions lists (known loads), or wait for manoeuvres")
+        if detail == "nonlinear":
+            nl = getattr(rec, "nonlinearity", None)
+            return (f"the run's Gaussian summary misses the likelihood's curvature by "
+                    f"{nl if nl is not None else float('nan'):.3g} (χ²; "
+                    f"identification.nonlinearity_limit {idc.nonlinearity_limit:g})",
+                    "the angles are still far from known in some directions (the cold start); "
+                    "the window's information is kept and the next window is solved with it")
         if detail == "own_information":
             return (f"the window alone determines no direction to σ ≤ {smax:g}° "
                     "(identification.sigma_max_deg)",
