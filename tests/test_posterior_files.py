@@ -375,7 +375,8 @@ def test_a_replay_never_writes_state_file_not_even_when_it_recomputes(tmp_path, 
     """identification.state_file is the live service's output: a replay (recomputed, or
     recomputed because the recording holds no schedule) saves no posterior over it."""
     rec = tmp_path / "rec"
-    assert main(["run", "--sim", "ground-test", "--speed", "max", "--duration", "12",
+    # 40 s: the first run accepted comes after the cold start's curvature check (~20 s)
+    assert main(["run", "--sim", "ground-test", "--speed", "max", "--duration", "40",
                  "--record", str(rec), "--log-level", "error", *_listen()]) == 0
     (rec / "angles.jsonl").unlink()  # a recording without a schedule: recomputed
     capsys.readouterr()
@@ -477,7 +478,7 @@ def test_run_state_file_option_then_angles_show_reads_it_and_the_recording(tmp_p
     posterior; `rsra angles show` reads it, and reads the recording's angles.jsonl (its last
     applied record) and the recording folder alike (issue 28)."""
     state, rec = tmp_path / "p.json", tmp_path / "R"
-    assert main(["run", "--sim", "ground-test", "--speed", "max", "--duration", "8",
+    assert main(["run", "--sim", "ground-test", "--speed", "max", "--duration", "40",
                  "--record", str(rec), "--state-file", str(state), *_listen()]) == 0
     capsys.readouterr()
     assert load_posterior(state).applies_from_seq is not None  # an accepted run was saved
