@@ -16,7 +16,7 @@ def sanitise(obj: Any) -> Any:
         if obj.dtype.kind == "f":
             if np.count_nonzero(np.isfinite(obj)) == obj.size:  # (cheaper than .all())
                 return obj.tolist()
-            return np.where(np.isfinite(obj), obj, None).tolist()
+            return np.where(np.isfinite(obj), obj, None).tolist()  # type: ignore[call-overload]  # numpy's stubs take no None (an object array)
         return obj.tolist()
     if isinstance(obj, float):
         return obj if math.isfinite(obj) else None

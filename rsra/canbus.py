@@ -143,11 +143,11 @@ def recv_batch(bus: can.BusABC, limit: int) -> list[can.Message]:
     """The frames ``bus`` has already received (at most ``limit``; ``[]``: none), without
     waiting: the interface's own batch read where it has one (:class:`EchoFirstVirtualBus`),
     else python-can's ``recv`` with a zero timeout until it returns nothing."""
-    # (looked up on the class: a wrapper that forwards attributes, such as the lock-step
-    # HandoffBus, must not have its own recv/send bypassed)
-    if getattr(type(bus), "recv_pending", None) is not None:
+    # (the class, not an attribute lookup: a wrapper that forwards attributes, such as the
+    # lock-step HandoffBus, must not have its own recv/send bypassed)
+    if isinstance(bus, EchoFirstVirtualBus):
         return bus.recv_pending(limit)
-    out = []
+    out: list[can.Message] = []
     recv = bus.recv
     while len(out) < limit and (m := recv(0.0)) is not None:
         out.append(m)
@@ -157,7 +157,7 @@ def recv_batch(bus: can.BusABC, limit: int) -> list[can.Message]:
 def send_batch(bus: can.BusABC, msgs: list[can.Message]) -> None:
     """Send ``msgs`` in order: in one call where the interface allows
     (:meth:`EchoFirstVirtualBus.send_many`), else one ``send`` each."""
-    if getattr(type(bus), "send_many", None) is not None:
+    if isinstance(bus, EchoFirstVirtualBus):
         bus.send_many(msgs)
         return
     for m in msgs:

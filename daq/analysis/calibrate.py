@@ -18,10 +18,11 @@ from __future__ import annotations
 
 import difflib
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.signal import sosfilt
@@ -294,7 +295,10 @@ def load_known_load_data(
                     seg.put(None)
                     continue
                 z = Mf @ acc  # inertial loads (model §3); D q stays in the model's E block
-                parts = [z, T, H] + ([q[:Q]] if Q else [])
+                parts = [z, T, H]
+                if Q:
+                    assert q is not None  # _reject_reason: without it the sample is rejected
+                    parts.append(q[:Q])
                 seg.put(np.concatenate(parts))
         except (ValueError, OSError) as e:  # a corrupt or truncated log file
             from rsra.daq.bus.replay import ReplayError
@@ -329,7 +333,8 @@ def load_known_load_data(
         z=X[:, :6], T=X[:, 6:6 + nc], H=X[:, 6 + nc:12 + nc], q=X[:, 12 + nc:] if Q else None,
         valid=valid, scored=scored, content=kind, fs=fs, files=tuple(map(str, paths)),
         segments=len(outs), samples_read=samples_read, rejected=rejected,
-        duration_s=0.0 if t_first is None else float(t_last - t_first) + 1.0 / fs)
+        duration_s=0.0 if t_first is None or t_last is None
+        else float(t_last - t_first) + 1.0 / fs)
 
 
 def _reasons(rejected: dict[str, int]) -> str:
@@ -528,7 +533,7 @@ def calibrate(
                           else SIGMA_MAX_OTHER_FRACTION * prior_sigma[k]
                           for k, nm in enumerate(names)])
     sc = np.array([_display_scale(nm, cfg) for nm in names])
-    directions = []
+    directions: list[dict[str, Any]] = []
     if np.all(np.isfinite(res.P)):
         det, U, cond = determined_directions(res.P, sigma_max)
         Lp = np.diag(prior_sigma)  # P_p^½ (the prior is diagonal)
@@ -592,7 +597,7 @@ def _num(x: float, digits: int) -> str:
     return repr(v)
 
 
-def _vec(values: Sequence[float], digits: int) -> str:
+def _vec(values: Iterable[float], digits: int) -> str:
     return "[" + ", ".join(_num(v, digits) for v in values) + "]"
 
 

@@ -19,11 +19,9 @@ from __future__ import annotations
 
 import json
 import re
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
-
-from canopen.objectdictionary import ODVariable
 
 from rsra.config.rig import RigConfig
 from rsra.daq.bus.decoder import (
@@ -32,6 +30,7 @@ from rsra.daq.bus.decoder import (
     STATUS_FAULT,
     STATUS_OVERRANGE,
     DecodeTable,
+    od_variable,
 )
 from rsra.config.units import AXIS_KIND
 from rsra.daq.runtime.schema import FIELDS, VEC6, json_schema, log_time_ns  # noqa: F401 - FIELDS re-exported
@@ -106,14 +105,13 @@ def build_dbc(cfg: RigConfig, table: DecodeTable | None = None):
                 code, i = next(codes), next(entries)
                 c = table.channels[i]
                 size = 8 * _struct_size(code)
-                obj = nl.od[index]
-                param = obj if isinstance(obj, ODVariable) and not sub else obj[sub]
+                param = od_variable(nl.od, index, sub)
                 comment = (f"0x{index:04X}:{sub} {param.name}"
                            f"{'; bit 0 over-range, bit 1 sensor fault' if c.is_status else ''}")
                 if c.wrap is not None:
                     comment += "; 0..2^bits = 0..2pi"
                 if c.is_status:
-                    conv = BaseConversion.factory(scale=1, offset=0, choices={
+                    conv = BaseConversion.factory(scale=1, offset=0, choices={  # type: ignore[arg-type]  # cantools annotates OrderedDict, documents and reads any dict
                         0: "ok", STATUS_OVERRANGE: "over-range", STATUS_FAULT: "sensor fault",
                         STATUS_OVERRANGE | STATUS_FAULT: "over-range and sensor fault"})
                     unit = ""
@@ -136,7 +134,7 @@ def build_dbc(cfg: RigConfig, table: DecodeTable | None = None):
             frame_id=COB_HEARTBEAT + nl.node_id, name=_ident(f"{nl.name}_heartbeat"), length=1,
             senders=[node], cycle_time=cfg.heartbeat.producer_ms, comment="NMT heartbeat",
             signals=[Signal(name=_ident(f"{nl.name}_nmt_state"), start=0, length=7,
-                            conversion=BaseConversion.factory(choices=dict(NMT_STATES)),
+                            conversion=BaseConversion.factory(choices=dict(NMT_STATES)),  # type: ignore[arg-type]  # cantools annotates OrderedDict, documents and reads any dict
                             receivers=["rsra"])]))
         messages.append(Message(
             frame_id=COB_EMCY + nl.node_id, name=_ident(f"{nl.name}_EMCY"), length=8,
@@ -189,7 +187,7 @@ def _parse_lines(path: Path, f) -> Iterator[tuple[str, dict]]:
             continue
         try:
             rec = json.loads(line)
-        except ValueError as e:
+        except json.JSONDecodeError as e:
             raise ExportError(f"{path}:{n}: not a JSON line ({e.msg}); fix: give a file "
                               "written by `rsra replay --out`") from None
         if not isinstance(rec, dict) or not isinstance(rec.get("key"), str):
@@ -261,11 +259,12 @@ def flatten(key: str, payload: dict, names: dict[str, tuple[str, ...]]) -> dict[
             for k, x in v.items():
                 walk(f"{path}.{k}" if path else str(k), x)
         elif isinstance(v, list) and (comp := _components(key, path, v, payload, names)):
+            cols: Sequence[str | None] = comp
             if key == "angles":  # by name (the rig's angles), and as the list in `names` order
                 row[path] = v
                 known = names.get("angles")
-                comp = [c if not known or c in known else None for c in comp]
-            for c, x in zip(comp, v):
+                cols = [c if not known or c in known else None for c in comp]
+            for c, x in zip(cols, v):
                 if c is not None:
                     walk(f"{path}.{c}", x)
         elif isinstance(v, list) and any(isinstance(x, dict) for x in v):

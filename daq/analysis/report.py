@@ -20,6 +20,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy import signal, stats
@@ -321,16 +322,18 @@ def prepare(cfg: RigConfig, rec: Records, truth: dict | None, units: str = "si")
             om.append(float(np.nanmedian(s["omega"])))
     d.omega = om[0] if om else (None if cfg.rotor.stopped else cfg.rotor.omega_nominal_rad_s)
     if truth is not None:
+        hub_al = None
         if rec.hub is not None:
-            d.hub_align = align_truth(truth, rec.hub["t"], rec.hub["seq"], dt, rec.hub["sync"])
-            ok = d.hub_align.valid()
+            d.hub_align = hub_al = align_truth(truth, rec.hub["t"], rec.hub["seq"], dt,
+                                               rec.hub["sync"])
+            ok = hub_al.valid()
             H = np.full((len(ok), 6), np.nan)
-            H[ok] = truth_in_frame(np.asarray(truth["H_true"])[d.hub_align.idx[ok]],
+            H[ok] = truth_in_frame(np.asarray(truth["H_true"])[hub_al.idx[ok]],
                                    model.geometry, frame)
             d.H_truth = H
         base = rec.hub if rec.hub is not None else rec.channels
         if base is not None:
-            al = d.hub_align if rec.hub is not None else align_truth(
+            al = hub_al if hub_al is not None else align_truth(
                 truth, base["t"], base["seq"], dt)
             d.ch_align = al
             ok = al.valid()
@@ -356,7 +359,7 @@ def _hub_summary(d: ReportData) -> dict:
     settle = d.settle_s
     t = rec.hub["t"] - d.t0
     scored = np.isfinite(d.H_truth).all(axis=1)
-    res = {}
+    res: dict[str, dict[str, Any] | None] = {}
     for name, est, mask in (("H", H, scored & (t >= settle)), ("H_static", Hs, scored)):
         good = mask & np.isfinite(est).all(axis=1)
         if not good.any():
@@ -368,6 +371,7 @@ def _hub_summary(d: ReportData) -> dict:
                      "rms_error": to_units(rms, d.units).tolist(),
                      "bias": to_units(err.mean(axis=0), d.units).tolist(),
                      "rms_over_sigma_static": (rms / d.sigma_static).tolist()}
+    assert d.hub_align is not None  # prepare() made it with H_truth
     out.update(truth={"alignment": d.hub_align.method, "matched": d.hub_align.matched},
                settle_s=settle, errors=res)
     out["by_phase"] = _hub_by_phase(d)
@@ -415,6 +419,7 @@ def _hub_by_phase(d: ReportData) -> dict:
     from rsra.daq.analysis.accuracy import MEANING, PhaseAccuracy
 
     hub = d.rec.hub
+    assert hub is not None  # _hub_summary: with hub_loads records only
     phases = record_phases(d, hub["seq"])
     sa2 = np.nan_to_num(hub["sigma_angles"], nan=0.0) ** 2
     sf = hub["sigma_filter"]
@@ -626,6 +631,7 @@ def plot_hub_loads(d: ReportData, out: Path) -> Path:
     the static bound band (truth ± noise-budget σ, model §4)."""
     plt = _plt()
     hub = d.rec.hub
+    assert hub is not None  # build_report: with hub_loads records only
     t = hub["t"] - d.t0
     span = ZOOM_REVOLUTIONS * 2 * math.pi / d.omega if d.omega else 2.0
     win = t >= (np.nanmax(t) - span)
@@ -659,7 +665,8 @@ def plot_hub_loads(d: ReportData, out: Path) -> Path:
 def plot_hub_errors(d: ReportData, out: Path, summ: dict) -> Path:
     """Errors over the whole run with the ±σ (and ±3σ) static bound."""
     plt = _plt()
-    hub = d.rec.hub
+    hub, H_truth = d.rec.hub, d.H_truth
+    assert hub is not None and H_truth is not None  # build_report: with both only
     t = hub["t"] - d.t0
     sc = _axis_scale(d.units)
     u = axis_units(d.units)
@@ -672,15 +679,15 @@ def plot_hub_errors(d: ReportData, out: Path, summ: dict) -> Path:
         a.axhspan(-s, s, color="0.82", label="±σ static bound")
         rs = errs.get("H_static")
         rh = errs.get("H")
-        a.plot(t, (hub["H_static"][:, i] - d.H_truth[:, i]) * sc[i], color="tab:orange",
+        a.plot(t, (hub["H_static"][:, i] - H_truth[:, i]) * sc[i], color="tab:orange",
                lw=0.5, alpha=0.7, label="H_static − truth (static estimate)")
-        a.plot(t, (hub["H"][:, i] - d.H_truth[:, i]) * sc[i], color="tab:blue", lw=0.8,
+        a.plot(t, (hub["H"][:, i] - H_truth[:, i]) * sc[i], color="tab:blue", lw=0.8,
                label="H − truth (load filter)")
         rms = "".join(f", RMS {k} {_fmt(r['rms_error'][i])}"
                       for k, r in (("H", rh), ("H_static", rs)) if r)
         a.set_title(f"{AXES[i]} [{u[i]}]: σ {_fmt(s)}{rms}", fontsize=10)
         settled = t >= d.settle_s
-        e_all = np.concatenate([(hub[k][settled, i] - d.H_truth[settled, i]) * sc[i]
+        e_all = np.concatenate([(hub[k][settled, i] - H_truth[settled, i]) * sc[i]
                                 for k in ("H", "H_static")])
         e_all = e_all[np.isfinite(e_all)]
         lim = max(5 * s, 1.1 * float(np.percentile(np.abs(e_all), 99.9)) if len(e_all) else 0.0)
@@ -763,6 +770,7 @@ def plot_nis(d: ReportData, out: Path) -> Path:
     mean against the band of a mean of M independent χ²₆."""
     plt = _plt()
     inn = d.rec.innovations
+    assert inn is not None  # build_report: with innovations records only
     ok = np.isfinite(inn["nis"])
     t = inn["t"][ok] - d.t0
     nis = inn["nis"][ok]
@@ -1101,6 +1109,7 @@ def build_report(cfg: RigConfig, rec: Records, truth: dict | None, out: str | Pa
     if p is not None:
         plots.append(p)
     else:
+        assert why is not None  # plot_spectra says why it made none
         skipped["spectra.png"] = why
     summary["plots"] = [p.name for p in plots]
     summary["skipped"] = skipped
@@ -1114,5 +1123,7 @@ def write_report(cfg: RigConfig, results: str | Path, truth: str | Path | None,
                  read_truth: Callable[[Path], dict] | None = None) -> Report:
     """`rsra report`: load, align, compute, plot, summarise. ``truth`` needs ``read_truth``."""
     rec = load_records(results)
-    tr = load_truth(truth, read_truth) if truth else None
+    if truth and read_truth is None:  # (the report does not import the simulator's reader)
+        raise ReportError(f"--truth {truth}: no reader for the truth file given (read_truth)")
+    tr = load_truth(truth, read_truth) if truth and read_truth is not None else None
     return build_report(cfg, rec, tr, out, units, truth_name=str(truth) if truth else None)

@@ -25,6 +25,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy import signal
@@ -35,6 +36,7 @@ from rsra.daq.runtime.persistence import save_figure
 from rsra.estimator.balance import inertial_load_matrix
 from rsra.estimator.geometry import hub_transfer_matrix, wrench_matrix
 from rsra.estimator.noise_budget import AXES, NoiseBudget, noise_budget
+from rsra.estimator.params import Geometry
 
 # A coherent error (or unmodelled-load gain) is "significant" when its magnitude exceeds its
 # random error (σ per real/imaginary part) by the Rayleigh quantile of a 1e-3 false-alarm rate:
@@ -133,9 +135,9 @@ def sweep_data_from_samples(cfg: RigConfig, samples: Sequence, sources: Sequence
     T = g[:, 1:8]
     accel = g[:, 8:8 + 3 * K]
     known_H = g[:, 8 + 3 * K:14 + 3 * K]
-    q = g[:, 14 + 3 * K:] if nq else None
+    drive = g[:, 14 + 3 * K:] if nq else None
     I = accel @ inertial_load_matrix(model).T  # model §3: I = M_f f_m
-    return SweepData(fs=fs, t=t, T=T, I=I, known_H=known_H, q=q, filled=filled,
+    return SweepData(fs=fs, t=t, T=T, I=I, known_H=known_H, q=drive, filled=filled,
                      sources=[str(s) for s in sources])
 
 
@@ -278,7 +280,8 @@ def analyse_level(data: SweepData, segments: list[Segment], S: np.ndarray, R0: n
             Wu = Wu - data.q[sl] @ D.T
         e = Wu @ R0inv.T  # e_H = Ĥ − H (Eq 1.3)
         Y = np.hstack([data.T[sl], data.I[sl], e, Wu])  # 7 + 6 + 6 + 6 columns
-        kw = dict(fs=fs, window="hann", nperseg=nper, noverlap=nper // 2, detrend="constant")
+        kw: dict[str, Any] = dict(fs=fs, window="hann", nperseg=nper, noverlap=nper // 2,
+                                  detrend="constant")
         f, Pxx = signal.welch(x, **kw)
         _, Pxy = signal.csd(x[:, None], Y, axis=0, **kw)
         _, Pyy = signal.welch(Y, axis=0, **kw)
@@ -327,7 +330,7 @@ class SweepResult:
     n_samples: int
     filled: int
     sources: list[str]
-    model_geometry: object = None  # estimator Geometry (for R₀)
+    model_geometry: Geometry | None = None  # (for R₀)
     # stretches of oscillating load on several axes at once (not a shaker): left out
     excluded: list[Segment] = field(default_factory=list)
 
@@ -429,6 +432,7 @@ COMPONENT_NAMES = ("x-force", "y-force", "z-force", "roll torque", "pitch moment
 
 def cg_noise_sigma(result: SweepResult) -> np.ndarray:
     """Instrumentation-noise σ of the balance residual at the CG (R₀ Q_H R₀ᵀ, model §4)."""
+    assert result.model_geometry is not None  # analyse_sweep sets it
     R0 = hub_transfer_matrix(result.model_geometry, "body")
     return np.sqrt(np.diag(R0 @ result.budget.covariance @ R0.T))
 

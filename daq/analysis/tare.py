@@ -251,6 +251,7 @@ def tare(cfg: RigConfig, specs: list[ChannelSpec], values: np.ndarray, *,
     tested = [i for i, s in enumerate(specs) if s.sigma is not None and n[i] > 1]
     for i in tested:
         s = specs[i]
+        assert s.sigma is not None  # tested: the specs with a sigma
         limit = s.sigma * _sigma_factor(int(n[i]), len(tested), false_alarm)
         if std[i] > limit:
             problems.append(

@@ -125,6 +125,7 @@ class SyncClock:
         becomes the base and its sample takes its own time. A suspect SYNC is refuted only
         by a SYNC (``decisive``) or its sample's end (:meth:`settle`): a data frame stamped
         before it is a straggler sent before it (a node's thread held up), not evidence."""
+        assert self._suspect is not None  # called with a suspect frame pending
         st, sc = self._suspect
         if t >= st - self.tol * self.period:
             self._suspect = None
@@ -216,6 +217,7 @@ class SyncClock:
     def _count_late(self, t: float, lost: int) -> None:
         """A SYNC taken at its own time ``t``, ``lost`` after the base: late if more than
         half a period after where its counter puts it."""
+        assert self.base_t is not None  # called once a SYNC set the base
         if t - self.base_t > (lost + 1.5) * self.period:
             self.late += 1
 
@@ -366,6 +368,7 @@ class SampleLayout:
         self._perm = np.array(perm, dtype=np.intp)
         # the output channels picked from struct's tuple in Python, then one float array:
         # a third of np.array(raw)[perm]'s cost (dtype discovery over the mixed tuple, P5b)
+        self._gather: Callable[[tuple[Any, ...]], tuple[Any, ...]]
         if len(perm) > 1:
             self._gather = operator.itemgetter(*perm)
         else:
@@ -393,9 +396,9 @@ class SampleLayout:
         key = (have, expect)
         p = self._pattern_cache.get(key)
         if p is None:
-            unreported = []
-            missing = []
-            nan_idx = []
+            unreported: list[str] = []
+            missing: list[str] = []
+            nan_idx: list[int] = []
             for name, (lo, hi, mask) in zip(self._node_names, self._node_slices):
                 if have & mask != mask:
                     unreported.append(name)
@@ -461,9 +464,13 @@ class SampleLayout:
                     missing = tuple(sorted(set(missing) | bad_nodes, key=self._node_names.index))
                     missing_flags = tuple(f"missing:{m}" for m in missing)
                     unreported = unreported | bad_nodes
-                    rotor_ok = rotor_ok and self._rotor[0] not in unreported
-                    balance_ok = balance_ok and self._balance[0] not in unreported
-                    drive_ok = drive_ok and not unreported.intersection(self._drive[0])
+                    # (each _ok is False where its node is not configured)
+                    rotor_ok = rotor_ok and self._rotor is not None and \
+                        self._rotor[0] not in unreported
+                    balance_ok = balance_ok and self._balance is not None and \
+                        self._balance[0] not in unreported
+                    drive_ok = drive_ok and self._drive is not None and \
+                        not unreported.intersection(self._drive[0])
                 if len(nan_idx):
                     cal[nan_idx] = np.nan
                 out = cal[self._perm]
@@ -471,29 +478,31 @@ class SampleLayout:
             if not self._status_is_int:
                 sts = [int(x) for x in sts]
         status = dict(zip(cell_names, sts))
+        flags: tuple[str, ...]
         if lost or any(sts):
-            flags = list(missing_flags)
+            fl = list(missing_flags)
             if lost:
-                flags.append("lost_before")
+                fl.append("lost_before")
             for st, (f_or, f_fault) in zip(sts, status_flags):
                 if st:
                     if st & STATUS_OVERRANGE:
-                        flags.append(f_or)
+                        fl.append(f_or)
                     if st & STATUS_FAULT:
-                        flags.append(f_fault)
-            flags = tuple(flags)
+                        fl.append(f_fault)
+            flags = tuple(fl)
         else:
             flags = missing_flags
         omega = azimuth = None
         if rotor_ok:
+            assert self._rotor is not None  # rotor_ok: a rotor node is configured
             _, oi, ai, wrap = self._rotor
             omega = out.item(oi)
             azimuth = out.item(ai) % wrap if wrap else out.item(ai)
         return Sample(
             seq, counter, t, out[self._sl_T], status,
             out[self._sl_acc].reshape(self._n_acc, 3), omega, azimuth,
-            out[self._balance[1]] if balance_ok else None,
-            out[self._drive[1]] if drive_ok else None,
+            out[self._balance[1]] if balance_ok and self._balance is not None else None,
+            out[self._drive[1]] if drive_ok and self._drive is not None else None,
             missing, lost, flags, not missing)
 
 

@@ -22,7 +22,8 @@ import canopen
 import numpy as np
 from canopen.objectdictionary import ODVariable, datatypes
 
-from rsra.config.rig import G0, ConfigError, RigConfig, predefined_cob_ids
+from rsra.config.rig import G0, ConfigError, RigConfig
+from rsra.config.rigfile import predefined_cob_ids
 
 # CANopen basic data types -> struct codes (CiA 301 §7.1.4); the bit length in the mapping
 # entry must agree with the type.
@@ -115,11 +116,28 @@ class NodeLayout:
     identity: dict[int, int]  # EDS defaults of 0x1018:1…4 (vendor, product, revision, serial)
 
 
+def od_variable(od: canopen.ObjectDictionary, index: int, sub: int) -> ODVariable:
+    """Object ``index``:``sub`` of an object dictionary, a plain variable being its own
+    sub-index 0. KeyError where the dictionary does not define it; TypeError for a
+    sub-index of a plain variable (a damaged EDS)."""
+    obj = od[index]
+    if isinstance(obj, ODVariable):
+        if sub:
+            raise TypeError(f"0x{index:04X} is a plain variable: it has no sub-index {sub}")
+        return obj
+    return obj[sub]
+
+
 def _default(od: canopen.ObjectDictionary, index: int, sub: int | None = None) -> int | None:
     try:
         obj = od[index]
-        var = obj if sub is None else obj[sub]
-    except (KeyError, TypeError):  # TypeError: a sub-index of a plain variable (bad EDS)
+        if sub is None:
+            var = obj
+        elif isinstance(obj, ODVariable):  # a sub-index of a plain variable (bad EDS)
+            return None
+        else:
+            var = obj[sub]
+    except (KeyError, TypeError):
         return None
     if not isinstance(var, ODVariable):
         return None
@@ -141,19 +159,20 @@ def _mapping_struct(node: str, role: str, od: canopen.ObjectDictionary, n: int,
             fmt += f"{bits // 8}x"
             continue
         try:
-            var = od[index][sub] if sub or not isinstance(od[index], ODVariable) else od[index]
+            var = od_variable(od, index, sub)
         except (KeyError, TypeError):  # TypeError: a sub-index of a plain variable
             raise ConfigError(f"eds[{node}] 0x{TPDO_MAP + n - 1:04X}", f"0x{e:08X}",
                               f"maps object 0x{index:04X}:{sub} that the EDS does not define",
                               "fix the mapping or add the object to the EDS") from None
-        code = _STRUCT_CODE.get(var.data_type)
-        if code is None or struct.calcsize("<" + code) * 8 != bits:
+        dtype = var.data_type
+        code = None if dtype is None else _STRUCT_CODE.get(dtype)
+        if dtype is None or code is None or struct.calcsize("<" + code) * 8 != bits:
             raise ConfigError(f"eds[{node}] 0x{TPDO_MAP + n - 1:04X}", f"0x{e:08X}",
-                              f"object 0x{index:04X}:{sub} of type 0x{var.data_type:04X} "
+                              f"object 0x{index:04X}:{sub} of type 0x{dtype:04X} "
                               f"cannot be mapped with {bits} bits",
                               "map numeric objects with their full bit length")
         fmt += code
-        values.append((index, sub, var.data_type))
+        values.append((index, sub, dtype))
     return fmt, values
 
 

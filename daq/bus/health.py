@@ -55,6 +55,7 @@ class _Part:
 
     __slots__ = ()
     _FIELDS: ClassVar[tuple[str, ...]] = ()
+    __dataclass_fields__: ClassVar[dict[str, dataclasses.Field[Any]]]  # (@_part: dataclass)
 
     def to_dict(self) -> dict[str, Any]:
         out = {}
@@ -65,11 +66,11 @@ class _Part:
         return out
 
 
-_P = TypeVar("_P", bound=type)
+_P = TypeVar("_P", bound=_Part)
 
 
 @dataclass_transform(frozen_default=True)  # (type checkers see each part's fields)
-def _part(cls: _P) -> _P:
+def _part(cls: type[_P]) -> type[_P]:
     cls = dataclass(frozen=True, slots=True)(cls)
     cls._FIELDS = tuple(f.name for f in dataclasses.fields(cls))
     return cls

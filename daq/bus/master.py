@@ -288,7 +288,7 @@ class CanopenMaster:
         self._worker: threading.Thread | None = None
         self._stop = threading.Event()
         self.running = False
-        self.sync_task: can.broadcastmanager.CyclicSendTaskT | None = None
+        self.sync_task: can.broadcastmanager.CyclicSendTaskABC | SyncProducer | None = None
         self.reconfigured = 0
 
     # -- boot ------------------------------------------------------------------------------
@@ -369,6 +369,7 @@ class CanopenMaster:
         else:
             msgs = [can.Message(arbitration_id=cob, data=b"", is_extended_id=False)]
         bus = self.network.bus
+        assert bus is not None  # the network is connected before the SYNC starts
         period = 1.0 / self.cfg.sample_rate_hz
         native = type(bus)._send_periodic_internal is not can.BusABC._send_periodic_internal
         # the interface's own periodic sending (kernel-timed BCM on SocketCAN) for a sequence
@@ -390,8 +391,10 @@ class CanopenMaster:
             data = bytes([self._sync_counter])
         msg = can.Message(arbitration_id=self.cfg.sync.cob_id & COB_MASK_11BIT, data=data,
                           is_extended_id=False, timestamp=timestamp or 0.0)
+        bus = self.network.bus
+        assert bus is not None  # the network is connected before the SYNC starts
         with self.network.send_lock:
-            self.network.bus.send(msg)
+            bus.send(msg)
 
     def idle(self) -> bool:
         """No reconfiguration pending or running (lock-step drivers hold time meanwhile)."""

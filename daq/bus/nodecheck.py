@@ -12,8 +12,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import canopen
+from canopen.objectdictionary import ODVariable
 
-from rsra.daq.bus.decoder import TPDO_COMM, TPDO_MAP, NodeLayout
+from rsra.daq.bus.decoder import TPDO_COMM, TPDO_MAP, NodeLayout, od_variable
 
 COB_RTR_NOT_ALLOWED = 1 << 30  # a device may report it in 0x18xx:1; not part of the contract
 IDENTITY_NAMES = {1: "vendor-ID", 2: "product code", 3: "revision number", 4: "serial number"}
@@ -96,14 +97,14 @@ class _Verifier:
         except canopen.SdoCommunicationError as e:
             self._add(Mismatch(name, problem=f"cannot be read: {e}", timeout=True))
             return None
-        obj = self.nl.od[index]
-        var = obj if sub == 0 and not hasattr(obj, "subindices") else obj[sub]
-        return int(var.decode_raw(data))
+        return int(od_variable(self.nl.od, index, sub).decode_raw(data))
 
-    def _compare(self, index: int, sub: int, name: str, expected: int,
+    def _compare(self, index: int, sub: int, name: str, expected: int | None,
                  mask: int = ~0) -> int | None:
+        """Read and compare with the EDS default ``expected`` (None: the EDS gives none,
+        nothing to compare)."""
         value = self._read(index, sub, name)
-        if value is not None and value & mask != expected & mask:
+        if value is not None and expected is not None and value & mask != expected & mask:
             self._add(Mismatch(name, expected, value))
         return value
 
@@ -122,8 +123,7 @@ class _Verifier:
             dev = None
         else:
             facts.sdo = True
-            obj = nl.od[0x1000]
-            dev = int(obj.decode_raw(dev))
+            dev = int(od_variable(nl.od, 0x1000, 0).decode_raw(dev))
         facts.device_type = dev
         if dev is not None and dev != nl.device_type:
             self._add(Mismatch("0x1000 (device type)", nl.device_type, dev))
@@ -142,6 +142,8 @@ class _Verifier:
     def _tpdo(self, k: int) -> None:
         nl = self.nl
         comm = nl.od[TPDO_COMM + k]
+        if isinstance(comm, ODVariable):
+            return  # not a communication record (a damaged EDS): no TPDO in the decode table
         n = k + 1
         for sub, what in ((1, "COB-ID"), (2, "transmission type")):
             if sub in comm:
@@ -152,10 +154,12 @@ class _Verifier:
         if TPDO_MAP + k not in nl.od:
             return
         mapping = nl.od[TPDO_MAP + k]
+        if isinstance(mapping, ODVariable):
+            return  # not a mapping record (a damaged EDS): no entries to compare
         count = self._compare(TPDO_MAP + k, 0,
                               f"0x{TPDO_MAP + k:04X}:0 (TPDO{n} number of mapped objects)",
                               mapping[0].default)
-        if count != mapping[0].default:
+        if count is None or count != mapping[0].default:
             return  # entries of a different mapping cannot be compared one by one
         for s in range(1, count + 1):
             self._compare(TPDO_MAP + k, s,

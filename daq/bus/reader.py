@@ -84,6 +84,7 @@ from rsra.daq.bus.master import (
     COB_SDO_TX,
     CanopenMaster,
     Supervisor,
+    SyncProducer,
 )
 from rsra.daq.bus.recorder import Recorder
 from rsra.canbus import BatchNotifier, open_bus, recording_channel, shutdown_bus
@@ -132,6 +133,8 @@ class TimedTask(Protocol):
     def due(self) -> float: ...
 
     def run(self, t: float) -> None: ...
+
+    def rebase(self, t: float) -> None: ...
 
 
 class Deadlines:
@@ -514,6 +517,7 @@ class _Master(NodePolicy):
         self.master = CanopenMaster(cfg, table, network, supervisor, clock=clock)
 
     def begin(self) -> None:
+        assert self.master is not None  # attach() made it
         self.master.boot()
         self._sync()
         self.master.supervise()
@@ -533,6 +537,7 @@ class BootNodes(_Master):
     the interface's periodic sending or a thread of ours), supervision."""
 
     def _sync(self) -> None:
+        assert self.master is not None  # attach() made it
         self.master.start_sync()
 
 
@@ -685,7 +690,7 @@ class HealthMonitor:
         master = self.nodes.master
         task = master.sync_task if master is not None else None
         late = periods = OMIT
-        if task is not None and hasattr(task, "periods_not_taken"):
+        if isinstance(task, SyncProducer):  # (the interface's own periodic sending: no counts)
             late, periods = task.late, task.periods_not_taken
         rate = self._rate_hz
         return SyncHealth(duplicate=asm.duplicate_sync, bad_timestamp=asm.clock.bad_timestamp,
@@ -841,7 +846,7 @@ class _BusReader(ReaderBase):
                                                     self.record_format, self.record_channel)
                 self.monitor.recorder = self.recorder
                 listeners.append(self.recorder)
-            self.network.listeners = listeners
+            self.network.listeners = listeners  # type: ignore[assignment]  # canopen's is inferred list[MessageListener]
             self.nodes.attach(self.cfg, self.table, self.network, self.supervisor,
                               clock=lambda: self.tap.now)
             if thread:
@@ -967,6 +972,7 @@ class LockstepReader(_BusReader):
         """Process every frame queued on the bus now, in order, in this thread. Returns the
         number of frames."""
         bus = self._bus
+        assert bus is not None  # start() opened it
         n = 0
         while (msg := bus.recv(0.0)) is not None:
             self.feed(msg)

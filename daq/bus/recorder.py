@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import queue
 import re
 import shutil
@@ -195,7 +196,7 @@ class Recorder(can.Listener):
         base = start.new(self.folder / f"{FRAMES_STEM}.{self.fmt}")
         self._logger = can.SizedRotatingLogger(base_filename=base, max_bytes=self.rotate_bytes)
 
-    def _name_rotated(self, default_name: str) -> str:
+    def _name_rotated(self, default_name: str | os.PathLike[str]) -> str:
         # deterministic, sortable names (python-can's default uses the wall-clock date)
         p = self.folder / f"{FRAMES_STEM}_{self._logger.rollover_count:06d}.{self.fmt}"
         self._rotated.append(p)
@@ -227,6 +228,7 @@ class Recorder(can.Listener):
 
     def _write_loop(self) -> None:
         q = self._queue
+        assert q is not None  # the writer thread is made with its queue
         while True:
             item = q.get()
             if item is None:
@@ -374,6 +376,7 @@ class Recorder(can.Listener):
         False, when the service still writes the results of the last windows (it then calls
         :meth:`close_angles`) — close angles.jsonl."""
         if self._writer is not None:
+            assert self._queue is not None  # the writer thread is made with its queue
             try:  # the frames still queued are written first
                 self._queue.put(None, timeout=WRITER_STOP_S)
             except queue.Full:

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Generator, Iterable, Iterator, Sequence
 from pathlib import Path
 
 import can
@@ -119,12 +119,12 @@ def check_readable(paths: Sequence[str | Path]) -> None:
                           "recording); fix: give a recording that holds frames")
 
 
-def read_file(f: Path) -> Iterator[can.Message]:
+def read_file(f: Path) -> Generator[can.Message, None, None]:
     """The frames of one recording file (see :func:`read_frames`)."""
     if f.suffix.lower() == ".log":
         lines = _CompleteLines(f)
         try:
-            with can.CanutilsLogReader(lines) as reader:
+            with can.CanutilsLogReader(lines) as reader:  # type: ignore[arg-type]  # python-can reads any iterable of lines with close() (annotated TextIO)
                 for msg in reader:
                     if not math.isfinite(msg.timestamp):
                         raise ValueError(f"time stamp {msg.timestamp} is not a finite number")

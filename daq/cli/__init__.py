@@ -10,6 +10,7 @@ import importlib
 import os
 import re
 import sys
+from typing import NoReturn
 
 from rsra.config.rig import ConfigError
 from rsra.daq.cli.options import UsageError
@@ -36,7 +37,7 @@ COMMANDS = {
 
 
 class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # one line, exit 2
+    def error(self, message: str) -> NoReturn:  # one line, exit 2
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 

@@ -8,10 +8,14 @@ import math
 import threading
 import time
 from collections import deque
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from rsra.config.units import axis_units, to_units
+
+if TYPE_CHECKING:
+    from rich.console import RenderableType
 
 AXES = ("X", "Y", "Z", "L", "M", "N")
 SETTLE_S = 1.0  # the filtered H is scored once the filter has settled from its zero start
@@ -62,15 +66,15 @@ class DemoState:
                 for f in flags:
                     self.flags[f] = self.flags.get(f, 0) + 1
                 H, Hs = payload.get("H"), payload.get("H_static")
-                self.sigma_H = (None if H is None
-                                else published_sigma(payload, self.static_bound, "H"))
+                self.sigma_H = sigma_H = (None if H is None
+                                          else published_sigma(payload, self.static_bound, "H"))
                 if truth is not None:
                     self.truth_H = np.asarray(truth.H_true, float)
                     self.truth_alpha = np.asarray(truth.alpha_true, float)
                     phase = phase_of(self.calibrated, flags)
-                    if H is not None and payload["t"] - self.first_t > SETTLE_S:
-                        self.acc["H"].add(phase, np.asarray(H, float) - self.truth_H,
-                                          self.sigma_H)
+                    if H is not None and sigma_H is not None and \
+                            payload["t"] - self.first_t > SETTLE_S:
+                        self.acc["H"].add(phase, np.asarray(H, float) - self.truth_H, sigma_H)
                     if Hs is not None:
                         self.acc["H_static"].add(
                             phase, np.asarray(Hs, float) - self.truth_H,
@@ -149,7 +153,7 @@ def render(state: DemoState, title: str, units: str):
         bp = state.by_phase()
         sH = None if state.sigma_H is None else state.sigma_H.copy()
         acc, rej = state.accepted, dict(state.rejected)
-    parts = []
+    parts: list[RenderableType] = []
     now = time.monotonic()
     state.rate_marks.append((now, n))
     w0, n0 = state.rate_marks[0]

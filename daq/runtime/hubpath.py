@@ -116,7 +116,7 @@ def _numpy_blas_paths() -> list[str]:
 
 def _find_blas() -> tuple[int, int, bool, str] | str:
     """(dgemv address, ddot address, ILP64, where) of numpy's CBLAS, or why not."""
-    conf = {}
+    conf: Any = {}
     try:
         conf = np.show_config(mode="dicts")["Build Dependencies"]["blas"]
     except Exception:  # noqa: BLE001 - any numpy without the config
@@ -134,8 +134,10 @@ def _find_blas() -> tuple[int, int, bool, str] | str:
                 d = getattr(lib, f"{prefix}cblas_ddot{suffix}")
             except AttributeError:
                 continue
-            return (ctypes.cast(g, ctypes.c_void_p).value, ctypes.cast(d, ctypes.c_void_p).value,
-                    ilp64, f"{os.path.basename(path)}:{prefix}cblas_dgemv{suffix}")
+            ga, da = ctypes.cast(g, ctypes.c_void_p).value, ctypes.cast(d, ctypes.c_void_p).value
+            if ga is None or da is None:  # (a found symbol's address is never NULL)
+                continue
+            return ga, da, ilp64, f"{os.path.basename(path)}:{prefix}cblas_dgemv{suffix}"
     return "numpy's CBLAS (cblas_dgemv, cblas_ddot) not found among the loaded libraries"
 
 

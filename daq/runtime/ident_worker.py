@@ -57,7 +57,9 @@ def build_identification(cfg, initial_state=None):
         post.restore(initial_state)
     if post.structure_fit is None:  # the structure in force from the start (issue 19)
         post.structure_fit = idc.structure_fit
-    post.saved_structure_fit = post.structure_fit
+    # (the service's own attributes on the estimator's objects, which do not declare them:
+    # set and read by name, getattr with a default, here and in run_job/handle_job)
+    setattr(post, "saved_structure_fit", post.structure_fit)
     fs = cfg.sample_rate_hz
     common = dict(model=model, posterior=post, fs=fs, moment_floor=idc.moment_floor_Nm,
                   max_iterations=idc.max_iterations,
@@ -84,7 +86,7 @@ def build_identification(cfg, initial_state=None):
     from rsra.daq.runtime.next_conditions import NextConditions
 
     # the next load conditions to apply (known-load records: `next_conditions`)
-    known.next_conditions = NextConditions(cfg)
+    setattr(known, "next_conditions", NextConditions(cfg))
     ferr = PeriodicIdentification(mode="filter_error", content=idc.content_filter_error,
                                   design=design,
                                   content_sos=ContentFilter(idc.content_filter_error, fs, w0,
@@ -97,7 +99,7 @@ def build_identification(cfg, initial_state=None):
     from rsra.daq.runtime.flight_advice import FlightAdvice
 
     # what would determine the rest (filter-error records: `advice`, issue 25 item 5)
-    ferr.advice = FlightAdvice(cfg)
+    setattr(ferr, "advice", FlightAdvice(cfg))
     return post, {"known_loads": known, "filter_error": ferr}, cache
 
 
@@ -334,7 +336,7 @@ class IdentificationWorker:
         for q in (self.jobs, self.results):
             q.cancel_join_thread()
         try:
-            self.jobs._reader.close()
+            self.jobs._reader.close()  # type: ignore[attr-defined]  # multiprocessing's own pipe end (private: not in typeshed)
         except (AttributeError, OSError):
             pass
         for q in (self.jobs, self.results):
@@ -412,20 +414,22 @@ class SupervisedIdentification:
         return self.worker is not None
 
     def _died(self, seq: int | None) -> None:
-        code = self.worker.proc.exitcode
+        worker = self.worker
+        assert worker is not None  # check() found it dead
+        code = worker.proc.exitcode
         how = (f"killed by {signal.Signals(-code).name}" if code is not None and code < 0
                and -code in signal.valid_signals() else f"exit code {code}")
         seq = 0 if seq is None else int(seq)
         if code == 0:  # exited by itself: it could not start (its last words say why)
-            msgs = [r.error for r in self.worker.poll()
+            msgs = [r.error for r in worker.poll()
                     if isinstance(r, IdentError) and r.fatal]
-            self.worker.abandon()
+            worker.abandon()
             self.worker = None
             self._turn_off(msgs[0] if msgs else "the identification worker exited")
             return
         self.deaths += 1
         self.last_death = f"died at sample {seq} ({how})"
-        self.worker.abandon()
+        worker.abandon()
         self.worker = None
         window = int(round(RESTART_WINDOW_S * self.fs))
         if len(self._restart_seqs) == MAX_RESTARTS and seq - self._restart_seqs[0] < window:
@@ -460,6 +464,7 @@ class SupervisedIdentification:
         generation = self.generation
         if not self.check(seq, every_call=True) or self.generation != generation:
             return False
+        assert self.worker is not None  # check() is True: a worker is running
         if self.worker.submit(job):
             self.submitted += 1
             return True
@@ -472,6 +477,7 @@ class SupervisedIdentification:
         """Lock-step: hand over a window, waiting for room; False if the worker died."""
         generation = self.generation
         while self.check(seq, every_call=True) and self.generation == generation:
+            assert self.worker is not None  # check() is True: a worker is running
             try:
                 self.worker.jobs.put(job, timeout=0.5)
                 self.submitted += 1
@@ -494,6 +500,7 @@ class SupervisedIdentification:
         and restarted)."""
         generation = self.generation
         while self.check(seq, every_call=True) and self.generation == generation:
+            assert self.worker is not None  # check() is True: a worker is running
             r = self.worker.wait(timeout=min(timeout, 1.0))
             if r is not None:
                 r = self._received(r)

@@ -82,8 +82,8 @@ class AtomicOutput:
 
     def open(self) -> IO:
         if self.file is None and self._special():  # a device or a pipe: written in place
-            self.file = open(self.target, self.mode, **({} if "b" in self.mode
-                                                        else {"encoding": "utf-8"}))
+            self.file = (open(self.target, self.mode, encoding="utf-8") if "b" not in self.mode
+                         else open(self.target, self.mode))
         if self.file is None:
             fd, tmp = tempfile.mkstemp(prefix=temp_prefix(self.target), suffix=".tmp",
                                        dir=self.target.parent)

@@ -186,8 +186,8 @@ def explain(rec: Any, job: Mapping[str, Any], idc: Any, labels: Sequence[str]
     if reason == "not_identifiable":
         smax = math.degrees(idc.sigma_max_rad)
         if detail == "information_ratio":
-            info = rec.information if rec.information is not None else float("nan")
-            return (f"largest information ratio {info:.3g} below identification."
+            ratio = rec.information if rec.information is not None else float("nan")
+            return (f"largest information ratio {ratio:.3g} below identification."
                     f"min_information {idc.min_information:g}",
                     "the loads did not vary enough in this window: apply the load conditions "
                     "the record's next_conditions lists (known loads), or wait for manoeuvres")

@@ -91,6 +91,7 @@ class AnglesRecord:
     extra: tuple[tuple[str, Any], ...] = ()  # keys not declared above, in their order
 
     FIELDS: ClassVar[tuple[str, ...]]
+    _KNOWN: ClassVar[frozenset[str]]
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON object (published, recorded): the fields it carries, then ``extra``."""
@@ -119,7 +120,7 @@ class AnglesRecord:
 
 AnglesRecord.FIELDS = tuple(f.name for f in dataclasses.fields(AnglesRecord)
                             if f.name != "extra")
-AnglesRecord._KNOWN = frozenset(AnglesRecord.FIELDS)  # type: ignore[attr-defined]
+AnglesRecord._KNOWN = frozenset(AnglesRecord.FIELDS)
 
 
 @dataclass(frozen=True, slots=True)

@@ -31,7 +31,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, ClassVar, Protocol
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol, TypeGuard, cast
 
 from rsra.daq.runtime.records import AnglesRecord
 
@@ -41,6 +41,7 @@ if TYPE_CHECKING:
     from rsra.daq.bus.decoder import DecodeTable
     from rsra.daq.bus.reader import HealthReport, ReaderBase
     from rsra.daq.bus.recorder import Recorder
+    from rsra.sim_bus.drivers import LockstepDriver
 
 log = logging.getLogger("rsra.service")
 
@@ -201,6 +202,7 @@ class BusSource(_Base):
 
     def items(self, stop: threading.Event) -> Iterator[Sample | HealthReport | None]:
         reader = self.reader
+        assert reader is not None  # _open() made it
         while not stop.is_set():
             yield reader.get(timeout=LIVE_POLL_S)  # None when idle: results are still polled
 
@@ -266,7 +268,7 @@ class LockstepSource(_Base):
                  speed: float | None, record: str | None = None):
         super().__init__(cfg)
         self.sim_opts, self.speed, self.record = sim, speed, record
-        self.driver = None
+        self.driver: LockstepDriver | None = None
 
     def describe(self) -> str:
         mode = "lock-step, as fast as possible" if self.speed is None else \
@@ -292,8 +294,10 @@ class LockstepSource(_Base):
         self._close_quietly(bus.shutdown)
         handoff = HandoffBus(bus)
         restart = RestartNodes()  # the simulator boots the nodes; a reboot is restarted
-        reader = LockstepReader(cfg, handoff, record=self.record, table=self.table,
-                                items=BlockQueue(), nodes=restart, record_channel="sim")
+        # (HandoffBus: python-can's bus, its own send; a wrapper, not a can.BusABC subclass)
+        reader = LockstepReader(cfg, cast(can.BusABC, handoff), record=self.record,
+                                table=self.table, items=BlockQueue(), nodes=restart,
+                                record_channel="sim")
         self.reader = reader
         self._close_quietly(reader.close)
         self.driver = driver = LockstepDriver(self.sim, reader, handoff)
@@ -305,6 +309,7 @@ class LockstepSource(_Base):
 
     def items(self, stop: threading.Event) -> Iterator[Sample | HealthReport | None]:
         driver, reader, speed = self.driver, self.reader, self.speed
+        assert driver is not None and reader is not None  # _open() made them
         dt = 1.0 / self.cfg.sample_rate_hz
         wall0 = time.monotonic()
         k = 0
@@ -355,10 +360,11 @@ class ReplaySource(_Base):
             plan.recompute = True
             plan.schedule = {"source": "recomputed", "why": "no angle schedule"}
         else:
+            assert folder is not None  # the schedule is in it
             plan.recorded_initial, recorded = read_angles_schedule(folder)
             plan.recorded = [AnglesRecord.from_dict(r) for r in recorded]
-            applies = [r.get("applies_from_seq") for r in recorded]
-            applies = [a for a in applies if isinstance(a, int)]
+            applies = [a for a in (r.get("applies_from_seq") for r in recorded)
+                       if isinstance(a, int)]
             plan.schedule = {"source": "recorded", "file": str(schedule),
                              "records": len(plan.recorded),
                              "initial": plan.recorded_initial is not None,
@@ -374,6 +380,7 @@ class ReplaySource(_Base):
                              finish=True)
 
     def items(self, stop: threading.Event) -> Iterator[Sample | HealthReport | None]:
+        assert self._items is not None  # _open() made it
         return self._items
 
 
@@ -426,7 +433,7 @@ def read_angles_schedule(folder: Path, file: Path | None = None
     return initial, records
 
 
-def _finite_numbers(x: Any) -> bool:
+def _finite_numbers(x: Any) -> TypeGuard[list[int | float]]:
     return isinstance(x, list) and all(
         isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in x)
 

@@ -31,7 +31,9 @@ speed (a stopped rotor reads exactly 0 for ever), not the status bytes, not the 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.special import ndtr
@@ -143,7 +145,7 @@ class StuckDetector:
     reached its k, and clear again on the first sample whose value differs. A missing reading
     (NaN) neither extends nor ends a run, and is not flagged (it is missing already)."""
 
-    def __init__(self, k: np.ndarray):
+    def __init__(self, k: np.ndarray | Sequence[int]):
         self.k = np.asarray(k, np.int64)  # 0: untested
         n = len(self.k)
         self.tested = self.k > 0
@@ -158,7 +160,7 @@ class StuckDetector:
         self.episodes = np.zeros(n, np.int64)  # runs that reached k
         self.samples = np.zeros(n, np.int64)  # samples flagged
         self.stuck = np.zeros(n, bool)
-        self.n_stuck = 0  # channels stuck in the last sample
+        self.n_stuck: int | np.integer[Any] = 0  # channels stuck in the last sample
         self.fresh = False  # the last sample took the shortcut below (every reading present)
         # the common sample — every reading present and new — restarts every run at 1, and
         # flags nothing when no channel flags at a run of 1: then it is three ufuncs and
@@ -272,12 +274,12 @@ class StuckMonitor:
         hit = self.detector.update(x, explained)
         if not self.detector.n_stuck:
             return []
-        flags: list[str] = []
+        out: list[str] = []
         for i in np.flatnonzero(hit):
             f = self.channels[i].flag
-            if f not in flags:
-                flags.append(f)
-        return flags
+            if f not in out:
+                out.append(f)
+        return out
 
     def _acc_flat(self, accel: np.ndarray) -> bool:
         return isinstance(accel, np.ndarray) and accel.size + self.n_cells == len(self._x)

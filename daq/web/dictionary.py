@@ -293,12 +293,12 @@ def points(dic: Dictionary, key: str, p: dict) -> list[tuple[str, dict]]:
                 st = status.get(c) if isinstance(status, dict) else None
                 out.append((f"cell.{c}", _datum(utc, v, status_limit(st), status=st)))
         acc = p.get("accel")
-        for i, a in enumerate(dic.accelerometers):
+        for i, aname in enumerate(dic.accelerometers):
             vec = _idx(acc, i)
             for j, ax in enumerate(ACC_AXES):
                 v = _num(_idx(vec, j))
                 if v is not None:
-                    out.append((f"accel.{a}.{ax}", _datum(utc, v)))
+                    out.append((f"accel.{aname}.{ax}", _datum(utc, v)))
     elif key == "innovations":
         v = _num(p.get("nis"))
         if v is not None:
@@ -311,10 +311,10 @@ def points(dic: Dictionary, key: str, p: dict) -> list[tuple[str, dict]]:
                 continue
             var = _num(_idx(_idx(P, i), i))
             deg = math.degrees(a)
-            sig = math.degrees(math.sqrt(var)) if var is not None and var >= 0 else None
+            sig_deg = math.degrees(math.sqrt(var)) if var is not None and var >= 0 else None
             out.append((f"angle.{n}", _datum(
-                utc, deg, sigma=sig, lo=None if sig is None else deg - sig,
-                hi=None if sig is None else deg + sig)))
+                utc, deg, sigma=sig_deg, lo=None if sig_deg is None else deg - sig_deg,
+                hi=None if sig_deg is None else deg + sig_deg)))
         acc, reason = p.get("accepted"), p.get("reason")
         out.append(("ident.verdict", _datum(
             utc, "accepted" if acc else f"rejected: {reason}", verdict_limit(acc, reason),

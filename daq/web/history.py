@@ -85,7 +85,7 @@ class History:
         if m is None:
             return []
         ts, tx = self._t.get(m.source), self._text.get(m.source)
-        if not ts:
+        if not ts or tx is None:  # (the two are made together)
             return []
         lo = bisect.bisect_left(ts, start_s)
         hi = bisect.bisect_right(ts, end_s)
@@ -136,8 +136,8 @@ class TelemetryFile:
                                    "a `rsra replay --out` JSONL file or an MCAP file from "
                                    "`rsra export --mcap`")
 
-    def _scan(self, keys: set[str] | None = None) -> Iterator[tuple[str, float, object]]:
-        """(key, t, payload-or-text) of every record with a time."""
+    def _scan(self, keys: set[str] | None = None) -> Iterator[tuple[str, float, dict]]:
+        """(key, t, payload) of every record with a time."""
         try:
             if self.mcap:
                 yield from self._scan_mcap(keys)
@@ -197,7 +197,8 @@ class TelemetryFile:
             return []
         step = max(1, math.ceil(self.counts[m.source] * _overlap(self, start_s, end_s)
                                 / max_points))
-        out, i = [], 0
+        out: list[dict] = []
+        i = 0
         for _, t, payload in self._scan({m.source}):
             if start_s <= t <= end_s:
                 if i % step == 0:

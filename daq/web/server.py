@@ -20,6 +20,7 @@ import json
 import logging
 import time
 from collections import deque
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from aiohttp import WSMsgType, web
@@ -54,7 +55,7 @@ def is_loopback(host: str) -> bool:
         return False
 
 
-def allowed_hosts(host: str, port: int, extra: list[str] = ()) -> set[str]:
+def allowed_hosts(host: str, port: int, extra: Sequence[str] = ()) -> set[str]:
     """The ``Host`` header values accepted (lower case, with the port)."""
     names = {host.lower()}
     if is_loopback(host):
@@ -254,14 +255,17 @@ class Gateway:
             raise web.HTTPNotFound(text=f"no telemetry {mid!r}\n")
         loop = asyncio.get_running_loop()
         mem = self.history.query(self.dic, mid, start, end)
-        sources = [lambda: mem]
+        sources: list[Callable[[], list[dict]]] = [lambda: mem]
         for f in self.files:
             try:
                 got = await loop.run_in_executor(None, f.query, self.dic, mid, start, end)
             except HistoryFileError as e:  # the file changed under us
                 log.warning("%s", e)
                 continue
-            sources.append(lambda got=got: got)
+            def answer(got: list[dict] = got) -> list[dict]:
+                return got
+
+            sources.append(answer)
         out = merged_query(sources)
         if q.get("strategy") == "latest":
             out = out[-1:]

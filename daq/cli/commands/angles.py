@@ -14,6 +14,7 @@ import argparse
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -44,7 +45,7 @@ def describe(state: PosteriorState, cfg: RigConfig) -> dict:
     s = np.full(len(state.names), smax)
     sigma = np.sqrt(np.diag(state.P))
     det, U, cond = determined_directions(state.P, s)
-    directions = []
+    directions: list[dict[str, Any]] = []
     for j in range(U.shape[1]):
         d = U[:, j] / np.linalg.norm(U[:, j])
         d = d if d[np.argmax(np.abs(d))] > 0 else -d  # sign: largest component positive
@@ -301,6 +302,7 @@ def _reset(cfg: RigConfig, args: argparse.Namespace) -> int:
         raise UsageError(f"{path} {problem}; refusing to overwrite it: check the path, or "
                          "delete the file first")
     if kind == "posterior":
+        assert old is not None  # classify: the posterior read
         was = (f"replaced a posterior of {len(old.names)} parameters with "
                f"{describe(old, cfg)['determined']} determined directions"
                if set(old.names) <= set(_configured_names(cfg)[1])

@@ -193,6 +193,7 @@ def run(args: argparse.Namespace) -> int:
         from rsra.daq.analysis.report import write_report
         from rsra.sim_bus.truth import read_truth
 
+        assert report_jsonl is not None and opts.truth is not None  # made with --report above
         rep = write_report(cfg, report_jsonl, opts.truth if Path(opts.truth).exists() else None,
                            args.report, units=args.units, read_truth=read_truth)
         console.print(f"report written to {args.report}: "

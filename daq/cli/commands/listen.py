@@ -11,10 +11,14 @@ import math
 import sys
 import time
 from collections import deque
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from rsra.config.units import axis_units, to_units
+
+if TYPE_CHECKING:
+    from rich.console import RenderableType
 
 AXES = ("X", "Y", "Z", "L", "M", "N")
 
@@ -77,7 +81,7 @@ class KeyStats:
         """Messages never received between the first and the latest; None: not counted."""
         if not self.counted:
             return None
-        if self.first_seq is None or not self.stride:
+        if self.first_seq is None or self.last_seq is None or not self.stride:
             return 0
         return max(0, (self.last_seq - self.first_seq) // self.stride + 1 - self.n_seq)
 
@@ -85,7 +89,7 @@ class KeyStats:
         self.count += 1
         seq = payload.get("seq") if isinstance(payload, dict) else None
         if self.counted and isinstance(seq, int) and not isinstance(seq, bool):
-            if self.first_seq is None:
+            if self.first_seq is None or self.last_seq is None:  # (the two are set together)
                 self.first_seq = seq
                 self.last_seq = seq
                 self.n_seq = 1
@@ -115,7 +119,7 @@ def render(stats: dict[str, KeyStats], prefix: str, units: str, now: float):
     from rich.console import Group
     from rich.table import Table
 
-    parts = []
+    parts: list[RenderableType] = []
     t = Table(title=f"rsra telemetry — {prefix}", expand=False)
     for col in ("key", "messages", "rate /s", "missed", "age s"):
         t.add_column(col, justify="right" if col != "key" else "left")

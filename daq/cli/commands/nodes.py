@@ -183,7 +183,8 @@ def run(args: argparse.Namespace) -> int:
         except Exception:  # the interface's own shutdown failed: closed once, quietly
             from rsra.canbus import shutdown_bus
 
-            shutdown_bus(bus)
+            if bus is not None:  # (connected above)
+                shutdown_bus(bus)
     ok = all(r.ok for r in reports)
     if args.json:
         print(json.dumps({"ok": ok, "interface": args.interface, "channel": args.channel,

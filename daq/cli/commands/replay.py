@@ -10,7 +10,7 @@ import argparse
 import os
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TextIO
 
 if TYPE_CHECKING:
     from rsra.daq.bus.health import Health
@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
     from rsra.daq.runtime.foxglove_out import check_option
 
     check_option(args)  # a taken port: refused before anything starts
-    out: _LazyFile | None = None
+    out: _LazyFile | TextIO | None = None
     if args.out == "-":
         out = sys.stdout
     elif args.out:

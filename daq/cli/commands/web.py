@@ -88,9 +88,10 @@ def run(args: argparse.Namespace) -> int:
         stop = asyncio.Event()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, stop.set)
-        gw = None
+        gw: Gateway | None = None
 
         def ready(port: int) -> None:
+            assert gw is not None  # made before serve() calls this
             gw.hosts = allowed_hosts(args.host, port, args.allow_host)
             shown = f"[{args.host}]" if ":" in args.host else args.host
             if not is_loopback(args.host):

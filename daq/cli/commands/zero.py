@@ -7,7 +7,7 @@ import math
 import os
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -28,6 +28,9 @@ from rsra.daq.analysis.tare import (
     tare,
     TareResult,
 )
+
+if TYPE_CHECKING:
+    from rich.progress import Progress, TaskID
 
 
 OUTPUTS = {"out": "file"}  # checked against the inputs before any work (daq.cli.outputs)
@@ -213,8 +216,8 @@ class _Progress:
 
     def __init__(self, seconds: float):
         self.seconds = seconds
-        self.live = None
-        self.task = None
+        self.live: Progress | None = None
+        self.task: TaskID | None = None
         self._last = 0.0
 
     def __enter__(self) -> "_Progress":
@@ -233,8 +236,8 @@ class _Progress:
         return self
 
     def update(self, t: float) -> None:
-        if self.live is not None and t - self._last >= 0.1:
-            self._last = t
+        if self.live is not None and self.task is not None and t - self._last >= 0.1:
+            self._last = t  # (live and task: made together)
             self.live.update(self.task, completed=t)
 
     def __exit__(self, *exc: object) -> None:
