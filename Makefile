@@ -71,7 +71,7 @@ $(LINT_STAMP): pyproject.toml $(STAMP)
 
 lint: $(LINT_STAMP)
 	$(BIN)/ruff check daq estimator sim_bus config rsra tests bench
-	rm -rf build/lint build/lib  # setuptools keeps stale modules in build/lib
+	rm -rf build/lint build/lib build/bdist.*  # setuptools keeps stale modules in build/lib (and a cut-off build its bdist tree)
 	$(BIN)/pip install -q --no-deps --no-compile --target build/lint . 2>&1 | grep -v "^WARNING: Location" || true
 	cd build/lint && PYTHONPATH=. ../../$(BIN)/lint-imports --no-cache ../../pyproject.toml
 	@# mypy ([tool.mypy]) reads rsra.* through the link tree, from build/ (at the top, the
