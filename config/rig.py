@@ -276,6 +276,7 @@ class IdentificationConfig:
     filter_error_scattered_fraction: float = 0.02
     # known loads: a run whose Gaussian summary misses the curvature of the likelihood's
     # valley by more than this (χ² units) is held (estimator.curvature, issue 27); inf: off
+    nonlinearity_check: bool = False  # opt-in this round (docs/configuration.md)
     nonlinearity_limit: float = 1.0
     # [identification.structure] (issue 19; `rsra calibrate` writes it): the structure the
     # hub loads use from the start, as estimator.structure.fit_payload (SI); None: constant
@@ -633,6 +634,7 @@ def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = No
             angle_load_sensitivity_rad_per_unit=tuple(
                 math.radians(float(k)) for k in idt.angle_load_sensitivity_deg_per_unit),
             filter_error_scattered_fraction=idt.filter_error_scattered_fraction,
+            nonlinearity_check=idt.nonlinearity_check,
             nonlinearity_limit=idt.nonlinearity_limit,
             # as estimator.structure.fit_payload (SI); None: the constant structure
             structure_fit=None if st is None else {

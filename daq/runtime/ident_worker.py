@@ -16,6 +16,7 @@ it down) and exits when its parent dies.
 from __future__ import annotations
 
 import logging
+import math
 import multiprocessing as mp
 import multiprocessing.queues
 import os
@@ -81,7 +82,8 @@ def build_identification(cfg, initial_state=None):
 
     known = PeriodicIdentification(mode="known_loads", content=idc.content_known_loads,
                                    content_settle_samples=settle(idc.content_known_loads),
-                                   nonlinearity_limit=idc.nonlinearity_limit, **common)
+                                   nonlinearity_limit=(idc.nonlinearity_limit if idc.nonlinearity_check
+                                                       else math.inf), **common)
     design = cache.design_for(w0)
     from rsra.daq.runtime.next_conditions import NextConditions
 
