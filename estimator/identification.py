@@ -278,6 +278,22 @@ def _sensitivities(x: np.ndarray, dA: np.ndarray) -> np.ndarray:
     return result
 
 
+def _moments_evaluation(par: Parameterisation, G: np.ndarray, n_scored: int, theta: np.ndarray,
+                        derivatives: bool, fixed_weight: np.ndarray | None) -> Evaluation:
+    """V, its gradient and M of the known-load likelihood from the moments G = Σ x xᵀ."""
+    t = par.terms(theta)
+    W = t.W if fixed_weight is None else fixed_weight
+    Winv = np.linalg.inv(W)
+    AG = t.A @ G
+    E = AG @ t.A.T  # Σ e eᵀ
+    V = 0.5 * float(np.sum(Winv * E))
+    g = M = None
+    if derivatives:
+        g, M = _gradient_information(t.dA, Winv, AG, G, t.dW if fixed_weight is None else None,
+                                     E)
+    return Evaluation(np.asarray(theta, float).copy(), V, g, M, W, E, n_scored)
+
+
 class KnownLoadProblem:
     """Known-load residuals ``e = z − S(θ) T_m − R₀ H_m (− E q_m)`` over the scored samples.
 
@@ -301,17 +317,8 @@ class KnownLoadProblem:
 
     def evaluate(self, theta: np.ndarray, derivatives: bool = True,
                  fixed_weight: np.ndarray | None = None) -> Evaluation:
-        t = self.par.terms(theta)
-        W = t.W if fixed_weight is None else fixed_weight
-        Winv = np.linalg.inv(W)
-        AG = t.A @ self.G
-        E = AG @ t.A.T  # Σ e eᵀ
-        V = 0.5 * float(np.sum(Winv * E))
-        g = M = None
-        if derivatives:
-            g, M = _gradient_information(t.dA, Winv, AG, self.G,
-                                         t.dW if fixed_weight is None else None, E)
-        return Evaluation(np.asarray(theta, float).copy(), V, g, M, W, E, self.n_scored)
+        return _moments_evaluation(self.par, self.G, self.n_scored, theta, derivatives,
+                                   fixed_weight)
 
     def residual_series(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(e (N, 6), ∂e/∂θ (N, 6, p), weight) with zeros at unscored samples."""
@@ -343,7 +350,10 @@ class AccumulatedKnownLoadProblem:
         self.n_scored = int(window.n_scored) + int(n_extra)
         self.n_series = int(window.n_scored)
 
-    evaluate = KnownLoadProblem.evaluate
+    def evaluate(self, theta: np.ndarray, derivatives: bool = True,
+                 fixed_weight: np.ndarray | None = None) -> Evaluation:
+        return _moments_evaluation(self.par, self.G, self.n_scored, theta, derivatives,
+                                   fixed_weight)
 
     def residual_series(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return self.window.residual_series(theta)

@@ -58,6 +58,7 @@ from scipy.stats import chi2
 from .identification import (
     FilterErrorProblem,
     FilterErrorState,
+    AccumulatedKnownLoadProblem,
     IdentificationResult,
     KnownLoadProblem,
     Parameterisation,
@@ -127,11 +128,11 @@ class AnglesRecord:
     window_determined: int = 0  # directions the window's own (robust) information determines
     # known loads: the structure test (estimator.structure; None in filter-error mode)
     structure: str | None = None  # "constant", "not_constant", "undetermined", "drifting"
-    candidates: list | None = None  # ranked, with their evidence (not_constant only)
-    drift: dict | None = None  # the drift test (structure.DriftVerdict.to_dict), known loads
+    candidates: list[dict[str, Any]] | None = None  # ranked, with their evidence (not_constant only)
+    drift: dict[str, Any] | None = None  # the drift test (DriftVerdict.to_dict), known loads
     structure_verdict: StructureVerdict | None = None
     # the selected structure the hub-load estimate uses (structure.fit_payload), None: none
-    structure_fit: dict | None = None
+    structure_fit: dict[str, Any] | None = None
     # the run's cost J at its start (the prior mean) and after each iteration (how a run
     # that did not converge was going: the shell's explanation of a rejection)
     cost_start: float | None = None
@@ -142,12 +143,12 @@ class AnglesRecord:
     # filter error with angle_load_sensitivity configured (issue 25): the window's static
     # load away from the reference (trim) load and the σ (rad, each angle) of the angles'
     # move that far — the window's truth is the posterior's α ± this beside P
-    load_excursion: dict | None = None
+    load_excursion: dict[str, Any] | None = None
     # known loads (issue 27): the run's curvature index (estimator.curvature); None: not
     # computed (filter error, a run that did not converge, the limit off)
     nonlinearity: float | None = None
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         """The telemetry ``angles`` payload (SI: radians), values as computed (numpy arrays,
         NaN): the shell makes it strict JSON (``rsra.daq.jsonout.sanitise``, the one
         converter)."""
@@ -173,7 +174,7 @@ FORMAT_VERSION = 2  # 2: with the rig fingerprint; 1 (no fingerprint) is still r
 FINGERPRINT_ATOL = 1e-9  # m, and unit-vector components: a TOML → JSON round trip is exact
 
 
-def rig_fingerprint(geometry: Any) -> dict:
+def rig_fingerprint(geometry: Any) -> dict[str, Any]:
     """What the angles of a posterior mean (docs/identification.md): every cell's name,
     attach point and nominal axis, the hub position and the angle names, JSON-ready."""
     return {
@@ -240,16 +241,16 @@ class PosteriorState:
     P: np.ndarray
     applies_from_seq: int | None = None
     t: float | None = None
-    rig: dict | None = None
+    rig: dict[str, Any] | None = None
     # optional (issue 19): the selected structure the hub-load estimate uses
     # (structure.fit_payload); files without it load as before
-    structure: dict | None = None
+    structure: dict[str, Any] | None = None
 
     @property
     def version(self) -> int:
         return FORMAT_VERSION if self.rig is not None else 1
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {"format": "rsra-posterior", "version": self.version}
         if self.rig is not None:
             d["rig"] = self.rig
@@ -471,8 +472,68 @@ def determined_directions(P: np.ndarray, sigma_max: np.ndarray) -> tuple[int, np
     return int(det.sum()), U, cond
 
 
+class WindowMoments:
+    """The known-load windows behind the re-linearised runs (docs/identification.md, findings
+    3–4): the anchor (the posterior they were last folded into), the moments G = Σ x xᵀ of the
+    windows accepted since, and those of the windows held back as not identifiable on their
+    own. Bounded: at most ``max_held`` windows are held (then holding starts afresh); the
+    caller folds after ``max_accumulated`` accepted ones."""
+
+    def __init__(self, theta: np.ndarray, P: np.ndarray, *, max_accumulated: int,
+                 max_held: int) -> None:
+        self.max_accumulated = int(max_accumulated)
+        self.max_held = int(max_held)
+        self.fold(theta, P)
+
+    def fold(self, theta: np.ndarray, P: np.ndarray) -> None:
+        """``(theta, P)`` becomes the anchor; the accumulated and held windows are forgotten."""
+        self.anchor_theta, self.anchor_P = theta.copy(), P.copy()
+        self.anchor_dt = 0.0
+        self.G_acc: np.ndarray | None = None
+        self.n_acc = 0
+        self.windows_acc = 0
+        self.drop_held()
+
+    def drop_held(self) -> None:
+        """Forget the windows held back as not identifiable on their own."""
+        self.G_held: np.ndarray | None = None
+        self.n_held = 0
+        self.windows_held = 0
+
+    def held(self) -> tuple[np.ndarray | None, int, int]:
+        return self.G_held, self.n_held, self.windows_held
+
+    def restore_held(self, held: tuple[np.ndarray | None, int, int]) -> None:
+        self.G_held, self.n_held, self.windows_held = held
+
+    def hold(self, moments: tuple[np.ndarray, int]) -> None:
+        """Hold a window (``moments`` already include the windows held so far: the run used
+        them all)."""
+        if self.windows_held + 1 > self.max_held:
+            self.drop_held()  # bounded: start holding afresh from this window
+            return
+        self.G_held, self.n_held = np.array(moments[0], float), int(moments[1])
+        self.windows_held += 1
+
+    def accumulate(self, moments: tuple[np.ndarray, int], dt: float) -> bool:
+        """Add an accepted window (and the held ones it included); True when the
+        accumulation is full (the caller folds)."""
+        G, n = moments
+        self.G_acc = np.array(G, float) if self.G_acc is None else self.G_acc + G
+        self.n_acc += int(n)
+        self.windows_acc += 1 + self.windows_held
+        self.drop_held()
+        self.anchor_dt += max(float(dt), 0.0)
+        return self.windows_acc >= self.max_accumulated
+
+
 class SequentialPosterior:
-    """The posterior (θ, P) of the periodic runs and the decisions of model §7."""
+    """The posterior (θ, P) of the periodic runs and the decisions of model §7.
+
+    It keeps the state and the order of the tests (:meth:`_judge`); the pieces are their
+    own: the re-linearisation's windows (:class:`WindowMoments`), the filter-error
+    information rule (:func:`filter_error_decision`), the record (:func:`angles_record`)
+    and the construction from the rig's configuration (:func:`posterior_from_config`)."""
 
     def __init__(
         self,
@@ -491,7 +552,7 @@ class SequentialPosterior:
         max_accumulated_windows: int = MAX_ACCUMULATED_WINDOWS,
         max_held_windows: int = MAX_HELD_WINDOWS,
         limit: np.ndarray | float = math.inf,
-        rig: dict | None = None,
+        rig: dict[str, Any] | None = None,
         filter_error_update: str = "consider",
         filter_error_floor: float = 0.0,
     ) -> None:
@@ -506,7 +567,7 @@ class SequentialPosterior:
         # the physical range |θ_k| ≤ limit_k (angles: identification.angle_limit_deg)
         self.limit = np.broadcast_to(np.asarray(limit, float), (p,)).copy()
         self.rig = rig  # the fingerprint saved with the posterior (rig_fingerprint)
-        self.structure_fit: dict | None = None  # the selected structure (saved with it)
+        self.structure_fit: dict[str, Any] | None = None  # the selected structure (saved)
         self.theta = np.asarray(theta0, float).copy()
         self.P0 = np.diag(np.broadcast_to(np.asarray(sigma0, float), (p,)) ** 2)
         self.P = self.P0.copy()
@@ -521,26 +582,15 @@ class SequentialPosterior:
         self.applies_from_seq: int | None = None
         self.t: float | None = None
         self.relinearise = bool(relinearise)
-        self.max_accumulated_windows = int(max_accumulated_windows)
-        self.max_held_windows = int(max_held_windows)
+        # the re-linearisation's windows (known loads): anchor, accumulated and held moments
+        self.moments = WindowMoments(self.theta, self.P, max_accumulated=max_accumulated_windows,
+                                     max_held=max_held_windows)
         # angles on a trend (the structure test's `drifting`, issue 27): the trend's rates
         # (rad/s over ``names``; None: constant angles with the random walk) and, per run,
         # the drift fit's prediction of the angles at the run's window (set_prediction)
         self.trend: np.ndarray | None = None
         self.prediction: tuple[np.ndarray, np.ndarray] | None = None
         self.fold()
-
-    def _over_names(self, names: Sequence[str], v: np.ndarray, P: np.ndarray | None,
-                    fill_v: np.ndarray, fill_P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        idx = {n: i for i, n in enumerate(names)}
-        out_v, out_P = fill_v.copy(), fill_P.copy()
-        sel = [(i, idx[n]) for i, n in enumerate(self.names) if n in idx]
-        for i, j in sel:
-            out_v[i] = v[j]
-            if P is not None:
-                for k, m in sel:
-                    out_P[i, k] = P[j, m]
-        return out_v, out_P
 
     def set_trend(self, names: Sequence[str] | None, rate: np.ndarray | None = None) -> None:
         """Track angles on a trend (``names``: the rates' parameters, e.g. the 14 angles;
@@ -553,7 +603,7 @@ class SequentialPosterior:
             self.prediction = None
             return
         p = len(self.names)
-        r, _ = self._over_names(names, np.asarray(rate, float), None, np.zeros(p),
+        r, _ = over_names(self.names, names, np.asarray(rate, float), None, np.zeros(p),
                                 np.zeros((p, p)))
         if self.trend is None:
             self.fold()  # the accumulated windows were fitted as constant angles
@@ -568,9 +618,9 @@ class SequentialPosterior:
         if names is None or theta is None or P is None:
             self.prediction = None
             return
-        th, Pp = self._over_names(names, np.asarray(theta, float), np.asarray(P, float),
+        th, Pp = over_names(self.names, names, np.asarray(theta, float), np.asarray(P, float),
                                   self.theta, np.diag(np.diag(self.P)))
-        if self.G_acc is not None:
+        if self.moments.G_acc is not None:
             self.fold()  # the prediction is a summary of those windows too
         self.prediction = (th, 0.5 * (Pp + Pp.T))
 
@@ -579,90 +629,40 @@ class SequentialPosterior:
         """Make the current posterior the anchor and forget the accumulated window moments
         (its Gaussian summary is now trusted: all directions determined, a reset, a restore,
         a filter-error run, or the accumulation cap)."""
-        self.anchor_theta, self.anchor_P = self.theta.copy(), self.P.copy()
-        self.anchor_dt = 0.0
-        self.G_acc: np.ndarray | None = None
-        self.n_acc = 0
-        self.windows_acc = 0
-        self.drop_held()
+        self.moments.fold(self.theta, self.P)
 
     def drop_held(self) -> None:
         """Forget the windows held back as not identifiable on their own."""
-        self.G_held: np.ndarray | None = None
-        self.n_held = 0
-        self.windows_held = 0
+        self.moments.drop_held()
 
     def _hold(self, moments: tuple[np.ndarray, int] | None) -> None:
-        # ``moments`` already include the windows held so far (the run used them all)
-        if not (self.relinearise and moments is not None):
-            return
-        if self.windows_held + 1 > self.max_held_windows:
-            self.drop_held()  # bounded: start holding afresh from this window
-            return
-        self.G_held, self.n_held = np.array(moments[0], float), int(moments[1])
-        self.windows_held += 1
+        if self.relinearise and moments is not None:
+            self.moments.hold(moments)
 
     def anchor_prior(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
         """The prior of a re-linearised run: the anchor, inflated by the random walk since
         (and moved along the trend in force)."""
         if self.prediction is not None:
             return self.prediction[0].copy(), self.prediction[1].copy()
-        return self.anchor_theta.copy(), self.anchor_P + np.diag(
-            self.drift * (self.anchor_dt + max(float(dt), 0.0)))
+        m = self.moments
+        return m.anchor_theta.copy(), m.anchor_P + np.diag(
+            self.drift * (m.anchor_dt + max(float(dt), 0.0)))
 
     def _after_accepted(self, moments: tuple[np.ndarray, int] | None, dt: float) -> None:
         if (not (self.relinearise and moments is not None) or self.trend is not None
                 or self.prediction is not None):
             self.fold()
             return
-        G, n = moments
-        self.G_acc = np.array(G, float) if self.G_acc is None else self.G_acc + G
-        self.n_acc += int(n)
-        self.windows_acc += 1 + self.windows_held
-        self.drop_held()
-        self.anchor_dt += max(float(dt), 0.0)
+        full = self.moments.accumulate(moments, dt)
         det, _, _ = determined_directions(self.P, self.sigma_max)
-        if det == len(self.names) or self.windows_acc >= self.max_accumulated_windows:
+        if det == len(self.names) or full:
             self.fold()
 
     @classmethod
-    def from_config(
-        cls,
-        ident: Any,
-        names: Sequence[str],
-        angle_names: Sequence[str],
-        *,
-        theta0: np.ndarray | None = None,
-        other_prior_sigma: Mapping[str, float] | None = None,
-        rig: dict | None = None,
-    ) -> "SequentialPosterior":
-        """From ``RigConfig.identification``: angles get ``prior_sigma_rad``, drift
-        ``drift_rate_rad2_s``, ``sigma_max_rad`` and the range ±``angle_limit_rad``; other
-        parameters need their prior σ in ``other_prior_sigma`` (no drift; determined at
-        0.04 × prior σ; no range). ``rig``: the fingerprint saved with it."""
-        other_prior_sigma = dict(other_prior_sigma or {})
-        sig0, drift, smax = [], [], []
-        for n in names:
-            if n in angle_names:
-                sig0.append(ident.prior_sigma_rad)
-                drift.append(ident.drift_rate_rad2_s)
-                smax.append(ident.sigma_max_rad)
-            elif n in other_prior_sigma:
-                sig0.append(float(other_prior_sigma[n]))
-                drift.append(0.0)
-                smax.append(SIGMA_MAX_OTHER_FRACTION * float(other_prior_sigma[n]))
-            else:
-                raise ValueError(f"parameter {n!r} needs a prior sigma (other_prior_sigma)")
-        if theta0 is None:
-            theta0 = np.array([ident.initial_angles_rad[list(angle_names).index(n)]
-                               for n in names])
-        limit = [ident.angle_limit_rad if n in angle_names else math.inf for n in names]
-        return cls(names, theta0, np.array(sig0), drift_rate=np.array(drift),
-                   min_information=ident.min_information, sigma_max=np.array(smax),
-                   reset_after=ident.reset_after, stale_fraction=ident.stale_fraction,
-                   limit=np.array(limit), rig=rig,
-                   filter_error_update=ident.filter_error_update,
-                   filter_error_floor=ident.filter_error_floor_rad / ident.sigma_max_rad)
+    def from_config(cls, ident: Any, names: Sequence[str], angle_names: Sequence[str],
+                    **kw: Any) -> "SequentialPosterior":
+        """:func:`posterior_from_config` (``RigConfig.identification``)."""
+        return posterior_from_config(ident, names, angle_names, **kw)
 
     # ---------------------------------------------------------------------------------
     def state(self) -> PosteriorState:
@@ -687,42 +687,8 @@ class SequentialPosterior:
             return self.prediction[0].copy(), self.prediction[1].copy()
         return self.theta.copy(), self.P + np.diag(self.drift * max(float(dt), 0.0))
 
-    def _record(self, *, accepted: bool, reason: str | None, mode: str, content: str,
-                window: tuple[int, int], t: float | None, result: IdentificationResult | None,
-                information: float | None, nu: float | None, d: int, late: bool = False,
-                detail: str | None = None, checks: "FilterErrorChecks | None" = None,
-                window_determined: int = 0,
-                structure: StructureVerdict | None = None) -> AnglesRecord:
-        det, U, cond = determined_directions(self.P, self.sigma_max)
-        return AnglesRecord(
-            structure=None if structure is None else structure.structure,
-            candidates=None if structure is None else structure.candidates,
-            drift=None if structure is None or structure.drift is None
-            else structure.drift.to_dict(),
-            structure_verdict=structure,
-            t=t, seq=int(window[1]), mode=mode, content=content, accepted=accepted,
-            reason=reason, names=self.names, alpha=self.theta.copy(), P=self.P.copy(),
-            sigma_cr=None if result is None else result.sigma_cr,
-            sigma_cr_corrected=None if result is None else result.sigma_cr_corrected,
-            determined=det, information=information, nu=nu,
-            cost=None if result is None else float(result.cost),
-            iterations=0 if result is None else int(result.iterations),
-            window=(int(window[0]), int(window[1])), applies_from_seq=self.applies_from_seq,
-            late=late, gate_dof=d, condition=cond,
-            run_theta=None if result is None else result.theta.copy(),
-            run_P=None if result is None else result.P.copy(),
-            status=None if result is None else result.status, undetermined=U,
-            detail=detail, window_determined=int(window_determined),
-            innovation=None if checks is None else checks.innovation.statistic
-            / checks.innovation.mean,
-            innovation_limit=None if checks is None else checks.innovation.limit
-            / checks.innovation.mean,
-            cost_start=None if result is None else float(result.cost_start),
-            cost_history=None if result is None else tuple(float(c) for c in result.history),
-            load_excursion=None if checks is None or checks.load_delta is None else {
-                "delta": [float(x) for x in checks.load_delta],
-                "sigma": math.sqrt(max(float(checks.load_variance), 0.0))},
-        )
+    def _record(self, **kw: Any) -> AnglesRecord:
+        return angles_record(self, **kw)
 
     def update(self, result: IdentificationResult | None, **kw: Any) -> AnglesRecord:
         """Judge one run (:meth:`_judge`). Under a trend (or the drift bound's prediction) a
@@ -731,10 +697,10 @@ class SequentialPosterior:
         rec = self._judge(result, **kw)
         if self.prediction is not None and not rec.accepted:
             self.theta, self.P = self.prior(kw.get("dt", 0.0))
-            held = (self.G_held, self.n_held, self.windows_held)
+            held = self.moments.held()
             self.fold()
             if self.trend is None:  # the bound's held windows count with the next run
-                self.G_held, self.n_held, self.windows_held = held
+                self.moments.restore_held(held)
         return rec
 
     def _judge(
@@ -773,7 +739,7 @@ class SequentialPosterior:
             reason = "not_converged" if result.status == "not_converged" else "diverged"
             return self._record(accepted=False, reason=reason, result=result, information=None,
                                 nu=None, d=0, detail="convergence", **kw)
-        P_p = result.prior_cov
+        P_p = _prior_cov(result)
         info = information_ratio(P_p, result.information)
         if checks is not None:  # range-checked on what it would apply (its own directions)
             return self._update_filter_error(result, info, checks, apply_delay_samples,
@@ -810,17 +776,8 @@ class SequentialPosterior:
             nu, d = float(gate[0]), int(gate[1])
             ok = d == 0 or nu <= float(chi2.ppf(self.gate_probability, d))
         if not ok:
-            self.inconsistent_in_a_row += 1
-            if self.inconsistent_in_a_row >= self.reset_after:
-                # a real change: reopen the covariance around the current mean
-                self.P = self.P0.copy()
-                self.inconsistent_in_a_row = 0
-                self.fold()
-                return self._record(accepted=False, reason="reset", result=result,
-                                    information=info, nu=nu, d=d, detail="gate", **kw)
-            self.drop_held()  # the held windows were part of an inconsistent run
-            return self._record(accepted=False, reason="inconsistent", result=result,
-                                information=info, nu=nu, d=d, detail="gate", **kw)
+            return self._gate_failed(dict(result=result, information=info, nu=nu, d=d, **kw),
+                                     drop_held=True)
         if low:
             self._hold(moments)
             return self._record(accepted=False, reason="not_identifiable", result=result,
@@ -828,101 +785,233 @@ class SequentialPosterior:
         self.inconsistent_in_a_row = 0
         self.theta, self.P = result.theta.copy(), result.P.copy()
         self._after_accepted(moments, dt)
-        planned = int(window[1]) + int(apply_delay_samples)
-        late = arrived_seq is not None and arrived_seq + 1 > planned
-        self.applies_from_seq = int(arrived_seq) + 1 if late else planned
-        self.t = t
-        return self._record(accepted=True, reason=ACCEPTED, result=result, information=info,
-                            nu=nu, d=d, late=late, detail="passed", **kw)
+        return self._accepted(dict(result=result, information=info, nu=nu, d=d, **kw),
+                              apply_delay_samples, arrived_seq)
 
     def _update_filter_error(self, result: IdentificationResult, info: float,
                              checks: "FilterErrorChecks", apply_delay_samples: int,
-                             arrived_seq: int | None, kw: dict) -> AnglesRecord:
-        """The information rule of filter-error runs (docs/identification.md): the window's
-        OWN information decides which directions a run may update — whatever the prior knows —
-        the innovations must be what the filter model predicts, and the information must
-        survive a score covariance that does not trust the model (sandwich)."""
-        P_p, theta_p = result.prior_cov, result.prior_mean
-        base = dict(result=result, information=info, checks=checks, **kw)
-        s = self.sigma_max
-        Ms = result.information * s[:, None] * s[None, :]
-        lam, V = np.linalg.eigh(0.5 * (Ms + Ms.T))
-        own = lam >= 1.0  # 1/√λ ≤ sigma_max: the window alone determines this direction
-        if not own.any():
-            return self._record(accepted=False, reason="not_identifiable", nu=None, d=0,
-                                detail="own_information", **base)
-        if not checks.innovation.passed:
-            # the data are not what the filter model predicts (unmodelled load content):
-            # no evidence about the angles either way, so the reset streak is left alone
-            return self._record(accepted=False, reason="inconsistent", nu=None, d=0,
-                                detail="innovations", window_determined=int(own.sum()), **base)
-        Vk, lk = V[:, own], lam[own]
-        # the variance of the score along each direction: the larger of what the window's own
-        # score series shows and what the model predicts for its coloured innovations
-        var = np.zeros(len(lk))
-        for Q in (checks.score_covariance, checks.score_covariance_model):
-            if Q is not None:
-                Qs = Q * s[:, None] * s[None, :]
-                var = np.maximum(var, np.einsum("ai,ab,bi->i", Vk, Qs, Vk))
-        robust = lk**2 / np.maximum(var, 1e-300)
-        use = np.minimum(lk, robust)  # the smaller of the model's and the sandwich's
-        keep = use >= 1.0
-        if not keep.any():
-            return self._record(accepted=False, reason="not_identifiable", nu=None, d=0,
-                                detail="robust_information", window_determined=0, **base)
-        Vk, lk, use = Vk[:, keep], lk[keep], use[keep]
-        # the window's estimate in its determined directions (linearised at the run's
-        # result: M θ̂_w = P_run⁻¹ θ_run − P_p⁻¹ θ_p), weighted by the information used
-        Pp_inv = np.linalg.inv(P_p)
-        b = np.linalg.solve(result.P, result.theta) - Pp_inv @ theta_p
-        proj = (Vk.T @ (s * b)) / lk  # window estimate along each kept direction (scaled)
-        # the load excursion (issue 25): the window's angles are the reference (trim) load's
-        # moved by up to the configured sensitivity × the window's static load away from it
-        lv = float(checks.load_variance)
-        extra_R = None if lv <= 0 else lv * (Vk.T / s**2) @ Vk
-        if self.filter_error_update == "consider":
-            P_new_s, phi = consider_update(P_p, theta_p, s, Vk, proj, use,
-                                           self.filter_error_floor, extra_R)
-        else:  # "bayes": the window's information in full (moves undetermined directions)
-            Mk = (Vk * use) @ Vk.T  # scaled coordinates
-            hk = Vk @ (use * proj)
-            Pinv_s = Pp_inv * s[:, None] * s[None, :]  # prior information in scaled coordinates
-            P_new_s = np.linalg.inv(Pinv_s + Mk)
-            P_new_s = 0.5 * (P_new_s + P_new_s.T)
-            phi = P_new_s @ (Pinv_s @ (theta_p / s) + hk)
-        theta_new = s * phi
-        P_new = P_new_s * s[:, None] * s[None, :]
-        wd = int(keep.sum())
-        if out_of_range(theta_new, self.limit):  # the physical range (docs/identification.md)
-            return self._record(accepted=False, reason="out_of_range", nu=None, d=0,
-                                detail="range", window_determined=wd, **base)
-        if self.filter_error_update == "consider":
-            nu, d, ok = consider_gate(P_p, theta_p, s, Vk, proj,
-                                      window_measurement_cov(use, self.filter_error_floor,
-                                                             extra_R), self.gate_probability)
-        else:
-            nu, d, ok = consistency_gate(theta_new - theta_p, P_p, P_new,
-                                         self.gate_probability)
-        if not ok:
-            self.inconsistent_in_a_row += 1
-            if self.inconsistent_in_a_row >= self.reset_after:
-                self.P = self.P0.copy()
-                self.inconsistent_in_a_row = 0
-                self.fold()
-                return self._record(accepted=False, reason="reset", nu=nu, d=d, detail="gate",
-                                    window_determined=wd, **base)
-            return self._record(accepted=False, reason="inconsistent", nu=nu, d=d,
-                                detail="gate", window_determined=wd, **base)
+                             arrived_seq: int | None, kw: dict[str, Any]) -> AnglesRecord:
+        """The information rule of filter-error runs (:func:`filter_error_decision`) and its
+        bookkeeping: the gate's streak and reset, and the accepted update."""
+        dec = filter_error_decision(result, checks, sigma_max=self.sigma_max, limit=self.limit,
+                                    update=self.filter_error_update,
+                                    floor=self.filter_error_floor,
+                                    gate_probability=self.gate_probability)
+        base = dict(result=result, information=info, checks=checks, nu=dec.nu, d=dec.d,
+                    window_determined=dec.window_determined, **kw)
+        if dec.detail == "gate":
+            return self._gate_failed(base, drop_held=False)
+        if dec.theta is None or dec.P is None:
+            return self._record(accepted=False, reason=dec.reason, detail=dec.detail, **base)
         self.inconsistent_in_a_row = 0
-        self.theta, self.P = theta_new, P_new
+        self.theta, self.P = dec.theta, dec.P
         self.fold()
-        window = kw["window"]
-        planned = int(window[1]) + int(apply_delay_samples)
+        return self._accepted(base, apply_delay_samples, arrived_seq)
+
+    def _gate_failed(self, base: dict[str, Any], *, drop_held: bool) -> AnglesRecord:
+        """A run the consistency gate rejects: ``inconsistent``, or — the ``reset_after``-th in
+        a row, a real change — ``reset``: the covariance reopened around the current mean."""
+        self.inconsistent_in_a_row += 1
+        if self.inconsistent_in_a_row >= self.reset_after:
+            self.P = self.P0.copy()
+            self.inconsistent_in_a_row = 0
+            self.fold()
+            return self._record(accepted=False, reason="reset", detail="gate", **base)
+        if drop_held:
+            self.drop_held()  # the held windows were part of an inconsistent run
+        return self._record(accepted=False, reason="inconsistent", detail="gate", **base)
+
+    def _accepted(self, base: dict[str, Any], apply_delay_samples: int,
+                  arrived_seq: int | None) -> AnglesRecord:
+        """The record of an accepted run, applied from ``window end + apply delay`` (later
+        when the result arrived after that sample: ``late``)."""
+        planned = int(base["window"][1]) + int(apply_delay_samples)
         late = arrived_seq is not None and arrived_seq + 1 > planned
-        self.applies_from_seq = int(arrived_seq) + 1 if late else planned
-        self.t = kw["t"]
-        return self._record(accepted=True, reason=ACCEPTED, nu=nu, d=d, late=late,
-                            detail="passed", window_determined=wd, **base)
+        self.applies_from_seq = int(arrived_seq) + 1 if late and arrived_seq is not None \
+            else planned
+        self.t = base["t"]
+        return self._record(accepted=True, reason=ACCEPTED, late=late, detail="passed", **base)
+
+
+def _prior_cov(result: IdentificationResult) -> np.ndarray:
+    if result.prior_cov is None:
+        raise ValueError("a run judged by the posterior carries its prior covariance")
+    return result.prior_cov
+
+
+def over_names(to: Sequence[str], names: Sequence[str], v: np.ndarray, P: np.ndarray | None,
+               fill_v: np.ndarray, fill_P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``v`` (and ``P``) over ``names`` placed over the parameters ``to``; those ``names``
+    does not hold keep ``fill_v`` (``fill_P``)."""
+    idx = {n: i for i, n in enumerate(names)}
+    out_v, out_P = fill_v.copy(), fill_P.copy()
+    sel = [(i, idx[n]) for i, n in enumerate(to) if n in idx]
+    for i, j in sel:
+        out_v[i] = v[j]
+        if P is not None:
+            for k, m in sel:
+                out_P[i, k] = P[j, m]
+    return out_v, out_P
+
+
+def angles_record(post: "SequentialPosterior", *, accepted: bool, reason: str | None, mode: str, content: str,
+            window: tuple[int, int], t: float | None, result: IdentificationResult | None,
+            information: float | None, nu: float | None, d: int, late: bool = False,
+            detail: str | None = None, checks: "FilterErrorChecks | None" = None,
+            window_determined: int = 0,
+            structure: StructureVerdict | None = None) -> AnglesRecord:
+    """The angles record of a judged run: the posterior now in force (after the run), the
+    run's own estimate and the tests that decided it (docs/telemetry.md §2.4)."""
+    det, U, cond = determined_directions(post.P, post.sigma_max)
+    return AnglesRecord(
+        structure=None if structure is None else structure.structure,
+        candidates=None if structure is None else structure.candidates,
+        drift=None if structure is None or structure.drift is None
+        else structure.drift.to_dict(),
+        structure_verdict=structure,
+        t=t, seq=int(window[1]), mode=mode, content=content, accepted=accepted,
+        reason=reason, names=post.names, alpha=post.theta.copy(), P=post.P.copy(),
+        sigma_cr=None if result is None else result.sigma_cr,
+        sigma_cr_corrected=None if result is None else result.sigma_cr_corrected,
+        determined=det, information=information, nu=nu,
+        cost=None if result is None else float(result.cost),
+        iterations=0 if result is None else int(result.iterations),
+        window=(int(window[0]), int(window[1])), applies_from_seq=post.applies_from_seq,
+        late=late, gate_dof=d, condition=cond,
+        run_theta=None if result is None else result.theta.copy(),
+        run_P=None if result is None else result.P.copy(),
+        status=None if result is None else result.status, undetermined=U,
+        detail=detail, window_determined=int(window_determined),
+        innovation=None if checks is None else checks.innovation.statistic
+        / checks.innovation.mean,
+        innovation_limit=None if checks is None else checks.innovation.limit
+        / checks.innovation.mean,
+        cost_start=None if result is None else float(result.cost_start),
+        cost_history=None if result is None else tuple(float(c) for c in result.history),
+        load_excursion=None if checks is None or checks.load_delta is None else {
+            "delta": [float(x) for x in checks.load_delta],
+            "sigma": math.sqrt(max(float(checks.load_variance), 0.0))},
+    )
+
+
+def posterior_from_config(
+    ident: Any,
+    names: Sequence[str],
+    angle_names: Sequence[str],
+    *,
+    theta0: np.ndarray | None = None,
+    other_prior_sigma: Mapping[str, float] | None = None,
+    rig: dict[str, Any] | None = None,
+) -> "SequentialPosterior":
+    """From ``RigConfig.identification``: angles get ``prior_sigma_rad``, drift
+    ``drift_rate_rad2_s``, ``sigma_max_rad`` and the range ±``angle_limit_rad``; other
+    parameters need their prior σ in ``other_prior_sigma`` (no drift; determined at
+    0.04 × prior σ; no range). ``rig``: the fingerprint saved with it."""
+    other_prior_sigma = dict(other_prior_sigma or {})
+    sig0, drift, smax = [], [], []
+    for n in names:
+        if n in angle_names:
+            sig0.append(ident.prior_sigma_rad)
+            drift.append(ident.drift_rate_rad2_s)
+            smax.append(ident.sigma_max_rad)
+        elif n in other_prior_sigma:
+            sig0.append(float(other_prior_sigma[n]))
+            drift.append(0.0)
+            smax.append(SIGMA_MAX_OTHER_FRACTION * float(other_prior_sigma[n]))
+        else:
+            raise ValueError(f"parameter {n!r} needs a prior sigma (other_prior_sigma)")
+    if theta0 is None:
+        theta0 = np.array([ident.initial_angles_rad[list(angle_names).index(n)]
+                           for n in names])
+    limit = [ident.angle_limit_rad if n in angle_names else math.inf for n in names]
+    return SequentialPosterior(names, theta0, np.array(sig0), drift_rate=np.array(drift),
+               min_information=ident.min_information, sigma_max=np.array(smax),
+               reset_after=ident.reset_after, stale_fraction=ident.stale_fraction,
+               limit=np.array(limit), rig=rig,
+               filter_error_update=ident.filter_error_update,
+               filter_error_floor=ident.filter_error_floor_rad / ident.sigma_max_rad)
+
+
+@dataclass
+class FilterErrorDecision:
+    """What :func:`filter_error_decision` found: ``theta``/``P`` the update when it passed
+    (else None, with the ``reason`` and the ``detail`` of the test that decided)."""
+
+    reason: str | None
+    detail: str
+    nu: float | None = None
+    d: int = 0
+    window_determined: int = 0
+    theta: np.ndarray | None = None
+    P: np.ndarray | None = None
+
+
+def filter_error_decision(result: IdentificationResult, checks: "FilterErrorChecks", *,
+                          sigma_max: np.ndarray, limit: np.ndarray, update: str, floor: float,
+                          gate_probability: float) -> FilterErrorDecision:
+    """The information rule of filter-error runs (docs/identification.md): the window's
+    OWN information decides which directions a run may update — whatever the prior knows —
+    the innovations must be what the filter model predicts, and the information must
+    survive a score covariance that does not trust the model (sandwich). ``update``:
+    "consider" (with the systematic floor ``floor`` in units of ``sigma_max``) or "bayes"."""
+    P_p, theta_p = _prior_cov(result), result.prior_mean
+    s = sigma_max
+    Ms = result.information * s[:, None] * s[None, :]
+    lam, V = np.linalg.eigh(0.5 * (Ms + Ms.T))
+    own = lam >= 1.0  # 1/√λ ≤ sigma_max: the window alone determines this direction
+    if not own.any():
+        return FilterErrorDecision("not_identifiable", "own_information")
+    if not checks.innovation.passed:
+        # the data are not what the filter model predicts (unmodelled load content):
+        # no evidence about the angles either way, so the reset streak is left alone
+        return FilterErrorDecision("inconsistent", "innovations",
+                                   window_determined=int(own.sum()))
+    Vk, lk = V[:, own], lam[own]
+    # the variance of the score along each direction: the larger of what the window's own
+    # score series shows and what the model predicts for its coloured innovations
+    var = np.zeros(len(lk))
+    for Q in (checks.score_covariance, checks.score_covariance_model):
+        if Q is not None:
+            Qs = Q * s[:, None] * s[None, :]
+            var = np.maximum(var, np.einsum("ai,ab,bi->i", Vk, Qs, Vk))
+    robust = lk**2 / np.maximum(var, 1e-300)
+    use = np.minimum(lk, robust)  # the smaller of the model's and the sandwich's
+    keep = use >= 1.0
+    if not keep.any():
+        return FilterErrorDecision("not_identifiable", "robust_information")
+    Vk, lk, use = Vk[:, keep], lk[keep], use[keep]
+    # the window's estimate in its determined directions (linearised at the run's
+    # result: M θ̂_w = P_run⁻¹ θ_run − P_p⁻¹ θ_p), weighted by the information used
+    Pp_inv = np.linalg.inv(P_p)
+    b = np.linalg.solve(result.P, result.theta) - Pp_inv @ theta_p
+    proj = (Vk.T @ (s * b)) / lk  # window estimate along each kept direction (scaled)
+    # the load excursion (issue 25): the window's angles are the reference (trim) load's
+    # moved by up to the configured sensitivity × the window's static load away from it
+    lv = float(checks.load_variance)
+    extra_R = None if lv <= 0 else lv * (Vk.T / s**2) @ Vk
+    if update == "consider":
+        P_new_s, phi = consider_update(P_p, theta_p, s, Vk, proj, use, floor, extra_R)
+    else:  # "bayes": the window's information in full (moves undetermined directions)
+        Mk = (Vk * use) @ Vk.T  # scaled coordinates
+        hk = Vk @ (use * proj)
+        Pinv_s = Pp_inv * s[:, None] * s[None, :]  # prior information in scaled coordinates
+        P_new_s = np.linalg.inv(Pinv_s + Mk)
+        P_new_s = 0.5 * (P_new_s + P_new_s.T)
+        phi = P_new_s @ (Pinv_s @ (theta_p / s) + hk)
+    theta_new = s * phi
+    P_new = P_new_s * s[:, None] * s[None, :]
+    wd = int(keep.sum())
+    if out_of_range(theta_new, limit):  # the physical range (docs/identification.md)
+        return FilterErrorDecision("out_of_range", "range", window_determined=wd)
+    if update == "consider":
+        nu, d, ok = consider_gate(P_p, theta_p, s, Vk, proj,
+                                  window_measurement_cov(use, floor, extra_R), gate_probability)
+    else:
+        nu, d, ok = consistency_gate(theta_new - theta_p, P_p, P_new, gate_probability)
+    if not ok:
+        return FilterErrorDecision("inconsistent", "gate", nu=nu, d=d, window_determined=wd)
+    return FilterErrorDecision(ACCEPTED, "passed", nu=nu, d=d, window_determined=wd,
+                               theta=theta_new, P=P_new)
 
 
 @dataclass
@@ -953,8 +1042,8 @@ def likelihood_ratio_gate(post: SequentialPosterior, par: Parameterisation,
     Pinv_a = np.linalg.inv(P_a)
     da = theta_prev - theta_a
     J_prev = 0.5 * float(da @ Pinv_a @ da)
-    if post.G_acc is not None:
-        J_prev += _moment_cost(par, post.G_acc, theta_prev)
+    if post.moments.G_acc is not None:
+        J_prev += _moment_cost(par, post.moments.G_acc, theta_prev)
     # the window alone: its minimum from the run's estimate (a broad prior keeps the
     # rank-deficient problem solvable; it can only lower ν, by (Δ/σ₀)² ≈ 1e-4)
     alone = levenberg_marquardt(window_prob, res.theta, post.P0,
@@ -1096,6 +1185,8 @@ class PeriodicIdentification:
         """The trend the posterior tracks with (issue 27): the drift test's while it selects
         it; none once the test finds the angles constant again (testable, not rejected) or
         restarts (a step is not a trend); otherwise the one in force stays."""
+        if self.structure is None:  # (only called with a structure test)
+            return
         d = verdict.drift
         post = self.posterior
         names = self.model.geometry.angle_names
@@ -1112,14 +1203,14 @@ class PeriodicIdentification:
         self._bound_look = None
         if drift is not None and post.trend is not None:
             pred = drift.prediction
-        elif drift is not None and post.windows_held and self._held_look is not None:
+        elif drift is not None and post.moments.windows_held and self._held_look is not None:
             # windows held since: the bound's fit from before them, the held moments added
             pred = drift.predict_bounded(t, self._held_look)
             self._bound_look = self._held_look
         elif drift is not None:
             pred = drift.bounded_prediction
             self._bound_look = drift.bounded_look
-            if pred is not None and post.windows_held:
+            if pred is not None and post.moments.windows_held:
                 post.drop_held()  # the prediction holds them already
         if pred is not None:
             post.set_prediction(names, *pred)
@@ -1186,6 +1277,7 @@ class PeriodicIdentification:
             return rec
         post = self.posterior
         moments = None
+        prob: KnownLoadProblem | AccumulatedKnownLoadProblem | FilterErrorProblem
         if self.mode == "known_loads":
             if self.structure is not None:
                 x = self.par.stack(z, T, H, q)[scored]
@@ -1194,10 +1286,12 @@ class PeriodicIdentification:
                 verdict = self.structure.add_window(x, self.par.alpha(post.theta), t=t_mid)
                 self._follow_drift(verdict, t_mid)
                 theta_p, P_p = post.prior(dt)
+            if H is None:
+                raise ValueError("a known-load window needs its known loads H")
             prob = KnownLoadProblem(self.par, z, T, H, q, scored=scored)
-            if post.relinearise and post.G_held is not None:
+            if post.relinearise and post.moments.G_held is not None:
                 # windows held back as not identifiable on their own count with this one
-                prob = prob.with_moments(post.G_held, post.n_held)
+                prob = prob.with_moments(post.moments.G_held, post.moments.n_held)
             moments = (prob.G, prob.n_scored)
         else:
             Phi_n = None
@@ -1220,19 +1314,20 @@ class PeriodicIdentification:
             # (gate and information against the previous posterior, as model §7 says)
             window_prob = prob
             theta_a, P_a = post.anchor_prior(dt)
-            if post.G_acc is not None:
+            if post.moments.G_acc is not None:
                 if isinstance(window_prob, KnownLoadProblem):
-                    prob = window_prob.with_moments(post.G_acc, post.n_acc)
-                else:
-                    prob = window_prob.window.with_moments(window_prob.G_extra + post.G_acc,
-                                                           window_prob.n_scored
-                                                           - window_prob.n_series + post.n_acc)
+                    prob = window_prob.with_moments(post.moments.G_acc, post.moments.n_acc)
+                elif isinstance(window_prob, AccumulatedKnownLoadProblem):
+                    prob = window_prob.window.with_moments(
+                        window_prob.G_extra + post.moments.G_acc,
+                        window_prob.n_scored - window_prob.n_series + post.moments.n_acc)
             res = levenberg_marquardt(prob, theta_a, P_a, max_iterations=self.max_iterations,
                                       max_lag=max_lag, start=theta_p)
             lm_prior = (theta_a, P_a)
             if np.all(np.isfinite(res.theta)):
                 try:
-                    M_w = window_prob.evaluate(res.theta).information
+                    M_ev = window_prob.evaluate(res.theta).information
+                    M_w = np.full_like(res.information, np.nan) if M_ev is None else M_ev
                 except (np.linalg.LinAlgError, ValueError, FloatingPointError):
                     M_w = np.full_like(res.information, np.nan)
             else:
@@ -1257,7 +1352,7 @@ class PeriodicIdentification:
         if isinstance(prob, FilterErrorProblem):
             self.last_window = (prob, res.theta if res.sound else theta_p)
         checks = None
-        if self.mode == "filter_error" and self.robust_filter_error and res.sound:
+        if isinstance(prob, FilterErrorProblem) and self.robust_filter_error and res.sound:
             checks = self.filter_error_checks(prob, res.theta)
             self._load_reference.judge(checks, static_load)
         rec = post.update(res, window=window, mode=self.mode, content=self.content,
@@ -1269,7 +1364,7 @@ class PeriodicIdentification:
         rec.nonlinearity = nonlinear
         if self.structure is not None:
             # the bound's fit the held windows' next run starts from (windows since it held)
-            if post.windows_held == 0 or post.prediction is None:
+            if post.moments.windows_held == 0 or post.prediction is None:
                 self._held_look = None
             elif self._held_look is None:
                 self._held_look = self._bound_look
@@ -1284,7 +1379,7 @@ class PeriodicIdentification:
             rec.structure_fit = self.posterior.structure_fit
         if self.mode == "filter_error" and res.end_state is not None and res.status != "diverged":
             self.filter_state = res.end_state
-        rec.samples_used = int(prob.scored.sum() if self.mode == "filter_error"
+        rec.samples_used = int(prob.scored.sum() if isinstance(prob, FilterErrorProblem)
                                else np.count_nonzero(scored))
         if rec.accepted:
             # new angles applied: the calibration filter settles again

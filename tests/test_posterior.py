@@ -384,13 +384,13 @@ def test_held_and_accumulated_windows_make_the_batch_posterior(cfg, model):
     k = 1e-3
     post.min_information = 1e12
     recs = [runner.run_window(k * X[:W, :6], k * X[:W, 6:13], k * X[:W, 13:], seq0=0)]
-    assert recs[0].reason == "not_identifiable" and post.windows_held == 1
+    assert recs[0].reason == "not_identifiable" and post.moments.windows_held == 1
     post.min_information = cfg.identification.min_information
     for j in (1, 2):
         sl = slice(j * W, (j + 1) * W)
         recs.append(runner.run_window(X[sl, :6], X[sl, 6:13], X[sl, 13:], seq0=j * W))
     assert [r.reason for r in recs[1:]] == [None, None], [r.reason for r in recs]
-    assert post.windows_held == 0
+    assert post.moments.windows_held == 0
     Xb = np.vstack([k * X[:W], X[W:3 * W]])
     batch = levenberg_marquardt(KnownLoadProblem(par, Xb[:, :6], Xb[:, 6:13], Xb[:, 13:]),
                                 start, post.P0, max_iterations=30)
@@ -404,7 +404,7 @@ def test_held_and_accumulated_windows_make_the_batch_posterior(cfg, model):
     # a reset forgets the accumulation and starts again from the first prior's covariance
     post.P = post.P0.copy()
     post.fold()
-    assert post.G_acc is None and post.G_held is None
+    assert post.moments.G_acc is None and post.moments.G_held is None
     np.testing.assert_allclose(post.anchor_prior(0.0)[1], post.P0)
 
 
