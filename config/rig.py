@@ -276,7 +276,7 @@ class IdentificationConfig:
     filter_error_scattered_fraction: float = 0.02
     # known loads: a run whose Gaussian summary misses the curvature of the likelihood's
     # valley by more than this (χ² units) is held (estimator.curvature, issue 27); inf: off
-    nonlinearity_check: bool = False  # opt-in this round (docs/configuration.md)
+    nonlinearity_check: bool = True  # docs/configuration.md
     nonlinearity_limit: float = 1.0
     # [identification.structure] (issue 19; `rsra calibrate` writes it): the structure the
     # hub loads use from the start, as estimator.structure.fit_payload (SI); None: constant

@@ -323,7 +323,7 @@ class IdentificationTable(Table):
     filter_error_scattered_fraction: NonNeg = 0.02
     # known loads: the Gaussian summary's curvature index above which a run is held
     # (not_identifiable, detail nonlinear; estimator.curvature, issue 27)
-    nonlinearity_check: bool = False
+    nonlinearity_check: bool = True
     nonlinearity_limit: NonNeg = 1.0
     structure: StructureTable | None = None
     advice: AdviceTable = Field(default_factory=AdviceTable)

@@ -261,7 +261,7 @@ def test_the_flight_rig_layer_is_the_full_copy_it_replaced(tmp_path):
     # rig's update rule and its angles' load sensitivity (issue 25); the known-load curvature check (issue 27)
     full["identification"].update(stale_fraction=0.5, filter_error_update="consider",
                                   filter_error_floor_deg=0.05,
-                                  filter_error_scattered_fraction=0.02, nonlinearity_check=False,
+                                  filter_error_scattered_fraction=0.02, nonlinearity_check=True,
                                   nonlinearity_limit=1.0,
                                   angle_load_sensitivity_deg_per_unit=[0.0, 0.0, 1.0e-5,
                                                                        0.0, 0.0, 0.0])

@@ -9,7 +9,7 @@ from tests.helpers_net import free_tcp_port
 
 def test_demo_runs_and_summarises(tmp_path):
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    r = subprocess.run([sys.executable, "-m", "rsra", "demo", "--speed", "max", "--duration", "6",
+    r = subprocess.run([sys.executable, "-m", "rsra", "demo", "--speed", "max", "--duration", "35",
                         "--zenoh-listen", ep, "--report", str(tmp_path / "rep"), "--json"],
                        capture_output=True, text=True, timeout=300, stdin=subprocess.DEVNULL)
     assert r.returncode == 0, r.stderr[-2000:]
@@ -28,7 +28,7 @@ def test_demo_runs_and_summarises(tmp_path):
     assert not any(ch in r.stdout for ch in "┃│╭━")
     line = next(x for x in r.stdout.splitlines() if x.startswith('{"summary"'))
     summary = json.loads(line)["summary"]
-    assert summary["samples"] == 1200 and summary["lost"] == 0
+    assert summary["samples"] == 7000 and summary["lost"] == 0
     assert summary["identification_runs"] >= 1
     pngs = list((tmp_path / "rep").glob("*.png"))
     assert len(pngs) >= 4 and all(p.stat().st_size > 10_000 for p in pngs)

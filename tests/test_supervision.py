@@ -22,8 +22,11 @@ from rsra.daq.runtime.service import Service, ServiceOptions
 from tests.helpers_net import free_tcp_port
 
 # two identification periods in 4.6 s of acquisition time (windows end at samples 399 and
-# 799 and apply 100 samples later)
-SHORT = {"identification": {"period_s": 2.0, "window_s": 2.0, "apply_delay_s": 0.5}}
+# 799 and apply 100 samples later); the cold start's curvature check (which holds the first
+# windows of a run, docs/identification.md) off: the worker's supervision is the subject here,
+# and its tests need the first windows accepted
+SHORT = {"identification": {"period_s": 2.0, "window_s": 2.0, "apply_delay_s": 0.5,
+                            "nonlinearity_check": False}}
 
 
 def _lockstep(cfg, duration, kill_at=(), seed=3):
