@@ -1086,6 +1086,10 @@ class LoadReference:
 class PeriodicIdentification:
     """Windows of content-filtered data → identification → posterior (model §7, periodic runs).
 
+    Size: about 300 lines, kept whole: ``run_window`` is one sequence (the window's problem,
+    the solve, the checks, the judgement) and its pieces are already their own
+    (:class:`WindowMoments`, :func:`filter_error_decision`, the structure and drift tests).
+
     Known-load mode: ``run_window(z, T, H)``; filter-error mode: ``run_window(z, T)`` with the
     calibration filter's ``Phi, K, J, Qd`` (``design``: any object with those attributes and
     ``slowest_time_constant_s``). The filter-error state and its sensitivities continue from
