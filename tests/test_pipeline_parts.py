@@ -76,11 +76,11 @@ class _Follower:
         self.calls.append(np.array(alpha))
 
 
-def _angles(cfg, bound2=1.0):
+def _angles(cfg, bound2=1.0):  # (σ², the same on every axis)
     model = cfg.rig_model()
     f = _Follower()
     a = AnglesInForce(model, cfg.identification.initial_angles_rad,
-                      cfg.identification.prior_sigma_rad, bound2, f)
+                      cfg.identification.prior_sigma_rad, np.full(6, bound2), f)
     return a, f, model.geometry
 
 

@@ -34,13 +34,13 @@ class AnglesInForce:
     matrix of the angles used (the structure's when one is in force), ``var`` their share of
     the hub loads' variance, from the covariance ``P`` (it starts at the prior, then each
     applied angles record's P); :meth:`measure` gives a measured sample's ``sigma`` and
-    ``uncertain`` (the variance above the static noise bound ``bound2``, σ²). The compiled hub
-    path (daq/runtime/hubpath.py) reads ``S``, ``var`` and ``bound2`` and sets ``sigma`` and
-    ``uncertain`` as :meth:`measure` does. ``follower`` (the load filter) is given every new
-    set of angles used."""
+    ``uncertain`` (the variance above the static noise bound ``bound2``: σ², per axis). The
+    compiled hub path (daq/runtime/hubpath.py) reads ``S``, ``var`` and ``bound2`` and sets
+    ``sigma`` and ``uncertain`` as :meth:`measure` does. ``follower`` (the load filter) is
+    given every new set of angles used."""
 
-    def __init__(self, model: RigModel, alpha: np.ndarray, prior_sigma: float, bound2: float,
-                 follower: FollowsAngles) -> None:
+    def __init__(self, model: RigModel, alpha: np.ndarray, prior_sigma: float,
+                 bound2: np.ndarray, follower: FollowsAngles) -> None:
         self.model = model
         self.prior_sigma = prior_sigma
         self.alpha = np.asarray(alpha, float).copy()
@@ -52,7 +52,7 @@ class AnglesInForce:
         self.bound2 = bound2
         self.var = HubAngleVariance(model.geometry, self.alpha, self.P)
         self.sigma: np.ndarray | None = None  # the last measured sample's (predict-only: kept)
-        self.uncertain = False
+        self.uncertain: bool | np.bool_ = False
         self._follower = follower
 
     def apply(self, rec: AnglesRecord) -> None:

@@ -16,7 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from rsra.config.rig import DESIGN_BAND, ConfigError, RigConfig
+from rsra.config.rig import ConfigError, RigConfig
+from rsra.config.rigfile import DESIGN_BAND
 from rsra.daq.bus.assembler import channels_payload
 from rsra.daq.bus.decoder import DecodeTable
 from rsra.daq.rigmodel import design_cache
@@ -30,7 +31,7 @@ from rsra.daq.runtime.stuck import StuckMonitor
 from rsra.estimator.angle_uncertainty import ANGLES_UNCERTAIN
 from rsra.estimator.balance import inertial_load_matrix
 from rsra.estimator.filter_sigma import FilterSigma
-from rsra.estimator.filters import AZIMUTH_MISSING, AzimuthTracker, LoadFilter
+from rsra.estimator.filters import AZIMUTH_MISSING, AzimuthTracker, DesignCache, LoadFilter
 from rsra.estimator.geometry import hub_transfer_matrix
 from rsra.estimator.noise_budget import noise_budget
 from rsra.estimator.structure import StructureCorrection
@@ -43,7 +44,8 @@ PREFILL_BAND = DESIGN_BAND  # the rotor-speed band designed at start-up (flight:
 
 @dataclass
 class PipelineOutput:
-    records: list[tuple[str, dict]] = field(default_factory=list)
+    # (kind, payload): a dict, or a typed record (the applied angles: records.AnglesRecord)
+    records: list[tuple[str, dict[str, Any] | AnglesRecord]] = field(default_factory=list)
     job: IdentJob | None = None  # an identification window to submit
 
 
@@ -72,23 +74,7 @@ class EstimatorPipeline:
         self.azimuth = AzimuthTracker(cfg.rotor.omega_nominal_rad_s, 1.0 / self.fs)
         self.azimuth_missing = 0  # samples advanced by the design's Ω (health)
         self.cache = design_cache(cfg, model=self.model)
-        # a redesign takes 10-60 ms, longer than a sample: design the expected band now
-        w0 = cfg.rotor.omega_nominal_rad_s
-        try:
-            self.cache.prefill(w0 * (1 - PREFILL_BAND), w0 * (1 + PREFILL_BAND))
-            self.load_filter = LoadFilter(
-                self.cache, alpha, invalid_after_samples=int(round(f.invalid_after_s * self.fs)),
-                azimuth=self.azimuth_mode)
-        except (np.linalg.LinAlgError, ValueError) as e:  # the config check (Nyquist) passed
-            if isinstance(e, ConfigError):
-                raise
-            why = " ".join(f"{type(e).__name__}: {e}".split())
-            raise ConfigError(
-                "filter", f"harmonics {list(f.harmonics)}, time_constant_s {f.time_constant_s:g}",
-                f"the load filter cannot be designed at rig.sample_rate_hz = {self.fs:g} and "
-                f"rotor.omega_nominal_rad_s = {w0:g} ({why})",
-                "use fewer or lower harmonics, a longer time_constant_s or a higher sample rate",
-                cfg.source) from None
+        self.load_filter = _load_filter(cfg, self.cache, alpha, self.azimuth_mode)
         # the filter's lag behind a moving static load: flag `transient` (estimator/transient.py)
         self.transient = TransientDetector(1.0 / self.fs,
                                            TIME_CONSTANT_FRACTION * f.time_constant_s)
@@ -101,9 +87,7 @@ class EstimatorPipeline:
         self.innov_every = max(1, int(round(self.fs / cfg.telemetry.innovations_hz)))
         idc = cfg.identification
         self.identification = identification
-        # the identification worker died too often and is off (service): every hub_loads
-        # record is flagged so
-        self.identification_off = False
+        self.identification_off = False  # the worker died too often (service): hub_loads say so
         self.results = ResultSchedule()
         self.calibration = CalibrationBranch(cfg, self.results)
         self.first_seq: int | None = None
@@ -117,27 +101,14 @@ class EstimatorPipeline:
         # fault:<cell|accelerometer> and treated like a faulted cell — predict-only (model
         # §6), H_static null, not ok in the identification window
         self.stuck = StuckMonitor(cfg, table) if cfg.stuck.enabled else None
-        # how far the angles in force can move the hub loads (`sigma_angles`, flag
-        # `angles_uncertain`; docs/identification.md): their covariance starts at the prior
-        # (set_angles_covariance: a saved or recorded starting posterior), then each applied
-        # angles record's P; flagged where it exceeds the static noise bound (`rsra
-        # noise-budget`, model §4)
+        # the angles in force and how far they can move the hub loads (`sigma_angles`, flag
+        # `angles_uncertain` above the static noise bound: `rsra noise-budget`, model §4)
         self.angles = AnglesInForce(
             self.model, alpha, idc.prior_sigma_rad,
             noise_budget(self.model, idc.initial_angles_rad).total ** 2, self.load_filter)
         # the compiled hub path (daq/runtime/hubpath.py): measured samples' first step in one
-        # call, the same records bit for bit; None: the reference path only (why: below)
-        self.hub_kernel: HubKernel | None = None
-        self.hub_kernel_status = "off (not asked)"
-        if hub_kernel and self.azimuth_mode:  # the kernel's filter step is the design's Φ
-            self.hub_kernel_status = "not used (rotor.harmonic_phase = azimuth)"
-        elif hub_kernel:
-            k, self.hub_kernel_status = load_hub_kernel()
-            if k is not None:
-                try:
-                    self.hub_kernel = HubKernel(k, self)
-                except ValueError as e:
-                    self.hub_kernel_status = f"not used ({e})"
+        # call, the same records bit for bit; None: the reference path only (the status: why)
+        self.hub_kernel, self.hub_kernel_status = _hub_kernel(self, hub_kernel)
 
     # --- the pieces' faces (the service, start-up, tests) ------------------------------
     @property
@@ -167,14 +138,6 @@ class EstimatorPipeline:
     def final_records(self, after_seq: int) -> list[AnglesRecord]:
         """At the end of a run: the results no sample applied (ResultSchedule.final_records)."""
         return self.results.final_records(after_seq)
-
-    def set_angles_covariance(self, names: Any, P: Any) -> None:
-        """The covariance of the angles in force (AnglesInForce.set_covariance)."""
-        self.angles.set_covariance(names, P)
-
-    def set_structure(self, fit: dict[str, Any] | None) -> None:
-        """A selected structure in force, or None (AnglesInForce.set_structure)."""
-        self.angles.set_structure(fit)
 
     def _apply_due(self, seq: int, out: PipelineOutput) -> None:
         """The identification results due at sample ``seq``, into force and published."""
@@ -334,3 +297,41 @@ class EstimatorPipeline:
             "sigma_filter": None if res.H is None else sigma_filter,
             "omega": omega_pub, "flags": flags}))
         return I, z, res.e, res.nis, omega, dpsi
+
+
+def _load_filter(cfg: RigConfig, cache: DesignCache, alpha: np.ndarray,
+                 azimuth: bool) -> LoadFilter:
+    """The pipeline's load filter, the rotor-speed band it is expected in designed now (a
+    redesign takes 10-60 ms, longer than a sample); a design that fails is a ConfigError."""
+    f = cfg.filter
+    fs = cfg.sample_rate_hz
+    w0 = cfg.rotor.omega_nominal_rad_s
+    try:
+        cache.prefill(w0 * (1 - PREFILL_BAND), w0 * (1 + PREFILL_BAND))
+        return LoadFilter(cache, alpha, invalid_after_samples=int(round(f.invalid_after_s * fs)),
+                          azimuth=azimuth)
+    except (np.linalg.LinAlgError, ValueError) as e:  # the config check (Nyquist) passed
+        if isinstance(e, ConfigError):
+            raise
+        why = " ".join(f"{type(e).__name__}: {e}".split())
+        raise ConfigError(
+            "filter", f"harmonics {list(f.harmonics)}, time_constant_s {f.time_constant_s:g}",
+            f"the load filter cannot be designed at rig.sample_rate_hz = {fs:g} and "
+            f"rotor.omega_nominal_rad_s = {w0:g} ({why})",
+            "use fewer or lower harmonics, a longer time_constant_s or a higher sample rate",
+            cfg.source) from None
+
+
+def _hub_kernel(p: EstimatorPipeline, asked: bool) -> tuple[HubKernel | None, str]:
+    """The compiled hub path for pipeline ``p`` (when ``asked``), or None; and its status."""
+    if not asked:
+        return None, "off (not asked)"
+    if p.azimuth_mode:  # the kernel's filter step is the design's Φ
+        return None, "not used (rotor.harmonic_phase = azimuth)"
+    k, status = load_hub_kernel()
+    if k is None:
+        return None, status
+    try:
+        return HubKernel(k, p), status
+    except ValueError as e:
+        return None, f"not used ({e})"
