@@ -130,7 +130,7 @@ def pipeline_run(cfg, run) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarr
     from rsra.daq.runtime.pipeline import EstimatorPipeline
 
     p = EstimatorPipeline(cfg, run.alpha_true[0], identification=False)
-    p.set_angles_covariance(cfg.rig_model().geometry.angle_names, np.eye(14) * 1e-16)
+    p.angles.set_covariance(cfg.rig_model().geometry.angle_names, np.eye(14) * 1e-16)
     n = len(run.t)
     H, sf, sa = np.full((n, 6), np.nan), np.full((n, 6), np.nan), np.full((n, 6), np.nan)
     tr = np.zeros(n, bool)

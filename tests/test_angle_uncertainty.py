@@ -165,7 +165,7 @@ def test_ground_test_after_a_small_sigma_posterior_is_not_flagged():
     3·sqrt(sigma_angles² + bound²) on ≥ 99 % of the samples. Measured: before, sigma_angles /
     bound up to 2.1 2.1 0.5 3.7 3.8 18 (X Y Z L M N); after, ≤ 0.04 and 0.18 on N; covered on
     ≥ 99.25 % of the samples. Break-checked: the
-    record's P not taken (``set_angles_covariance`` a no-op) keeps the flag on after it."""
+    record's P not taken (``AnglesInForce.set_covariance`` a no-op) keeps the flag on after it."""
     n, at = 600, 200
     cfg, run, hubs = _ground_pipeline(n, at, 0.05)
     bound = noise_budget(cfg.rig_model(), cfg.identification.initial_angles_rad).total
@@ -214,7 +214,7 @@ def test_under_a_selected_structure_its_alpha0_sigma_is_in_force():
         hub = next(r for k, r in p.process(s).records if k == "hub_loads")
         return np.asarray(hub["sigma_angles"], float), run.T[i]
 
-    p.set_structure(fit)
+    p.angles.set_structure(fit)
     got, T = sigma_at(0)
     s2 = np.array([np.radians(0.2)] * (n - 1) + [cfg.identification.prior_sigma_rad]) ** 2
     want = np.sqrt(HubAngleVariance(g, a0, np.diag(s2)).variance(T))
@@ -222,7 +222,7 @@ def test_under_a_selected_structure_its_alpha0_sigma_is_in_force():
     got, T = sigma_at(2)  # the record's P (σ 0.01°) applies: the structure's σ stays
     want = np.sqrt(HubAngleVariance(g, a0, np.diag(s2)).variance(T))
     assert np.allclose(got, want, rtol=1e-12)
-    p.set_structure(None)
+    p.angles.set_structure(None)
     got, T = sigma_at(3)
     want = np.sqrt(HubAngleVariance(g, cfg.identification.initial_angles_rad,
                                     P_small).variance(T))
@@ -232,8 +232,8 @@ def test_under_a_selected_structure_its_alpha0_sigma_is_in_force():
 def test_the_service_starts_from_the_saved_posteriors_covariance(tmp_path):
     """`rsra run --angles FILE` (lock-step, 1 s): the hub loads' sigma_angles comes from the
     file's P from the first sample (0.05°: never flagged), not from the 5° prior until a first
-    record applies. Break-checked: without the service's set_angles_covariance call every
-    sample is flagged."""
+    record applies. Break-checked: without the service's AnglesInForce.set_covariance call
+    every sample is flagged."""
     from rsra.daq.runtime.persistence import save_posterior
     from rsra.daq.runtime.service import Service, ServiceOptions
     from rsra.estimator.posterior import PosteriorState

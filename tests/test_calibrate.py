@@ -344,7 +344,7 @@ def test_calibrate_selects_the_load_gain_structure_and_writes_its_fragment(cfg):
     assert float(u @ u) <= chi2.isf(FALSE_ALARM, 14)
     pipe = EstimatorPipeline(merged, merged.identification.initial_angles_rad,
                              identification=False)
-    pipe.set_structure(got)
+    pipe.angles.set_structure(got)
     assert pipe.structure is not None and pipe.structure.structure == "cell_load_angles"
 
 

@@ -20,7 +20,6 @@ _NOT_YET = "not split yet (issue 27 item 4): the next change splits it along its
 PENDING = {
     "estimator/posterior.py SequentialPosterior": "estimator/posterior.py is being changed by "
     "the calibration-with-missing-samples work; its split follows that change",
-    "daq/runtime/pipeline.py EstimatorPipeline": _NOT_YET,
 }
 
 

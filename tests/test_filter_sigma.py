@@ -36,7 +36,7 @@ def _pipeline(cfg, run):
     from rsra.daq.runtime.pipeline import EstimatorPipeline
 
     p = EstimatorPipeline(cfg, run.alpha_true[0], identification=False)
-    p.set_angles_covariance(cfg.rig_model().geometry.angle_names, np.eye(14) * 1e-16)
+    p.angles.set_covariance(cfg.rig_model().geometry.angle_names, np.eye(14) * 1e-16)
     n = len(run.t)
     H, sf, sa = (np.full((n, 6), np.nan) for _ in range(3))
     for i in range(n):

@@ -139,7 +139,7 @@ def _check_records(pipe, out) -> None:
             assert payload["e"] is None or np.isfinite(payload["e"]).all()
             assert payload["nis"] is None or math.isfinite(payload["nis"])
         assert "NaN" not in text and "Infinity" not in text
-    for ch in pipe.content.values():
+    for ch in pipe.calibration.content.values():
         for arr in vars(ch).values():
             if isinstance(arr, np.ndarray) and arr.dtype.kind == "f":
                 assert np.isfinite(arr).all()

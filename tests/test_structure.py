@@ -303,7 +303,7 @@ def service_hub_errors(cfg, scenario, seed, *, hold_s, structure=True, sweeps=1)
     post, runs, cache = build_identification(cfg)
     p = EstimatorPipeline(cfg, cfg.identification.initial_angles_rad)
     if not structure:
-        p.set_structure = lambda fit: None
+        p.angles.set_structure = lambda fit: None
     H = np.full((n, 6), np.nan)
     transient = np.zeros(n, bool)
     applied, last = None, None

@@ -299,7 +299,7 @@ def test_a_stuck_cell_is_predict_only_and_out_of_the_identification_window(cfg):
     assert flagged == list(range(a + k - 1, b))
     for q in flagged:
         assert "predict_only" in hub[q]["flags"] and hub[q]["H_static"] is None
-    w = pipe.buffer.window()
+    w = pipe.calibration.buffer.window()
     ok = dict(zip(w["seq"].tolist(), w["ok"].tolist()))
     assert not any(ok[q] for q in flagged)
     assert all(ok[q] for q in range(b, b + 50))

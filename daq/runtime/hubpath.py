@@ -214,14 +214,15 @@ class HubKernel:
 
     def _plan_for(self, lf, tr, av, fs, c) -> Any:
         p = self.p
+        angles = p.angles
         h = self._held
         if h and (h[0] is lf._G and h[1] is lf._buf and h[2] is p._Mf and h[3] is p._Rinv
-                  and h[4] is p._S and h[5] is tr._Mb and h[6] is tr._s and h[7] is av._Q2
-                  and h[8] is p._D and h[9] is p._angle_bound2 and h[10] is c
+                  and h[4] is angles.S and h[5] is tr._Mb and h[6] is tr._s and h[7] is av._Q2
+                  and h[8] is p._D and h[9] is angles.bound2 and h[10] is c
                   and h[11] is fs._Mf and h[12] is fs._Ms and h[13] is fs.floor):
             return self._plan
-        held = (lf._G, lf._buf, p._Mf, p._Rinv, p._S, tr._Mb, tr._s, av._Q2, p._D,
-                p._angle_bound2, c, fs._Mf, fs._Ms, fs.floor)
+        held = (lf._G, lf._buf, p._Mf, p._Rinv, angles.S, tr._Mb, tr._s, av._Q2, p._D,
+                angles.bound2, c, fs._Mf, fs._Ms, fs.floor)
         self._plan = None
         self._held = held
         D = p._D if p._D.shape[1] else None
@@ -230,8 +231,8 @@ class HubKernel:
         sig = ({"fs_Rinv": c.Rinv, "fs_Bu": c.B_u, "fs_modelled": c.modelled, "fs_g2": c.g2,
                 "fs_Mf": fs._Mf, "fs_Ms": fs._Ms, "fs_floor": fs.floor,
                 "beta_fast": fs.beta_fast, "beta_slow": fs.beta_slow} if c.diag else {})
-        self._plan = self.k.Plan(p._Mf, p._Rinv, p._S, lf._G, lf._buf, tr._Mb, tr._s, av._Q2,
-                                 D, p._angle_bound2, lf._n, 1.0 - tr.beta, tr.threshold,
+        self._plan = self.k.Plan(p._Mf, p._Rinv, angles.S, lf._G, lf._buf, tr._Mb, tr._s,
+                                 av._Q2, D, angles.bound2, lf._n, 1.0 - tr.beta, tr.threshold,
                                  self._frame_json, **sig)
         return self._plan
 
@@ -244,7 +245,7 @@ class HubKernel:
             return None  # refused: the reference counts and flags it
         if p._last_seq is not None and seq - p._last_seq - 1 > 0:
             return None  # a gap to predict through
-        lf, tr, av, fs = p.load_filter, p.transient, p._angle_var, p.filter_sigma
+        lf, tr, av, fs = p.load_filter, p.transient, p.angles.var, p.filter_sigma
         try:
             lf.set_omega(omega)
         except (ValueError, np.linalg.LinAlgError):
@@ -277,8 +278,8 @@ class HubKernel:
         lf._run = 0
         tr.q = tq
         sigma = out[24:30]
-        p._sigma_angles = sigma
-        p._angles_uncertain = uncertain
+        p.angles.sigma = sigma  # (AnglesInForce.measure's results)
+        p.angles.uncertain = uncertain
         if fs_mode:  # the rest of FilterSigma.update: its counters and its result
             fs._started = True
             fs._n += 1

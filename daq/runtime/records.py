@@ -163,7 +163,8 @@ class IdentJob:
     # the rotor's turn since the previous sample (rad; NaN where the azimuth was missing or
     # refused), azimuth mode only (issue 25): the calibration filter's Φ(Δψ)
     dpsi: np.ndarray | None = None
-    missing: np.ndarray | None = None  # what each sample lacked (bits: pipeline.input_labels)
+    # what each sample lacked (bits: calibration_branch.CalibrationBranch.input_labels)
+    missing: np.ndarray | None = None
     # the window's mean raw cell loads (7,) and z (6,) over its complete samples: its static
     # load, for the filter-error load excursion (issue 25); None: no complete sample
     T_mean: np.ndarray | None = None

@@ -90,9 +90,9 @@ class StartPlan:
         # replay, else the saved posterior's or the prior
         start = (self.recorded_initial if self.recorded_initial is not None
                  else self.initial_record().to_dict())
-        p.set_angles_covariance(start.get("names"), start.get("P"))
+        p.angles.set_covariance(start.get("names"), start.get("P"))
         if self.start_fit is not None:
-            p.set_structure(self.start_fit)
+            p.angles.set_structure(self.start_fit)
         for rec in self.recorded:
             p.deliver(rec)
         return p
