@@ -64,7 +64,7 @@ class Section:
     simulator's scenario files, sim_bus.scenarios; the rig TOML is validated by pydantic:
     config.rigfile)."""
 
-    def __init__(self, data: dict, path: str, source: str):
+    def __init__(self, data: dict[str, Any], path: str, source: str):
         if not isinstance(data, dict):
             raise ConfigError(path, data, "must be a table", f"write [{path}] as a TOML table", source)
         self.data, self.path, self.source = data, path, source
@@ -280,7 +280,7 @@ class IdentificationConfig:
     nonlinearity_limit: float = 1.0
     # [identification.structure] (issue 19; `rsra calibrate` writes it): the structure the
     # hub loads use from the start, as estimator.structure.fit_payload (SI); None: constant
-    structure_fit: dict | None = None
+    structure_fit: dict[str, Any] | None = None
     # [identification.advice] (issue 25 item 5): the additions a filter-error window's advice
     # weighs; None: no advice
     advice: "AdviceConfig | None" = None
@@ -369,10 +369,10 @@ class RigConfig:
     recording: RecordingConfig
     simulator: SimulatorConfig
     stuck: StuckConfig = field(default_factory=StuckConfig)
-    raw: dict = field(repr=False, default_factory=dict)
+    raw: dict[str, Any] = field(repr=False, default_factory=dict)
     #: dotted key -> the file its value came from ("default": the packaged rig); empty when
     #: the rig was not loaded from layered files (config.rig.merge_layers)
-    origins: dict = field(repr=False, default_factory=dict, compare=False)
+    origins: dict[str, str] = field(repr=False, default_factory=dict, compare=False)
 
     @property
     def sample_period_s(self) -> float:
@@ -387,7 +387,7 @@ class RigConfig:
     def rig_model(self) -> RigModel:
         return build_rig_model(self)
 
-    def effective(self) -> dict:
+    def effective(self) -> dict[str, Any]:
         """The configuration as loaded, with secrets (Zenoh config paths) removed."""
         d = {k: v for k, v in self.raw.items()}
         tel = dict(d.get("telemetry", {}))
@@ -439,7 +439,7 @@ ConfigPaths = str | Path | Sequence[str | Path] | None
 DEFAULT_SOURCE = "default"  # the origin of a value the packaged rig gives
 
 
-def _read_toml(p: Path) -> dict:
+def _read_toml(p: Path) -> dict[str, Any]:
     try:
         text = p.read_text(encoding="utf-8")
     except FileNotFoundError:
@@ -455,7 +455,7 @@ def _read_toml(p: Path) -> dict:
         raise ConfigError("<file>", str(p), f"not valid TOML ({e})", "fix the TOML syntax") from None
 
 
-def _layer_files(p: Path, chain: tuple[Path, ...] = ()) -> list[tuple[Path, dict]]:
+def _layer_files(p: Path, chain: tuple[Path, ...] = ()) -> list[tuple[Path, dict[str, Any]]]:
     """The layers a rig TOML stands for, base first: its ``extends`` chain (a rig TOML it
     names, relative to it; ``"default"`` or none: the packaged rig, not listed), then
     itself (without ``extends``)."""
@@ -468,7 +468,7 @@ def _layer_files(p: Path, chain: tuple[Path, ...] = ()) -> list[tuple[Path, dict
     if not isinstance(base, str) or not base:
         raise ConfigError("extends", base, "must be a path or \"default\"",
                           "name the rig TOML this one extends", p.name)
-    out: list[tuple[Path, dict]] = []
+    out: list[tuple[Path, dict[str, Any]]] = []
     if base != DEFAULT_SOURCE:
         bp = Path(base) if Path(base).is_absolute() else p.parent / base
         if not bp.is_file():
@@ -478,7 +478,7 @@ def _layer_files(p: Path, chain: tuple[Path, ...] = ()) -> list[tuple[Path, dict
     return out + [(p, raw)]
 
 
-def absolute_eds(raw: dict, base_dir: Path) -> dict:
+def absolute_eds(raw: dict[str, Any], base_dir: Path) -> dict[str, Any]:
     """A layer's node EDS paths made absolute (relative to its own file), so that layers
     from several folders can mix."""
     nodes = raw.get("nodes")
@@ -494,7 +494,7 @@ def absolute_eds(raw: dict, base_dir: Path) -> dict:
     return {**raw, "nodes": out}
 
 
-def merge_layers(paths: ConfigPaths) -> tuple[dict, dict[str, str]]:
+def merge_layers(paths: ConfigPaths) -> tuple[dict[str, Any], dict[str, str]]:
     """The effective raw rig of ``--config`` files applied in order over the packaged rig
     (each after the bases it ``extends``), and the origin of every value: dotted key →
     the file that set it last (``default``: the packaged rig).
@@ -514,7 +514,7 @@ def merge_layers(paths: ConfigPaths) -> tuple[dict, dict[str, str]]:
     return raw, origins
 
 
-def _note(layer: dict, prefix: str, source: str, origins: dict[str, str]) -> None:
+def _note(layer: dict[str, Any], prefix: str, source: str, origins: dict[str, str]) -> None:
     for k, v in layer.items():
         key = f"{prefix}.{k}" if prefix else str(k)
         if isinstance(v, dict) and v:
@@ -535,7 +535,7 @@ def origin_of(key: str, origins: dict[str, str]) -> str | None:
     return None
 
 
-def load_config(path: ConfigPaths = None, overrides: dict | None = None) -> RigConfig:
+def load_config(path: ConfigPaths = None, overrides: dict[str, Any] | None = None) -> RigConfig:
     """Load and check a rig: the packaged rig, with the ``--config`` files (one path or a
     list) applied over it in order (:func:`merge_layers`). Raises ConfigError naming the
     file the faulty value came from."""
@@ -562,14 +562,15 @@ def load_config(path: ConfigPaths = None, overrides: dict | None = None) -> RigC
     return dataclasses.replace(cfg, origins=origins)
 
 
-def _merge(a: dict, b: dict) -> dict:
+def _merge(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
     out = dict(a)
     for k, v in b.items():
         out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
     return out
 
 
-def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = None) -> RigConfig:
+def parse_config(raw: dict[str, Any], source: str = "<config>",
+                 base_dir: Path | None = None) -> RigConfig:
     """Validate a whole rig (config.rigfile's pydantic schema) and build its RigConfig.
     Raises ConfigError naming the key, the value and the fix."""
     base_dir = base_dir or config_dir()
@@ -643,7 +644,7 @@ def parse_config(raw: dict, source: str = "<config>", base_dir: Path | None = No
             advice=advice),
         sync=SyncConfig(**f.sync.model_dump()),
         heartbeat=HeartbeatConfig(**f.heartbeat.model_dump()),
-        nodes=tuple(NodeConfig(name=n.name, role=n.role, node_id=n.node_id, eds=n._eds_path,
+        nodes=tuple(NodeConfig(name=n.name, role=n.role, node_id=n.node_id, eds=n.eds_path,
                                required=n.required) for n in f.nodes),
         calibration={k: (e.gain, e.offset) for k, e in f.calibration.items()},
         telemetry=TelemetryConfig(

@@ -31,7 +31,7 @@ from pydantic import (
     model_validator,
 )
 from pydantic.fields import FieldInfo
-from pydantic_core import PydanticCustomError
+from pydantic_core import ErrorDetails, PydanticCustomError
 
 MAX_SAMPLE_RATE_HZ = 10_000.0  # a SYNC every 100 µs: more than any CAN bus carries
 ROLES = ("load_cell", "accelerometer", "rotor_speed", "balance", "drive_load")
@@ -397,6 +397,13 @@ class NodeTable(Table):
     required: bool = True
     _eds_path: Path | None = PrivateAttr(default=None)  # resolved by RigFile
 
+    @property
+    def eds_path(self) -> Path:
+        """The EDS file the node names, as found when the whole file was validated."""
+        if self._eds_path is None:  # a NodeTable validated outside a RigFile
+            raise ValueError(f"node {self.name!r}: its EDS path is resolved by RigFile")
+        return self._eds_path
+
     @field_validator("node_id")
     @classmethod
     def _id(cls, v: int) -> int:
@@ -655,7 +662,7 @@ class RigFile(Table):
 MISSING = object()  # the value of a key that is missing (ConfigError prints no value)
 
 
-def _key(loc: tuple) -> str:
+def _key(loc: tuple[str | int, ...]) -> str:
     out = ""
     for p in loc:
         out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else str(p))
@@ -692,11 +699,13 @@ def _model(tp: Any) -> type[BaseModel] | None:
     return tp if isinstance(tp, type) and issubclass(tp, BaseModel) else None
 
 
-def _field_at(loc: tuple) -> tuple[FieldInfo | None, type[BaseModel] | None, Any]:
+def _field_at(loc: tuple[str | int, ...]) -> tuple[FieldInfo | None, type[BaseModel] | None, Any]:
     """The field a location names (the last named one, for an element), the model holding
     it, and the type at the location."""
     model: type[BaseModel] | None = RigFile
-    fi, holder, tp = None, None, RigFile
+    fi: FieldInfo | None = None
+    holder: type[BaseModel] | None = None
+    tp: Any = RigFile
     for p in loc:
         if isinstance(p, str) and model is not None and p in model.model_fields:
             holder, fi = model, model.model_fields[p]
@@ -722,7 +731,7 @@ def _extra(fi: FieldInfo | None, what: str) -> str:
     return str(e.get(what, ""))
 
 
-def describe(err: dict) -> tuple[str, Any, str, str]:
+def describe(err: ErrorDetails) -> tuple[str, Any, str, str]:
     """One pydantic error → (dotted key, value, problem, fix)."""
     loc, typ, ctx, value = tuple(err["loc"]), err["type"], err.get("ctx") or {}, err["input"]
     key = _key(loc)
@@ -786,7 +795,7 @@ def describe(err: dict) -> tuple[str, Any, str, str]:
         ctx.get("fix") or own_fix or "see docs/configuration.md for this key"
 
 
-def validate(raw: dict, base_dir: Path, packaged_dir: Path | None = None
+def validate(raw: dict[str, Any], base_dir: Path, packaged_dir: Path | None = None
              ) -> RigFile | tuple[str, Any, str, str]:
     """The validated file, or its first error as (key, value, problem, fix)."""
     try:

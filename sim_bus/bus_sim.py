@@ -56,7 +56,7 @@ from __future__ import annotations
 import logging
 import threading
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, cast
 
 import can
 import numpy as np
@@ -70,6 +70,9 @@ from rsra.sim_bus.faults import Fault, FaultInjector, FaultLog, parse_faults, va
 from rsra.sim_bus.nodes import COB_NMT, ROLE_CHANNELS, SimNode
 from rsra.sim_bus.nodeset import DEFAULT_BITRATE, NodeSet
 from rsra.sim_bus.simtruth import MAX_TRUTH_SAMPLES, RECENT_SAMPLES, SimTruth, SyncLog, TruthBuffer
+
+if TYPE_CHECKING:
+    from rsra.sim_bus.physics import AircraftPhysics
 
 __all__ = [  # the names other modules and the tests import from here
     "DEFAULT_BITRATE", "FRAME_OVERHEAD_BITS", "MAX_TRUTH_SAMPLES", "RECENT_SAMPLES", "Clock",
@@ -341,9 +344,9 @@ class Simulator:
         from rsra.sim_bus.offline import run_meta
         from rsra.sim_bus.truth import write_truth
 
-        full = {}
-        if hasattr(self.physics, "scenario"):
-            full.update(run_meta(self.cfg, self.physics))
+        full: dict[str, Any] = {}
+        if hasattr(self.physics, "scenario"):  # AircraftPhysics (or physics that reads like it)
+            full.update(run_meta(self.cfg, cast("AircraftPhysics", self.physics)))
         full.update(faults_spec=[f.token for f in self.faults.faults],
                     fault_entries_not_kept=self.faults.dropped_log_entries,
                     samples_not_kept=self.samples.dropped,

@@ -56,7 +56,7 @@ class _TxMessage(can.Message):
     __slots__ = ()
 
     def __deepcopy__(self, memo: dict[int, Any] | None) -> can.Message:
-        data = self.data
+        data: bytes | bytearray = self.data  # bytes as built (build()), python-can types bytearray
         return can.Message(timestamp=self.timestamp, arbitration_id=self.arbitration_id,
                            is_extended_id=self.is_extended_id,
                            is_remote_frame=self.is_remote_frame,
@@ -150,7 +150,7 @@ class BusEndpoint:
             or recording_channel(interface, self.channel) != self.channel)
         #: canopen's network on the bus (nodes attach to it; its sends come back here)
         self.network = _SimNetwork(bus, self)
-        self.network.listeners.append(_Recorder(self))
+        self.network.listeners.append(_Recorder(self))  # type: ignore[arg-type]  # canopen's list takes any can.Listener (its type is inferred from its first, a MessageListener)
         #: when the recording was last flushed (the clock's time)
         self.last_flush = self.clock.now()
         #: the frames sent while a :meth:`captured` call runs (None: not capturing)
@@ -215,10 +215,10 @@ class BusEndpoint:
             # an immutable payload: python-can's virtual bus deep-copies every frame for
             # every receiver, and bytes copy as themselves where a bytearray goes through
             # copyreg (half the send time); receivers still get a bytearray
-            msg.data = bytes(msg.data)
+            msg.data = bytes(msg.data)  # type: ignore[assignment]  # python-can types the payload bytearray; it takes any bytes-like
         return msg
 
-    def send_built_many(self, msgs: list[_TxMessage]) -> None:
+    def send_built_many(self, msgs: list[can.Message]) -> None:
         """Send messages built ahead, in order, each stamped now as :meth:`transmit` stamps,
         in one call where the bus allows (rsra.canbus.send_batch: a receiver waiting on the
         in-process virtual bus wakes once for all of them)."""
@@ -229,7 +229,7 @@ class BusEndpoint:
         self.frames_sent += len(msgs)
         if self.logger is not None:  # under the recording's one channel name, as emit()
             for msg in msgs:
-                self.logger.on_message_received(_Logged(msg, self.log_channel))
+                self.logger.on_message_received(_Logged(msg, self.log_channel))  # type: ignore[arg-type]  # a stand-in: the frame with the recording's channel
         if self.capture is not None:
             self.capture.extend(msgs)
 
@@ -237,7 +237,7 @@ class BusEndpoint:
         self.bus.send(msg)
         self.frames_sent += 1
         if self.logger is not None:
-            self.logger.on_message_received(_Logged(msg, self.log_channel))
+            self.logger.on_message_received(_Logged(msg, self.log_channel))  # type: ignore[arg-type]  # a stand-in: the frame with the recording's channel
         if self.capture is not None:
             self.capture.append(msg)
 
@@ -250,7 +250,8 @@ class BusEndpoint:
     def captured(self, fn: Callable[..., None], *args: Any, **kw: Any) -> list[can.Message]:
         """Run ``fn`` and return the frames sent meanwhile."""
         with self.lock:
-            self.capture = out = []
+            out: list[can.Message] = []
+            self.capture = out
             try:
                 fn(*args, **kw)
             finally:

@@ -12,7 +12,7 @@ ahead of it (``Simulator.prepare_next``).
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Union
+from typing import TYPE_CHECKING, Any, Literal, Union
 
 from rsra.sim_bus.faults import (
     EMCY_OVER_RANGE,
@@ -33,7 +33,8 @@ _STATUS_EMCY = ((STATUS_OVER_RANGE, EMCY_OVER_RANGE), (STATUS_SENSOR_FAULT, EMCY
 
 #: one step of a SYNC's answer, in order: ("rec", args, kwargs) a fault-log entry
 #: (FaultInjector.record), ("send", node or None, cob_id, data, error) a frame
-Action = Union[tuple[str, tuple, dict], tuple[str, Union[SimNode, None], int, bytes, bool]]
+Action = Union[tuple[Literal["rec"], tuple[Any, ...], dict[str, Any]],
+               tuple[Literal["send"], Union[SimNode, None], int, bytes, bool]]
 
 
 class FaultApplier:
@@ -46,7 +47,7 @@ class FaultApplier:
         self._nodes = nodes
         self._unknown_cob = unknown_cob
         #: a stuck channel's value, held from when its fault began: (fault, node, channel)
-        self._frozen: dict[tuple[int, str, str], int | float] = {}
+        self._frozen: dict[tuple[int, str, str], int | float | None] = {}
 
     def __bool__(self) -> bool:
         return bool(self.faults)
@@ -81,7 +82,7 @@ class FaultApplier:
                 node.silent = on
             if on:
                 started.append((f, node))
-        pre = []
+        pre: list[tuple[SimNode, Frame]] = []
         for f, name in fi.reboots(st, names):
             node = by_name[name]
             fi.record(k, st, "reboot", name, event="inject", spec=f.token)

@@ -35,6 +35,7 @@ import math
 import re
 from collections import deque
 from dataclasses import dataclass, field
+from typing import IO
 
 # EMCY error codes (CiA 301 table 21 classes) the simulated nodes raise.
 EMCY_OVER_RANGE = 0xFF01  # device specific: input over range (status bit 0)
@@ -181,14 +182,15 @@ def validate_faults(faults: tuple[Fault, ...], node_roles: dict[str, str],
                                  + (f" (did you mean {near[0]!r}?)" if near else ""),
                                  "nodes: " + ", ".join(node_roles))
         if f.channel is not None:
-            if f.node == "*":
+            if f.node is None or f.node == "*":
                 raise FaultSpecError(f.token, "a channel needs a named node",
                                      "write e.g. stuck:accel_1.z")
             if f.channel not in channels[f.node]:
                 raise FaultSpecError(f.token, f"node {f.node!r} has no channel {f.channel!r}",
                                      "channels: " + ", ".join(channels[f.node]))
         # "*" applies a status fault to the nodes that have a status channel only
-        if f.kind in STATUS_KINDS and f.node != "*" and "status" not in channels[f.node]:
+        if f.kind in STATUS_KINDS and f.node is not None and f.node != "*" \
+                and "status" not in channels[f.node]:
             raise FaultSpecError(f.token, f"node {f.node!r} ({node_roles[f.node]}) has no "
                                  "status channel", "use it on a load cell")
         if f.kind in AUTOSTART_KINDS and not autostart:
@@ -217,7 +219,7 @@ class FaultLog:
         self.chunk = int(chunk)
         self._mem: deque = deque(maxlen=None if keep else self.maxlen)
         self._spilled = 0
-        self._file = None
+        self._file: IO[bytes] | None = None
 
     def __len__(self) -> int:
         return self._spilled + len(self._mem)
@@ -326,7 +328,7 @@ class FaultInjector:
 
     def reboots(self, t: float, nodes: list[str]) -> list[tuple[Fault, str]]:
         """Reboot instants crossed since the previous sample (prev < T <= t)."""
-        out = []
+        out: list[tuple[Fault, str]] = []
         for f in self.of("reboot"):
             if self._prev_t < f.start <= t:
                 out.extend((f, n) for n in nodes if f.applies_to(n))
@@ -341,7 +343,9 @@ class FaultInjector:
         for f in self.of(kind):
             if not f.active(t) or (node is not None and not f.applies_to(node)):
                 continue
-            if self.uniform(f, sample, slot) < f.value:
+            p = f.value
+            assert p is not None  # parse_faults gives every probability kind its probability
+            if self.uniform(f, sample, slot) < p:
                 return f
         return None
 

@@ -38,7 +38,7 @@ from typing import Callable, NamedTuple, Sequence
 
 import canopen
 from canopen import objectdictionary as od_mod
-from canopen.objectdictionary import ODVariable
+from canopen.objectdictionary import ODArray, ODRecord, ODVariable
 from canopen.sdo import SdoAbortedError
 
 from rsra.config.rig import G0
@@ -179,6 +179,14 @@ def load_od(eds: str | Path, node_id: int) -> "canopen.ObjectDictionary":
     return _OD_CACHE[key]
 
 
+def _record(od: "canopen.ObjectDictionary", index: int) -> ODRecord | ODArray:
+    """Object ``index`` of ``od``, a record or an array (a PDO parameter, CiA 301)."""
+    obj = od[index]
+    if isinstance(obj, ODVariable):
+        raise TypeError(f"object 0x{index:04X} is a variable, not a record or an array")
+    return obj
+
+
 def role_channel_vars(od: "canopen.ObjectDictionary", role: str) -> list[tuple[str, ODVariable]]:
     """The role's channels paired with the OD variables of the EDS's default TPDO mapping, in
     order (TPDO1 entry 1, 2, …, TPDO2 …). Raises ValueError when the EDS maps fewer objects."""
@@ -187,7 +195,7 @@ def role_channel_vars(od: "canopen.ObjectDictionary", role: str) -> list[tuple[s
     for n in range(512):
         if 0x1A00 + n not in od:
             break
-        arr = od[0x1A00 + n]
+        arr = _record(od, 0x1A00 + n)
         count = int(arr[0].default or 0)
         for s in range(1, count + 1):
             word = int(arr[s].default or 0)
@@ -311,14 +319,15 @@ class TpdoProducer:
                 break
             cob = self.value(com, 1)
             trans = self.value(com, 2)
-            start = self.value(com, 6) if 6 in self.od[com] else 0
+            start = self.value(com, 6) if 6 in _record(self.od, com) else 0
             count = self.value(mp, 0)
             entries = tuple(self.entry(self.value(mp, s)) for s in range(1, count + 1))
-            fmt: str | None = "<"
+            fmt = "<"  # "": not every entry a whole struct type (no packer)
             for e in entries:
-                st = ODVariable.STRUCT_TYPES.get(e.var.data_type) if e.var is not None else None
+                dt = e.var.data_type if e.var is not None else None
+                st = ODVariable.STRUCT_TYPES.get(dt) if dt is not None else None
                 if st is None or not isinstance(st, struct.Struct) or e.bits != 8 * st.size:
-                    fmt = None
+                    fmt = ""
                     break
                 fmt += st.format.lstrip("<")
             out.append(TpdoConfig(number=n + 1, cob_id=cob & COB_ID_MASK,
@@ -328,19 +337,19 @@ class TpdoProducer:
         return out
 
     @staticmethod
-    def _default(e: MapEntry) -> int | float:
-        v = e.var.value if e.var.value is not None else e.var.default
+    def _default(var: ODVariable) -> int | float:
+        v = var.value if var.value is not None else var.default
         return v if v is not None else 0
 
     def _pack(self, cfg: TpdoConfig) -> tuple[bytes, list[tuple[tuple[int, int], int | float]]]:
-        vals = []
+        vals: list[tuple[tuple[int, int], int | float]] = []
         for e in cfg.entries:
             key = (e.index, e.subindex)
             if e.var is None:
                 vals.append((key, 0))
             else:
                 v = self.process.get(key)
-                vals.append((key, self._default(e) if v is None else v))
+                vals.append((key, self._default(e.var) if v is None else v))
         if cfg.packer is not None:
             return cfg.packer.pack(*(v for _, v in vals)), vals
         # general bit-granular packing (CiA 301: entries are concatenated LSB first)
@@ -550,8 +559,7 @@ class SimNode:
     def _heartbeat_ms(self) -> int:
         if 0x1017 not in self.od:
             return 0
-        var = self.od[0x1017]
-        return int(var.decode_raw(self.local.get_data(0x1017, 0)))
+        return self.tpdos.value(0x1017, 0)
 
     def _arm_heartbeat(self, t: float) -> None:
         self._heartbeat.arm(t, self._heartbeat_ms())

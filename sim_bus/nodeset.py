@@ -48,7 +48,7 @@ class NodeFeed:
     """What one node is fed from each sample."""
 
     node: SimNode
-    raws: Callable[[dict], Any]  # encoded sample (lists) -> raw values, ROLE_CHANNELS order
+    raws: Callable[[dict[str, Any]], Any]  # encoded sample (lists) -> raw values, ROLE_CHANNELS order
     full_scale: float | None  # load cell: the force an over-range reads (config)
 
 
@@ -89,18 +89,28 @@ class NodeSet:
     def _build_feeds(self, cfg: RigConfig) -> list[NodeFeed]:
         feeds: dict[str, NodeFeed] = {}
 
-        def add(name: str, fn: Callable[[Any], Any], fs: float | None = None) -> None:
+        def add(name: str, fn: Callable[[dict[str, Any]], Any], fs: float | None = None) -> None:
             if name and name in self.by_name:
                 feeds[name] = NodeFeed(self.by_name[name], fn, fs)
 
+        # each feed picks its node's values out of the encoded sample (element i, k, q)
+        def cell(i: int) -> Callable[[dict[str, Any]], Any]:
+            return lambda e: (e["force"][i], e["status"][i])
+
+        def accelerometer(k: int) -> Callable[[dict[str, Any]], Any]:
+            return lambda e: e["accel_counts"][k]
+
+        def drive(q: int) -> Callable[[dict[str, Any]], Any]:
+            return lambda e: (e["drive"][q],)
+
         for i, c in enumerate(cfg.cells):
-            add(c.node, lambda e, i=i: (e["force"][i], e["status"][i]), c.full_scale_N)
+            add(c.node, cell(i), c.full_scale_N)
         for k, a in enumerate(cfg.accelerometers):
-            add(a.node, lambda e, k=k: e["accel_counts"][k])
+            add(a.node, accelerometer(k))
         add(cfg.rotor.node, lambda e: (e["omega"], e["azimuth_counts"]))
         add(cfg.balance.node, lambda e: e["balance"])
         for q, x in enumerate(cfg.external_loads):
-            add(x.node, lambda e, q=q: (e["drive"][q],))
+            add(x.node, drive(q))
         for f in feeds.values():
             for ch, var in f.node.channels:
                 want = _CODEC_TYPES[(f.node.role, ch)]
@@ -135,7 +145,7 @@ class NodeSet:
     # the frames of the whole set, in bus order
     def boot(self, t: float) -> list[Frame]:
         """Every node boots: the boot-up frames, lowest COB-ID first."""
-        frames = []
+        frames: list[Frame] = []
         for n in self.nodes:
             frames.extend(n.boot(t))
         return sorted(frames, key=lambda f: f.cob_id)
@@ -147,14 +157,14 @@ class NodeSet:
 
     def nmt(self, command: int, target: int, t: float) -> list[tuple[SimNode, Frame]]:
         """An NMT command from the master: each node's answer, in bus order."""
-        frames = []
+        frames: list[tuple[SimNode, Frame]] = []
         for n in self.nodes:
             frames.extend((n, f) for f in n.nmt(command, target, t))
         return _by_cob(frames)
 
     def heartbeats(self, t: float) -> list[tuple[float, SimNode, Frame]]:
         """The heartbeats due by ``t``: (due time, node, frame), by due time then COB-ID."""
-        due = []
+        due: list[tuple[float, int, SimNode, Frame]] = []
         for n in self.nodes:
             due.extend((d, f.cob_id, n, f) for d, f in n.heartbeats(t))
         return [(d, n, f) for d, _, n, f in sorted(due, key=lambda x: (x[0], x[1]))]

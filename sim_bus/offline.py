@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -87,7 +88,7 @@ def quantise_sample(sample: SimSample, codec: ChannelCodec | RigConfig) -> SimSa
     """A copy of `sample` whose channels are what the bus delivers (truth unchanged)."""
     if not isinstance(codec, ChannelCodec):
         codec = ChannelCodec(codec)
-    q = codec.quantise(**{k: getattr(sample, k) for k in CHANNEL_FIELDS})
+    q: dict[str, Any] = codec.quantise(**{k: getattr(sample, k) for k in CHANNEL_FIELDS})
     q["omega"] = float(q["omega"])
     q["azimuth"] = float(q["azimuth"])
     return dataclasses.replace(sample, **q)
@@ -124,7 +125,7 @@ class SimRun:
         return len(self.index)
 
     def sample(self, i: int) -> SimSample:
-        vals = {}
+        vals: dict[str, Any] = {}  # SimSample's fields: arrays and numbers
         for name in SAMPLE_FIELDS:
             v = getattr(self, name)[i]
             vals[name] = v.copy() if isinstance(v, np.ndarray) else v.item()

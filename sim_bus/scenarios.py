@@ -313,7 +313,7 @@ def parse_scenario(raw: dict, source: str = "<scenario>", variants: dict | None 
     if not isinstance(nodes, list) or any(n not in OPTIONAL_NODE_ROLES for n in nodes):
         raise sc.error("nodes_present", nodes, "must be a list of optional node roles",
                        "use any of " + ", ".join(f'"{r}"' for r in OPTIONAL_NODE_ROLES))
-    scenario_head = {
+    scenario_head: dict[str, Any] = {  # Scenario's first fields
         "name": name, "description": sc.string("description", ""), "source": source,
         "duration_s": duration,
         "run_s": run_s, "seed": seed, "quasi_static": quasi, "gravity": sc.boolean("gravity", True),

@@ -65,7 +65,7 @@ class TruthBuffer:
             if row == 0:
                 a = np.asarray(v)
                 self._chunks.setdefault(name, []).append(np.zeros((self.chunk,) + a.shape, a.dtype))
-            self._chunks[name][-1][row] = v
+            self._chunks[name][-1][row] = v  # type: ignore[index]  # the chunk being filled: an array (spilled ones are (offset, dtype, shape))
         self._n += 1
         if self.spill and row == self.chunk - 1:
             self._spill_last()
@@ -79,6 +79,7 @@ class TruthBuffer:
         f.seek(0, 2)
         for chunks in self._chunks.values():
             a = chunks[-1]
+            assert isinstance(a, np.ndarray)  # the chunk just filled, in memory
             chunks[-1] = (f.tell(), a.dtype, a.shape)
             f.write(a.tobytes())
 
@@ -118,8 +119,10 @@ class SyncLog:
                  chunk: int = 4096):
         self.keep = keep
         self.capacity = int(max_n) if keep else int(recent)
+        #: keep: every cycle (None without)
         self._buf = TruthBuffer(self.capacity, chunk, spill=True) if keep else None
-        self._ring = None if keep else np.zeros(self.capacity, self._DTYPE)
+        #: without keep: the last ``recent`` cycles (empty with keep)
+        self._ring = np.zeros(0 if keep else self.capacity, self._DTYPE)
         self._n = 0  # appended in all
 
     def __len__(self) -> int:
@@ -127,12 +130,12 @@ class SyncLog:
 
     @property
     def nbytes(self) -> int:
-        return self._buf.nbytes if self.keep else self._ring.nbytes
+        return self._buf.nbytes if self._buf is not None else self._ring.nbytes
 
     def append(self, entry: tuple[int, int, float, bool]) -> None:
         n = self._n
         self._n += 1
-        if self.keep:
+        if self._buf is not None:
             k, c, t, lost = entry
             self._buf.append(SimpleNamespace(k=int(k), counter=int(c), t=float(t),
                                              lost=bool(lost)))
@@ -141,7 +144,7 @@ class SyncLog:
 
     def _span(self) -> tuple[int, int]:
         """(first, number) of the entries held."""
-        if self.keep:
+        if self._buf is not None:
             return 0, len(self._buf)
         held = min(self._n, self.capacity)
         return self._n - held, held
@@ -154,8 +157,8 @@ class SyncLog:
         if not first <= i < first + held:
             raise IndexError(f"SYNC cycle {i} is not kept (keep_samples=False keeps the last "
                              f"{self.capacity})")
-        e = self._buf[i] if self.keep else None
-        if e is not None:
+        if self._buf is not None:
+            e = self._buf[i]
             return int(e.k), int(e.counter), float(e.t), bool(e.lost)
         r = self._ring[i % self.capacity]
         return int(r["k"]), int(r["counter"]), float(r["t"]), bool(r["lost"])
@@ -171,7 +174,7 @@ class SyncLog:
         out = np.zeros(held, self._DTYPE)
         if not held:
             return out
-        if self.keep:
+        if self._buf is not None:
             for name, v in self._buf.arrays().items():
                 out[name] = v
         else:

@@ -92,10 +92,10 @@ def write_truth(path: str | Path, run_or_arrays: SimRun | Mapping[str, np.ndarra
         path = path.with_name(path.name + ".npz")
     if write is None:
         path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(path, **out)
+        np.savez_compressed(path, **out)  # type: ignore[arg-type]  # numpy types **kwds against its allow_pickle keyword
         return path
     buf = io.BytesIO()
-    np.savez_compressed(buf, **out)
+    np.savez_compressed(buf, **out)  # type: ignore[arg-type]  # numpy types **kwds against its allow_pickle keyword
     write(path, buf.getvalue())
     return path
 
