@@ -664,7 +664,6 @@ class SequentialPosterior:
         """:func:`posterior_from_config` (``RigConfig.identification``)."""
         return posterior_from_config(ident, names, angle_names, **kw)
 
-    # ---------------------------------------------------------------------------------
     def state(self) -> PosteriorState:
         return PosteriorState(self.names, self.theta.copy(), self.P.copy(),
                               self.applies_from_seq, self.t, self.rig,
@@ -686,9 +685,6 @@ class SequentialPosterior:
         if self.prediction is not None:
             return self.prediction[0].copy(), self.prediction[1].copy()
         return self.theta.copy(), self.P + np.diag(self.drift * max(float(dt), 0.0))
-
-    def _record(self, **kw: Any) -> AnglesRecord:
-        return angles_record(self, **kw)
 
     def update(self, result: IdentificationResult | None, **kw: Any) -> AnglesRecord:
         """Judge one run (:meth:`_judge`). Under a trend (or the drift bound's prediction) a
@@ -731,13 +727,13 @@ class SequentialPosterior:
             raise ValueError(f"mode must be one of {MODES}")
         kw = dict(mode=mode, content=content, window=window, t=t, structure=structure)
         if result is None or missing_fraction > self.stale_fraction:
-            return self._record(accepted=False, reason="stale_input", result=result,
+            return angles_record(self, accepted=False, reason="stale_input", result=result,
                                 information=None, nu=None, d=0, detail="missing_samples", **kw)
         if tuple(result.names) != self.names:
             raise ValueError("the run identified other parameters than this posterior holds")
         if not result.sound:
             reason = "not_converged" if result.status == "not_converged" else "diverged"
-            return self._record(accepted=False, reason=reason, result=result, information=None,
+            return angles_record(self, accepted=False, reason=reason, result=result, information=None,
                                 nu=None, d=0, detail="convergence", **kw)
         P_p = _prior_cov(result)
         info = information_ratio(P_p, result.information)
@@ -746,7 +742,7 @@ class SequentialPosterior:
                                              arrived_seq, kw)
         if out_of_range(result.theta, self.limit):
             self.drop_held()  # the held windows were part of this run
-            return self._record(accepted=False, reason="out_of_range", result=result,
+            return angles_record(self, accepted=False, reason="out_of_range", result=result,
                                 information=None, nu=None, d=0, detail="range", **kw)
         if structure is not None and structure.structure == "not_constant":
             # the constant-angle model is rejected (estimator.structure): its runs can only
@@ -756,18 +752,18 @@ class SequentialPosterior:
             nu = d = None
             if gate is not None:
                 nu, d = float(gate[0]), int(gate[1])
-            return self._record(accepted=False, reason="inconsistent", result=result,
+            return angles_record(self, accepted=False, reason="inconsistent", result=result,
                                 information=info, nu=nu, d=d or 0, detail="structure", **kw)
         if nonlinear:
             # the Gaussian summary misses the likelihood's curvature (estimator.curvature):
             # not accepted, the window's information held for the next run's exact solve
             self._hold(moments)
-            return self._record(accepted=False, reason="not_identifiable", result=result,
+            return angles_record(self, accepted=False, reason="not_identifiable", result=result,
                                 information=info, nu=None, d=0, detail="nonlinear", **kw)
         low = info < self.min_information
         if low and not self.gate_low_information:
             self._hold(moments)
-            return self._record(accepted=False, reason="not_identifiable", result=result,
+            return angles_record(self, accepted=False, reason="not_identifiable", result=result,
                                 information=info, nu=None, d=0, detail="information_ratio", **kw)
         if gate is None:
             nu, d, ok = consistency_gate(result.theta - result.prior_mean, P_p, result.P,
@@ -780,7 +776,7 @@ class SequentialPosterior:
                                      drop_held=True)
         if low:
             self._hold(moments)
-            return self._record(accepted=False, reason="not_identifiable", result=result,
+            return angles_record(self, accepted=False, reason="not_identifiable", result=result,
                                 information=info, nu=nu, d=d, detail="information_ratio", **kw)
         self.inconsistent_in_a_row = 0
         self.theta, self.P = result.theta.copy(), result.P.copy()
@@ -802,7 +798,7 @@ class SequentialPosterior:
         if dec.detail == "gate":
             return self._gate_failed(base, drop_held=False)
         if dec.theta is None or dec.P is None:
-            return self._record(accepted=False, reason=dec.reason, detail=dec.detail, **base)
+            return angles_record(self, accepted=False, reason=dec.reason, detail=dec.detail, **base)
         self.inconsistent_in_a_row = 0
         self.theta, self.P = dec.theta, dec.P
         self.fold()
@@ -816,10 +812,10 @@ class SequentialPosterior:
             self.P = self.P0.copy()
             self.inconsistent_in_a_row = 0
             self.fold()
-            return self._record(accepted=False, reason="reset", detail="gate", **base)
+            return angles_record(self, accepted=False, reason="reset", detail="gate", **base)
         if drop_held:
             self.drop_held()  # the held windows were part of an inconsistent run
-        return self._record(accepted=False, reason="inconsistent", detail="gate", **base)
+        return angles_record(self, accepted=False, reason="inconsistent", detail="gate", **base)
 
     def _accepted(self, base: dict[str, Any], apply_delay_samples: int,
                   arrived_seq: int | None) -> AnglesRecord:
@@ -830,7 +826,7 @@ class SequentialPosterior:
         self.applies_from_seq = int(arrived_seq) + 1 if late and arrived_seq is not None \
             else planned
         self.t = base["t"]
-        return self._record(accepted=True, reason=ACCEPTED, late=late, detail="passed", **base)
+        return angles_record(self, accepted=True, reason=ACCEPTED, late=late, detail="passed", **base)
 
 
 def _prior_cov(result: IdentificationResult) -> np.ndarray:
