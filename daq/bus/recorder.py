@@ -222,7 +222,7 @@ class Recorder(can.Listener):
             self.dropped += 1
             return
         self.queued += 1
-        depth = q.qsize()
+        depth = len(q.queue)  # a statistic: no need for qsize()'s lock (per frame)
         if depth > self.max_depth:
             self.max_depth = depth
 

@@ -189,10 +189,10 @@ def replay(cfg: RigConfig, paths: Sequence[str | Path] | None = None, *,
     if realtime:
         src = can.MessageSync(src, timestamps=True, gap=0.0)
     feed, poll = r.feed, r.poll
-    q = r.items.queue
+    pending = r.items.queue.queue  # the queue's deque: a length test, not qsize()'s lock per frame
     for msg in src:
         feed(msg)
-        if q.qsize():
+        if pending:
             yield from poll()
     if finish:
         r.assembler.finish()
