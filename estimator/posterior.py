@@ -74,7 +74,7 @@ from .identification import (
 )
 from .curvature import nonlinearity
 from .params import RigModel
-from .structure import StructureTest, StructureVerdict, fit_payload
+from .structure import DriftTest, StructureTest, StructureVerdict, fit_payload
 
 ACCEPTED = None
 REASONS = ("not_converged", "diverged", "not_identifiable", "inconsistent", "reset",
@@ -385,6 +385,36 @@ def consistency_gate(delta: np.ndarray, prior_cov: np.ndarray, post_cov: np.ndar
     return nu, d, nu <= float(chi2.ppf(probability, d))
 
 
+PREDICTION_WIDTH_RATIO = 10.0  # variance ratio beyond which the posterior replaces the fit
+
+
+def bounded_against_posterior(pred: tuple[np.ndarray, np.ndarray], theta_ref: np.ndarray,
+                              P_ref: np.ndarray, ratio: float = PREDICTION_WIDTH_RATIO
+                              ) -> tuple[np.ndarray, np.ndarray]:
+    """The drift bound's prediction (θ_b, P_b) with the directions in which it is more than
+    ``ratio`` times wider (variance) than the reference (the last accepted posterior moved
+    along the bound's drift) taken from the reference: in the whitened generalised
+    eigenbasis of (P_b, P_ref) those components get the reference's mean and variance, the
+    others keep the prediction's. The fit of window means cannot know a direction only the
+    posterior's full moments determine; there the prediction is no prior at all."""
+    th_b, P_b = np.asarray(pred[0], float), np.asarray(pred[1], float)
+    try:
+        L = np.linalg.cholesky(0.5 * (P_ref + P_ref.T))
+    except np.linalg.LinAlgError:
+        return th_b, P_b
+    Li = np.linalg.inv(L)
+    lam, U = np.linalg.eigh(Li @ (0.5 * (P_b + P_b.T)) @ Li.T)
+    wide = lam > ratio
+    if not wide.any():
+        return th_b, P_b
+    w = U.T @ (Li @ (th_b - theta_ref))
+    w[wide] = 0.0
+    lam = np.where(wide, 1.0, lam)
+    T = L @ U
+    P = T @ np.diag(lam) @ T.T
+    return theta_ref + T @ w, 0.5 * (P + P.T)
+
+
 def _moment_cost(par: Parameterisation, G: np.ndarray, theta: np.ndarray) -> float:
     """V(θ) = ½ tr(W⁻¹ A G Aᵀ) of windows given by their moments G (known loads)."""
     t = par.terms(theta)
@@ -631,10 +661,6 @@ class SequentialPosterior:
         a filter-error run, or the accumulation cap)."""
         self.moments.fold(self.theta, self.P)
 
-    def drop_held(self) -> None:
-        """Forget the windows held back as not identifiable on their own."""
-        self.moments.drop_held()
-
     def _hold(self, moments: tuple[np.ndarray, int] | None) -> None:
         if self.relinearise and moments is not None:
             self.moments.hold(moments)
@@ -725,7 +751,8 @@ class SequentialPosterior:
         run) instead of the linearised ``Δθᵀ D⁺ Δθ``."""
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}")
-        kw = dict(mode=mode, content=content, window=window, t=t, structure=structure)
+        kw: dict[str, Any] = dict(mode=mode, content=content, window=window, t=t,
+                                  structure=structure)
         if result is None or missing_fraction > self.stale_fraction:
             return angles_record(self, accepted=False, reason="stale_input", result=result,
                                 information=None, nu=None, d=0, detail="missing_samples", **kw)
@@ -741,14 +768,14 @@ class SequentialPosterior:
             return self._update_filter_error(result, info, checks, apply_delay_samples,
                                              arrived_seq, kw)
         if out_of_range(result.theta, self.limit):
-            self.drop_held()  # the held windows were part of this run
+            self.moments.drop_held()  # the held windows were part of this run
             return angles_record(self, accepted=False, reason="out_of_range", result=result,
                                 information=None, nu=None, d=0, detail="range", **kw)
         if structure is not None and structure.structure == "not_constant":
             # the constant-angle model is rejected (estimator.structure): its runs can only
             # disagree with each other, so none is accepted and none counts towards a reset —
             # no accepted → inconsistent → reset → accepted cycle (issue 19)
-            self.drop_held()
+            self.moments.drop_held()
             nu = d = None
             if gate is not None:
                 nu, d = float(gate[0]), int(gate[1])
@@ -814,7 +841,7 @@ class SequentialPosterior:
             self.fold()
             return angles_record(self, accepted=False, reason="reset", detail="gate", **base)
         if drop_held:
-            self.drop_held()  # the held windows were part of an inconsistent run
+            self.moments.drop_held()  # the held windows were part of an inconsistent run
         return angles_record(self, accepted=False, reason="inconsistent", detail="gate", **base)
 
     def _accepted(self, base: dict[str, Any], apply_delay_samples: int,
@@ -1082,7 +1109,7 @@ class LoadReference:
 class PeriodicIdentification:
     """Windows of content-filtered data → identification → posterior (model §7, periodic runs).
 
-    Size: about 300 lines, kept whole: ``run_window`` is one sequence (the window's problem,
+    Size: about 340 lines, kept whole: ``run_window`` is one sequence (the window's problem,
     the solve, the checks, the judgement) and its pieces are already their own
     (:class:`WindowMoments`, :func:`filter_error_decision`, the structure and drift tests).
 
@@ -1137,6 +1164,12 @@ class PeriodicIdentification:
     # the drift bound's fit in use (DriftTest look) and the one held windows started from
     _bound_look: int | None = field(default=None, init=False)
     _held_look: int | None = field(default=None, init=False)
+    # the last accepted posterior (θ, P) and the time its angles are at (the window's middle
+    # when its prior was the bound's; None: the data's mean time): what the drift bound's
+    # shift moves (None: none since the start or a reset)
+    _accepted: tuple[np.ndarray, np.ndarray, float | None] | None = field(default=None,
+                                                                           init=False)
+    _t_mid: float | None = field(default=None, init=False)  # the running window's middle
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -1205,17 +1238,38 @@ class PeriodicIdentification:
             pred = drift.prediction
         elif drift is not None and post.moments.windows_held and self._held_look is not None:
             # windows held since: the bound's fit from before them, the held moments added
-            pred = drift.predict_bounded(t, self._held_look)
+            pred = self._bounded(drift, t, self._held_look)
             self._bound_look = self._held_look
         elif drift is not None:
-            pred = drift.bounded_prediction
+            pred = self._bounded(drift, t, drift.bounded_look)
             self._bound_look = drift.bounded_look
-            if pred is not None and post.moments.windows_held:
-                post.drop_held()  # the prediction holds them already
+            if pred is not None and post.moments.windows_held and self._accepted is None:
+                post.moments.drop_held()  # the prediction holds them already
         if pred is not None:
             post.set_prediction(names, *pred)
         else:
             post.set_prediction(None)
+
+    def _bounded(self, drift: DriftTest, t: float, look: int | None
+                 ) -> tuple[np.ndarray, np.ndarray] | None:
+        """The bound's prediction (:meth:`DriftTest.predict_bounded`), kept from its fit where
+        that fit is informative and replaced by the last accepted posterior (moved by the
+        bound's drift since, :meth:`DriftTest.bounded_shift`) where the fit of window means
+        alone is far wider — :func:`bounded_against_posterior` (A4 constant arm, seed 68: σ 14°
+        in a direction the posterior held to 0.2°, and a run re-solved into another valley)."""
+        if look is None:
+            return None
+        pred: tuple[np.ndarray, np.ndarray] | None = drift.predict_bounded(t, look)
+        if pred is None or self._accepted is None:
+            return pred
+        theta, P, since = self._accepted
+        sh = drift.bounded_shift(t, look, since)
+        if sh is None:
+            return pred
+        names = self.posterior.names
+        idx = [names.index(n) for n in self.model.geometry.angle_names]
+        return bounded_against_posterior(pred, theta[idx] + sh[0],
+                                         P[np.ix_(idx, idx)] + sh[1])
 
     def alpha(self) -> np.ndarray:
         """The 14 angles of the current posterior."""
@@ -1282,7 +1336,7 @@ class PeriodicIdentification:
             if self.structure is not None:
                 x = self.par.stack(z, T, H, q)[scored]
                 # the window's middle (s) for the drift test
-                t_mid = 0.5 * (seq0 + seq1) / self.fs
+                t_mid = self._t_mid = 0.5 * (seq0 + seq1) / self.fs
                 verdict = self.structure.add_window(x, self.par.alpha(post.theta), t=t_mid)
                 self._follow_drift(verdict, t_mid)
                 theta_p, P_p = post.prior(dt)
@@ -1381,6 +1435,12 @@ class PeriodicIdentification:
             self.filter_state = res.end_state
         rec.samples_used = int(prob.scored.sum() if isinstance(prob, FilterErrorProblem)
                                else np.count_nonzero(scored))
+        if rec.accepted:
+            bounded = self._bound_look is not None and post.trend is None
+            self._accepted = (post.theta.copy(), post.P.copy(),
+                              self._t_mid if bounded else None)
+        elif rec.reason == "reset":
+            self._accepted = None
         if rec.accepted:
             # new angles applied: the calibration filter settles again
             self._settle_pending = max(self._settle_pending, self.filter_settle_samples)

@@ -92,6 +92,7 @@ MAX_DRIFT_WINDOWS = 96  # the drift test's history: 8 min of 5-s windows (bounde
 # the drift the data cannot exclude (docs/identification.md, "Angles that drift"):
 # the rates' prior scale s at this one-sided upper confidence level of its likelihood
 DRIFT_BOUND_LEVEL = 0.8413  # Φ(1): one standard error above the ML estimate
+DRIFT_MAX_RATE_DEG_PER_S = 1.0 / 60.0  # the bound's physical cap: 1° a minute on any angle
 MAX_HELD_LOOKS = 16  # bounded fits kept (≥ the posterior's held windows, 12)
 # (smaller, larger): the larger structure contains the smaller one whatever the conditions
 # (δp × F is an external load U F)
@@ -796,6 +797,7 @@ class DriftTest:
         self.false_alarm, self.time_level = float(false_alarm), float(time_level)
         # None: no bounded prediction (the constant-angle posterior as it is)
         self.bound_level = bound_level
+        self.max_rate_deg_per_s = DRIFT_MAX_RATE_DEG_PER_S
         self.max_windows = int(max_windows)
         self.n_a = 2 * model.geometry.n_cells
         self.look = 0
@@ -847,6 +849,21 @@ class DriftTest:
         P = L @ Pth @ L.T
         return a_hat + L @ th, 0.5 * (P + P.T)
 
+    def bounded_shift(self, t: float, look: int | None = None, since: float | None = None
+                      ) -> tuple[np.ndarray, np.ndarray] | None:
+        """The bound's drift alone from ``since`` (default its fit's mean time t̄) to t:
+        (ρ̂ Δt, Δt² P_ρρ); None as :meth:`predict_bounded`. Added to a posterior of constant
+        angles (the same windows, more of their information) it moves that posterior along
+        the drift the windows cannot exclude without replacing what it knows of the angles."""
+        fit = self._bounded if look is None else self._bounded_by_look.get(look)
+        if fit is None:
+            return None
+        _, th, Pth, tbar = fit
+        na = self.n_a
+        dt = float(t) - (tbar if since is None else float(since))
+        P = dt * dt * Pth[na:, na:]
+        return dt * th[na:], 0.5 * (P + P.T)
+
     def _bound(self, A: np.ndarray, B: np.ndarray, e: np.ndarray, a_hat: np.ndarray,
                tbar: float) -> None:
         """The joint fit of [δα0, ρ] under the rates' prior N(0, s² I), s² at its bound."""
@@ -866,6 +883,11 @@ class DriftTest:
         bound = rate_scale_bound(S, gb - X.T @ xa, self.bound_level)
         if bound is None:
             return
+        # capped by what a load cell's angle can physically drift: where the windows barely
+        # determine a rate (two windows of one condition, 5 s apart) the bound alone lets
+        # the prediction wander degrees off the posterior (A4 constant arm, seed 68)
+        cap = math.radians(self.max_rate_deg_per_s) ** 2
+        bound = (min(bound[0], cap), min(bound[1], cap))
         self.rate_scale = bound
         Lam = np.block([[Laa, Lab], [Lab.T, Lbb + np.eye(na) / bound[1]]])
         d = np.sqrt(np.diag(Lam))

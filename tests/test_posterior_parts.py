@@ -3,11 +3,13 @@ window moments and the filter-error information rule."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from rsra.estimator.identification import IdentificationResult, InnovationTest
 from rsra.estimator.posterior import (
     FilterErrorChecks,
     WindowMoments,
+    bounded_against_posterior,
     filter_error_decision,
     over_names,
 )
@@ -89,3 +91,33 @@ def test_filter_error_rule_updates_only_what_the_window_determines():
     far = _fe_result(M, P_run @ (M @ np.array([1.0, 0, 0])), np.zeros(P_), 1e-6 * prior_cov)
     dec = _decide(far, _checks())
     assert (dec.reason, dec.detail) == ("inconsistent", "gate") and dec.nu > 20
+
+
+def test_the_drift_bounds_prediction_yields_to_the_posterior_where_it_knows_nothing():
+    # A4's constant arm, seed 68: the bound's fit of window means left angles 9 and 11 at
+    # σ 4-14° (mean 11° off) where the accepted posterior held them to 0.2°; used as the run's
+    # prior, the exact re-solve went into another valley (χ²₁₄ 2028 against the truth).
+    deg = np.pi / 180
+    rng = np.random.default_rng(5)
+    p = 14
+    A = rng.normal(size=(p, p))
+    P_ref = (A @ A.T / p + np.eye(p)) * (0.05 * deg) ** 2
+    theta_ref = rng.normal(size=p) * deg
+    # the prediction: as precise as the posterior in 13 directions, 40x wider in one (σ)
+    L = np.linalg.cholesky(P_ref)
+    lam, U = np.linalg.eigh(np.eye(p))
+    wide_dir = U[:, 0]
+    C = np.eye(p) + (40.0**2 - 1.0) * np.outer(wide_dir, wide_dir)
+    P_b = L @ C @ L.T
+    shift_narrow = L @ U[:, 1] * 0.5  # half a σ along a direction the fit knows
+    th_b = theta_ref + shift_narrow + L @ wide_dir * 200.0  # and 200 σ off in the wide one
+    th, P = bounded_against_posterior((th_b, P_b), theta_ref, P_ref)
+    Li = np.linalg.inv(L)
+    w = Li @ (th - theta_ref)
+    assert abs(w @ wide_dir) < 1e-9  # the wide direction: the posterior's mean ...
+    assert (Li @ P @ Li.T)[0, 0] == pytest.approx(1.0)  # ... and variance (wide_dir = e0)
+    np.testing.assert_allclose(w @ U[:, 1], 0.5, atol=1e-9)  # the fit's own shift kept
+    # a prediction no wider than the ratio anywhere is returned as it is
+    th2, P2 = bounded_against_posterior((th_b, 3.0 * P_ref), theta_ref, P_ref)
+    np.testing.assert_array_equal(th2, th_b)
+    np.testing.assert_array_equal(P2, 3.0 * P_ref)
