@@ -92,7 +92,6 @@ MAX_DRIFT_WINDOWS = 96  # the drift test's history: 8 min of 5-s windows (bounde
 # the drift the data cannot exclude (docs/identification.md, "Angles that drift"):
 # the rates' prior scale s at this one-sided upper confidence level of its likelihood
 DRIFT_BOUND_LEVEL = 0.8413  # Φ(1): one standard error above the ML estimate
-DRIFT_MAX_RATE_DEG_PER_S = 1.0 / 60.0  # the bound's physical cap: 1° a minute on any angle
 MAX_HELD_LOOKS = 16  # bounded fits kept (≥ the posterior's held windows, 12)
 # (smaller, larger): the larger structure contains the smaller one whatever the conditions
 # (δp × F is an external load U F)
@@ -797,7 +796,6 @@ class DriftTest:
         self.false_alarm, self.time_level = float(false_alarm), float(time_level)
         # None: no bounded prediction (the constant-angle posterior as it is)
         self.bound_level = bound_level
-        self.max_rate_deg_per_s = DRIFT_MAX_RATE_DEG_PER_S
         self.max_windows = int(max_windows)
         self.n_a = 2 * model.geometry.n_cells
         self.look = 0
@@ -883,11 +881,6 @@ class DriftTest:
         bound = rate_scale_bound(S, gb - X.T @ xa, self.bound_level)
         if bound is None:
             return
-        # capped by what a load cell's angle can physically drift: where the windows barely
-        # determine a rate (two windows of one condition, 5 s apart) the bound alone lets
-        # the prediction wander degrees off the posterior (A4 constant arm, seed 68)
-        cap = math.radians(self.max_rate_deg_per_s) ** 2
-        bound = (min(bound[0], cap), min(bound[1], cap))
         self.rate_scale = bound
         Lam = np.block([[Laa, Lab], [Lab.T, Lbb + np.eye(na) / bound[1]]])
         d = np.sqrt(np.diag(Lam))
