@@ -764,6 +764,16 @@ def rate_scale_bound(s: np.ndarray, b: np.ndarray, level: float = DRIFT_BOUND_LE
     return (0.0 if ls_ml == lo else math.exp(ls_ml)), math.exp(ls_u)
 
 
+def _trend_prediction(a0: np.ndarray, th: np.ndarray, Pth: np.ndarray, tbar: float, t: float
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """The angles α0 + δα0 + ρ (t − t̄) of a joint fit θ = [δα0, ρ] (covariance Pθ) at time t,
+    with their covariance L Pθ Lᵀ, L = [I, (t − t̄) I]."""
+    na = len(a0)
+    L = np.hstack([np.eye(na), (t - tbar) * np.eye(na)])
+    P = L @ Pth @ L.T
+    return a0 + L @ th, 0.5 * (P + P.T)
+
+
 class DriftTest:
     """Constant angles against angles on a linear trend in time, α(t) = α0 + ρ (t − t̄)
     (docs/identification.md, "Angles that drift"). Unlike the load structures it cannot pool
@@ -817,7 +827,6 @@ class DriftTest:
         # the windows each of those fits used (times, means, counts), to re-linearise it
         self._windows_by_look: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self._scale_by_look: dict[int, float] = {}  # the rates' prior s² of each look's fit
-        self._last_windows: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self.rate_scale: tuple[float, float] | None = None  # (ML, bound) of s², rad²/s²
 
     def restart(self) -> None:
@@ -828,18 +837,13 @@ class DriftTest:
         self._bounded_by_look = {}
         self._windows_by_look = {}
         self._scale_by_look = {}
-        self._last_windows = None
         self.restarts += 1
 
     def _predict(self, t: float) -> tuple[np.ndarray, np.ndarray] | None:
         if self._fit is None or not self._fit[4]:
             return None
         a_hat, th, Pth, tbar, _ = self._fit
-        na = self.n_a
-        L = np.hstack([np.eye(na), (t - tbar) * np.eye(na)])
-        a = a_hat + L @ th
-        P = L @ Pth @ L.T
-        return a, 0.5 * (P + P.T)
+        return _trend_prediction(a_hat, th, Pth, tbar, t)
 
     def predict_bounded(self, t: float, look: int | None = None
                         ) -> tuple[np.ndarray, np.ndarray] | None:
@@ -849,10 +853,7 @@ class DriftTest:
         if fit is None:
             return None
         a_hat, th, Pth, tbar = fit
-        na = self.n_a
-        L = np.hstack([np.eye(na), (t - tbar) * np.eye(na)])
-        P = L @ Pth @ L.T
-        return a_hat + L @ th, 0.5 * (P + P.T)
+        return _trend_prediction(a_hat, th, Pth, tbar, t)
 
     def predict_bounded_at(self, t: float, look: int | None, at: np.ndarray
                            ) -> tuple[np.ndarray, np.ndarray] | None:
@@ -875,11 +876,7 @@ class DriftTest:
         th_P = self._joint(A, B, e, self._scale_by_look[key])
         if th_P is None:
             return None
-        th, Pth = th_P
-        na = self.n_a
-        L = np.hstack([np.eye(na), (t - tbar) * np.eye(na)])
-        P = L @ Pth @ L.T
-        return a0 + L @ th, 0.5 * (P + P.T)
+        return _trend_prediction(a0, th_P[0], th_P[1], tbar, t)
 
     def bounded_shift(self, t: float, look: int | None = None, since: float | None = None
                       ) -> tuple[np.ndarray, np.ndarray] | None:
@@ -897,8 +894,10 @@ class DriftTest:
         return dt * th[na:], 0.5 * (P + P.T)
 
     def _bound(self, A: np.ndarray, B: np.ndarray, e: np.ndarray, a_hat: np.ndarray,
-               tbar: float) -> None:
-        """The joint fit of [δα0, ρ] under the rates' prior N(0, s² I), s² at its bound."""
+               tbar: float, windows: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+        """The joint fit of [δα0, ρ] under the rates' prior N(0, s² I), s² at its bound;
+        ``windows`` (times, means, counts) and s² kept with the look for
+        :meth:`predict_bounded_at`."""
         self._bounded, self.rate_scale = None, None
         if self.bound_level is None:
             return
@@ -920,6 +919,7 @@ class DriftTest:
             return
         self._bounded = (a_hat, th_P[0], th_P[1], tbar)
         self._scale_by_look[self.look] = bound[1]
+        self._windows_by_look[self.look] = windows
 
     def _joint(self, A: np.ndarray, B: np.ndarray, e: np.ndarray, s2: float
                ) -> tuple[np.ndarray, np.ndarray] | None:
@@ -964,9 +964,8 @@ class DriftTest:
         if len(self.windows) > self.max_windows:
             self.windows.pop(0)
         self.last = self._verdict(np.asarray(alpha, float), restarted)
-        if self._bounded is not None and self._last_windows is not None:
+        if self._bounded is not None:
             self._bounded_by_look[self.look] = self._bounded
-            self._windows_by_look[self.look] = self._last_windows
         for k in [k for k in self._bounded_by_look if k < self.look - MAX_HELD_LOOKS]:
             del self._bounded_by_look[k]
             self._windows_by_look.pop(k, None)
@@ -1010,8 +1009,7 @@ class DriftTest:
         determined = r == na
         self._fit = (a_hat, th, Pth, tbar, determined)
         if determined and UA.shape[1] == na:
-            self._last_windows = (ts, means, counts)
-            self._bound(A, B, e, a_hat, tbar)
+            self._bound(A, B, e, a_hat, tbar, (ts, means, counts))
         else:
             self._bounded = None
         if r == 0:
