@@ -1,4 +1,5 @@
 """The service end to end on the virtual bus, the simulator in lock-step (`--speed max`)."""
+import contextlib
 import json
 import subprocess
 import sys
@@ -6,6 +7,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 import zenoh
 
 from rsra.daq.jsonout import dumps
@@ -315,6 +317,28 @@ def test_realtime_priority_puts_the_service_threads_under_sched_fifo_and_restore
     assert child == [os.SCHED_FIFO]  # inherited by a thread started during the run
     assert (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority) == before
     assert svc.worker_initializer is normal_scheduling
+
+
+@pytest.mark.parametrize("speed, policy", [(1.0, "SCHED_IDLE"), (None, "SCHED_OTHER")])
+def test_a_live_worker_yields_the_cores_and_a_lockstep_one_does_not(cfg, speed, policy):
+    """In real time the identification worker runs under SCHED_IDLE: its second of CPU per
+    window otherwise made the bus thread, the simulator and Zenoh wait at every window's start
+    (P5's deadline misses were in a window's first 10 samples). Lock-step waits for it: the
+    default policy."""
+    import os
+
+    svc = Service(cfg, ServiceOptions(sim="ground-test", speed=speed, duration=1.0,
+                                      zenoh=False, seed=2))
+    seen = []
+
+    def sink(key, payload):
+        if key == "hub_loads" and payload["seq"] % 20 == 0:
+            with contextlib.suppress(OSError):  # the worker not yet started
+                seen.append(os.sched_getscheduler(svc.worker.worker.proc.pid))
+
+    svc.add_sink(sink)
+    svc.run()
+    assert seen and seen[-1] == getattr(os, policy)
 
 
 def test_realtime_priority_refused_is_one_line_naming_the_option(cfg, monkeypatch):

@@ -15,6 +15,7 @@ it down) and exits when its parent dies.
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import multiprocessing as mp
@@ -40,6 +41,7 @@ JOB_QUEUE = 2
 RESULT_QUEUE = 16
 MAX_RESTARTS = 3  # restarts of a dead worker allowed within RESTART_WINDOW_S ...
 RESTART_WINDOW_S = 60.0  # ... of acquisition time; one more death and identification is off
+WORKER_NICE = 19  # a live worker's nice value where SCHED_IDLE is refused (background_scheduling)
 CHECK_INTERVAL_S = 0.2  # real time: how often the worker's liveness is checked (wall clock)
 
 
@@ -226,6 +228,36 @@ def _exit_with_parent() -> None:
         os._exit(0)
 
     threading.Thread(target=watch, name="rsra-parent-watch", daemon=True).start()
+
+
+def background_scheduling() -> None:
+    """A live service's worker runs only on CPU time its real-time threads leave
+    (``SCHED_IDLE``: any other thread that wakes takes the core from it at once).
+
+    Its runs take a core for up to a second every window. At the default policy, on a 2-core
+    machine, the bus thread, the SYNC producer, the simulator, Zenoh's threads and a
+    subscriber waited for it up to a time slice at every window's start: nearly every P5
+    deadline miss was in the first 10 samples of a window (docs/performance.md "The worker
+    yields the cores"). A worker that cannot keep up drops windows (``dropped``, logged),
+    never a sample. Where SCHED_IDLE is refused, nice ``WORKER_NICE``; where that is refused
+    too, nothing changes. Lock-step and replay runs keep the default: they wait for it."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    except (AttributeError, OSError):
+        with contextlib.suppress(OSError):
+            os.setpriority(os.PRIO_PROCESS, 0, WORKER_NICE)
+
+
+def chained(*initializers: Callable[[], None] | None) -> Callable[[], None]:
+    """One worker initializer calling each given one in order (picklable for spawn)."""
+    import functools
+
+    return functools.partial(_call_each, tuple(f for f in initializers if f is not None))
+
+
+def _call_each(fns: tuple[Callable[[], None], ...]) -> None:
+    for f in fns:
+        f()
 
 
 def _worker_main(cfg, initial_state, jobs: mp.Queue, results: mp.Queue,

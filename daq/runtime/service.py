@@ -38,6 +38,7 @@ from typing import TYPE_CHECKING, Any
 
 from rsra.config.rig import RigConfig
 from rsra.daq.jsonout import dumps
+from rsra.daq.runtime.ident_worker import background_scheduling, chained
 from rsra.daq.runtime.pipeline import EstimatorPipeline
 from rsra.daq.runtime.records import AnglesRecord
 from rsra.daq.runtime.run_report import HealthReporter, run_summary
@@ -390,7 +391,10 @@ class Service:
             _close_logged(stack, self._close_recorded_angles)
             _close_logged(stack, loop.finish)
             if plan.use_ident:
-                supervision.start(cfg, plan.state, initializer=self.worker_initializer)
+                init = self.worker_initializer
+                if loop.live:  # the worker yields the cores to the real-time threads
+                    init = chained(init, background_scheduling)
+                supervision.start(cfg, plan.state, initializer=init)
             if loop.live:  # hub_loads from the bus thread (P5b)
                 self.source.first_step = loop.first_step
             stack.enter_context(self.source)
