@@ -341,6 +341,25 @@ def test_a_live_worker_yields_the_cores_and_a_lockstep_one_does_not(cfg, speed, 
     assert seen and seen[-1] == getattr(os, policy)
 
 
+@pytest.mark.parametrize("speed", [1.0, None])
+def test_a_live_service_shortens_the_interpreters_switch_interval_and_restores_it(cfg, speed):
+    """In real time a thread waiting for the interpreter waits at most
+    LIVE_SWITCH_INTERVAL_S behind a busy one (the bus thread behind the low-rate publisher or
+    the worker queue's feeder); lock-step keeps the interval it found; both restore it."""
+    import sys
+
+    from rsra.daq.runtime.service import LIVE_SWITCH_INTERVAL_S
+
+    before = sys.getswitchinterval()
+    svc = Service(cfg, ServiceOptions(sim="ground-test", speed=speed, duration=0.3,
+                                      zenoh=False, identification=False))
+    seen = set()
+    svc.add_sink(lambda key, payload: seen.add(sys.getswitchinterval()))
+    svc.run()
+    assert seen == {LIVE_SWITCH_INTERVAL_S if speed else before}
+    assert sys.getswitchinterval() == before
+
+
 def test_realtime_priority_refused_is_one_line_naming_the_option(cfg, monkeypatch):
     import os
 

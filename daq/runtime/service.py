@@ -56,6 +56,8 @@ if TYPE_CHECKING:
 log = logging.getLogger("rsra.service")
 
 LOW_RATE_QUEUE = 64
+# real time: the interpreter's thread switch interval (gil_switch_interval)
+LIVE_SWITCH_INTERVAL_S = 0.0005
 
 
 @dataclass
@@ -214,6 +216,28 @@ class Outputs:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+@contextlib.contextmanager
+def gil_switch_interval(seconds: float):
+    """The interpreter's thread switch interval (``sys.setswitchinterval``) while the service
+    runs in real time, the one before restored after.
+
+    A thread that wants the interpreter waits until the one holding it reaches the interval
+    (CPython's default: 5 ms) — a period at 200 samples/s. In real time the bus thread and
+    the simulator's answer then waited behind the low-rate publisher encoding an angles
+    record, or the worker queue's feeder pickling a window: P8's late periods were at the
+    samples where a result comes into force and at a window's cut (docs/performance.md "The
+    interpreter's switch interval"). At ``LIVE_SWITCH_INTERVAL_S`` such a wait is a tenth of
+    a period."""
+    import sys
+
+    before = sys.getswitchinterval()
+    sys.setswitchinterval(seconds)
+    try:
+        yield
+    finally:
+        sys.setswitchinterval(before)
 
 
 def realtime_priority(priority: int) -> Callable[[], None]:
@@ -390,6 +414,8 @@ class Service:
             # (after loop.finish, which records the last windows' results there)
             _close_logged(stack, self._close_recorded_angles)
             _close_logged(stack, loop.finish)
+            if loop.live:
+                stack.enter_context(gil_switch_interval(LIVE_SWITCH_INTERVAL_S))
             if plan.use_ident:
                 init = self.worker_initializer
                 if loop.live:  # the worker yields the cores to the real-time threads
