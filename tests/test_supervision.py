@@ -118,22 +118,26 @@ def test_a_worker_killed_in_real_time_is_seen_and_restarted(caplog):
                                       seed=4))
     angles, health, killed = [], [], []
 
+    def seen_restart(h):
+        return h["deaths"] == 1 and h["restarts"] == 1 and "SIGKILL" in h["last_death"]
+
     def sink(key, payload):
+        # stop once both the restarted worker's record and a health report of the restart
+        # are in (either may come first: health is reported once a second)
         if key == "angles":
             angles.append(dict(payload))
             if not killed:
                 killed.append(svc.worker.worker.proc.pid)
                 os.kill(killed[0], signal.SIGKILL)
-            elif payload.get("restarted"):
-                svc.stop()
         elif key == "health":
             health.append(json.loads(dumps(payload))["identification"])
+        if any(a.get("restarted") for a in angles) and any(seen_restart(h) for h in health):
+            svc.stop()
 
     svc.add_sink(sink)
     svc.run()
     assert killed and any(a.get("restarted") for a in angles), angles
-    assert any(h["deaths"] == 1 and h["restarts"] == 1 and "SIGKILL" in h["last_death"]
-               for h in health)
+    assert any(seen_restart(h) for h in health), health
     assert svc.worker.worker is None or svc.worker.worker.proc.pid != killed[0]
 
 
