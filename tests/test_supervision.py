@@ -131,6 +131,8 @@ def test_a_worker_killed_in_real_time_is_seen_and_restarted(caplog):
                 os.kill(killed[0], signal.SIGKILL)
         elif key == "health":
             health.append(json.loads(dumps(payload))["identification"])
+        else:
+            return
         if any(a.get("restarted") for a in angles) and any(seen_restart(h) for h in health):
             svc.stop()
 
