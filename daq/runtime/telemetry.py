@@ -2,8 +2,8 @@
 
 Telemetry is read-only: the service declares no subscriber, and no queryable but
 `state/*`. High-rate keys use congestion control DROP (a slow viewer never stalls
-acquisition; loss shows through `seq`). No blocking work runs inside a Zenoh callback:
-queries go to a channel that a small thread answers from cached bytes.
+acquisition; loss shows through `seq`). State queries are answered in Zenoh's callback from
+cached bytes (a dict read under a lock, no service thread involved).
 """
 from __future__ import annotations
 
@@ -121,11 +121,9 @@ class TelemetryPublisher:
             self._state["config"] = dumps(redact_secrets(effective_config)).encode()
         self._token = declared(session.liveliness().declare_token(f"{prefix}/alive"))
         self._state_keys = {n: zenoh.KeyExpr(f"{prefix}/state/{n}") for n in STATE_KEYS}
-        self._queryable = declared(session.declare_queryable(f"{prefix}/state/*"))  # FIFO
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._answer_queries, name="rsra-state-queries",
-                                        daemon=True)
-        self._thread.start()
+        # a callback queryable: zenoh's own thread runs _answer per query, so an idle service
+        # has no thread polling for queries (a 10-ms poll woke the GIL 100 times a second)
+        self._queryable = declared(session.declare_queryable(f"{prefix}/state/*", self._answer))
 
     def _declare(self, obj: Any) -> Any:
         """Hold ``obj`` (publisher, token, queryable) for undeclaring on close."""
@@ -157,30 +155,22 @@ class TelemetryPublisher:
                 self._state[key] = data
         return data
 
-    def _answer_queries(self) -> None:
-        handler = self._queryable.handler
-        while not self._stop.is_set():
-            q = handler.try_recv()
-            if q is None:
-                self._stop.wait(0.01)
-                continue
-            try:
-                # answer every state key the query's key expression intersects
-                # (state/*, state/config, prefix/**, …); the payload is ignored
-                for n, key in self._state_keys.items():
-                    if not key.intersects(q.key_expr):
-                        continue
-                    with self._state_lock:
-                        data = self._state.get(n)
-                    if data is not None:
-                        q.reply(key, data, encoding=zenoh.Encoding.APPLICATION_JSON)
-            except Exception as e:
-                log.debug("query failed: %s", e)
-            finally:
-                q.drop()
+    def _answer(self, q: zenoh.Query) -> None:
+        """Answer every state key the query's key expression intersects (state/*, state/config,
+        prefix/**, …); the payload is ignored."""
+        try:
+            for n, key in self._state_keys.items():
+                if not key.intersects(q.key_expr):
+                    continue
+                with self._state_lock:
+                    data = self._state.get(n)
+                if data is not None:
+                    q.reply(key, data, encoding=zenoh.Encoding.APPLICATION_JSON)
+        except Exception as e:
+            log.debug("query failed: %s", e)
+        finally:
+            q.drop()
 
     def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=2.0)
         self._declared.close()
         self._pubs.clear()
