@@ -427,11 +427,11 @@ class CanopenMaster:
             self.events_dropped += 1
 
     def _work(self) -> None:
-        while not self._stop.is_set():
-            try:
-                kind, node = self._events.get(timeout=0.1)
-            except queue.Empty:
-                continue
+        # blocks until a request (or stop's wake-up) comes: no polling while the bus is healthy
+        while True:
+            kind, node = self._events.get()
+            if self._stop.is_set():
+                return
             self._restart(kind, node)
 
     def _restart(self, kind: str, node: str) -> None:
@@ -453,6 +453,10 @@ class CanopenMaster:
     def stop(self) -> None:
         self.running = False
         self._stop.set()
+        try:
+            self._events.put_nowait(("stop", ""))  # wakes the worker (a full queue: it is awake)
+        except queue.Full:
+            pass
         if self.sync_task is not None:
             self.sync_task.stop()
             self.sync_task = None
