@@ -54,7 +54,8 @@ DROP_NODE, DROP_P = "cell_A", 0.1  # the drop arm: each cell_A frame lost with t
 
 # ------------------------------------------------------------------------------ the harness
 def run_calibration(cfg, run, *, known_loads: bool, initial_state=None,
-                    lacking: np.ndarray | None = None, lacking_label: str | None = None
+                    lacking: np.ndarray | None = None, lacking_label: str | None = None,
+                    posterior_out: list | None = None
                     ) -> Iterator[tuple[int, dict, np.ndarray, np.ndarray]]:
     """The service's calibration branch over an off-line run: yields, per window,
     (last sample, the angles record, posterior θ, posterior P) in window order.
@@ -62,7 +63,8 @@ def run_calibration(cfg, run, *, known_loads: bool, initial_state=None,
     that lack an input (a dropped frame: the sample is not measured), as the pipeline
     treats them: the content filter's input holds the last complete sample
     (estimator.content.hold_missing), the sample is not ``ok`` (not scored);
-    ``lacking_label`` names the input they lack (its flag, e.g. ``missing:cell_A``: the record's
+    ``posterior_out``: a list the run's ``SequentialPosterior`` is appended to (its
+    ``state()`` is what ``identification.state_file`` would hold). ``lacking_label`` names the input they lack (its flag, e.g. ``missing:cell_A``: the record's
     ``missing_inputs``; default ``unusable``, as a sample with no flag saying why)."""
     from rsra.daq.runtime.ident_worker import build_identification, run_job
     from rsra.estimator.balance import inertial_loads
@@ -71,6 +73,8 @@ def run_calibration(cfg, run, *, known_loads: bool, initial_state=None,
     model = cfg.rig_model()
     idc, fs = cfg.identification, cfg.sample_rate_hz
     post, runs, cache = build_identification(cfg, initial_state)
+    if posterior_out is not None:  # the caller's handle on the posterior (its saved state)
+        posterior_out.append(post)
     mode = "known_loads" if known_loads else "filter_error"
     content = idc.content_known_loads if known_loads else idc.content_filter_error
     # daq.pipeline: x = [T, z, H] through one causal content filter per mode

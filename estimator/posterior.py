@@ -147,6 +147,9 @@ class AnglesRecord:
     # known loads (issue 27): the run's curvature index (estimator.curvature); None: not
     # computed (filter error, a run that did not converge, the limit off)
     nonlinearity: float | None = None
+    # filter error (issue 25): the posterior carried from the load it referred to (a ground
+    # calibration's) to this window's reference (trim): the move {delta, sigma} (N, N·m; rad)
+    reference_move: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """The telemetry ``angles`` payload (SI: radians), values as computed (numpy arrays,
@@ -167,6 +170,8 @@ class AnglesRecord:
             out["load_excursion"] = self.load_excursion
         if self.nonlinearity is not None:
             out["nonlinearity"] = float(self.nonlinearity)
+        if self.reference_move is not None:
+            out["reference_move"] = self.reference_move
         return out
 
 
@@ -245,6 +250,10 @@ class PosteriorState:
     # optional (issue 19): the selected structure the hub-load estimate uses
     # (structure.fit_payload); files without it load as before
     structure: dict[str, Any] | None = None
+    # optional (issue 25): the static hub load (6, N and N·m, the estimator's frame) the
+    # angles refer to — the mean of the accepted known-load windows' — so that a flight at
+    # another load widens the posterior by the rig's load-sensitivity bound (ReferenceLoad)
+    reference_load: np.ndarray | None = None
 
     @property
     def version(self) -> int:
@@ -258,6 +267,8 @@ class PosteriorState:
                   "applies_from_seq": self.applies_from_seq, "t": self.t})
         if self.structure is not None:
             d["structure"] = self.structure
+        if self.reference_load is not None:
+            d["reference_load"] = [float(x) for x in self.reference_load]
         return d
 
 
@@ -350,8 +361,17 @@ def posterior_from_json(text: str, path: str | Path,
                                       and isinstance(structure.get("structure"), str)):
         raise PosteriorFileError(path, "malformed structure section (an object naming its "
                                  "structure, or absent)")
+    ref = raw.get("reference_load")
+    if ref is not None:
+        try:
+            ref = np.asarray(ref, dtype=float)
+        except (TypeError, ValueError):
+            ref = None
+        if ref is None or ref.shape != (6,) or not np.all(np.isfinite(ref)):
+            raise PosteriorFileError(path, "reference_load must be 6 finite numbers (N, N·m) "
+                                     "or absent")
     return PosteriorState(fnames, theta, P, afs, None if t is None else float(t), rig,
-                          structure)
+                          structure, ref)
 
 
 def out_of_range(theta: np.ndarray, limit: np.ndarray) -> bool:
@@ -598,6 +618,10 @@ class SequentialPosterior:
         self.limit = np.broadcast_to(np.asarray(limit, float), (p,)).copy()
         self.rig = rig  # the fingerprint saved with the posterior (rig_fingerprint)
         self.structure_fit: dict[str, Any] | None = None  # the selected structure (saved)
+        # the static load the angles refer to and the known-load windows its mean is of
+        # (issue 25; PosteriorState.reference_load, move_reference)
+        self.reference_load: np.ndarray | None = None
+        self.reference_windows = 0
         self.theta = np.asarray(theta0, float).copy()
         self.P0 = np.diag(np.broadcast_to(np.asarray(sigma0, float), (p,)) ** 2)
         self.P = self.P0.copy()
@@ -693,7 +717,9 @@ class SequentialPosterior:
     def state(self) -> PosteriorState:
         return PosteriorState(self.names, self.theta.copy(), self.P.copy(),
                               self.applies_from_seq, self.t, self.rig,
-                              self.structure_fit)
+                              self.structure_fit,
+                              None if self.reference_load is None
+                              else self.reference_load.copy())
 
     def restore(self, state: PosteriorState) -> None:
         """Start from a saved posterior (``--angles``)."""
@@ -702,8 +728,46 @@ class SequentialPosterior:
         self.theta, self.P = state.theta.copy(), state.P.copy()
         self.applies_from_seq, self.t = state.applies_from_seq, state.t
         self.structure_fit = state.structure
+        ref = getattr(state, "reference_load", None)
+        self.reference_load = None if ref is None else np.asarray(ref, float).copy()
+        self.reference_windows = 0 if ref is None else 1  # a restored mean weighs one window
         self.inconsistent_in_a_row = 0
         self.fold()
+
+    def note_known_load(self, static_load: np.ndarray | None) -> None:
+        """An accepted known-load window at ``static_load`` (6,): the reference load becomes
+        the mean of the accepted known-load windows' (a restored one counts as one)."""
+        if static_load is None:
+            return
+        h = np.asarray(static_load, float)
+        if h.shape != (6,) or not np.all(np.isfinite(h)):
+            return
+        n = self.reference_windows
+        self.reference_load = (h.copy() if self.reference_load is None or n == 0
+                               else (self.reference_load * n + h) / (n + 1))
+        self.reference_windows = n + 1
+
+    def move_reference(self, reference: np.ndarray, sensitivity: np.ndarray | None
+                       ) -> tuple[np.ndarray, float] | None:
+        """Carry the posterior to the angles at another static load (a flight's trim, issue
+        25): P + σ_L² I with σ_L² = Σ_k (s_k Δ_k)² for the move Δ from the reference it
+        refers to (load_excursion_variance; the rig's 1-σ bound on the angles' load
+        sensitivity), the mean unchanged (the bound's sign is unknown). Returns (Δ, σ_L)
+        when it moved a reference it had; none is set when it had none (a configured start
+        is a statement about the angles where the run starts)."""
+        r = np.asarray(reference, float)
+        if r.shape != (6,) or not np.all(np.isfinite(r)):
+            return None
+        old, self.reference_load, self.reference_windows = self.reference_load, r.copy(), 0
+        if old is None or sensitivity is None:
+            return None
+        delta = r - old
+        v = load_excursion_variance(sensitivity, delta)
+        if v <= 0.0:
+            return None
+        self.P = self.P + v * np.eye(len(self.P))
+        self.fold()
+        return delta, math.sqrt(v)
 
     def prior(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
         """The next run's prior: the posterior, its covariance inflated by q·Δt (and, under a
@@ -837,6 +901,7 @@ class SequentialPosterior:
         self.inconsistent_in_a_row += 1
         if self.inconsistent_in_a_row >= self.reset_after:
             self.P = self.P0.copy()
+            self.reference_load, self.reference_windows = None, 0
             self.inconsistent_in_a_row = 0
             self.fold()
             return angles_record(self, accepted=False, reason="reset", detail="gate", **base)
@@ -1090,17 +1155,29 @@ class LoadReference:
         k = None if sensitivity is None else np.asarray(sensitivity, float)
         self.sensitivity = k if k is not None and np.any(k > 0) else None
         self.loads: deque[np.ndarray] = deque(maxlen=LOAD_REFERENCE_WINDOWS)
+        self._last: tuple[np.ndarray, np.ndarray] | None = None  # (the window's load, median)
 
-    def judge(self, checks: FilterErrorChecks, static_load: np.ndarray | None) -> None:
-        """Set the window's ``load_delta`` and ``load_variance`` in ``checks`` (nothing
-        without a sensitivity or a finite static load)."""
+    def observe(self, static_load: np.ndarray | None) -> np.ndarray | None:
+        """A window's static load: the reference (the median with it) after it, or None
+        (no sensitivity configured, or no finite load: the window is left out)."""
+        self._last = None
         if self.sensitivity is None or static_load is None:
-            return
+            return None
         h = np.asarray(static_load, float)
         if h.shape != (6,) or not np.all(np.isfinite(h)):
-            return
+            return None
         self.loads.append(h.copy())
-        delta = h - np.median(np.array(self.loads), axis=0)
+        ref: np.ndarray = np.median(np.array(self.loads), axis=0)
+        self._last = (h.copy(), ref)
+        return ref
+
+    def judge(self, checks: FilterErrorChecks) -> None:
+        """Set the observed window's ``load_delta`` and ``load_variance`` in ``checks``
+        (nothing when the window was not observed)."""
+        if self._last is None or self.sensitivity is None:
+            return
+        h, ref = self._last
+        delta = h - ref
         checks.load_delta = delta
         checks.load_variance = load_excursion_variance(self.sensitivity, delta)
 
@@ -1298,13 +1375,21 @@ class PeriodicIdentification:
         """One window. ``dpsi`` (filter error, azimuth mode): the rotor's measured turn since
         the previous sample, per sample (NaN: the design's Ω) — the calibration filter's
         harmonic states turn with it (``filters.azimuth_transition``, issue 25).
-        ``static_load`` (filter error): the window's mean static hub-load estimate (6,), for
-        the load excursion (``angle_load_sensitivity``)."""
+        ``static_load``: the window's mean static hub-load estimate (6,): in filter-error
+        mode for the load excursion and the reference move (``angle_load_sensitivity``), in
+        known-load mode (accepted) for the posterior's reference load."""
         N = len(T)
         valid = np.ones(N, bool) if valid is None else np.asarray(valid, bool)
         seq1 = seq0 + N - 1
         dt = 0.0 if self._last_end is None else (seq1 - self._last_end) / self.fs
         self._last_end = seq1
+        moved = None
+        if self.mode == "filter_error":
+            # the trim the window's angles refer to; a posterior of another load (a ground
+            # calibration) is carried there first (SequentialPosterior.move_reference)
+            ref = self._load_reference.observe(static_load)
+            if ref is not None:
+                moved = self.posterior.move_reference(ref, self._load_reference.sensitivity)
         theta_p, P_p = self.posterior.prior(dt)
         missing = 1.0 - float(valid.mean()) if N else 1.0
         window = (seq0, seq1)
@@ -1414,7 +1499,7 @@ class PeriodicIdentification:
         checks = None
         if isinstance(prob, FilterErrorProblem) and self.robust_filter_error and res.sound:
             checks = self.filter_error_checks(prob, res.theta)
-            self._load_reference.judge(checks, static_load)
+            self._load_reference.judge(checks)
         rec = post.update(res, window=window, mode=self.mode, content=self.content,
                           t=t, missing_fraction=missing,
                           apply_delay_samples=self.apply_delay_samples,
@@ -1422,6 +1507,10 @@ class PeriodicIdentification:
                           checks=checks, structure=verdict,
                           nonlinear=nonlinear is not None and nonlinear > self.nonlinearity_limit)
         rec.nonlinearity = nonlinear
+        if moved is not None:
+            rec.reference_move = {"delta": [float(x) for x in moved[0]], "sigma": moved[1]}
+        if self.mode == "known_loads" and rec.accepted:
+            post.note_known_load(static_load)
         if self.structure is not None:
             # the bound's fit the held windows' next run starts from (windows since it held)
             if post.moments.windows_held == 0 or post.prediction is None:

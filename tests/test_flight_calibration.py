@@ -364,3 +364,86 @@ def test_flight_windows_with_one_cell_dropping_frames_are_refused_rather_than_bi
     for rec, c, _ in few:
         assert rec["accepted"] and c <= limit, (rec["reason"], c)
         assert [m["input"] for m in rec["missing_inputs"]] == ["missing:cell_A"]
+
+
+def _ground_then_flight(move: bool):
+    """A 60-s `ground-test` of seed 1401's aircraft with its angles following the thrust (the
+    same law as in flight: 1° per 100 kN; the ground's thrust 76–84 kN), its posterior carried
+    into 30 s of `flight` (trim 95 kN) as `--angles` would carry it."""
+    from bench.a3_known_load import run_calibration
+    from rsra.sim_bus import load_scenario, simulate
+
+    cfg = load_config(FLIGHT_RIG)
+    g = simulate(cfg, load_scenario("ground-test", angles="linear"), seed=1401, duration_s=60.0)
+    posts: list = []
+    for _ in run_calibration(cfg, g, known_loads=True, posterior_out=posts):
+        pass
+    ground = posts[0].state()
+    if not move:
+        ground.reference_load = None
+    f = simulate(cfg, load_scenario("flight"), seed=1401, duration_s=30.0)
+    trim = np.median(f.alpha_true, axis=0)
+    w = round(cfg.identification.window_s * FS)
+    res = []
+    theta = ground.theta
+    for end, rec, theta, P in run_calibration(cfg, f, known_loads=False, initial_state=ground):
+        truth = f.alpha_true[end + 1 - w:end + 1].mean(0)
+        le = rec.get("load_excursion")
+        err = theta - truth
+        Pw = P + (le["sigma"] ** 2 if le else 0.0) * np.eye(14)
+        res.append((rec, float(err @ np.linalg.solve(Pw, err))))
+    return ground, res, np.linalg.norm(ground.theta - trim), np.linalg.norm(theta - trim)
+
+
+def test_a_ground_calibration_is_carried_to_the_flight_trim_and_the_flight_corrects_it():
+    """Issue 25: the ground calibration refers to the ground test's load (its posterior's
+    `reference_load`, thrust ≈ 81 kN); the flight trims at 95 kN, where the thrust-dependent
+    angles are 0.14° away on each. The first flight window carries the posterior there (P +
+    σ_L² I, σ_L from the rig's load-sensitivity bound: `reference_move`), every accepted run
+    is then consistent with its window's truth, and the angles end closer to the flight's
+    truth than the ground posterior started. Break check: the reference left out (the
+    posterior taken as a statement about the angles at the flight's trim) → accepted runs
+    with χ²₁₄ in the hundreds."""
+    ground, res, start, end = _ground_then_flight(move=True)
+    assert ground.reference_load is not None and -85e3 < ground.reference_load[2] < -77e3
+    limit = stats.chi2.isf(1e-3 / len(res), 14)
+    move = res[0][0].get("reference_move")
+    assert move is not None and abs(move["delta"][2]) > 1e4, move
+    assert 0.1 < np.degrees(move["sigma"]) < 0.2, move
+    acc = [c for r, c in res if r["accepted"]]
+    assert len(acc) >= len(res) // 2, [(r["reason"], r.get("detail")) for r, _ in res]
+    assert max(acc) <= limit, [round(c, 1) for _, c in res]
+    assert end < start, (np.degrees(start), np.degrees(end))
+    _, bare, _, _ = _ground_then_flight(move=False)
+    assert "reference_move" not in bare[0][0]
+    assert max(c for r, c in bare if r["accepted"]) > limit, [round(c, 1) for _, c in bare]
+
+
+def test_the_reference_load_widens_the_posterior_by_the_sensitivity_bound_and_is_saved():
+    """`move_reference`: P + Σ_k (s_k Δ_k)² I, the mean unchanged; a posterior with no
+    reference takes the first one without widening; the reference is the mean of the accepted
+    known-load windows' loads; it round-trips through the saved file, and a malformed one is
+    refused in one line."""
+    from rsra.estimator.posterior import (PosteriorFileError, PosteriorState,
+                                          SequentialPosterior, posterior_from_json)
+
+    names = tuple(f"a{i}" for i in range(14))
+    post = SequentialPosterior(names, np.zeros(14), np.full(14, 1e-3), drift_rate=0.0,
+                               min_information=1.0, sigma_max=np.full(14, 1e-2), reset_after=3,
+                               stale_fraction=0.5)
+    s = np.array([0.0, 0.0, 1e-7, 0.0, 0.0, 0.0])
+    assert post.move_reference(np.array([0, 0, -9e4, 0, 0, 0.0]), s) is None
+    assert np.allclose(post.P, np.eye(14) * 1e-6)
+    post.note_known_load(np.array([0, 0, -7e4, 0, 0, 0.0]))
+    post.note_known_load(np.array([0, 0, -9e4, 0, 0, 0.0]))
+    assert np.allclose(post.reference_load, [0, 0, -8e4, 0, 0, 0])
+    th = post.theta.copy()
+    delta, sig = post.move_reference(np.array([0, 0, -9.5e4, 0, 0, 0.0]), s)
+    assert delta[2] == pytest.approx(-1.5e4) and sig == pytest.approx(1.5e-3)
+    assert np.allclose(post.P, np.eye(14) * (1e-6 + 1.5e-3 ** 2)) and np.array_equal(post.theta, th)
+    st = post.state()
+    back = posterior_from_json(__import__("json").dumps(st.to_dict()), "p.json")
+    assert np.allclose(back.reference_load, [0, 0, -9.5e4, 0, 0, 0])
+    bad = dict(PosteriorState(names, np.zeros(14), np.eye(14)).to_dict(), reference_load=[1, 2])
+    with pytest.raises(PosteriorFileError, match="reference_load"):
+        posterior_from_json(__import__("json").dumps(bad), "p.json")

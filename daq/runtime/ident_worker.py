@@ -135,7 +135,7 @@ def run_job(cfg, runs: dict, cache, job: dict) -> dict:
     n_ext = ident.par.model.external.wrenches.shape[1]
     q = np.zeros((len(job["T"]), n_ext)) if n_ext else None
     static_load = None
-    if mode == "filter_error" and job.get("T_mean") is not None:
+    if job.get("T_mean") is not None:
         from rsra.estimator.balance import static_estimate
 
         static_load = static_estimate(ident.par.model, np.asarray(job["alpha"], float),

@@ -64,6 +64,8 @@ FIELDS: dict[str, list[tuple[str, str, str]]] = {
         ("missing_inputs[].input", "string", ""), ("missing_inputs[].fraction", "number", ""),
         ("load_excursion", "object", ""), ("load_excursion.delta", "array:number", "N, N·m"),
         ("load_excursion.sigma", "array:number", "rad"),
+        ("reference_move", "object", ""), ("reference_move.delta", "array:number", "N, N·m"),
+        ("reference_move.sigma", "number", "rad"),
         ("advice", "object", ""), ("advice.determined", "integer", ""),
         ("advice.next", "number", ""), ("advice.n_scored", "integer", ""),
         ("advice.accelerometers", "array:object", ""),

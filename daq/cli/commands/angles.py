@@ -71,6 +71,8 @@ def describe(state: PosteriorState, cfg: RigConfig) -> dict:
         "condition": cond if math.isfinite(cond) else None,
         "applies_from_seq": state.applies_from_seq,
         "t": state.t,
+        "reference_load": (None if state.reference_load is None
+                           else [float(x) for x in state.reference_load]),
         "matches_config": tuple(state.names) == tuple(configured),
         "version": state.version,
         "rig_difference": _rig_difference(state, cfg),
@@ -264,6 +266,11 @@ def _show(cfg: RigConfig, args: argparse.Namespace) -> int:
     console.print(f"determined directions: {d['determined']} of {d['parameters']} (posterior σ ≤ "
                   f"{smax:g}°); condition number {cond}; applies {applies}"
                   + ("" if d["t"] is None else f" (t = {d['t']:.6f} s)"), highlight=False)
+    if d["reference_load"] is not None:
+        ref = "  ".join(f"{a} {v / 1e3:.1f}" for a, v in zip("XYZLMN", d["reference_load"]))
+        console.print(f"reference load (the known-load windows' mean; kN, kN·m): {ref}; a flight "
+                      "at another load widens the posterior by "
+                      "identification.angle_load_sensitivity_deg_per_unit", highlight=False)
     undet = d["undetermined_directions"]
     for k, u in enumerate(undet[:SHOW_DIRECTIONS], start=1):
         comb = " ".join(f"{w:+.2f}·{n}" for n, w in u["components"].items())
