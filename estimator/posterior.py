@@ -618,10 +618,7 @@ class SequentialPosterior:
         self.limit = np.broadcast_to(np.asarray(limit, float), (p,)).copy()
         self.rig = rig  # the fingerprint saved with the posterior (rig_fingerprint)
         self.structure_fit: dict[str, Any] | None = None  # the selected structure (saved)
-        # the static load the angles refer to and the known-load windows its mean is of
-        # (issue 25; PosteriorState.reference_load, move_reference)
-        self.reference_load: np.ndarray | None = None
-        self.reference_windows = 0
+        self.reference = ReferenceLoad()  # the static load the angles refer to (issue 25)
         self.theta = np.asarray(theta0, float).copy()
         self.P0 = np.diag(np.broadcast_to(np.asarray(sigma0, float), (p,)) ** 2)
         self.P = self.P0.copy()
@@ -717,9 +714,7 @@ class SequentialPosterior:
     def state(self) -> PosteriorState:
         return PosteriorState(self.names, self.theta.copy(), self.P.copy(),
                               self.applies_from_seq, self.t, self.rig,
-                              self.structure_fit,
-                              None if self.reference_load is None
-                              else self.reference_load.copy())
+                              self.structure_fit, self.reference.load)
 
     def restore(self, state: PosteriorState) -> None:
         """Start from a saved posterior (``--angles``)."""
@@ -728,46 +723,9 @@ class SequentialPosterior:
         self.theta, self.P = state.theta.copy(), state.P.copy()
         self.applies_from_seq, self.t = state.applies_from_seq, state.t
         self.structure_fit = state.structure
-        ref = getattr(state, "reference_load", None)
-        self.reference_load = None if ref is None else np.asarray(ref, float).copy()
-        self.reference_windows = 0 if ref is None else 1  # a restored mean weighs one window
+        self.reference = ReferenceLoad.restored(getattr(state, "reference_load", None))
         self.inconsistent_in_a_row = 0
         self.fold()
-
-    def note_known_load(self, static_load: np.ndarray | None) -> None:
-        """An accepted known-load window at ``static_load`` (6,): the reference load becomes
-        the mean of the accepted known-load windows' (a restored one counts as one)."""
-        if static_load is None:
-            return
-        h = np.asarray(static_load, float)
-        if h.shape != (6,) or not np.all(np.isfinite(h)):
-            return
-        n = self.reference_windows
-        self.reference_load = (h.copy() if self.reference_load is None or n == 0
-                               else (self.reference_load * n + h) / (n + 1))
-        self.reference_windows = n + 1
-
-    def move_reference(self, reference: np.ndarray, sensitivity: np.ndarray | None
-                       ) -> tuple[np.ndarray, float] | None:
-        """Carry the posterior to the angles at another static load (a flight's trim, issue
-        25): P + σ_L² I with σ_L² = Σ_k (s_k Δ_k)² for the move Δ from the reference it
-        refers to (load_excursion_variance; the rig's 1-σ bound on the angles' load
-        sensitivity), the mean unchanged (the bound's sign is unknown). Returns (Δ, σ_L)
-        when it moved a reference it had; none is set when it had none (a configured start
-        is a statement about the angles where the run starts)."""
-        r = np.asarray(reference, float)
-        if r.shape != (6,) or not np.all(np.isfinite(r)):
-            return None
-        old, self.reference_load, self.reference_windows = self.reference_load, r.copy(), 0
-        if old is None or sensitivity is None:
-            return None
-        delta = r - old
-        v = load_excursion_variance(sensitivity, delta)
-        if v <= 0.0:
-            return None
-        self.P = self.P + v * np.eye(len(self.P))
-        self.fold()
-        return delta, math.sqrt(v)
 
     def prior(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
         """The next run's prior: the posterior, its covariance inflated by q·Δt (and, under a
@@ -901,7 +859,7 @@ class SequentialPosterior:
         self.inconsistent_in_a_row += 1
         if self.inconsistent_in_a_row >= self.reset_after:
             self.P = self.P0.copy()
-            self.reference_load, self.reference_windows = None, 0
+            self.reference = ReferenceLoad()
             self.inconsistent_in_a_row = 0
             self.fold()
             return angles_record(self, accepted=False, reason="reset", detail="gate", **base)
@@ -1146,6 +1104,53 @@ def likelihood_ratio_gate(post: SequentialPosterior, par: Parameterisation,
     return nu, d
 
 
+class ReferenceLoad:
+    """The static hub load (6,) a posterior's angles refer to (issue 25; docs/identification.md,
+    "A ground calibration carried to the flight's trim"): the mean of the accepted known-load
+    windows' loads (a restored one counts as one window), or the trim it was last carried to;
+    None: not known (a configured start, a file written before it was saved)."""
+
+    def __init__(self, load: np.ndarray | None = None, windows: int = 0) -> None:
+        self.load, self.windows = load, windows
+
+    @classmethod
+    def restored(cls, load: Any) -> "ReferenceLoad":
+        return cls() if load is None else cls(np.asarray(load, float).copy(), 1)
+
+    def note(self, static_load: np.ndarray | None) -> None:
+        """An accepted known-load window at ``static_load`` (6,): the mean takes it in."""
+        h = None if static_load is None else np.asarray(static_load, float)
+        if h is None or h.shape != (6,) or not np.all(np.isfinite(h)):
+            return
+        n = self.windows
+        self.load = h.copy() if self.load is None or n == 0 else (self.load * n + h) / (n + 1)
+        self.windows = n + 1
+
+
+def move_reference(post: "SequentialPosterior", reference: np.ndarray,
+                   sensitivity: np.ndarray | None) -> tuple[np.ndarray, float] | None:
+    """Carry ``post`` to the angles at another static load (a flight's trim, issue 25):
+    P + σ_L² I with σ_L² = Σ_k (s_k Δ_k)² for the move Δ from the load it referred to
+    (load_excursion_variance; the rig's 1-σ bound on the angles' load sensitivity), the mean
+    unchanged (the bound's sign is unknown). Returns (Δ, σ_L) when it moved a reference it
+    had; a posterior with none takes this one without widening (a configured start is a
+    statement about the angles where the run starts)."""
+    r = np.asarray(reference, float)
+    if r.shape != (6,) or not np.all(np.isfinite(r)):
+        return None
+    old = post.reference.load
+    post.reference = ReferenceLoad(r.copy(), 0)
+    if old is None or sensitivity is None:
+        return None
+    delta = r - old
+    v = load_excursion_variance(sensitivity, delta)
+    if v <= 0.0:
+        return None
+    post.P = post.P + v * np.eye(len(post.P))
+    post.fold()
+    return delta, math.sqrt(v)
+
+
 class LoadReference:
     """The reference (trim) load of filter-error windows and each window's excursion from it
     (docs/identification.md, "Load excursions", issue 25): the median of the last
@@ -1386,10 +1391,10 @@ class PeriodicIdentification:
         moved = None
         if self.mode == "filter_error":
             # the trim the window's angles refer to; a posterior of another load (a ground
-            # calibration) is carried there first (SequentialPosterior.move_reference)
+            # calibration) is carried there first (move_reference)
             ref = self._load_reference.observe(static_load)
             if ref is not None:
-                moved = self.posterior.move_reference(ref, self._load_reference.sensitivity)
+                moved = move_reference(self.posterior, ref, self._load_reference.sensitivity)
         theta_p, P_p = self.posterior.prior(dt)
         missing = 1.0 - float(valid.mean()) if N else 1.0
         window = (seq0, seq1)
@@ -1510,7 +1515,7 @@ class PeriodicIdentification:
         if moved is not None:
             rec.reference_move = {"delta": [float(x) for x in moved[0]], "sigma": moved[1]}
         if self.mode == "known_loads" and rec.accepted:
-            post.note_known_load(static_load)
+            post.reference.note(static_load)
         if self.structure is not None:
             # the bound's fit the held windows' next run starts from (windows since it held)
             if post.moments.windows_held == 0 or post.prediction is None:

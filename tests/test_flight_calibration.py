@@ -425,20 +425,21 @@ def test_the_reference_load_widens_the_posterior_by_the_sensitivity_bound_and_is
     known-load windows' loads; it round-trips through the saved file, and a malformed one is
     refused in one line."""
     from rsra.estimator.posterior import (PosteriorFileError, PosteriorState,
-                                          SequentialPosterior, posterior_from_json)
+                                          SequentialPosterior, move_reference,
+                                          posterior_from_json)
 
     names = tuple(f"a{i}" for i in range(14))
     post = SequentialPosterior(names, np.zeros(14), np.full(14, 1e-3), drift_rate=0.0,
                                min_information=1.0, sigma_max=np.full(14, 1e-2), reset_after=3,
                                stale_fraction=0.5)
     s = np.array([0.0, 0.0, 1e-7, 0.0, 0.0, 0.0])
-    assert post.move_reference(np.array([0, 0, -9e4, 0, 0, 0.0]), s) is None
+    assert move_reference(post, np.array([0, 0, -9e4, 0, 0, 0.0]), s) is None
     assert np.allclose(post.P, np.eye(14) * 1e-6)
-    post.note_known_load(np.array([0, 0, -7e4, 0, 0, 0.0]))
-    post.note_known_load(np.array([0, 0, -9e4, 0, 0, 0.0]))
-    assert np.allclose(post.reference_load, [0, 0, -8e4, 0, 0, 0])
+    post.reference.note(np.array([0, 0, -7e4, 0, 0, 0.0]))
+    post.reference.note(np.array([0, 0, -9e4, 0, 0, 0.0]))
+    assert np.allclose(post.reference.load, [0, 0, -8e4, 0, 0, 0])
     th = post.theta.copy()
-    delta, sig = post.move_reference(np.array([0, 0, -9.5e4, 0, 0, 0.0]), s)
+    delta, sig = move_reference(post, np.array([0, 0, -9.5e4, 0, 0, 0.0]), s)
     assert delta[2] == pytest.approx(-1.5e4) and sig == pytest.approx(1.5e-3)
     assert np.allclose(post.P, np.eye(14) * (1e-6 + 1.5e-3 ** 2)) and np.array_equal(post.theta, th)
     st = post.state()
