@@ -1305,6 +1305,13 @@ class PeriodicIdentification:
         d = verdict.drift
         post = self.posterior
         names = self.model.geometry.angle_names
+        if verdict.structure == "not_constant":
+            # a load dependence is not a trend, and the constant-angle fits the prediction
+            # comes from do not hold: nothing moves the posterior while it is rejected
+            post.set_trend(None)
+            post.set_prediction(None)
+            self._bound_look = None
+            return
         if d is not None and d.selected:
             post.set_trend(names, d.rate)
         elif post.trend is not None and (
@@ -1499,6 +1506,11 @@ class PeriodicIdentification:
             # curved valley; its window's information is held for the next run)
             nonlinear = nonlinearity(prob, lm_prior[0], lm_prior[1], res.theta, res.P,
                                      math.sqrt(float(np.max(np.diag(post.P0)))))
+        if (self.structure is not None and self.mode == "known_loads" and res.sound
+                and not (nonlinear is not None and nonlinear > self.nonlinearity_limit)):
+            # a cold start's look had no verdict: judge it at the run's own estimate, before
+            # the run is accepted on angles the structure test has not seen
+            verdict = self.structure.rejudge(res.theta)
         if isinstance(prob, FilterErrorProblem):
             self.last_window = (prob, res.theta if res.sound else theta_p)
         checks = None

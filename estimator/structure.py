@@ -570,6 +570,50 @@ def fit_constant_converged(model: RigModel, alpha: np.ndarray, means: np.ndarray
     return alpha + np.angle(np.exp(1j * (a - alpha))), converged
 
 
+def settle_constant(model: RigModel, alpha: np.ndarray, means: np.ndarray, counts: np.ndarray,
+                    moment_floor: float, iterations: int = 4 * FIT_MAX_EVALUATIONS) -> np.ndarray:
+    """The constant fit's minimum from ``alpha`` by damped Gauss–Newton (Levenberg–Marquardt):
+    where few conditions leave directions weakly determined, undamped steps from a run's
+    estimate wander by tens of degrees. The minimum is the same point the Gauss–Newton fit
+    converges at; this only finds it (``fit_constant_converged`` then judges convergence)."""
+    a = np.asarray(alpha, float).copy()
+    Li = _whitener(model, a, moment_floor)
+    r, Ja, _ = _stack(model, a, means, counts, Li, ())
+    cost = float(r @ r)
+    lam = 1e-3
+    for _ in range(iterations):
+        A = Ja.T @ Ja
+        d = np.maximum(np.diag(A), 1e-12 * max(float(np.max(np.diag(A))), 1e-300))
+        try:
+            step = np.linalg.solve(A + lam * np.diag(d), Ja.T @ r)
+        except np.linalg.LinAlgError:
+            break
+        r2, J2, _ = _stack(model, a + step, means, counts, Li, ())
+        c2 = float(r2 @ r2)
+        if np.isfinite(c2) and c2 <= cost:
+            a, r, Ja, cost = a + step, r2, J2, c2
+            lam = max(lam / 3.0, 1e-9)
+            if np.max(np.abs(step)) < CONVERGED_STEP_RAD:
+                break
+        else:
+            lam *= 4.0
+            if lam > 1e9:
+                break
+    out: np.ndarray = np.asarray(alpha, float) + np.angle(np.exp(1j * (a - alpha)))
+    return out
+
+
+def constant_misfit(model: RigModel, alpha: np.ndarray, means: np.ndarray, counts: np.ndarray,
+                    moment_floor: float) -> tuple[float, int]:
+    """The constant model's whitened misfit over the conditions at ``alpha`` and its dof
+    (6C − the rank of the angle columns)."""
+    Li = _whitener(model, alpha, moment_floor)
+    r, Ja, _ = _stack(model, np.asarray(alpha, float), means, counts, Li, ())
+    sv = np.linalg.svd(Ja, compute_uv=False)
+    rank = int(np.sum(sv > RANK_TOLERANCE * sv[0])) if len(sv) and sv[0] > 0 else 0
+    return float(r @ r), len(r) - rank
+
+
 @dataclass
 class StructureFit:
     """One structure against the constant model on the accumulated conditions."""
@@ -1160,7 +1204,28 @@ class StructureTest:
         self.last = v
         return self.last
 
-    def _verdict(self, alpha: np.ndarray, restarted: bool) -> StructureVerdict:
+    def rejudge(self, alpha: np.ndarray) -> StructureVerdict:
+        """The last look again from other angles (a run's own estimate) when it gave no
+        verdict because the constant fit did not converge from the angles in force (a cold
+        start): that look spent nothing, so judging it once more at its level keeps the
+        test's size. Anything else: the last verdict unchanged."""
+        last = self.last
+        alpha = np.asarray(alpha, float)
+        if (last.structure != "undetermined" or last.fits or not self.clusters
+                or not np.isfinite(alpha).all()):
+            return last
+        means = np.array([c.mean for c in self.clusters])
+        counts = np.array([c.n for c in self.clusters], float)
+        start = settle_constant(self.model, alpha, means, counts, self.moment_floor)
+        v = self._verdict(start, last.restarted, misfit_test=True)
+        v.drift = last.drift
+        if v.drift is not None and v.drift.selected and v.structure != "not_constant":
+            v.structure = DRIFTING
+        self.last = v
+        return v
+
+    def _verdict(self, alpha: np.ndarray, restarted: bool, misfit_test: bool = False
+                 ) -> StructureVerdict:
         level = spend(self.look, self.false_alarm)
         means = np.array([c.mean for c in self.clusters])
         counts = np.array([c.n for c in self.clusters], float)
@@ -1168,6 +1233,13 @@ class StructureTest:
         # far off in directions they did not determine)
         a, converged = fit_constant_converged(self.model, alpha, means, counts,
                                               self.moment_floor)
+        if not converged and not self.rejected and misfit_test:
+            # (rejudge: ``alpha`` the damped minimum from a run's estimate) Gauss–Newton
+            # diverging at the constant fit's minimum is the large-residual case: the misfit
+            # itself, χ² on 6C − rank dof under constant angles, is this look's one test
+            m, dof = constant_misfit(self.model, alpha, means, counts, self.moment_floor)
+            if dof > 0 and m > float(chi2.isf(level, dof)):
+                self.rejected, a = True, np.asarray(alpha, float)
         self.alpha = a
         if not converged and not self.rejected:
             # far from the angles (a cold start, a run that did not converge): the linearised

@@ -264,6 +264,48 @@ def test_load_dependent_ground_test_says_not_constant_without_the_reset_cycle():
     assert {"statistic", "dof", "parameters", "per_kN"} <= set(cands[0])
 
 
+def test_thrust_dependent_angles_are_rejected_at_the_first_runs_and_nothing_moves_after():
+    """Issue 25 (session 18): the ground test with angles following the thrust (1° per 100 kN,
+    the flight rig, seed 2). The cold start's looks gave no verdict (the constant fit does not
+    converge from 0°) and the constant-angle runs on them were accepted 3.7° off (χ²₁₄ 210–330
+    against the truth); then, once `not_constant`, the drift test's trend moved the posterior
+    up to 75° through rejected runs. Now the look is judged again at the run's own estimate
+    (the constant fit's misfit where Gauss–Newton diverges at its minimum) — `not_constant` by
+    the 7th window — and while it stands nothing moves the posterior.
+    Break-checked: without ``StructureTest.rejudge`` the first `not_constant` is the 11th
+    window (this fails); without the `not_constant` branch of ``_follow_drift`` the posterior
+    moves at window 20 (this fails)."""
+    from bench.a6_flight import flight_rig_path
+    from bench.a3_known_load import run_calibration
+    from rsra.sim_bus import load_scenario, simulate
+    cfg = load_config(flight_rig_path())
+    run = simulate(cfg, load_scenario("ground-test", angles="linear"), seed=2, duration_s=120)
+    out = [(rec, th, P) for _, rec, th, P in run_calibration(cfg, run, known_loads=True)]
+    kinds = [r["structure"] for r, _, _ in out]
+    first = kinds.index("not_constant")
+    assert first <= 6, kinds
+    assert all(k == "not_constant" for k in kinds[first:])
+    assert not any(r["accepted"] for r, _, _ in out[first:])
+    th0, P0 = out[first][1], out[first][2]
+    for r, th, P in out[first:]:
+        assert np.array_equal(th, th0) and np.array_equal(P, P0), r["seq"]
+
+
+def test_a_cold_start_look_is_judged_at_the_runs_estimate():
+    """Constant angles, the same start: the first accepted run's look (no verdict from 0°)
+    is judged at the run's own estimate — `constant`, not `undetermined` (break-checked:
+    without the re-judgement it says `undetermined`)."""
+    from bench.a6_flight import flight_rig_path
+    from bench.a3_known_load import run_calibration
+    from rsra.sim_bus import load_scenario, simulate
+    cfg = load_config(flight_rig_path())
+    run = simulate(cfg, load_scenario("ground-test"), seed=2, duration_s=30)
+    recs = [rec for _, rec, _, _ in run_calibration(cfg, run, known_loads=True)]
+    acc = [r for r in recs if r["accepted"]]
+    assert acc and acc[0]["structure"] == "constant"
+    assert not any(r["structure"] == "not_constant" for r in recs)
+
+
 def test_filter_error_records_carry_no_structure():
     from rsra.estimator.posterior import AnglesRecord
     rec = AnglesRecord(t=None, seq=1, mode="filter_error", content="harmonics", accepted=False,
