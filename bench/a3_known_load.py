@@ -118,7 +118,8 @@ def run_calibration(cfg, run, *, known_loads: bool, initial_state=None,
         if missing is not None:
             job["missing"] = missing[sl].copy()
         rec = run_job(cfg, runs, cache, job)
-        yield end - 1, rec, post.theta.copy(), post.P.copy()
+        # the covariance the service states (records, files): the load spread added
+        yield end - 1, rec, post.theta.copy(), post.reference.reported(post.P)
 
 
 def chi2_of(err: np.ndarray, P: np.ndarray) -> float:

@@ -278,6 +278,13 @@ def _sensitivities(x: np.ndarray, dA: np.ndarray) -> np.ndarray:
     return result
 
 
+def moments_information(par: Parameterisation, G: np.ndarray, n_scored: int,
+                        theta: np.ndarray) -> np.ndarray | None:
+    """The information (Gauss–Newton M) about θ of known-load windows given by their moments
+    ``G = Σ x xᵀ`` and scored count, at ``theta``."""
+    return _moments_evaluation(par, G, n_scored, theta, True, None).information
+
+
 def _moments_evaluation(par: Parameterisation, G: np.ndarray, n_scored: int, theta: np.ndarray,
                         derivatives: bool, fixed_weight: np.ndarray | None) -> Evaluation:
     """V, its gradient and M of the known-load likelihood from the moments G = Σ x xᵀ."""

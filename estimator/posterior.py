@@ -73,6 +73,7 @@ from .identification import (
     scored_mask,
 )
 from .curvature import nonlinearity
+from .load_spread import LoadSpread
 from .params import RigModel
 from .structure import DriftTest, StructureTest, StructureVerdict, fit_payload
 
@@ -712,7 +713,7 @@ class SequentialPosterior:
         return posterior_from_config(ident, names, angle_names, **kw)
 
     def state(self) -> PosteriorState:
-        return PosteriorState(self.names, self.theta.copy(), self.P.copy(),
+        return PosteriorState(self.names, self.theta.copy(), self.reference.reported(self.P),
                               self.applies_from_seq, self.t, self.rig,
                               self.structure_fit, self.reference.load)
 
@@ -916,7 +917,7 @@ def angles_record(post: "SequentialPosterior", *, accepted: bool, reason: str | 
         else structure.drift.to_dict(),
         structure_verdict=structure,
         t=t, seq=int(window[1]), mode=mode, content=content, accepted=accepted,
-        reason=reason, names=post.names, alpha=post.theta.copy(), P=post.P.copy(),
+        reason=reason, names=post.names, alpha=post.theta.copy(), P=post.reference.reported(post.P),
         sigma_cr=None if result is None else result.sigma_cr,
         sigma_cr_corrected=None if result is None else result.sigma_cr_corrected,
         determined=det, information=information, nu=nu,
@@ -1112,6 +1113,9 @@ class ReferenceLoad:
 
     def __init__(self, load: np.ndarray | None = None, windows: int = 0) -> None:
         self.load, self.windows = load, windows
+        # the covariance the angles' load dependence adds at this reference (LoadSpread,
+        # issue 25): set at each accepted known-load run of a rig with a sensitivity bound
+        self.cov: np.ndarray | None = None
 
     @classmethod
     def restored(cls, load: Any) -> "ReferenceLoad":
@@ -1126,6 +1130,10 @@ class ReferenceLoad:
         self.load = h.copy() if self.load is None or n == 0 else (self.load * n + h) / (n + 1)
         self.windows = n + 1
 
+    def reported(self, P: np.ndarray) -> np.ndarray:
+        """``P`` with the load spread added: what records and files state."""
+        return P.copy() if self.cov is None else P + self.cov
+
 
 def move_reference(post: "SequentialPosterior", reference: np.ndarray,
                    sensitivity: np.ndarray | None) -> tuple[np.ndarray, float] | None:
@@ -1139,6 +1147,7 @@ def move_reference(post: "SequentialPosterior", reference: np.ndarray,
     if r.shape != (6,) or not np.all(np.isfinite(r)):
         return None
     old = post.reference.load
+    post.P = post.reference.reported(post.P)  # the ground runs' load spread goes with it
     post.reference = ReferenceLoad(r.copy(), 0)
     if old is None or sensitivity is None:
         return None
@@ -1262,6 +1271,9 @@ class PeriodicIdentification:
                                     moment_floor=self.moment_floor,
                                     known_loads=self.mode == "known_loads")
         self._load_reference = LoadReference(self.angle_load_sensitivity)
+        sens = self._load_reference.sensitivity
+        self._spread = (LoadSpread(self.posterior, self.par, sens)
+                        if self.mode == "known_loads" and sens is not None else None)
         self.structure: StructureTest | None = None
         if self.mode == "known_loads" and self.structure_test and self.content == "static":
             # the test compares window means: static content only (docs/identification.md)
@@ -1446,6 +1458,7 @@ class PeriodicIdentification:
             if H is None:
                 raise ValueError("a known-load window needs its known loads H")
             prob = KnownLoadProblem(self.par, z, T, H, q, scored=scored)
+            own = (prob.G, prob.n_scored)  # this window's alone (LoadSpread)
             if post.relinearise and post.moments.G_held is not None:
                 # windows held back as not identifiable on their own count with this one
                 prob = prob.with_moments(post.moments.G_held, post.moments.n_held)
@@ -1528,6 +1541,9 @@ class PeriodicIdentification:
             rec.reference_move = {"delta": [float(x) for x in moved[0]], "sigma": moved[1]}
         if self.mode == "known_loads" and rec.accepted:
             post.reference.note(static_load)
+        if self._spread is not None and moments is not None:
+            self._spread.after(rec, own, static_load)
+            rec.P = post.reference.reported(post.P)  # the record states the spread it added
         if self.structure is not None:
             # the bound's fit the held windows' next run starts from (windows since it held)
             if post.moments.windows_held == 0 or post.prediction is None:

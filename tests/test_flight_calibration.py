@@ -448,3 +448,34 @@ def test_the_reference_load_widens_the_posterior_by_the_sensitivity_bound_and_is
     bad = dict(PosteriorState(names, np.zeros(14), np.eye(14)).to_dict(), reference_load=[1, 2])
     with pytest.raises(PosteriorFileError, match="reference_load"):
         posterior_from_json(__import__("json").dumps(bad), "p.json")
+
+
+def test_a_ground_calibration_over_loads_the_angles_follow_states_their_spread():
+    """Issue 25, session 18 (estimator.load_spread): the ground test with angles following the
+    thrust (1° per 100 kN; the flight rig's bound is the same) pools windows at 76–84 kN, each
+    about the angles at its own load. The posterior the service states — the record's P, the
+    saved file's P, what ``run_calibration`` yields — adds Σ_k s_k² A_k A_kᵀ, so every
+    accepted run is consistent with the true angles at its reference load (the mean of the
+    accepted windows' truths). Seed 3, 60 s. Break-checked: with the spread left out
+    (``LoadSpread.covariance`` returning None) accepted runs reach χ²₁₄ 173 (limit 42.0)."""
+    from bench.a3_known_load import run_calibration
+    from bench.a6_flight import flight_rig_path
+    from rsra.sim_bus import load_scenario, simulate
+
+    cfg = load_config(flight_rig_path())
+    run = simulate(cfg, load_scenario("ground-test", angles="linear"), seed=3, duration_s=60)
+    posts: list = []
+    truths, chi = [], []
+    for end, rec, th, P in run_calibration(cfg, run, known_loads=True, posterior_out=posts):
+        if not rec["accepted"]:
+            continue
+        assert np.allclose(np.asarray(rec["P"]), P)  # the record states the same covariance
+        truths.append(run.alpha_true[end - 999:end + 1].mean(0))
+        e = th - np.mean(truths, axis=0)
+        chi.append(float(e @ np.linalg.solve(P, e)))
+    assert len(chi) >= 6
+    limit = stats.chi2.isf(1e-3 / len(chi), 14)
+    assert max(chi) <= limit, (chi, limit)
+    post = posts[0]
+    assert post.reference.cov is not None and np.all(np.linalg.eigvalsh(post.reference.cov) > -1e-18)
+    assert np.allclose(post.state().P, post.P + post.reference.cov)

@@ -82,8 +82,10 @@ def build_identification(cfg, initial_state=None):
         # rings in the output for a while, so those samples are not scored (after the start)
         return ContentFilter(kind, fs, w0, harm, 1).settle_samples
 
+    sens = np.asarray(idc.angle_load_sensitivity_rad_per_unit, float)
     known = PeriodicIdentification(mode="known_loads", content=idc.content_known_loads,
                                    content_settle_samples=settle(idc.content_known_loads),
+                                   angle_load_sensitivity=sens,  # the load spread (issue 25)
                                    nonlinearity_limit=(idc.nonlinearity_limit if idc.nonlinearity_check
                                                        else math.inf), **common)
     design = cache.design_for(w0)
@@ -96,8 +98,7 @@ def build_identification(cfg, initial_state=None):
                                   content_sos=ContentFilter(idc.content_filter_error, fs, w0,
                                                             harm, 1).sos,
                                   content_settle_samples=settle(idc.content_filter_error),
-                                  angle_load_sensitivity=np.asarray(
-                                      idc.angle_load_sensitivity_rad_per_unit, float),
+                                  angle_load_sensitivity=sens,
                                   scattered_fraction=idc.filter_error_scattered_fraction,
                                   **common)
     from rsra.daq.runtime.flight_advice import FlightAdvice
