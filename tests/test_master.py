@@ -121,7 +121,12 @@ def test_an_optional_node_missing_is_reported_and_the_start_goes_on():
                    what="NMT start")
         nodes = r.health().to_dict()["nodes"]
         assert nodes["balance"]["state"] == "missing" and not nodes["balance"]["required"]
-        assert all(d["state"] == "booting" for n, d in nodes.items() if n != "balance"), nodes
+        # every other node was heard booting and started; LocalSlaves send no periodic
+        # heartbeat, so a slow machine may see the watchdog call them "lost" after that:
+        # the property is that they booted, were started and are not "missing"
+        others = {n: d for n, d in nodes.items() if n != "balance"}
+        assert all(d["boots"] >= 1 and d["heartbeat_age"] is not None
+                   and d["state"] in ("booting", "lost") for d in others.values()), nodes
     finally:
         r.close()
         slaves.close()
