@@ -205,6 +205,23 @@ class BusEndpoint:
             self.emit(msg)
             return msg
 
+    def transmit_many(self, frames: list[tuple[int, bytes, bool]], t: float | None) -> None:
+        """Build, stamp (each at ``t`` as :meth:`transmit` stamps, in order) and send
+        ``frames`` ((cob_id, data, error) each) in one call where the bus allows
+        (rsra.canbus.send_batch: a receiver waiting on the in-process virtual bus wakes once
+        for all of them). The frames, their stamps and the recording are :meth:`transmit`'s
+        one at a time."""
+        if not frames:
+            return
+        with self.lock:
+            stamp, frame_time, build = self.clock.stamp, self.frame_time, self.build
+            msgs: list[can.Message] = []
+            for cob_id, data, error in frames:
+                msg = build(cob_id, data, error)
+                msg.timestamp = stamp(t, frame_time(len(data)))
+                msgs.append(msg)
+            self._sent(msgs)
+
     def build(self, cob_id: int, data: bytes, error: bool = False, *,
               remote: bool = False) -> _TxMessage:
         """The message to send (built at the SYNC by :meth:`transmit`, or ahead of it)."""
@@ -225,6 +242,10 @@ class BusEndpoint:
         stamp, frame_time = self.clock.stamp, self.frame_time
         for msg in msgs:
             msg.timestamp = stamp(None, frame_time(len(msg.data)))
+        self._sent(msgs)
+
+    def _sent(self, msgs: list[can.Message]) -> None:
+        """Send stamped messages in one call where the bus allows; count, record, capture."""
         send_batch(self.bus, msgs)
         self.frames_sent += len(msgs)
         if self.logger is not None:  # under the recording's one channel name, as emit()
