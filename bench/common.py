@@ -271,12 +271,20 @@ def _fmt(v: Any) -> str:
 
 
 def latest_run(lines: Iterable[dict]) -> list[dict]:
-    """The lines of the latest full-size run in one results file (tiny runs ignored)."""
+    """The lines of the latest full-size run in one results file (tiny runs ignored); a check
+    measured more than once in that run (an arm re-run with ``--extend``) by its newest line,
+    in the place of its first."""
     lines = [ln for ln in lines if not ln.get("tiny")]
     if not lines:
         return []
     last = max(lines, key=lambda ln: (ln.get("date", ""), ln.get("run_id", "")))["run_id"]
-    return [ln for ln in lines if ln.get("run_id") == last]
+    newest: dict[str, dict] = {}
+    for ln in lines:
+        if ln.get("run_id") == last:
+            key = ln.get("check", "")
+            if key not in newest or ln.get("date", "") >= newest[key].get("date", ""):
+                newest[key] = ln
+    return list(newest.values())
 
 
 def latest_runs(results_dir: str | Path = RESULTS_DIR) -> Iterator[tuple[str, list[dict]]]:

@@ -899,6 +899,12 @@ class DriftTest:
         a_hat, th, Pth, tbar = fit
         return _trend_prediction(a_hat, th, Pth, tbar, t)
 
+    def bounded_angles(self, look: int | None = None) -> np.ndarray | None:
+        """The constant fit α̂ the bounded prediction of ``look`` is linearised at (None as
+        :meth:`predict_bounded`)."""
+        fit = self._bounded if look is None else self._bounded_by_look.get(look)
+        return None if fit is None else fit[0]
+
     def predict_bounded_at(self, t: float, look: int | None, at: np.ndarray
                            ) -> tuple[np.ndarray, np.ndarray] | None:
         """:meth:`predict_bounded` with the joint fit linearised at the angles ``at`` instead
@@ -921,6 +927,45 @@ class DriftTest:
         if th_P is None:
             return None
         return _trend_prediction(a0, th_P[0], th_P[1], tbar, t)
+
+    def bounded_load_spread(self, t: float, look: int | None, at: np.ndarray,
+                            sensitivity: np.ndarray, reference: np.ndarray | None
+                            ) -> np.ndarray | None:
+        """The covariance the angles' load dependence adds to the bounded prediction at time
+        t (issue 25; estimator.load_spread for the posterior): each window mean is of the
+        angles at its own static load L_j (its mean known hub loads), α_ref + g (L_j − L_ref),
+        g_k of 1-σ ``sensitivity[k]`` on axis k and unknown sign, so the prediction carries
+        ``Σ_k D_k g_k``, D_k = [I, (t − t̄) I] Pθ Jᵀ diag(L_jk − L_ref,k) A with J = [A, B] the
+        fit's linearised windows at ``at`` (the angles its prediction was linearised at).
+        ``reference``: L_ref (None: the windows' count-weighted mean load). Returns
+        Σ_k s_k² D_k D_kᵀ; None when that look is not kept or nothing is configured."""
+        key = self.look if look is None else look
+        fit, wins = self._bounded_by_look.get(key), self._windows_by_look.get(key)
+        s = np.asarray(sensitivity, float)
+        if fit is None or wins is None or key not in self._scale_by_look or not np.any(s):
+            return None
+        ts, means, counts = wins
+        tbar = fit[3]
+        a0 = np.asarray(at, float)
+        Li = _whitener(self.model, a0, self.moment_floor)
+        e, A, _ = _stack(self.model, a0, means, counts, Li, ())
+        B = A * np.repeat(ts - tbar, 6)[:, None]
+        th_P = self._joint(A, B, e, self._scale_by_look[key])
+        if th_P is None:
+            return None
+        nc = self.model.geometry.n_cells
+        loads = np.atleast_2d(np.asarray(means, float))[:, 6 + nc:12 + nc]
+        w = np.asarray(counts, float)
+        ref = (np.asarray(reference, float) if reference is not None
+               else (w[:, None] * loads).sum(0) / max(float(w.sum()), 1.0))
+        na = self.n_a
+        Lt = np.hstack([np.eye(na), (float(t) - tbar) * np.eye(na)])
+        LPJ = Lt @ th_P[1] @ np.hstack([A, B]).T  # (14, 6W)
+        C = np.zeros((na, na))
+        for k in np.flatnonzero(s):
+            D = LPJ @ (np.repeat(loads[:, k] - ref[k], 6)[:, None] * A)
+            C += s[k] ** 2 * (D @ D.T)
+        return 0.5 * (C + C.T)
 
     def bounded_shift(self, t: float, look: int | None = None, since: float | None = None
                       ) -> tuple[np.ndarray, np.ndarray] | None:

@@ -64,6 +64,23 @@ def test_results_table_from_latest_full_runs(tmp_path):
     assert (tmp_path / "RESULTS.md").read_text() == text
 
 
+
+def test_an_arm_rerun_into_the_latest_run_replaces_its_lines(tmp_path):
+    """``--extend`` re-runs add their lines under the latest run's id: the table shows each
+    check once, by its newest line, in its first line's place (README once listed 997 and
+    59.0 for the same check)."""
+    w = ResultWriter("a6_flight", out_dir=tmp_path, echo=False)
+    w.run_id = "20990101T000000Z-1"
+    w.add("arm_consistency", 997.0, "chi2", target="t", met=False)
+    w.add("other", 1.0, "x", target="t", met=True)
+    lines = read_lines(tmp_path / "a6_flight.jsonl")
+    again = {**lines[0], "figure": 41.1, "met": True, "date": "2999-01-01T00:00:00+00:00"}
+    with open(tmp_path / "a6_flight.jsonl", "a") as f:
+        f.write(json.dumps(again) + "\n")
+    run = latest_run(read_lines(tmp_path / "a6_flight.jsonl"))
+    assert [(ln["check"], ln["figure"]) for ln in run] == [("arm_consistency", 41.1), ("other", 1.0)]
+
+
 # ---------------------------------------------------------------- the cross-process benches
 def test_rate_config_is_the_default_rig_at_another_rate(tmp_path):
     from bench.rig import rate_config

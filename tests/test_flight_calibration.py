@@ -479,3 +479,33 @@ def test_a_ground_calibration_over_loads_the_angles_follow_states_their_spread()
     post = posts[0]
     assert post.reference.cov is not None and np.all(np.linalg.eigvalsh(post.reference.cov) > -1e-18)
     assert np.allclose(post.state().P, post.P + post.reference.cov)
+
+
+def test_the_drift_bound_prior_of_a_ground_calibration_states_its_load_spread():
+    """Issue 25, session 20 (``DriftTest.bounded_load_spread``): once the windows determine
+    the 14 angles and rates, a known-load run's prior is the drift bound's prediction, a fit
+    of window means held at 76–84 kN. With angles following the thrust each mean is of the
+    angles at its own load; the prediction now adds Σ_k s_k² D_k D_kᵀ for it. Flight rig,
+    ground test with thrust-dependent angles, seed 9, 50 s: every accepted run whose prior
+    was the prediction is consistent with the true angles at its reference load (measured
+    χ²₁₄ 23.4, 13.5, 16.3). Break-checked: without the spread
+    (``PeriodicIdentification._with_load_spread`` returning ``pred``) 71.8, 76.7, 88.5."""
+    from bench.a3_known_load import run_calibration
+    from bench.a6_flight import flight_rig_path
+    from rsra.sim_bus import load_scenario, simulate
+
+    cfg = load_config(flight_rig_path())
+    run = simulate(cfg, load_scenario("ground-test", angles="linear"), seed=9, duration_s=50)
+    posts: list = []
+    truths, chi = [], []
+    for end, rec, th, P in run_calibration(cfg, run, known_loads=True, posterior_out=posts):
+        if not rec["accepted"]:
+            continue
+        truths.append(run.alpha_true[end - 999:end + 1].mean(0))
+        if posts[0].prediction is None:  # this run's prior was the posterior
+            continue
+        e = th - np.mean(truths, axis=0)
+        chi.append(float(e @ np.linalg.solve(P, e)))
+    assert len(chi) >= 3, chi
+    limit = stats.chi2.isf(1e-3 / len(chi), 14)
+    assert max(chi) <= limit, (chi, limit)
