@@ -301,7 +301,15 @@ class RealtimeSim(_Served):
     compute the next physics block (``prefetch``) and build the next SYNC's answer
     (``prepare_next``), so the SYNC only sends pre-built frames (docs/performance.md P5).
     :meth:`run` produces SYNC at the sample rate (autostart) or lets time pass while a
-    master's SYNCs are answered."""
+    master's SYNCs are answered.
+
+    At periods of ``INLINE_PLAN_PERIOD_S`` or less the next answer is built in the SYNC's own
+    wake-up, right after this SYNC's answer went out: a ticker woken half a period later is
+    often late at such periods, and the SYNC then finds no plan (docs/performance.md,
+    "Issue 26, session 21"). The frames are the same either way (pure functions of seed,
+    sample and slot)."""
+
+    INLINE_PLAN_PERIOD_S = 0.002  # 500 samples/s and above
 
     def __init__(self, cfg: Any, scenario: Any = None, **kw: Any):
         self.clock = WallClock()
@@ -339,6 +347,11 @@ class RealtimeSim(_Served):
         super().check()
 
     def _on_sync_frame(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if self.sim.dt <= self.INLINE_PLAN_PERIOD_S:
+            # a short period: build the next answer in this wake-up, right after this one;
+            # a ticker woken half a period later is often late (docs/performance.md P6b)
+            self.sim.prefetch()
+            self.sim.prepare_next()
         self._schedule_ahead()
 
     def _schedule_ahead(self) -> None:

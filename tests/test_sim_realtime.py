@@ -228,3 +228,39 @@ def test_sent_frames_reach_receivers_as_independent_plain_messages():
                    for m in g)
     got[0][-1].data[0] ^= 0xFF  # one receiver's copy is its own
     assert got[1][-1].data[0] != got[0][-1].data[0]
+
+
+@pytest.mark.timeout(60)
+def test_at_short_periods_each_sync_builds_the_next_answer_in_its_own_wake_up(monkeypatch):
+    """At periods of ``RealtimeSim.INLINE_PLAN_PERIOD_S`` or less the SYNC's own callback
+    builds the next answer (the ticker half a period later is often late there): with the
+    ticker's work-ahead switched off, every SYNC after the first still finds its answer built,
+    and the frames are lock-step's."""
+    cfg = load_config(overrides={"rig": {"sample_rate_hz": RATE}})
+    monkeypatch.setattr(RealtimeSim, "INLINE_PLAN_PERIOD_S", 2.0 / RATE)  # RATE counts as short
+    monkeypatch.setattr(RealtimeSim, "_schedule_ahead", lambda self: None)  # no ticker plans
+    n = 20
+    start = can.Message(arbitration_id=0, is_extended_id=False, data=[1, 0])
+    chan = channel_name("inline-ref")
+    master = can.Bus(interface="virtual", channel=chan, receive_own_messages=False)
+    try:
+        with LockstepSim(cfg, physics=_physics(cfg, 3), seed=3, channel=chan) as sim:
+            master.send(start)
+            ref = _tpdos(f for k in range(1, n + 1) for f in sim.on_sync(k, k * sim.dt))
+    finally:
+        master.shutdown()
+    chan = channel_name("inline-live")
+    master = can.Bus(interface="virtual", channel=chan, receive_own_messages=False)
+    try:
+        with RealtimeSim(cfg, physics=_physics(cfg, 3), seed=3, channel=chan) as sim:
+            master.send(start)
+            for k in range(1, n + 1):
+                time.sleep(sim.dt)  # pace only: the SYNCs are handled in order, one thread
+                master.send(can.Message(arbitration_id=0x80, is_extended_id=False, data=[k]))
+            wait_until(lambda: len(sim.sync_info) == n, timeout=20.0, what="every SYNC answered")
+            sim.check()
+        got = list(iter(lambda: master.recv(0), None))
+    finally:
+        master.shutdown()
+    assert _tpdos(got) == ref
+    assert sim.prepared == n - 1 and sim.plans_discarded == 0  # all but the first built ahead
