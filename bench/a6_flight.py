@@ -45,7 +45,9 @@ Decisions at an overall false-alarm rate of 10⁻³:
 * no accepted run whose window determines nothing (``window_determined`` = 0);
 * hub-load RMS error with the updates not worse than without, per axis: one-sided paired
   t-test over seeds at 10⁻³ (the load filter of the service over the run, with the angles
-  applied where the records say, against the same filter at the starting angles);
+  applied where the records say, against the same filter at the starting angles); for the
+  flight rig's arms that start at the truth (``TRUTH_START_RIG_ARMS``) not worse by more than
+  ``TRUTH_START_MARGIN`` (1 %): from the truth an update can only add its own error;
 * ``power``: runs accepted and σ shrinking in every seed (a gate that rejects everything
   fails here).
 """
@@ -70,6 +72,13 @@ ARMS = ("flight_true", "flight_ground", "turbulence", "power")
 RIG_ARMS = ("rig_speed", "rig_manoeuvres", "rig_turbulence", "rig_zero", "rig_ground",
             "rig_ground_load")
 ALL_ARMS = ARMS + RIG_ARMS
+# Arms that start at the true angles: every update can only move the angles away from them, so
+# "not worse than without" would fail by any estimate's own error once enough seeds resolve it
+# (100 seeds resolve 0.15 %). Their hub loads are judged against a margin instead: at most 1 %
+# worse than without (the tolerance A1 grants the noise budget); the angles' own error is
+# judged by the χ² against their σ.
+TRUTH_START_RIG_ARMS = ("rig_speed", "rig_manoeuvres", "rig_turbulence")
+TRUTH_START_MARGIN = 0.01
 RIG_S = 20.0  # four runs: the pull-up (15-19 s) in the last
 SIGMA_TARGET_DEG = 0.1  # time to reach it, per determined direction
 # three triaxial accelerometers on the transmission (non-collinear): angular accelerations
@@ -353,17 +362,19 @@ class _Seed:
         return one_seed(seed, self.tiny, self.arms)
 
 
-def paired_not_worse(with_: np.ndarray, without: np.ndarray, false_alarm: float) -> dict:
-    """One-sided paired t-test per axis of H0 'with updates is not worse'; rejected (worse)
-    when the mean increase is beyond the 1 − false_alarm point (Bonferroni over 6 axes)."""
-    d = with_ - without  # (seeds, 6)
+def paired_not_worse(with_: np.ndarray, without: np.ndarray, false_alarm: float,
+                     margin: float = 0.0) -> dict:
+    """One-sided paired t-test per axis of H0 'with updates is not worse than without by more
+    than ``margin`` (a fraction of without's RMS)'; rejected (worse) when the mean of
+    with − (1 + margin)·without is beyond the 1 − false_alarm point (Bonferroni over 6 axes)."""
+    d = with_ - (1.0 + margin) * without  # (seeds, 6)
     S = len(d)
     mean = d.mean(0)
     sd = d.std(0, ddof=1) if S > 1 else np.zeros(6)
     t = np.where(sd > 0, mean / np.where(sd > 0, sd, 1.0) * math.sqrt(S), 0.0)
     limit = float(stats.t.isf(false_alarm / 6, max(S - 1, 1)))
     return {"t": t, "limit": limit, "worse": bool(np.any(t > limit)),
-            "mean_relative_change": mean / without.mean(0)}
+            "mean_relative_change": (with_ - without).mean(0) / without.mean(0)}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -463,12 +474,21 @@ def _report_rig_arm(w, arm: str, rows: list[dict]) -> None:
     w.add(f"{arm}_accepted", len(acc) / n_tested, "fraction of runs accepted",
           target="any (nothing biased accepted)" if turb else "> 0 (flight calibrates)",
           met=(worst <= limit) if turb else len(acc) > 0, **common)
+    margin = TRUTH_START_MARGIN if arm in TRUTH_START_RIG_ARMS else 0.0
     pw = paired_not_worse(np.array([r["rms_with"] for r in rows]),
-                          np.array([r["rms_without"] for r in rows]), FALSE_ALARM)
-    w.add(f"{arm}_hub_loads", float(pw["t"].max()),
-          "paired t (largest axis; > 0: worse with updates)",
-          target=f"with updates not worse than without on every axis (t ≤ {pw['limit']:.2f})",
-          met=not pw["worse"], mean_relative_change=pw["mean_relative_change"], **common)
+                          np.array([r["rms_without"] for r in rows]), FALSE_ALARM, margin)
+    if margin:
+        target = (f"from the truth, updates can only add error: not worse than without by more "
+                  f"than {margin:.0%} on any axis (t ≤ {pw['limit']:.2f})")
+        unit = f"paired t against +{margin:.0%} (largest axis; > 0: worse than that)"
+    else:
+        target = f"with updates not worse than without on every axis (t ≤ {pw['limit']:.2f})"
+        unit = "paired t (largest axis; > 0: worse with updates)"
+    w.add(f"{arm}_hub_loads", float(pw["t"].max()), unit, target=target,
+          met=not pw["worse"], mean_relative_change=pw["mean_relative_change"],
+          margin=margin, t_without_margin=float(paired_not_worse(
+              np.array([r["rms_with"] for r in rows]),
+              np.array([r["rms_without"] for r in rows]), FALSE_ALARM)["t"].max()), **common)
 
 
 if __name__ == "__main__":

@@ -9,6 +9,7 @@ from __future__ import annotations
 import importlib
 import json
 
+import numpy as np
 import pytest
 
 from bench.common import (
@@ -79,6 +80,20 @@ def test_an_arm_rerun_into_the_latest_run_replaces_its_lines(tmp_path):
         f.write(json.dumps(again) + "\n")
     run = latest_run(read_lines(tmp_path / "a6_flight.jsonl"))
     assert [(ln["check"], ln["figure"]) for ln in run] == [("arm_consistency", 41.1), ("other", 1.0)]
+
+
+def test_the_truth_start_hub_load_check_allows_its_margin_and_no_more():
+    """A6's truth-start arms judge the hub loads against +1 %: 100 seeds 0.15 % worse pass,
+    2 % worse fail; without the margin 0.15 % fails (the test is that sensitive)."""
+    from bench.a6_flight import paired_not_worse
+
+    rng = np.random.default_rng(5)
+    without = 1000.0 * (1.0 + 0.05 * rng.standard_normal((100, 6)))
+    noise = 1e-3 * without * rng.standard_normal((100, 6))
+    slightly = without * 1.0015 + noise
+    assert paired_not_worse(slightly, without, 1e-3)["worse"]
+    assert not paired_not_worse(slightly, without, 1e-3, margin=0.01)["worse"]
+    assert paired_not_worse(without * 1.02 + noise, without, 1e-3, margin=0.01)["worse"]
 
 
 # ---------------------------------------------------------------- the cross-process benches
