@@ -506,6 +506,31 @@ def test_cli_sim_autostart_records_and_writes_truth(cfg, tmp_path, capsys):
     assert "samples" in capsys.readouterr().err
 
 
+def test_cli_run_variant_reaches_the_simulated_aircraft_and_its_truth(tmp_path):
+    """`rsra run --sim ground-test --variant angles=step --variant angles.step_at_s=[0.5]`:
+    the true angles step by 1° at 0.5 s (without the variants they stay constant), and the
+    truth file names the variants."""
+    from helpers_net import free_tcp_port
+
+    from rsra.sim_bus.truth import read_truth
+
+    def run(*variants: str) -> dict:
+        path = tmp_path / f"t{len(variants)}.npz"
+        rc = cli_main(["run", "--sim", "ground-test", "--speed", "max", "--duration", "1",
+                       "--no-identification", "--truth", str(path), "--seed", "3",
+                       "--zenoh-listen", f"tcp/127.0.0.1:{free_tcp_port()}", *variants])
+        assert rc == 0
+        return read_truth(path)
+
+    plain = run()
+    stepped = run("--variant", "angles=step", "--variant", "angles.step_at_s=[0.5]")
+    assert np.ptp(plain["alpha_true"], axis=0).max() == 0.0
+    move = np.degrees(np.abs(stepped["alpha_true"][-1] - stepped["alpha_true"][0]))
+    assert np.allclose(move, 1.0, atol=1e-9)
+    assert np.array_equal(stepped["alpha_true"][0], plain["alpha_true"][0])
+    assert stepped["meta"]["variants"] == {"angles": "step", "angles.step_at_s": [0.5]}
+
+
 def test_cli_sim_bad_faults_exit_2(capsys):
     rc = cli_main(["sim", "--scenario", "ground-test", "--autostart", "--duration", "0.1",
                    "--channel", channel_name("cli"), "--faults", "drop:nobody:0.1"])

@@ -74,8 +74,31 @@ def seed(text: str) -> int:
     return v
 
 
+def variant(text: str) -> tuple[str, object]:
+    """``KEY=VALUE`` of ``--variant``: the value as a TOML value (``7``, ``false``, ``[1.0, 2]``,
+    ``"linear"``), else the text itself (``angles=linear``)."""
+    key, eq, value = text.partition("=")
+    if not eq or not key.strip():
+        raise argparse.ArgumentTypeError(f"'{text}' is not KEY=VALUE (e.g. angles=linear)")
+    import tomllib
+
+    try:
+        parsed: object = tomllib.loads(f"v = {value}")["v"]
+    except tomllib.TOMLDecodeError:
+        parsed = value
+    return key.strip(), parsed
+
+
+def add_variant_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--variant", type=variant, action="append", default=[], metavar="KEY=VALUE",
+                   help="a variant of the scenario (repeatable), e.g. angles=linear (the "
+                   "ground test's angles follow the thrust), turbulence=true, noise=false, "
+                   "angles.step_at_s=[30.0] (docs/simulator.md)")
+
+
 def add_sim_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=seed, default=None, help="simulator seed (default: the scenario's)")
+    add_variant_option(p)
     p.add_argument("--faults", default=None, metavar="SPEC",
                    help="simulator faults, e.g. 'drop:cell_A:0.1;reboot:cell_C@12.5' "
                    "(see docs/simulator.md)")
@@ -146,7 +169,8 @@ def setup_logging(level: str, log_file: str | None) -> None:
         logging.getLogger("canopen").setLevel(logging.WARNING)
 
 
-def check_sim_faults(cfg, scenario: str | None, faults: str | None, speed: float | None) -> None:
+def check_sim_faults(cfg, scenario: str | None, faults: str | None, speed: float | None,
+                     variants: dict | None = None) -> None:
     """A --faults SPEC checked against the simulated bus before anything starts (FaultSpecError:
     one line, exit 2): the same parse and check as the simulator's."""
     if not faults or scenario is None:
@@ -155,10 +179,11 @@ def check_sim_faults(cfg, scenario: str | None, faults: str | None, speed: float
     from rsra.sim_bus.scenarios import load_scenario
 
     # the service's simulator produces SYNC itself (autostart) in lock-step only
-    check_faults(cfg, faults, load_scenario(scenario).nodes_present, autostart=speed != 1.0)
+    check_faults(cfg, faults, load_scenario(scenario, **(variants or {})).nodes_present,
+                 autostart=speed != 1.0)
 
 
-def config_for_run(config: str | None, scenario: str | None):
+def config_for_run(config: str | None, scenario: str | None, variants: dict | None = None):
     """The rig config, with a simulated scenario's own overrides (e.g. `paper` starts the
     service at 4°) when the simulator is attached."""
     from rsra.config.rig import ConfigError
@@ -169,7 +194,7 @@ def config_for_run(config: str | None, scenario: str | None):
     from rsra.sim_bus.scenarios import load_scenario
 
     try:
-        sc = load_scenario(scenario)
+        sc = load_scenario(scenario, **(variants or {}))
     except ConfigError:
         raise
     except (FileNotFoundError, ValueError) as e:

@@ -91,8 +91,10 @@ def run(args: argparse.Namespace) -> int:
     from rsra.estimator.posterior import PosteriorFileError
 
     setup_logging(args.log_level, None)
-    cfg = config_for_run(args.config, args.scenario)
-    check_sim_faults(cfg, args.scenario, args.faults, args.speed)  # before anything is created
+    variants = dict(args.variant)
+    cfg = config_for_run(args.config, args.scenario, variants)
+    # before anything is created
+    check_sim_faults(cfg, args.scenario, args.faults, args.speed, variants)
     try:  # a bad --angles file: one line before anything starts
         alpha0, _, _ = initial_angles(cfg, args.angles, args.accept_rig_mismatch)
     except PosteriorFileError as e:
@@ -108,6 +110,7 @@ def run(args: argparse.Namespace) -> int:
         tmp = tempfile.mkdtemp(prefix="rsra-demo-")
         report_jsonl = Path(tmp) / "records.jsonl"
     opts = ServiceOptions(sim=args.scenario, seed=args.seed, faults=args.faults, speed=args.speed,
+                          scenario_variants=variants,
                           duration=args.duration, zenoh_listen=listen, record=args.record,
                           angles=args.angles, accept_rig_mismatch=args.accept_rig_mismatch,
                           identification=args.identification,

@@ -51,8 +51,8 @@ def options_from_args(args: argparse.Namespace):
     if args.sim is not None and args.interface not in (None, "virtual"):
         raise UsageError("--sim runs the simulator in-process on python-can's virtual bus; "
                          "for a bench rig run `rsra sim` on that bus instead")
-    if args.sim is None and (args.faults or args.seed is not None):
-        raise UsageError("--faults and --seed need --sim")
+    if args.sim is None and (args.faults or args.seed is not None or args.variant):
+        raise UsageError("--faults, --seed and --variant need --sim")
     if args.sim is None and args.speed != 1.0:
         raise UsageError("--speed needs --sim (a real bus runs in real time)")
     return ServiceOptions(
@@ -63,7 +63,7 @@ def options_from_args(args: argparse.Namespace):
         zenoh_connect=args.zenoh_connect, truth=getattr(args, "truth", None),
         identification=args.identification, foxglove=args.foxglove,
         foxglove_origins=args.foxglove_allow_origin,
-        realtime_priority=args.realtime_priority)
+        realtime_priority=args.realtime_priority, scenario_variants=dict(args.variant))
 
 
 def run_service(cfg, opts, quiet: bool = False) -> int:
@@ -90,13 +90,13 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError("--state-file: give a file name")
         check_output_file("--state-file", args.state_file)
     opts = options_from_args(args)
-    cfg = config_for_run(args.config, args.sim)
+    cfg = config_for_run(args.config, args.sim, dict(args.variant))
     if args.state_file is not None:  # the option over the TOML key (the same checks follow)
         import dataclasses
 
         cfg = dataclasses.replace(cfg, identification=dataclasses.replace(
             cfg.identification, state_file=args.state_file))
-    check_sim_faults(cfg, args.sim, args.faults, args.speed)
+    check_sim_faults(cfg, args.sim, args.faults, args.speed, dict(args.variant))
     from rsra.daq.runtime.foxglove_out import check_option
 
     check_option(args)  # a taken port: refused before anything starts

@@ -26,7 +26,7 @@ OUTPUTS = {"truth": "file", "record": "file"}  # checked against the inputs (daq
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
     from rsra.daq.cli.options import common_options
-    from rsra.daq.cli.options import positive_float, seed
+    from rsra.daq.cli.options import add_variant_option, positive_float, seed
 
     p = sub.add_parser(
         name, help="the simulated aircraft alone on a bus",
@@ -47,6 +47,7 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
                    help="stop after S seconds and exit 0 (default: until Ctrl-C)")
     p.add_argument("--seed", type=seed, default=None, metavar="N",
                    help="random seed of the physics and the faults (default: the scenario's)")
+    add_variant_option(p)
     p.add_argument("--truth", default=None, metavar="FILE",
                    help="write the truth (hub loads, angles, channels before noise, SYNC "
                    "counters, injected faults) to FILE (.npz) at the end")
@@ -82,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
     from rsra.daq.bus.decoder import DecodeTable
 
     DecodeTable(cfg)  # an EDS canopen cannot read: a ConfigError naming the node (exit 2)
-    scenario = load_scenario(args.scenario)
+    scenario = load_scenario(args.scenario, **dict(args.variant))
     physics = AircraftPhysics(cfg, scenario, seed=args.seed)
     try:
         sim = RealtimeSim(cfg, physics=physics, faults=args.faults, interface=args.interface,
