@@ -180,6 +180,19 @@ def test_stage_profile_quick(capsys):
     assert line["process"]["cpu_us_per_sample"] > 0
 
 
+@pytest.mark.timeout(90)
+def test_the_zenoh_put_probe_runs_and_counts_every_put(capsys):
+    """bench.probe_zenoh_put --quick: 2 s of puts at 200/s reach the subscriber process (the
+    probe behind docs/performance.md's reading of P5b); it proves only that it runs."""
+    from bench.probe_zenoh_put import main
+
+    assert main(["--quick"]) == 0
+    line = json.loads([s for s in capsys.readouterr().out.splitlines() if s.startswith("{")][-1])
+    assert line["mode"] == "idle" and line["puts"] >= 300
+    assert line["received"] >= line["puts"] - 5  # DROP may lose one under load, not many
+    assert line["put_cpu_ms"]["p50"] > 0
+
+
 def test_the_p8_burner_ends_with_its_loop():
     """Ending the burner early ends the busy loop too, not only coreutils' timeout (a loop
     left behind burned a core for an hour)."""
