@@ -122,6 +122,12 @@ def run_calibration(cfg, run, *, known_loads: bool, initial_state=None,
         yield end - 1, rec, post.theta.copy(), post.reference.reported(post.P)
 
 
+def _nanmax(x: np.ndarray) -> float | None:
+    """The largest finite value; None when there is none (no accepted run: a tiny run)."""
+    x = np.asarray(x, float)
+    return float(np.nanmax(x)) if np.isfinite(x).any() else None
+
+
 def chi2_of(err: np.ndarray, P: np.ndarray) -> float:
     return float(err @ np.linalg.solve(P, err))
 
@@ -406,10 +412,9 @@ def _report_drop(w, arm: str, rows: list[dict], tiny: bool, clean: dict | None) 
           met=st["spread_ok"], spread=dict(zip(names, st["spread"].round(1))),
           smallest_ratio=float(st["spread_ratio"].min()),
           accepted_runs_rms_z=dict(zip(names, np.round(rms, 3))),
-          accepted_runs_rms_z_max=float(np.nanmax(rms)) if len(rms) else None,
+          accepted_runs_rms_z_max=_nanmax(rms),
           accepted_runs_beyond_3_sigma=acc["beyond_3_sigma"],
-          clean_accepted_runs_rms_z_max=None if clean is None else float(np.nanmax(
-              clean["rms_z"])),
+          clean_accepted_runs_rms_z_max=None if clean is None else _nanmax(clean["rms_z"]),
           clean_accepted_runs_beyond_3_sigma=pf("beyond_3_sigma"),
           sigma_max_deg=float(sig_deg.max()), sigma_max_met=bool(sig_deg.max() <= sigma_max),
           sigma_median_deg=dict(zip(names, np.median(sig_deg, axis=0).round(3))), **common)
