@@ -475,8 +475,9 @@ def _report_rig_arm(w, arm: str, rows: list[dict]) -> None:
           target="any (nothing biased accepted)" if turb else "> 0 (flight calibrates)",
           met=(worst <= limit) if turb else len(acc) > 0, **common)
     margin = TRUTH_START_MARGIN if arm in TRUTH_START_RIG_ARMS else 0.0
-    pw = paired_not_worse(np.array([r["rms_with"] for r in rows]),
-                          np.array([r["rms_without"] for r in rows]), FALSE_ALARM, margin)
+    rms_with = np.array([r["rms_with"] for r in rows])
+    rms_without = np.array([r["rms_without"] for r in rows])
+    pw = paired_not_worse(rms_with, rms_without, FALSE_ALARM, margin)
     if margin:
         target = (f"from the truth, updates can only add error: not worse than without by more "
                   f"than {margin:.0%} on any axis (t ≤ {pw['limit']:.2f})")
@@ -486,9 +487,8 @@ def _report_rig_arm(w, arm: str, rows: list[dict]) -> None:
         unit = "paired t (largest axis; > 0: worse with updates)"
     w.add(f"{arm}_hub_loads", float(pw["t"].max()), unit, target=target,
           met=not pw["worse"], mean_relative_change=pw["mean_relative_change"],
-          margin=margin, t_without_margin=float(paired_not_worse(
-              np.array([r["rms_with"] for r in rows]),
-              np.array([r["rms_without"] for r in rows]), FALSE_ALARM)["t"].max()), **common)
+          margin=margin, t_without_margin=float(
+              paired_not_worse(rms_with, rms_without, FALSE_ALARM)["t"].max()), **common)
 
 
 if __name__ == "__main__":

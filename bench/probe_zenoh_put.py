@@ -33,15 +33,12 @@ RATE_HZ = 200.0
 
 
 def _config(listen: str | None = None, connect: str | None = None):
-    import zenoh
+    """The project's peer config (daq.runtime.telemetry.viewer_config): loopback endpoints
+    only, listening nowhere unless told (Zenoh's own default is every interface), multicast
+    scouting off."""
+    from rsra.daq.runtime.telemetry import viewer_config
 
-    c = zenoh.Config()
-    c.insert_json5("scouting/multicast/enabled", "false")
-    if listen:
-        c.insert_json5("listen/endpoints", json.dumps([listen]))
-    if connect:
-        c.insert_json5("connect/endpoints", json.dumps([connect]))
-    return c
+    return viewer_config([connect] if connect else [], [listen] if listen else [])
 
 
 def _subscriber(endpoint: str, q, seconds: float) -> None:
