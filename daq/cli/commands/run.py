@@ -90,13 +90,13 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError("--state-file: give a file name")
         check_output_file("--state-file", args.state_file)
     opts = options_from_args(args)
-    cfg = config_for_run(args.config, args.sim, dict(args.variant))
+    cfg = config_for_run(args.config, args.sim, opts.scenario_variants)
     if args.state_file is not None:  # the option over the TOML key (the same checks follow)
         import dataclasses
 
         cfg = dataclasses.replace(cfg, identification=dataclasses.replace(
             cfg.identification, state_file=args.state_file))
-    check_sim_faults(cfg, args.sim, args.faults, args.speed, dict(args.variant))
+    check_sim_faults(cfg, args.sim, args.faults, args.speed, opts.scenario_variants)
     from rsra.daq.runtime.foxglove_out import check_option
 
     check_option(args)  # a taken port: refused before anything starts
