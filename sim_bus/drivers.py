@@ -310,6 +310,7 @@ class RealtimeSim(_Served):
     sample and slot)."""
 
     INLINE_PLAN_PERIOD_S = 0.002  # 500 samples/s and above
+    AHEAD_SLACK = 0.25  # periods a planned wake-up may come after the work-ahead's time
 
     def __init__(self, cfg: Any, scenario: Any = None, **kw: Any):
         self.clock = WallClock()
@@ -318,6 +319,7 @@ class RealtimeSim(_Served):
         self._wake = threading.Event()  # the ticker re-plans its next wake-up
         self._ticker: threading.Thread | None = None
         self._prefetch_at: float | None = None  # when the ticker works ahead (wall clock)
+        self._ticker_wake_at: float | None = None  # when it plans to wake (None: planning)
         self._error: BaseException | None = None
         # the physics computes its next block ahead (AircraftPhysics), else None
         self._compute_ahead = getattr(self.sim.physics, "compute_ahead", None)
@@ -357,20 +359,32 @@ class RealtimeSim(_Served):
     def _schedule_ahead(self) -> None:
         """Half a period after this SYNC the ticker works ahead, off the SYNC → TPDO path."""
         if self._ticker is not None:
-            self._prefetch_at = time.time() + 0.5 * self.sim.dt
-            self._wake.set()
+            dt = self.sim.dt
+            self._prefetch_at = at = time.time() + 0.5 * dt
+            wake = self._ticker_wake_at
+            # the ticker already plans to wake about then (it expects the SYNCs' rhythm; a
+            # quarter of a period later still works ahead in time): not woken now, when this
+            # SYNC's answer is being received and its hub loads computed (docs/performance.md
+            # P5b); it waits on to ``at`` if it wakes before
+            if wake is None or wake > at + self.AHEAD_SLACK * dt:
+                self._wake.set()
 
     def _tick_loop(self) -> None:
         """Live heartbeats between SYNCs (wall clock): wake at the next due heartbeat, and
         half a period after a SYNC to compute the next physics block and build the next
         answer then (between SYNCs) rather than on the next SYNC's path to its TPDOs."""
         sim = self.sim
+        expected: float | None = None  # the next SYNC's work-ahead, if the SYNCs keep time
         while not self._stop.is_set():
             self._wake.clear()  # a set() from here on ends the wait below at once
+            self._ticker_wake_at = None  # planning: a SYNC meanwhile wakes it (_schedule_ahead)
             with sim.lock:
-                nxt = [t for t in (sim.next_heartbeat(), self._prefetch_at) if t is not None]
-            wait = min(nxt) - time.time() if nxt else 0.5
-            self._wake.wait(min(max(wait, 0.0), 0.5))
+                ahead_at = self._prefetch_at if self._prefetch_at is not None else expected
+                nxt = [t for t in (sim.next_heartbeat(), ahead_at) if t is not None]
+                now = time.time()
+                wait = min(max(min(nxt) - now if nxt else 0.5, 0.0), 0.5)
+                self._ticker_wake_at = now + wait
+            self._wake.wait(wait)
             if self._stop.is_set():
                 return
             try:
@@ -378,8 +392,12 @@ class RealtimeSim(_Served):
                 with sim.lock:
                     now = time.time()
                     sim.advance(now)  # the heartbeats due; the recording flushed each second
-                    if self._prefetch_at is not None and now >= self._prefetch_at:
+                    if expected is not None and now >= expected:
+                        expected = None  # (once: no SYNC came, the ticker waits for one)
+                    at = self._prefetch_at
+                    if at is not None and now >= at:
                         self._prefetch_at = None
+                        expected = at + sim.dt  # half a period after the next SYNC
                         sim.prefetch()  # still ahead of the next SYNC
                         sim.prepare_next()
                         ahead = True

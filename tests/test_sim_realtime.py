@@ -264,3 +264,27 @@ def test_at_short_periods_each_sync_builds_the_next_answer_in_its_own_wake_up(mo
         master.shutdown()
     assert _tpdos(got) == ref
     assert sim.prepared == n - 1 and sim.plans_discarded == 0  # all but the first built ahead
+
+
+def test_a_sync_wakes_the_ticker_only_when_it_would_sleep_past_the_work_ahead():
+    """A SYNC sets the work-ahead half a period later; the ticker, which already plans to wake
+    by then when the SYNCs keep their rhythm, is not woken at the SYNC — the moment the
+    service receives the answer and computes the hub loads (docs/performance.md P5b) — and is
+    woken when it is planning (None) or would sleep past it. (No thread runs: the decision
+    alone, on stated times.)"""
+    import threading
+
+    cfg = load_config(overrides={"rig": {"sample_rate_hz": RATE}})
+    sim = RealtimeSim(cfg, physics=_physics(cfg, 3), seed=3, channel=channel_name("wake"))
+    try:
+        sim._ticker = threading.Thread(target=lambda: None)  # present, never started
+        for planned, woken in ((lambda now: now, False), (lambda now: now + 0.7 * sim.dt, False),
+                               (lambda now: None, True), (lambda now: now + 2.0 * sim.dt, True)):
+            sim._wake.clear()
+            sim._ticker_wake_at = planned(time.time())
+            sim._schedule_ahead()
+            assert sim._wake.is_set() is woken, planned
+            assert sim._prefetch_at is not None
+    finally:
+        sim._ticker = None
+        sim.close()
