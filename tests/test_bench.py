@@ -225,3 +225,49 @@ def _state(pid: int) -> str:
         return open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[0]
     except OSError:
         return "gone"
+
+
+def test_the_witness_overlap_matches_a_brute_force_check():
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    from bench import witness
+
+    iv = st.tuples(st.floats(0, 100), st.floats(0, 5)).map(lambda p: (p[0], p[0] + p[1]))
+
+    @settings(max_examples=200, deadline=None)
+    @given(st.lists(iv, max_size=20), st.lists(iv, min_size=1, max_size=20))
+    def check(gaps, windows):
+        g = np.asarray(gaps, float).reshape(-1, 2)
+        a = np.array([w[0] for w in windows])
+        b = np.array([w[1] for w in windows])
+        want = [any(e > x and s < y for s, e in gaps) for x, y in windows]
+        assert witness.overlaps(g, a, b).tolist() == want
+
+    check()
+
+
+def test_the_witness_records_a_stall_of_its_process(tmp_path):
+    """A witness stopped (SIGSTOP) for 0.2 s records a stall that covers the stop."""
+    import os
+    import signal
+    import time
+
+    from bench import witness
+    from bench.rig import stop
+
+    out = tmp_path / "stalls.json"
+    proc = witness.start(30.0, str(out))
+    try:
+        time.sleep(3.0)  # the interpreter started and watches
+        t0 = time.time()
+        os.kill(proc.pid, signal.SIGSTOP)
+        time.sleep(0.2)
+        os.kill(proc.pid, signal.SIGCONT)
+        t1 = time.time()
+        time.sleep(0.2)
+    finally:
+        stop(proc)
+    gaps = witness.load(str(out))
+    assert witness.overlaps(gaps, np.array([t0 + 0.05]), np.array([t1 - 0.05]))[0]
+    assert witness.summary(gaps, t0 - 1, t1 + 1)["max_ms"] >= 100.0
