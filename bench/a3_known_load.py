@@ -61,8 +61,9 @@ def run_calibration(cfg, run, *, known_loads: bool, initial_state=None,
     (last sample, the angles record, posterior θ, posterior P) in window order.
     ``initial_state``: a saved posterior to start from (``--angles``). ``lacking``: samples
     that lack an input (a dropped frame: the sample is not measured), as the pipeline
-    treats them: the content filter's input holds the last complete sample
-    (estimator.content.hold_missing), the sample is not ``ok`` (not scored);
+    treats them: the content filter's input holds the last complete sample, a short gap
+    interpolated once it closes (estimator.content.hold_missing), the sample is not ``ok``
+    (not scored);
     ``posterior_out``: a list the run's ``SequentialPosterior`` is appended to (its
     ``state()`` is what ``identification.state_file`` would hold). ``lacking_label`` names the input they lack (its flag, e.g. ``missing:cell_A``: the record's
     ``missing_inputs``; default ``unusable``, as a sample with no flag saying why)."""

@@ -150,6 +150,19 @@ class ContentFilter:
         Y, self._zi = sosfilt(self.sos, X, axis=0, zi=self._zi)
         return Y
 
+    def correct_past_inputs(self, E: np.ndarray) -> None:
+        """The inputs of the last ``len(E)`` samples were off by the rows of ``E`` (oldest
+        first): the state becomes what they would have left with ``E`` added (the filter is
+        linear: the state ``E`` alone leaves from rest, added; its outputs stay as they
+        were). Nothing before the first sample or for the identity."""
+        E = np.asarray(E, float)
+        if self._identity or self._zi is None or E.size == 0:
+            return
+        if E.ndim != 2 or E.shape[1] != self.n_channels:
+            raise ValueError(f"expected (N, {self.n_channels}) corrections, got {E.shape}")
+        _, zf = sosfilt(self.sos, E, axis=0, zi=np.zeros_like(self._zi))
+        self._zi += zf  # in place: the compiled hub path steps this array
+
     def _step(self, x: np.ndarray) -> np.ndarray:
         """One sample through every section, the state updated in place: scipy's sosfilt
         loop (``y = b0 x + z0; z0 = b1 x − a1 y + z1; z1 = b2 x − a2 y``), elementwise."""
@@ -165,6 +178,9 @@ class ContentFilter:
 
 
 # -- samples lacking an input (issue 29) ---------------------------------------------------
+MAX_INTERPOLATED = 2  # samples: a longer gap of samples lacking an input stays held (A3, identification.md)
+
+
 class MissingHold:
     """The content filter's input for samples lacking an input: the last complete sample
     held, every channel of it (load cells, inertial loads, known loads), so the balance
@@ -174,26 +190,63 @@ class MissingHold:
     it), which the content filter attenuates like any other — zeros instead spread the
     whole harmonic load, and its modelling error, into the static band (measured: χ²₁₄ of
     146–305 against the true angles with 10 % of the samples zeroed, 7–10 held: A3 seed 7,
-    windows 2–4). Before the
-    first complete sample the input passes as it is."""
+    windows 2–4). Before the first complete sample the input passes as it is.
 
-    def __init__(self) -> None:
+    When a gap of at most ``max_interpolated`` samples closes, :meth:`correction` gives what
+    the held inputs lacked against the straight line between the complete samples on either
+    side (row j of g: (j / (g + 1)) · (x_next − x_last), oldest first): the content filter
+    adds it to its state (:meth:`ContentFilter.correct_past_inputs`), so that from the next
+    complete sample on its output is the one of the interpolated input, without delaying a
+    sample (the filter is linear; the held samples' own outputs, not scored, stay). A
+    straight line between two complete samples keeps the balance exact too; it leaks the
+    load content a hold modulates into the static band to second order instead of first
+    (A3's ``drop_cell_A`` arm: docs/identification.md). Longer gaps stay held."""
+
+    def __init__(self, max_interpolated: int = MAX_INTERPOLATED) -> None:
         self.last: np.ndarray | None = None
+        self.max_interpolated = int(max_interpolated)
+        self.held = 0  # samples held since ``last``
+        self._correction: np.ndarray | None = None
 
     def input(self, x: np.ndarray, usable: bool) -> np.ndarray:
         if usable:
-            self.last = x
+            if self.last is not None and 0 < self.held <= self.max_interpolated:
+                w = np.arange(1, self.held + 1) / (self.held + 1)
+                self._correction = w[:, None] * (np.asarray(x, float) - self.last)[None, :]
+            self.last, self.held = x, 0
             return x
-        return x if self.last is None else self.last
+        if self.last is None:
+            return x
+        self.held += 1
+        return self.last
+
+    def correction(self) -> np.ndarray | None:
+        """The correction of the gap the last :meth:`input` closed (once), else None."""
+        c, self._correction = self._correction, None
+        return c
 
 
-def hold_missing(X: np.ndarray, usable: np.ndarray) -> np.ndarray:
-    """:class:`MissingHold` over a block (N, channels): rows not ``usable`` replaced by the
-    last usable row before them (kept as they are before the first)."""
+def hold_missing(X: np.ndarray, usable: np.ndarray,
+                 max_interpolated: int = MAX_INTERPOLATED) -> np.ndarray:
+    """:class:`MissingHold` over a block (N, channels), as the content filter's output sees
+    it at the usable rows: rows not ``usable`` replaced by the straight line between the
+    usable rows on either side where at most ``max_interpolated`` lie between them, else by
+    the last usable row before them (kept as they are before the first)."""
     X = np.array(X, float)
     usable = np.asarray(usable, bool)
-    idx = np.where(usable, np.arange(len(X)), -1)
+    n = len(X)
+    idx = np.where(usable, np.arange(n), -1)
     np.maximum.accumulate(idx, out=idx)
     fill = ~usable & (idx >= 0)
-    X[fill] = X[idx[fill]]
-    return X
+    nxt = np.where(usable, np.arange(n), n)
+    nxt = np.minimum.accumulate(nxt[::-1])[::-1]  # the next usable row (n: none)
+    X_held = X.copy()
+    X_held[fill] = X[idx[fill]]
+    gap = nxt - idx - 1
+    interp = fill & (nxt < n) & (gap <= max_interpolated)
+    k = np.flatnonzero(interp)
+    if k.size:
+        a, b = idx[k], nxt[k]
+        w = ((k - a) / (b - a))[:, None]
+        X_held[k] = X[a] + w * (X[b] - X[a])
+    return X_held

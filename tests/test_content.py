@@ -144,3 +144,39 @@ def test_bad_arguments():
         design_content_filter("static", FS, 0.0, HARMONICS)
     with pytest.raises(ValueError):
         design_content_filter("harmonics", FS, OMEGA, (1, 50))  # beyond Nyquist
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_short_gap_is_filtered_as_interpolated_once_it_closes(kind):
+    """Sample by sample (MissingHold + correct_past_inputs, the service's calibration branch)
+    the content filter's output at every usable sample equals the block filter over
+    hold_missing's input (gaps of up to MAX_INTERPOLATED interpolated, longer ones held), and
+    at the usable samples after a short gap it differs from a plain hold."""
+    from rsra.estimator.content import MAX_INTERPOLATED, MissingHold, hold_missing
+
+    rng = np.random.default_rng(5)
+    n, ch = 1500, 4
+    t = np.arange(n) / FS
+    X = (np.sin(2 * np.pi * F1 * t)[:, None] * [1.0, 2.0, -0.5, 0.3]
+         + 0.1 * rng.standard_normal((n, ch)) + [3.0, -1.0, 0.0, 10.0])
+    usable = rng.random(n) > 0.15
+    usable[200:200 + MAX_INTERPOLATED + 3] = False  # one gap too long to interpolate
+    usable[:3] = False  # before the first complete sample: passed as it is
+    live, hold = ContentFilter(kind, FS, OMEGA, HARMONICS, ch), MissingHold()
+    out = np.empty_like(X)
+    for k in range(n):
+        x = hold.input(X[k], bool(usable[k]))
+        c = hold.correction()
+        if c is not None:
+            live.correct_past_inputs(c)
+        out[k] = live.process(x[None, :])[0]
+    block = ContentFilter(kind, FS, OMEGA, HARMONICS, ch).process(hold_missing(X, usable))
+    np.testing.assert_allclose(out[usable], block[usable], rtol=0, atol=1e-9)
+    held = X.copy()
+    idx = np.maximum.accumulate(np.where(usable, np.arange(n), -1))
+    held[~usable & (idx >= 0)] = X[idx[~usable & (idx >= 0)]]
+    plain = ContentFilter(kind, FS, OMEGA, HARMONICS, ch).process(held)
+    if kind != "broadband":
+        assert np.abs(plain[usable] - block[usable]).max() > 1e-3
+    # the long gap stays held: the row just before its end is the last usable one
+    assert np.array_equal(hold_missing(X, usable)[200 + MAX_INTERPOLATED + 2], X[199])

@@ -607,8 +607,9 @@ def test_a_corrupt_configured_state_file_is_a_config_error_and_left_as_it_was(tm
 def test_a_window_with_ten_percent_of_one_cell_dropped_is_accepted_and_consistent(cfg):
     """Issue 29: cell_A loses 10 % of its frames. The known-load likelihood uses the samples
     it has (those lacking cell_A left out, the content filter's input holding the last
-    complete sample): the windows after the cold start (its first four are held by the
-    curvature check, `nonlinear`) are accepted, consistent with the simulator's true angles
+    complete sample, a short gap interpolated once it closes): the windows after the cold
+    start (its first four held by the curvature check, `nonlinear`, or not converged from
+    the 4° start) are accepted, consistent with the simulator's true angles
     (joint χ²₁₄ at 10⁻³), and every record says how many samples were used and which input
     the others lacked. (Break-checked: with the former rule — stale_fraction 0.05 — the first is
     stale_input; with zeros instead of the hold it does not converge.)"""
@@ -624,7 +625,9 @@ def test_a_window_with_ten_percent_of_one_cell_dropped_is_accepted_and_consisten
     assert len(angles) == 6, [a["reason"] for a in angles]
     assert [a["accepted"] for a in angles] == [False] * 4 + [True] * 2, \
         [(a["reason"], a["detail"]) for a in angles]
-    assert all(a["detail"] == "nonlinear" for a in angles[:4])
+    # the cold start's windows: held by the curvature check, or not converged from 4°
+    assert all(a["detail"] in ("nonlinear", "convergence") for a in angles[:4]), \
+        [(a["reason"], a["detail"]) for a in angles[:4]]
     for a in angles:
         n = a["window"][1] - a["window"][0] + 1
         lacking = [m for m in a["missing_inputs"] if m["input"] == "missing:cell_A"]

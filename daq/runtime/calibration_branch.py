@@ -135,6 +135,11 @@ class CalibrationBranch:
         xk = self._hold["known_loads"].input(x, measured and known)
         xf = self._hold["filter_error"].input(x, measured)
         ck, cf = self.content["known_loads"], self.content["filter_error"]
+        # a short gap just closed: the filters continue as if it had been interpolated
+        for hold, content in ((self._hold["known_loads"], ck), (self._hold["filter_error"], cf)):
+            correction = hold.correction()
+            if correction is not None:
+                content.correct_past_inputs(correction)
         if kernel is not None:  # the same sections in C (daq/runtime/hubpath.py), bit for bit
             yk, yf = kernel.content_step(ck, xk), kernel.content_step(cf, xf)
         else:
