@@ -24,6 +24,8 @@ import os
 import signal
 import subprocess
 import time
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -32,13 +34,17 @@ LATE_S = 0.001  # a wake-up more than 1 ms after its sleep was due is a stall
 MAX_GAPS = 100_000
 
 
-def watch(duration: float, *, stop: list[bool] | None = None) -> dict:
-    """Sleep ``SLEEP_S`` at a time for ``duration`` s; the stalls seen (wall-clock intervals)."""
+def watch(duration: float, *, stop: list[bool] | None = None,
+          on_start: Callable[[], None] | None = None) -> dict:
+    """Sleep ``SLEEP_S`` at a time for ``duration`` s; the stalls seen (wall-clock intervals).
+    ``on_start`` is called once the watch has begun (a stall from then on is recorded)."""
     stop = stop if stop is not None else [False]
     gaps: list[tuple[float, float]] = []
     t_end = time.monotonic() + duration
     wakeups = 0
     last_w, last_m = time.time(), time.monotonic()
+    if on_start is not None:
+        on_start()
     while last_m < t_end and not stop[0]:
         time.sleep(SLEEP_S)
         now_w, now_m = time.time(), time.monotonic()
@@ -49,11 +55,12 @@ def watch(duration: float, *, stop: list[bool] | None = None) -> dict:
     return {"sleep_s": SLEEP_S, "late_s": LATE_S, "wakeups": wakeups, "gaps": gaps}
 
 
-def start(duration: float, path: str) -> subprocess.Popen:
-    """The witness as a child process that dies with the benchmark (bench.rig.spawn)."""
+def start(duration: float, path: str, *, log: Any = None) -> subprocess.Popen:
+    """The witness as a child process that dies with the benchmark (bench.rig.spawn);
+    ``log``: its stdout and stderr (default discarded)."""
     from bench.rig import spawn
 
-    return spawn(["-m", "bench.witness", "--duration", f"{duration:g}", "--out", path])
+    return spawn(["-m", "bench.witness", "--duration", f"{duration:g}", "--out", path], log=log)
 
 
 def load(path: str) -> np.ndarray:
@@ -103,7 +110,8 @@ def main(argv: list[str] | None = None) -> int:
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
-    res = watch(args.duration, stop=stop)
+    # one line on stdout once watching (a test waits for it; a benchmark discards it)
+    res = watch(args.duration, stop=stop, on_start=lambda: print("watching", flush=True))
     tmp = f"{args.out}.{os.getpid()}.tmp"
     with open(tmp, "w", encoding="utf-8") as f:
         json.dump(res, f)

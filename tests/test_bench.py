@@ -251,15 +251,17 @@ def test_the_witness_records_a_stall_of_its_process(tmp_path):
     """A witness stopped (SIGSTOP) for 0.2 s records a stall that covers the stop."""
     import os
     import signal
+    import subprocess
     import time
 
     from bench import witness
     from bench.rig import stop
 
     out = tmp_path / "stalls.json"
-    proc = witness.start(30.0, str(out))
+    proc = witness.start(30.0, str(out), log=subprocess.PIPE)
     try:
-        time.sleep(3.0)  # the interpreter started and watches
+        assert proc.stdout is not None
+        assert proc.stdout.readline().strip() == b"watching"  # (EOF at its 30 s at most)
         t0 = time.time()
         os.kill(proc.pid, signal.SIGSTOP)
         time.sleep(0.2)
@@ -268,6 +270,9 @@ def test_the_witness_records_a_stall_of_its_process(tmp_path):
         time.sleep(0.2)
     finally:
         stop(proc)
+        for f in (proc.stdout, proc.stderr):
+            if f is not None:
+                f.close()
     gaps = witness.load(str(out))
     assert witness.overlaps(gaps, np.array([t0 + 0.05]), np.array([t1 - 0.05]))[0]
     assert witness.summary(gaps, t0 - 1, t1 + 1)["max_ms"] >= 100.0
