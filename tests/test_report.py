@@ -378,3 +378,102 @@ def test_accuracy_by_phase_against_the_published_sigma(synth_truth, cfg, tmp_pat
     _, s = summarise(cfg, load_records(p), tr)
     assert s["hub_loads"]["by_phase"]["calibrated_from_seq"] == 0
     assert s["hub_loads"]["by_phase"]["H_static"]["start"] is None
+
+
+def _phase_run(cfg, tr, tmp_path, initial=None, started_calibrated=False):
+    """Synthetic records over the truth: calibrated from sample 400, a ramp at 700–799, one
+    accepted run whose posterior σ (P) differs from its σ_CR."""
+    H, t = np.asarray(tr["H_true"]), np.asarray(tr["t"])
+    cal, moving = 400, range(700, 800)
+    lines = [] if initial is None else [{"key": "angles", **initial}]
+    for seq in range(len(t)):
+        flags = ["transient"] if seq in moving else []
+        if seq < cal and not started_calibrated:
+            flags.append("angles_uncertain")
+        lines.append({"key": "hub_loads", "seq": seq, "sync": 0, "t": float(t[seq] + 4e-4),
+                      "frame": "body", "H": H[seq], "H_static": H[seq], "omega": 19.4,
+                      "sigma_angles": [1.0] * 6, "sigma_filter": [1.0] * 6, "flags": flags})
+    names = list(cfg.rig_model().geometry.angle_names)
+    lines.append({"key": "angles", "t": float(t[cal - 1]), "seq": cal - 100, "accepted": True,
+                  "reason": None, "mode": "known_loads", "content": "static", "names": names,
+                  "alpha": [0.01] * 14, "P": (np.eye(14) * 0.02**2).tolist(),
+                  "sigma_cr": [0.005] * 14, "determined": 14, "applies_from_seq": cal})
+    p = tmp_path / "phase_run.jsonl"
+    p.write_text("\n".join(dumps(x) for x in lines) + "\n")
+    return p, t, cal, moving
+
+
+def test_report_phases_as_time_spans_and_the_angles_band_is_the_posterior(synth_truth, cfg,
+                                                                          tmp_path):
+    """The plots' phase shading comes from the records: start until the first accepted
+    calibration applies, the flagged ramp as transient, steady around it (issue 51); the
+    angles band is the posterior's sqrt(diag P), the run's σ_CR only its own marker; before
+    the first run the state the run started from — its starting record where the results
+    carry one, nothing drawn for a saved posterior they do not carry, else the prior."""
+    from rsra.daq.analysis.report import (_starting_state, _angle_records, angle_steps,
+                                          load_records,
+                                          load_truth, phase_spans, prepare)
+
+    tr = load_truth(synth_truth, read_truth)
+    p, t, cal, moving = _phase_run(cfg, tr, tmp_path)
+    d = prepare(cfg, load_records(p), tr)
+    spans = phase_spans(d)
+    assert [s[2] for s in spans] == ["start", "steady", "transient", "steady"]
+    dt = cfg.sample_period_s
+    rel = t - d.t0 + 4e-4
+    assert spans[0][1] == pytest.approx(rel[cal - 1] + dt / 2, abs=1e-6)
+    assert spans[2][0] == pytest.approx(rel[moving[0]] - dt / 2, abs=1e-6)
+    assert spans[2][1] == pytest.approx(rel[moving[-1]] + dt / 2, abs=1e-6)
+    runs = _angle_records(d)
+    np.testing.assert_allclose(runs[0]["sigma"], 0.005)  # the run's own σ_CR (its marker)
+    tt, A, S, _ = angle_steps(d, runs)
+    np.testing.assert_allclose(S[1:], 0.02)  # the band: the posterior after each run
+    a0, s0, what = _starting_state(d)
+    assert what == "the configured prior"
+    np.testing.assert_allclose(s0, cfg.identification.prior_sigma_rad)
+    names = list(cfg.rig_model().geometry.angle_names)
+    ini = {"initial": True, "names": names, "alpha": [0.03] * 14,
+           "P": (np.eye(14) * 0.04**2).tolist()}
+    p, *_ = _phase_run(cfg, tr, tmp_path, initial=ini, started_calibrated=True)
+    d = prepare(cfg, load_records(p), tr)
+    a0, s0, what = _starting_state(d)
+    assert what == "the run's starting posterior"
+    np.testing.assert_allclose(a0, 0.03)
+    np.testing.assert_allclose(s0, 0.04)
+    assert [s[2] for s in phase_spans(d)][0] == "steady"  # no start phase
+    p, *_ = _phase_run(cfg, tr, tmp_path, started_calibrated=True)
+    a0, s0, what = _starting_state(prepare(cfg, load_records(p), tr))
+    assert "saved posterior" in what and np.isnan(a0).all() and np.isnan(s0).all()
+
+
+def test_nis_verdict_judges_the_mean_of_correlated_records():
+    """A NIS whose mean is too low is `conservative` even when few records fall below the
+    χ²₆ band (issue 51: the steady-state NIS at 3.5–4.6 against 6 read `consistent`); the
+    mean is judged at the records' worth as independent ones, so correlated records of the
+    right size stay `consistent` (Monte Carlo, 300 AR(1) series: at most 2 false alarms,
+    the binomial limit for 1e-3 is 1, the correlation estimate adds a little)."""
+    from scipy import stats
+
+    from rsra.daq.analysis.report import FALSE_ALARM, effective_records, nis_consistency
+
+    lo, hi = stats.chi2.ppf(FALSE_ALARM / 2, 6), stats.chi2.isf(FALSE_ALARM / 2, 6)
+    rng = np.random.default_rng(51)
+
+    def ar_nis(n, phi):
+        x = rng.standard_normal(6)
+        e = np.empty((n, 6))
+        for i in range(n):
+            x = phi * x + np.sqrt(1 - phi**2) * rng.standard_normal(6)
+            e[i] = x
+        return (e**2).sum(axis=1)
+
+    low = 0.75 * rng.chisquare(6, 2000)  # mean 4.5: 0.1 % below the band, as in a real run
+    v = nis_consistency(low, lo, hi)
+    assert v["below"] < v["limit"] and v["verdict"] == "conservative"
+    false = [nis_consistency(ar_nis(2000, 0.8), lo, hi)["verdict"] for _ in range(300)]
+    assert len(false) - false.count("consistent") <= 2
+    assert nis_consistency(0.7 * ar_nis(2000, 0.8), lo, hi)["verdict"] == "conservative"
+    assert nis_consistency(1.4 * ar_nis(2000, 0.8), lo, hi)["verdict"] == "inconsistent"
+    white = effective_records(rng.chisquare(6, 4000))
+    assert 0.85 * 4000 <= white <= 4000
+    assert effective_records(ar_nis(4000, 0.9)) < 0.3 * 4000

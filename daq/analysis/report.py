@@ -56,6 +56,7 @@ class Records:
     angles: list[dict] = field(default_factory=list)
     innovations: dict[str, np.ndarray] | None = None  # seq, t, e (N,6), nis
     health: list[dict] = field(default_factory=list)
+    initial_angles: dict | None = None  # the run's starting state, where the results carry it
 
 
 def _vec(x, n: int) -> list[float]:
@@ -83,6 +84,7 @@ def load_records(path: str | Path) -> Records:
     frames: set[str] = set()
     angles: list[dict] = []
     health: list[dict] = []
+    initial: dict | None = None
     try:
         f = open(p, encoding="utf-8")
     except OSError as e:
@@ -125,6 +127,8 @@ def load_records(path: str | Path) -> Records:
                 elif key == "angles":
                     if not rec.get("initial"):
                         angles.append(rec)
+                    elif initial is None:
+                        initial = rec
                 elif key == "health":
                     health.append(rec)
             except (KeyError, TypeError, ValueError) as e:
@@ -134,7 +138,7 @@ def load_records(path: str | Path) -> Records:
         raise ReportError(f"{p}: no records (empty file)")
     if len(frames) > 1:
         raise ReportError(f"{p}: hub_loads records in more than one frame ({sorted(frames)})")
-    out = Records(path=p, counts=counts, angles=angles, health=health)
+    out = Records(path=p, counts=counts, angles=angles, health=health, initial_angles=initial)
     if ch["seq"]:
         out.channels = {"seq": np.array(ch["seq"], np.int64), "t": np.array(ch["t"]),
                         "T": np.array(ch["T"], float).reshape(-1, 7),
@@ -447,29 +451,36 @@ def _hub_by_phase(d: ReportData) -> dict:
 
 def _angle_records(d: ReportData) -> list[dict]:
     """Angle records as arrays over the 14 angles (nan for angles a record does not carry)."""
-    out = []
-    for r in d.rec.angles:
-        names = r.get("names") or list(d.angle_names)
-        alpha = np.full(len(d.angle_names), np.nan)
-        sig = np.full(len(d.angle_names), np.nan)
-        a = _vec(r.get("alpha"), len(names))
-        s = r.get("sigma_cr")
-        P = r.get("P")
-        Pm = None
-        if P is not None:
-            Pm = np.array([_vec(row, len(names)) for row in P], float)
-        if s is None and Pm is not None:
-            s = np.sqrt(np.clip(np.diag(Pm), 0, None)).tolist()
-        s = _vec(s, len(names)) if s is not None else [math.nan] * len(names)
-        for k, nm in enumerate(names):
-            if nm in d.angle_names:
-                i = d.angle_names.index(nm)
-                alpha[i], sig[i] = a[k], s[k]
-        out.append({"t": _num(r.get("t")), "accepted": bool(r.get("accepted")),
-                    "reason": r.get("reason"), "alpha": alpha, "sigma": sig, "names": names,
-                    "P": Pm, "alpha_sub": np.array(a), "determined": r.get("determined"),
-                    "window": r.get("window")})
-    return out
+    return [_angle_record(d, r) for r in d.rec.angles]
+
+
+def _angle_record(d: ReportData, r: dict) -> dict:
+    """One angles record as arrays over the rig's angles: ``alpha``, ``sigma`` (the run's
+    σ_CR, else the posterior's), ``sigma_post`` (sqrt diag P), and the record's own fields."""
+    names = r.get("names") or list(d.angle_names)
+    alpha = np.full(len(d.angle_names), np.nan)
+    sig = np.full(len(d.angle_names), np.nan)
+    a = _vec(r.get("alpha"), len(names))
+    s = r.get("sigma_cr")
+    P = r.get("P")
+    Pm = None
+    if P is not None:
+        Pm = np.array([_vec(row, len(names)) for row in P], float)
+    if s is None and Pm is not None:
+        s = np.sqrt(np.clip(np.diag(Pm), 0, None)).tolist()
+    s = _vec(s, len(names)) if s is not None else [math.nan] * len(names)
+    post = (np.sqrt(np.clip(np.diag(Pm), 0, None)) if Pm is not None and Pm.shape ==
+            (len(names), len(names)) else np.full(len(names), np.nan))
+    sig_post = np.full(len(d.angle_names), np.nan)
+    for k, nm in enumerate(names):
+        if nm in d.angle_names:
+            i = d.angle_names.index(nm)
+            alpha[i], sig[i], sig_post[i] = a[k], s[k], post[k]
+    return {"t": _num(r.get("t")), "accepted": bool(r.get("accepted")),
+            "reason": r.get("reason"), "alpha": alpha, "sigma": sig,
+            "sigma_post": sig_post, "names": names,
+            "P": Pm, "alpha_sub": np.array(a), "determined": r.get("determined"),
+            "window": r.get("window")}
 
 
 def _truth_alpha_at(d: ReportData, t_abs: float) -> np.ndarray | None:
@@ -562,23 +573,54 @@ def _innovations_summary(d: ReportData) -> dict:
     return out
 
 
+def effective_records(x: np.ndarray, max_lag: int = 200) -> float:
+    """How many independent records a correlated series is worth: n / (1 + 2 Σ ρ_k), the
+    sum of its sample autocorrelations up to the first that is not positive (Geyer's initial
+    positive sequence, simplified); n for a white series."""
+    n = len(x)
+    if n < 8:
+        return float(n)
+    x = np.asarray(x, float) - float(np.mean(x))
+    var = float(x @ x) / n
+    if var <= 0.0:
+        return float(n)
+    acc = 0.0
+    for k in range(1, min(n // 4, max_lag)):
+        rho = float(x[:-k] @ x[k:]) / (n * var)
+        if rho <= 0.0:
+            break
+        acc += rho
+    return max(1.0, n / (1.0 + 2.0 * acc))
+
+
 def nis_consistency(nis: np.ndarray, lo: float, hi: float,
                     false_alarm: float = FALSE_ALARM) -> dict:
     """The NIS against the χ²₆ band [lo, hi] (each tail ``false_alarm``/2): the share above and
-    below, and the verdict — ``inconsistent`` when more lie above hi than a consistent filter
-    gives at an overall false-alarm rate of ``false_alarm`` (binomial; innovations larger than
-    their stated σ), ``conservative`` when too many lie below lo (smaller than stated: the σ
-    is overstated), ``consistent`` otherwise; ``no data`` without records. The records are
-    taken as independent (they are ≥ 50 ms apart, a few filter time constants' correlation
-    remains: the verdict is indicative)."""
+    below, the mean against the band of a mean of ``n_eff`` χ²₆ (``n_eff``: the records'
+    worth as independent ones, :func:`effective_records` — they are correlated over a few
+    filter time constants), and the verdict — ``inconsistent`` when more lie above hi than a
+    consistent filter gives at an overall false-alarm rate of ``false_alarm`` (binomial;
+    innovations larger than their stated σ) or the mean lies above its band,
+    ``conservative`` when too many lie below lo or the mean lies below its band (smaller than
+    stated: the σ is overstated), ``consistent`` otherwise; ``no data`` without records."""
     n = int(len(nis))
     if not n:
-        return {"above": None, "below": None, "limit": None, "verdict": "no data"}
+        return {"above": None, "below": None, "limit": None, "verdict": "no data",
+                "effective_records": None, "mean_band": None}
     k_hi, k_lo = int(np.sum(nis > hi)), int(np.sum(nis < lo))
-    limit = int(stats.binom.isf(false_alarm / 2, n, false_alarm / 2))  # each tail, each side
-    verdict = ("inconsistent" if k_hi > limit else "conservative" if k_lo > limit
-               else "consistent")
-    return {"above": k_hi / n, "below": k_lo / n, "limit": limit / n, "verdict": verdict}
+    n_eff = effective_records(nis)
+    # the tail counts of correlated records come in clusters: counted at the records' worth
+    w = n_eff / n
+    limit = int(stats.binom.isf(false_alarm / 4, max(1, round(n_eff)), false_alarm / 2))
+    dof = 6.0 * n_eff
+    m_lo, m_hi = (float(stats.chi2.ppf(false_alarm / 4, dof)) / n_eff,
+                  float(stats.chi2.isf(false_alarm / 4, dof)) / n_eff)
+    mean = float(np.mean(nis))
+    verdict = ("inconsistent" if w * k_hi > limit or mean > m_hi else
+               "conservative" if w * k_lo > limit or mean < m_lo else "consistent")
+    return {"above": k_hi / n, "below": k_lo / n, "limit": limit / max(1, round(n_eff)),
+            "verdict": verdict,
+            "effective_records": n_eff, "mean_band": [m_lo, m_hi]}
 
 
 def _flags_summary(d: ReportData) -> dict:
@@ -626,20 +668,107 @@ def _axis_scale(units: str) -> np.ndarray:
     return to_units(np.ones(6), units)
 
 
+PHASE_SHADE = {"start": ("tab:red", 0.10), "transient": ("gold", 0.22)}  # steady: unshaded
+
+
+def phase_spans(d: ReportData) -> list[tuple[float, float, str]]:
+    """The run's phases (:func:`record_phases`) as time spans ``(t0, t1, phase)`` relative to
+    the start, from the hub-load records; empty without them."""
+    hub = d.rec.hub
+    if hub is None or not len(hub["seq"]):
+        return []
+    order = np.argsort(hub["t"], kind="stable")
+    t = (hub["t"] - d.t0)[order]
+    ph = record_phases(d, hub["seq"])[order]
+    ok = np.isfinite(t)
+    t, ph = t[ok], ph[ok]
+    if not len(t):
+        return []
+    cut = np.flatnonzero(ph[1:] != ph[:-1]) + 1
+    starts = np.concatenate([[0], cut])
+    ends = np.concatenate([cut, [len(t)]])
+    half = 0.5 * d.cfg.sample_period_s
+    return [(float(t[a]) - half, float(t[b - 1]) + half, str(ph[a])) for a, b in zip(starts, ends)]
+
+
+def shade_phases(ax, spans: list[tuple[float, float, str]]) -> None:
+    """Shade the start and transient phases behind a time plot (steady: unshaded), each
+    labelled once for the legend."""
+    seen: set[str] = set()
+    for t0, t1, p in spans:
+        if p not in PHASE_SHADE:
+            continue
+        color, alpha = PHASE_SHADE[p]
+        label = None
+        if p not in seen:
+            seen.add(p)
+            label = {"start": "start (uncalibrated)", "transient": "transient"}[p]
+        ax.axvspan(t0, t1, color=color, alpha=alpha, lw=0, label=label, zorder=0)
+
+
+def _steady_title(bp: dict | None, name: str, i: int) -> str:
+    """``steady: RMS err …, err/σ …, … % > 3σ`` for axis ``i`` of ``name`` (H or H_static) from
+    the by-phase summary; empty without a steady phase."""
+    v = ((bp or {}).get(name) or {}).get("steady")
+    if not v:
+        return ""
+    return (f"steady {name}: RMS {_fmt(v['rms_error'][i])}, err/σ "
+            f"{v['rms_over_sigma'][i]:.2f}, {100 * v['beyond_3sigma'][i]:.1f} % > 3σ")
+
+
+def _per_revolution(t: np.ndarray, x: np.ndarray, period: float
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Mean, min and max of ``x`` over consecutive spans of one ``period`` (a revolution, or
+    a fixed span without a rotor speed): the whole run readable at a glance."""
+    ok = np.isfinite(t) & np.isfinite(x)
+    t, x = t[ok], x[ok]
+    if not len(t):
+        e = np.empty(0)
+        return e, e, e, e
+    k = np.floor((t - t[0]) / period).astype(np.int64)
+    cut = np.flatnonzero(np.diff(k)) + 1
+    starts = np.concatenate([[0], cut])
+    mean = np.add.reduceat(x, starts) / np.diff(np.concatenate([starts, [len(x)]]))
+    return (np.add.reduceat(t, starts) / np.diff(np.concatenate([starts, [len(x)]])), mean,
+            np.minimum.reduceat(x, starts), np.maximum.reduceat(x, starts))
+
+
 def plot_hub_loads(d: ReportData, out: Path) -> Path:
-    """Estimates (filter H, static H_static) vs truth over the last rotor revolutions, with
+    """The whole run (per-revolution mean and range of H and of the truth, phases shaded), then
+    the estimates (filter H, static H_static) vs truth over the last rotor revolutions with
     the static bound band (truth ± noise-budget σ, model §4)."""
     plt = _plt()
     hub = d.rec.hub
     assert hub is not None  # build_report: with hub_loads records only
     t = hub["t"] - d.t0
-    span = ZOOM_REVOLUTIONS * 2 * math.pi / d.omega if d.omega else 2.0
+    rev = 2 * math.pi / d.omega if d.omega else 0.25
+    span = ZOOM_REVOLUTIONS * rev if d.omega else 2.0
     win = t >= (np.nanmax(t) - span)
     sc = _axis_scale(d.units)
     u = axis_units(d.units)
-    fig, axs = plt.subplots(2, 3, figsize=FIG_SIZE, layout="constrained", sharex=True)
+    spans = phase_spans(d)
+    fig, axs = plt.subplots(4, 3, figsize=(14, 14), layout="constrained")
     for i in range(6):
-        a = axs.flat[i]
+        a = axs[i // 3, i % 3]  # the whole run
+        shade_phases(a, spans)
+        if d.H_truth is not None:
+            tt, m, lo, hi = _per_revolution(t, d.H_truth[:, i] * sc[i], rev)
+            a.fill_between(tt, lo, hi, color="0.8", lw=0, label="truth: range per revolution")
+            a.plot(tt, m, color="k", lw=1.4, label="truth: mean per revolution")
+        tt, m, lo, hi = _per_revolution(t, hub["H"][:, i] * sc[i], rev)
+        if d.H_truth is None:
+            a.fill_between(tt, lo, hi, color="tab:blue", alpha=0.2, lw=0,
+                           label="H: range per revolution")
+        a.plot(tt, m, color="tab:blue", lw=1.0, ls="--" if d.H_truth is not None else "-",
+               label="H: mean per revolution")
+        a.set_title(f"{AXES[i]}: whole run", fontsize=10)
+        a.set_ylabel(f"{AXES[i]} [{u[i]}]")
+        a.grid(True, alpha=0.3)
+        if i >= 3:
+            a.set_xlabel("time since start [s]")
+    axs[0, 0].legend(fontsize=7, loc="best")
+    for i in range(6):
+        a = axs[2 + i // 3, i % 3]  # the last revolutions
         tw = t[win]
         ref = d.H_truth[win, i] if d.H_truth is not None else hub["H"][win, i]
         band = d.sigma_static[i] * sc[i]
@@ -650,14 +779,15 @@ def plot_hub_loads(d: ReportData, out: Path) -> Path:
         a.plot(tw, hub["H_static"][win, i] * sc[i], color="tab:orange", lw=0.8, alpha=0.8,
                label="H_static (per sample)")
         a.plot(tw, hub["H"][win, i] * sc[i], color="tab:blue", lw=1.2, label="H (load filter)")
-        a.set_title(f"{AXES[i]}")
+        a.set_title(f"{AXES[i]}: last {span:.1f} s", fontsize=10)
         a.set_ylabel(f"{AXES[i]} [{u[i]}]")
         a.grid(True, alpha=0.3)
         if i >= 3:
             a.set_xlabel("time since start [s]")
-    axs.flat[0].legend(fontsize=8, loc="best")
-    fig.suptitle(f"Hub loads ({d.frame} axes), last {span:.1f} s "
-                 f"({ZOOM_REVOLUTIONS} rotor revolutions): estimate vs truth, "
+    axs[2, 0].legend(fontsize=7, loc="best")
+    what = f"{ZOOM_REVOLUTIONS} rotor revolutions" if d.omega else "no rotor speed"
+    fig.suptitle(f"Hub loads ({d.frame} axes). Rows 1–2: the whole run, mean and range per "
+                 f"revolution, phases shaded.\nRows 3–4: the last {span:.1f} s ({what}), "
                  "band = static noise-budget σ")
     return _save(fig, out / "hub_loads.png")
 
@@ -671,10 +801,12 @@ def plot_hub_errors(d: ReportData, out: Path, summ: dict) -> Path:
     sc = _axis_scale(d.units)
     u = axis_units(d.units)
     errs = summ.get("errors", {})
+    spans = phase_spans(d)
     fig, axs = plt.subplots(2, 3, figsize=FIG_SIZE, layout="constrained", sharex=True)
     for i in range(6):
         a = axs.flat[i]
         s = d.sigma_static[i] * sc[i]
+        shade_phases(a, spans)
         a.axhspan(-3 * s, 3 * s, color="0.93", label="±3σ static bound")
         a.axhspan(-s, s, color="0.82", label="±σ static bound")
         rs = errs.get("H_static")
@@ -683,9 +815,11 @@ def plot_hub_errors(d: ReportData, out: Path, summ: dict) -> Path:
                lw=0.5, alpha=0.7, label="H_static − truth (static estimate)")
         a.plot(t, (hub["H"][:, i] - H_truth[:, i]) * sc[i], color="tab:blue", lw=0.8,
                label="H − truth (load filter)")
-        rms = "".join(f", RMS {k} {_fmt(r['rms_error'][i])}"
-                      for k, r in (("H", rh), ("H_static", rs)) if r)
-        a.set_title(f"{AXES[i]} [{u[i]}]: σ {_fmt(s)}{rms}", fontsize=10)
+        steady = _steady_title(summ.get("by_phase"), "H", i)
+        if not steady:  # no phases (no truth alignment by phase): the whole run, said so
+            steady = "whole run: " + ", ".join(f"RMS {k} {_fmt(r['rms_error'][i])}"
+                                               for k, r in (("H", rh), ("H_static", rs)) if r)
+        a.set_title(f"{AXES[i]} [{u[i]}]: static σ {_fmt(s)}\n{steady}", fontsize=9)
         settled = t >= d.settle_s
         e_all = np.concatenate([(hub[k][settled, i] - H_truth[settled, i]) * sc[i]
                                 for k in ("H", "H_static")])
@@ -695,46 +829,80 @@ def plot_hub_errors(d: ReportData, out: Path, summ: dict) -> Path:
         a.grid(True, alpha=0.3)
         if i >= 3:
             a.set_xlabel("time since start [s]")
-    fig.legend(*axs.flat[0].get_legend_handles_labels(), loc="outside lower center", ncol=4,
+    fig.legend(*axs.flat[0].get_legend_handles_labels(), loc="outside lower center", ncol=6,
                fontsize=9)
     fig.suptitle(f"Hub-load errors against truth ({d.frame} axes): load filter and static "
-                 "estimate vs the static noise budget (model §4)")
+                 "estimate vs the static noise budget (model §4)\ntitles: the calibrated "
+                 "steady state, err/σ against the σ published with each sample")
     return _save(fig, out / "hub_load_errors.png")
 
 
-def plot_angles(d: ReportData, out: Path) -> Path:
-    """Angles over time with ±σ_CR bands, truth, and the runs marked accepted/rejected."""
-    plt = _plt()
-    runs = _angle_records(d)
+def _starting_state(d: ReportData) -> tuple[np.ndarray, np.ndarray, str]:
+    """The angles and their σ in force before the first run, and what they are: the results'
+    own starting record, else the configured prior — or, for a run started from a saved
+    posterior whose values the results do not carry, nan (drawn as nothing)."""
     names = d.angle_names
-    # the starting prior (configured angles, configured σ) at the first sample, then each run
+    ini = d.rec.initial_angles
+    if ini is not None:
+        r = _angle_record(d, ini)
+        return r["alpha"], r["sigma_post"], "the run's starting posterior"
+    hub = d.rec.hub
+    if hub is not None and len(hub["seq"]) and calibrated_from(d) == int(np.min(hub["seq"])):
+        nan = np.full(len(names), np.nan)
+        return nan, nan, "a saved posterior (its values are not in the results)"
+    return (d.alpha_config, np.full(len(names), d.cfg.identification.prior_sigma_rad),
+            "the configured prior")
+
+
+def angle_steps(d: ReportData, runs: list[dict]
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+    """The angles in force as steps: times (relative), estimates and posterior σ (rows: the
+    starting state, then each run's record, the last held to the end), and what the first
+    row is (:func:`_starting_state`)."""
     t_end = max([r["t"] for r in runs if math.isfinite(r["t"])] + [d.t0])
     if d.rec.hub is not None:
         t_end = max(t_end, float(np.nanmax(d.rec.hub["t"])))
     tt = np.array([d.t0] + [r["t"] for r in runs] + [t_end]) - d.t0
-    s0 = d.cfg.identification.prior_sigma_rad
-    A = np.vstack([d.alpha_config] + [r["alpha"] for r in runs] + [runs[-1]["alpha"]])
-    S = np.vstack([np.full(len(names), s0)] + [r["sigma"] for r in runs] + [runs[-1]["sigma"]])
+    a0, s0, start_what = _starting_state(d)
+    A = np.vstack([a0] + [r["alpha"] for r in runs] + [runs[-1]["alpha"]])
+    S = np.vstack([s0] + [r["sigma_post"] for r in runs] + [runs[-1]["sigma_post"]])
+    return tt, A, S, start_what
+
+
+def plot_angles(d: ReportData, out: Path) -> Path:
+    """Angles over time: the estimate in force with its posterior ±σ band (sqrt diag P of
+    each record), truth, each run's estimate with its own Cramér–Rao σ_CR, accepted or
+    rejected, the phases shaded; before the first run the state the run started from."""
+    plt = _plt()
+    runs = _angle_records(d)
+    names = d.angle_names
+    tt, A, S, start_what = angle_steps(d, runs)
+    spans = phase_spans(d)
     fig, axs = plt.subplots(4, 4, figsize=(14, 10), layout="constrained", sharex=True)
     for i, nm in enumerate(names):
         a = axs.flat[i]
+        shade_phases(a, spans)
         a.fill_between(tt, np.degrees(A[:, i] - S[:, i]), np.degrees(A[:, i] + S[:, i]),
-                       step="post", color="tab:blue", alpha=0.2, label="±σ_CR")
+                       step="post", color="tab:blue", alpha=0.2, label="±σ posterior")
         a.step(tt, np.degrees(A[:, i]), where="post", color="tab:blue", lw=1.2,
-               label="estimate")
+               label="estimate in force")
         if d.alpha_truth_hub is not None:
             a.plot(d.alpha_truth_t, np.degrees(d.alpha_truth_hub[:, i]), color="k", lw=1.0,
                    ls="--", label="truth")
-        ta = np.array([r["t"] - d.t0 for r in runs if r["accepted"]])
-        va = np.array([r["alpha"][i] for r in runs if r["accepted"]])
-        tr_ = np.array([r["t"] - d.t0 for r in runs if not r["accepted"]])
-        vr = np.array([r["alpha"][i] for r in runs if not r["accepted"]])
-        if len(ta):
-            a.plot(ta, np.degrees(va), "o", color="tab:green", ms=4, label="accepted run")
-        if len(tr_):
-            a.plot(tr_, np.degrees(vr), "x", color="tab:red", ms=6, mew=1.5,
-                   label="rejected run")
-        # a readable range: every run's estimate ± σ_CR and the truth (the wide configured
+        for acc, fmt, color, label in ((True, "o", "tab:green", "accepted run ± σ_CR"),
+                                       (False, "x", "tab:red", "rejected run")):
+            sel = [r for r in runs if r["accepted"] == acc]
+            if not sel:
+                continue
+            tr_ = np.array([r["t"] - d.t0 for r in sel])
+            va = np.degrees(np.array([r["alpha"][i] for r in sel]))
+            if acc:
+                err = np.degrees(np.array([r["sigma"][i] for r in sel]))
+                a.errorbar(tr_, va, yerr=np.where(np.isfinite(err), err, 0.0), fmt=fmt,
+                           color=color, ms=4, lw=0.8, capsize=2, label=label)
+            else:
+                a.plot(tr_, va, fmt, color=color, ms=6, mew=1.5, label=label)
+        # a readable range: every run's estimate ± its posterior σ and the truth (a wide
         # prior before the first run may leave the frame), at least 1° tall
         vals = np.concatenate([A[1:, i] - S[1:, i], A[1:, i] + S[1:, i]])
         if d.alpha_truth_hub is not None:
@@ -760,14 +928,15 @@ def plot_angles(d: ReportData, out: Path) -> Path:
         if j + 4 >= len(names):
             axs.flat[j].set_xlabel("time since start [s]")
             axs.flat[j].xaxis.set_tick_params(labelbottom=True)
-    fig.suptitle("Load-cell deformation angles: estimate with Cramér-Rao ±σ band, truth, "
-                 "identification runs (band before the first run: the configured prior)")
+    fig.suptitle("Load-cell deformation angles: the estimate in force with its posterior ±σ, "
+                 f"truth, each run with its σ_CR; before the first run: {start_what}")
     return _save(fig, out / "angles.png")
 
 
-def plot_nis(d: ReportData, out: Path) -> Path:
+def plot_nis(d: ReportData, out: Path, summ: dict | None = None) -> Path:
     """Normalised innovations squared against the χ²₆ band (two-sided 1e-3), and its running
-    mean against the band of a mean of M independent χ²₆."""
+    mean against the band of a mean of M independent χ²₆, both on a log scale with the
+    phases shaded; the calibrated steady state's verdict in the title."""
     plt = _plt()
     inn = d.rec.innovations
     assert inn is not None  # build_report: with innovations records only
@@ -778,6 +947,7 @@ def plot_nis(d: ReportData, out: Path) -> Path:
     M = max(1, int(round(d.cfg.telemetry.innovations_hz)))  # one second of records
     settled = t >= d.settle_s
     sn = nis[settled]
+    spans = phase_spans(d)
     fig, axs = plt.subplots(2, 1, figsize=FIG_SIZE, layout="constrained", sharex=True)
     a = axs[0]
     a.plot(t, nis, ".", ms=2, color="tab:blue", label="NIS per record")
@@ -786,27 +956,37 @@ def plot_nis(d: ReportData, out: Path) -> Path:
     a.axhline(6.0, color="tab:green", ls="--", lw=1, label="expected mean 6")
     a.set_yscale("log")
     a.set_ylabel("NIS = eᵀ B⁻¹ e")
-    if len(sn):
+    steady = ((summ or {}).get("by_phase") or {}).get("steady") or {}
+    if steady.get("records"):
+        a.set_title(f"Calibrated steady state: {steady['records']} records, mean NIS "
+                    f"{steady['mean_nis']:.2f} (band of the mean "
+                    f"{steady['mean_band'][0]:.2f}–{steady['mean_band'][1]:.2f}), "
+                    f"{steady['above'] * 100:.2f} % above / {steady['below'] * 100:.2f} % "
+                    f"below the band: {steady['verdict']}", fontsize=10)
+    elif len(sn):
         a.set_title(f"Normalised innovations after {d.settle_s:g} s of settling ({len(sn)} "
                     f"records, mean {sn.mean():.2f}, "
                     f"{np.mean((sn < lo) | (sn > hi)) * 100:.2f} % outside the band)")
     a.grid(True, which="both", alpha=0.3)
     b = axs[1]
-    top = 3.0 * 6.0  # default upper limit: well above the χ²₆ mean
     if len(sn) >= M:  # windows entirely after the settling
         run = np.convolve(sn, np.ones(M) / M, mode="valid")
         lo_m, hi_m = (v / M for v in _chi2_band(6 * M))
         b.plot(t[settled][M - 1:], run, color="tab:blue", lw=1.0,
                label=f"running mean of {M} records")
         b.axhspan(lo_m, hi_m, color="tab:green", alpha=0.12,
-                  label=f"band of a mean of {M} χ²₆ [{lo_m:.3g}, {hi_m:.3g}]")
-        top = max(2.0 * hi_m, 1.2 * float(run.max()))
-    b.set_ylim(0, top)
+                  label=f"band of a mean of {M} independent χ²₆ [{lo_m:.3g}, {hi_m:.3g}]")
+        pos = run[run > 0]
+        if len(pos):
+            b.set_ylim(min(0.5 * lo_m, 0.8 * float(pos.min())),
+                       max(2.0 * hi_m, 1.25 * float(pos.max())))
+    b.set_yscale("log")
     b.axhline(6.0, color="tab:green", ls="--", lw=1)
     b.set_ylabel("running mean NIS")
     b.set_xlabel("time since start [s]")
-    b.grid(True, alpha=0.3)
+    b.grid(True, which="both", alpha=0.3)
     for ax in axs:
+        shade_phases(ax, spans)
         ax.axvspan(t.min(), d.settle_s, color="0.9", label="filter settling (not scored)")
         ax.legend(fontsize=8, loc="upper right")
     fig.suptitle("Load-filter innovations against χ²₆ (model §6: B normalises the NIS)")
@@ -1102,7 +1282,7 @@ def build_report(cfg: RigConfig, rec: Records, truth: dict | None, out: str | Pa
     else:
         skipped["angles.png"] = "no angles records (no identification run)"
     if "mean_nis" in summary["innovations"]:
-        plots.append(plot_nis(d, out))
+        plots.append(plot_nis(d, out, summary["innovations"]))
     else:
         skipped["innovations.png"] = summary["innovations"].get("skipped", "no innovations")
     p, why = plot_spectra(d, out)
