@@ -225,34 +225,61 @@ def candidates_from(accelerometers: Sequence[tuple[str, Sequence[float], float]]
         stiffness=None if stiffness is None else np.asarray(stiffness, float))
 
 
-def advice_summary(advice: dict[str, Any] | None) -> str | None:
-    """One line for people (``rsra listen``, the browser view) from an ``advice`` object
-    (:func:`advise`; a record's JSON), the best addition first: its gain in directions and the
-    next eigenvalue now → with it, the best accelerometer (when the best is not one), how many
-    seconds more the window would need, and what the window determines."""
+#: the hub axes in words, for the advice sentence (body axes: X forward, Y right, Z down)
+AXIS_WORDS = {"X": "fore-aft (X)", "Y": "lateral (Y)", "Z": "vertical (Z)", "L": "roll (L)",
+              "M": "pitch (M)", "N": "yaw (N)"}
+
+
+def _load_text(axis: str, rms: object) -> str:
+    if not isinstance(rms, (int, float)) or isinstance(rms, bool):
+        return ""
+    unit = "N·m" if axis in ("L", "M", "N") else "N"
+    r = float(rms)
+    return (f" of ~{r / 1000:.1f} k{unit} RMS" if abs(r) >= 1000 else f" of ~{r:.0f} {unit} RMS")
+
+
+def _more(gain: object) -> str:
+    g = gain if isinstance(gain, int) and not isinstance(gain, bool) else 0
+    return "add none" if g <= 0 else f"determine {g} more direction" + ("s" if g > 1 else "")
+
+
+def advice_summary(advice: dict[str, Any] | None, total: int | None = None) -> str | None:
+    """One plain sentence for people (``rsra listen``, the browser view, the service log, the
+    report) from an ``advice`` object (:func:`advise`; a record's JSON): how many directions
+    this window determines (of ``total``), then what would determine more — each
+    manoeuvre (transmission excitation along a hub axis, the window's band) and accelerometer
+    that adds a direction, best first, the best accelerometer even when it adds none, and how
+    much longer the window would need; the numbers behind it stay in the record."""
     if not isinstance(advice, dict):
         return None
-
-    def num(x: object, fmt: str) -> str:
-        return format(x, fmt) if isinstance(x, (int, float)) and not isinstance(x, bool) else "—"
-
-    now = num(advice.get("next"), ".2f")
-    parts = []
-    best = advice.get("best")
-    if isinstance(best, dict):
-        what = "excite" if best.get("kind") == "manoeuvre" else "accelerometer"
-        parts.append(f"{what} {best.get('name')}: +{best.get('gain')} "
-                     f"(next {now} → {num(best.get('next'), '.2f')})")
-    else:
-        parts.append(f"next {now}")
+    k = advice.get("determined")
+    of = f" of {total}" if isinstance(total, int) else ""
+    head = f"This window determines {k}{of} directions."
+    items: list[tuple[int, float, str]] = []
+    for m in advice.get("manoeuvres") or []:
+        if isinstance(m, dict) and isinstance(m.get("gain"), int) and m["gain"] > 0:
+            ax = str(m.get("axis"))
+            items.append((m["gain"], float(m.get("next") or 0.0),
+                          f"a {AXIS_WORDS.get(ax, ax)} excitation{_load_text(ax, m.get('rms'))}"
+                          f" would {_more(m['gain'])}"))
     accs = [a for a in advice.get("accelerometers") or [] if isinstance(a, dict)
-            and isinstance(a.get("gain"), int) and isinstance(a.get("next"), (int, float))]
-    if accs and not (isinstance(best, dict) and best.get("kind") == "accelerometer"):
-        a = max(accs, key=_rank)
-        parts.append(f"accelerometer {a.get('name')}: +{a.get('gain')} "
-                     f"(→ {num(a.get('next'), '.2f')})")
+            and isinstance(a.get("gain"), int)]
+    for a in accs:
+        if a["gain"] > 0:
+            items.append((a["gain"], float(a.get("next") or 0.0),
+                          f"an accelerometer at {a.get('name')} would {_more(a['gain'])}"))
+    parts = [t for _, _, t in sorted(items, key=lambda x: (-x[0], -x[1]))]
+    if accs and not any(a["gain"] > 0 for a in accs):
+        best_acc = max(accs, key=_rank)
+        parts.append(f"an accelerometer at {best_acc.get('name')} would add none")
     w = advice.get("window")
-    if isinstance(w, dict):
-        parts.append(f"window +{num(w.get('extra_s'), '.1f')} s")
-    parts.append(f"{advice.get('determined')} determined (at 1)")
-    return "; ".join(parts)
+    extra = w.get("extra_s") if isinstance(w, dict) else None
+    if isinstance(extra, (int, float)) and not isinstance(extra, bool):
+        parts.append(f"about {extra:.1f} s more of such data would determine 1 more")
+    if not parts:
+        parts.append("no listed addition would determine another direction")
+    nxt = advice.get("next")
+    tail = (f" (the strongest undetermined direction has {nxt:.2f} of the information it "
+            "needs)" if isinstance(nxt, (int, float)) and not isinstance(nxt, bool) else "")
+    text = "; ".join(parts)
+    return f"{head} {text[0].upper()}{text[1:]}{tail}."

@@ -163,21 +163,33 @@ def test_an_accelerometer_candidate_can_only_add_information_and_a_copy_averages
                      prob.n_scored, FS, cands) is None
 
 
-def test_the_summary_line_says_the_best_addition_and_the_window():
+def test_the_advice_is_one_sentence_an_engineer_acts_on():
+    """The advice as one plain sentence (issue 51): what the window determines of the whole,
+    then each addition that adds a direction, in words and units (a manoeuvre as the
+    excitation along a named hub axis with its RMS), the best accelerometer even when it
+    adds none (never listed as the best), and how much longer the window would need."""
     adv = {"determined": 2, "next": 0.74, "n_scored": 899,
            "accelerometers": [{"name": "deck_aft_right", "determined": 2, "gain": 0,
                                "next": 0.88}],
            "manoeuvres": [{"axis": "Y", "rms": 3000.0, "determined": 3, "gain": 1,
-                           "next": 1.41}],
+                           "next": 1.41},
+                          {"axis": "N", "rms": 800.0, "determined": 4, "gain": 2,
+                           "next": 1.2}],
            "window": {"extra_s": 1.57, "gain": 1},
-           "best": {"kind": "manoeuvre", "name": "Y", "gain": 1, "next": 1.41}}
-    line = fa.advice_summary(adv)
-    assert line == ("excite Y: +1 (next 0.74 → 1.41); accelerometer deck_aft_right: +0 "
-                    "(→ 0.88); window +1.6 s; 2 determined (at 1)")
+           "best": {"kind": "manoeuvre", "name": "N", "gain": 2, "next": 1.2}}
+    line = fa.advice_summary(adv, 14)
+    assert line == ("This window determines 2 of 14 directions. A yaw (N) excitation of ~800 "
+                    "N·m RMS would determine 2 more directions; a lateral (Y) excitation of "
+                    "~3.0 kN RMS would determine 1 more direction; an accelerometer at "
+                    "deck_aft_right would add none; about 1.6 s more of such data would "
+                    "determine 1 more (the strongest undetermined direction has 0.74 of the "
+                    "information it needs).")
     assert fa.advice_summary(None) is None
-    assert "window +— s" in fa.advice_summary({**adv, "window": {"extra_s": None}})
-    assert fa.advice_summary({"determined": 0, "next": 0.1, "best": None}) == \
-        "next 0.10; 0 determined (at 1)"
+    assert "s more" not in fa.advice_summary({**adv, "window": {"extra_s": None}})
+    assert fa.advice_summary({"determined": 0, "next": 0.1, "best": None}) == (
+        "This window determines 0 directions. No listed addition would determine another "
+        "direction (the strongest undetermined direction has 0.10 of the information it "
+        "needs).")
 
 
 def test_bad_candidates_are_refused():
@@ -235,3 +247,23 @@ def test_the_worker_s_flight_records_carry_the_advice_and_ground_records_none():
         assert adv["window"]["extra_s"] > 0
         assert list(rec)[-1] == "advice"  # the addition goes at the end
     assert records[2]["mode"] == "known_loads" and records[2]["advice"] is None
+
+
+def test_the_service_logs_the_advice_when_what_is_determined_changes(caplog):
+    """The service log carries the advice sentence once per change of what the windows
+    determine, not every window (issue 51)."""
+    import logging
+    from types import SimpleNamespace
+
+    from rsra.daq.runtime.sample_loop import AnglesTally
+
+    tally = AnglesTally(SimpleNamespace(recorder=None))
+    adv = {"determined": 2, "next": 0.74, "window": {"extra_s": 1.57, "gain": 1}}
+    rec = {"mode": "filter_error", "content": "vibration", "accepted": True, "names": ["a"] * 14,
+           "sigma_cr": [0.001] * 14, "determined": 2, "applies_from_seq": 1}
+    with caplog.at_level(logging.INFO, logger="rsra"):
+        for a in (adv, adv, {**adv, "determined": 3}, None):
+            tally.add({**rec, "advice": a})
+    said = [r.getMessage() for r in caplog.records if r.getMessage().startswith("advice:")]
+    assert said == [f"advice: {fa.advice_summary(adv, 14)}",
+                    f"advice: {fa.advice_summary({**adv, 'determined': 3}, 14)}"]

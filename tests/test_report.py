@@ -477,3 +477,29 @@ def test_nis_verdict_judges_the_mean_of_correlated_records():
     white = effective_records(rng.chisquare(6, 4000))
     assert 0.85 * 4000 <= white <= 4000
     assert effective_records(ar_nis(4000, 0.9)) < 0.3 * 4000
+
+
+def test_the_report_says_the_last_advice_in_a_sentence(synth_truth, cfg, tmp_path):
+    """A filter-error window's advice reaches the report (summary, headline, Markdown) as the
+    sentence `rsra listen` shows (issue 51)."""
+    from rsra.daq.analysis.report import Report, _markdown, load_records, load_truth, summarise
+
+    tr = load_truth(synth_truth, read_truth)
+    p, t, cal, _ = _phase_run(cfg, tr, tmp_path)
+    names = list(cfg.rig_model().geometry.angle_names)
+    adv = {"determined": 11, "next": 0.5, "window": {"extra_s": 4.0, "gain": 1},
+           "accelerometers": [], "manoeuvres": [{"axis": "Z", "rms": 5000.0, "determined": 12,
+                                                 "gain": 1, "next": 1.3}],
+           "best": {"kind": "manoeuvre", "name": "Z", "gain": 1, "next": 1.3}}
+    extra = {"key": "angles", "t": float(t[-1]), "seq": len(t) - 1, "accepted": True,
+             "reason": None, "mode": "filter_error", "content": "vibration", "names": names,
+             "alpha": [0.0] * 14, "P": (np.eye(14) * 1e-4).tolist(), "determined": 11,
+             "applies_from_seq": len(t), "advice": adv}
+    with open(p, "a") as f:
+        f.write(dumps(extra) + "\n")
+    _, s = summarise(cfg, load_records(p), tr)
+    sentence = s["angles"]["advice"]["sentence"]
+    assert sentence.startswith("This window determines 11 of 14 directions. A vertical (Z) "
+                               "excitation of ~5.0 kN RMS would determine 1 more direction")
+    assert sentence in Report(tmp_path, [], {}, s).markdown_brief()
+    assert sentence in _markdown({**s, "plots": [], "skipped": {}}, "si")

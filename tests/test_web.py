@@ -164,8 +164,10 @@ def test_points_of_every_key(dic, cfg):
     adv = {"determined": 2, "next": 0.74, "window": {"extra_s": 1.57, "gain": 1},
            "best": {"kind": "manoeuvre", "name": "Y", "gain": 1, "next": 1.41}}
     pts = dict(D.points(dic, "angles", {**ang, "advice": adv}))
-    assert pts["ident.advice"]["value"] == ("excite Y: +1 (next 0.74 → 1.41); window +1.6 s; "
-                                            "2 determined (at 1)")
+    from rsra.estimator.flight_advice import advice_summary
+
+    assert pts["ident.advice"]["value"] == advice_summary(adv)  # one sentence (issue 51)
+    assert pts["ident.advice"]["value"].startswith("This window determines 2 directions.")
     health = {"t": 6.0, "nodes": {"cell_A": {"state": "lost", "required": True},
                                   "balance": {"state": "missing", "required": False}},
               "bus": {"errors": 2, "frames": 10}, "samples": {"lost": 0}}

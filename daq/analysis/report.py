@@ -529,6 +529,13 @@ def _angles_summary(d: ReportData) -> dict:
                 except np.linalg.LinAlgError:
                     out["joint_chi2"] = None
     out["final"] = final
+    advised = [r for r in d.rec.angles if isinstance(r.get("advice"), dict)]
+    if advised:  # filter-error windows: what would determine the rest, the latest
+        from rsra.estimator.flight_advice import advice_summary
+
+        r = advised[-1]
+        out["advice"] = {"t": _num(r.get("t")) - d.t0, "sentence": advice_summary(
+            r["advice"], len(r.get("names") or []) or None), "advice": r["advice"]}
     return out
 
 
@@ -1092,6 +1099,9 @@ class Report:
             lines.append(f"  final angles: joint χ² {j['value']:.1f} on {j['dof']} dof "
                          f"(threshold {j['threshold']:.1f}): "
                          + ("consistent" if j["consistent"] else "INCONSISTENT"))
+        if isinstance(ang.get("advice"), dict):
+            lines.append(f"  advice (the last filter-error window, {ang['advice']['t']:.1f} s): "
+                         f"{ang['advice']['sentence']}")
         inn = s.get("innovations", {})
         if "mean_nis" in inn:
             lines.append(f"  innovations, whole run (the phases below mixed): mean NIS "
@@ -1183,6 +1193,9 @@ def _markdown(s: dict, units: str) -> str:
                       + ("consistent." if j["consistent"] else "**inconsistent**.")]
         else:
             L.append("No truth: final errors not computed.")
+        if isinstance(ang.get("advice"), dict):
+            L += ["", f"Advice of the last filter-error window ({ang['advice']['t']:.1f} s): "
+                  f"{ang['advice']['sentence']}"]
     L += ["", "## Innovations"]
     inn = s["innovations"]
     if "skipped" in inn:

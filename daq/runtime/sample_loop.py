@@ -57,6 +57,9 @@ class AnglesTally:
         #: identification runs, and the rejected ones by reason
         self.runs = 0
         self.rejected: dict[str, int] = {}
+        #: the directions the last advised window determined (the advice is logged when it
+        #: changes, not every window)
+        self._advised: int | None = None
 
     def add(self, rec: AnglesRecord) -> None:
         """An angles record applied (or, at the end, one that never applied). (The
@@ -81,6 +84,19 @@ class AnglesTally:
             log.info("identification rejected (%s, %s): %s: %s%s", rec.get("mode"),
                      rec.get("content"), rec.get("reason"), rec.get("explanation") or
                      rec.get("detail"), f"; hint: {rec.get('hint')}" if rec.get("hint") else "")
+        self._log_advice(rec)
+
+    def _log_advice(self, rec: AnglesRecord) -> None:
+        """A filter-error window's advice, in one sentence, when what it determines changes."""
+        from rsra.estimator.flight_advice import advice_summary
+
+        adv = rec.get("advice")
+        if not isinstance(adv, dict) or adv.get("determined") == self._advised:
+            return
+        self._advised = adv.get("determined")
+        text = advice_summary(adv, len(rec.get("names") or []) or None)
+        if text:
+            log.info("advice: %s", text)
 
 
 class SampleLoop:
