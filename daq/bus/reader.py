@@ -885,6 +885,8 @@ class _BusReader(ReaderBase):
         self._stop.set()
         self.nodes.stop()
         self.clock.stop()
+        if self.recorder is not None:  # (the notifier stops it as a listener too)
+            self.recorder.keep_angles_open = self.keep_angles_open
         if self.network.notifier is not None:
             self.network.notifier.stop(2.0)  # also stops the recorder (a listener)
             self.network.notifier = None

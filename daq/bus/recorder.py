@@ -135,6 +135,10 @@ class Recorder(can.Listener):
         self.folder = Path(folder)
         #: the channel name written on every frame (rsra.canbus.recording_channel)
         self.channel = channel
+        #: angles.jsonl stays open through :meth:`stop` (also when python-can's Notifier stops
+        #: its listeners): the service still records the last windows' results, then calls
+        #: :meth:`close_angles`
+        self.keep_angles_open = False
         self.fmt = (fmt or cfg.recording.format).lstrip(".")
         if self.fmt not in FORMATS:
             raise RecordingError(f"recording format {self.fmt!r} is not available here; "
@@ -371,10 +375,13 @@ class Recorder(can.Listener):
                             "max_depth": self.max_depth, "overflow": self.overflow}
         return out
 
-    def stop(self, *, angles: bool = True) -> None:
+    def stop(self, *, angles: bool | None = None) -> None:
         """Stop recording frames (the queued ones written first) and — unless ``angles`` is
-        False, when the service still writes the results of the last windows (it then calls
-        :meth:`close_angles`) — close angles.jsonl."""
+        False (by default: unless :attr:`keep_angles_open`), when the service still writes the
+        results of the last windows (it then calls :meth:`close_angles`) — close
+        angles.jsonl."""
+        if angles is None:
+            angles = not self.keep_angles_open
         if self._writer is not None:
             assert self._queue is not None  # the writer thread is made with its queue
             try:  # the frames still queued are written first
