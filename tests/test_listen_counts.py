@@ -104,3 +104,26 @@ def test_the_health_line_rounds_its_floats():
     text = con.export_text()
     assert "p50 0.827 ms p99 12.4 ms" in text, text
     assert not re.search(r"\d\.\d{5,}", text), text
+
+
+def test_a_run_that_cannot_keep_up_says_why_once(caplog):
+    """Issue 51: on the shared bus the default rig's 200 samples/s exceed what
+    python-can-remote carries; the service says so once, in words, with what to do."""
+    import logging
+    from types import SimpleNamespace
+
+    from rsra.daq.runtime.run_report import RateLowNotice
+
+    n = RateLowNotice()
+    ok = SimpleNamespace(rate_low=False, rate_hz=200.0)
+    low = SimpleNamespace(rate_low=True, rate_hz=104.6)
+    with caplog.at_level(logging.WARNING, logger="rsra"):
+        assert n.check(ok, "remote", 200.0) is None
+        said = n.check(low, "remote", 200.0)
+        assert n.check(low, "remote", 200.0) is None  # once
+    assert said is not None and said.startswith("samples arrive at 105/s, below the rig's "
+                                                 "sample_rate_hz 200")
+    assert "python-can-remote" in said and "112 samples/s" in said and "socketcan" in said
+    assert [r.getMessage() for r in caplog.records] == [said]
+    other = RateLowNotice().check(low, "socketcan", 200.0)
+    assert other is not None and "does not keep up" in other and "112" not in other

@@ -19,6 +19,42 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("rsra.service")
 
+# What the shared loopback bus carries (docs/performance.md P6a: the do-nothing master and
+# responder through python-can-remote on a 2-core machine): quoted, not enforced
+SHARED_BUS_CEILING_HZ = 112
+
+
+def rate_low_reason(interface: str | None, rate: float, target: float) -> str:
+    """One line, in words, for a run whose samples come slower than the rig asks: the bus it
+    is on and what to do."""
+    head = f"samples arrive at {rate:.0f}/s, below the rig's sample_rate_hz {target:g}: "
+    if interface == "remote":
+        return head + (f"the shared bus (python-can-remote, `rsra bus`) carries about "
+                       f"{SHARED_BUS_CEILING_HZ} samples/s of this rig's frames on a 2-core "
+                       "machine (docs/performance.md, P6a) — set rig.sample_rate_hz to about "
+                       "100 in a rig file for both sides, or run on a real bus (socketcan)")
+    return head + ("this bus or this machine does not keep up — check the health's bus "
+                   "errors and the nodes, lower rig.sample_rate_hz in a rig file, or free "
+                   "the cores (docs/user-guide.md, troubleshooting)")
+
+
+class RateLowNotice:
+    """Says :func:`rate_low_reason` once, the first time ``health.sync`` reports the rate
+    low (the reader's measure over its last health periods)."""
+
+    def __init__(self) -> None:
+        self.said: str | None = None
+
+    def check(self, sync: Any, interface: str | None, target: float) -> str | None:
+        if self.said is not None or not getattr(sync, "rate_low", False):
+            return None
+        rate = getattr(sync, "rate_hz", None)
+        if rate is None:
+            return None
+        self.said = rate_low_reason(interface, rate, target)
+        log.warning("%s", self.said)
+        return self.said
+
 
 def latency_percentiles(latencies: Iterable[float]) -> dict[str, float] | None:
     """{"p50", "p99", "max"} in ms of latencies in seconds; None when there are none."""
@@ -39,6 +75,8 @@ class HealthReporter:
         self._warnings = warnings  # (the service's list: start-up problems it went on with)
         #: the latest health record published
         self.last: Health | None = None
+        #: a run that cannot keep up is told why, once
+        self._rate_low = RateLowNotice()
 
     def __call__(self, item: Any) -> None:
         from rsra.daq.bus.health import IdentQueue, Latency, PublisherQueue, frozen_map
@@ -82,6 +120,8 @@ class HealthReporter:
         err = h.recording.error
         if err and err != prev:
             log.error("recording stopped: %s", err)
+        self._rate_low.check(h.sync, getattr(loop.source, "interface", None),
+                             loop.pipeline.cfg.sample_rate_hz)
         self.last = h
         outputs.publish("health", h)
 
