@@ -267,3 +267,41 @@ def test_the_service_logs_the_advice_when_what_is_determined_changes(caplog):
     said = [r.getMessage() for r in caplog.records if r.getMessage().startswith("advice:")]
     assert said == [f"advice: {fa.advice_summary(adv, 14)}",
                     f"advice: {fa.advice_summary({**adv, 'determined': 3}, 14)}"]
+
+
+def test_held_windows_are_not_logged_as_rejections_and_a_status_line_follows(caplog):
+    """Issue 51: a known-load window whose information is held for the next runs says so
+    ("held", at debug level once the posterior is calibrated) instead of "rejected … hint:
+    the loads did not vary enough"; a calibrated run logs one status line every minute of
+    acquisition time; a run whose data were refused is still a rejection with its hint."""
+    import logging
+    from types import SimpleNamespace
+
+    from rsra.daq.runtime.sample_loop import STATUS_PERIOD_S, AnglesTally
+
+    tally = AnglesTally(SimpleNamespace(recorder=None))
+    P = (np.eye(14) * np.radians(0.1) ** 2).tolist()
+    base = {"mode": "known_loads", "content": "static", "names": ["a"] * 14, "P": P,
+            "determined": 14, "sigma_cr": [0.001] * 14, "applies_from_seq": 1}
+    held = {**base, "accepted": False, "reason": "not_identifiable", "detail":
+            "information_ratio", "information": 0.45, "hint": "the loads did not vary enough"}
+    ok = {**base, "accepted": True, "reason": None, "detail": "passed"}
+    bad = {**base, "accepted": False, "reason": "inconsistent", "detail": "gate",
+           "hint": "a load outside the model"}
+    with caplog.at_level(logging.DEBUG, logger="rsra"):
+        for t, rec in enumerate([held, ok, held, held, bad, ok]):
+            tally.add({**rec, "t": 1000.0 + 5 * t})
+        tally.add({**held, "t": 1000.0 + 25 + STATUS_PERIOD_S})
+    got = [(r.levelno, r.getMessage()) for r in caplog.records]
+    assert got[0] == (logging.INFO, "identification held (known_loads, static): this window "
+                      "adds 0.45 of what the posterior knows; its information is used with "
+                      "the next windows")
+    assert [lv for lv, m in got if m.startswith("identification held")] == [
+        logging.INFO] + [logging.DEBUG] * 3
+    rejected = [m for _, m in got if m.startswith("identification rejected")]
+    assert len(rejected) == 1 and "inconsistent" in rejected[0] and "hint:" in rejected[0]
+    status = [m for _, m in got if m.startswith("calibration:")]
+    assert status == ["calibration: 14 of 14 directions determined, largest σ 0.100°, 1 runs "
+                      "accepted, 1 windows held and used, last change 0 s ago",
+                      "calibration: 14 of 14 directions determined, largest σ 0.100°, 2 runs "
+                      "accepted, 4 windows held and used, last change 60 s ago"]

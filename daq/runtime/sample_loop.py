@@ -27,6 +27,10 @@ log = logging.getLogger("rsra.service")
 
 LATENCY_HISTORY = 2000
 ANGLES_HISTORY = 16  # recent angles records kept in memory (~15 kB each with P)
+STATUS_PERIOD_S = 60.0  # a calibrated run's one-line calibration status, this often (record t)
+# a known-load window not identifiable on its own whose information is held for the next
+# runs (docs/identification.md, "weak windows are held"): not a refusal of its data
+HELD_DETAILS = frozenset({"information_ratio", "nonlinear"})
 
 
 class _FirstStepDone:
@@ -60,6 +64,12 @@ class AnglesTally:
         #: the directions the last advised window determined (the advice is logged when it
         #: changes, not every window)
         self._advised: int | None = None
+        #: the calibration so far, for the periodic status line: windows accepted and held,
+        #: the time of the last accepted run and of the last status line (record t)
+        self._accepted = 0
+        self._held = 0
+        self._last_change: float | None = None
+        self._last_status: float | None = None
 
     def add(self, rec: AnglesRecord) -> None:
         """An angles record applied (or, at the end, one that never applied). (The
@@ -72,7 +82,10 @@ class AnglesTally:
         if not rec.get("accepted"):
             reason = str(rec.get("reason"))
             self.rejected[reason] = self.rejected.get(reason, 0) + 1
+        t = rec.get("t")
         if rec.get("accepted"):
+            self._accepted += 1
+            self._last_change = t if isinstance(t, (int, float)) else self._last_change
             sig = rec.get("sigma_cr") or []
             worst = max((x for x in sig if x is not None), default=float("nan"))
             log.info("identification accepted (%s, %s): %d of %d directions determined, "
@@ -80,11 +93,35 @@ class AnglesTally:
                      rec.get("content"), rec.get("determined", 0), len(rec.get("names") or []),
                      math.degrees(worst), rec.get("applies_from_seq"),
                      " (late)" if rec.get("late") else "")
+        elif held_window(rec):
+            self._held += 1
+            info = rec.get("information")
+            adds = (f"adds {info:.2g} of what the posterior knows"
+                    if isinstance(info, (int, float)) and math.isfinite(info) else
+                    "is not identifiable on its own")
+            # once calibrated a held window is routine: the status line below says enough
+            log.log(logging.DEBUG if self._accepted else logging.INFO,
+                    "identification held (%s, %s): this window %s; its information is used "
+                    "with the next windows", rec.get("mode"), rec.get("content"), adds)
         else:
             log.info("identification rejected (%s, %s): %s: %s%s", rec.get("mode"),
                      rec.get("content"), rec.get("reason"), rec.get("explanation") or
                      rec.get("detail"), f"; hint: {rec.get('hint')}" if rec.get("hint") else "")
         self._log_advice(rec)
+        self._log_status(rec)
+
+    def _log_status(self, rec: AnglesRecord) -> None:
+        """Once calibrated, every STATUS_PERIOD_S of acquisition time: one line saying where
+        the calibration stands."""
+        t = rec.get("t")
+        if not self._accepted or not isinstance(t, (int, float)):
+            return
+        if self._last_status is not None and t - self._last_status < STATUS_PERIOD_S:
+            return
+        self._last_status = t
+        log.info("%s", calibration_status(rec, self._accepted, self._held,
+                                          None if self._last_change is None
+                                          else t - self._last_change))
 
     def _log_advice(self, rec: AnglesRecord) -> None:
         """A filter-error window's advice, in one sentence, when what it determines changes."""
@@ -97,6 +134,32 @@ class AnglesTally:
         text = advice_summary(adv, len(rec.get("names") or []) or None)
         if text:
             log.info("advice: %s", text)
+
+
+def held_window(rec: Any) -> bool:
+    """A known-load window whose information is held for the next runs, not refused."""
+    return (rec.get("mode") == "known_loads" and rec.get("reason") == "not_identifiable"
+            and rec.get("detail") in HELD_DETAILS)
+
+
+def calibration_status(rec: Any, accepted: int, held: int, since_change_s: float | None) -> str:
+    """``calibration: 14 of 14 directions determined, largest σ 0.117°, …`` from the latest
+    angles record (its ``determined`` and posterior ``P``)."""
+    names = rec.get("names") or []
+    P = rec.get("P")
+    sig = None
+    try:
+        diag = [P[i][i] for i in range(len(names))] if P is not None else []
+        sig = max(math.degrees(math.sqrt(max(float(x), 0.0))) for x in diag) if diag else None
+    except (TypeError, ValueError, IndexError):
+        sig = None
+    parts = [f"calibration: {rec.get('determined')} of {len(names)} directions determined"]
+    if sig is not None:
+        parts.append(f"largest σ {sig:.3f}°")
+    parts.append(f"{accepted} runs accepted, {held} windows held and used")
+    if since_change_s is not None:
+        parts.append(f"last change {since_change_s:.0f} s ago")
+    return ", ".join(parts)
 
 
 class SampleLoop:
