@@ -29,7 +29,7 @@ LATENCY_HISTORY = 2000
 ANGLES_HISTORY = 16  # recent angles records kept in memory (~15 kB each with P)
 STATUS_PERIOD_S = 60.0  # a calibrated run's one-line calibration status, this often (record t)
 # a known-load window not identifiable on its own whose information is held for the next
-# runs (docs/identification.md, "weak windows are held"): not a refusal of its data
+# runs (docs/identification.md, the min_information rule): not a refusal of its data
 HELD_DETAILS = frozenset({"information_ratio", "nonlinear"})
 
 
