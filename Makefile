@@ -7,10 +7,11 @@ STAMP := $(VENV)/.installed
 # src/ (ours maps config/ to rsra_config); silence that one note, nothing else
 PIP_INSTALL := PYTHONWARNINGS="ignore:Editable installation" $(BIN)/pip install -q
 # The editable install is setuptools' strict mode: a tree of links to the files
-# (build/__editable__.rsra-*/rsra/daq/... -> daq/...) on one .pth path, which mypy, pyright and
-# an IDE read like any site-packages folder (the default mode's import-hook finder they cannot
-# follow; issue 27). A link tree holds the files that were there when it was made: a new,
-# renamed or removed file in a package changes $(PKG_FILES) and the next `make` re-links.
+# (build/__editable__.rsra-*/rsra/daq/... -> daq/...) on one .pth path, for the venv's `rsra`
+# run from any folder. (At the repository's top, rsra/daq -> ../daq and its siblings make the
+# checkout itself the package: mypy, pyright and an IDE need no install.) A link tree holds the
+# files that were there when it was made: a new, renamed or removed file in a package changes
+# $(PKG_FILES) and the next `make` re-links.
 PIP_EDITABLE := $(PIP_INSTALL) --config-settings editable_mode=strict -e
 PKG_FILES := $(VENV)/.package-files
 # the package files as a sorted list, rewritten only when it changes (its date is the rule's)
@@ -74,11 +75,9 @@ lint: $(LINT_STAMP)
 	rm -rf build/lint build/lib build/bdist.*  # setuptools keeps stale modules in build/lib (and a cut-off build its bdist tree)
 	$(BIN)/pip install -q --no-deps --no-compile --target build/lint . 2>&1 | grep -v "^WARNING: Location" || true
 	cd build/lint && PYTHONPATH=. ../../$(BIN)/lint-imports --no-cache ../../pyproject.toml
-	@# mypy ([tool.mypy]) reads rsra.* through the link tree, from build/ (at the top, the
-	@# folder rsra/ would hide it); its paths are printed as the repository's (daq/..., not the links)
-	cd build && ../$(BIN)/mypy --config-file ../pyproject.toml -p rsra > mypy.out; rc=$$?; \
-	  sed -E 's#^__editable__[^/]*/rsra/(daq|estimator|sim_bus|config)/#\1/#; s#^__editable__[^/]*/rsra/#rsra/#' mypy.out; \
-	  exit $$rc
+	@# mypy ([tool.mypy]) reads rsra.* from the checkout itself: rsra/daq, rsra/estimator, … are
+	@# links to the folders at the top (rsra/__init__.py), so its paths are rsra/daq/... = daq/...
+	$(BIN)/mypy --config-file pyproject.toml -p rsra
 
 clean:
 	rm -rf $(VENV) build *.egg-info node_modules $(OPENMCT)

@@ -12,13 +12,10 @@ repository and are installed under it (see ``[tool.setuptools.package-dir]`` in 
 
 ``python -m rsra`` is the ``rsra`` command.
 
-The editable install (``make setup``) is a tree of links to these folders on a ``.pth`` path
-(setuptools' strict mode, which static tools read). Run from the repository's top, this folder
-``rsra/`` comes first on ``sys.path`` and holds no ``daq/``: ``extend_path`` adds every other
-``rsra/`` on ``sys.path`` (the link tree's) to this package's path, so ``rsra.daq`` is found
-there. In a plain install there is one ``rsra/`` and it changes nothing.
+The folders also sit inside ``rsra/`` as symbolic links (``rsra/daq -> ../daq``, …), so a
+plain checkout is the package as installed: run from the repository's top, ``rsra.estimator``
+is ``estimator/`` — for Python, mypy, pyright and an IDE alike, with nothing installed. A wheel
+holds the folders themselves (the links are not packaged; ``[tool.setuptools.package-dir]``
+maps them).
 """
-from pkgutil import extend_path
-
-__path__ = extend_path(__path__, __name__)
 __version__ = "0.1.0"

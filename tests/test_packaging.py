@@ -96,7 +96,7 @@ def _copy_sources(dest: Path) -> Path:
 
     skip = shutil.ignore_patterns("__pycache__", "*.so", "openmct-dist")
     for d in _SOURCES:
-        shutil.copytree(ROOT / d, dest / d, ignore=skip)
+        shutil.copytree(ROOT / d, dest / d, ignore=skip, symlinks=True)  # rsra/daq: a link
     for f in ("pyproject.toml", "setup.py", "README.md", "Makefile"):
         shutil.copy2(ROOT / f, dest / f)
     return dest
@@ -115,8 +115,8 @@ def test_editable_install_the_way_make_runs_it_is_quiet_and_a_link_tree_static_t
         tmp_path):
     """Issue 27: the Makefile's editable install is setuptools' strict mode, a tree of links
     on a .pth path (mypy, pyright and an IDE follow it) and no import-hook finder (they cannot);
-    rsra.daq (daq/) and the compiled kernel are found through it, also from the top of the
-    checkout (where rsra/ comes first on sys.path); a file added to a package is importable
+    rsra.daq (daq/) and the compiled kernel are found through it, and from the top of the
+    checkout through the links rsra/daq -> ../daq (where rsra/ comes first on sys.path); a file added to a package is importable
     once the install runs again (what the next `make` does, test below), and not before."""
     pip_editable = _make_variable("PIP_EDITABLE")
     assert "pip install" in pip_editable, pip_editable
