@@ -256,6 +256,8 @@ def sigma_floor(par: Parameterisation, recs: Sequence[Recording], Ms: Sequence[n
     if len(t) < 2 or drift_rate <= 0:
         return None
     dt = float(np.median(np.diff(t)))
+    if not dt > 0:
+        return None
     out = np.zeros(par.n)
     for j in par.angle_pos:
         infos = []
