@@ -40,7 +40,13 @@ from typing import Sequence
 import numpy as np
 from scipy.stats import chi2
 
-from .identification import IdentificationResult, KnownLoadProblem, Parameterisation, levenberg_marquardt
+from .identification import (
+    AccumulatedKnownLoadProblem,
+    IdentificationResult,
+    KnownLoadProblem,
+    Parameterisation,
+    levenberg_marquardt,
+)
 
 FALSE_ALARM = 1e-3  # the homogeneity test's size (the whole test; Bonferroni for the naming)
 MIN_INFORMATION = 1.0  # a recording determines a direction whose information ≥ the prior's
@@ -76,7 +82,7 @@ def window_statistics(x: np.ndarray, scored: np.ndarray, window: int
     return np.array(firsts), np.array(ns), np.array(s1), np.array(s2)
 
 
-def moments_problem(par: Parameterisation, G: np.ndarray, n: int):
+def moments_problem(par: Parameterisation, G: np.ndarray, n: int) -> AccumulatedKnownLoadProblem:
     """The exact known-load likelihood of data given only by their moments ``G`` and scored
     count ``n`` (a :class:`KnownLoadProblem` of no samples, accumulated with them)."""
     nc = par.n_cells
@@ -197,14 +203,15 @@ def _smooth(theta_p: np.ndarray, P_p: np.ndarray, lin: list[tuple[np.ndarray, np
         P = Pn
         mf.append(m.copy())
         Pf.append(P.copy())
-    ms, Ps = [None] * K, [None] * K
+    ms: list[np.ndarray] = [np.zeros(0)] * K
+    Ps: list[np.ndarray] = [np.zeros(0)] * K
     ms[-1], Ps[-1] = mf[-1], Pf[-1]
     for k in range(K - 2, -1, -1):
         C = Pf[k] @ np.linalg.inv(Pp[k + 1])
         ms[k] = mf[k] + C @ (ms[k + 1] - mp[k + 1])
         Pk = Pf[k] + C @ (Ps[k + 1] - Pp[k + 1]) @ C.T
         Ps[k] = 0.5 * (Pk + Pk.T)
-    return mf, Pf, ms, Ps  # type: ignore[return-value]
+    return mf, Pf, ms, Ps
 
 
 def pool(par: Parameterisation, recs: Sequence[Recording], prior_mean: np.ndarray,

@@ -286,7 +286,7 @@ def recordings_of(table, columns: Sequence[str], cfg: RigConfig,
                            "the reference balance on the bus")
     fps = sorted(set(table.column("rig_fingerprint").to_pylist()))
     if len(fps) > 1:
-        by = {}
+        by: dict[str, str] = {}
         for rid, fp in zip(table.column("recording").to_pylist(),
                            table.column("rig_fingerprint").to_pylist()):
             by.setdefault(fp, rid)

@@ -71,8 +71,9 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
                    '"covariance_corrected", "alpha_all_deg", "residuals", "information", '
                    '"convergence", "plausibility", "data", "notes", "fragment", "next_conditions": '
                    '[{"H", "information_gain", "by_structure"}], "structure": {"structure", '
-                   '"candidates", "structure_fit", "looks", "conditions"} or null} (angles in '
-                   "degrees, loads in SI whatever --units)")
+                   '"candidates", "structure_fit", "looks", "conditions"} or null, "posterior": '
+                   "the pooled posterior and its homogeneity test with --posterior, else null} "
+                   "(angles in degrees, loads in SI whatever --units)")
     p.add_argument("--angles", metavar="STATE", default=None,
                    help="start from the angles of a saved posterior (rsra angles show) instead of "
                    "identification.initial_angles_deg")
