@@ -105,3 +105,37 @@ def test_calibrate_posterior_refuses_what_it_may_not_replace(cfg, two_recordings
         err = capsys.readouterr().err
         assert words in err and len(err.strip().splitlines()) == 1
     assert foreign.read_text() == "{}\n" and not (tmp_path / "P.json").exists()
+
+
+def test_the_information_product_of_a_recording_pools_to_the_calibrate_posterior(
+        cfg, two_recordings, tmp_path, capsys):
+    """The campaign's `information` product (one file per recording, no recording column: the
+    partition names it) read back and pooled gives the posterior `calibrate --posterior`
+    writes from the same recordings."""
+    import pyarrow.parquet as pq
+
+    from rsra.daq.analysis.information import (
+        information_product,
+        pooled_posterior,
+        read_information,
+    )
+
+    files = {}
+    for k in range(2):
+        stage = tmp_path / f"stage{k}"
+        stage.mkdir()
+        summary = information_product(two_recordings / f"r{k}" / "run.log", cfg,
+                                      {"recording": f"r{k}"}, stage)
+        assert summary["windows"] == 6 and summary["reason"] is None
+        assert "recording" not in pq.read_schema(stage / "part.parquet").names
+        files[f"r{k}"] = [stage / "part.parquet"]
+    table, cols = read_information(files)
+    pooled = pooled_posterior(cfg, table, cols)
+    post = tmp_path / "P.json"
+    logs = [str(two_recordings / f"r{k}" / "run.log") for k in range(2)]
+    assert main(["calibrate", *logs, "--posterior", str(post), "--json"]) == 0
+    capsys.readouterr()
+    st = load_posterior(post)
+    assert np.allclose(pooled.state.theta, st.theta, rtol=0, atol=1e-12)
+    assert np.allclose(pooled.state.P, st.P, rtol=1e-9)
+    assert np.allclose(pooled.state.reference_load, st.reference_load)

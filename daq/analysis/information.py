@@ -245,12 +245,13 @@ def summary_lines(rep: dict[str, Any]) -> list[str]:
     homogeneity test, each recording, the trend, the drift allowance and the σ."""
     h = rep["homogeneity"]
     skipped = rep.get("skipped") or []
+    test = (f"homogeneity χ² {h['statistic']:.1f} on {h['dof']} dof (limit {h['limit']:.1f} at "
+            f"1e-3, p {h['p_value']:.3g}): "
+            + ("the recordings DISAGREE: " + ", ".join(h["disagree"]) if h["reject"]
+               else "they agree") if h["dof"] else "no homogeneity test (one recording)")
     lines = [f"pooled over {len(rep['recordings'])} recording(s)"
              + (f" ({len(skipped)} without known loads skipped)" if skipped else "")
-             + f": homogeneity χ² {h['statistic']:.1f} on {h['dof']} dof (limit {h['limit']:.1f} "
-             f"at 1e-3, p {h['p_value']:.3g}): "
-             + ("the recordings DISAGREE: " + ", ".join(h["disagree"]) if h["reject"]
-                else "they agree")]
+             + f": {test}"]
     for r in rep["recordings"]:
         seq = "—" if r["sequential_chi2"] is None else f"{r['sequential_chi2']:.1f}"
         lines.append(f"  {r['recording']}: {r['windows']} windows, {r['scored']} samples, "
