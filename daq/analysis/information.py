@@ -174,7 +174,10 @@ def read_information(files: Mapping[str, Sequence[str | Path]]):
                                "of two rigs cannot be pooled")
         if t.num_rows:
             columns = cols
-        tables.append(t.select(schema().names).cast(schema()))
+        try:
+            tables.append(t.select(schema().names).cast(schema()))
+        except (KeyError, pa.ArrowException) as e:
+            raise PoolingError(f"{p}: not an information table of version {VERSION} ({e})") from None
     if not tables:
         return schema(columns or []).empty_table(), columns or []
     return pa.concat_tables(tables), columns or []
