@@ -146,6 +146,7 @@ class CalibrationData:
     samples_read: int  # samples the reader assembled
     rejected: dict[str, int] = field(default_factory=dict)  # reason → samples
     duration_s: float = 0.0  # recorded time spanned by the samples read
+    t_first: float = math.nan  # the first sample's time on the recording's clock (s)
 
     @property
     def n_valid(self) -> int:
@@ -334,7 +335,8 @@ def load_known_load_data(
         valid=valid, scored=scored, content=kind, fs=fs, files=tuple(map(str, paths)),
         segments=len(outs), samples_read=samples_read, rejected=rejected,
         duration_s=0.0 if t_first is None or t_last is None
-        else float(t_last - t_first) + 1.0 / fs)
+        else float(t_last - t_first) + 1.0 / fs,
+        t_first=math.nan if t_first is None else float(t_first))
 
 
 def _reasons(rejected: dict[str, int]) -> str:

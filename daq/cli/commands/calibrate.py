@@ -14,7 +14,7 @@ from rsra.daq.runtime.persistence import write_text_atomic
 from rsra.estimator.content import KINDS
 
 
-OUTPUTS = {"out": "file"}  # checked against the inputs before any work (daq.cli.outputs)
+OUTPUTS = {"out": "file", "posterior": "file"}  # checked against the inputs before any work (daq.cli.outputs)
 
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
@@ -56,6 +56,14 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
                    "initial_angles_deg for angles; [geometry], [mass] or [[cells]] keys for the "
                    "others; [identification.structure] when the structure test selected one), "
                    "with the σ and the source recordings in comments")
+    p.add_argument("--posterior", metavar="P.json", default=None,
+                   help="also write the angles' posterior in the state-file format (rsra angles "
+                   "show reads it; run and replay use it with --angles): pooled across the "
+                   "recordings from each one's known-load information with the prior counted "
+                   "once, with its covariance and reference load; beside it a homogeneity test "
+                   "of the recordings (docs/identification.md, \"Pooling recordings\"): when "
+                   "they disagree at 1e-3, no posterior is written and the exit status is 1. "
+                   "Only with --params angles; replaces only a posterior file")
     p.add_argument("--json", action="store_true",
                    help='print the result as JSON instead of the tables: {"parameters": [{"name", '
                    '"unit", "start", "estimate", "sigma_cr", "sigma_cr_corrected", "prior_sigma", '
@@ -63,8 +71,9 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
                    '"covariance_corrected", "alpha_all_deg", "residuals", "information", '
                    '"convergence", "plausibility", "data", "notes", "fragment", "next_conditions": '
                    '[{"H", "information_gain", "by_structure"}], "structure": {"structure", '
-                   '"candidates", "structure_fit", "looks", "conditions"} or null} (angles in '
-                   "degrees, loads in SI whatever --units)")
+                   '"candidates", "structure_fit", "looks", "conditions"} or null, "posterior": '
+                   "the pooled posterior and its homogeneity test with --posterior, else null} "
+                   "(angles in degrees, loads in SI whatever --units)")
     p.add_argument("--angles", metavar="STATE", default=None,
                    help="start from the angles of a saved posterior (rsra angles show) instead of "
                    "identification.initial_angles_deg")
@@ -140,6 +149,8 @@ def run(args: argparse.Namespace) -> int:
         names = parse_params(args.params, cfg)
     except CalibrationError as e:
         raise UsageError(str(e)) from None
+    if args.posterior:
+        _check_posterior_output(args.posterior, names, cfg)
     alpha_start = None
     if args.angles:
         try:
@@ -157,9 +168,16 @@ def run(args: argparse.Namespace) -> int:
 
     progress = _Progress(enabled=sys.stderr.isatty())
     try:
+        parts = None
         try:
-            data = load_known_load_data(cfg, args.logs, content=args.content,
+            if args.posterior:  # each recording's information on its own, then together
+                from rsra.daq.analysis.information import load_each
+
+                parts, data = load_each(cfg, args.logs, content=args.content,
                                         progress=progress.update)
+            else:
+                data = load_known_load_data(cfg, args.logs, content=args.content,
+                                            progress=progress.update)
         except CalibrationError as e:
             raise UsageError(str(e)) from None
         progress.say(f"identifying {len(names)} parameters from {data.n_scored} samples")
@@ -180,6 +198,8 @@ def run(args: argparse.Namespace) -> int:
     nxt = for_calibration(cfg, result) if result.status != "diverged" else None
     struct = structure_of(cfg, result) if result.status != "diverged" else None
     notes = _notes(cfg, result)
+    pooled = None if parts is None or result.status == "diverged" else _pool(cfg, args, parts,
+                                                                               alpha_start)
     wrote = None
     if out is not None and result.status != "diverged":
         write_text_atomic(out, fragment_toml(cfg, result, struct))
@@ -190,15 +210,79 @@ def run(args: argparse.Namespace) -> int:
         d["fragment"] = wrote
         d["next_conditions"] = nxt
         d["structure"] = struct
+        d["posterior"] = None if pooled is None else pooled.report()
         print(dumps(d))
     else:
         _print_tables(cfg, result, args.units, notes, wrote, nxt)
         if struct is not None:
             _print_structure(struct)
+        if pooled is not None:
+            from rsra.daq.analysis.information import summary_lines
+
+            print("\n".join(summary_lines(pooled.report())))
     if result.status == "diverged":
         print("rsra calibrate: the identification diverged; no fragment written (check the "
               "recordings and the starting values)", file=sys.stderr)
         return 1
+    if pooled is not None:
+        return _save_posterior(args, pooled)
+    return 0
+
+
+def _check_posterior_output(path: str, names, cfg) -> None:
+    """--posterior: the 14 angles only, into a writable folder, replacing nothing but a
+    posterior file (never an input, a device, a FIFO or another file)."""
+    from rsra.daq.cli.options import UsageError
+    from rsra.daq.runtime.posterior_file import classify
+
+    if tuple(names) != tuple(cfg.rig_model().geometry.angle_names):
+        raise UsageError("--posterior: only with --params angles (the posterior the service "
+                         "uses holds the 14 angles)")
+    target = Path(path)
+    if not os.access(target.resolve().parent, os.W_OK):
+        raise UsageError(f"--posterior {path}: folder {target.resolve().parent} is not writable")
+    kind, _, problem = classify(target)
+    if kind not in ("absent", "posterior"):
+        raise UsageError(f"--posterior {path}: {problem or 'a damaged posterior'}; it replaces only "
+                         "a posterior file — name a new file")
+
+
+def _pool(cfg, args, parts, alpha_start):
+    """The pooled posterior of the recordings and its homogeneity test
+    (daq.analysis.information)."""
+    import pyarrow as pa
+
+    from rsra.daq.analysis.information import (
+        PoolingError,
+        information_table,
+        pooled_posterior,
+        x_columns,
+    )
+    from rsra.daq.cli.options import UsageError
+
+    table = pa.concat_tables([information_table(cfg, d, str(p))
+                              for d, p in zip(parts, args.logs)])
+    try:
+        return pooled_posterior(cfg, table, x_columns(cfg), alpha_start=alpha_start,
+                                prior_sigma_rad=None if args.prior_sigma_deg is None
+                                else math.radians(args.prior_sigma_deg),
+                                max_iterations=args.max_iterations)
+    except PoolingError as e:
+        raise UsageError(str(e)) from None
+
+
+def _save_posterior(args, pooled) -> int:
+    """Saved unless the recordings disagree (exit 1, nothing written)."""
+    from rsra.daq.runtime.persistence import save_posterior
+
+    if not pooled.homogeneous:
+        print("rsra calibrate: the recordings disagree (homogeneity test at 1e-3): "
+              f"{', '.join(pooled.disagree())}; no posterior written", file=sys.stderr)
+        return 1
+    save_posterior(args.posterior, pooled.state)
+    if not args.json:
+        print(f"wrote {args.posterior}: the posterior of the 14 angles (rsra angles show; "
+              "--angles of run and replay)")
     return 0
 
 

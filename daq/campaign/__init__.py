@@ -1,0 +1,1 @@
+"""`rsra campaign`: many recordings reprocessed into one dataset (docs/cli.md)."""
