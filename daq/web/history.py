@@ -21,6 +21,8 @@ from collections import deque
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+import orjson
+
 from rsra.daq.web.dictionary import Dictionary, points
 
 MAX_POINTS = 4000  # per series and source in one history answer
@@ -130,8 +132,8 @@ def points_of(dic: Dictionary, mid: str, texts) -> list[dict]:
     out = []
     for text in texts:
         try:
-            payload = json.loads(text) if isinstance(text, str) else text
-        except ValueError:
+            payload = orjson.loads(text) if isinstance(text, str) else text
+        except ValueError:  # (orjson.JSONDecodeError is one)
             continue
         for pid, datum in points(dic, key, payload):
             if pid == mid:
