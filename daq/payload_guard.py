@@ -138,9 +138,13 @@ class PayloadGuard:
         raw = bytes(data)
         if len(raw) > self.max_bytes:
             raise BadPayload(f"{len(raw)} bytes, more than {self.max_bytes}")
-        depth = nesting_depth(raw)
-        if depth > self.max_depth:
-            raise BadPayload(f"nested {depth} deep, more than {self.max_depth}")
+        # the depth is at most the number of opening brackets: counted first (cheap), the
+        # exact depth (strings skipped) only when that is over the limit
+        brackets = raw.translate(None, _NOT_BRACKETS)
+        if brackets.count(b"[") + brackets.count(b"{") > self.max_depth:
+            depth = nesting_depth(raw)
+            if depth > self.max_depth:
+                raise BadPayload(f"nested {depth} deep, more than {self.max_depth}")
         non_finite = False
         try:
             value = orjson.loads(raw)
