@@ -170,6 +170,16 @@ def test_the_table_draws_valid_records_with_nulls_and_odd_lengths():
     assert "flags: predict_only" in text and "hint: h" in text
 
 
+def test_the_table_is_bounded_under_a_spray_of_keys():
+    from rsra.daq.cli.commands.listen import MAX_KEYS
+
+    lis = Listener(payload_guard())
+    for i in range(MAX_KEYS + 44):
+        lis.feed(f"spray/{i}", b'{"a": 1}', 0.0)
+    assert len(lis.stats) == MAX_KEYS and lis.other_keys == 44
+    assert f"44 messages on more than {MAX_KEYS} keys (not shown)" in lis.notes()
+
+
 # -- rsra web: ingest, status, history -------------------------------------------------------
 def test_web_ingest_survives_every_probe_and_shows_the_count(dic):
     gw = gateway(dic)
