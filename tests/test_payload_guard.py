@@ -198,6 +198,15 @@ def test_web_ingest_survives_every_probe_and_shows_the_count(dic):
     assert [d["value"] for d in got] == [1, 2.0]
 
 
+def test_a_telemetry_file_nested_too_deep_is_one_line_not_a_recursion(tmp_path):
+    from rsra.daq.web.history import HistoryFileError, TelemetryFile
+
+    f = tmp_path / "deep.jsonl"
+    f.write_text(json.dumps({"key": "hub_loads", **HUB}) + "\n" + "[" * 200_000 + "\n")
+    with pytest.raises(HistoryFileError, match=r"deep.jsonl:2: not a JSON line"):
+        TelemetryFile(f, "rsra/bench")
+
+
 def test_web_history_bytes_are_bounded_per_key(dic):
     """Valid records of 60 kB at 200/s: the key's bytes stop at its byte bound (not 15 000
     messages × 60 kB = 900 MB) before the count or the age bound takes any."""

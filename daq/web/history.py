@@ -15,7 +15,6 @@ source (evenly strided) so a long window stays cheap for the gateway and the bro
 from __future__ import annotations
 
 import bisect
-import json
 import math
 from collections import deque
 from collections.abc import Callable, Iterator
@@ -181,7 +180,7 @@ class TelemetryFile:
                 if not line.strip():
                     continue
                 try:
-                    rec = json.loads(line)
+                    rec = orjson.loads(line)  # strict, and bounded nesting (no recursion)
                 except ValueError:
                     raise HistoryFileError(
                         f"{self.path}:{n}: not a JSON line; fix: give a file written by "
@@ -208,7 +207,7 @@ class TelemetryFile:
                     if keys is not None and key not in keys:
                         continue
                     try:
-                        payload = json.loads(message.data)
+                        payload = orjson.loads(message.data)
                     except ValueError:
                         continue
                     t = payload.get("t") if isinstance(payload, dict) else None
