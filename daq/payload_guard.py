@@ -53,6 +53,17 @@ _OPEN[[ord("["), ord("{")]] = 1
 _OPEN[[ord("]"), ord("}")]] = -1
 
 
+# control characters (C0, DEL, C1) and the invisible format characters that reorder or hide
+# text: a peer's string must not move the cursor, retitle the terminal or disguise a value
+_UNSAFE = re.compile("[\x00-\x1f\x7f-\x9f\u200b-\u200f\u202a-\u202e\u2066-\u2069]")
+
+
+def printable(text: str) -> str:
+    """``text`` from a peer with every control or invisible format character replaced by
+    '?': safe to print on a terminal."""
+    return _UNSAFE.sub("?", text)
+
+
 class BadPayload(ValueError):
     """A received payload refused: the message says why in a few words."""
 
@@ -201,7 +212,7 @@ class PayloadGuard:
                for k, n in sorted(self.bad.items())]
         out += [f"{n} message{'s' if n != 1 else ''} from {k} with non-finite numbers "
                 "(shown as null)" for k, n in sorted(self.non_finite.items())]
-        return out
+        return [printable(line) for line in out]  # keys and field names come from the peer
 
     def as_json(self) -> dict[str, Any]:
         """The counters for a status endpoint or a summary (strict JSON)."""

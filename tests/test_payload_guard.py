@@ -113,6 +113,15 @@ def test_counters_stay_bounded_under_a_spray_of_keys():
     assert g.bad_total == 1000 and len(g.bad) <= 65
 
 
+def test_the_lines_a_viewer_prints_hold_no_control_characters():
+    """A key or field name from a peer reaches stderr (listen --json, web) only printable."""
+    g = payload_guard()
+    g.receive("evil\x1b]0;x\x07/hub_loads", b'{"H": 1}')
+    g.receive("hub_loads", b'{"nodes\\u001b[2J": 1, "H": 1}')
+    assert g.bad_total == 2 and all("\x1b" not in line and "\x07" not in line
+                                    for line in g.lines())
+
+
 # -- rsra listen: the table and --json ---------------------------------------------------
 def test_listen_table_survives_every_probe_and_counts_it():
     lis = Listener(payload_guard())

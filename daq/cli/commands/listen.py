@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import re
 import sys
 import time
 from collections import deque
@@ -22,6 +21,7 @@ import numpy as np
 
 from rsra.config.units import axis_units, to_units
 from rsra.daq.jsonout import dumps
+from rsra.daq.payload_guard import printable
 
 if TYPE_CHECKING:
     from rich.console import RenderableType
@@ -30,9 +30,6 @@ if TYPE_CHECKING:
 
 AXES = ("X", "Y", "Z", "L", "M", "N")
 MAX_KEYS = 256  # rows of the table; messages on further keys are counted together
-# control characters (C0, DEL, C1) and the invisible format characters that reorder or hide
-# text: a peer's string must not move the cursor, retitle the terminal or disguise a value
-_UNSAFE = re.compile("[\x00-\x1f\x7f-\x9f\u200b-\u200f\u202a-\u202e\u2066-\u2069]")
 MAX_TEXT = 200  # characters of one string from a payload shown
 
 
@@ -43,7 +40,7 @@ def _text(v: Any) -> str:
     s = v if isinstance(v, str) else str(v)
     if len(s) > MAX_TEXT:
         s = s[:MAX_TEXT - 1] + "…"
-    return escape(_UNSAFE.sub("?", s))
+    return escape(printable(s))
 
 
 def _num(v: Any) -> float | None:
