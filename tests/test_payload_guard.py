@@ -403,13 +403,17 @@ def _publish_until_done(procs, pub, th: threading.Thread) -> None:
 
 def test_end_to_end_a_bad_payload_is_counted_by_listen_and_web(dic):
     """A peer puts b"\\xff\\xfe" then valid records on rsra/test/hub_loads over
-    tcp/127.0.0.1: `rsra listen --json`, `rsra listen` (table) and the web gateway's Zenoh
-    loop go on, show the valid ones and count the bad ones."""
+    tcp/127.0.0.1, and answers the gateway's late-joiner query with 100 000 '[': `rsra
+    listen --json`, `rsra listen` (table) and the web gateway's Zenoh loop go on, show the
+    valid ones and count the bad ones."""
     from rsra.daq.web.server import serve
 
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     with zenoh.open(viewer_config([], listen=[ep])) as s:
         pub = s.declare_publisher("rsra/test/hub_loads")
+        # a peer that answers the late joiner's state/* query with garbage
+        liar = s.declare_queryable("rsra/test/state/*", lambda q: q.reply(
+            "rsra/test/state/health", b"[" * 100_000))
         procs = [_listen(ep, "--json"), _listen(ep)]
         gw = Gateway(dic, History(60.0, {"hub_loads": 200.0}), [], set(),
                      guard=payload_guard())
@@ -451,8 +455,10 @@ def test_end_to_end_a_bad_payload_is_counted_by_listen_and_web(dic):
         assert procs[1].returncode == 0, terr
         assert "bad message" in tout and "from hub_loads (last: not UTF-8)" in tout
         assert not web_err, web_err
+        liar.undeclare()
         st = gw.status()
-        assert st["guard"]["last_reason"] == {"hub_loads": "not UTF-8"}
+        assert st["guard"]["last_reason"] == {"hub_loads": "not UTF-8",
+                                              "health": "nested 100000 deep, more than 32"}
         assert st["received"]["hub_loads"] >= 3
 
 
