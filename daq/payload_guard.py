@@ -27,7 +27,7 @@ import math
 import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import fastjsonschema
 import numpy as np
@@ -62,6 +62,17 @@ def printable(text: str) -> str:
     """``text`` from a peer with every control or invisible format character replaced by
     '?': safe to print on a terminal."""
     return _UNSAFE.sub("?", text)
+
+
+class ZenohBytes(Protocol):
+    """A payload as Zenoh hands it over (``zenoh.ZBytes``): its size known before a copy."""
+
+    def __len__(self) -> int: ...
+
+    def to_bytes(self) -> bytes: ...
+
+
+Received = bytes | bytearray | memoryview | ZenohBytes
 
 
 class BadPayload(ValueError):
@@ -143,12 +154,13 @@ class PayloadGuard:
         #: messages let through with non-finite numbers replaced by null, per key (bounded so)
         self.non_finite: dict[str, int] = {}
 
-    def check(self, key: str, data: bytes | bytearray | memoryview) -> Checked:
+    def check(self, key: str, data: Received) -> Checked:
         """The payload of one message on ``key`` (the part after the prefix, or the whole
-        key: its last part picks the schema); :class:`BadPayload` when refused."""
-        raw = bytes(data)
-        if len(raw) > self.max_bytes:
-            raise BadPayload(f"{len(raw)} bytes, more than {self.max_bytes}")
+        key: its last part picks the schema); :class:`BadPayload` when refused. A Zenoh
+        payload is sized before it is copied out."""
+        if len(data) > self.max_bytes:
+            raise BadPayload(f"{len(data)} bytes, more than {self.max_bytes}")
+        raw = data.to_bytes() if hasattr(data, "to_bytes") else bytes(data)
         # the depth is at most the number of opening brackets: counted first (cheap), the
         # exact depth (strings skipped) only when that is over the limit
         brackets = raw.translate(None, _NOT_BRACKETS)
@@ -184,7 +196,7 @@ class PayloadGuard:
                 raise BadPayload(f"cannot be validated ({type(e).__name__})") from None
         return Checked(value, non_finite)
 
-    def receive(self, key: str, data: bytes | bytearray | memoryview) -> Checked | None:
+    def receive(self, key: str, data: Received) -> Checked | None:
         """:meth:`check`, counting a refusal (None) and a non-finite payload."""
         try:
             got = self.check(key, data)

@@ -87,6 +87,20 @@ def test_the_guard_refuses_each_probe_with_its_reason():
         g.check("health", b'{"nodes": {"a": {"emcy": [{"code": "x"}]}}}')
 
 
+def test_a_zenoh_payload_over_the_limit_is_never_copied_out():
+    class Huge:  # a 1-GiB zenoh.ZBytes: its size is known without a copy
+        def __len__(self):
+            return 1 << 30
+
+        def to_bytes(self):
+            raise AssertionError("copied out")
+
+    with pytest.raises(BadPayload, match=f"{1 << 30} bytes, more than {MAX_BYTES}"):
+        payload_guard().check("hub_loads", Huge())
+    got = payload_guard().check("hub_loads", zenoh.ZBytes(json.dumps(HUB).encode()))
+    assert got.payload == HUB
+
+
 def test_non_finite_numbers_become_null_and_are_flagged():
     g = payload_guard()
     got = g.check("hub_loads", b'{"seq": 1, "H": [NaN, Infinity, -Infinity, 1e400, 2, 3]}')

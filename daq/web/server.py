@@ -33,7 +33,7 @@ from pathlib import Path
 from aiohttp import WSMsgType, web
 
 from rsra.daq.jsonout import dumps
-from rsra.daq.payload_guard import PayloadGuard
+from rsra.daq.payload_guard import PayloadGuard, Received
 from rsra.daq.web.dictionary import Dictionary, points
 from rsra.daq.web.history import (History, HistoryFileError, TelemetryFile, merged_query,
                                   points_of)
@@ -194,18 +194,18 @@ class Gateway:
     def bad_messages(self) -> int:
         return self.payload_guard.bad_total
 
-    def ingest(self, key: str, data: bytes | str) -> None:
+    def ingest(self, key: str, data: Received | str) -> None:
         """One received message on ``key`` (under the prefix), as received: checked by the
         guard, then counted, kept for history and offered to the browsers."""
         if key not in self.payload_guard.validators:  # not telemetry rsra publishes: not kept
             self.ignored += 1
             return
-        raw = data.encode("utf-8", "surrogatepass") if isinstance(data, str) else bytes(data)
-        got = self.payload_guard.receive(key, raw)
+        got = self.payload_guard.receive(
+            key, data.encode("utf-8", "surrogatepass") if isinstance(data, str) else data)
         if got is None:
             return
         payload = got.payload
-        text = dumps(payload) if got.non_finite else raw.decode()
+        text = dumps(payload)  # (what was received, compact; non-finite numbers as null)
         self.received[key] = self.received.get(key, 0) + 1
         seq = payload.get("seq")
         if key in EVERY_SAMPLE and isinstance(seq, int) and not isinstance(seq, bool):
@@ -395,7 +395,7 @@ async def serve(gw: Gateway, host: str, port: int, zenoh_conf, prefix: str,
                 for reply in session.get(f"{prefix}/state/*", timeout=2.0):
                     if reply.ok is not None:
                         out.append((str(reply.ok.key_expr)[plen:].replace("state/", "", 1),
-                                    reply.ok.payload.to_bytes()))
+                                    reply.ok.payload))
                 return out
 
             for key, data in await loop.run_in_executor(None, late_joiner):
@@ -411,7 +411,7 @@ async def serve(gw: Gateway, host: str, port: int, zenoh_conf, prefix: str,
                     key = str(s.key_expr)[plen:]
                     if key.startswith("state/") or key == "alive":
                         continue
-                    gw.ingest(key, s.payload.to_bytes())
+                    gw.ingest(key, s.payload)
                 now = time.monotonic()
                 if now >= next_flush:
                     gw.flush()

@@ -26,7 +26,7 @@ from rsra.daq.payload_guard import printable
 if TYPE_CHECKING:
     from rich.console import RenderableType
 
-    from rsra.daq.payload_guard import PayloadGuard
+    from rsra.daq.payload_guard import PayloadGuard, Received
 
 AXES = ("X", "Y", "Z", "L", "M", "N")
 MAX_KEYS = 256  # rows of the table; messages on further keys are counted together
@@ -245,7 +245,7 @@ class Listener:
         #: messages on keys beyond MAX_KEYS (not in the table)
         self.other_keys = 0
 
-    def feed(self, key: str, data: bytes, now: float) -> None:
+    def feed(self, key: str, data: Received, now: float) -> None:
         self.received += 1
         got = self.guard.receive(key, data)
         if got is None:
@@ -308,7 +308,7 @@ def run(args: argparse.Namespace) -> int:
                     while (s := sub.handler.try_recv()) is not None:
                         got = True
                         key = str(s.key_expr)[len(prefix) + 1:]
-                        lis.feed(key, s.payload.to_bytes(), time.monotonic())
+                        lis.feed(key, s.payload, time.monotonic())
                         if args.count is not None and lis.received >= args.count:
                             return 0
                 now = time.monotonic()
