@@ -230,6 +230,42 @@ def test_a_telemetry_file_nested_too_deep_is_one_line_not_a_recursion(tmp_path):
         TelemetryFile(f, "rsra/bench")
 
 
+def test_web_answers_strict_json_when_a_valid_record_overflows(dic):
+    """Valid numbers a point overflows to inf — an angle of 1e308 rad in degrees, a time of
+    1e306 s in ms: the browser's WebSocket batch and the history answer carry null, and the
+    browser's writer goes on (json.dumps(allow_nan=False) raised in it)."""
+    from aiohttp.test_utils import TestClient, TestServer
+
+    angle = f"angle.{next(iter(dic.angles))}"
+    records = [("angles", angle, {"t": 3.0, "names": [angle[6:]], "alpha": [1e308]}),
+               ("hub_loads", "hub.H.Z", {**HUB, "t": 1e306})]
+
+    async def go():
+        gw = gateway(dic)
+        async with TestClient(TestServer(gw.app(), host="127.0.0.1")) as c:
+            gw.hosts = allowed_hosts("127.0.0.1", c.server.port)
+            own = f"127.0.0.1:{c.server.port}"
+            ws = await c.ws_connect("/ws", headers={"Host": own, "Origin": f"http://{own}"})
+            await ws.send_str(json.dumps({"subscribe": [angle, "hub.H.Z"]}))
+            for _ in range(500):
+                if gw.clients and next(iter(gw.clients)).subs:
+                    break
+                await asyncio.sleep(0.01)
+            got = []
+            for key, mid, rec in records:
+                gw.ingest(key, json.dumps(rec).encode())
+                gw.flush()
+                (pid, d), = strict_loads((await ws.receive(timeout=10)).data)["points"]
+                r = await c.get(f"/api/history?id={mid}", headers={"Host": own})
+                assert pid == mid and r.status == 200
+                got += [d, strict_loads(await r.text())[-1]]
+            assert got[0]["value"] is None and got[1]["value"] is None  # degrees(1e308)
+            assert got[2]["utc"] is None and got[3]["utc"] is None  # 1e306 s in ms
+            await ws.close()
+
+    asyncio.run(go())
+
+
 def test_web_history_bytes_are_bounded_per_key(dic):
     """Valid records of 60 kB at 200/s: the key's bytes stop at its byte bound (not 15 000
     messages × 60 kB = 900 MB) before the count or the age bound takes any."""

@@ -144,7 +144,8 @@ class Client:
                 self.wake.clear()
                 while self.queue and not self.closing:
                     b = self.queue.popleft()
-                    await self.ws.send_str(json.dumps({"points": b}, allow_nan=False))
+                    # strict JSON: a value a peer's record overflows to ±inf is null
+                    await self.ws.send_str(dumps({"points": b}))
                     self.sent += len(b)
         except ConnectionResetError:  # aiohttp's ClientConnectionResetError: the browser left
             pass
@@ -288,7 +289,7 @@ class Gateway:
         return web.json_response(self.dic.as_json())
 
     async def status_view(self, request: web.Request) -> web.Response:
-        return web.json_response(self.status())
+        return web.json_response(self.status(), dumps=dumps)
 
     async def history_view(self, request: web.Request) -> web.Response:
         q = request.query
@@ -317,7 +318,7 @@ class Gateway:
         out = merged_query(sources)
         if q.get("strategy") == "latest":
             out = out[-1:]
-        return web.json_response(out)
+        return web.json_response(out, dumps=dumps)  # strict: overflows are null
 
     async def websocket(self, request: web.Request) -> web.WebSocketResponse:
         ws = web.WebSocketResponse(heartbeat=20.0, max_msg_size=1 << 20)
