@@ -21,6 +21,7 @@ from rsra.daq.web import dictionary as D  # noqa: E402
 from rsra.daq.web.history import History, HistoryFileError, TelemetryFile  # noqa: E402
 from rsra.daq.web.server import (Client, Gateway, allowed_hosts, openmct_dir,  # noqa: E402
                             request_allowed)
+from rsra.daq.runtime.telemetry import payload_guard  # noqa: E402
 from tests.helpers_net import free_tcp_port  # noqa: E402
 
 CHROMIUM = "/usr/bin/chromium"
@@ -262,7 +263,7 @@ def test_request_allowed_host_and_origin():
 
 def _gateway(dic, tmp_path, files=()):
     return Gateway(dic, History(60.0, {"hub_loads": 200.0}), list(files),
-                   allowed_hosts("127.0.0.1", 0), openmct=tmp_path)
+                   allowed_hosts("127.0.0.1", 0), guard=payload_guard(), openmct=tmp_path)
 
 
 def test_http_and_websocket_refuse_other_hosts_and_origins(dic, tmp_path):
@@ -327,7 +328,7 @@ def test_slow_browser_queue_is_bounded_and_drops_are_counted(dic):
     dropped and counted, and the gateway's ingest goes on (it never waits on a browser)."""
 
     async def go():
-        gw = Gateway(dic, History(60.0, {"hub_loads": 200.0}), [], set())
+        gw = Gateway(dic, History(60.0, {"hub_loads": 200.0}), [], set(), guard=payload_guard())
         ws = _StalledWS()
         c = Client(ws, max_batches=5)
         c.subs = {f"hub.{k}.{ax}" for k in ("H", "static") for ax in D.AXES}

@@ -19,6 +19,8 @@ import zenoh
 from rsra.config.rig import TelemetryConfig
 from rsra.daq import stagetiming
 from rsra.daq.jsonout import dumpb, dumps
+from rsra.daq.payload_guard import PayloadGuard
+from rsra.daq.runtime.schema import FIELDS, json_schema
 
 log = logging.getLogger("rsra.telemetry")
 
@@ -82,6 +84,12 @@ def zenoh_config(
     return conf
 
 
+def payload_guard() -> PayloadGuard:
+    """The guard of every received payload (viewers, the web gateway), checking each key
+    against the schema its exports declare (daq/runtime/schema.py)."""
+    return PayloadGuard({k: json_schema(k) for k in FIELDS})
+
+
 def viewer_config(connect: Iterable[str], listen: Iterable[str] = ()) -> zenoh.Config:
     """A subscriber's config: peer, connect to the given endpoints, listen nowhere by
     default, multicast scouting off."""
@@ -101,6 +109,9 @@ class TelemetryPublisher:
         self.prefix = prefix
         self.published = dict.fromkeys(HIGH_RATE_KEYS + LOW_RATE_KEYS, 0)
         self.errors = 0
+        #: state queries that carried a payload or parameters (state/* takes neither: they
+        #: are ignored and the query answered as any other)
+        self.bad_queries = 0
         self._pubs: dict[str, zenoh.Publisher] = {}
         # every declaration is undeclared on close, in reverse order (errors ignored: a
         # session already closed)
@@ -157,8 +168,14 @@ class TelemetryPublisher:
 
     def _answer(self, q: zenoh.Query) -> None:
         """Answer every state key the query's key expression intersects (state/*, state/config,
-        prefix/**, …); the payload is ignored."""
+        prefix/**, …). What a query carries besides its key is untrusted and never read: a
+        payload or parameters are counted (:attr:`bad_queries`), not decoded."""
         try:
+            if q.payload is not None or str(q.parameters):
+                self.bad_queries += 1
+                if self.bad_queries == 1 or self.bad_queries % 1000 == 0:
+                    log.warning("%d state queries with a payload or parameters (ignored)",
+                                self.bad_queries)
             for n, key in self._state_keys.items():
                 if not key.intersects(q.key_expr):
                     continue

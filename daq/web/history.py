@@ -15,16 +15,22 @@ source (evenly strided) so a long window stays cheap for the gateway and the bro
 from __future__ import annotations
 
 import bisect
-import json
 import math
 from collections import deque
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+import orjson
+
 from rsra.daq.web.dictionary import Dictionary, points
 
 MAX_POINTS = 4000  # per series and source in one history answer
 LOW_RATE_CAP = 2000  # angles and health messages kept at most (besides the time bound)
+# bytes of text kept per key at most: its count bound × 4 KiB (a sample's records are under
+# 1 kB), at least 64 MiB (angles records with their posterior are tens of kB): a peer that
+# publishes large valid records cannot grow the history beyond this
+BYTES_PER_MESSAGE = 4096
+MIN_KEY_BYTES = 64 << 20
 
 
 class HistoryFileError(ValueError):
@@ -45,28 +51,38 @@ class History:
         self.caps = {k: max(16, math.ceil(self.history_s * r * 1.25)) for k, r in rates.items()}
         self._t: dict[str, deque[float]] = {}
         self._text: dict[str, deque[str]] = {}
+        self._key_bytes: dict[str, int] = {}
         self.bytes = 0
         self.evicted = 0
 
     def cap(self, key: str) -> int:
         return self.caps.get(key, LOW_RATE_CAP)
 
+    def byte_cap(self, key: str) -> int:
+        return max(MIN_KEY_BYTES, self.cap(key) * BYTES_PER_MESSAGE)
+
     def add(self, key: str, t: float, text: str) -> None:
         ts = self._t.setdefault(key, deque())
         tx = self._text.setdefault(key, deque())
+        kb = self._key_bytes.get(key, 0)
         if ts and t < ts[-1]:  # out of order (a restarted service): start the key afresh
-            self.bytes -= sum(len(x) for x in tx)
+            self.bytes -= kb
+            kb = 0
             self.evicted += len(tx)
             ts.clear()
             tx.clear()
         ts.append(t)
         tx.append(text)
         self.bytes += len(text)
-        cap, oldest = self.cap(key), t - self.history_s
-        while ts and (len(ts) > cap or ts[0] < oldest):
+        kb += len(text)
+        cap, oldest, byte_cap = self.cap(key), t - self.history_s, self.byte_cap(key)
+        while ts and (len(ts) > cap or ts[0] < oldest or kb > byte_cap):
             ts.popleft()
-            self.bytes -= len(tx.popleft())
+            n = len(tx.popleft())
+            self.bytes -= n
+            kb -= n
             self.evicted += 1
+        self._key_bytes[key] = kb
 
     def count(self, key: str | None = None) -> int:
         if key is not None:
@@ -81,6 +97,12 @@ class History:
 
     def query(self, dic: Dictionary, mid: str, start_s: float, end_s: float,
               max_points: int = MAX_POINTS) -> list[dict]:
+        return points_of(dic, mid, self.texts(dic, mid, start_s, end_s, max_points))
+
+    def texts(self, dic: Dictionary, mid: str, start_s: float, end_s: float,
+              max_points: int = MAX_POINTS) -> list[str]:
+        """The texts a query parses (cheap: taken on the event loop, then parsed by
+        :func:`points_of` anywhere — the history may change meanwhile)."""
         m = dic.by_id.get(mid)
         if m is None:
             return []
@@ -89,7 +111,7 @@ class History:
             return []
         lo = bisect.bisect_left(ts, start_s)
         hi = bisect.bisect_right(ts, end_s)
-        return _points_of(dic, m.source, mid, (tx[i] for i in _strided(lo, hi, max_points)))
+        return [tx[i] for i in _strided(lo, hi, max_points)]
 
 
 def _strided(lo: int, hi: int, max_points: int) -> range:
@@ -100,12 +122,17 @@ def _strided(lo: int, hi: int, max_points: int) -> range:
     return range(hi - 1 - ((hi - 1 - lo) // step) * step, hi, step)  # the newest included
 
 
-def _points_of(dic: Dictionary, key: str, mid: str, texts) -> list[dict]:
+def points_of(dic: Dictionary, mid: str, texts) -> list[dict]:
+    """The points of series ``mid`` in the messages ``texts`` (of its key)."""
+    m = dic.by_id.get(mid)
+    if m is None:
+        return []
+    key = m.source
     out = []
     for text in texts:
         try:
-            payload = json.loads(text) if isinstance(text, str) else text
-        except ValueError:
+            payload = orjson.loads(text) if isinstance(text, str) else text
+        except ValueError:  # (orjson.JSONDecodeError is one)
             continue
         for pid, datum in points(dic, key, payload):
             if pid == mid:
@@ -153,7 +180,7 @@ class TelemetryFile:
                 if not line.strip():
                     continue
                 try:
-                    rec = json.loads(line)
+                    rec = orjson.loads(line)  # strict, and bounded nesting (no recursion)
                 except ValueError:
                     raise HistoryFileError(
                         f"{self.path}:{n}: not a JSON line; fix: give a file written by "
@@ -180,7 +207,7 @@ class TelemetryFile:
                     if keys is not None and key not in keys:
                         continue
                     try:
-                        payload = json.loads(message.data)
+                        payload = orjson.loads(message.data)
                     except ValueError:
                         continue
                     t = payload.get("t") if isinstance(payload, dict) else None

@@ -11,6 +11,13 @@ port, ``localhost`` on loopback, names given with ``--allow-host``) and, when it
 cross-site WebSocket). Each browser has a bounded queue of point batches; when it cannot
 keep up, the oldest batch is dropped and its points counted (``/status``, the exit line):
 a slow browser never slows the gateway or the service.
+
+Every payload received (subscription and the late joiner's ``state/*`` replies) goes through
+a :class:`~rsra.daq.payload_guard.PayloadGuard` first: a bad one is counted (``/status``
+``bad_messages``, per key with its reason) and dropped, never fatal. The requests that cost
+(history, WebSocket browsers) are bounded in number: beyond it the answer is 503 with
+``Retry-After`` at once, counted (``/status`` ``shed``), so the gateway stays responsive
+under a flood of requests.
 """
 from __future__ import annotations
 
@@ -25,8 +32,11 @@ from pathlib import Path
 
 from aiohttp import WSMsgType, web
 
+from rsra.daq.jsonout import dumps
+from rsra.daq.payload_guard import PayloadGuard, Received
 from rsra.daq.web.dictionary import Dictionary, points
-from rsra.daq.web.history import History, HistoryFileError, TelemetryFile, merged_query
+from rsra.daq.web.history import (History, HistoryFileError, TelemetryFile, merged_query,
+                                  points_of)
 
 log = logging.getLogger("rsra.web")
 
@@ -39,6 +49,12 @@ MAX_BATCH_POINTS = 20000  # per batch
 MAX_SUBSCRIPTIONS = 2000  # per browser
 # keys published at every sample: a gap in `seq` is a message missed (as `rsra listen` counts)
 EVERY_SAMPLE = ("hub_loads", "channels")
+# history requests answered at once (each parses up to MAX_POINTS messages per source, off
+# the event loop); one more gets 503 with Retry-After (2 000 at once used to stall the
+# gateway for ~30 s)
+MAX_HISTORY_REQUESTS = 4
+MAX_BROWSERS = 64  # WebSocket connections at once (each holds a bounded queue)
+RETRY_AFTER_S = 1
 
 
 def openmct_dir() -> Path | None:
@@ -128,7 +144,8 @@ class Client:
                 self.wake.clear()
                 while self.queue and not self.closing:
                     b = self.queue.popleft()
-                    await self.ws.send_str(json.dumps({"points": b}, allow_nan=False))
+                    # strict JSON: a value a peer's record overflows to ±inf is null
+                    await self.ws.send_str(dumps({"points": b}))
                     self.sent += len(b)
         except ConnectionResetError:  # aiohttp's ClientConnectionResetError: the browser left
             pass
@@ -147,9 +164,13 @@ class Gateway:
     """The state of one `rsra web`: dictionary, history, files, browsers, counters."""
 
     def __init__(self, dic: Dictionary, history: History, files: list[TelemetryFile],
-                 hosts: set[str], static_dir: Path = STATIC_DIR,
-                 openmct: Path | None = None, max_batches: int = MAX_BATCHES):
+                 hosts: set[str], *, guard: PayloadGuard, static_dir: Path = STATIC_DIR,
+                 openmct: Path | None = None, max_batches: int = MAX_BATCHES,
+                 max_history_requests: int = MAX_HISTORY_REQUESTS,
+                 max_browsers: int = MAX_BROWSERS):
         self.dic = dic
+        #: every received payload is checked here first (the telemetry keys' schemas)
+        self.payload_guard = guard
         self.history = history
         self.files = files
         self.hosts = hosts
@@ -158,23 +179,34 @@ class Gateway:
         self.max_batches = max_batches
         self.clients: set[Client] = set()
         self.received: dict[str, int] = {}
-        self.bad_messages = 0
+        self.ignored = 0  # messages on keys without a schema (not telemetry rsra publishes)
         self.refused = 0
+        #: requests of each costly kind at most at once, and those now being answered
+        self.limits = {"history": max_history_requests, "browsers": max_browsers}
+        self.busy = dict.fromkeys(self.limits, 0)
+        self.shed = dict.fromkeys(self.limits, 0)  # answered 503 (over the limit)
         self.dropped_closed = 0  # points dropped by browsers that have gone
         self.sent_closed = 0
         self.seq: dict[str, list[int]] = {}  # key -> [first, last, received in order]
         self.started = time.monotonic()
 
     # -- telemetry in --------------------------------------------------------------------
-    def ingest(self, key: str, text: str) -> None:
-        try:
-            payload = json.loads(text)
-        except ValueError:
-            self.bad_messages += 1
+    @property
+    def bad_messages(self) -> int:
+        return self.payload_guard.bad_total
+
+    def ingest(self, key: str, data: Received | str) -> None:
+        """One received message on ``key`` (under the prefix), as received: checked by the
+        guard, then counted, kept for history and offered to the browsers."""
+        if key not in self.payload_guard.validators:  # not telemetry rsra publishes: not kept
+            self.ignored += 1
             return
-        if not isinstance(payload, dict):
-            self.bad_messages += 1
+        got = self.payload_guard.receive(
+            key, data.encode("utf-8", "surrogatepass") if isinstance(data, str) else data)
+        if got is None:
             return
+        payload = got.payload
+        text = dumps(payload)  # (what was received, compact; non-finite numbers as null)
         self.received[key] = self.received.get(key, 0) + 1
         seq = payload.get("seq")
         if key in EVERY_SAMPLE and isinstance(seq, int) and not isinstance(seq, bool):
@@ -208,6 +240,8 @@ class Gateway:
             "received": dict(self.received),
             "missed": {k: s[1] - s[0] + 1 - s[2] for k, s in self.seq.items()},
             "bad_messages": self.bad_messages,
+            "guard": self.payload_guard.as_json(), "guard_lines": self.payload_guard.lines(),
+            "ignored": self.ignored,
             "history": {"seconds": self.history.history_s, "messages": self.history.count(),
                         "bytes": self.history.bytes, "evicted": self.history.evicted,
                         "caps": self.history.caps,
@@ -218,6 +252,7 @@ class Gateway:
             "points_sent": self.sent_closed + sum(c.sent for c in self.clients),
             "points_dropped": self.dropped_closed + sum(c.dropped for c in self.clients),
             "refused": self.refused,
+            "shed": dict(self.shed),
         }
 
     # -- HTTP ----------------------------------------------------------------------------
@@ -228,7 +263,20 @@ class Gateway:
             self.refused += 1
             log.warning("refused %s %s: %s", request.method, request.path, why)
             return web.Response(status=403, text=f"forbidden: {why}\n")
-        resp = await handler(request)
+        kind = COSTLY.get(request.path)
+        if kind is None:
+            resp = await handler(request)
+        elif self.busy[kind] >= self.limits[kind]:
+            self.shed[kind] += 1
+            resp = web.Response(status=503, text=f"busy: {self.limits[kind]} {kind} requests "
+                                "at once; retry later\n",
+                                headers={"Retry-After": str(RETRY_AFTER_S)})
+        else:
+            self.busy[kind] += 1
+            try:
+                resp = await handler(request)
+            finally:
+                self.busy[kind] -= 1
         resp.headers.setdefault("X-Content-Type-Options", "nosniff")
         resp.headers.setdefault("X-Frame-Options", "DENY")
         resp.headers.setdefault("Referrer-Policy", "no-referrer")
@@ -241,7 +289,7 @@ class Gateway:
         return web.json_response(self.dic.as_json())
 
     async def status_view(self, request: web.Request) -> web.Response:
-        return web.json_response(self.status())
+        return web.json_response(self.status(), dumps=dumps)
 
     async def history_view(self, request: web.Request) -> web.Response:
         q = request.query
@@ -254,7 +302,8 @@ class Gateway:
         if mid not in self.dic.by_id:
             raise web.HTTPNotFound(text=f"no telemetry {mid!r}\n")
         loop = asyncio.get_running_loop()
-        mem = self.history.query(self.dic, mid, start, end)
+        texts = self.history.texts(self.dic, mid, start, end)  # taken here, parsed off the loop
+        mem = await loop.run_in_executor(None, points_of, self.dic, mid, texts)
         sources: list[Callable[[], list[dict]]] = [lambda: mem]
         for f in self.files:
             try:
@@ -269,7 +318,7 @@ class Gateway:
         out = merged_query(sources)
         if q.get("strategy") == "latest":
             out = out[-1:]
-        return web.json_response(out)
+        return web.json_response(out, dumps=dumps)  # strict: overflows are null
 
     async def websocket(self, request: web.Request) -> web.WebSocketResponse:
         ws = web.WebSocketResponse(heartbeat=20.0, max_msg_size=1 << 20)
@@ -312,6 +361,10 @@ class Gateway:
         return app
 
 
+# the paths whose requests are bounded in number (Gateway.limits)
+COSTLY = {"/api/history": "history", "/ws": "browsers"}
+
+
 def _ids(v) -> list[str]:
     if isinstance(v, str):
         return [v]
@@ -343,12 +396,12 @@ async def serve(gw: Gateway, host: str, port: int, zenoh_conf, prefix: str,
                 for reply in session.get(f"{prefix}/state/*", timeout=2.0):
                     if reply.ok is not None:
                         out.append((str(reply.ok.key_expr)[plen:].replace("state/", "", 1),
-                                    reply.ok.payload.to_string()))
+                                    reply.ok.payload))
                 return out
 
-            for key, text in await loop.run_in_executor(None, late_joiner):
+            for key, data in await loop.run_in_executor(None, late_joiner):
                 if key in ("angles", "health"):
-                    gw.ingest(key, text)
+                    gw.ingest(key, data)
             if on_ready is not None:
                 on_ready(bound)
             next_flush = time.monotonic()
@@ -359,7 +412,7 @@ async def serve(gw: Gateway, host: str, port: int, zenoh_conf, prefix: str,
                     key = str(s.key_expr)[plen:]
                     if key.startswith("state/") or key == "alive":
                         continue
-                    gw.ingest(key, s.payload.to_string())
+                    gw.ingest(key, s.payload)
                 now = time.monotonic()
                 if now >= next_flush:
                     gw.flush()

@@ -2,25 +2,55 @@
 
 Uses a ring-buffer handler (a slow terminal never backs up the publisher) and shows the
 latest values, rates, missed samples (gaps in `seq`), staleness and node health.
+
+Every message is untrusted: it goes through the payload guard (daq/payload_guard.py: size,
+depth, UTF-8, strict JSON, the key's schema) before anything reads it; a bad one is counted
+and shown ("N bad messages from <key> (last: why)"), never fatal, and every string shown in
+the table is stripped of control characters and markup.
 """
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
 from collections import deque
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 
 from rsra.config.units import axis_units, to_units
+from rsra.daq.jsonout import dumps
+from rsra.daq.payload_guard import printable
 
 if TYPE_CHECKING:
     from rich.console import RenderableType
 
+    from rsra.daq.payload_guard import PayloadGuard, Received
+
 AXES = ("X", "Y", "Z", "L", "M", "N")
+MAX_KEYS = 256  # rows of the table; messages on further keys are counted together
+MAX_TEXT = 200  # characters of one string from a payload shown
+
+
+def _text(v: Any) -> str:
+    """A value from a payload as table text: no control characters, no rich markup, bounded."""
+    from rich.markup import escape
+
+    s = v if isinstance(v, str) else str(v)
+    if len(s) > MAX_TEXT:
+        s = s[:MAX_TEXT - 1] + "…"
+    return escape(printable(s))
+
+
+def _num(v: Any) -> float | None:
+    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
+
+
+def _vec6(v: Any) -> list[float | None]:
+    """A six-component load from a payload: six numbers or None (missing, short, wrong)."""
+    items = v if isinstance(v, list) else []
+    return [_num(x) for x in items[:6]] + [None] * (6 - min(6, len(items)))
 
 
 def _ms(v) -> str:
@@ -110,69 +140,69 @@ class KeyStats:
 
 
 def _fmt(v, width: int = 9) -> str:
-    if v is None:
+    if v is None or not math.isfinite(v):
         return "—".rjust(width)
     return f"{v:{width}.1f}"
 
 
-def render(stats: dict[str, KeyStats], prefix: str, units: str, now: float):
+def render(stats: dict[str, KeyStats], prefix: str, units: str, now: float,
+           notes: list[str] | None = None):
     from rich.console import Group
     from rich.table import Table
 
     parts: list[RenderableType] = []
-    t = Table(title=f"rsra telemetry — {prefix}", expand=False)
+    t = Table(title=f"rsra telemetry — {_text(prefix)}", expand=False)
     for col in ("key", "messages", "rate /s", "missed", "age s"):
         t.add_column(col, justify="right" if col != "key" else "left")
     for key in sorted(stats):
         s = stats[key]
         missed = s.missed
-        t.add_row(key, str(s.count), f"{s.rate():.1f}", "—" if missed is None else str(missed),
+        t.add_row(_text(key), str(s.count), f"{s.rate():.1f}", "—" if missed is None else str(missed),
                   f"{now - s.last_arrival:.2f}")
     parts.append(t)
     hl = stats.get("hub_loads")
     if hl and hl.latest:
-        ht = Table(title="hub loads (" + str(hl.latest.get("frame", "body")) + " axes)")
+        ht = Table(title="hub loads (" + _text(hl.latest.get("frame") or "body") + " axes)")
         ht.add_column("")
         u = axis_units(units)
         for i, ax in enumerate(AXES):
             ht.add_column(f"{ax} [{u[i]}]", justify="right")
         for label, field in (("filter H", "H"), ("static", "H_static"),
                              ("σ angles", "sigma_angles")):
-            v = hl.latest.get(field)
-            vals = ([None] * 6 if v is None else
-                    to_units(np.array([np.nan if x is None else x for x in v]), units).tolist())
-            ht.add_row(label, *[_fmt(None if x != x else x) for x in vals])
-        flags = hl.latest.get("flags") or []
+            v = _vec6(hl.latest.get(field))
+            vals = to_units(np.array([np.nan if x is None else x for x in v]), units).tolist()
+            ht.add_row(label, *[_fmt(x) for x in vals])
+        flags = [f for f in hl.latest.get("flags") or [] if f is not None]
         parts.append(ht)
         if flags:
-            parts.append(f"flags: {', '.join(flags)}")
+            parts.append(f"flags: {_text(', '.join(flags))}")
     an = stats.get("angles")
     if an and an.latest:
         a = an.latest
         names = a.get("names") or []
         alpha = a.get("alpha") or []
         sig = a.get("sigma_cr") or []
-        at = Table(title=f"angles — {a.get('mode')} / {a.get('content')}: "
+        at = Table(title=f"angles — {_text(a.get('mode'))} / {_text(a.get('content'))}: "
                    f"{'accepted' if a.get('accepted') else 'rejected'}"
-                   f"{'' if a.get('accepted') else ' (' + str(a.get('reason')) + ')'}, "
-                   f"{a.get('determined')} of {len(names)} determined")
+                   f"{'' if a.get('accepted') else ' (' + _text(a.get('reason')) + ')'}, "
+                   f"{_text(a.get('determined'))} of {len(names)} determined")
         at.add_column("angle")
         at.add_column("deg", justify="right")
         at.add_column("σ_CR deg", justify="right")
         for n, x, s in zip(names, alpha, sig):
-            at.add_row(n, "—" if x is None else f"{np.degrees(x):7.3f}",
+            at.add_row(_text(n), "—" if x is None else f"{np.degrees(x):7.3f}",
                        "—" if s is None else f"{np.degrees(s):6.3f}")
         parts.append(at)
         from rsra.estimator.flight_advice import advice_summary
 
         adv = advice_summary(a.get("advice"))  # filter error: what would determine the rest
         if adv:
-            parts.append(f"advice: {adv}")
+            parts.append(f"advice: {_text(adv)}")
         if not a.get("accepted") and (a.get("explanation") or a.get("hint")):
             # why, in one line each (issue 28; records of older recordings carry neither)
-            parts.append(f"why: {a.get('explanation') or a.get('detail')}")
+            parts.append(f"why: {_text(a.get('explanation') or a.get('detail'))}")
             if a.get("hint"):
-                parts.append(f"hint: {a.get('hint')}")
+                parts.append(f"hint: {_text(a.get('hint'))}")
     he = stats.get("health")
     if he and he.latest:
         h = he.latest
@@ -181,28 +211,72 @@ def render(stats: dict[str, KeyStats], prefix: str, units: str, now: float):
             nt.add_column(col)
         for name, nd in (h.get("nodes") or {}).items():
             age = nd.get("heartbeat_age")
-            nt.add_row(name, str(nd.get("state")), "—" if age is None else f"{age:.2f}",
+            nt.add_row(_text(name), _text(nd.get("state")), "—" if age is None else f"{age:.2f}",
                        str(len(nd.get("emcy") or [])))
         parts.append(nt)
         bus = h.get("bus") or {}
         smp = h.get("samples") or {}
         lat = h.get("latency_ms") or {}
-        parts.append(
+        parts.append(_text(
             f"bus: frames {bus.get('frames')} errors {bus.get('errors')} bus-off {bus.get('bus_off')} "
             f"unknown {bus.get('unknown')} malformed {bus.get('malformed')} | samples: complete "
             f"{smp.get('complete')} incomplete {smp.get('incomplete')} lost {smp.get('lost')} | "
-            f"latency p50 {_ms(lat.get('p50'))} ms p99 {_ms(lat.get('p99'))} ms")
+            f"latency p50 {_ms(lat.get('p50'))} ms p99 {_ms(lat.get('p99'))} ms"))
         from rsra.daq.cli.demo_view import sync_text
 
-        parts.append("sync: " + sync_text(h))
+        parts.append("sync: " + _text(sync_text(h)))
+    parts.extend(_text(n) for n in notes or ())
     return Group(*parts)
+
+
+class Listener:
+    """What `rsra listen` does with each message received, apart from Zenoh (so tests feed it
+    bytes in-process): the guard, then a JSON line (``out``) or the table's statistics."""
+
+    def __init__(self, guard: PayloadGuard, out: TextIO | None = None) -> None:
+        #: every payload goes through it first; it counts the bad ones
+        self.guard = guard
+        #: --json: where the lines go (None: the table)
+        self.out = out
+        #: the table's statistics per key (at most MAX_KEYS keys)
+        self.stats: dict[str, KeyStats] = {}
+        #: messages received (bad ones included)
+        self.received = 0
+        #: messages on keys beyond MAX_KEYS (not in the table)
+        self.other_keys = 0
+
+    def feed(self, key: str, data: Received, now: float) -> None:
+        self.received += 1
+        got = self.guard.receive(key, data)
+        if got is None:
+            return
+        if self.out is not None:
+            rec = {"key": key, **{k: v for k, v in got.payload.items() if k != "key"}}
+            if got.non_finite:
+                rec["non_finite"] = True
+            self.out.write(dumps(rec) + "\n")
+            return
+        st = self.stats.get(key)
+        if st is None:
+            if len(self.stats) >= MAX_KEYS:
+                self.other_keys += 1
+                return
+            st = self.stats[key] = KeyStats(key)
+        st.add(got.payload, now)
+
+    def notes(self) -> list[str]:
+        """The lines under the table: bad messages, messages on keys not shown."""
+        out = self.guard.lines()
+        if self.other_keys:
+            out.append(f"{self.other_keys} messages on more than {MAX_KEYS} keys (not shown)")
+        return out
 
 
 def run(args: argparse.Namespace) -> int:
     import zenoh
 
     from rsra.daq.rigmodel import load_rig
-    from rsra.daq.runtime.telemetry import viewer_config, zenoh_config
+    from rsra.daq.runtime.telemetry import payload_guard, viewer_config, zenoh_config
 
     cfg = load_rig(args.config)
     prefix = args.prefix or cfg.telemetry.prefix
@@ -212,9 +286,8 @@ def run(args: argparse.Namespace) -> int:
         connect = args.zenoh_connect or list(cfg.telemetry.listen)
         conf = viewer_config(connect)
     keys = args.key or ["**"]
-    stats: dict[str, KeyStats] = {}
+    lis = Listener(payload_guard(), sys.stdout if args.json else None)
     t_end = None if args.duration is None else time.monotonic() + args.duration
-    received = 0
     with zenoh.open(conf) as session:
         subs = [session.declare_subscriber(f"{prefix}/{k}", zenoh.handlers.RingChannel(4096))
                 for k in keys]
@@ -224,7 +297,7 @@ def run(args: argparse.Namespace) -> int:
 
             from rsra.daq.cli.console import make_console
 
-            live = Live(render(stats, prefix, args.units, time.monotonic()),
+            live = Live(render(lis.stats, prefix, args.units, time.monotonic()),
                         console=make_console(), refresh_per_second=4, transient=False)
             live.start()
         try:
@@ -234,24 +307,13 @@ def run(args: argparse.Namespace) -> int:
                 for sub in subs:
                     while (s := sub.handler.try_recv()) is not None:
                         got = True
-                        received += 1
                         key = str(s.key_expr)[len(prefix) + 1:]
-                        text = s.payload.to_string()
-                        try:
-                            payload = json.loads(text)
-                        except ValueError:
-                            payload = {"raw": text}
-                        if args.json:
-                            rec = {"key": key, **payload} if isinstance(payload, dict) else {
-                                "key": key, "value": payload}
-                            sys.stdout.write(json.dumps(rec) + "\n")
-                        else:
-                            stats.setdefault(key, KeyStats(key)).add(payload, time.monotonic())
-                        if args.count is not None and received >= args.count:
+                        lis.feed(key, s.payload, time.monotonic())
+                        if args.count is not None and lis.received >= args.count:
                             return 0
                 now = time.monotonic()
                 if live is not None and now - last_draw > 0.25:
-                    live.update(render(stats, prefix, args.units, now))
+                    live.update(render(lis.stats, prefix, args.units, now, lis.notes()))
                     last_draw = now
                 if args.json:
                     sys.stdout.flush()
@@ -263,6 +325,12 @@ def run(args: argparse.Namespace) -> int:
             return 0
         finally:
             if live is not None:
+                live.update(render(lis.stats, prefix, args.units, time.monotonic(),
+                                   lis.notes()))
                 live.stop()
+            elif lis.guard.bad or lis.guard.non_finite:  # --json: stdout stays JSON lines
+                sys.stdout.flush()
+                for line in lis.guard.lines():
+                    print(f"rsra listen: {line}", file=sys.stderr)
             for sub in subs:
                 sub.undeclare()

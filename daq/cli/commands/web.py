@@ -53,7 +53,7 @@ def _port(text: str) -> int:
 def run(args: argparse.Namespace) -> int:
     from rsra.daq.cli.options import UsageError
     from rsra.daq.rigmodel import load_rig
-    from rsra.daq.runtime.telemetry import viewer_config, zenoh_config
+    from rsra.daq.runtime.telemetry import payload_guard, viewer_config, zenoh_config
     from rsra.daq.web.dictionary import build_dictionary
     from rsra.daq.web.history import History, HistoryFileError, TelemetryFile, key_rates
     from rsra.daq.web.server import Gateway, allowed_hosts, is_loopback, openmct_dir, serve
@@ -103,13 +103,16 @@ def run(args: argparse.Namespace) -> int:
                           "(the Host check refuses others)", file=sys.stderr)
             print(f"rsra web: open http://{shown}:{port}/ (Ctrl-C stops)", flush=True)
 
-        gw = Gateway(dic, history, files, set(), openmct=omct)
+        gw = Gateway(dic, history, files, set(), guard=payload_guard(), openmct=omct)
         await serve(gw, args.host, args.port, conf, prefix, on_ready=ready, stop=stop)
         return gw.status()
 
     st = asyncio.run(main())
     summary = {"received": sum(st["received"].values()), "missed": st["missed"],
                "points_sent": st["points_sent"], "points_dropped": st["points_dropped"],
-               "refused": st["refused"], "history_bytes": st["history"]["bytes"]}
+               "refused": st["refused"], "history_bytes": st["history"]["bytes"],
+               "bad_messages": st["bad_messages"], "shed": st["shed"]}
+    for line in st["guard_lines"]:
+        print(f"rsra web: {line}", file=sys.stderr)
     print(json.dumps({"summary": summary}), flush=True)
     return 0
