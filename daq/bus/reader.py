@@ -87,6 +87,7 @@ from rsra.daq.bus.master import (
     SyncProducer,
 )
 from rsra.daq.bus.recorder import Recorder
+from rsra.daq.bus.reorder import FrameReorder
 from rsra.canbus import BatchNotifier, open_bus, recording_channel, shutdown_bus
 
 log = logging.getLogger(__name__)
@@ -229,10 +230,14 @@ class FrameTap(can.Listener):
             ts = self.stamp_sync(msg.data, t, self.frame_time)
             if self._clock.jumped:
                 self._discontinuity(t)
-        elif self._clock._suspect is None and t <= self.frame_time + self._ahead_s:
+        elif (self._clock._suspect is None and t <= self.frame_time + self._ahead_s
+              and self._clock._back is None):
             ts = t  # stamp_frame's common case, inline (nothing pending, not far ahead)
         else:
             ts = self.stamp_frame(t, self.frame_time)
+            if self._clock.jumped:  # a SYNC stamped far back, confirmed by this frame
+                self._clock.jumped = False
+                self._discontinuity(self._clock.base_t)
         own = t
         if ts != t:
             t = _floor(ts * 1e6 + 0.5) / 1e6
@@ -642,6 +647,7 @@ class HealthMonitor:
         self.cfg, self.tap, self.asm, self.supervisor = cfg, tap, asm, supervisor
         self.items, self.nodes = items, nodes
         self.recorder: Recorder | None = None  # set when a bus reader starts recording
+        self.reorder: FrameReorder | None = None  # set by a replay (its late frames: bus.late)
         self.due = -math.inf  # the first run only sets the schedule up
         self.last: Health | None = None
         self._rate_hist: deque[tuple[float, int]] = deque(maxlen=RATE_WINDOW + 1)
@@ -672,7 +678,8 @@ class HealthMonitor:
                         unknown=tap.unknown, malformed=asm.malformed + self.supervisor.malformed,
                         duplicate=asm.duplicate, orphan=asm.orphan, remote=tap.remote,
                         callback_errors=tap.callback_errors,
-                        last_callback_error=tap.last_callback_error or OMIT)
+                        last_callback_error=tap.last_callback_error or OMIT,
+                        late=self.reorder.late if self.reorder and self.reorder.late else OMIT)
         master = self.nodes.master
         queues = Queues(samples=self.items.status(), master_events=OMIT if master is None
                         else EventQueue(depth=master.events_pending,
@@ -680,8 +687,16 @@ class HealthMonitor:
         rec = RecordingHealth(active=False) if self.recorder is None else \
             RecordingHealth.from_status(self.recorder.status())
         return Health(t=t if math.isfinite(t) else None, nodes=self.supervisor.snapshot(t),
-                      bus=bus, samples=SampleCounts(**asm.counters()), queues=queues,
+                      bus=bus, samples=self._samples(), queues=queues,
                       recording=rec, sync=self._sync())
+
+    def _samples(self) -> SampleCounts:
+        """What the assembler emitted; a SYNC the replay's reorder stage dropped as late is
+        counted there (bus.late), not as a lost sample."""
+        c = self.asm.counters()
+        if self.reorder is not None:
+            c["lost"] = max(0, c["lost"] - self.reorder.late_syncs)
+        return SampleCounts(**c)
 
     def _sync(self) -> SyncHealth:
         """Duplicated SYNCs, bad timestamps (docs/reliability.md), late SYNCs of our own

@@ -27,6 +27,7 @@ from rsra.config.rig import RigConfig
 from rsra.daq.rigmodel import load_rig
 from rsra.daq.bus.reader import HealthReport, OfflineReader, ReaderBase
 from rsra.daq.bus.recorder import frame_files, recorded_config
+from rsra.daq.bus.reorder import FrameReorder, reordered
 
 LOG_SUFFIXES = (".log", ".blf", ".asc", ".trc", ".csv", ".mf4")
 log = logging.getLogger(__name__)
@@ -186,6 +187,9 @@ def replay(cfg: RigConfig, paths: Sequence[str | Path] | None = None, *,
     ``finish`` also passes on the last, incomplete sample when the recording ends."""
     r = reader or OfflineReader(cfg)
     src = frames if frames is not None else read_frames(paths or ())
+    if frames is None:  # a recording: into time order first (daq.bus.reorder; late: counted)
+        r.monitor.reorder = FrameReorder()
+        src = reordered(src, reorder=r.monitor.reorder, sync_id=cfg.sync.cob_id)
     if realtime:
         src = can.MessageSync(src, timestamps=True, gap=0.0)
     feed, poll = r.feed, r.poll
