@@ -18,6 +18,7 @@ from rsra.daq.bus.reorder import REORDER_WINDOW
 from rsra.daq.bus.replay import replay
 from rsra.daq.cli import main
 
+CONFIG = Path(__file__).parents[1] / "config"
 N = 240  # one whole SYNC counter cycle: joined to itself, the counter runs 240 -> 1
 
 
@@ -96,3 +97,90 @@ def test_time_going_back_with_the_counter_following_is_a_discontinuity(rec, tmp_
     recs = [json.loads(x) for x in out.read_text().splitlines()]
     health = [r for r in recs if r["key"] == "health"][-1]
     assert health["sync"]["discontinuities"] == 1 and health["sync"]["bad_timestamp"] == 0
+
+
+def _one_line_exit_2(argv, capsys, *words) -> str:
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    lines = [x for x in err.splitlines() if x.strip()]
+    assert len(lines) == 1, err
+    for w in words:
+        assert w in lines[0], (w, lines[0])
+    return lines[0]
+
+
+@pytest.mark.parametrize("how", ["missing", "device", "unparsable"])
+def test_a_folder_without_a_readable_config_needs_config(rec, tmp_path, capsys, how):
+    """Before: replayed on the packaged default rig, exit 0 (a flight-rig recording: H off
+    by a median of 621 N)."""
+    folder = tmp_path / "rec"
+    shutil.copytree(rec, folder)
+    cfg_file = folder / "config.json"
+    cfg_file.unlink()
+    if how == "device":
+        cfg_file.symlink_to("/dev/zero")
+    elif how == "unparsable":
+        cfg_file.write_text("{")
+    out = tmp_path / "o.jsonl"
+    _one_line_exit_2(["replay", str(folder), "--out", str(out)], capsys, str(folder),
+                     "config.json", "--config")
+    assert not out.exists()
+    # with the rig named it replays
+    assert main(["replay", str(folder), "--config", str(CONFIG / "rig.toml")]) == 0
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory) -> Path:
+    """A recording folder of the packaged flight rig (100 samples)."""
+    from rsra.daq.rigmodel import load_rig
+
+    folder = tmp_path_factory.mktemp("rrf") / "flight"
+    rig = LockstepRig(load_rig(CONFIG / "flight-rig.toml"), record=folder)
+    try:
+        rig.step(100)
+    finally:
+        rig.close()
+    return folder
+
+
+def test_a_bare_log_of_another_rig_is_refused_naming_config(flight, rec, capsys):
+    _one_line_exit_2(["replay", str(flight / "frames.log")], capsys, "frames.log",
+                     "do not fit the packaged default rig", "--config")
+    # the rig's own log (bare) replays on the default rig as before; with --config, too
+    assert main(["replay", str(rec / "frames.log")]) == 0
+    assert main(["replay", str(flight / "frames.log"), "--config",
+                 str(CONFIG / "flight-rig.toml")]) == 0
+
+
+def test_several_inputs_only_as_consecutive_parts_of_one_recording(rec, flight, tmp_path,
+                                                                   capsys):
+    """Before: `rsra replay A B` of two recordings exited 0 with one stream on A's rig."""
+    log = rec / "frames.log"
+    _one_line_exit_2(["replay", str(rec), str(flight)], capsys, str(rec), str(flight),
+                     "different rigs")
+    _one_line_exit_2(["replay", str(log), str(log)], capsys, "not consecutive parts")
+    copy = tmp_path / "copy"
+    shutil.copytree(rec, copy)
+    _one_line_exit_2(["export", str(rec), str(copy), "--mcap", str(tmp_path / "o.mcap")],
+                     capsys, str(rec), str(copy), "not consecutive parts")
+    # a recording cut in two (at a line) is accepted as its two parts, in order
+    lines = log.read_text().splitlines(keepends=True)
+    (tmp_path / "a.log").write_text("".join(lines[:1700]))
+    (tmp_path / "b.log").write_text("".join(lines[1700:]))
+    out = tmp_path / "parts.jsonl"
+    assert main(["replay", str(tmp_path / "a.log"), str(tmp_path / "b.log"),
+                 "--out", str(out)]) == 0
+    assert "samples complete 240, incomplete 0, lost 0" in capsys.readouterr().out
+    _one_line_exit_2(["replay", str(tmp_path / "b.log"), str(tmp_path / "a.log")], capsys,
+                     "b.log", "a.log", "not consecutive parts")
+
+
+def test_calibrate_takes_recordings_of_one_rig_and_refuses_two_rigs(rec, flight, tmp_path,
+                                                                    capsys):
+    from rsra.daq.bus.replay import config_for
+
+    copy = tmp_path / "copy"
+    shutil.copytree(rec, copy)
+    assert config_for([rec, copy]).rig_name == config_for([rec]).rig_name  # pooled: fine
+    _one_line_exit_2(["calibrate", str(rec), str(flight), "--out", str(tmp_path / "c.toml")],
+                     capsys, str(rec), str(flight), "different rigs", "one rig together")

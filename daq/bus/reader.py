@@ -725,6 +725,15 @@ class HealthMonitor:
         self._rate_hz = (n1 - n0) / (t1 - t0) if t1 - t0 >= 0.999 * self.period_s else None
 
 
+def known_cob_ids(cfg: RigConfig, table: DecodeTable) -> set[int]:
+    """Every COB-ID the rig's nodes, SYNC, NMT, TIME and LSS use (any other is ``unknown``)."""
+    known = {COB_NMT, COB_TIME, cfg.sync.cob_id, *LSS_COB_IDS, *table.tpdos}
+    for nl in table.nodes:
+        known |= {COB_HEARTBEAT + nl.node_id, COB_EMCY + nl.node_id,
+                  COB_SDO_TX + nl.node_id, COB_SDO_RX + nl.node_id}
+    return known
+
+
 # -- the readers ------------------------------------------------------------------------------------------
 class ReaderBase:
     """What every reader is: the decode table, the assembler, the supervisor, the tap with
@@ -758,11 +767,7 @@ class ReaderBase:
             self.network.subscribe(cob, cb)
 
     def _known_cob_ids(self) -> set[int]:
-        known = {COB_NMT, COB_TIME, self.cfg.sync.cob_id, *LSS_COB_IDS, *self.table.tpdos}
-        for nl in self.table.nodes:
-            known |= {COB_HEARTBEAT + nl.node_id, COB_EMCY + nl.node_id,
-                      COB_SDO_TX + nl.node_id, COB_SDO_RX + nl.node_id}
-        return known
+        return known_cob_ids(self.cfg, self.table)
 
     @property
     def master(self) -> CanopenMaster | None:

@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
         check_readable(files)
     except ReplayError as e:
         raise UsageError(str(e)) from None
-    cfg = config_for(args.logs, args.config)
+    cfg = config_for(args.logs, args.config, several="parts")
     from rsra.daq.runtime.foxglove_out import check_option
 
     check_option(args)  # a taken port: refused before anything starts
