@@ -169,7 +169,16 @@ def reordered(frames: Iterable[Any], window: int = REORDER_WINDOW,
     r = reorder if reorder is not None else FrameReorder(window)
     held: dict[int, Any] = {}
     push = r.push
-    for msg in frames:
+    src = iter(frames)
+    while True:
+        try:
+            msg = next(src)
+        except StopIteration:
+            break
+        except Exception:  # a damaged recording: the frames before it are replayed first
+            for i, _ in r.flush():
+                yield held.pop(i)
+            raise
         i = r.n
         rel = push(msg.timestamp)
         if not rel:

@@ -210,6 +210,7 @@ RIG_SECTIONS = ("rig", "geometry", "mass", "cells", "inertial", "accelerometers"
                 "balance", "sync", "nodes", "calibration")
 FIT_FRAMES = 20_000  # a bare log is judged by its first frames (decided early, bounded)
 MISFIT_FRACTION = 0.01  # more than this of them not fitting the rig: refused (needs --config)
+FIT_MIN_FRAMES = 100  # a log shorter than this is not judged (too few frames to say)
 JOIN_GAP_S = 60.0  # consecutive parts: the next starts at most this long after the last ends
 
 
@@ -259,7 +260,7 @@ def check_fits(path: Path, cfg: RigConfig, rig: str) -> None:
             frames.close()
         if n >= FIT_FRAMES:
             break
-    if n and bad > MISFIT_FRACTION * n:
+    if n >= FIT_MIN_FRAMES and bad > MISFIT_FRACTION * n:
         raise ReplayError(
             f"{path}: {bad} of its first {n} frames ({100 * bad / n:.1f} %) do not fit "
             f"{rig} ({cfg.rig_name}: identifiers it does not use, or wrong lengths): it was "
