@@ -1,0 +1,52 @@
+"""Plausibility, not silence (issue 46 item 4): a sign-inverted rotor-speed sensor is flagged
+implausible (not `rotor_stopped`); an accelerometer geometry is judged by the condition of its
+solve; a scenario's base-vibration band above Nyquist is refused like a harmonic."""
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+from helpers_canopen import LockstepRig
+
+from rsra.config.rig import load_config
+from rsra.daq.bus.reader import HealthReport
+from rsra.daq.runtime.pipeline import IMPLAUSIBLE_OMEGA, EstimatorPipeline
+
+
+@pytest.fixture(scope="module")
+def samples():
+    rig = LockstepRig(load_config())
+    try:
+        items = rig.step(300)
+    finally:
+        rig.close()
+    out = [x for x in items if not isinstance(x, HealthReport)]
+    assert all(s.omega is not None and s.omega > 1.0 for s in out)  # the rotor turns
+    return out
+
+
+@pytest.mark.parametrize("kernel", [False, True])
+def test_a_sign_inverted_rotor_speed_is_implausible_not_a_stopped_rotor(samples, kernel):
+    """Before: Ω = −19.4 rad/s gave `rotor_stopped` on every sample and no count."""
+    cfg = load_config()
+    p = EstimatorPipeline(cfg, np.asarray(cfg.identification.initial_angles_rad, float),
+                          identification=False, hub_kernel=kernel)
+    flags = []
+    for s in samples:
+        for key, payload in p.process(dataclasses.replace(s, omega=-s.omega)).records:
+            if key == "hub_loads":
+                flags.append(json.loads(json.dumps(payload.get("flags", [])
+                                                   if isinstance(payload, dict)
+                                                   else payload.to_dict()["flags"])))
+    assert len(flags) == len(samples)
+    assert all(IMPLAUSIBLE_OMEGA in f for f in flags)
+    assert not any("rotor_stopped" in f for f in flags)
+    assert p.implausible_omega == len(samples)
+    # a stopped rotor's reading noise (just below zero) is still a stopped rotor, not refused
+    p2 = EstimatorPipeline(cfg, np.asarray(cfg.identification.initial_angles_rad, float),
+                           identification=False, hub_kernel=kernel)
+    for s in samples[:20]:
+        p2.process(dataclasses.replace(s, omega=-1e-3))
+    assert p2.implausible_omega == 0
