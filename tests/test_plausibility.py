@@ -50,3 +50,40 @@ def test_a_sign_inverted_rotor_speed_is_implausible_not_a_stopped_rotor(samples,
     for s in samples[:20]:
         p2.process(dataclasses.replace(s, omega=-1e-3))
     assert p2.implausible_omega == 0
+
+
+def _flight_accels():
+    import tomllib
+    from pathlib import Path
+
+    raw = tomllib.loads((Path(__file__).parents[1] / "config" / "flight-rig.toml").read_text())
+    return Path(__file__).parents[1] / "config" / "flight-rig.toml", raw["accelerometers"]
+
+
+@pytest.mark.parametrize("offset_m", [1e-7, 1e-5])
+def test_nearly_collinear_accelerometers_are_refused_with_the_noise_budgets_sigma(
+        offset_m, tmp_path, capsys):
+    """Before: 1e-7 m from collinear passed the rank test; the noise budget then said σY
+    6.7e9 N."""
+    from rsra.config.rig import ConfigError
+    from rsra.daq.cli import main
+    from rsra.daq.rigmodel import load_rig
+
+    path, accs = _flight_accels()
+    a, b = (np.asarray(x["position_m"], float) for x in accs[:2])
+    accs[2]["position_m"] = ((a + b) / 2 + [offset_m, 0.0, 0.0]).tolist()  # on a-b, nearly
+    with pytest.raises(ConfigError) as e:
+        load_rig(path, overrides={"accelerometers": accs})
+    text = str(e.value)
+    assert "condition" in text and "noise budget" in text and "σ" in text
+    assert "neglect" in text
+    # through the command line: one line, exit 2
+    top = tmp_path / "top.toml"
+    top.write_text(f'extends = "{path}"\n\n' + "".join(
+        f'[[accelerometers]]\n' + "".join(f"{k} = {json.dumps(v)}\n" for k, v in x.items())
+        + "\n" for x in accs))
+    assert main(["noise-budget", "--config", str(top)]) == 2
+    err = [x for x in capsys.readouterr().err.splitlines() if x.strip()]
+    assert len(err) == 1 and "condition" in err[0], err
+    # the packaged flight rig itself loads (condition 2)
+    load_rig(path)
