@@ -87,3 +87,22 @@ def test_nearly_collinear_accelerometers_are_refused_with_the_noise_budgets_sigm
     assert len(err) == 1 and "condition" in err[0], err
     # the packaged flight rig itself loads (condition 2)
     load_rig(path)
+
+
+def test_a_base_vibration_band_above_nyquist_is_refused_like_a_harmonic(tmp_path, capsys):
+    """Before: a band up to 150 Hz (Nyquist 100 Hz) aliased silently."""
+    from pathlib import Path
+
+    from rsra.daq.cli import main
+
+    flight = (Path(__file__).parents[1] / "config" / "scenarios" / "flight.toml").read_text()
+    old = "band_hz = [5.0, 40.0]"
+    assert flight.count(old) == 1 and "[base_vibration]\nenabled = true" in flight
+    (tmp_path / "alias.toml").write_text(flight.replace(old, "band_hz = [5.0, 150.0]"))
+    assert main(["run", "--sim", str(tmp_path / "alias.toml"), "--speed", "max",
+                 "--duration", "1", "--record", str(tmp_path / "R")]) == 2
+    err = [x for x in capsys.readouterr().err.splitlines() if x.strip()]
+    assert len(err) == 1, err
+    for w in ("alias.toml", "base_vibration.band_hz", "Nyquist frequency 100 Hz", "fix:"):
+        assert w in err[0], (w, err[0])
+    assert not (tmp_path / "R").exists()
