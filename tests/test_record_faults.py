@@ -50,3 +50,107 @@ def test_a_full_disk_stops_the_recording_cleanly_and_the_run_exits_non_zero(smal
     assert "truth" in summary and "no partial file" in err
     # what was recorded replays (its cut last line dropped)
     assert main(["replay", str(rec)]) == 0
+
+
+def _start(argv: list[str], log: Path) -> subprocess.Popen:
+    import sys
+
+    return subprocess.Popen([sys.executable, "-m", "rsra", *argv], stdout=open(log, "w"),
+                            stderr=subprocess.STDOUT)
+
+
+def _wait_port(port: int, within_s: float = 30.0) -> None:
+    import socket
+    import time
+
+    end = time.monotonic() + within_s
+    while time.monotonic() < end:
+        with socket.socket() as sk:
+            if sk.connect_ex(("127.0.0.1", port)) == 0:
+                return
+        time.sleep(0.1)
+    raise AssertionError(f"nothing listens on port {port} after {within_s} s")
+
+
+def _wait_line(log: Path, text: str, within_s: float = 30.0) -> None:
+    import time
+
+    end = time.monotonic() + within_s
+    while time.monotonic() < end:
+        if log.exists() and text in log.read_text():
+            return
+        time.sleep(0.1)
+    raise AssertionError(f"{log.name}: no {text!r} after {within_s} s")
+
+
+def _stop(*procs) -> None:
+    for p in procs:
+        if p is not None and p.poll() is None:
+            p.terminate()
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+
+
+def _complete_samples(reader, n: int, within_s: float) -> int:
+    import time
+
+    from rsra.daq.bus.reader import HealthReport
+
+    got, end = 0, time.monotonic() + within_s
+    while got < n and time.monotonic() < end:
+        item = reader.get(0.2)
+        if item is not None and not isinstance(item, HealthReport) and item.complete:
+            got += 1
+    return got
+
+
+@pytest.mark.timeout(150)
+def test_the_shared_bus_killed_and_started_again_is_recovered_without_a_restart(
+        tmp_path, caplog):
+    """Before: `Exception in thread rsra-sync: … BrokenPipeError`, the SYNC producer died and
+    nothing recovered. Now the reader opens the shared bus again when it is back (its reads
+    paced by the growing pause) and the supervised SYNC producer sends again: samples
+    resume in the same reader — `rsra run` is not restarted."""
+    import logging
+    import time
+
+    from rsra.config.rig import load_config
+    from rsra.daq.bus.reader import Reader
+
+    caplog.set_level(logging.WARNING)
+    port = free_tcp_port()
+    url = f"ws://127.0.0.1:{port}/"
+    channel = f"rr-{uuid.uuid4().hex[:8]}"
+    bus = sim = None
+    reader = None
+    try:
+        bus = _start(["bus", "--port", str(port), "--channel", channel], tmp_path / "bus1.log")
+        _wait_port(port)
+        sim = _start(["sim", "--scenario", "ground-test", "--interface", "remote",
+                      "--channel", url], tmp_path / "sim1.log")
+        _wait_line(tmp_path / "sim1.log", "rsra sim:")
+        reader = Reader(load_config(), interface="remote", channel=url).start()
+        assert _complete_samples(reader, 200, 30) == 200
+        bus.kill()  # the shared bus goes away under the running sim + reader
+        bus.wait()
+        sim.wait(30)  # (the simulator ends on its own: the bus failed)
+        time.sleep(1.0)
+        while reader.get(0.1) is not None:  # what was queued before
+            pass
+        bus = _start(["bus", "--port", str(port), "--channel", channel], tmp_path / "bus2.log")
+        _wait_port(port)
+        sim = _start(["sim", "--scenario", "ground-test", "--interface", "remote",
+                      "--channel", url], tmp_path / "sim2.log")
+        t0 = time.monotonic()
+        _wait_line(tmp_path / "sim2.log", "rsra sim:")
+        assert _complete_samples(reader, 200, 45) == 200, caplog.text  # samples resume
+        print(f"samples resumed within {time.monotonic() - t0:.1f} s of the bus's restart")
+        assert not [r for r in caplog.records if "Traceback" in r.getMessage()]
+        assert "the bus is back" in caplog.text and "SYNC sent again" in caplog.text
+    finally:
+        if reader is not None:
+            reader.close()
+        _stop(sim, bus)

@@ -855,7 +855,12 @@ class _BusReader(ReaderBase):
                 args = dict(self._bus_args)
                 # the service's own SYNC/NMT/SDO must come back to the tap and the recorder
                 args.setdefault("receive_own_messages", True)
-                self._bus = open_bus(**args)  # virtual: own copy first (rsra.canbus)
+                if args.get("interface") in (None, "virtual"):
+                    self._bus = open_bus(**args)  # virtual: own copy first (rsra.canbus)
+                else:  # a bus that can go away and come back: opened again when it fails
+                    from rsra.daq.bus.sharedbus import ReconnectingBus
+
+                    self._bus = ReconnectingBus(lambda: open_bus(**args))
                 self._own_bus = True
                 self.network.bus = self._bus
             else:
