@@ -154,3 +154,50 @@ def test_the_shared_bus_killed_and_started_again_is_recovered_without_a_restart(
         if reader is not None:
             reader.close()
         _stop(sim, bus)
+
+
+def _children(pid: int) -> list[tuple[int, str]]:
+    out = []
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            stat = (d / "stat").read_text()
+            cmd = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+            out.append((int(d.name), cmd))
+    return out
+
+
+@pytest.mark.timeout(120)
+def test_a_killed_resource_tracker_is_one_line_not_tracebacks(tmp_path):
+    """Before: 6 `KeyError: '/mp-…'` tracebacks at the end of the run."""
+    import signal
+    import sys
+    import time
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "rsra", "run", "--sim", "ground-test", "--speed", "1",
+         "--duration", "8", "--zenoh-listen", f"tcp/127.0.0.1:{free_tcp_port()}"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    try:
+        end = time.monotonic() + 60
+        tracker = None
+        while tracker is None and time.monotonic() < end and proc.poll() is None:
+            tracker = next((pid for pid, cmd in _children(proc.pid)
+                            if "resource_tracker" in cmd), None)
+            time.sleep(0.1)
+        assert tracker is not None, "no resource tracker started"
+        os.kill(tracker, signal.SIGKILL)  # (a process of this run's, found by its parent)
+        out, err = proc.communicate(timeout=90)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err and "KeyError" not in err, err
+    lines = [x for x in err.splitlines() if "resource tracker" in x]
+    assert len(lines) == 1 and "has gone" in lines[0], err
+    assert json.loads(out.strip().splitlines()[-1])["summary"]["samples"] > 0
