@@ -80,7 +80,7 @@ def test_nearly_collinear_accelerometers_are_refused_with_the_noise_budgets_sigm
     # through the command line: one line, exit 2
     top = tmp_path / "top.toml"
     top.write_text(f'extends = "{path}"\n\n' + "".join(
-        f'[[accelerometers]]\n' + "".join(f"{k} = {json.dumps(v)}\n" for k, v in x.items())
+        '[[accelerometers]]\n' + "".join(f"{k} = {json.dumps(v)}\n" for k, v in x.items())
         + "\n" for x in accs))
     assert main(["noise-budget", "--config", str(top)]) == 2
     err = [x for x in capsys.readouterr().err.splitlines() if x.strip()]

@@ -237,7 +237,7 @@ class FrameTap(can.Listener):
             ts = self.stamp_frame(t, self.frame_time)
             if self._clock.jumped:  # a SYNC stamped far back, confirmed by this frame
                 self._clock.jumped = False
-                self._discontinuity(self._clock.base_t)
+                self._discontinuity(self._clock.base_t or t)
         own = t
         if ts != t:
             t = _floor(ts * 1e6 + 0.5) / 1e6

@@ -178,11 +178,11 @@ def config_for(paths: Sequence[str | Path], config: str | Path | None = None, *,
     export) takes several inputs only as consecutive parts of one recording
     (:func:`check_consecutive`); ``"rig"`` (calibrate, which pools separate stretches by
     design) only as recordings of one rig."""
-    paths = [Path(p) for p in paths]
+    inputs = [Path(p) for p in paths]
     if config is not None:
         cfg = load_rig(config)
     else:
-        raws = [(p, _folder_config(p)) for p in paths if p.is_dir()]
+        raws = [(p, _folder_config(p)) for p in inputs if p.is_dir()]
         for (a, ra), (b, rb) in zip(raws, raws[1:]):
             differs = [k for k in RIG_SECTIONS if ra.get(k) != rb.get(k)]
             if differs:
@@ -195,12 +195,12 @@ def config_for(paths: Sequence[str | Path], config: str | Path | None = None, *,
             cfg = recorded_config(raws[0][0]) or load_rig()
         else:
             cfg = load_rig()
-        for p in paths:
+        for p in inputs:
             if not p.is_dir():
                 check_fits(p, cfg, "the recording folder's rig" if raws else
                            "the packaged default rig")
     if several == "parts":
-        check_consecutive(paths, cfg)
+        check_consecutive(inputs, cfg)
     return cfg
 
 

@@ -156,7 +156,7 @@ class ReconnectingBus(can.BusABC):
         self._lock = threading.Lock()
         self.reopened = 0  # times the bus was opened again after a failure
         self.lost = 0  # times it failed
-        super().__init__(channel=getattr(self._inner, "channel_info", None), **kwargs)
+        super().__init__(channel=str(getattr(self._inner, "channel_info", "")), **kwargs)
         self.channel_info = f"reconnecting {getattr(self._inner, 'channel_info', '')}"
 
     def _current(self) -> can.BusABC:

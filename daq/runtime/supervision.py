@@ -135,12 +135,12 @@ def resource_tracker_gone() -> bool:
     the rest of the run. True if it was gone."""
     from multiprocessing import resource_tracker as rt
 
-    t = rt._resource_tracker
+    t: Any = rt._resource_tracker  # (its private state: not in typeshed)
     if rt.unregister is _nothing or t._fd is None or t._check_alive():
         return False
     log.warning("multiprocessing's resource tracker (pid %s) has gone (killed?); not "
                 "restarted: this process removes its own semaphores as it releases them",
                 t._pid)
-    rt.register = _nothing
-    rt.unregister = _nothing
+    rt.register = _nothing  # type: ignore[assignment]  # (typeshed: name is Sized)
+    rt.unregister = _nothing  # type: ignore[assignment]
     return True
