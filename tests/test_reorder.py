@@ -80,3 +80,20 @@ def test_time_going_back_further_than_a_second_is_released_not_sorted_in():
     ts = np.concatenate([half, half])
     perm, late = order(ts, window=50)
     assert np.array_equal(perm, np.arange(len(ts))) and not late.any()
+
+
+@settings(max_examples=200, deadline=None)
+@given(ts=times, window=st.integers(0, 12))
+def test_the_frame_generator_releases_what_the_block_interface_says(ts, window):
+    from types import SimpleNamespace
+
+    from rsra.daq.bus.reorder import reordered
+
+    frames = [SimpleNamespace(timestamp=t, arbitration_id=0x80 if i % 3 == 0 else 0x181, i=i)
+              for i, t in enumerate(ts)]
+    r = FrameReorder(window)
+    got = [m.i for m in reordered(frames, reorder=r, sync_id=0x80)]
+    perm, late = order(np.asarray(ts, dtype=float), window)
+    assert got == [int(i) for i in perm if not late[i]]
+    assert r.late == int(late.sum())
+    assert r.late_syncs == sum(1 for i in np.flatnonzero(late) if i % 3 == 0)

@@ -48,7 +48,7 @@ class _Stamped(Protocol):
     timestamp: float
 
 
-def _key(item: tuple[float, int]) -> float:
+def _key(item: tuple[float, Any]) -> float:
     return item[0]
 
 
@@ -59,7 +59,7 @@ class FrameReorder:
         if window < 0:
             raise ValueError(f"window {window}: must be >= 0")
         self.window = int(window)
-        self._held: deque[tuple[float, int]] = deque()  # (t, index), sorted, stable
+        self._held: deque[tuple[float, Any]] = deque()  # (t, index or item), sorted, stable
         self._last_in = -math.inf  # the latest time held (the in-order test)
         self.last_out = -math.inf  # the time of the last frame released in order
         self.n = 0  # frames pushed
@@ -68,9 +68,10 @@ class FrameReorder:
         self.discontinuities = 0  # times the stream went back (DISCONTINUITY_S): flushed
         self.reordered = 0  # frames that arrived before an earlier-stamped one (held, sorted)
 
-    def push(self, t: float) -> list[tuple[int, bool]]:
-        """One frame's time stamp; the (index, late) pairs released by it, in order."""
-        i = self.n
+    def push(self, t: float, item: Any = None) -> list[tuple[Any, bool]]:
+        """One frame's time stamp (and what to hand back for it: by default its index, the
+        frames pushed before it); the (item, late) pairs released by it, in order."""
+        i = self.n if item is None else item
         self.n += 1
         held = self._held
         if t < max(self._last_in, self.last_out) - DISCONTINUITY_S:  # time went back
@@ -165,10 +166,13 @@ def reordered(frames: Iterable[Any], window: int = REORDER_WINDOW,
               ) -> Iterator[Any]:
     """The frames (``can.Message``: ``timestamp``, ``arbitration_id``) in time order within
     ``window``; late frames are counted in ``reorder.late`` (SYNCs, COB-ID ``sync_id``, also
-    in ``reorder.late_syncs``: the sample a late SYNC opened is late, not lost) and left out."""
+    in ``reorder.late_syncs``: the sample a late SYNC opened is late, not lost) and left out.
+    The frames themselves are what the window holds; a frame in order (the common case) takes
+    :meth:`FrameReorder.push`'s in-order branch inline, on the same state."""
     r = reorder if reorder is not None else FrameReorder(window)
-    held: dict[int, Any] = {}
-    push = r.push
+    held = r._held
+    push, append, popleft = r.push, held.append, held.popleft
+    window = r.window
     src = iter(frames)
     while True:
         try:
@@ -176,22 +180,23 @@ def reordered(frames: Iterable[Any], window: int = REORDER_WINDOW,
         except StopIteration:
             break
         except Exception:  # a damaged recording: the frames before it are replayed first
-            for i, _ in r.flush():
-                yield held.pop(i)
+            for m, _ in r.flush():
+                yield m
             raise
-        i = r.n
-        rel = push(msg.timestamp)
-        if not rel:
-            held[i] = msg
+        t = msg.timestamp
+        if t >= r._last_in and t >= r.last_out:  # in order (push's common branch, inline)
+            r.n += 1
+            append((t, msg))
+            r._last_in = t
+            if len(held) > window:
+                t0, m0 = popleft()
+                r.last_out = t0
+                yield m0
             continue
-        if len(rel) == 1 and rel[0][0] == i:  # the frame itself: late (window 0: in order)
-            if not rel[0][1]:
-                yield msg
-            elif msg.arbitration_id == sync_id:
+        for m, late in push(t, msg):
+            if not late:
+                yield m
+            elif m.arbitration_id == sync_id:
                 r.late_syncs += 1
-            continue
-        held[i] = msg
-        for j, _ in rel:  # (several: the held frames at a discontinuity)
-            yield held.pop(j)
-    for i, _ in r.flush():
-        yield held.pop(i)
+    for m, _ in r.flush():
+        yield m
