@@ -855,9 +855,10 @@ class _BusReader(ReaderBase):
                 args = dict(self._bus_args)
                 # the service's own SYNC/NMT/SDO must come back to the tap and the recorder
                 args.setdefault("receive_own_messages", True)
-                if args.get("interface") in (None, "virtual"):
+                if args.get("interface") != "remote":
                     self._bus = open_bus(**args)  # virtual: own copy first (rsra.canbus)
-                else:  # a bus that can go away and come back: opened again when it fails
+                else:  # the shared bus (`rsra bus`) can go away and come back: opened again
+                    # when it fails (not SocketCAN: its kernel-timed SYNC (BCM) stays native)
                     from rsra.daq.bus.sharedbus import ReconnectingBus
 
                     self._bus = ReconnectingBus(lambda: open_bus(**args))
