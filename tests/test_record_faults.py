@@ -8,6 +8,7 @@ import subprocess
 import uuid
 from pathlib import Path
 
+import numpy as np
 import pytest
 from helpers_net import free_tcp_port
 
@@ -201,3 +202,57 @@ def test_a_killed_resource_tracker_is_one_line_not_tracebacks(tmp_path):
     lines = [x for x in err.splitlines() if "resource tracker" in x]
     assert len(lines) == 1 and "has gone" in lines[0], err
     assert json.loads(out.strip().splitlines()[-1])["summary"]["samples"] > 0
+
+
+@pytest.mark.timeout(180)
+def test_rsra_run_goes_on_through_a_restart_of_the_shared_bus(tmp_path):
+    """The same through the command: `rsra run` on the shared bus, `rsra bus` killed and
+    started again on the same port (with a new `rsra sim`): the run resumes by itself, its
+    recording holds complete samples after the gap, it ends normally (exit 0)."""
+    import sys
+    import time
+
+    port = free_tcp_port()
+    url = f"ws://127.0.0.1:{port}/"
+    channel = f"rr-{uuid.uuid4().hex[:8]}"
+    bus = sim = run = None
+    try:
+        bus = _start(["bus", "--port", str(port), "--channel", channel], tmp_path / "bus1.log")
+        _wait_port(port)
+        sim = _start(["sim", "--scenario", "ground-test", "--interface", "remote",
+                      "--channel", url], tmp_path / "sim1.log")
+        _wait_line(tmp_path / "sim1.log", "rsra sim:")
+        run = subprocess.Popen(
+            [sys.executable, "-m", "rsra", "run", "--interface", "remote", "--channel", url,
+             "--duration", "25", "--record", str(tmp_path / "R"), "--no-identification",
+             "--zenoh-listen", f"tcp/127.0.0.1:{free_tcp_port()}", "--log-level", "info"],
+            stdout=subprocess.PIPE, stderr=open(tmp_path / "run.log", "w"), text=True)
+        _wait_line(tmp_path / "run.log", "service started", 60)
+        time.sleep(3.0)
+        bus.kill()
+        bus.wait()
+        sim.wait(30)
+        time.sleep(2.0)
+        bus = _start(["bus", "--port", str(port), "--channel", channel], tmp_path / "bus2.log")
+        _wait_port(port)
+        sim = _start(["sim", "--scenario", "ground-test", "--interface", "remote",
+                      "--channel", url], tmp_path / "sim2.log")
+        out, _ = run.communicate(timeout=120)
+    finally:
+        _stop(run, sim, bus)
+    log = (tmp_path / "run.log").read_text()
+    assert run.returncode == 0, log[-2000:]
+    assert "Traceback" not in log and "Exception in thread" not in log, log[-2000:]
+    assert "the bus is back" in log and "SYNC sent again" in log
+    summary = json.loads(out.strip().splitlines()[-1])["summary"]
+    assert summary["sync_gaps"]["count"] >= 1
+    # the recording: complete samples after the longest SYNC gap (the bus's restart)
+    from rsra.config.rig import load_config
+    from rsra.daq.bus.reader import HealthReport
+    from rsra.daq.bus.replay import replay
+
+    got = [s for s in replay(load_config(), [tmp_path / "R"]) if not isinstance(s, HealthReport)]
+    t = np.array([s.t for s in got])
+    cut = int(np.argmax(np.diff(t))) + 1
+    assert t[cut] - t[cut - 1] > 2.0
+    assert sum(s.complete for s in got[cut:]) >= 200
