@@ -59,7 +59,38 @@ def check_model(cfg: RigConfig) -> RigConfig:
     except ValueError as e:
         raise ConfigError("inertial.angular", cfg.angular, str(e).split(";")[0],
                           'use angular = "neglect" or add accelerometers', cfg.source) from None
+    _check_accel_condition(cfg, model)
     return cfg
+
+
+#: the least-squares angular solution's condition number beyond which the accelerometer
+#: geometry is refused (three triaxes nearly on one line: the rank test passes, the noise does
+#: not — 1e-7 m from collinear gave a noise budget of 6.7e9 N)
+ACCEL_CONDITION_MAX = 1e4
+
+
+def _check_accel_condition(cfg: RigConfig, model) -> None:
+    """The accelerometer geometry judged by the condition of its solve, not only its rank:
+    refused with the noise budget's σ it would give."""
+    from rsra.estimator.geometry import skew
+    from rsra.estimator.noise_budget import noise_budget
+
+    acc = model.accelerometers
+    if acc.angular != "least_squares":
+        return
+    G = np.vstack([np.hstack([np.eye(3), -skew(r)]) for r in acc.positions])
+    cond = float(np.linalg.cond(G))
+    if cond <= ACCEL_CONDITION_MAX:
+        return
+    sigma = noise_budget(model, cfg.identification.initial_angles_rad).total
+    axes = ("X", "Y", "Z", "L", "M", "N")
+    worst = int(np.argmax(sigma))
+    raise ConfigError(
+        "accelerometers[].position_m", "three triaxes",
+        f"nearly collinear: the angular solution's condition is {cond:.3g} (limit "
+        f"{ACCEL_CONDITION_MAX:.0e}), the noise budget's σ{axes[worst]} would be "
+        f"{sigma[worst]:.3g} {'N' if worst < 3 else 'N m'}",
+        'place three accelerometers well off one line, or use angular = "neglect"', cfg.source)
 
 
 def design_cache(cfg: RigConfig, *, model=None, low_frequency: bool | None = None,

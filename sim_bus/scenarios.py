@@ -535,6 +535,15 @@ def check_against_rig(sc: Scenario, sample_rate_hz: float, omega_nominal_rad_s: 
                 f"{sample_rate_hz:g} (it would alias)",
                 f"remove that harmonic or raise rig.sample_rate_hz above {2 * f:.3g}",
                 source=sc.source)
+    bv = sc.base_vibration
+    if bv.enabled and bv.band_hz[1] >= nyquist:
+        f = bv.band_hz[1]
+        raise ConfigError(
+            "base_vibration.band_hz", list(bv.band_hz),
+            f"reaches {f:g} Hz, at or above the Nyquist frequency {nyquist:g} Hz of "
+            f"rig.sample_rate_hz = {sample_rate_hz:g} (it would alias)",
+            f"keep the band below {nyquist:g} Hz or raise rig.sample_rate_hz above {2 * f:g}",
+            source=sc.source)
     if sc.shaker is not None:
         f = max(sc.shaker.f_start_hz, sc.shaker.f_stop_hz)
         if f >= nyquist:

@@ -203,7 +203,12 @@ def test_a_late_sync_keeps_its_own_time_and_its_recording_replays_to_the_same_sa
     assert sync_h["late_received"] == (1 if stall > DT / 2 else 0)
     assert sync_h["bad_timestamp"] == 0
     rep = [x for x in replay(cfg, [folder], finish=True) if not isinstance(x, HealthReport)]
-    assert same_samples(rep, got)
+    if straggler:  # the replay's reorder stage (daq.bus.reorder) puts the straggler back into
+        # its own period by its time: that sample is complete where live it missed the frame
+        assert got[k - 1].missing and rep[k - 1].complete and not rep[k - 1].missing
+        assert same_samples(rep[:k - 1] + rep[k:], got[:k - 1] + got[k:])
+    else:
+        assert same_samples(rep, got)
     r2 = OfflineReader(cfg)
     for m in replay_frames([folder]):
         r2.feed(m)

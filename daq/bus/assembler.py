@@ -28,16 +28,17 @@ import numpy as np
 from rsra.config.rig import RigConfig
 from rsra.daq import stagetiming
 from rsra.daq.bus.decoder import STATUS_FAULT, STATUS_OVERRANGE, DecodeTable
+from rsra.daq.bus.reorder import DISCONTINUITY_S
 from rsra.daq.jsonout import sanitise
 
 log = logging.getLogger(__name__)
 
 FrameCallback = Callable[[int, Any, float], None]
 _CACHE_MAX = 256  # distinct (reported, expected) patterns remembered (bounded)
-# a SYNC stamped this far before the last one, with a counter that does not follow it, is a
-# discontinuity (time went back: recordings joined, a clock stepped back), not a bad stamp:
-# far above any delay of a frame, far below the gap of a recording replayed after itself
-DISCONTINUITY_S = 1.0
+# a SYNC stamped DISCONTINUITY_S before the last one, with a counter that does not follow it
+# (or followed by frames at its time), is a discontinuity (time went back: recordings joined,
+# a clock stepped back), not a bad stamp: far above any delay of a frame, far below the gap of
+# a recording replayed after itself (one constant with the replay's reorder stage)
 # SYNCs further apart than this are a gap (the SYNC producer — the service itself, or the
 # bus — stalled or paused): counted with its length, whatever else the counter says
 GAP_S = 1.0
@@ -92,6 +93,9 @@ class SyncClock:
         self.base_t: float | None = None  # time of the last accepted SYNC
         self.base_c = 0  # its counter
         self._suspect: tuple[float, int | None] | None = None  # (raw time, SYNC counter)
+        #: a SYNC stamped far back with the counter following (raw time, counter): the next
+        #: frame at its time makes it a discontinuity, any other leaves it a bad timestamp
+        self._back: tuple[float, int] | None = None
         self.bad_timestamp = 0
         #: SYNCs later than their counter puts them (> half a period), taken at their own time
         self.late = 0
@@ -162,14 +166,27 @@ class SyncClock:
         ov, dt = self.overflow, self.period
         same = counter == self.base_c
         lost_c = (counter - (self.base_c % ov + 1)) % ov
-        if t < self.base_t - DISCONTINUITY_S and lost_c and not same:
-            # time went back and the counter does not follow (a single SYNC stamped far back
-            # with the next counter is a bad timestamp, below): a discontinuity — counted by
-            # the tap, no sample lost for it, the SYNC taken at its own time as the new base
-            self._suspect = None
-            self.base_t, self.base_c = t, counter
-            self.jumped = True
-            return t
+        back = self._back
+        if back is not None:  # the SYNC after one stamped far back with the next counter
+            self._back = None
+            if back[0] <= t <= back[0] + DISCONTINUITY_S:
+                self._jump_confirmed(*back)  # its time continues that one's: time went back
+                self.jumped = True
+                lost_c = (counter - (self.base_c % ov + 1)) % ov
+                same = counter == self.base_c
+        if t < self.base_t - DISCONTINUITY_S and not same:
+            if lost_c:
+                # time went back and the counter does not follow: a discontinuity — counted
+                # by the tap, no sample lost for it, the SYNC taken at its own time as the
+                # new base
+                self._suspect = None
+                self.base_t, self.base_c = t, counter
+                self.jumped = True
+                return t
+            # time went back with the counter following (a recording joined to itself at a
+            # whole counter cycle) — or one SYNC stamped far back: a bad timestamp (below)
+            # until the next frame shows which (``_back``)
+            self._back = (t, counter)
         lost = self._gap((t - self.base_t) / dt, lost_c, same)
         if lost is None and self._suspect is not None:
             st, sc = self._suspect
@@ -214,6 +231,15 @@ class SyncClock:
         self.lost = lost_c
         return stamp
 
+    def _jump_confirmed(self, t: float, counter: int) -> None:
+        """The SYNC held as stamped far back (``_back``) is followed by frames at its time: a
+        discontinuity after all — its bad-timestamp count withdrawn, the SYNC the new base at
+        its own time, its sample retimed to it (``on_late``: its time, never a rewritten one)."""
+        self._suspect = None
+        self.bad_timestamp -= 1
+        self.base_t, self.base_c = t, counter
+        self.on_late(t)
+
     def _count_late(self, t: float, lost: int) -> None:
         """A SYNC taken at its own time ``t``, ``lost`` after the base: late if more than
         half a period after where its counter puts it."""
@@ -224,6 +250,13 @@ class SyncClock:
     def stamp_frame(self, t: float, clock: float, sync: bool = False) -> float:
         """Any other frame (a SYNC without counter: ``sync=True``): far ahead of a running
         SYNC schedule, it is held at the clock until the next frame confirms it."""
+        back = self._back
+        if back is not None:  # a SYNC stamped far back: the frame after it decides
+            self._back = None
+            if back[0] <= t <= back[0] + (1 + self.tol) * self.period:
+                self._jump_confirmed(*back)
+                self.jumped = True  # (the tap: a discontinuity at the SYNC's time)
+                return t
         if self._suspect is not None:
             self._confirm(t, decisive=sync)
         base = self.base_t

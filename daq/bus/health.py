@@ -90,6 +90,7 @@ class BusCounts(_Part):
     remote: int
     callback_errors: int
     last_callback_error: Any = OMIT  # str, only once there was one
+    late: Any = OMIT  # int, replay only, once there was one: frames beyond the reorder window
 
 
 @_part

@@ -203,6 +203,10 @@ class Supervisor:
 PERIODIC_SEQUENCE_BUSES = frozenset({"SocketcanBus"})
 
 
+SYNC_RETRY_MIN_S = 0.01  # the SYNC producer's pause after a failed send ...
+SYNC_RETRY_MAX_S = 1.0  # ... doubling up to this while the sends keep failing
+
+
 class SyncProducer:
     """Periodic SYNC from a thread, for interfaces without periodic sending of their own.
 
@@ -220,6 +224,8 @@ class SyncProducer:
         self.clock = clock
         self.late = 0  # SYNCs sent later than planned (re-phased, not caught up)
         self.sent = 0
+        self.failed = 0  # sends that failed (the bus gone): retried after a growing pause
+        self.last_error: str | None = None
         # the schedule's total shift from re-phasing, and the whole periods it cost: the
         # sample slots never taken (health sync.periods_not_taken)
         self.shift_s = 0.0
@@ -235,13 +241,26 @@ class SyncProducer:
     def _run(self) -> None:
         k, period = 0, self.period
         due = self.clock()
+        pause = 0.0
         while not self._stop.is_set():
             try:
                 with self.lock:
                     self.bus.send(self.msgs[k])
-            except can.CanError as e:  # the bus went away: stop producing, say so once
-                log.error("SYNC producer stopped: %s", e)
-                return
+            except Exception as e:  # the bus went away (or is failing): retried, supervised
+                self.failed += 1
+                text = f"{type(e).__name__}: {e}"
+                if text != self.last_error:
+                    log.error("SYNC not sent (%s); retrying with a growing pause", text)
+                    self.last_error = text
+                pause = min(SYNC_RETRY_MAX_S, max(SYNC_RETRY_MIN_S, 2 * pause))
+                if self._wait(pause):
+                    return
+                due = self.clock()  # the schedule starts afresh when the bus is back
+                continue
+            if pause:
+                pause = 0.0
+                self.last_error = None
+                log.warning("SYNC sent again after %d failed sends", self.failed)
             self.sent += 1
             k = (k + 1) % len(self.msgs)
             now = self.clock()

@@ -87,6 +87,7 @@ from rsra.daq.bus.master import (
     SyncProducer,
 )
 from rsra.daq.bus.recorder import Recorder
+from rsra.daq.bus.reorder import FrameReorder
 from rsra.canbus import BatchNotifier, open_bus, recording_channel, shutdown_bus
 
 log = logging.getLogger(__name__)
@@ -229,10 +230,14 @@ class FrameTap(can.Listener):
             ts = self.stamp_sync(msg.data, t, self.frame_time)
             if self._clock.jumped:
                 self._discontinuity(t)
-        elif self._clock._suspect is None and t <= self.frame_time + self._ahead_s:
+        elif (self._clock._suspect is None and t <= self.frame_time + self._ahead_s
+              and self._clock._back is None):
             ts = t  # stamp_frame's common case, inline (nothing pending, not far ahead)
         else:
             ts = self.stamp_frame(t, self.frame_time)
+            if self._clock.jumped:  # a SYNC stamped far back, confirmed by this frame
+                self._clock.jumped = False
+                self._discontinuity(self._clock.base_t or t)
         own = t
         if ts != t:
             t = _floor(ts * 1e6 + 0.5) / 1e6
@@ -642,6 +647,7 @@ class HealthMonitor:
         self.cfg, self.tap, self.asm, self.supervisor = cfg, tap, asm, supervisor
         self.items, self.nodes = items, nodes
         self.recorder: Recorder | None = None  # set when a bus reader starts recording
+        self.reorder: FrameReorder | None = None  # set by a replay (its late frames: bus.late)
         self.due = -math.inf  # the first run only sets the schedule up
         self.last: Health | None = None
         self._rate_hist: deque[tuple[float, int]] = deque(maxlen=RATE_WINDOW + 1)
@@ -672,7 +678,8 @@ class HealthMonitor:
                         unknown=tap.unknown, malformed=asm.malformed + self.supervisor.malformed,
                         duplicate=asm.duplicate, orphan=asm.orphan, remote=tap.remote,
                         callback_errors=tap.callback_errors,
-                        last_callback_error=tap.last_callback_error or OMIT)
+                        last_callback_error=tap.last_callback_error or OMIT,
+                        late=self.reorder.late if self.reorder and self.reorder.late else OMIT)
         master = self.nodes.master
         queues = Queues(samples=self.items.status(), master_events=OMIT if master is None
                         else EventQueue(depth=master.events_pending,
@@ -680,8 +687,16 @@ class HealthMonitor:
         rec = RecordingHealth(active=False) if self.recorder is None else \
             RecordingHealth.from_status(self.recorder.status())
         return Health(t=t if math.isfinite(t) else None, nodes=self.supervisor.snapshot(t),
-                      bus=bus, samples=SampleCounts(**asm.counters()), queues=queues,
+                      bus=bus, samples=self._samples(), queues=queues,
                       recording=rec, sync=self._sync())
+
+    def _samples(self) -> SampleCounts:
+        """What the assembler emitted; a SYNC the replay's reorder stage dropped as late is
+        counted there (bus.late), not as a lost sample."""
+        c = self.asm.counters()
+        if self.reorder is not None:
+            c["lost"] = max(0, c["lost"] - self.reorder.late_syncs)
+        return SampleCounts(**c)
 
     def _sync(self) -> SyncHealth:
         """Duplicated SYNCs, bad timestamps (docs/reliability.md), late SYNCs of our own
@@ -708,6 +723,15 @@ class HealthMonitor:
         hist.append((t, self.asm.emitted))
         (t0, n0), (t1, n1) = hist[0], hist[-1]
         self._rate_hz = (n1 - n0) / (t1 - t0) if t1 - t0 >= 0.999 * self.period_s else None
+
+
+def known_cob_ids(cfg: RigConfig, table: DecodeTable) -> set[int]:
+    """Every COB-ID the rig's nodes, SYNC, NMT, TIME and LSS use (any other is ``unknown``)."""
+    known = {COB_NMT, COB_TIME, cfg.sync.cob_id, *LSS_COB_IDS, *table.tpdos}
+    for nl in table.nodes:
+        known |= {COB_HEARTBEAT + nl.node_id, COB_EMCY + nl.node_id,
+                  COB_SDO_TX + nl.node_id, COB_SDO_RX + nl.node_id}
+    return known
 
 
 # -- the readers ------------------------------------------------------------------------------------------
@@ -743,11 +767,7 @@ class ReaderBase:
             self.network.subscribe(cob, cb)
 
     def _known_cob_ids(self) -> set[int]:
-        known = {COB_NMT, COB_TIME, self.cfg.sync.cob_id, *LSS_COB_IDS, *self.table.tpdos}
-        for nl in self.table.nodes:
-            known |= {COB_HEARTBEAT + nl.node_id, COB_EMCY + nl.node_id,
-                      COB_SDO_TX + nl.node_id, COB_SDO_RX + nl.node_id}
-        return known
+        return known_cob_ids(self.cfg, self.table)
 
     @property
     def master(self) -> CanopenMaster | None:
@@ -835,7 +855,13 @@ class _BusReader(ReaderBase):
                 args = dict(self._bus_args)
                 # the service's own SYNC/NMT/SDO must come back to the tap and the recorder
                 args.setdefault("receive_own_messages", True)
-                self._bus = open_bus(**args)  # virtual: own copy first (rsra.canbus)
+                if args.get("interface") != "remote":
+                    self._bus = open_bus(**args)  # virtual: own copy first (rsra.canbus)
+                else:  # the shared bus (`rsra bus`) can go away and come back: opened again
+                    # when it fails (not SocketCAN: its kernel-timed SYNC (BCM) stays native)
+                    from rsra.daq.bus.sharedbus import ReconnectingBus
+
+                    self._bus = ReconnectingBus(lambda: open_bus(**args))
                 self._own_bus = True
                 self.network.bus = self._bus
             else:

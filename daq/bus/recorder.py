@@ -358,9 +358,10 @@ class Recorder(can.Listener):
             try:
                 self._angles.write(line + "\n")
                 self._angles.flush()
-            except OSError as e:
-                self.error = f"angles.jsonl not written: {e.strerror or e}"
-                log.error("%s", self.error)
+            except OSError as e:  # (the first failure stays the recording's error)
+                text = f"angles.jsonl not written: {e.strerror or e}"
+                self.error = self.error or text
+                log.error("%s", text)
 
     def status(self) -> dict:
         """The ``recording`` part of the health payload."""

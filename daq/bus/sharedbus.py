@@ -16,6 +16,10 @@ from __future__ import annotations
 import ipaddress
 import logging
 import threading
+from collections.abc import Callable
+from typing import Any
+
+import can
 
 
 log = logging.getLogger(__name__)
@@ -135,3 +139,77 @@ class BusServer:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class ReconnectingBus(can.BusABC):
+    """A bus the reader opened itself, opened again when it fails (docs/reliability.md "The
+    bus goes away"): the shared bus's server stopped and started again on the same port, an
+    interface taken down and up. Every user — the bus thread's reads, the SYNC producer, the
+    master's NMT/SDO — holds this one object; a read or send that fails with a bus failure
+    (:func:`rsra.canbus.bus_failure`) drops the inner bus, and the next read or send opens a
+    new one (paced by the callers' growing pauses: the tap's 10 ms … 1 s, the SYNC
+    producer's). Anything else is passed on unchanged."""
+
+    def __init__(self, opener: Callable[[], can.BusABC], **kwargs: Any):
+        self._opener = opener
+        self._inner: can.BusABC | None = opener()  # the first open fails as before
+        self._lock = threading.Lock()
+        self.reopened = 0  # times the bus was opened again after a failure
+        self.lost = 0  # times it failed
+        super().__init__(channel=str(getattr(self._inner, "channel_info", "")), **kwargs)
+        self.channel_info = f"reconnecting {getattr(self._inner, 'channel_info', '')}"
+
+    def _current(self) -> can.BusABC:
+        with self._lock:
+            if self._inner is None:
+                try:
+                    self._inner = self._opener()
+                except Exception as e:  # still gone: the caller's pause, then again
+                    raise can.CanOperationError(f"the bus is still gone "
+                                                f"({type(e).__name__}: {e})") from None
+                self.reopened += 1
+                log.warning("the bus is back: opened again (%d time%s)", self.reopened,
+                            "s" if self.reopened != 1 else "")
+            return self._inner
+
+    def _failed(self, bus: can.BusABC, exc: BaseException) -> None:
+        from rsra.canbus import bus_failure, shutdown_bus
+
+        if not bus_failure(exc):
+            return
+        with self._lock:
+            if self._inner is not bus:
+                return  # another thread saw it first
+            self._inner = None
+            self.lost += 1
+        log.warning("the bus failed (%s: %s); it is opened again when it is back",
+                    type(exc).__name__, exc)
+        shutdown_bus(bus)
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        bus = self._current()
+        try:
+            return bus.recv(timeout)
+        except Exception as e:
+            self._failed(bus, e)
+            raise
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        return self.recv(timeout), False  # (recv is overridden: not called by python-can)
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        bus = self._current()
+        try:
+            bus.send(msg, timeout)
+        except Exception as e:
+            self._failed(bus, e)
+            raise
+
+    def shutdown(self) -> None:
+        from rsra.canbus import shutdown_bus
+
+        with self._lock:
+            bus, self._inner = self._inner, None
+        if bus is not None:
+            shutdown_bus(bus)
+        super().shutdown()

@@ -241,7 +241,7 @@ class HubKernel:
         Returns (I, z, e, nis, omega, hub_loads record)."""
         p = self.p
         omega = s.omega if s.omega is not None and math.isfinite(s.omega) else None
-        if omega is not None and not abs(omega) < p.omega_max:
+        if omega is not None and not p.omega_low <= omega < p.omega_max:
             return None  # refused: the reference counts and flags it
         if p._last_seq is not None and seq - p._last_seq - 1 > 0:
             return None  # a gap to predict through

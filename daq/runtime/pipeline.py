@@ -40,6 +40,7 @@ from rsra.estimator.transient import TIME_CONSTANT_FRACTION, TRANSIENT, Transien
 log = logging.getLogger("rsra.pipeline")
 
 PREFILL_BAND = DESIGN_BAND  # the rotor-speed band designed at start-up (flight: +-2 %)
+IMPLAUSIBLE_OMEGA = "implausible:omega"  # the flag of a rotor-speed reading refused
 
 
 @dataclass
@@ -94,6 +95,9 @@ class EstimatorPipeline:
         # a rotor speed whose highest modelled harmonic is at or above Nyquist cannot be
         # designed for (and no rotor gives one): such a reading is not used (model §5)
         self.omega_max = math.pi * self.fs / max(cfg.filter.harmonics)
+        # a rotor turns one way: a reading below minus the stopped band (a stopped rotor's
+        # noise) is a sign-inverted or corrupt sensor, not a stopped rotor (issue 46)
+        self.omega_low = -cfg.rotor.omega_min_fraction * cfg.rotor.omega_nominal_rad_s
         self.implausible_omega = 0  # readings refused (counted in health)
         self._last_seq: int | None = None
         self.design_errors = 0  # redesigns that failed: the current design was kept
@@ -154,7 +158,8 @@ class EstimatorPipeline:
         if self.results.due_now(int(s.seq)):
             return False
         omega = s.omega
-        if omega is not None and not (math.isfinite(omega) and abs(omega) < self.omega_max):
+        if omega is not None and not (math.isfinite(omega)
+                                      and self.omega_low <= omega < self.omega_max):
             return True  # refused or missing: no redesign for it (stages)
         return self.cache.has_design(omega, current=self.load_filter.design)
 
@@ -244,15 +249,16 @@ class EstimatorPipeline:
         if measured:
             H_static = self._Rinv.dot(zh - angles.S.dot(T))
         omega = s.omega if s.omega is not None and math.isfinite(s.omega) else None
-        refused = omega is not None and not abs(omega) < self.omega_max
+        refused = omega is not None and not self.omega_low <= omega < self.omega_max
         if refused:
-            # a corrupt or impossible reading (e.g. 1e12 rad/s): no redesign for it — the
-            # design would fail or take the estimator thread for tens of ms — and no value
+            # a corrupt or impossible reading (e.g. 1e12 rad/s, or -19.4 rad/s from a
+            # sign-inverted sensor): no redesign for it — the design would fail or take the
+            # estimator thread for tens of ms, or say the rotor stopped — and no value
             self.implausible_omega += 1
             omega = None
-            node = f"missing:{self.cfg.rotor.node}"
-            if node not in flags:
-                flags.append(node)
+            for flag in (f"missing:{self.cfg.rotor.node}", IMPLAUSIBLE_OMEGA):
+                if flag not in flags:
+                    flags.append(flag)
         else:
             try:
                 self.load_filter.set_omega(omega)

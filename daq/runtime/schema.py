@@ -103,6 +103,7 @@ FIELDS: dict[str, list[tuple[str, str, str]]] = {
         *[(f"bus.{n}", "integer", "") for n in (
             "frames", "errors", "bus_off", "unknown", "malformed", "duplicate", "orphan",
             "remote", "callback_errors")],
+        ("bus.late", "integer", ""),
         *[(f"samples.{n}", "integer", "") for n in ("complete", "incomplete", "lost")],
         ("sync", "object", ""), ("sync.duplicate", "integer", ""),
         ("sync.bad_timestamp", "integer", ""), ("sync.late_received", "integer", ""),

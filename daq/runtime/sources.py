@@ -107,6 +107,7 @@ class _Base:
         self.reader: ReaderBase | None = None
         self.sim: Any = None
         self.recorder: Recorder | None = None
+        self.truth_error: str | None = None  # the simulator's truth file could not be written
         self._stack = contextlib.ExitStack()
         # a live source runs this on each sample in its bus thread before queueing it (the
         # service's first step: hub loads published with no hand-off, docs/performance.md
@@ -158,11 +159,18 @@ def _write_truth_after(stack: contextlib.ExitStack, sim: Any, truth: str | None,
             path = str(Path(source.recorder.folder) / "truth.npz")
         sim.close()
         if path:
-            try:
-                sim.write_truth(path)
+            from rsra.daq.runtime.persistence import write_bytes_atomic
+
+            try:  # written whole or not at all (a full disk leaves no empty file)
+                sim.write_truth(path, write=write_bytes_atomic)
             except Exception as e:
-                log.error("truth not written: %s", e)
+                source.truth_error = f"truth not written ({path}): {_why(e)}"
+                log.error("%s", source.truth_error)
     source._close_quietly(close)
+
+
+def _why(e: BaseException) -> str:
+    return (e.strerror or str(e)) if isinstance(e, OSError) else f"{type(e).__name__}: {e}"
 
 
 class BusSource(_Base):

@@ -117,4 +117,30 @@ class Supervision:
 
     def close(self) -> None:
         if self.worker is not None:
+            resource_tracker_gone()  # before the worker's queues release their semaphores
             self.worker.close()
+
+
+def _nothing(name: str, rtype: str) -> None:
+    """A resource tracker call with no tracker to tell (see :func:`resource_tracker_gone`)."""
+
+
+def resource_tracker_gone() -> bool:
+    """multiprocessing's resource tracker (the helper process that removes a crashed
+    process's semaphores) killed under the run: one line, once. Without it, the first
+    semaphore released afterwards starts a new tracker, which prints a ``KeyError: '/mp-…'``
+    traceback for every semaphore it never saw (6 at the end of a run). This process removes
+    its own semaphores as it releases them (``SemLock._cleanup``: ``sem_unlink`` first), so
+    nothing leaks when the tracker is not told: its register/unregister become no-ops for
+    the rest of the run. True if it was gone."""
+    from multiprocessing import resource_tracker as rt
+
+    t: Any = rt._resource_tracker  # (its private state: not in typeshed)
+    if rt.unregister is _nothing or t._fd is None or t._check_alive():
+        return False
+    log.warning("multiprocessing's resource tracker (pid %s) has gone (killed?); not "
+                "restarted: this process removes its own semaphores as it releases them",
+                t._pid)
+    rt.register = _nothing  # type: ignore[assignment]  # (typeshed: name is Sized)
+    rt.unregister = _nothing  # type: ignore[assignment]
+    return True

@@ -125,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
     elif args.mcap or args.parquet:
         raise UsageError("--mcap and --parquet need the telemetry to export; fix: give a "
                          "RESULTS.jsonl from `rsra replay --out`, or recordings")
-    cfg = config_for(logs, args.config) if logs else load_rig(args.config)
+    cfg = config_for(logs, args.config, several="parts") if logs else load_rig(args.config)
 
     staged = _Staged()
     done: list[str] = []

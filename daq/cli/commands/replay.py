@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
         check_readable(files)
     except ReplayError as e:
         raise UsageError(str(e)) from None
-    cfg = config_for(args.logs, args.config)
+    cfg = config_for(args.logs, args.config, several="parts")
     from rsra.daq.runtime.foxglove_out import check_option
 
     check_option(args)  # a taken port: refused before anything starts
@@ -207,12 +207,17 @@ def schedule_note(sch: dict | None) -> str | None:
 
 
 def _summary(counts: dict, health: Health | None) -> str:
+    from rsra.daq.bus.reorder import REORDER_WINDOW
+
     s = f"replayed: {counts.get('channels', 0)} samples, {counts.get('health', 0)} health records"
     if health is not None:
         b, sm = health.bus, health.samples
         s += (f"; frames {b.frames}, unknown {b.unknown}, malformed {b.malformed}, "
               f"error frames {b.errors}; samples complete {sm.complete}, incomplete "
               f"{sm.incomplete}, lost {sm.lost}")
+        if b.late:
+            s += (f"; {b.late} frame{'s' if b.late != 1 else ''} late (further out of time "
+                  f"order than the reorder window of {REORDER_WINDOW} frames: left out)")
         g = health.sync.gaps
         if g:
             s += (f"; {g} SYNC gap{'s' if g != 1 else ''} over 1 s (the longest "

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 from rsra.daq.cli.options import (
     UsageError,
@@ -73,9 +74,35 @@ def run_service(cfg, opts, quiet: bool = False) -> int:
     service = Service(cfg, opts)
     service.install_signal_handlers()
     summary = service.run()
+    failed = recording_outcome(service, summary)
     if not quiet:
         print(json.dumps({"summary": summary}, allow_nan=False, default=str))
-    return 0
+    for line in failed:  # the service ran on; what it was asked to keep is not all kept
+        print(f"rsra run: error: {line}", file=sys.stderr)
+    return 1 if failed else 0
+
+
+def recording_outcome(service, summary: dict) -> list[str]:
+    """The summary's ``recording`` entry (frames kept, frames not, why it stopped) and the
+    lines saying what was not kept: a recording stopped early (a full disk: the service ran
+    on without it) or a truth file not written. Empty: everything asked for was kept."""
+    failed = []
+    rec = service.recorder
+    if rec is not None:
+        entry = {"folder": str(rec.folder), "frames": rec.frames, "dropped": rec.dropped,
+                 "complete": rec.error is None}
+        if rec.error is not None:
+            entry["error"] = rec.error
+            failed.append(f"{rec.error.removeprefix('recording stopped: ')}: the recording "
+                          f"stopped early, {rec.frames} frames kept in {rec.folder} (the "
+                          f"service ran on; {rec.dropped} frames not recorded); fix: free "
+                          "space or record elsewhere")
+        summary["recording"] = entry
+    truth_error = getattr(service.source, "truth_error", None)
+    if truth_error:
+        summary["truth"] = {"error": truth_error}
+        failed.append(f"{truth_error}; no partial file is left")
+    return failed
 
 
 def run(args: argparse.Namespace) -> int:
