@@ -709,40 +709,38 @@ class LoadFilter:
             buf[:n] = self._phi_power(lost).dot(buf[:n])
             self._run += lost
         if measured:
-            buf[n:n + 6] = z
-            buf[n + 6:] = T
-            y = self._G.dot(buf)
-            buf[:n] = y[:n]
-            self._run = 0
-            w = y[n + 12:]
-            return StepResult(y[n:n + 6], y[:n], y[n + 6:n + 12], w.dot(w),
-                              self._flags_lost if lost else self._flags)
+            return self._measured(T, z, lost)
         x = self._Phi.dot(buf[:n])
         buf[:n] = x
-        self._run += 1
-        if self._run >= self._invalid_after:
-            return StepResult(None, x, None, None,
-                              self._flags_inv_lost if lost else self._flags_inv)
-        return StepResult(self._C.dot(x), x, None, None,
-                          self._flags_pred_lost if lost else self._flags_pred)
+        return self._predicted(x, lost)
 
-
-    def _step_azimuth(self, T: np.ndarray, z: np.ndarray, measured: bool, lost: int, dpsi: float | None) -> StepResult:
-        buf, n = self._buf, self._n
-        ok = self._advance(dpsi, lost + 1)
-        extra = () if ok else (AZIMUTH_MISSING,)
+    def _step_azimuth(self, T: np.ndarray, z: np.ndarray, measured: bool, lost: int,
+                      dpsi: float | None) -> StepResult:
+        n = self._n
+        extra = () if self._advance(dpsi, lost + 1) else (AZIMUTH_MISSING,)
         if lost:
             self._run += lost
         if measured:
-            buf[n:n + 6] = z
-            buf[n + 6:] = T
-            y = self._G.dot(buf)
-            buf[:n] = y[:n]
-            self._run = 0
-            w = y[n + 12:]
-            return StepResult(y[n:n + 6], y[:n], y[n + 6:n + 12], w.dot(w),
-                              (self._flags_lost if lost else self._flags) + extra)
-        x = buf[:n].copy()
+            return self._measured(T, z, lost, extra)
+        return self._predicted(self._buf[:n].copy(), lost, extra)
+
+    def _measured(self, T: np.ndarray, z: np.ndarray, lost: int,
+                  extra: tuple[str, ...] = ()) -> StepResult:
+        """The update of a measured sample (the state already predicted to it): one product
+        with the stacked gain matrix G, the run of predict-only steps ended."""
+        buf, n = self._buf, self._n
+        buf[n:n + 6] = z
+        buf[n + 6:] = T
+        y = self._G.dot(buf)
+        buf[:n] = y[:n]
+        self._run = 0
+        w = y[n + 12:]
+        return StepResult(y[n:n + 6], y[:n], y[n + 6:n + 12], w.dot(w),
+                          (self._flags_lost if lost else self._flags) + extra)
+
+    def _predicted(self, x: np.ndarray, lost: int, extra: tuple[str, ...] = ()) -> StepResult:
+        """A predict-only step's result at the predicted state ``x``: Ĥ from the prediction,
+        None once ``invalid_after_samples`` such steps have run in a row."""
         self._run += 1
         if self._run >= self._invalid_after:
             return StepResult(None, x, None, None,

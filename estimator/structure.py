@@ -818,6 +818,21 @@ def _trend_prediction(a0: np.ndarray, th: np.ndarray, Pth: np.ndarray, tbar: flo
     return a0 + L @ th, 0.5 * (P + P.T)
 
 
+@dataclass(frozen=True)
+class _Refit:
+    """The drift bound's joint fit re-linearised at ``at`` (:meth:`DriftTest._refit_at`):
+    [α, ρ] and its covariance, the windows' mean time and linearised design [A, B]."""
+
+    at: np.ndarray
+    theta: np.ndarray
+    P: np.ndarray
+    tbar: float
+    A: np.ndarray
+    B: np.ndarray
+    means: np.ndarray
+    counts: np.ndarray
+
+
 class DriftTest:
     """Constant angles against angles on a linear trend in time, α(t) = α0 + ρ (t − t̄)
     (docs/identification.md, "Angles that drift"). Unlike the load structures it cannot pool
@@ -913,6 +928,15 @@ class DriftTest:
         the means do determine (A4 constant arm, seed 79: α̂ 8.7° off, the prediction at
         χ²₁₄ 85 from the truth). The rates' prior s² stays the look's; None as
         :meth:`predict_bounded`."""
+        refit = self._refit_at(look, at)
+        if refit is None:
+            return None
+        return _trend_prediction(refit.at, refit.theta, refit.P, refit.tbar, t)
+
+    def _refit_at(self, look: int | None, at: np.ndarray) -> "_Refit | None":
+        """The bound's joint fit of a kept look (:meth:`_joint`, the rates' prior s² the
+        look's) re-linearised at the angles ``at``; None when that look is not kept or the
+        fit fails."""
         key = self.look if look is None else look
         fit, wins = self._bounded_by_look.get(key), self._windows_by_look.get(key)
         if fit is None or wins is None or key not in self._scale_by_look:
@@ -926,7 +950,7 @@ class DriftTest:
         th_P = self._joint(A, B, e, self._scale_by_look[key])
         if th_P is None:
             return None
-        return _trend_prediction(a0, th_P[0], th_P[1], tbar, t)
+        return _Refit(a0, th_P[0], th_P[1], tbar, A, B, means, counts)
 
     def bounded_load_spread(self, t: float, look: int | None, at: np.ndarray,
                             sensitivity: np.ndarray, reference: np.ndarray | None
@@ -939,28 +963,19 @@ class DriftTest:
         fit's linearised windows at ``at`` (the angles its prediction was linearised at).
         ``reference``: L_ref (None: the windows' count-weighted mean load). Returns
         Σ_k s_k² D_k D_kᵀ; None when that look is not kept or nothing is configured."""
-        key = self.look if look is None else look
-        fit, wins = self._bounded_by_look.get(key), self._windows_by_look.get(key)
         s = np.asarray(sensitivity, float)
-        if fit is None or wins is None or key not in self._scale_by_look or not np.any(s):
+        refit = self._refit_at(look, at) if np.any(s) else None
+        if refit is None:
             return None
-        ts, means, counts = wins
-        tbar = fit[3]
-        a0 = np.asarray(at, float)
-        Li = _whitener(self.model, a0, self.moment_floor)
-        e, A, _ = _stack(self.model, a0, means, counts, Li, ())
-        B = A * np.repeat(ts - tbar, 6)[:, None]
-        th_P = self._joint(A, B, e, self._scale_by_look[key])
-        if th_P is None:
-            return None
+        A = refit.A
         nc = self.model.geometry.n_cells
-        loads = np.atleast_2d(np.asarray(means, float))[:, 6 + nc:12 + nc]
-        w = np.asarray(counts, float)
+        loads = np.atleast_2d(np.asarray(refit.means, float))[:, 6 + nc:12 + nc]
+        w = np.asarray(refit.counts, float)
         ref = (np.asarray(reference, float) if reference is not None
                else (w[:, None] * loads).sum(0) / max(float(w.sum()), 1.0))
         na = self.n_a
-        Lt = np.hstack([np.eye(na), (float(t) - tbar) * np.eye(na)])
-        LPJ = Lt @ th_P[1] @ np.hstack([A, B]).T  # (14, 6W)
+        Lt = np.hstack([np.eye(na), (float(t) - refit.tbar) * np.eye(na)])
+        LPJ = Lt @ refit.P @ np.hstack([A, refit.B]).T  # (14, 6W)
         C = np.zeros((na, na))
         for k in np.flatnonzero(s):
             D = LPJ @ (np.repeat(loads[:, k] - ref[k], 6)[:, None] * A)
