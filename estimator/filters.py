@@ -14,7 +14,7 @@ per sample. Three layers:
   Ω rounded (relatively) to ``cache_resolution``; the stopped-rotor design below ``omega_min``;
 * ``LoadFilter`` (the per-sample path of the live service and of a bit-exact replay) and
   ``filter_batch`` (the same recursion for whole arrays, off-line: six single-output IIR
-  filters, docs/performance.md P3).
+  filters, docs/performance.md, the batch filter's budget).
 """
 from __future__ import annotations
 
@@ -51,7 +51,7 @@ AZIMUTH_MISSING = "azimuth_missing"  # azimuth mode: the harmonics advanced by t
 
 # Harmonic phase (config ``rotor.harmonic_phase``): "design" — the harmonic states advance by
 # the design's kΩΔt every sample (model §5 as the report had it); "azimuth" — by k times the
-# rotor's measured turn Δψ since the last sample (issue 25), the gain held constant.
+# rotor's measured turn Δψ since the last sample , the gain held constant.
 HARMONIC_PHASES = ("design", "azimuth")
 # azimuth mode: the gain is held while Ω stays within this band of the design point
 # (the rotation per sample follows the azimuth; the gain only sets how fast amplitudes move)
@@ -500,7 +500,7 @@ def azimuth_transition(design: FilterDesign, dpsi: float | np.ndarray) -> np.nda
     """Φ of one step in which the rotor turned by ``dpsi`` (rad; scalar → (n, n), array (N,)
     → (N, n, n)): per harmonic k the block [[c, s/w], [−w s, c]], c, s = cos, sin(k Δψ),
     w = k Ω_d — in (H, Ḣ/(kΩ_d)) the rotation by kΔψ, exactly the design's Φ at
-    Δψ = Ω_d Δt; identity on the random walks (model §5, issue 25)."""
+    Δψ = Ω_d Δt; identity on the random walks (model §5)."""
     d = np.atleast_1d(np.asarray(dpsi, float))
     hp = harmonic_pairs(design)
     n = design.n_states
@@ -575,7 +575,7 @@ class LoadFilter:
     def __init__(self, cache: DesignCache, alpha: np.ndarray, invalid_after_samples: int,
                  *, omega: float | None = None, azimuth: bool = False) -> None:
         self._cache = cache
-        # azimuth mode (issue 25): x⁻ = Φ(Δψ) x⁺(n−1) from the rotor's measured turn, then
+        # azimuth mode : x⁻ = Φ(Δψ) x⁺(n−1) from the rotor's measured turn, then
         # the fused product on [x⁻; z; T]; the gain is the design's, held (AZIMUTH_GAIN_BAND)
         self.azimuth = bool(azimuth)
         self._invalid_after = int(invalid_after_samples)

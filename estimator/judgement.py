@@ -61,8 +61,8 @@ def consider_update(P_p: np.ndarray, theta_p: np.ndarray, s: np.ndarray, Vk: np.
                     proj: np.ndarray, use: np.ndarray, floor_s: float,
                     extra_R: np.ndarray | None = None
                     ) -> tuple[np.ndarray, np.ndarray]:
-    """The filter-error update restricted to the window's determined directions (issue 25,
-    docs/identification.md "The consider update"), in coordinates scaled by ``s``
+    """The filter-error update restricted to the window's determined directions
+    (docs/identification.md "The consider update"), in coordinates scaled by ``s``
     (sigma_max): ``Vk`` (p, k) orthonormal directions, ``proj`` the window's estimate along
     them, ``use`` its information there. A Schmidt (consider) Kalman update: the gain is
     restricted to span(Vk), so the estimate moves only along the directions the window
@@ -95,7 +95,7 @@ def window_measurement_cov(use: np.ndarray, floor_s: float,
                            extra_R: np.ndarray | None = None) -> np.ndarray:
     """R (k, k, scaled): the error of a filter-error window's estimate along its kept
     directions as a measurement of the posterior's angles — its noise (1/use), the windows'
-    systematic floor σ_b² and ``extra_R`` (the load excursion's, issue 25)."""
+    systematic floor σ_b² and ``extra_R`` (the load excursion's)."""
     R = np.diag(1.0 / use + floor_s**2)
     return R if extra_R is None else R + extra_R
 
@@ -103,7 +103,7 @@ def window_measurement_cov(use: np.ndarray, floor_s: float,
 def consider_gate(P_p: np.ndarray, theta_p: np.ndarray, s: np.ndarray, Vk: np.ndarray,
                   proj: np.ndarray, R: np.ndarray, probability: float
                   ) -> tuple[float, int, bool]:
-    """The consistency gate of the consider update (issue 25): the window's estimate along
+    """The consistency gate of the consider update : the window's estimate along
     its kept directions against the prior's prediction there, ν = rᵀ (Vkᵀ P_p Vk + R)⁻¹ r,
     χ²_k under consistency (k = the kept directions). Unlike model §7's Δθᵀ D⁺ Δθ it counts
     the window's systematic floor and load excursion (R), which the fused covariance's
@@ -184,7 +184,7 @@ def filter_error_decision(result: IdentificationResult, checks: "FilterErrorChec
     Pp_inv = np.linalg.inv(P_p)
     b = np.linalg.solve(result.P, result.theta) - Pp_inv @ theta_p
     proj = (Vk.T @ (s * b)) / lk  # window estimate along each kept direction (scaled)
-    # the load excursion (issue 25): the window's angles are the reference (trim) load's
+    # the load excursion : the window's angles are the reference (trim) load's
     # moved by up to the configured sensitivity × the window's static load away from it
     lv = float(checks.load_variance)
     extra_R = None if lv <= 0 else lv * (Vk.T / s**2) @ Vk

@@ -20,11 +20,11 @@ Every run takes the previous posterior as its prior, inflated by a random walk
 Model §7 puts the information test before the gate. Taken literally that freezes the
 tracker: once the posterior has converged no 5-s window can halve any variance (measured on
 the ground-test: information ratios 0.7–0.95 from the third sweep on), so no run ever reaches
-the gate and a 1° step is never detected (A4). The gate needs no minimum information — a
+the gate and a 1° step is never detected (the tracking benchmark, bench/a4_tracking.py). The gate needs no minimum information — a
 window with ratio λ moves the mean by λ/(1+λ) of a change and ν grows with it — so here every
 sound run is gated and the information test only decides acceptance
 (``gate_low_information=False`` restores the literal order). On the report's Phase II set-up
-the gate passes (ν ≈ 2–6 on 14 directions) and the runs stay ``not_identifiable`` (A5).
+the gate passes (ν ≈ 2–6 on 14 directions) and the runs stay ``not_identifiable`` (the report's Phase II benchmark, bench/a5_paper.py).
 
 Known-load mode re-linearises (docs/identification.md, findings 3–4): the likelihood depends
 on a window only through its moments G = Σ x xᵀ, so the posterior keeps the moments of the
@@ -75,23 +75,32 @@ from .load_spread import LoadSpread
 from .params import RigModel
 from .structure import DriftTest, StructureTest, StructureVerdict, fit_payload
 from .judgement import (  # noqa: F401  (re-exported: their home was this module)
-    GATE_PROBABILITY,
-    GATE_RELATIVE_EIGENVALUE,
-    FilterErrorChecks,
-    FilterErrorDecision,
-    Judgement,
-    _prior_cov,
-    consider_gate,
-    consider_update,
-    consistency_gate,
-    filter_error_decision,
-    information_ratio,
-    input_verdict,
-    judge,
-    out_of_range,
-    window_measurement_cov,
+    GATE_PROBABILITY as GATE_PROBABILITY,
+    GATE_RELATIVE_EIGENVALUE as GATE_RELATIVE_EIGENVALUE,
+    FilterErrorChecks as FilterErrorChecks,
+    FilterErrorDecision as FilterErrorDecision,
+    Judgement as Judgement,
+    _prior_cov as _prior_cov,
+    consider_gate as consider_gate,
+    consider_update as consider_update,
+    consistency_gate as consistency_gate,
+    filter_error_decision as filter_error_decision,
+    information_ratio as information_ratio,
+    input_verdict as input_verdict,
+    judge as judge,
+    out_of_range as out_of_range,
+    window_measurement_cov as window_measurement_cov,
 )
-from .verdict import ACCEPTED, DETAILS, MODES, REASONS, Detail, Mode, Reason, Verdict  # noqa: F401
+from .verdict import (  # noqa: F401  (re-exported: their home was this module)
+    ACCEPTED as ACCEPTED,
+    DETAILS as DETAILS,
+    MODES as MODES,
+    REASONS as REASONS,
+    Detail,
+    Mode,
+    Reason,
+    Verdict,
+)
 
 SIGMA_MAX_OTHER_FRACTION = 0.04  # non-angle parameters: determined at 0.04 × prior σ (model §7.4)
 MAX_ACCUMULATED_WINDOWS = 64  # re-linearisation: fold at the latest after this many windows
@@ -147,16 +156,16 @@ class AnglesRecord:
     cost_start: float | None = None
     cost_history: tuple[float, ...] | None = None
     # the window's samples the likelihood used (scored; samples lacking an input are left
-    # out, issue 29); None: not set by the caller
+    # out); None: not set by the caller
     samples_used: int | None = None
-    # filter error with angle_load_sensitivity configured (issue 25): the window's static
+    # filter error with angle_load_sensitivity configured : the window's static
     # load away from the reference (trim) load and the σ (rad, each angle) of the angles'
     # move that far — the window's truth is the posterior's α ± this beside P
     load_excursion: dict[str, Any] | None = None
-    # known loads (issue 27): the run's curvature index (estimator.curvature); None: not
+    # known loads : the run's curvature index (estimator.curvature); None: not
     # computed (filter error, a run that did not converge, the limit off)
     nonlinearity: float | None = None
-    # filter error (issue 25): the posterior carried from the load it referred to (a ground
+    # filter error : the posterior carried from the load it referred to (a ground
     # calibration's) to this window's reference (trim): the move {delta, sigma} (N, N·m; rad)
     reference_move: dict[str, Any] | None = None
 
@@ -258,10 +267,10 @@ class PosteriorState:
     applies_from_seq: int | None = None
     t: float | None = None
     rig: dict[str, Any] | None = None
-    # optional (issue 19): the selected structure the hub-load estimate uses
+    # optional : the selected structure the hub-load estimate uses
     # (structure.fit_payload); files without it load as before
     structure: dict[str, Any] | None = None
-    # optional (issue 25): the static hub load (6, N and N·m, the estimator's frame) the
+    # optional : the static hub load (6, N and N·m, the estimator's frame) the
     # angles refer to — the mean of the accepted known-load windows' — so that a flight at
     # another load widens the posterior by the rig's load-sensitivity bound (ReferenceLoad)
     reference_load: np.ndarray | None = None
@@ -348,6 +357,22 @@ def posterior_from_json(text: str, path: str | Path,
         t = raw.get("t")
     except (KeyError, TypeError, ValueError) as exc:
         raise PosteriorFileError(path, f"missing or malformed field ({exc})") from None
+    _check_posterior_arrays(path, fnames, theta, P)
+    if names is not None and tuple(names) != fnames:
+        raise PosteriorFileError(path, f"parameters {list(fnames)} differ from the configured "
+                                 f"{list(names)}")
+    if afs is not None and not isinstance(afs, int):
+        raise PosteriorFileError(path, "applies_from_seq must be an integer or null")
+    if t is not None and not isinstance(t, (int, float)):
+        raise PosteriorFileError(path, "t must be a number or null")
+    structure, ref = _optional_sections(path, raw)
+    return PosteriorState(fnames, theta, P, afs, None if t is None else float(t), rig,
+                          structure, ref)
+
+
+def _check_posterior_arrays(path: str | Path, fnames: tuple[str, ...], theta: np.ndarray,
+                            P: np.ndarray) -> None:
+    """θ and P of a saved posterior: their shapes, finite, P symmetric positive definite."""
     p = len(fnames)
     if theta.shape != (p,) or P.shape != (p, p):
         raise PosteriorFileError(path, f"shapes {theta.shape} and {P.shape} do not match "
@@ -360,13 +385,11 @@ def posterior_from_json(text: str, path: str | Path,
         np.linalg.cholesky(P)
     except np.linalg.LinAlgError:
         raise PosteriorFileError(path, "covariance not positive definite") from None
-    if names is not None and tuple(names) != fnames:
-        raise PosteriorFileError(path, f"parameters {list(fnames)} differ from the configured "
-                                 f"{list(names)}")
-    if afs is not None and not isinstance(afs, int):
-        raise PosteriorFileError(path, "applies_from_seq must be an integer or null")
-    if t is not None and not isinstance(t, (int, float)):
-        raise PosteriorFileError(path, "t must be a number or null")
+
+
+def _optional_sections(path: str | Path, raw: dict[str, Any]
+                       ) -> tuple[dict[str, Any] | None, np.ndarray | None]:
+    """The optional ``structure`` and ``reference_load`` of a saved posterior (None: absent)."""
     structure = raw.get("structure")
     if structure is not None and not (isinstance(structure, dict)
                                       and isinstance(structure.get("structure"), str)):
@@ -381,8 +404,7 @@ def posterior_from_json(text: str, path: str | Path,
         if ref is None or ref.shape != (6,) or not np.all(np.isfinite(ref)):
             raise PosteriorFileError(path, "reference_load must be 6 finite numbers (N, N·m) "
                                      "or absent")
-    return PosteriorState(fnames, theta, P, afs, None if t is None else float(t), rig,
-                          structure, ref)
+    return structure, ref
 
 
 
@@ -441,7 +463,7 @@ def load_excursion_variance(sensitivity: np.ndarray, delta: np.ndarray) -> float
     """The variance (rad², each angle) of the angles' move between the reference (trim) load
     and a window's static load ``delta`` away from it, given a bound (1 σ) on their
     sensitivity per unit of load on each axis (``identification.angle_load_sensitivity_deg_
-    per_unit``): Σ_k (s_k Δ_k)² (issue 25; docs/identification.md, "Load excursions")."""
+    per_unit``): Σ_k (s_k Δ_k)² (docs/identification.md, "Load excursions")."""
     d = np.asarray(delta, float) * np.asarray(sensitivity, float)
     return float(d @ d)
 
@@ -553,7 +575,7 @@ class SequentialPosterior:
         self.limit = np.broadcast_to(np.asarray(limit, float), (p,)).copy()
         self.rig = rig  # the fingerprint saved with the posterior (rig_fingerprint)
         self.structure_fit: dict[str, Any] | None = None  # the selected structure (saved)
-        self.reference = ReferenceLoad()  # the static load the angles refer to (issue 25)
+        self.reference = ReferenceLoad()  # the static load the angles refer to 
         self.theta = np.asarray(theta0, float).copy()
         self.P0 = np.diag(np.broadcast_to(np.asarray(sigma0, float), (p,)) ** 2)
         self.P = self.P0.copy()
@@ -571,7 +593,7 @@ class SequentialPosterior:
         # the re-linearisation's windows (known loads): anchor, accumulated and held moments
         self.moments = WindowMoments(self.theta, self.P, max_accumulated=max_accumulated_windows,
                                      max_held=max_held_windows)
-        # angles on a trend (the structure test's `drifting`, issue 27): the trend's rates
+        # angles on a trend (the structure test's `drifting`): the trend's rates
         # (rad/s over ``names``; None: constant angles with the random walk) and, per run,
         # the drift fit's prediction of the angles at the run's window (set_prediction)
         self.trend: np.ndarray | None = None
@@ -905,15 +927,15 @@ def likelihood_ratio_gate(post: SequentialPosterior, par: Parameterisation,
 
 
 class ReferenceLoad:
-    """The static hub load (6,) a posterior's angles refer to (issue 25; docs/identification.md,
+    """The static hub load (6,) a posterior's angles refer to (docs/identification.md,
     "A ground calibration carried to the flight's trim"): the mean of the accepted known-load
     windows' loads (a restored one counts as one window), or the trim it was last carried to;
     None: not known (a configured start, a file written before it was saved)."""
 
     def __init__(self, load: np.ndarray | None = None, windows: int = 0) -> None:
         self.load, self.windows = load, windows
-        # the covariance the angles' load dependence adds at this reference (LoadSpread,
-        # issue 25): set at each accepted known-load run of a rig with a sensitivity bound
+        # the covariance the angles' load dependence adds at this reference (LoadSpread):
+        # set at each accepted known-load run of a rig with a sensitivity bound
         self.cov: np.ndarray | None = None
 
     @classmethod
@@ -936,7 +958,7 @@ class ReferenceLoad:
 
 def move_reference(post: "SequentialPosterior", reference: np.ndarray,
                    sensitivity: np.ndarray | None) -> tuple[np.ndarray, float] | None:
-    """Carry ``post`` to the angles at another static load (a flight's trim, issue 25):
+    """Carry ``post`` to the angles at another static load (a flight's trim):
     P + σ_L² I with σ_L² = Σ_k (s_k Δ_k)² for the move Δ from the load it referred to
     (load_excursion_variance; the rig's 1-σ bound on the angles' load sensitivity), the mean
     unchanged (the bound's sign is unknown). Returns (Δ, σ_L) when it moved a reference it
@@ -961,7 +983,7 @@ def move_reference(post: "SequentialPosterior", reference: np.ndarray,
 
 class LoadReference:
     """The reference (trim) load of filter-error windows and each window's excursion from it
-    (docs/identification.md, "Load excursions", issue 25): the median of the last
+    (docs/identification.md, "Load excursions"): the median of the last
     LOAD_REFERENCE_WINDOWS windows' static loads (bounded)."""
 
     def __init__(self, sensitivity: np.ndarray | None) -> None:
@@ -1259,12 +1281,12 @@ class KnownLoadIdentification(PeriodicIdentification):
             self._follow_drift(verdict, t_mid)
         if w.H is None:
             raise ValueError("a known-load window needs its known loads H")
-        prob: KnownLoadProblem | AccumulatedKnownLoadProblem = KnownLoadProblem(
-            self.par, w.z, w.T, w.H, w.q, scored=w.scored)
-        self._own = (prob.G, prob.n_scored)  # this window's alone (LoadSpread)
+        window = KnownLoadProblem(self.par, w.z, w.T, w.H, w.q, scored=w.scored)
+        self._own = (window.G, window.n_scored)  # this window's alone (LoadSpread)
+        prob: KnownLoadProblem | AccumulatedKnownLoadProblem = window
         if post.relinearise and post.moments.G_held is not None:
             # windows held back as not identifiable on their own count with this one
-            prob = prob.with_moments(post.moments.G_held, post.moments.n_held)
+            prob = window.with_moments(post.moments.G_held, post.moments.n_held)
         return prob, (prob.G, prob.n_scored), verdict
 
     def _solve(self, prob: Any, moments: tuple[np.ndarray, int] | None, theta_p: np.ndarray,
@@ -1322,7 +1344,7 @@ class KnownLoadIdentification(PeriodicIdentification):
         rec.nonlinearity = self._nonlinearity
         if rec.accepted:
             post.reference.note(w.static_load)
-        if self._spread is not None and moments is not None:
+        if self._spread is not None and moments is not None and self._own is not None:
             self._spread.after(rec, self._own, w.static_load)
             rec.P = post.reference.reported(post.P)  # the record states the spread it added
         if self.structure is not None:
@@ -1335,7 +1357,7 @@ class KnownLoadIdentification(PeriodicIdentification):
             self._accepted = None
 
     def _follow_drift(self, verdict: StructureVerdict, t: float) -> None:
-        """The trend the posterior tracks with (issue 27): the drift test's while it selects
+        """The trend the posterior tracks with : the drift test's while it selects
         it; none once the test finds the angles constant again (testable, not rejected) or
         restarts (a step is not a trend); otherwise the one in force stays."""
         if self.structure is None:  # (only called with a structure test)
@@ -1358,7 +1380,7 @@ class KnownLoadIdentification(PeriodicIdentification):
             post.set_trend(None)
         drift = self.structure.drift
         # under the trend its prediction; before one is selected, the prediction under the
-        # drift the windows cannot exclude (DriftTest.bounded_prediction, issue 27)
+        # drift the windows cannot exclude (DriftTest.bounded_prediction)
         pred = None
         self._bound_look = None
         if drift is not None and post.trend is not None:
@@ -1382,7 +1404,7 @@ class KnownLoadIdentification(PeriodicIdentification):
         """The bound's prediction (:meth:`DriftTest.predict_bounded`), kept from its fit where
         that fit is informative and replaced by the last accepted posterior (moved by the
         bound's drift since, :meth:`DriftTest.bounded_shift`) where the fit of window means
-        alone is far wider — :func:`bounded_against_posterior` (A4 constant arm, seed 68: σ 14°
+        alone is far wider — :func:`bounded_against_posterior` (the drift benchmark's constant arm, seed 68: σ 14°
         in a direction the posterior held to 0.2°, and a run re-solved into another valley)."""
         if look is None:
             return None
@@ -1400,7 +1422,7 @@ class KnownLoadIdentification(PeriodicIdentification):
         ref = theta[idx] + sh[0], P_acc[np.ix_(idx, idx)] + sh[1]
         # the fit re-linearised at the reference (DriftTest.predict_bounded_at): the constant
         # fit of the means alone may be far off where only the posterior knows the angles,
-        # and its Jacobians there bend the directions the means do determine (A4 constant
+        # and its Jacobians there bend the directions the means do determine (the drift benchmark's constant
         # arm, seed 79: 8.7° off, the run accepted at χ²₁₄ 83). Once: re-linearising again
         # at the combination can follow the means back into their valley (seed 79, 184).
         again = drift.predict_bounded_at(t, look, ref[0])
@@ -1413,8 +1435,8 @@ class KnownLoadIdentification(PeriodicIdentification):
                           pred: tuple[np.ndarray, np.ndarray] | None,
                           at: np.ndarray | None) -> tuple[np.ndarray, np.ndarray] | None:
         """``pred`` with the spread of its windows' loads added where the rig bounds the
-        angles' load sensitivity (:meth:`DriftTest.bounded_load_spread`, issue 25): the fit
-        of window means held at different loads knows nothing of it (A6 rig_ground_load:
+        angles' load sensitivity (:meth:`DriftTest.bounded_load_spread`): the fit
+        of window means held at different loads knows nothing of it (the flight benchmark's rig_ground_load arm:
         a flight run at χ²₁₄ 59.0 against 52.3 after its ground calibration's prior was the
         bounded prediction)."""
         if pred is None or at is None or self._spread is None:
