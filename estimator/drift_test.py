@@ -13,13 +13,13 @@ import numpy as np
 from scipy.optimize import brentq, minimize_scalar
 from scipy.stats import chi2, norm
 
+from .params import RigModel
 from .structure_fits import (
     DRIFT_BOUND_LEVEL,
     FALSE_ALARM,
     MAX_DRIFT_WINDOWS,
     MAX_HELD_LOOKS,
     RANK_TOLERANCE,
-    RigModel,
     TIME_LEVEL,
     _range_basis,
     _stack,

@@ -11,6 +11,7 @@ from typing import Any, Sequence
 import numpy as np
 from scipy.stats import chi2
 
+from .params import RigModel
 from .structure_fits import (
     CLUSTER_TOLERANCE,
     DRIFTING,
@@ -19,7 +20,6 @@ from .structure_fits import (
     MAX_CLUSTERS,
     MAX_PARAMETERS_REPORTED,
     NESTED,
-    RigModel,
     STRUCTURES,
     StructureFit,
     TIME_LEVEL,
