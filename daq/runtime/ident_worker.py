@@ -125,16 +125,39 @@ def build_identification(cfg, initial_state=None):
     return post, runs, cache
 
 
-def run_job(cfg, runs: dict, cache, job: dict) -> dict:
-    """One window (``IdentJob.as_mapping()``) → the `angles` record's JSON object
-    (docs/telemetry.md §2.4) with the job id attached (the numerics; :func:`handle_job` types it)."""
-    runs = IdentRuns.of(runs)
-    mode = job["mode"]
-    ident = runs[mode]
-    seq = job["seq"]
-    valid = job["ok"] & (job["known"] if mode == "known_loads" else True)
-    dpsi = job.get("dpsi") if mode == "filter_error" else None
-    if mode == "filter_error":
+class _KnownLoadJob:
+    """A known-load window's job: the balance must be present in every sample used, and the
+    record adds the next load conditions to apply."""
+
+    @staticmethod
+    def inputs(job: Mapping[str, Any], ident: Any, cache: Any
+               ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """(valid samples, known hub loads H, the rotor's turn per sample: none here)."""
+        return job["ok"] & job["known"], job["known_H"], None
+
+    @staticmethod
+    def extras(out: dict, rec: Any, runs: IdentRuns, ident: Any, job: Mapping[str, Any],
+               valid: np.ndarray, cfg: Any) -> None:
+        nc = runs.next_conditions
+        if nc is not None:
+            if rec.reason == "reset":
+                nc.tracker = type(nc.tracker)(nc.model, cfg.identification.prior_sigma_rad,
+                                              moment_floor=cfg.identification.moment_floor_Nm)
+            elif rec.reason in (None, "not_identifiable"):  # the data the posterior holds
+                nc.add_window(ident.alpha(), job["T"][valid], int(np.count_nonzero(valid)))
+            out["next_conditions"] = nc.recommend(rec.names, ident.alpha(), rec.P)
+        out["advice"] = None
+
+
+class _FilterErrorJob:
+    """A filter-error window's job: the calibration filter redesigned for the window's Ω (or,
+    in azimuth mode, its gain held while the harmonics turn with the measured azimuth), and
+    the record adds what would determine the rest (``advice``)."""
+
+    @staticmethod
+    def inputs(job: Mapping[str, Any], ident: Any, cache: Any
+               ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        dpsi = job.get("dpsi")
         omega = float(np.median(job["omega"]))
         from rsra.estimator.filters import AZIMUTH_GAIN_BAND
 
@@ -145,6 +168,27 @@ def run_job(cfg, runs: dict, cache, job: dict) -> dict:
         design = ident.design if held else cache.design_for(omega)
         if design is not ident.design:
             ident.design = design  # an Ω redesign is not a discontinuity (the state carries over)
+        return job["ok"] & True, None, dpsi
+
+    @staticmethod
+    def extras(out: dict, rec: Any, runs: IdentRuns, ident: Any, job: Mapping[str, Any],
+               valid: np.ndarray, cfg: Any) -> None:
+        adv = runs.advice
+        out["advice"] = adv.for_window(ident) if adv is not None else None
+
+
+# what each identification mode's job takes and adds (the job's mode picks it)
+JOBS: dict[str, Any] = {"known_loads": _KnownLoadJob, "filter_error": _FilterErrorJob}
+
+
+def run_job(cfg, runs: dict, cache, job: dict) -> dict:
+    """One window (``IdentJob.as_mapping()``) → the `angles` record's JSON object
+    (docs/telemetry.md §2.4) with the job id attached (the numerics; :func:`handle_job` types it)."""
+    runs = IdentRuns.of(runs)
+    mode = job["mode"]
+    ident, kind = runs[mode], JOBS[mode]
+    seq = job["seq"]
+    valid, H, dpsi = kind.inputs(job, ident, cache)
     # a window that skips samples (lost, or the start) is a discontinuity for the filter
     gaps = np.diff(seq) > 1
     if gaps.any() and (np.diff(seq).max() - 1) > ident.gap_samples:
@@ -160,9 +204,8 @@ def run_job(cfg, runs: dict, cache, job: dict) -> dict:
         static_load = static_estimate(ident.par.model, np.asarray(job["alpha"], float),
                                       np.asarray(job["T_mean"], float)[None, :],
                                       np.asarray(job["z_mean"], float)[None, :])[0]
-    rec = ident.run_window(job["z"], job["T"], job["known_H"] if mode == "known_loads" else None,
-                           q, seq0=int(seq[0]), valid=valid, t=float(job["t"][-1]), dpsi=dpsi,
-                           static_load=static_load)
+    rec = ident.run_window(job["z"], job["T"], H, q, seq0=int(seq[0]), valid=valid,
+                           t=float(job["t"][-1]), dpsi=dpsi, static_load=static_load)
     # when the other mode runs next, its state must restart after new angles
     if rec.accepted:
         for other in runs.values():
@@ -183,16 +226,7 @@ def run_job(cfg, runs: dict, cache, job: dict) -> dict:
     out["restarted"] = False
     out["job_id"] = job["job_id"]
     out["condition"] = rec.condition
-    nc = runs.next_conditions
-    if mode == "known_loads" and nc is not None:
-        if rec.reason == "reset":
-            nc.tracker = type(nc.tracker)(nc.model, cfg.identification.prior_sigma_rad,
-                                          moment_floor=cfg.identification.moment_floor_Nm)
-        elif rec.reason in (None, "not_identifiable"):  # the data the posterior holds
-            nc.add_window(ident.alpha(), job["T"][valid], int(np.count_nonzero(valid)))
-        out["next_conditions"] = nc.recommend(rec.names, ident.alpha(), rec.P)
-    adv = runs.advice if mode == "filter_error" else None
-    out["advice"] = adv.for_window(ident) if adv is not None else None
+    kind.extras(out, rec, runs, ident, job, valid, cfg)
     ident.last_window = None  # its problem (azimuth mode: Φ per sample, ~18 MB) is not kept
     return out
 

@@ -168,10 +168,10 @@ def explain(rec: Any, job: Mapping[str, Any], idc: Any, labels: Sequence[str]
     if reason == "stale_input" and detail == "scattered_samples":
         seq, t = np.asarray(job["seq"], float), np.asarray(job["t"], float)
         fs = (seq[-1] - seq[0]) / (t[-1] - t[0]) if len(t) > 1 and t[-1] > t[0] else 0.0
-        return _stale(job, labels, idc.filter_error_scattered_fraction,
-                      scattered_gap=int(round(idc.gap_s * fs)))
+        return _stale(job, labels, idc.filter_error_scattered_fraction if limit is None
+                      else limit, scattered_gap=int(round(idc.gap_s * fs)))
     if reason == "stale_input":
-        return _stale(job, labels, idc.stale_fraction)
+        return _stale(job, labels, idc.stale_fraction if limit is None else limit)
     if reason == "not_converged":
         text = (f"stopped after {rec.iterations} iterations (identification.max_iterations "
                 f"{idc.max_iterations} per stage: a warm start, then the full search) without "
