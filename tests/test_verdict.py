@@ -8,6 +8,9 @@ import json
 import re
 from pathlib import Path
 
+import numpy as np
+import pytest
+
 from rsra.estimator.posterior import DETAILS, MODES, REASONS
 from rsra.estimator.verdict import Detail, Mode, Reason, Verdict
 
@@ -80,3 +83,40 @@ def test_the_enums_are_their_strings_in_records_and_json():
     assert json.dumps({"mode": Mode.KNOWN_LOADS, "reason": v.reason, "detail": v.detail}) == \
         '{"mode": "known_loads", "reason": "reset", "detail": "gate"}'
     assert f"{Detail.NONLINEAR}" == "nonlinear" and str(Reason.STALE_INPUT) == "stale_input"
+
+
+def _run(theta, prior_mean, prior_cov, M):
+    from rsra.estimator.identification import IdentificationResult
+
+    P = np.linalg.inv(M + np.linalg.inv(prior_cov))
+    return IdentificationResult(tuple("abc"), "known_loads", np.asarray(theta, float), P, None,
+                                M, np.asarray(prior_mean, float), prior_cov, 1.0, 2.0, 3,
+                                "converged", 100)
+
+
+def test_each_verdict_carries_the_limit_its_test_used():
+    # a posterior configured off the defaults: gate at 0.99, min_information 0.5, stale 0.3 —
+    # every record's verdict states the limit that decided it, not a module constant
+    from scipy.stats import chi2
+
+    from rsra.estimator.posterior import SequentialPosterior
+
+    post = SequentialPosterior(tuple("abc"), np.zeros(3), np.ones(3), drift_rate=0.0,
+                               min_information=0.5, sigma_max=np.full(3, 0.1), reset_after=3,
+                               stale_fraction=0.3, gate_probability=0.99, relinearise=False)
+    kw = dict(window=(0, 99), mode="known_loads", content="static")
+    stale = post.update(None, missing_fraction=0.5, **kw)
+    assert (stale.reason, stale.detail, stale.verdict.limit) == ("stale_input",
+                                                                 "missing_samples", 0.3)
+    M = np.diag([1e4, 1e4, 1e4])
+    far = post.update(_run([5.0, 0.0, 0.0], np.zeros(3), np.eye(3), M), **kw)
+    assert (far.reason, far.detail) == ("inconsistent", "gate") and far.gate_dof == 3
+    assert far.verdict.limit == pytest.approx(chi2.ppf(0.99, 3))  # 11.3, not 16.3 at 0.999
+    low = post.update(_run(np.zeros(3), np.zeros(3), np.eye(3), np.diag([0.1, 0, 0])), **kw)
+    assert (low.reason, low.detail, low.verdict.limit) == ("not_identifiable",
+                                                           "information_ratio", 0.5)
+    ok = post.update(_run([0.01, 0.0, 0.0], np.zeros(3), np.eye(3), M), **kw)
+    assert ok.accepted and ok.detail == "passed" and ok.reason is None
+    assert ok.verdict.limit == pytest.approx(chi2.ppf(0.99, ok.gate_dof))
+    d = ok.to_dict()
+    assert type(d["mode"]) is str and type(d["detail"]) is str and d["reason"] is None
