@@ -177,8 +177,10 @@ class ContentFilter:
         return x
 
 
-# -- samples lacking an input (issue 29) ---------------------------------------------------
-MAX_INTERPOLATED = 2  # samples: a longer gap of samples lacking an input stays held (A3, identification.md)
+# -- samples lacking an input  ---------------------------------------------------
+# samples: a longer gap of samples lacking an input stays held (the known-load benchmark's
+# dropped samples; identification.md)
+MAX_INTERPOLATED = 2
 
 
 class MissingHold:
@@ -189,7 +191,7 @@ class MissingHold:
     perturbs is the load content between two samples (at 1/rev a 2·sin(πf/fs) fraction of
     it), which the content filter attenuates like any other — zeros instead spread the
     whole harmonic load, and its modelling error, into the static band (measured: χ²₁₄ of
-    146–305 against the true angles with 10 % of the samples zeroed, 7–10 held: A3 seed 7,
+    146–305 against the true angles with 10 % of the samples zeroed, 7–10 held: the known-load benchmark's seed 7,
     windows 2–4). Before the first complete sample the input passes as it is.
 
     When a gap of at most ``max_interpolated`` samples closes, :meth:`correction` gives what
@@ -200,7 +202,7 @@ class MissingHold:
     sample (the filter is linear; the held samples' own outputs, not scored, stay). A
     straight line between two complete samples keeps the balance exact too; it leaks the
     load content a hold modulates into the static band to second order instead of first
-    (A3's ``drop_cell_A`` arm: docs/identification.md). Longer gaps stay held."""
+    (the known-load benchmark's ``drop_cell_A`` arm: docs/identification.md). Longer gaps stay held."""
 
     def __init__(self, max_interpolated: int = MAX_INTERPOLATED) -> None:
         self.last: np.ndarray | None = None

@@ -1,5 +1,5 @@
 """Experiment design for known-load calibration: which static load condition to apply next
-(docs/identification.md, "The next load conditions"; issue 19).
+(docs/identification.md, "The next load conditions").
 
 Pure numerics, no I/O. The rule is D-optimal and greedy: of a set of candidate hub-load
 conditions, the next one is the one whose expected Fisher information most increases the
@@ -28,8 +28,8 @@ or any :class:`~estimator.identification.Parameterisation`: the information of a
 follows from its ``Terms``, so attach points, hub centre and masses work too) and
 :func:`cell_gain_structure` (angles plus per-cell load gains: each angle of cell i moves
 by κ_j·T_i with the cell's own load T_i, 14 + 14 parameters — the "compliance-like gain per
-cell" of issue 19, which a thrust held near one level cannot separate from the constant
-angles).
+cell" the structure test names ``cell_load_angles``, which a thrust held near one level
+cannot separate from the constant angles).
 
 What a condition does to the cells
 ----------------------------------

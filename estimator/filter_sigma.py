@@ -1,4 +1,4 @@
-"""The filtered hub loads' own error σ: what the load filter can and cannot follow (issue 27).
+"""The filtered hub loads' own error σ: what the load filter can and cannot follow .
 
 The fixed-gain filter (``estimator.filters``, model §6) publishes Ĥ = C x⁺. With the static
 estimate H_s = R⁻¹ (z − S T) and the innovation e = z − S T − J x⁻ (J = R C),

@@ -14,7 +14,7 @@ per sample. Three layers:
   Ω rounded (relatively) to ``cache_resolution``; the stopped-rotor design below ``omega_min``;
 * ``LoadFilter`` (the per-sample path of the live service and of a bit-exact replay) and
   ``filter_batch`` (the same recursion for whole arrays, off-line: six single-output IIR
-  filters, docs/performance.md P3).
+  filters, docs/performance.md, the batch filter's budget).
 """
 from __future__ import annotations
 
@@ -51,7 +51,7 @@ AZIMUTH_MISSING = "azimuth_missing"  # azimuth mode: the harmonics advanced by t
 
 # Harmonic phase (config ``rotor.harmonic_phase``): "design" — the harmonic states advance by
 # the design's kΩΔt every sample (model §5 as the report had it); "azimuth" — by k times the
-# rotor's measured turn Δψ since the last sample (issue 25), the gain held constant.
+# rotor's measured turn Δψ since the last sample , the gain held constant.
 HARMONIC_PHASES = ("design", "azimuth")
 # azimuth mode: the gain is held while Ω stays within this band of the design point
 # (the rotation per sample follows the azimuth; the gain only sets how fast amplitudes move)
@@ -500,7 +500,7 @@ def azimuth_transition(design: FilterDesign, dpsi: float | np.ndarray) -> np.nda
     """Φ of one step in which the rotor turned by ``dpsi`` (rad; scalar → (n, n), array (N,)
     → (N, n, n)): per harmonic k the block [[c, s/w], [−w s, c]], c, s = cos, sin(k Δψ),
     w = k Ω_d — in (H, Ḣ/(kΩ_d)) the rotation by kΔψ, exactly the design's Φ at
-    Δψ = Ω_d Δt; identity on the random walks (model §5, issue 25)."""
+    Δψ = Ω_d Δt; identity on the random walks (model §5)."""
     d = np.atleast_1d(np.asarray(dpsi, float))
     hp = harmonic_pairs(design)
     n = design.n_states
@@ -575,7 +575,7 @@ class LoadFilter:
     def __init__(self, cache: DesignCache, alpha: np.ndarray, invalid_after_samples: int,
                  *, omega: float | None = None, azimuth: bool = False) -> None:
         self._cache = cache
-        # azimuth mode (issue 25): x⁻ = Φ(Δψ) x⁺(n−1) from the rotor's measured turn, then
+        # azimuth mode : x⁻ = Φ(Δψ) x⁺(n−1) from the rotor's measured turn, then
         # the fused product on [x⁻; z; T]; the gain is the design's, held (AZIMUTH_GAIN_BAND)
         self.azimuth = bool(azimuth)
         self._invalid_after = int(invalid_after_samples)
@@ -709,40 +709,38 @@ class LoadFilter:
             buf[:n] = self._phi_power(lost).dot(buf[:n])
             self._run += lost
         if measured:
-            buf[n:n + 6] = z
-            buf[n + 6:] = T
-            y = self._G.dot(buf)
-            buf[:n] = y[:n]
-            self._run = 0
-            w = y[n + 12:]
-            return StepResult(y[n:n + 6], y[:n], y[n + 6:n + 12], w.dot(w),
-                              self._flags_lost if lost else self._flags)
+            return self._measured(T, z, lost)
         x = self._Phi.dot(buf[:n])
         buf[:n] = x
-        self._run += 1
-        if self._run >= self._invalid_after:
-            return StepResult(None, x, None, None,
-                              self._flags_inv_lost if lost else self._flags_inv)
-        return StepResult(self._C.dot(x), x, None, None,
-                          self._flags_pred_lost if lost else self._flags_pred)
+        return self._predicted(x, lost)
 
-
-    def _step_azimuth(self, T: np.ndarray, z: np.ndarray, measured: bool, lost: int, dpsi: float | None) -> StepResult:
-        buf, n = self._buf, self._n
-        ok = self._advance(dpsi, lost + 1)
-        extra = () if ok else (AZIMUTH_MISSING,)
+    def _step_azimuth(self, T: np.ndarray, z: np.ndarray, measured: bool, lost: int,
+                      dpsi: float | None) -> StepResult:
+        n = self._n
+        extra = () if self._advance(dpsi, lost + 1) else (AZIMUTH_MISSING,)
         if lost:
             self._run += lost
         if measured:
-            buf[n:n + 6] = z
-            buf[n + 6:] = T
-            y = self._G.dot(buf)
-            buf[:n] = y[:n]
-            self._run = 0
-            w = y[n + 12:]
-            return StepResult(y[n:n + 6], y[:n], y[n + 6:n + 12], w.dot(w),
-                              (self._flags_lost if lost else self._flags) + extra)
-        x = buf[:n].copy()
+            return self._measured(T, z, lost, extra)
+        return self._predicted(self._buf[:n].copy(), lost, extra)
+
+    def _measured(self, T: np.ndarray, z: np.ndarray, lost: int,
+                  extra: tuple[str, ...] = ()) -> StepResult:
+        """The update of a measured sample (the state already predicted to it): one product
+        with the stacked gain matrix G, the run of predict-only steps ended."""
+        buf, n = self._buf, self._n
+        buf[n:n + 6] = z
+        buf[n + 6:] = T
+        y = self._G.dot(buf)
+        buf[:n] = y[:n]
+        self._run = 0
+        w = y[n + 12:]
+        return StepResult(y[n:n + 6], y[:n], y[n + 6:n + 12], w.dot(w),
+                          (self._flags_lost if lost else self._flags) + extra)
+
+    def _predicted(self, x: np.ndarray, lost: int, extra: tuple[str, ...] = ()) -> StepResult:
+        """A predict-only step's result at the predicted state ``x``: Ĥ from the prediction,
+        None once ``invalid_after_samples`` such steps have run in a row."""
         self._run += 1
         if self._run >= self._invalid_after:
             return StepResult(None, x, None, None,

@@ -1,5 +1,5 @@
 """Which addition would determine the directions a filter-error window leaves undetermined
-(issue 25 item 5; docs/identification.md "Which additions would determine the rest").
+(docs/identification.md "Which additions would determine the rest").
 
 Pure numerics, no I/O. Everything is read from the window's own information matrix in the
 units of the information rule of filter-error runs: the eigenvalues λ of ``s M s`` (s = the

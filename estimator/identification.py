@@ -306,7 +306,7 @@ class KnownLoadProblem:
 
     W(θ) is the same for every sample, so V, its gradient and M follow from the second
     moments ``G = Σ x xᵀ`` of the stacked channels: one pass over the data, then every
-    iteration is O(1) in the number of samples (performance P4).
+    iteration is O(1) in the number of samples (the identification's time budget, docs/performance.md).
     """
 
     mode = "known_loads"
@@ -501,7 +501,7 @@ class FilterErrorProblem:
         self._Acl = (np.eye(ns) - self.K @ self.J) @ self.Phi
         self._JPhi = self.J @ self.Phi
         self.method = method
-        # azimuth mode (issue 25): Φ of every sample (N, ns, ns), from the rotor's measured
+        # azimuth mode : Φ of every sample (N, ns, ns), from the rotor's measured
         # turn (``filters.azimuth_transition``); the time-varying recursion runs as the loop
         self.Phi_n = None if Phi_n is None else np.asarray(Phi_n, float)
         if self.Phi_n is not None:
@@ -796,23 +796,16 @@ def levenberg_marquardt(
     p = theta_p.size
     Pinv = _prior_inverse(prior_cov, p)
     theta_s = theta_p if start is None else np.asarray(start, float).copy()
-
-    def total(ev: Evaluation, th: np.ndarray) -> float:
-        d = th - theta_p
-        return ev.cost + 0.5 * float(d @ Pinv @ d)
-
+    search = _Search(problem, theta_p, Pinv, lambda0=lambda0, rel_tol=rel_tol,
+                     step_tol=step_tol, max_retries=max_retries)
     theta = theta_s.copy()
-    try:
-        ev = problem.evaluate(theta)
-    except (np.linalg.LinAlgError, ValueError, FloatingPointError):
-        ev = None
+    ev = _evaluate(problem, theta)
     names = problem.par.names
-    if (ev is None or ev.gradient is None or not np.isfinite(ev.cost)
-            or not np.all(np.isfinite(ev.gradient))):
+    if ev is None or ev.gradient is None or not _finite_cost(ev):
         nanP = np.full((p, p), np.nan)
         return IdentificationResult(names, problem.mode, theta, nanP, None, nanP, theta_p,
                                     prior_cov, np.nan, np.nan, 0, "diverged", 0)
-    J0 = Jc = total(ev, theta)
+    J0 = Jc = search.total(ev, theta)
     warm_iterations = 0
     if warm_start:
         stage = levenberg_marquardt(
@@ -820,66 +813,8 @@ def levenberg_marquardt(
             max_iterations=max_iterations, lambda0=lambda0, rel_tol=rel_tol, step_tol=step_tol,
             max_retries=max_retries, warm_start=False, start=theta_s)
         warm_iterations = stage.iterations
-        if stage.status != "diverged" and np.all(np.isfinite(stage.theta)):
-            try:
-                ev_w = problem.evaluate(stage.theta)
-                J_w = total(ev_w, stage.theta)
-            except (np.linalg.LinAlgError, ValueError, FloatingPointError):
-                J_w = np.inf
-            if (np.isfinite(J_w) and J_w <= Jc and ev_w.gradient is not None
-                    and np.all(np.isfinite(ev_w.gradient))):
-                theta, ev, Jc = stage.theta.copy(), ev_w, J_w
-    history = [Jc]
-    lam = lambda0
-    status = "not_converged"
-    iterations = 0
-    while iterations < max_iterations:
-        g = ev.gradient + Pinv @ (theta - theta_p)
-        Hm = ev.information + Pinv
-        dH = np.diag(np.diag(Hm))
-        accepted = False
-        for _ in range(max_retries + 1):
-            try:
-                step = -np.linalg.solve(Hm + lam * dH, g)
-            except np.linalg.LinAlgError:
-                lam *= 10.0
-                continue
-            trial = theta + step
-            try:
-                ev_t = problem.evaluate(trial, derivatives=False)
-                Jt = total(ev_t, trial)
-            except (np.linalg.LinAlgError, ValueError, FloatingPointError):
-                Jt = np.inf
-            if np.isfinite(Jt) and Jt <= Jc:
-                accepted = True
-                lam /= 10.0
-                break
-            lam *= 10.0
-        if not accepted:
-            # no step lowers J any more: a minimum to working precision when the undamped
-            # step is already negligible against the posterior σ.
-            try:
-                sig = np.sqrt(np.diag(np.linalg.inv(Hm)))
-                newton = np.linalg.solve(Hm, g)
-                if np.all(np.abs(newton) < step_tol * sig):
-                    status = "converged"
-            except np.linalg.LinAlgError:
-                pass
-            break
-        iterations += 1
-        theta = trial
-        ev = problem.evaluate(theta)
-        J_new = total(ev, theta)
-        rel = abs(Jc - J_new) / max(abs(J_new), 1e-300)
-        Jc = J_new
-        history.append(Jc)
-        try:
-            sig = np.sqrt(np.diag(np.linalg.inv(ev.information + Pinv)))
-        except np.linalg.LinAlgError:
-            sig = np.full(p, np.inf)
-        if rel < rel_tol and np.all(np.abs(step) < step_tol * sig):
-            status = "converged"
-            break
+        theta, ev, Jc = search.warm(stage, theta, ev, Jc)
+    theta, ev, Jc, iterations, status = search.run(theta, ev, Jc, max_iterations)
     # angles are 2π-periodic in J: report the equivalent closest to the prior mean (an LM step
     # through a region where W(θ) is inflated can land whole turns away)
     ang = problem.par.angle_pos
@@ -888,32 +823,160 @@ def levenberg_marquardt(
         theta[ang] = theta_s[ang] + np.angle(np.exp(1j * (theta[ang] - theta_s[ang])))
         if ev.end_state is not None:  # the filter state is periodic in θ too
             ev.end_state.theta = theta.copy()
-    Hm = ev.information + Pinv
-    try:
-        P = np.linalg.inv(Hm)
-        P = 0.5 * (P + P.T)
-    except np.linalg.LinAlgError:
-        P = np.full((p, p), np.nan)
+    assert ev.information is not None  # evaluated with derivatives
+    P = _symmetric_inverse(ev.information + Pinv)
     if not (np.all(np.isfinite(theta)) and np.isfinite(Jc) and Jc <= J0):
         status = "diverged"
     P_corr, lags = None, 0
     if max_lag is not None and status != "diverged" and np.all(np.isfinite(P)):
-        e, de, Wt = problem.residual_series(theta)
-        Q, lags = coloured_residual_information(e, de, Wt, max_lag,
-                                                getattr(problem, "n_series", problem_n(problem)))
-        extra = getattr(problem, "uncorrelated_information", None)
-        if extra is not None:
-            Q = Q + extra(theta)
-        P_corr = P @ (Q + Pinv) @ P
-        P_corr = 0.5 * (P_corr + P_corr.T)
-    assert ev.information is not None  # evaluated with derivatives
+        P_corr, lags = _coloured_covariance(problem, theta, P, Pinv, max_lag)
     return IdentificationResult(
         names=names, mode=problem.mode, theta=theta, P=P, P_corrected=P_corr,
         information=ev.information, prior_mean=theta_p, prior_cov=prior_cov, cost=Jc,
         cost_start=J0, iterations=iterations + warm_iterations, status=status,
         n_scored=ev.n_scored, lags=lags,
-        weight=ev.weight, end_state=ev.end_state, history=history,
+        weight=ev.weight, end_state=ev.end_state, history=search.history,
     )
+
+
+_EVALUATION_ERRORS = (np.linalg.LinAlgError, ValueError, FloatingPointError)
+
+
+def _evaluate(problem: Problem, theta: np.ndarray, derivatives: bool = True
+              ) -> Evaluation | None:
+    """The problem at θ, None where it cannot be evaluated there."""
+    try:
+        return problem.evaluate(theta, derivatives)
+    except _EVALUATION_ERRORS:
+        return None
+
+
+def _finite_cost(ev: Evaluation) -> bool:
+    return bool(np.isfinite(ev.cost)) and (ev.gradient is None
+                                            or bool(np.all(np.isfinite(ev.gradient))))
+
+
+def _symmetric_inverse(H: np.ndarray) -> np.ndarray:
+    """(H⁻¹ + H⁻ᵀ)/2; NaN where H is singular."""
+    try:
+        P = np.linalg.inv(H)
+        return 0.5 * (P + P.T)
+    except np.linalg.LinAlgError:
+        return np.full(H.shape, np.nan)
+
+
+def _coloured_covariance(problem: Problem, theta: np.ndarray, P: np.ndarray, Pinv: np.ndarray,
+                         max_lag: int) -> tuple[np.ndarray, int]:
+    """The coloured-residual corrected covariance P (Q + P_p⁻¹) P (Morelli & Klein) and the
+    lags it used."""
+    e, de, Wt = problem.residual_series(theta)
+    Q, lags = coloured_residual_information(e, de, Wt, max_lag,
+                                            getattr(problem, "n_series", problem_n(problem)))
+    extra = getattr(problem, "uncorrelated_information", None)
+    if extra is not None:
+        Q = Q + extra(theta)
+    P_corr = P @ (Q + Pinv) @ P
+    return 0.5 * (P_corr + P_corr.T), lags
+
+
+class _Search:
+    """The iterations of :func:`levenberg_marquardt` (model §7): J = V + ½ (θ − θ_p)ᵀ P_p⁻¹
+    (θ − θ_p), the damped steps and their stopping rules; ``history`` the J of each accepted
+    step (the start's first)."""
+
+    def __init__(self, problem: Problem, theta_p: np.ndarray, Pinv: np.ndarray, *,
+                 lambda0: float, rel_tol: float, step_tol: float, max_retries: int) -> None:
+        self.problem, self.theta_p, self.Pinv = problem, theta_p, Pinv
+        self.lam = lambda0  # the damping, carried from step to step
+        self.rel_tol, self.step_tol, self.max_retries = rel_tol, step_tol, max_retries
+        self.history: list[float] = []
+
+    def total(self, ev: Evaluation, th: np.ndarray) -> float:
+        d = th - self.theta_p
+        return ev.cost + 0.5 * float(d @ self.Pinv @ d)
+
+    def warm(self, stage: IdentificationResult, theta: np.ndarray, ev: Evaluation, Jc: float
+             ) -> tuple[np.ndarray, Evaluation, float]:
+        """Continue from the frozen-weight stage's end where the full objective is no
+        higher there (and its gradient finite); else from where it started."""
+        if stage.status == "diverged" or not np.all(np.isfinite(stage.theta)):
+            return theta, ev, Jc
+        ev_w = _evaluate(self.problem, stage.theta)
+        J_w = np.inf if ev_w is None else self._total_or_inf(ev_w, stage.theta)
+        if (ev_w is not None and np.isfinite(J_w) and J_w <= Jc and ev_w.gradient is not None
+                and np.all(np.isfinite(ev_w.gradient))):
+            return stage.theta.copy(), ev_w, J_w
+        return theta, ev, Jc
+
+    def run(self, theta: np.ndarray, ev: Evaluation, Jc: float, max_iterations: int
+            ) -> tuple[np.ndarray, Evaluation, float, int, str]:
+        """Iterate from θ: (θ, its evaluation, J, iterations, status)."""
+        self.history = [Jc]
+        iterations = 0
+        while iterations < max_iterations:
+            assert ev.gradient is not None and ev.information is not None
+            g = ev.gradient + self.Pinv @ (theta - self.theta_p)
+            Hm = ev.information + self.Pinv
+            step = self._step(theta, g, Hm, Jc)
+            if step is None:
+                # no step lowers J any more: a minimum to working precision when the undamped
+                # step is already negligible against the posterior σ
+                return theta, ev, Jc, iterations, ("converged" if self._stalled(Hm, g)
+                                                   else "not_converged")
+            iterations += 1
+            theta = theta + step
+            ev = self.problem.evaluate(theta)
+            J_new = self.total(ev, theta)
+            rel = abs(Jc - J_new) / max(abs(J_new), 1e-300)
+            Jc = J_new
+            self.history.append(Jc)
+            if rel < self.rel_tol and self._small(step, ev):
+                return theta, ev, Jc, iterations, "converged"
+        return theta, ev, Jc, iterations, "not_converged"
+
+    def _step(self, theta: np.ndarray, g: np.ndarray, Hm: np.ndarray, Jc: float
+              ) -> np.ndarray | None:
+        """Δθ = −(H + λ diag H)⁻¹ g, λ ×10 after a step that raises J (then retried), ÷10
+        after one that lowers it; None when no retry lowers J."""
+        dH = np.diag(np.diag(Hm))
+        for _ in range(self.max_retries + 1):
+            try:
+                step = -np.linalg.solve(Hm + self.lam * dH, g)
+            except np.linalg.LinAlgError:
+                self.lam *= 10.0
+                continue
+            trial = theta + step
+            ev_t = _evaluate(self.problem, trial, derivatives=False)
+            Jt = np.inf if ev_t is None else self._total_or_inf(ev_t, trial)
+            if np.isfinite(Jt) and Jt <= Jc:
+                self.lam /= 10.0
+                return step
+            self.lam *= 10.0
+        return None
+
+    def _total_or_inf(self, ev: Evaluation, th: np.ndarray) -> float:
+        try:
+            return self.total(ev, th)
+        except _EVALUATION_ERRORS:
+            return np.inf
+
+    def _stalled(self, Hm: np.ndarray, g: np.ndarray) -> bool:
+        """The undamped (Newton) step below ``step_tol`` of every posterior σ."""
+        try:
+            sig = np.sqrt(np.diag(np.linalg.inv(Hm)))
+            newton = np.linalg.solve(Hm, g)
+        except np.linalg.LinAlgError:
+            return False
+        return bool(np.all(np.abs(newton) < self.step_tol * sig))
+
+    def _small(self, step: np.ndarray, ev: Evaluation) -> bool:
+        """Every component of the step below ``step_tol`` of its posterior σ."""
+        assert ev.information is not None
+        try:
+            sig = np.sqrt(np.diag(np.linalg.inv(ev.information + self.Pinv)))
+        except np.linalg.LinAlgError:
+            sig = np.full(len(step), np.inf)
+        return bool(np.all(np.abs(step) < self.step_tol * sig))
 
 
 class _FrozenWeight:

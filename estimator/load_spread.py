@@ -1,5 +1,5 @@
-"""The spread of a ground calibration over the loads its angles follow (issue 25, session 18;
-docs/identification.md, "A ground calibration over loads the angles follow").
+"""The spread of a ground calibration over the loads its angles follow
+(docs/identification.md, "A ground calibration over loads the angles follow").
 
 A constant-angle known-load posterior pools windows held at different static loads. Where the
 angles move with the load — within the rig's 1-σ sensitivity bound ``s`` (per unit load on

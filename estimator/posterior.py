@@ -20,11 +20,11 @@ Every run takes the previous posterior as its prior, inflated by a random walk
 Model §7 puts the information test before the gate. Taken literally that freezes the
 tracker: once the posterior has converged no 5-s window can halve any variance (measured on
 the ground-test: information ratios 0.7–0.95 from the third sweep on), so no run ever reaches
-the gate and a 1° step is never detected (A4). The gate needs no minimum information — a
+the gate and a 1° step is never detected (the tracking benchmark, bench/a4_tracking.py). The gate needs no minimum information — a
 window with ratio λ moves the mean by λ/(1+λ) of a change and ν grows with it — so here every
 sound run is gated and the information test only decides acceptance
 (``gate_low_information=False`` restores the literal order). On the report's Phase II set-up
-the gate passes (ν ≈ 2–6 on 14 directions) and the runs stay ``not_identifiable`` (A5).
+the gate passes (ν ≈ 2–6 on 14 directions) and the runs stay ``not_identifiable`` (the report's Phase II benchmark, bench/a5_paper.py).
 
 Known-load mode re-linearises (docs/identification.md, findings 3–4): the likelihood depends
 on a window only through its moments G = Σ x xᵀ, so the posterior keeps the moments of the
@@ -50,10 +50,9 @@ import math
 from collections import deque
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
-from scipy.stats import chi2
 
 from .identification import (
     FilterErrorProblem,
@@ -62,7 +61,6 @@ from .identification import (
     IdentificationResult,
     KnownLoadProblem,
     Parameterisation,
-    InnovationTest,
     SPECTRUM_SEGMENT,
     innovation_autocovariance,
     innovation_spectrum_test,
@@ -76,16 +74,34 @@ from .curvature import nonlinearity
 from .load_spread import LoadSpread
 from .params import RigModel
 from .structure import DriftTest, StructureTest, StructureVerdict, fit_payload
+from .judgement import (  # noqa: F401  (re-exported: their home was this module)
+    GATE_PROBABILITY as GATE_PROBABILITY,
+    GATE_RELATIVE_EIGENVALUE as GATE_RELATIVE_EIGENVALUE,
+    FilterErrorChecks as FilterErrorChecks,
+    FilterErrorDecision as FilterErrorDecision,
+    Judgement as Judgement,
+    _prior_cov as _prior_cov,
+    consider_gate as consider_gate,
+    consider_update as consider_update,
+    consistency_gate as consistency_gate,
+    filter_error_decision as filter_error_decision,
+    information_ratio as information_ratio,
+    input_verdict as input_verdict,
+    judge as judge,
+    out_of_range as out_of_range,
+    window_measurement_cov as window_measurement_cov,
+)
+from .verdict import (  # noqa: F401  (re-exported: their home was this module)
+    ACCEPTED as ACCEPTED,
+    DETAILS as DETAILS,
+    MODES as MODES,
+    REASONS as REASONS,
+    Detail,
+    Mode,
+    Reason,
+    Verdict,
+)
 
-ACCEPTED = None
-REASONS = ("not_converged", "diverged", "not_identifiable", "inconsistent", "reset",
-           "stale_input", "out_of_range")
-# the test that decided a run (the record's ``detail``; docs/telemetry.md §2.4)
-DETAILS = ("passed", "missing_samples", "convergence", "information_ratio", "own_information",
-           "robust_information", "innovations", "gate", "range", "structure")
-MODES = ("known_loads", "filter_error")
-GATE_PROBABILITY = 0.999  # model §7: accepted when ν ≤ χ²_{d, 0.999}
-GATE_RELATIVE_EIGENVALUE = 1e-6  # directions of D kept by the gate, relative to the largest
 SIGMA_MAX_OTHER_FRACTION = 0.04  # non-angle parameters: determined at 0.04 × prior σ (model §7.4)
 MAX_ACCUMULATED_WINDOWS = 64  # re-linearisation: fold at the latest after this many windows
 LOAD_REFERENCE_WINDOWS = 24  # filter error: the reference (trim) load's windows (2 min)
@@ -124,6 +140,7 @@ class AnglesRecord:
     status: str | None = None  # LM status
     undetermined: np.ndarray | None = None  # (p, k) directions with σ > sigma_max
     detail: str | None = None  # the test that decided (docs/telemetry.md §2.4; DETAILS)
+    verdict: Verdict | None = None  # the judgement: reason, detail and the limit it used
     innovation: float | None = None  # filter error: q / its model-predicted mean
     innovation_limit: float | None = None  # the 1 − 10⁻³ point of the same ratio
     window_determined: int = 0  # directions the window's own (robust) information determines
@@ -139,16 +156,16 @@ class AnglesRecord:
     cost_start: float | None = None
     cost_history: tuple[float, ...] | None = None
     # the window's samples the likelihood used (scored; samples lacking an input are left
-    # out, issue 29); None: not set by the caller
+    # out); None: not set by the caller
     samples_used: int | None = None
-    # filter error with angle_load_sensitivity configured (issue 25): the window's static
+    # filter error with angle_load_sensitivity configured : the window's static
     # load away from the reference (trim) load and the σ (rad, each angle) of the angles'
     # move that far — the window's truth is the posterior's α ± this beside P
     load_excursion: dict[str, Any] | None = None
-    # known loads (issue 27): the run's curvature index (estimator.curvature); None: not
+    # known loads : the run's curvature index (estimator.curvature); None: not
     # computed (filter error, a run that did not converge, the limit off)
     nonlinearity: float | None = None
-    # filter error (issue 25): the posterior carried from the load it referred to (a ground
+    # filter error : the posterior carried from the load it referred to (a ground
     # calibration's) to this window's reference (trim): the move {delta, sigma} (N, N·m; rad)
     reference_move: dict[str, Any] | None = None
 
@@ -160,10 +177,12 @@ class AnglesRecord:
                 "P", "sigma_cr", "sigma_cr_corrected", "determined", "window_determined",
                 "information", "nu", "cost", "iterations", "window", "applies_from_seq", "late")
         out = {k: getattr(self, k) for k in keys}
+        for k in ("mode", "reason", "detail"):  # the enums' strings, as plain str
+            out[k] = None if out[k] is None else str(out[k])
         if self.samples_used is not None:
             out["samples_used"] = int(self.samples_used)
         if self.mode == "known_loads":
-            out["structure"] = self.structure
+            out["structure"] = None if self.structure is None else str(self.structure)
             out["candidates"] = self.candidates or []
             out["structure_fit"] = self.structure_fit
             out["drift"] = self.drift
@@ -248,10 +267,10 @@ class PosteriorState:
     applies_from_seq: int | None = None
     t: float | None = None
     rig: dict[str, Any] | None = None
-    # optional (issue 19): the selected structure the hub-load estimate uses
+    # optional : the selected structure the hub-load estimate uses
     # (structure.fit_payload); files without it load as before
     structure: dict[str, Any] | None = None
-    # optional (issue 25): the static hub load (6, N and N·m, the estimator's frame) the
+    # optional : the static hub load (6, N and N·m, the estimator's frame) the
     # angles refer to — the mean of the accepted known-load windows' — so that a flight at
     # another load widens the posterior by the rig's load-sensitivity bound (ReferenceLoad)
     reference_load: np.ndarray | None = None
@@ -338,6 +357,22 @@ def posterior_from_json(text: str, path: str | Path,
         t = raw.get("t")
     except (KeyError, TypeError, ValueError) as exc:
         raise PosteriorFileError(path, f"missing or malformed field ({exc})") from None
+    _check_posterior_arrays(path, fnames, theta, P)
+    if names is not None and tuple(names) != fnames:
+        raise PosteriorFileError(path, f"parameters {list(fnames)} differ from the configured "
+                                 f"{list(names)}")
+    if afs is not None and not isinstance(afs, int):
+        raise PosteriorFileError(path, "applies_from_seq must be an integer or null")
+    if t is not None and not isinstance(t, (int, float)):
+        raise PosteriorFileError(path, "t must be a number or null")
+    structure, ref = _optional_sections(path, raw)
+    return PosteriorState(fnames, theta, P, afs, None if t is None else float(t), rig,
+                          structure, ref)
+
+
+def _check_posterior_arrays(path: str | Path, fnames: tuple[str, ...], theta: np.ndarray,
+                            P: np.ndarray) -> None:
+    """θ and P of a saved posterior: their shapes, finite, P symmetric positive definite."""
     p = len(fnames)
     if theta.shape != (p,) or P.shape != (p, p):
         raise PosteriorFileError(path, f"shapes {theta.shape} and {P.shape} do not match "
@@ -350,13 +385,11 @@ def posterior_from_json(text: str, path: str | Path,
         np.linalg.cholesky(P)
     except np.linalg.LinAlgError:
         raise PosteriorFileError(path, "covariance not positive definite") from None
-    if names is not None and tuple(names) != fnames:
-        raise PosteriorFileError(path, f"parameters {list(fnames)} differ from the configured "
-                                 f"{list(names)}")
-    if afs is not None and not isinstance(afs, int):
-        raise PosteriorFileError(path, "applies_from_seq must be an integer or null")
-    if t is not None and not isinstance(t, (int, float)):
-        raise PosteriorFileError(path, "t must be a number or null")
+
+
+def _optional_sections(path: str | Path, raw: dict[str, Any]
+                       ) -> tuple[dict[str, Any] | None, np.ndarray | None]:
+    """The optional ``structure`` and ``reference_load`` of a saved posterior (None: absent)."""
     structure = raw.get("structure")
     if structure is not None and not (isinstance(structure, dict)
                                       and isinstance(structure.get("structure"), str)):
@@ -371,39 +404,17 @@ def posterior_from_json(text: str, path: str | Path,
         if ref is None or ref.shape != (6,) or not np.all(np.isfinite(ref)):
             raise PosteriorFileError(path, "reference_load must be 6 finite numbers (N, N·m) "
                                      "or absent")
-    return PosteriorState(fnames, theta, P, afs, None if t is None else float(t), rig,
-                          structure, ref)
+    return structure, ref
 
 
-def out_of_range(theta: np.ndarray, limit: np.ndarray) -> bool:
-    """A run's estimate outside the physical range |θ_k| ≤ limit_k (rejected ``out_of_range``:
-    no real load cell is tilted that far; the data or the model are wrong)."""
-    return not bool(np.all(np.abs(np.asarray(theta, float)) <= limit))
 
 
 # how an accepted filter-error run updates the posterior (identification.filter_error_update)
 FILTER_ERROR_UPDATES = ("consider", "bayes")
 
 
-def information_ratio(prior_cov: np.ndarray, M: np.ndarray) -> float:
-    """Largest eigenvalue of P_p^{1/2} M P_p^{1/2} (data information relative to the prior)."""
-    L = np.linalg.cholesky(prior_cov)
-    return float(np.linalg.eigvalsh(L.T @ M @ L)[-1])
 
 
-def consistency_gate(delta: np.ndarray, prior_cov: np.ndarray, post_cov: np.ndarray,
-                     probability: float = GATE_PROBABILITY) -> tuple[float, int, bool]:
-    """ν = Δθᵀ D⁺ Δθ over the eigen-directions of D = P_p − P_post whose eigenvalue exceeds
-    1e-6 of the largest; (ν, d, ν ≤ χ²_{d, probability})."""
-    D = prior_cov - post_cov
-    lam, V = np.linalg.eigh(0.5 * (D + D.T))
-    if lam[-1] <= 0:
-        return 0.0, 0, True
-    keep = lam > GATE_RELATIVE_EIGENVALUE * lam[-1]
-    proj = V[:, keep].T @ delta
-    nu = float(np.sum(proj**2 / lam[keep]))
-    d = int(keep.sum())
-    return nu, d, nu <= float(chi2.ppf(probability, d))
 
 
 PREDICTION_WIDTH_RATIO = 10.0  # variance ratio beyond which the posterior replaces the fit
@@ -442,72 +453,17 @@ def _moment_cost(par: Parameterisation, G: np.ndarray, theta: np.ndarray) -> flo
     return 0.5 * float(np.sum(np.linalg.inv(t.W) * (t.A @ G @ t.A.T)))
 
 
-def consider_update(P_p: np.ndarray, theta_p: np.ndarray, s: np.ndarray, Vk: np.ndarray,
-                    proj: np.ndarray, use: np.ndarray, floor_s: float,
-                    extra_R: np.ndarray | None = None
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """The filter-error update restricted to the window's determined directions (issue 25,
-    docs/identification.md "The consider update"), in coordinates scaled by ``s``
-    (sigma_max): ``Vk`` (p, k) orthonormal directions, ``proj`` the window's estimate along
-    them, ``use`` its information there. A Schmidt (consider) Kalman update: the gain is
-    restricted to span(Vk), so the estimate moves only along the directions the window
-    determines and every other direction keeps the prior's mean and variance; Joseph form,
-    so the covariance is that of this (sub-optimal) estimate. ``floor_s``: the window's
-    systematic error σ_b (scaled) — added to its variance (1/use + σ_b²) and a floor on the
-    fused variance along Vk (a bias common to the windows does not average out).
-    ``extra_R`` (k, k, scaled): more error of the window's estimate as a measurement of the
-    posterior's angles — the load excursion's (:func:`window_measurement_cov`).
-    Returns (P_new, φ_new) scaled."""
-    Ps = P_p / s[:, None] / s[None, :]
-    phi_p = theta_p / s
-    a_p = Vk.T @ phi_p
-    Paa = Vk.T @ Ps @ Vk
-    R = window_measurement_cov(use, floor_s, extra_R)
-    G = Paa @ np.linalg.inv(Paa + R)
-    Kf = Vk @ G
-    phi = phi_p + Kf @ (proj - a_p)
-    A = np.eye(len(s)) - Kf @ Vk.T
-    P_new = A @ Ps @ A.T + Kf @ R @ Kf.T
-    if floor_s > 0:
-        B = Vk.T @ P_new @ Vk
-        mu, U = np.linalg.eigh(0.5 * (B + B.T))
-        VU = Vk @ U
-        P_new = P_new + (VU * np.maximum(floor_s**2 - mu, 0.0)) @ VU.T
-    return 0.5 * (P_new + P_new.T), phi
 
 
-def window_measurement_cov(use: np.ndarray, floor_s: float,
-                           extra_R: np.ndarray | None = None) -> np.ndarray:
-    """R (k, k, scaled): the error of a filter-error window's estimate along its kept
-    directions as a measurement of the posterior's angles — its noise (1/use), the windows'
-    systematic floor σ_b² and ``extra_R`` (the load excursion's, issue 25)."""
-    R = np.diag(1.0 / use + floor_s**2)
-    return R if extra_R is None else R + extra_R
 
 
-def consider_gate(P_p: np.ndarray, theta_p: np.ndarray, s: np.ndarray, Vk: np.ndarray,
-                  proj: np.ndarray, R: np.ndarray, probability: float
-                  ) -> tuple[float, int, bool]:
-    """The consistency gate of the consider update (issue 25): the window's estimate along
-    its kept directions against the prior's prediction there, ν = rᵀ (Vkᵀ P_p Vk + R)⁻¹ r,
-    χ²_k under consistency (k = the kept directions). Unlike model §7's Δθᵀ D⁺ Δθ it counts
-    the window's systematic floor and load excursion (R), which the fused covariance's
-    floor otherwise turns into a D that is not positive (measured: a ground posterior of
-    σ 0.005–0.02° along the sharpest directions rejected 9 of 66 consistent flight windows
-    and was reset to the prior). Returns (ν, k, passed)."""
-    Ps = P_p / s[:, None] / s[None, :]
-    r = proj - Vk.T @ (theta_p / s)
-    C = Vk.T @ Ps @ Vk + R
-    nu = float(r @ np.linalg.solve(0.5 * (C + C.T), r))
-    k = int(len(r))
-    return nu, k, bool(k == 0 or nu <= float(chi2.ppf(probability, k)))
 
 
 def load_excursion_variance(sensitivity: np.ndarray, delta: np.ndarray) -> float:
     """The variance (rad², each angle) of the angles' move between the reference (trim) load
     and a window's static load ``delta`` away from it, given a bound (1 σ) on their
     sensitivity per unit of load on each axis (``identification.angle_load_sensitivity_deg_
-    per_unit``): Σ_k (s_k Δ_k)² (issue 25; docs/identification.md, "Load excursions")."""
+    per_unit``): Σ_k (s_k Δ_k)² (docs/identification.md, "Load excursions")."""
     d = np.asarray(delta, float) * np.asarray(sensitivity, float)
     return float(d @ d)
 
@@ -619,7 +575,7 @@ class SequentialPosterior:
         self.limit = np.broadcast_to(np.asarray(limit, float), (p,)).copy()
         self.rig = rig  # the fingerprint saved with the posterior (rig_fingerprint)
         self.structure_fit: dict[str, Any] | None = None  # the selected structure (saved)
-        self.reference = ReferenceLoad()  # the static load the angles refer to (issue 25)
+        self.reference = ReferenceLoad()  # the static load the angles refer to 
         self.theta = np.asarray(theta0, float).copy()
         self.P0 = np.diag(np.broadcast_to(np.asarray(sigma0, float), (p,)) ** 2)
         self.P = self.P0.copy()
@@ -637,7 +593,7 @@ class SequentialPosterior:
         # the re-linearisation's windows (known loads): anchor, accumulated and held moments
         self.moments = WindowMoments(self.theta, self.P, max_accumulated=max_accumulated_windows,
                                      max_held=max_held_windows)
-        # angles on a trend (the structure test's `drifting`, issue 27): the trend's rates
+        # angles on a trend (the structure test's `drifting`): the trend's rates
         # (rad/s over ``names``; None: constant angles with the random walk) and, per run,
         # the drift fit's prediction of the angles at the run's window (set_prediction)
         self.trend: np.ndarray | None = None
@@ -765,96 +721,57 @@ class SequentialPosterior:
         checks: "FilterErrorChecks | None" = None,
         structure: StructureVerdict | None = None,
         nonlinear: bool = False,
+        nonlinearity_limit: float | None = None,
+        stale: Verdict | None = None,
     ) -> AnglesRecord:
-        """Judge one run whose prior was :meth:`prior` (it is read from ``result``).
+        """Judge one run whose prior was :meth:`prior` (it is read from ``result``): the
+        decision is :func:`estimator.judgement.judge`'s; here its bookkeeping is applied
+        (:meth:`_apply`) and the record made.
 
         ``moments``: the window's known-load moments (G, scored samples); an accepted run adds
         them to the accumulation the next runs re-solve (``dt``: the run's random-walk time).
         ``gate``: (ν, d) computed by the caller (the likelihood-ratio form of a re-linearised
-        run) instead of the linearised ``Δθᵀ D⁺ Δθ``."""
+        run) instead of the linearised ``Δθᵀ D⁺ Δθ``. ``stale``: the input's verdict of a
+        window that was not run (:func:`estimator.judgement.input_verdict`)."""
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}")
-        kw: dict[str, Any] = dict(mode=mode, content=content, window=window, t=t,
-                                  structure=structure)
-        if result is None or missing_fraction > self.stale_fraction:
-            return angles_record(self, accepted=False, reason="stale_input", result=result,
-                                information=None, nu=None, d=0, detail="missing_samples", **kw)
-        if tuple(result.names) != self.names:
-            raise ValueError("the run identified other parameters than this posterior holds")
-        if not result.sound:
-            reason = "not_converged" if result.status == "not_converged" else "diverged"
-            return angles_record(self, accepted=False, reason=reason, result=result, information=None,
-                                nu=None, d=0, detail="convergence", **kw)
-        P_p = _prior_cov(result)
-        info = information_ratio(P_p, result.information)
-        if checks is not None:  # range-checked on what it would apply (its own directions)
-            return self._update_filter_error(result, info, checks, apply_delay_samples,
-                                             arrived_seq, kw)
-        if out_of_range(result.theta, self.limit):
+        j = judge(self, result, missing_fraction=missing_fraction, stale=stale, gate=gate,
+                  checks=checks, structure=structure, nonlinear=nonlinear,
+                  nonlinearity_limit=nonlinearity_limit)
+        late = self._apply(j, result, moments, dt, window, apply_delay_samples, arrived_seq, t)
+        dec = j.decision
+        return angles_record(self, verdict=j.verdict, late=late, mode=Mode(mode),
+                             content=content, window=window, t=t, structure=structure,
+                             result=result, information=j.information, checks=checks,
+                             window_determined=0 if dec is None else dec.window_determined)
+
+    def _apply(self, j: Judgement, result: IdentificationResult | None,
+               moments: tuple[np.ndarray, int] | None, dt: float, window: tuple[int, int],
+               apply_delay_samples: int, arrived_seq: int | None, t: float | None) -> bool:
+        """What a judged run changes: the held known-load windows (held with a run that
+        lacked only information; dropped with one whose data disagree — in known-load mode,
+        where they were part of the run), the gate's streak and its reset, and an accepted
+        run's update. Returns whether an accepted run is applied late."""
+        v, known = j.verdict, j.decision is None
+        if v.detail in (Detail.NONLINEAR, Detail.INFORMATION_RATIO):
+            self._hold(moments)  # the window's information counts with the next run
+        elif v.detail in (Detail.RANGE, Detail.STRUCTURE) and known:
             self.moments.drop_held()  # the held windows were part of this run
-            return angles_record(self, accepted=False, reason="out_of_range", result=result,
-                                information=None, nu=None, d=0, detail="range", **kw)
-        if structure is not None and structure.structure == "not_constant":
-            # the constant-angle model is rejected (estimator.structure): its runs can only
-            # disagree with each other, so none is accepted and none counts towards a reset —
-            # no accepted → inconsistent → reset → accepted cycle (issue 19)
-            self.moments.drop_held()
-            nu = d = None
-            if gate is not None:
-                nu, d = float(gate[0]), int(gate[1])
-            return angles_record(self, accepted=False, reason="inconsistent", result=result,
-                                information=info, nu=nu, d=d or 0, detail="structure", **kw)
-        if nonlinear:
-            # the Gaussian summary misses the likelihood's curvature (estimator.curvature):
-            # not accepted, the window's information held for the next run's exact solve
-            self._hold(moments)
-            return angles_record(self, accepted=False, reason="not_identifiable", result=result,
-                                information=info, nu=None, d=0, detail="nonlinear", **kw)
-        low = info < self.min_information
-        if low and not self.gate_low_information:
-            self._hold(moments)
-            return angles_record(self, accepted=False, reason="not_identifiable", result=result,
-                                information=info, nu=None, d=0, detail="information_ratio", **kw)
-        if gate is None:
-            nu, d, ok = consistency_gate(result.theta - result.prior_mean, P_p, result.P,
-                                         self.gate_probability)
-        else:
-            nu, d = float(gate[0]), int(gate[1])
-            ok = d == 0 or nu <= float(chi2.ppf(self.gate_probability, d))
-        if not ok:
-            return self._gate_failed(dict(result=result, information=info, nu=nu, d=d, **kw),
-                                     drop_held=True)
-        if low:
-            self._hold(moments)
-            return angles_record(self, accepted=False, reason="not_identifiable", result=result,
-                                information=info, nu=nu, d=d, detail="information_ratio", **kw)
-        self.inconsistent_in_a_row = 0
-        self.theta, self.P = result.theta.copy(), result.P.copy()
-        self._after_accepted(moments, dt)
-        return self._accepted(dict(result=result, information=info, nu=nu, d=d, **kw),
-                              apply_delay_samples, arrived_seq)
+        elif v.detail == Detail.GATE:
+            self._gate_failed(drop_held=known)
+        elif v.accepted and result is not None:
+            self.inconsistent_in_a_row = 0
+            if j.decision is not None and j.decision.theta is not None \
+                    and j.decision.P is not None:
+                self.theta, self.P = j.decision.theta, j.decision.P
+                self.fold()
+            else:
+                self.theta, self.P = result.theta.copy(), result.P.copy()
+                self._after_accepted(moments, dt)
+            return self._applies_from(window, apply_delay_samples, arrived_seq, t)
+        return False
 
-    def _update_filter_error(self, result: IdentificationResult, info: float,
-                             checks: "FilterErrorChecks", apply_delay_samples: int,
-                             arrived_seq: int | None, kw: dict[str, Any]) -> AnglesRecord:
-        """The information rule of filter-error runs (:func:`filter_error_decision`) and its
-        bookkeeping: the gate's streak and reset, and the accepted update."""
-        dec = filter_error_decision(result, checks, sigma_max=self.sigma_max, limit=self.limit,
-                                    update=self.filter_error_update,
-                                    floor=self.filter_error_floor,
-                                    gate_probability=self.gate_probability)
-        base = dict(result=result, information=info, checks=checks, nu=dec.nu, d=dec.d,
-                    window_determined=dec.window_determined, **kw)
-        if dec.detail == "gate":
-            return self._gate_failed(base, drop_held=False)
-        if dec.theta is None or dec.P is None:
-            return angles_record(self, accepted=False, reason=dec.reason, detail=dec.detail, **base)
-        self.inconsistent_in_a_row = 0
-        self.theta, self.P = dec.theta, dec.P
-        self.fold()
-        return self._accepted(base, apply_delay_samples, arrived_seq)
-
-    def _gate_failed(self, base: dict[str, Any], *, drop_held: bool) -> AnglesRecord:
+    def _gate_failed(self, *, drop_held: bool) -> None:
         """A run the consistency gate rejects: ``inconsistent``, or — the ``reset_after``-th in
         a row, a real change — ``reset``: the covariance reopened around the current mean."""
         self.inconsistent_in_a_row += 1
@@ -863,27 +780,21 @@ class SequentialPosterior:
             self.reference = ReferenceLoad()
             self.inconsistent_in_a_row = 0
             self.fold()
-            return angles_record(self, accepted=False, reason="reset", detail="gate", **base)
-        if drop_held:
+        elif drop_held:
             self.moments.drop_held()  # the held windows were part of an inconsistent run
-        return angles_record(self, accepted=False, reason="inconsistent", detail="gate", **base)
 
-    def _accepted(self, base: dict[str, Any], apply_delay_samples: int,
-                  arrived_seq: int | None) -> AnglesRecord:
-        """The record of an accepted run, applied from ``window end + apply delay`` (later
-        when the result arrived after that sample: ``late``)."""
-        planned = int(base["window"][1]) + int(apply_delay_samples)
+    def _applies_from(self, window: tuple[int, int], apply_delay_samples: int,
+                      arrived_seq: int | None, t: float | None) -> bool:
+        """An accepted run applies from ``window end + apply delay`` (later when the result
+        arrived after that sample: ``late``, returned)."""
+        planned = int(window[1]) + int(apply_delay_samples)
         late = arrived_seq is not None and arrived_seq + 1 > planned
         self.applies_from_seq = int(arrived_seq) + 1 if late and arrived_seq is not None \
             else planned
-        self.t = base["t"]
-        return angles_record(self, accepted=True, reason=ACCEPTED, late=late, detail="passed", **base)
+        self.t = t
+        return late
 
 
-def _prior_cov(result: IdentificationResult) -> np.ndarray:
-    if result.prior_cov is None:
-        raise ValueError("a run judged by the posterior carries its prior covariance")
-    return result.prior_cov
 
 
 def over_names(to: Sequence[str], names: Sequence[str], v: np.ndarray, P: np.ndarray | None,
@@ -901,14 +812,14 @@ def over_names(to: Sequence[str], names: Sequence[str], v: np.ndarray, P: np.nda
     return out_v, out_P
 
 
-def angles_record(post: "SequentialPosterior", *, accepted: bool, reason: str | None, mode: str, content: str,
-            window: tuple[int, int], t: float | None, result: IdentificationResult | None,
-            information: float | None, nu: float | None, d: int, late: bool = False,
-            detail: str | None = None, checks: "FilterErrorChecks | None" = None,
-            window_determined: int = 0,
-            structure: StructureVerdict | None = None) -> AnglesRecord:
+def angles_record(post: "SequentialPosterior", *, verdict: Verdict, mode: str, content: str,
+                  window: tuple[int, int], t: float | None,
+                  result: IdentificationResult | None, information: float | None,
+                  late: bool = False, checks: "FilterErrorChecks | None" = None,
+                  window_determined: int = 0,
+                  structure: StructureVerdict | None = None) -> AnglesRecord:
     """The angles record of a judged run: the posterior now in force (after the run), the
-    run's own estimate and the tests that decided it (docs/telemetry.md §2.4)."""
+    run's own estimate and the verdict that decided it (docs/telemetry.md §2.4)."""
     det, U, cond = determined_directions(post.P, post.sigma_max)
     return AnglesRecord(
         structure=None if structure is None else structure.structure,
@@ -916,19 +827,19 @@ def angles_record(post: "SequentialPosterior", *, accepted: bool, reason: str | 
         drift=None if structure is None or structure.drift is None
         else structure.drift.to_dict(),
         structure_verdict=structure,
-        t=t, seq=int(window[1]), mode=mode, content=content, accepted=accepted,
-        reason=reason, names=post.names, alpha=post.theta.copy(), P=post.reference.reported(post.P),
+        t=t, seq=int(window[1]), mode=mode, content=content, accepted=verdict.accepted,
+        reason=verdict.reason, verdict=verdict, names=post.names, alpha=post.theta.copy(), P=post.reference.reported(post.P),
         sigma_cr=None if result is None else result.sigma_cr,
         sigma_cr_corrected=None if result is None else result.sigma_cr_corrected,
-        determined=det, information=information, nu=nu,
+        determined=det, information=information, nu=verdict.nu,
         cost=None if result is None else float(result.cost),
         iterations=0 if result is None else int(result.iterations),
         window=(int(window[0]), int(window[1])), applies_from_seq=post.applies_from_seq,
-        late=late, gate_dof=d, condition=cond,
+        late=late, gate_dof=verdict.dof, condition=cond,
         run_theta=None if result is None else result.theta.copy(),
         run_P=None if result is None else result.P.copy(),
         status=None if result is None else result.status, undetermined=U,
-        detail=detail, window_determined=int(window_determined),
+        detail=verdict.detail, window_determined=int(window_determined),
         innovation=None if checks is None else checks.innovation.statistic
         / checks.innovation.mean,
         innovation_limit=None if checks is None else checks.innovation.limit
@@ -979,100 +890,10 @@ def posterior_from_config(
                filter_error_floor=ident.filter_error_floor_rad / ident.sigma_max_rad)
 
 
-@dataclass
-class FilterErrorDecision:
-    """What :func:`filter_error_decision` found: ``theta``/``P`` the update when it passed
-    (else None, with the ``reason`` and the ``detail`` of the test that decided)."""
-
-    reason: str | None
-    detail: str
-    nu: float | None = None
-    d: int = 0
-    window_determined: int = 0
-    theta: np.ndarray | None = None
-    P: np.ndarray | None = None
 
 
-def filter_error_decision(result: IdentificationResult, checks: "FilterErrorChecks", *,
-                          sigma_max: np.ndarray, limit: np.ndarray, update: str, floor: float,
-                          gate_probability: float) -> FilterErrorDecision:
-    """The information rule of filter-error runs (docs/identification.md): the window's
-    OWN information decides which directions a run may update — whatever the prior knows —
-    the innovations must be what the filter model predicts, and the information must
-    survive a score covariance that does not trust the model (sandwich). ``update``:
-    "consider" (with the systematic floor ``floor`` in units of ``sigma_max``) or "bayes"."""
-    P_p, theta_p = _prior_cov(result), result.prior_mean
-    s = sigma_max
-    Ms = result.information * s[:, None] * s[None, :]
-    lam, V = np.linalg.eigh(0.5 * (Ms + Ms.T))
-    own = lam >= 1.0  # 1/√λ ≤ sigma_max: the window alone determines this direction
-    if not own.any():
-        return FilterErrorDecision("not_identifiable", "own_information")
-    if not checks.innovation.passed:
-        # the data are not what the filter model predicts (unmodelled load content):
-        # no evidence about the angles either way, so the reset streak is left alone
-        return FilterErrorDecision("inconsistent", "innovations",
-                                   window_determined=int(own.sum()))
-    Vk, lk = V[:, own], lam[own]
-    # the variance of the score along each direction: the larger of what the window's own
-    # score series shows and what the model predicts for its coloured innovations
-    var = np.zeros(len(lk))
-    for Q in (checks.score_covariance, checks.score_covariance_model):
-        if Q is not None:
-            Qs = Q * s[:, None] * s[None, :]
-            var = np.maximum(var, np.einsum("ai,ab,bi->i", Vk, Qs, Vk))
-    robust = lk**2 / np.maximum(var, 1e-300)
-    use = np.minimum(lk, robust)  # the smaller of the model's and the sandwich's
-    keep = use >= 1.0
-    if not keep.any():
-        return FilterErrorDecision("not_identifiable", "robust_information")
-    Vk, lk, use = Vk[:, keep], lk[keep], use[keep]
-    # the window's estimate in its determined directions (linearised at the run's
-    # result: M θ̂_w = P_run⁻¹ θ_run − P_p⁻¹ θ_p), weighted by the information used
-    Pp_inv = np.linalg.inv(P_p)
-    b = np.linalg.solve(result.P, result.theta) - Pp_inv @ theta_p
-    proj = (Vk.T @ (s * b)) / lk  # window estimate along each kept direction (scaled)
-    # the load excursion (issue 25): the window's angles are the reference (trim) load's
-    # moved by up to the configured sensitivity × the window's static load away from it
-    lv = float(checks.load_variance)
-    extra_R = None if lv <= 0 else lv * (Vk.T / s**2) @ Vk
-    if update == "consider":
-        P_new_s, phi = consider_update(P_p, theta_p, s, Vk, proj, use, floor, extra_R)
-    else:  # "bayes": the window's information in full (moves undetermined directions)
-        Mk = (Vk * use) @ Vk.T  # scaled coordinates
-        hk = Vk @ (use * proj)
-        Pinv_s = Pp_inv * s[:, None] * s[None, :]  # prior information in scaled coordinates
-        P_new_s = np.linalg.inv(Pinv_s + Mk)
-        P_new_s = 0.5 * (P_new_s + P_new_s.T)
-        phi = P_new_s @ (Pinv_s @ (theta_p / s) + hk)
-    theta_new = s * phi
-    P_new = P_new_s * s[:, None] * s[None, :]
-    wd = int(keep.sum())
-    if out_of_range(theta_new, limit):  # the physical range (docs/identification.md)
-        return FilterErrorDecision("out_of_range", "range", window_determined=wd)
-    if update == "consider":
-        nu, d, ok = consider_gate(P_p, theta_p, s, Vk, proj,
-                                  window_measurement_cov(use, floor, extra_R), gate_probability)
-    else:
-        nu, d, ok = consistency_gate(theta_new - theta_p, P_p, P_new, gate_probability)
-    if not ok:
-        return FilterErrorDecision("inconsistent", "gate", nu=nu, d=d, window_determined=wd)
-    return FilterErrorDecision(ACCEPTED, "passed", nu=nu, d=d, window_determined=wd,
-                               theta=theta_new, P=P_new)
 
 
-@dataclass
-class FilterErrorChecks:
-    """What a filter-error run is judged on beyond model §7's gate: the innovation test
-    against the model-predicted autocovariance and the robust (sandwich) score covariance."""
-
-    innovation: InnovationTest
-    score_covariance: np.ndarray  # (p, p) from the window's own score series (Newey–West)
-    score_covariance_model: np.ndarray | None = None  # (p, p) from the predicted Γ(k)
-    # the window's static load away from the reference (trim) load (6,; None: not known) and
-    # the variance (rad², each angle) of the angles' move that far (load_excursion_variance)
-    load_delta: np.ndarray | None = None
-    load_variance: float = 0.0
 
 
 def likelihood_ratio_gate(post: SequentialPosterior, par: Parameterisation,
@@ -1106,15 +927,15 @@ def likelihood_ratio_gate(post: SequentialPosterior, par: Parameterisation,
 
 
 class ReferenceLoad:
-    """The static hub load (6,) a posterior's angles refer to (issue 25; docs/identification.md,
+    """The static hub load (6,) a posterior's angles refer to (docs/identification.md,
     "A ground calibration carried to the flight's trim"): the mean of the accepted known-load
     windows' loads (a restored one counts as one window), or the trim it was last carried to;
     None: not known (a configured start, a file written before it was saved)."""
 
     def __init__(self, load: np.ndarray | None = None, windows: int = 0) -> None:
         self.load, self.windows = load, windows
-        # the covariance the angles' load dependence adds at this reference (LoadSpread,
-        # issue 25): set at each accepted known-load run of a rig with a sensitivity bound
+        # the covariance the angles' load dependence adds at this reference (LoadSpread):
+        # set at each accepted known-load run of a rig with a sensitivity bound
         self.cov: np.ndarray | None = None
 
     @classmethod
@@ -1137,7 +958,7 @@ class ReferenceLoad:
 
 def move_reference(post: "SequentialPosterior", reference: np.ndarray,
                    sensitivity: np.ndarray | None) -> tuple[np.ndarray, float] | None:
-    """Carry ``post`` to the angles at another static load (a flight's trim, issue 25):
+    """Carry ``post`` to the angles at another static load (a flight's trim):
     P + σ_L² I with σ_L² = Σ_k (s_k Δ_k)² for the move Δ from the load it referred to
     (load_excursion_variance; the rig's 1-σ bound on the angles' load sensitivity), the mean
     unchanged (the bound's sign is unknown). Returns (Δ, σ_L) when it moved a reference it
@@ -1162,7 +983,7 @@ def move_reference(post: "SequentialPosterior", reference: np.ndarray,
 
 class LoadReference:
     """The reference (trim) load of filter-error windows and each window's excursion from it
-    (docs/identification.md, "Load excursions", issue 25): the median of the last
+    (docs/identification.md, "Load excursions"): the median of the last
     LOAD_REFERENCE_WINDOWS windows' static loads (bounded)."""
 
     def __init__(self, sensitivity: np.ndarray | None) -> None:
@@ -1200,9 +1021,12 @@ class LoadReference:
 class PeriodicIdentification:
     """Windows of content-filtered data → identification → posterior (model §7, periodic runs).
 
-    Size: about 340 lines, kept whole: ``run_window`` is one sequence (the window's problem,
-    the solve, the checks, the judgement) and its pieces are already their own
-    (:class:`WindowMoments`, :func:`filter_error_decision`, the structure and drift tests).
+    The shared skeleton of a window's run (:meth:`run_window`: the window's input and its
+    settling, the prior, the solve, the judgement, the bookkeeping after it); each mode is
+    its own subclass — :class:`KnownLoadIdentification`, :class:`FilterErrorIdentification` —
+    owning its problem, its solve and its checks. The class is chosen at the door: the
+    constructor called with ``mode=...`` makes that mode's class (:data:`IDENTIFICATIONS`),
+    so the mode is never compared inside a run.
 
     Known-load mode: ``run_window(z, T, H)``; filter-error mode: ``run_window(z, T)`` with the
     calibration filter's ``Phi, K, J, Qd`` (``design``: any object with those attributes and
@@ -1230,7 +1054,7 @@ class PeriodicIdentification:
     content_settle_samples: int = 0
     gap_samples: int | None = None
     # filter error: more than this fraction of the window missing in short runs (dropped
-    # frames) is stale_input, detail "scattered_samples" (issue 29; docs/identification.md)
+    # frames) is stale_input, detail "scattered_samples" (docs/identification.md)
     scattered_fraction: float = math.inf
     # known loads: the curvature index (estimator.curvature) above which a run is held
     nonlinearity_limit: float = math.inf
@@ -1241,16 +1065,18 @@ class PeriodicIdentification:
     robust_filter_error: bool = True  # False: model §7's decisions only (for comparison)
     false_alarm: float = 1e-3  # the innovation test's
     structure_test: bool = True  # known loads: test constant angles (estimator.structure)
-    # filter error (issue 25): a bound (1 σ, rad per N / N·m) on the angles' move per unit of
-    # static hub load away from the reference load — the median of the last
-    # LOAD_REFERENCE_WINDOWS windows' static loads (the trim); None or zeros: constant angles
+    # a bound (1 σ, rad per N / N·m) on the angles' move per unit of static hub load away from
+    # the reference load — the median of the last LOAD_REFERENCE_WINDOWS windows' static
+    # loads (the trim; filter error) or the accepted windows' mean (known loads: the load
+    # spread); None or zeros: the angles do not depend on the load
     angle_load_sensitivity: np.ndarray | None = None
     filter_state: FilterErrorState | None = field(default=None, init=False)
     _settle_pending: int = field(default=0, init=False)
     _last_end: int | None = field(default=None, init=False)
     # filter error: the last window's problem and the θ its run ended at (the prior mean when
     # the run was not sound), for what reads the window's information afterwards
-    # (estimator.flight_advice, issue 25 item 5); None after a known-load or stale window
+    # (estimator.flight_advice: what would determine the rest); None after a known-load or
+    # stale window
     last_window: tuple[FilterErrorProblem, np.ndarray] | None = field(default=None, init=False)
     # the drift bound's fit in use (DriftTest look) and the one held windows started from
     _bound_look: int | None = field(default=None, init=False)
@@ -1262,54 +1088,276 @@ class PeriodicIdentification:
                                                                            init=False)
     _t_mid: float | None = field(default=None, init=False)  # the running window's middle
 
+    def __new__(cls, *args: Any, **kw: Any) -> "PeriodicIdentification":
+        # the door: PeriodicIdentification(mode=...) is that mode's class
+        if cls is PeriodicIdentification:
+            mode = kw.get("mode", args[2] if len(args) > 2 else None)
+            if mode not in IDENTIFICATIONS:
+                raise ValueError(f"mode must be one of {MODES}")
+            cls = IDENTIFICATIONS[Mode(mode)]
+        return super().__new__(cls)
+
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}")
-        if self.mode == "filter_error" and self.design is None:
-            raise ValueError("filter-error mode needs the calibration filter design")
+        self.mode = Mode(self.mode)
         self.par = Parameterisation(self.model, self.posterior.names, self.alpha_base,
                                     moment_floor=self.moment_floor,
-                                    known_loads=self.mode == "known_loads")
+                                    known_loads=self.mode == Mode.KNOWN_LOADS)
         self._load_reference = LoadReference(self.angle_load_sensitivity)
-        sens = self._load_reference.sensitivity
-        self._spread = (LoadSpread(self.posterior, self.par, sens)
-                        if self.mode == "known_loads" and sens is not None else None)
+        self._spread: LoadSpread | None = None
         self.structure: StructureTest | None = None
-        if self.mode == "known_loads" and self.structure_test and self.content == "static":
-            # the test compares window means: static content only (docs/identification.md)
-            self.structure = StructureTest(self.model, self.moment_floor)
         self.mark_discontinuity()
-
-    def filter_error_checks(self, prob: FilterErrorProblem, theta: np.ndarray
-                            ) -> FilterErrorChecks:
-        """The innovation test and the sandwich score covariance of a filter-error window
-        at the run's estimate θ (docs/identification.md, the information rule)."""
-        e, de, B = prob.residual_series(theta)
-        W = self.par.terms(theta).W
-        d = self.design
-        n = max(int(prob.n_scored), 1)
-        gamma = innovation_autocovariance(d.Phi, d.K, d.J, d.Qd, W, self.content_sos,
-                                          max(n, SPECTRUM_SEGMENT))
-        test = innovation_spectrum_test(e, prob.scored, gamma, self.false_alarm)
-        lag = int(self.content_settle_samples) + self.filter_settle_samples
-        Q_data = score_covariance_hac(e, de, B, lag)
-        Q_model = predicted_score_covariance(de, B, gamma)
-        return FilterErrorChecks(test, Q_data, Q_model)
 
     @property
     def filter_settle_samples(self) -> int:
-        if self.mode != "filter_error":
-            return 0
-        return int(math.ceil(self.settle_time_constants * self.design.slowest_time_constant_s
-                             * self.fs))
+        """Samples the calibration filter takes to settle (filter error; 0 otherwise)."""
+        return 0
 
     def mark_discontinuity(self) -> None:
         """The start or a gap longer than the configured one: content filter and calibration
         filter both settle at the start of the next window."""
         self._settle_pending = int(self.content_settle_samples) + self.filter_settle_samples
 
+    def alpha(self) -> np.ndarray:
+        """The 14 angles of the current posterior."""
+        return self.par.alpha(self.posterior.theta)
+
+    def run_window(
+        self,
+        z: np.ndarray,
+        T: np.ndarray,
+        H: np.ndarray | None = None,
+        q: np.ndarray | None = None,
+        *,
+        seq0: int,
+        valid: np.ndarray | None = None,
+        t: float | None = None,
+        arrived_seq: int | None = None,
+        dpsi: np.ndarray | None = None,
+        static_load: np.ndarray | None = None,
+    ) -> AnglesRecord:
+        """One window. ``dpsi`` (filter error, azimuth mode): the rotor's measured turn since
+        the previous sample, per sample (NaN: the design's Ω) — the calibration filter's
+        harmonic states turn with it (``filters.azimuth_transition``).
+        ``static_load``: the window's mean static hub-load estimate (6,): in filter-error
+        mode for the load excursion and the reference move (``angle_load_sensitivity``), in
+        known-load mode (accepted) for the posterior's reference load."""
+        w = _Window.of(self, z, T, H, q, seq0, valid, static_load, dpsi)
+        moved = self._carry_reference(static_load)
+        post = self.posterior
+        verdict = None if self.structure is None else self.structure.last
+        self.last_window = None
+        stale = input_verdict(w.missing, post.stale_fraction, *self._scattered(w))
+        if stale is not None:
+            # what is left determines too little (below, the run uses the samples it has —
+            # those lacking an input are left out, the information reduced so)
+            rec = post.update(None, window=w.span, mode=self.mode, content=self.content, t=t,
+                              missing_fraction=w.missing, structure=verdict, dt=w.dt,
+                              stale=stale)
+            rec.samples_used = 0
+            return rec
+        prob, moments, verdict = self._problem(w, verdict)
+        theta_p, P_p = post.prior(w.dt)
+        self._settle_pending = max(self._settle_pending - w.n, 0)
+        res, lm_prior, gate, solved = self._solve(prob, moments, theta_p, P_p, w.dt)
+        judged = self._checks(solved, res, lm_prior, verdict)
+        rec = post.update(res, window=w.span, mode=self.mode, content=self.content,
+                          t=t, missing_fraction=w.missing,
+                          apply_delay_samples=self.apply_delay_samples,
+                          arrived_seq=arrived_seq, moments=moments, dt=w.dt, gate=gate,
+                          **judged)
+        if moved is not None:
+            rec.reference_move = {"delta": [float(x) for x in moved[0]], "sigma": moved[1]}
+        self._after(rec, res, moments, w)
+        rec.samples_used = int(prob.scored.sum() if isinstance(prob, FilterErrorProblem)
+                               else np.count_nonzero(w.scored))
+        if rec.accepted:
+            # new angles applied: the calibration filter settles again
+            self._settle_pending = max(self._settle_pending, self.filter_settle_samples)
+        return rec
+
+    # ------------------------------------------------------------- what each mode supplies
+    def _carry_reference(self, static_load: np.ndarray | None
+                         ) -> tuple[np.ndarray, float] | None:
+        """Before the prior: carry the posterior to the window's reference load (filter
+        error); the move (Δ, σ_L), or None."""
+        return None
+
+    def _scattered(self, w: "_Window") -> tuple[Callable[[], float] | None, float]:
+        """The window's fraction missing in short gaps (a callable, evaluated only when the
+        window is otherwise complete enough) and its limit; (None, ∞): not tested."""
+        return None, math.inf
+
+    def _problem(self, w: "_Window", verdict: StructureVerdict | None
+                 ) -> tuple[Any, tuple[np.ndarray, int] | None, StructureVerdict | None]:
+        """The window's likelihood problem, its known-load moments (G, scored samples; None
+        in filter-error mode) and the structure verdict the run is judged with."""
+        raise NotImplementedError
+
+    def _solve(self, prob: Any, moments: tuple[np.ndarray, int] | None, theta_p: np.ndarray,
+               P_p: np.ndarray, dt: float
+               ) -> "_Solved":
+        """The run: (result, the prior its search used, the caller's gate (ν, d) or None,
+        the problem it solved)."""
+        res = levenberg_marquardt(prob, theta_p, P_p, max_iterations=self.max_iterations,
+                                  max_lag=self._max_lag())
+        return res, (theta_p, P_p), None, prob
+
+    def _max_lag(self) -> int:
+        return int(math.ceil(5.0 * self.correlation_time_s * self.fs))
+
+    def _checks(self, prob: Any, res: IdentificationResult,
+                lm_prior: tuple[np.ndarray, np.ndarray],
+                verdict: StructureVerdict | None) -> dict[str, Any]:
+        """The mode's own checks of a run, as the judge's keyword arguments."""
+        return {"structure": verdict}
+
+    def _after(self, rec: AnglesRecord, res: IdentificationResult,
+               moments: tuple[np.ndarray, int] | None, w: "_Window") -> None:
+        """The mode's bookkeeping after the judgement."""
+
+
+@dataclass
+class _Window:
+    """One window's span, its settling and its input fractions (the skeleton's first step)."""
+
+    n: int
+    span: tuple[int, int]
+    dt: float  # the random-walk time since the previous window
+    valid: np.ndarray
+    scored: np.ndarray
+    missing: float
+    gap: int
+    z: np.ndarray
+    T: np.ndarray
+    H: np.ndarray | None
+    q: np.ndarray | None
+    static_load: np.ndarray | None
+    dpsi: np.ndarray | None
+
+    @classmethod
+    def of(cls, ident: PeriodicIdentification, z: np.ndarray, T: np.ndarray,
+           H: np.ndarray | None, q: np.ndarray | None, seq0: int, valid: np.ndarray | None,
+           static_load: np.ndarray | None, dpsi: np.ndarray | None) -> "_Window":
+        N = len(T)
+        valid = np.ones(N, bool) if valid is None else np.asarray(valid, bool)
+        seq1 = seq0 + N - 1
+        dt = 0.0 if ident._last_end is None else (seq1 - ident._last_end) / ident.fs
+        ident._last_end = seq1
+        gap = N + 1 if ident.gap_samples is None else ident.gap_samples
+        # a gap inside the window settles the content filter (and the calibration filter)
+        scored = valid & scored_mask(valid, int(ident.content_settle_samples)
+                                     + ident.filter_settle_samples, gap, False)
+        scored[: ident._settle_pending] = False
+        missing = 1.0 - float(valid.mean()) if N else 1.0
+        return cls(N, (seq0, seq1), dt, valid, scored, missing, gap, z, T, H, q, static_load,
+                   dpsi)
+
+
+class KnownLoadIdentification(PeriodicIdentification):
+    """Known-load windows (the balance measures H): the re-linearised exact likelihood of the
+    windows since the anchor, the curvature check, the structure and drift tests, and the
+    load spread of the windows' loads."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        sens = self._load_reference.sensitivity
+        self._spread = None if sens is None else LoadSpread(self.posterior, self.par, sens)
+        self._own: tuple[np.ndarray, int] | None = None  # the window's own moments
+        self._nonlinearity: float | None = None  # the last run's curvature index
+        if self.structure_test and self.content == "static":
+            # the test compares window means: static content only (docs/identification.md)
+            self.structure = StructureTest(self.model, self.moment_floor)
+
+    def _problem(self, w: _Window, verdict: StructureVerdict | None
+                 ) -> tuple[Any, tuple[np.ndarray, int] | None, StructureVerdict | None]:
+        post = self.posterior
+        if self.structure is not None:
+            x = self.par.stack(w.z, w.T, w.H, w.q)[w.scored]
+            # the window's middle (s) for the drift test
+            t_mid = self._t_mid = 0.5 * (w.span[0] + w.span[1]) / self.fs
+            verdict = self.structure.add_window(x, self.par.alpha(post.theta), t=t_mid)
+            self._follow_drift(verdict, t_mid)
+        if w.H is None:
+            raise ValueError("a known-load window needs its known loads H")
+        window = KnownLoadProblem(self.par, w.z, w.T, w.H, w.q, scored=w.scored)
+        self._own = (window.G, window.n_scored)  # this window's alone (LoadSpread)
+        prob: KnownLoadProblem | AccumulatedKnownLoadProblem = window
+        if post.relinearise and post.moments.G_held is not None:
+            # windows held back as not identifiable on their own count with this one
+            prob = window.with_moments(post.moments.G_held, post.moments.n_held)
+        return prob, (prob.G, prob.n_scored), verdict
+
+    def _solve(self, prob: Any, moments: tuple[np.ndarray, int] | None, theta_p: np.ndarray,
+               P_p: np.ndarray, dt: float
+               ) -> "_Solved":
+        """Re-linearised (the posterior's ``relinearise``): solve the exact likelihood of
+        every window since the anchor, starting from the previous posterior mean, then judge
+        the run as this window's (gate and information against the previous posterior, as
+        model §7 says)."""
+        post = self.posterior
+        if moments is None or not post.relinearise:
+            return super()._solve(prob, moments, theta_p, P_p, dt)
+        window_prob = prob
+        theta_a, P_a = post.anchor_prior(dt)
+        if post.moments.G_acc is not None:
+            if isinstance(window_prob, KnownLoadProblem):
+                prob = window_prob.with_moments(post.moments.G_acc, post.moments.n_acc)
+            elif isinstance(window_prob, AccumulatedKnownLoadProblem):
+                prob = window_prob.window.with_moments(
+                    window_prob.G_extra + post.moments.G_acc,
+                    window_prob.n_scored - window_prob.n_series + post.moments.n_acc)
+        res = levenberg_marquardt(prob, theta_a, P_a, max_iterations=self.max_iterations,
+                                  max_lag=self._max_lag(), start=theta_p)
+        M_w = _window_information(window_prob, res)
+        res = replace(res, prior_mean=theta_p, prior_cov=P_p, information=M_w,
+                      n_scored=window_prob.n_scored,
+                      status=res.status if np.all(np.isfinite(M_w)) else "diverged")
+        gate = None
+        if res.sound:
+            gate = likelihood_ratio_gate(post, self.par, self.max_iterations, window_prob,
+                                         res, theta_a, P_a, theta_p, P_p)
+        return res, (theta_a, P_a), gate, prob
+
+    def _checks(self, prob: Any, res: IdentificationResult,
+                lm_prior: tuple[np.ndarray, np.ndarray],
+                verdict: StructureVerdict | None) -> dict[str, Any]:
+        nonlinear = None
+        if math.isfinite(self.nonlinearity_limit) and res.sound and lm_prior[1] is not None:
+            # does the run's Gaussian summary hold? (estimator.curvature: the cold start's
+            # curved valley; its window's information is held for the next run)
+            nonlinear = nonlinearity(prob, lm_prior[0], lm_prior[1], res.theta, res.P,
+                                     math.sqrt(float(np.max(np.diag(self.posterior.P0)))))
+        self._nonlinearity = nonlinear
+        held = nonlinear is not None and nonlinear > self.nonlinearity_limit
+        if self.structure is not None and res.sound and not held:
+            # a cold start's look had no verdict: judge it at the run's own estimate, before
+            # the run is accepted on angles the structure test has not seen
+            verdict = self.structure.rejudge(res.theta)
+        return {"structure": verdict, "nonlinear": held,
+                "nonlinearity_limit": self.nonlinearity_limit}
+
+    def _after(self, rec: AnglesRecord, res: IdentificationResult,
+               moments: tuple[np.ndarray, int] | None, w: _Window) -> None:
+        post = self.posterior
+        rec.nonlinearity = self._nonlinearity
+        if rec.accepted:
+            post.reference.note(w.static_load)
+        if self._spread is not None and moments is not None and self._own is not None:
+            self._spread.after(rec, self._own, w.static_load)
+            rec.P = post.reference.reported(post.P)  # the record states the spread it added
+        if self.structure is not None:
+            self._structure_after(rec)
+        if rec.accepted:
+            bounded = self._bound_look is not None and post.trend is None
+            self._accepted = (post.theta.copy(), post.P.copy(),
+                              self._t_mid if bounded else None)
+        elif rec.reason == Reason.RESET:
+            self._accepted = None
+
     def _follow_drift(self, verdict: StructureVerdict, t: float) -> None:
-        """The trend the posterior tracks with (issue 27): the drift test's while it selects
+        """The trend the posterior tracks with : the drift test's while it selects
         it; none once the test finds the angles constant again (testable, not rejected) or
         restarts (a step is not a trend); otherwise the one in force stays."""
         if self.structure is None:  # (only called with a structure test)
@@ -1332,7 +1380,7 @@ class PeriodicIdentification:
             post.set_trend(None)
         drift = self.structure.drift
         # under the trend its prediction; before one is selected, the prediction under the
-        # drift the windows cannot exclude (DriftTest.bounded_prediction, issue 27)
+        # drift the windows cannot exclude (DriftTest.bounded_prediction)
         pred = None
         self._bound_look = None
         if drift is not None and post.trend is not None:
@@ -1356,7 +1404,7 @@ class PeriodicIdentification:
         """The bound's prediction (:meth:`DriftTest.predict_bounded`), kept from its fit where
         that fit is informative and replaced by the last accepted posterior (moved by the
         bound's drift since, :meth:`DriftTest.bounded_shift`) where the fit of window means
-        alone is far wider — :func:`bounded_against_posterior` (A4 constant arm, seed 68: σ 14°
+        alone is far wider — :func:`bounded_against_posterior` (the drift benchmark's constant arm, seed 68: σ 14°
         in a direction the posterior held to 0.2°, and a run re-solved into another valley)."""
         if look is None:
             return None
@@ -1374,7 +1422,7 @@ class PeriodicIdentification:
         ref = theta[idx] + sh[0], P_acc[np.ix_(idx, idx)] + sh[1]
         # the fit re-linearised at the reference (DriftTest.predict_bounded_at): the constant
         # fit of the means alone may be far off where only the posterior knows the angles,
-        # and its Jacobians there bend the directions the means do determine (A4 constant
+        # and its Jacobians there bend the directions the means do determine (the drift benchmark's constant
         # arm, seed 79: 8.7° off, the run accepted at χ²₁₄ 83). Once: re-linearising again
         # at the combination can follow the means back into their valley (seed 79, 184).
         again = drift.predict_bounded_at(t, look, ref[0])
@@ -1387,8 +1435,8 @@ class PeriodicIdentification:
                           pred: tuple[np.ndarray, np.ndarray] | None,
                           at: np.ndarray | None) -> tuple[np.ndarray, np.ndarray] | None:
         """``pred`` with the spread of its windows' loads added where the rig bounds the
-        angles' load sensitivity (:meth:`DriftTest.bounded_load_spread`, issue 25): the fit
-        of window means held at different loads knows nothing of it (A6 rig_ground_load:
+        angles' load sensitivity (:meth:`DriftTest.bounded_load_spread`): the fit
+        of window means held at different loads knows nothing of it (the flight benchmark's rig_ground_load arm:
         a flight run at χ²₁₄ 59.0 against 52.3 after its ground calibration's prior was the
         bounded prediction)."""
         if pred is None or at is None or self._spread is None:
@@ -1397,198 +1445,122 @@ class PeriodicIdentification:
                                       self.posterior.reference.load)
         return pred if C is None else (pred[0], pred[1] + C)
 
-    def alpha(self) -> np.ndarray:
-        """The 14 angles of the current posterior."""
-        return self.par.alpha(self.posterior.theta)
-
-    def run_window(
-        self,
-        z: np.ndarray,
-        T: np.ndarray,
-        H: np.ndarray | None = None,
-        q: np.ndarray | None = None,
-        *,
-        seq0: int,
-        valid: np.ndarray | None = None,
-        t: float | None = None,
-        arrived_seq: int | None = None,
-        dpsi: np.ndarray | None = None,
-        static_load: np.ndarray | None = None,
-    ) -> AnglesRecord:
-        """One window. ``dpsi`` (filter error, azimuth mode): the rotor's measured turn since
-        the previous sample, per sample (NaN: the design's Ω) — the calibration filter's
-        harmonic states turn with it (``filters.azimuth_transition``, issue 25).
-        ``static_load``: the window's mean static hub-load estimate (6,): in filter-error
-        mode for the load excursion and the reference move (``angle_load_sensitivity``), in
-        known-load mode (accepted) for the posterior's reference load."""
-        N = len(T)
-        valid = np.ones(N, bool) if valid is None else np.asarray(valid, bool)
-        seq1 = seq0 + N - 1
-        dt = 0.0 if self._last_end is None else (seq1 - self._last_end) / self.fs
-        self._last_end = seq1
-        moved = None
-        if self.mode == "filter_error":
-            # the trim the window's angles refer to; a posterior of another load (a ground
-            # calibration) is carried there first (move_reference)
-            ref = self._load_reference.observe(static_load)
-            if ref is not None:
-                moved = move_reference(self.posterior, ref, self._load_reference.sensitivity)
-        theta_p, P_p = self.posterior.prior(dt)
-        missing = 1.0 - float(valid.mean()) if N else 1.0
-        window = (seq0, seq1)
-        verdict = None if self.structure is None else self.structure.last
-        max_lag = int(math.ceil(5.0 * self.correlation_time_s * self.fs))
-        gap = N + 1 if self.gap_samples is None else self.gap_samples
-        # a gap inside the window settles the content filter (and the calibration filter)
-        scored = valid & scored_mask(valid, int(self.content_settle_samples)
-                                     + self.filter_settle_samples, gap, False)
-        scored[: self._settle_pending] = False
-        self.last_window = None
-        if missing > self.posterior.stale_fraction:
-            # what is left determines too little (issue 29: below, the run uses the samples
-            # it has — those lacking an input are left out, the information reduced so)
-            rec = self.posterior.update(None, window=window, mode=self.mode,
-                                        content=self.content, t=t, missing_fraction=missing,
-                                        structure=verdict, dt=dt)
-            rec.samples_used = 0
-            return rec
-        if self.mode == "filter_error" and scattered_missing_fraction(
-                valid, gap) > self.scattered_fraction:
-            # each held sample perturbs the content at the valid samples after it, which the
-            # calibration filter's model does not hold: the estimate is biased (measured:
-            # flight rig, 10 % of cell_A dropped, χ²₁₄ up to 134 against the window's truth)
-            rec = self.posterior.update(None, window=window, mode=self.mode,
-                                        content=self.content, t=t, missing_fraction=1.0,
-                                        structure=verdict, dt=dt)
-            rec.detail = "scattered_samples"
-            rec.samples_used = 0
-            return rec
+    def _structure_after(self, rec: AnglesRecord) -> None:
+        """The bound's fit the held windows' next run starts from, and the structure the
+        hub-load estimate uses (docs/identification.md): the selected one, while it stays
+        selected; none once the constant model fits again; while the test has not
+        (re)selected one, the one in force stays (a restored one)."""
+        assert self.structure is not None
         post = self.posterior
-        moments = None
-        prob: KnownLoadProblem | AccumulatedKnownLoadProblem | FilterErrorProblem
-        if self.mode == "known_loads":
-            if self.structure is not None:
-                x = self.par.stack(z, T, H, q)[scored]
-                # the window's middle (s) for the drift test
-                t_mid = self._t_mid = 0.5 * (seq0 + seq1) / self.fs
-                verdict = self.structure.add_window(x, self.par.alpha(post.theta), t=t_mid)
-                self._follow_drift(verdict, t_mid)
-                theta_p, P_p = post.prior(dt)
-            if H is None:
-                raise ValueError("a known-load window needs its known loads H")
-            prob = KnownLoadProblem(self.par, z, T, H, q, scored=scored)
-            own = (prob.G, prob.n_scored)  # this window's alone (LoadSpread)
-            if post.relinearise and post.moments.G_held is not None:
-                # windows held back as not identifiable on their own count with this one
-                prob = prob.with_moments(post.moments.G_held, post.moments.n_held)
-            moments = (prob.G, prob.n_scored)
-        else:
-            Phi_n = None
-            if dpsi is not None:
-                from .filters import azimuth_transition
+        if post.moments.windows_held == 0 or post.prediction is None:
+            self._held_look = None
+        elif self._held_look is None:
+            self._held_look = self._bound_look
+        v = self.structure.last
+        if v.selected is not None:
+            post.structure_fit = fit_payload(v.selected, self.model)
+        elif v.structure == "constant":
+            post.structure_fit = None
+        rec.structure_fit = post.structure_fit
 
-                d = self.design
-                dp = np.asarray(dpsi, float)
-                Phi_n = azimuth_transition(d, np.where(np.isfinite(dp), dp, d.omega * d.dt))
-            prob = FilterErrorProblem(
-                self.par, self.design.Phi, self.design.K, self.design.J, self.design.Qd, z, T, q,
-                valid=valid, state=self.filter_state, discontinuity=False, Phi_n=Phi_n)
-            prob.scored &= scored
-            prob.n_scored = int(prob.scored.sum())
-        self._settle_pending = max(self._settle_pending - N, 0)
-        gate = None
-        if moments is not None and post.relinearise:
-            # re-linearise: solve the exact likelihood of every window since the anchor,
-            # starting from the previous posterior mean, then judge the run as this window's
-            # (gate and information against the previous posterior, as model §7 says)
-            window_prob = prob
-            theta_a, P_a = post.anchor_prior(dt)
-            if post.moments.G_acc is not None:
-                if isinstance(window_prob, KnownLoadProblem):
-                    prob = window_prob.with_moments(post.moments.G_acc, post.moments.n_acc)
-                elif isinstance(window_prob, AccumulatedKnownLoadProblem):
-                    prob = window_prob.window.with_moments(
-                        window_prob.G_extra + post.moments.G_acc,
-                        window_prob.n_scored - window_prob.n_series + post.moments.n_acc)
-            res = levenberg_marquardt(prob, theta_a, P_a, max_iterations=self.max_iterations,
-                                      max_lag=max_lag, start=theta_p)
-            lm_prior = (theta_a, P_a)
-            if np.all(np.isfinite(res.theta)):
-                try:
-                    M_ev = window_prob.evaluate(res.theta).information
-                    M_w = np.full_like(res.information, np.nan) if M_ev is None else M_ev
-                except (np.linalg.LinAlgError, ValueError, FloatingPointError):
-                    M_w = np.full_like(res.information, np.nan)
-            else:
-                M_w = np.full_like(res.information, np.nan)
-            res = replace(res, prior_mean=theta_p, prior_cov=P_p, information=M_w,
-                          n_scored=window_prob.n_scored,
-                          status=res.status if np.all(np.isfinite(M_w)) else "diverged")
-            if res.sound:
-                gate = likelihood_ratio_gate(post, self.par, self.max_iterations, window_prob,
-                                             res, theta_a, P_a, theta_p, P_p)
-        else:
-            res = levenberg_marquardt(prob, theta_p, P_p, max_iterations=self.max_iterations,
-                                      max_lag=max_lag)
-            lm_prior = (theta_p, P_p)
-        nonlinear = None
-        if (self.mode == "known_loads" and math.isfinite(self.nonlinearity_limit)
-                and res.sound and lm_prior[1] is not None):
-            # does the run's Gaussian summary hold? (estimator.curvature: the cold start's
-            # curved valley; its window's information is held for the next run)
-            nonlinear = nonlinearity(prob, lm_prior[0], lm_prior[1], res.theta, res.P,
-                                     math.sqrt(float(np.max(np.diag(post.P0)))))
-        if (self.structure is not None and self.mode == "known_loads" and res.sound
-                and not (nonlinear is not None and nonlinear > self.nonlinearity_limit)):
-            # a cold start's look had no verdict: judge it at the run's own estimate, before
-            # the run is accepted on angles the structure test has not seen
-            verdict = self.structure.rejudge(res.theta)
-        if isinstance(prob, FilterErrorProblem):
-            self.last_window = (prob, res.theta if res.sound else theta_p)
+
+
+class FilterErrorIdentification(PeriodicIdentification):
+    """Filter-error windows (flight: the calibration filter predicts the loads): the filter's
+    state and sensitivities carried from window to window, the reference (trim) load and the
+    window's excursion from it, and the information rule's checks (the innovation test and
+    the sandwich score covariance)."""
+
+    def __post_init__(self) -> None:
+        if self.design is None:
+            raise ValueError("filter-error mode needs the calibration filter design")
+        super().__post_init__()
+
+    @property
+    def filter_settle_samples(self) -> int:
+        return int(math.ceil(self.settle_time_constants * self.design.slowest_time_constant_s
+                             * self.fs))
+
+    def filter_error_checks(self, prob: FilterErrorProblem, theta: np.ndarray
+                            ) -> FilterErrorChecks:
+        """The innovation test and the sandwich score covariance of a filter-error window
+        at the run's estimate θ (docs/identification.md, the information rule)."""
+        e, de, B = prob.residual_series(theta)
+        W = self.par.terms(theta).W
+        d = self.design
+        n = max(int(prob.n_scored), 1)
+        gamma = innovation_autocovariance(d.Phi, d.K, d.J, d.Qd, W, self.content_sos,
+                                          max(n, SPECTRUM_SEGMENT))
+        test = innovation_spectrum_test(e, prob.scored, gamma, self.false_alarm)
+        lag = int(self.content_settle_samples) + self.filter_settle_samples
+        Q_data = score_covariance_hac(e, de, B, lag)
+        Q_model = predicted_score_covariance(de, B, gamma)
+        return FilterErrorChecks(test, Q_data, Q_model)
+
+    def _carry_reference(self, static_load: np.ndarray | None
+                         ) -> tuple[np.ndarray, float] | None:
+        # the trim the window's angles refer to; a posterior of another load (a ground
+        # calibration) is carried there first (move_reference)
+        ref = self._load_reference.observe(static_load)
+        if ref is None:
+            return None
+        return move_reference(self.posterior, ref, self._load_reference.sensitivity)
+
+    def _scattered(self, w: _Window) -> tuple[Callable[[], float] | None, float]:
+        # each held sample perturbs the content at the valid samples after it, which the
+        # calibration filter's model does not hold: the estimate is biased (measured:
+        # flight rig, 10 % of cell_A dropped, χ²₁₄ up to 134 against the window's truth)
+        return (lambda: scattered_missing_fraction(w.valid, w.gap)), self.scattered_fraction
+
+    def _problem(self, w: _Window, verdict: StructureVerdict | None
+                 ) -> tuple[Any, tuple[np.ndarray, int] | None, StructureVerdict | None]:
+        Phi_n = None
+        if w.dpsi is not None:
+            from .filters import azimuth_transition
+
+            d = self.design
+            dp = np.asarray(w.dpsi, float)
+            Phi_n = azimuth_transition(d, np.where(np.isfinite(dp), dp, d.omega * d.dt))
+        prob = FilterErrorProblem(
+            self.par, self.design.Phi, self.design.K, self.design.J, self.design.Qd, w.z, w.T,
+            w.q, valid=w.valid, state=self.filter_state, discontinuity=False, Phi_n=Phi_n)
+        prob.scored &= w.scored
+        prob.n_scored = int(prob.scored.sum())
+        return prob, None, verdict
+
+    def _checks(self, prob: Any, res: IdentificationResult,
+                lm_prior: tuple[np.ndarray, np.ndarray],
+                verdict: StructureVerdict | None) -> dict[str, Any]:
+        self.last_window = (prob, res.theta if res.sound else lm_prior[0])
         checks = None
-        if isinstance(prob, FilterErrorProblem) and self.robust_filter_error and res.sound:
+        if self.robust_filter_error and res.sound:
             checks = self.filter_error_checks(prob, res.theta)
             self._load_reference.judge(checks)
-        rec = post.update(res, window=window, mode=self.mode, content=self.content,
-                          t=t, missing_fraction=missing,
-                          apply_delay_samples=self.apply_delay_samples,
-                          arrived_seq=arrived_seq, moments=moments, dt=dt, gate=gate,
-                          checks=checks, structure=verdict,
-                          nonlinear=nonlinear is not None and nonlinear > self.nonlinearity_limit)
-        rec.nonlinearity = nonlinear
-        if moved is not None:
-            rec.reference_move = {"delta": [float(x) for x in moved[0]], "sigma": moved[1]}
-        if self.mode == "known_loads" and rec.accepted:
-            post.reference.note(static_load)
-        if self._spread is not None and moments is not None:
-            self._spread.after(rec, own, static_load)
-            rec.P = post.reference.reported(post.P)  # the record states the spread it added
-        if self.structure is not None:
-            # the bound's fit the held windows' next run starts from (windows since it held)
-            if post.moments.windows_held == 0 or post.prediction is None:
-                self._held_look = None
-            elif self._held_look is None:
-                self._held_look = self._bound_look
-            # the structure the hub-load estimate uses (docs/identification.md): the selected
-            # one, while it stays selected; none once the constant model fits again; while
-            # the test has not (re)selected one, the one in force stays (a restored one)
-            v = self.structure.last
-            if v.selected is not None:
-                self.posterior.structure_fit = fit_payload(v.selected, self.model)
-            elif v.structure == "constant":
-                self.posterior.structure_fit = None
-            rec.structure_fit = self.posterior.structure_fit
-        if self.mode == "filter_error" and res.end_state is not None and res.status != "diverged":
+        return {"structure": verdict, "checks": checks}
+
+    def _after(self, rec: AnglesRecord, res: IdentificationResult,
+               moments: tuple[np.ndarray, int] | None, w: _Window) -> None:
+        if res.end_state is not None and res.status != "diverged":
             self.filter_state = res.end_state
-        rec.samples_used = int(prob.scored.sum() if isinstance(prob, FilterErrorProblem)
-                               else np.count_nonzero(scored))
-        if rec.accepted:
-            bounded = self._bound_look is not None and post.trend is None
-            self._accepted = (post.theta.copy(), post.P.copy(),
-                              self._t_mid if bounded else None)
-        elif rec.reason == "reset":
-            self._accepted = None
-        if rec.accepted:
-            # new angles applied: the calibration filter settles again
-            self._settle_pending = max(self._settle_pending, self.filter_settle_samples)
-        return rec
+
+
+# the class of each identification mode (PeriodicIdentification(mode=...) makes it)
+IDENTIFICATIONS: dict[Mode, type[PeriodicIdentification]] = {
+    Mode.KNOWN_LOADS: KnownLoadIdentification,
+    Mode.FILTER_ERROR: FilterErrorIdentification,
+}
+
+_Solved = tuple[IdentificationResult, tuple[np.ndarray, np.ndarray], tuple[float, int] | None,
+                Any]
+
+
+def _window_information(window_prob: Any, res: IdentificationResult) -> np.ndarray:
+    """The window's own information M at a re-linearised run's estimate (NaN where it cannot
+    be evaluated: the run is then taken as diverged)."""
+    if np.all(np.isfinite(res.theta)):
+        try:
+            M_ev = window_prob.evaluate(res.theta).information
+            return np.full_like(res.information, np.nan) if M_ev is None else M_ev
+        except (np.linalg.LinAlgError, ValueError, FloatingPointError):
+            pass
+    return np.full_like(res.information, np.nan)

@@ -1,4 +1,4 @@
-"""Honest transients: the load filter's lag behind a moving static load (issue 19; model.md
+"""Honest transients: the load filter's lag behind a moving static load (model.md
 §6.1 "Transients").
 
 The fixed-gain load filter (model §6, τ = 0.1 s) models the static hub load as a random

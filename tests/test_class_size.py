@@ -1,9 +1,10 @@
-"""Classes with one job: no class of the package holds more than 300 lines unless it says why.
+"""Classes with one job: no class of the package holds more than 300 lines (no exemption: a
+longer class is split along its jobs, as the identification's skeleton and its per-mode
+classes were).
 
-A class longer than the limit carries a line starting ``Size:`` in its docstring giving the
-reason it stays whole (one sequence that reads best in one place, a table...). The span of a
-class is counted from its ``class`` line (decorators included) to its last line, as ``ast``
-reports it, comments and docstrings included: what a reader has to scroll through.
+The span of a class is counted from its ``class`` line (decorators included) to its last
+line, as ``ast`` reports it, comments and docstrings included: what a reader has to scroll
+through.
 """
 
 import ast
@@ -14,10 +15,6 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("daq", "estimator", "sim_bus", "config", "rsra")
 LIMIT = 300
-# Classes still over the limit whose split is pending, with the reason (each entry must still be
-# over the limit: a split class leaves this list, and the test says so).
-_NOT_YET = "not split yet (issue 27 item 4): the next change splits it along its jobs"
-PENDING: dict[str, str] = {}
 
 
 def class_spans(source: str) -> list[tuple[str, int, int, str]]:
@@ -39,45 +36,32 @@ def class_spans(source: str) -> list[tuple[str, int, int, str]]:
     return spans
 
 
-def has_size_reason(docstring: str) -> bool:
-    return any(line.strip().startswith("Size:") and len(line.strip()) > len("Size:")
-               for line in docstring.splitlines())
-
-
 def oversized(limit: int = LIMIT) -> dict[str, str]:
-    """'path Class' -> 'path:line Class: N lines' for every class over ``limit`` lines
-    without a reason in its docstring."""
+    """'path Class' -> 'path:line Class: N lines' for every class over ``limit`` lines."""
     found = {}
     for package in PACKAGES:
         for path in sorted((ROOT / package).rglob("*.py")):
-            for name, first, count, doc in class_spans(path.read_text()):
-                if count > limit and not has_size_reason(doc):
+            for name, first, count, _ in class_spans(path.read_text()):
+                if count > limit:
                     rel = path.relative_to(ROOT)
                     found[f"{rel} {name}"] = f"{rel}:{first} {name}: {count} lines"
     return found
 
 
-def test_no_class_over_the_limit_without_its_reason():
-    found = oversized()
-    assert [v for k, v in found.items() if k not in PENDING] == [], (
-        f"classes over {LIMIT} lines with no 'Size:' line in their docstring: split them "
-        "along their responsibilities, or say why they stay whole")
-    assert sorted(k for k in PENDING if k not in found) == [], (
-        "split (or excused) classes still listed as pending: remove them from PENDING")
+def test_no_class_over_the_limit():
+    assert list(oversized().values()) == [], (
+        f"classes over {LIMIT} lines: split them along their responsibilities (a skeleton and "
+        "a class per variant, a registry, helpers of their own)")
 
 
-def test_the_measure_sees_a_long_class_and_its_reason():
-    # the measure itself, on made-up sources: a long class is seen, nested ones too, and a
-    # 'Size:' line (with a reason after it) excuses it
+def test_the_measure_sees_a_long_class():
+    # the measure itself, on made-up sources: a long class is seen, nested ones too
     body = "\n".join(f"    x{i} = {i}" for i in range(LIMIT + 5))
     long_class = f"class Big:\n    '''A big one.'''\n{body}\n"
     spans = class_spans(long_class)
     assert spans[0][0] == "Big" and spans[0][2] == LIMIT + 7
     nested = "def f():\n    class Inner:\n        pass\nclass Outer:\n    class In:\n        pass\n"
     assert [s[0] for s in class_spans(nested)] == ["f.<locals>.Inner", "Outer", "Outer.In"]
-    assert not has_size_reason("A big one.")
-    assert not has_size_reason("A big one.\n\nSize:")
-    assert has_size_reason("A big one.\n\nSize: one table of forty rows that reads best whole.")
 
 
 @pytest.mark.parametrize("limit", [LIMIT])

@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 
 from rsra.daq.runtime.reasons import explain, input_labels
+from rsra.estimator.judgement import GATE_PROBABILITY, gate_limit
+from rsra.estimator.verdict import Detail, Reason, Verdict
 
 N = 1000
 
@@ -65,9 +67,14 @@ def test_not_converged_gives_iterations_the_cost_trend_and_which_way_it_went(cfg
     assert "barely moves" in explain(flat, {"T": []}, idc, ())[1]
 
 
+def _gate(dof, probability=GATE_PROBABILITY):
+    return Verdict(Reason.INCONSISTENT, Detail.GATE, gate_limit(probability, dof), 80.0, dof)
+
+
 @pytest.mark.parametrize("reason, detail, kw, words", [
-    ("inconsistent", "gate", dict(nu=80.0, gate_dof=14), "gate ν 80 > 36.1"),
-    ("reset", "gate", dict(nu=80.0, gate_dof=14), "inconsistent runs in a row"),
+    ("inconsistent", "gate", dict(nu=80.0, gate_dof=14, verdict=_gate(14)), "gate ν 80 > 36.1"),
+    ("reset", "gate", dict(nu=80.0, gate_dof=14, verdict=_gate(14)),
+     "inconsistent runs in a row"),
     ("not_identifiable", "information_ratio", dict(information=0.5), "0.5 below"),
     ("out_of_range", "range", dict(run_theta=np.r_[0.3, np.zeros(13)]), "a at +17.2°"),
     ("diverged", "convergence", dict(iterations=3, cost_start=1.0, cost_history=(2.0,)),
@@ -77,3 +84,16 @@ def test_every_rejection_has_its_figures_and_a_hint(cfg, reason, detail, kw, wor
     text, h = explain(_rec(reason, detail=detail, **kw), {"T": []}, cfg.identification, ())
     assert words in text, text
     assert h and "\n" not in text + h
+
+
+def test_the_gate_is_explained_with_the_limit_its_verdict_used(cfg):
+    # a gate at another probability than the module's default: the explanation states the
+    # limit the run was judged by (the verdict's), not one recomputed from a constant
+    loose = _gate(14, probability=0.99)
+    rec = _rec("inconsistent", detail="gate", nu=30.0, gate_dof=14, verdict=loose)
+    text, _ = explain(rec, {"T": []}, cfg.identification, ())
+    assert f"gate ν 30 > {loose.limit:.3g}" in text and "29.1" in text, text
+    assert "0.01" in text, text  # its false-alarm probability, not 10⁻³
+    info = Verdict(Reason.NOT_IDENTIFIABLE, Detail.INFORMATION_RATIO, 0.25)
+    rec = _rec("not_identifiable", detail="information_ratio", information=0.1, verdict=info)
+    assert "min_information 0.25" in explain(rec, {"T": []}, cfg.identification, ())[0]

@@ -121,7 +121,7 @@ def test_the_statistic_is_chi2_with_the_rank_as_dof(model):
         means, counts = np.array([x.mean(0) for x in xs]), np.array([len(x) for x in xs], float)
         fits, info = structure_fits(model, fit_constant(model, alpha, means, counts, 100.0),
                                     means, counts, 100.0, 0.05)
-        ext = fits[STRUCTURES.index("external_load")]
+        ext = fits[list(STRUCTURES).index("external_load")]
         assert 0 < ext.rank <= info["residual_dof"] <= 18 - 14 < ext.nominal
         q3.append(ext.statistic / ext.rank)
     assert abs(np.mean(q3) - 1.0) < 0.4, np.mean(q3)

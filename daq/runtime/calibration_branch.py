@@ -34,7 +34,7 @@ class WindowBuffer:
         # rejected run's explanation (daq.runtime.reasons), never used to decide
         self.missing = np.zeros(n, dtype=np.uint64)
         # the raw (not content-filtered) cell loads and z: the window's mean static load, for
-        # the filter-error load excursion (issue 25)
+        # the filter-error load excursion (the angles' move with the load away from trim)
         self.T_raw = np.zeros((n, 7))
         self.z_raw = np.zeros((n, 6))
         self.count = 0
@@ -130,8 +130,9 @@ class CalibrationBranch:
         Hk = np.asarray(s.known_H, float) if known else np.zeros(6)
         x = np.concatenate([T if measured else np.zeros(7), z if measured else np.zeros(6), Hk])
         # one causal content filter per mode; both see every sample so either can take over.
-        # A sample lacking an input enters as the last complete one, held (issue 29: the
-        # identification leaves it out and uses the samples it has; estimator.content)
+        # A sample lacking an input enters as the last complete one, held (so the filters
+        # keep running; the identification leaves the sample out and uses the ones it has,
+        # estimator.content)
         xk = self._hold["known_loads"].input(x, measured and known)
         xf = self._hold["filter_error"].input(x, measured)
         ck, cf = self.content["known_loads"], self.content["filter_error"]

@@ -1,5 +1,6 @@
 """The periodic identification in its own process (a Python thread would hold the GIL for
-milliseconds and stall the estimator thread; docs/performance.md P5).
+milliseconds and stall the estimator thread past its per-sample deadline;
+docs/performance.md).
 
 The worker owns the sequential posterior and the filter-error state, which continue from
 window to window; the estimator thread sends windows and receives `angles` records. Queues
@@ -27,7 +28,8 @@ import threading
 import time
 import traceback
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from typing import Any
 from dataclasses import replace
 
 import numpy as np
@@ -45,8 +47,26 @@ WORKER_NICE = 19  # a live worker's nice value where SCHED_IDLE is refused (back
 CHECK_INTERVAL_S = 0.2  # real time: how often the worker's liveness is checked (wall clock)
 
 
+class IdentRuns(dict):
+    """The periodic identifications by mode (``runs["known_loads"]``, ...) and the service's
+    own companions of them, declared here rather than set on the estimator's objects."""
+
+    #: the next load conditions to apply (known-load records: ``next_conditions``); None: none
+    next_conditions: Any = None
+    #: what would determine the rest (filter-error records: ``advice``); None: none
+    advice: Any = None
+    #: the structure fit last saved with the posterior (a change is saved at once)
+    saved_structure_fit: Any = None
+
+    @classmethod
+    def of(cls, runs: Mapping[str, Any]) -> "IdentRuns":
+        """``runs`` itself when it is one, else a copy of the mapping without companions."""
+        return runs if isinstance(runs, IdentRuns) else cls(runs)
+
+
 def build_identification(cfg, initial_state=None):
-    """The two periodic identifications (known loads, filter error) over one posterior."""
+    """The two periodic identifications (known loads, filter error) over one posterior:
+    (posterior, :class:`IdentRuns`, the filter-error design cache)."""
     from rsra.daq.rigmodel import design_cache
     from rsra.estimator.posterior import PeriodicIdentification, SequentialPosterior, rig_fingerprint
 
@@ -58,11 +78,8 @@ def build_identification(cfg, initial_state=None):
                                            rig=rig_fingerprint(model.geometry))
     if initial_state is not None:
         post.restore(initial_state)
-    if post.structure_fit is None:  # the structure in force from the start (issue 19)
+    if post.structure_fit is None:  # the structure in force from the start (configured)
         post.structure_fit = idc.structure_fit
-    # (the service's own attributes on the estimator's objects, which do not declare them:
-    # set and read by name, getattr with a default, here and in run_job/handle_job)
-    setattr(post, "saved_structure_fit", post.structure_fit)
     fs = cfg.sample_rate_hz
     common = dict(model=model, posterior=post, fs=fs, moment_floor=idc.moment_floor_Nm,
                   max_iterations=idc.max_iterations,
@@ -85,14 +102,12 @@ def build_identification(cfg, initial_state=None):
     sens = np.asarray(idc.angle_load_sensitivity_rad_per_unit, float)
     known = PeriodicIdentification(mode="known_loads", content=idc.content_known_loads,
                                    content_settle_samples=settle(idc.content_known_loads),
-                                   angle_load_sensitivity=sens,  # the load spread (issue 25)
+                                   angle_load_sensitivity=sens,  # the load spread
                                    nonlinearity_limit=(idc.nonlinearity_limit if idc.nonlinearity_check
                                                        else math.inf), **common)
     design = cache.design_for(w0)
     from rsra.daq.runtime.next_conditions import NextConditions
 
-    # the next load conditions to apply (known-load records: `next_conditions`)
-    setattr(known, "next_conditions", NextConditions(cfg))
     ferr = PeriodicIdentification(mode="filter_error", content=idc.content_filter_error,
                                   design=design,
                                   content_sos=ContentFilter(idc.content_filter_error, fs, w0,
@@ -103,20 +118,46 @@ def build_identification(cfg, initial_state=None):
                                   **common)
     from rsra.daq.runtime.flight_advice import FlightAdvice
 
-    # what would determine the rest (filter-error records: `advice`, issue 25 item 5)
-    setattr(ferr, "advice", FlightAdvice(cfg))
-    return post, {"known_loads": known, "filter_error": ferr}, cache
+    runs = IdentRuns({"known_loads": known, "filter_error": ferr})
+    runs.next_conditions = NextConditions(cfg)
+    runs.advice = FlightAdvice(cfg)
+    runs.saved_structure_fit = post.structure_fit
+    return post, runs, cache
 
 
-def run_job(cfg, runs: dict, cache, job: dict) -> dict:
-    """One window (``IdentJob.as_mapping()``) → the `angles` record's JSON object
-    (docs/telemetry.md §2.4) with the job id attached (the numerics; :func:`handle_job` types it)."""
-    mode = job["mode"]
-    ident = runs[mode]
-    seq = job["seq"]
-    valid = job["ok"] & (job["known"] if mode == "known_loads" else True)
-    dpsi = job.get("dpsi") if mode == "filter_error" else None
-    if mode == "filter_error":
+class _KnownLoadJob:
+    """A known-load window's job: the balance must be present in every sample used, and the
+    record adds the next load conditions to apply."""
+
+    @staticmethod
+    def inputs(job: Mapping[str, Any], ident: Any, cache: Any
+               ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """(valid samples, known hub loads H, the rotor's turn per sample: none here)."""
+        return job["ok"] & job["known"], job["known_H"], None
+
+    @staticmethod
+    def extras(out: dict, rec: Any, runs: IdentRuns, ident: Any, job: Mapping[str, Any],
+               valid: np.ndarray, cfg: Any) -> None:
+        nc = runs.next_conditions
+        if nc is not None:
+            if rec.reason == "reset":
+                nc.tracker = type(nc.tracker)(nc.model, cfg.identification.prior_sigma_rad,
+                                              moment_floor=cfg.identification.moment_floor_Nm)
+            elif rec.reason in (None, "not_identifiable"):  # the data the posterior holds
+                nc.add_window(ident.alpha(), job["T"][valid], int(np.count_nonzero(valid)))
+            out["next_conditions"] = nc.recommend(rec.names, ident.alpha(), rec.P)
+        out["advice"] = None
+
+
+class _FilterErrorJob:
+    """A filter-error window's job: the calibration filter redesigned for the window's Ω (or,
+    in azimuth mode, its gain held while the harmonics turn with the measured azimuth), and
+    the record adds what would determine the rest (``advice``)."""
+
+    @staticmethod
+    def inputs(job: Mapping[str, Any], ident: Any, cache: Any
+               ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        dpsi = job.get("dpsi")
         omega = float(np.median(job["omega"]))
         from rsra.estimator.filters import AZIMUTH_GAIN_BAND
 
@@ -127,6 +168,27 @@ def run_job(cfg, runs: dict, cache, job: dict) -> dict:
         design = ident.design if held else cache.design_for(omega)
         if design is not ident.design:
             ident.design = design  # an Ω redesign is not a discontinuity (the state carries over)
+        return job["ok"] & True, None, dpsi
+
+    @staticmethod
+    def extras(out: dict, rec: Any, runs: IdentRuns, ident: Any, job: Mapping[str, Any],
+               valid: np.ndarray, cfg: Any) -> None:
+        adv = runs.advice
+        out["advice"] = adv.for_window(ident) if adv is not None else None
+
+
+# what each identification mode's job takes and adds (the job's mode picks it)
+JOBS: dict[str, Any] = {"known_loads": _KnownLoadJob, "filter_error": _FilterErrorJob}
+
+
+def run_job(cfg, runs: dict, cache, job: dict) -> dict:
+    """One window (``IdentJob.as_mapping()``) → the `angles` record's JSON object
+    (docs/telemetry.md §2.4) with the job id attached (the numerics; :func:`handle_job` types it)."""
+    runs = IdentRuns.of(runs)
+    mode = job["mode"]
+    ident, kind = runs[mode], JOBS[mode]
+    seq = job["seq"]
+    valid, H, dpsi = kind.inputs(job, ident, cache)
     # a window that skips samples (lost, or the start) is a discontinuity for the filter
     gaps = np.diff(seq) > 1
     if gaps.any() and (np.diff(seq).max() - 1) > ident.gap_samples:
@@ -142,9 +204,8 @@ def run_job(cfg, runs: dict, cache, job: dict) -> dict:
         static_load = static_estimate(ident.par.model, np.asarray(job["alpha"], float),
                                       np.asarray(job["T_mean"], float)[None, :],
                                       np.asarray(job["z_mean"], float)[None, :])[0]
-    rec = ident.run_window(job["z"], job["T"], job["known_H"] if mode == "known_loads" else None,
-                           q, seq0=int(seq[0]), valid=valid, t=float(job["t"][-1]), dpsi=dpsi,
-                           static_load=static_load)
+    rec = ident.run_window(job["z"], job["T"], H, q, seq0=int(seq[0]), valid=valid,
+                           t=float(job["t"][-1]), dpsi=dpsi, static_load=static_load)
     # when the other mode runs next, its state must restart after new angles
     if rec.accepted:
         for other in runs.values():
@@ -157,7 +218,7 @@ def run_job(cfg, runs: dict, cache, job: dict) -> dict:
     labels = input_labels(cfg)
     out["explanation"], out["hint"] = explain(rec, {**job, "mode": mode}, cfg.identification,
                                               labels)
-    # the samples the likelihood used and the inputs the others lacked (issue 29)
+    # the samples the likelihood used and the inputs the others lacked
     out["missing_inputs"] = [{"input": lab, "fraction": f}
                              for lab, f in missing_inputs({**job, "mode": mode}, labels)]
     out["applies_from_seq"] = int(job["applies_from_seq"])
@@ -165,16 +226,7 @@ def run_job(cfg, runs: dict, cache, job: dict) -> dict:
     out["restarted"] = False
     out["job_id"] = job["job_id"]
     out["condition"] = rec.condition
-    nc = getattr(ident, "next_conditions", None)
-    if mode == "known_loads" and nc is not None:
-        if rec.reason == "reset":
-            nc.tracker = type(nc.tracker)(nc.model, cfg.identification.prior_sigma_rad,
-                                          moment_floor=cfg.identification.moment_floor_Nm)
-        elif rec.reason in (None, "not_identifiable"):  # the data the posterior holds
-            nc.add_window(ident.alpha(), job["T"][valid], int(np.count_nonzero(valid)))
-        out["next_conditions"] = nc.recommend(rec.names, ident.alpha(), rec.P)
-    adv = getattr(ident, "advice", None)
-    out["advice"] = adv.for_window(ident) if adv is not None else None
+    kind.extras(out, rec, runs, ident, job, valid, cfg)
     ident.last_window = None  # its problem (azimuth mode: Φ per sample, ~18 MB) is not kept
     return out
 
@@ -207,10 +259,11 @@ def handle_job(cfg, post, runs: dict, cache, job: IdentJob,
     res = IdentResult(job_id, AnglesRecord.from_dict(out))
     # saved after an accepted run, and when the structure the hub loads use changes
     fit = res.record.structure_fit
-    changed = fit is not ABSENT and fit != getattr(post, "saved_structure_fit", None)
+    runs = IdentRuns.of(runs)
+    changed = fit is not ABSENT and fit != runs.saved_structure_fit
     if (res.record.accepted or changed) and state_file:
         res = replace(res, save_error=save_state(post, res.record, state_file))
-        post.saved_structure_fit = None if fit is ABSENT else fit
+        runs.saved_structure_fit = None if fit is ABSENT else fit
     return res
 
 
@@ -237,8 +290,8 @@ def background_scheduling() -> None:
 
     Its runs take a core for up to a second every window. At the default policy, on a 2-core
     machine, the bus thread, the SYNC producer, the simulator, Zenoh's threads and a
-    subscriber waited for it up to a time slice at every window's start: nearly every P5
-    deadline miss was in the first 10 samples of a window (docs/performance.md "The worker
+    subscriber waited for it up to a time slice at every window's start: nearly every missed
+    per-sample deadline was in the first 10 samples of a window (docs/performance.md "The worker
     yields the cores"). A worker that cannot keep up drops windows (``dropped``, logged),
     never a sample. Where SCHED_IDLE is refused, nice ``WORKER_NICE``; where that is refused
     too, nothing changes. Lock-step and replay runs keep the default: they wait for it."""
@@ -380,7 +433,7 @@ class IdentificationWorker:
 
 
 class SupervisedIdentification:
-    """The identification worker under supervision (issue 13; docs/reliability.md).
+    """The identification worker under supervision (docs/reliability.md).
 
     * A dead worker (killed, crashed) is seen at the next :meth:`check` — every sample in
       lock-step and replay, every ``CHECK_INTERVAL_S`` of wall clock live — reported in the log

@@ -1,5 +1,5 @@
 """Why an identification run was rejected, in words: the ``explanation`` and ``hint`` of an
-``angles`` record (docs/telemetry.md "angles", issue 28).
+``angles`` record (docs/telemetry.md "angles").
 
 The decision is the estimator's (estimator.posterior: ``reason`` and ``detail``); this module
 only reports the figures behind it — which input the window's incomplete samples lacked and in
@@ -146,17 +146,21 @@ def explain(rec: Any, job: Mapping[str, Any], idc: Any, labels: Sequence[str]
     None for an accepted run."""
     from scipy.stats import chi2
 
-    from rsra.estimator.posterior import GATE_PROBABILITY
-
     reason, detail = rec.reason, rec.detail
     n_par = len(rec.names)
+    # the limit the deciding test used, as the estimator's verdict carries it (the gate's
+    # χ² point at the configured probability, the minimum information, ...)
+    verdict = getattr(rec, "verdict", None)
+    limit = None if verdict is None else verdict.limit
 
     def gate_text() -> str:
         d = int(getattr(rec, "gate_dof", 0) or 0)
-        if rec.nu is None or d == 0:
+        if rec.nu is None or d == 0 or limit is None:
             return "no gate (no direction to test)"
-        lim = float(chi2.ppf(GATE_PROBABILITY, d))
-        return f"gate ν {rec.nu:.3g} {'≤' if rec.nu <= lim else '>'} {lim:.3g} (χ², {d} dof, 10⁻³)"
+        level = float(chi2.sf(limit, d))  # the gate's false-alarm probability
+        words = "10⁻³" if abs(level - 1e-3) < 1e-9 else f"{level:.3g}"
+        return (f"gate ν {rec.nu:.3g} {'≤' if rec.nu <= limit else '>'} {limit:.3g} "
+                f"(χ², {d} dof, {words})")
 
     if rec.accepted:
         info = "" if rec.information is None else f"information ratio {rec.information:.3g}; "
@@ -164,10 +168,10 @@ def explain(rec: Any, job: Mapping[str, Any], idc: Any, labels: Sequence[str]
     if reason == "stale_input" and detail == "scattered_samples":
         seq, t = np.asarray(job["seq"], float), np.asarray(job["t"], float)
         fs = (seq[-1] - seq[0]) / (t[-1] - t[0]) if len(t) > 1 and t[-1] > t[0] else 0.0
-        return _stale(job, labels, idc.filter_error_scattered_fraction,
-                      scattered_gap=int(round(idc.gap_s * fs)))
+        return _stale(job, labels, idc.filter_error_scattered_fraction if limit is None
+                      else limit, scattered_gap=int(round(idc.gap_s * fs)))
     if reason == "stale_input":
-        return _stale(job, labels, idc.stale_fraction)
+        return _stale(job, labels, idc.stale_fraction if limit is None else limit)
     if reason == "not_converged":
         text = (f"stopped after {rec.iterations} iterations (identification.max_iterations "
                 f"{idc.max_iterations} per stage: a warm start, then the full search) without "
@@ -187,15 +191,17 @@ def explain(rec: Any, job: Mapping[str, Any], idc: Any, labels: Sequence[str]
         smax = math.degrees(idc.sigma_max_rad)
         if detail == "information_ratio":
             ratio = rec.information if rec.information is not None else float("nan")
+            least = idc.min_information if limit is None else limit
             return (f"largest information ratio {ratio:.3g} below identification."
-                    f"min_information {idc.min_information:g}",
+                    f"min_information {least:g}",
                     "the loads did not vary enough in this window: apply the load conditions "
                     "the record's next_conditions lists (known loads), or wait for manoeuvres")
         if detail == "nonlinear":
             nl = getattr(rec, "nonlinearity", None)
             return (f"the run's Gaussian summary misses the likelihood's curvature by "
                     f"{nl if nl is not None else float('nan'):.3g} (χ²; "
-                    f"identification.nonlinearity_limit {idc.nonlinearity_limit:g})",
+                    "identification.nonlinearity_limit "
+                    f"{idc.nonlinearity_limit if limit is None else limit:g})",
                     "the angles are still far from known in some directions (the cold start); "
                     "the window's information is kept and the next window is solved with it")
         if detail == "own_information":
