@@ -139,21 +139,20 @@ def _still_falling(rec: Any) -> bool:
             and hist[-2] - hist[-1] > STILL_FALLING * abs(hist[-2]))
 
 
-def explain(rec: Any, job: Mapping[str, Any], idc: Any, labels: Sequence[str]
-            ) -> tuple[str, str | None]:
-    """(explanation, hint) of an estimator record (estimator.posterior.AnglesRecord) for the
-    window ``job`` (IdentJob.as_mapping()); ``idc``: the IdentificationConfig. The hint is
-    None for an accepted run."""
-    from scipy.stats import chi2
+class _Why:
+    """What every explanation reads: the record, its window, the config, the labels, and the
+    limit the deciding test used (as the estimator's verdict carries it: the gate's χ² point
+    at the configured probability, the minimum information, ...)."""
 
-    reason, detail = rec.reason, rec.detail
-    n_par = len(rec.names)
-    # the limit the deciding test used, as the estimator's verdict carries it (the gate's
-    # χ² point at the configured probability, the minimum information, ...)
-    verdict = getattr(rec, "verdict", None)
-    limit = None if verdict is None else verdict.limit
+    def __init__(self, rec: Any, job: Mapping[str, Any], idc: Any, labels: Sequence[str]):
+        self.rec, self.job, self.idc, self.labels = rec, job, idc, labels
+        verdict = getattr(rec, "verdict", None)
+        self.limit = None if verdict is None else verdict.limit
 
-    def gate_text() -> str:
+    def gate_text(self) -> str:
+        from scipy.stats import chi2
+
+        rec, limit = self.rec, self.limit
         d = int(getattr(rec, "gate_dof", 0) or 0)
         if rec.nu is None or d == 0 or limit is None:
             return "no gate (no direction to test)"
@@ -162,85 +161,123 @@ def explain(rec: Any, job: Mapping[str, Any], idc: Any, labels: Sequence[str]
         return (f"gate ν {rec.nu:.3g} {'≤' if rec.nu <= limit else '>'} {limit:.3g} "
                 f"(χ², {d} dof, {words})")
 
+
+def explain(rec: Any, job: Mapping[str, Any], idc: Any, labels: Sequence[str]
+            ) -> tuple[str, str | None]:
+    """(explanation, hint) of an estimator record (estimator.posterior.AnglesRecord) for the
+    window ``job`` (IdentJob.as_mapping()); ``idc``: the IdentificationConfig. The hint is
+    None for an accepted run."""
+    why = _Why(rec, job, idc, labels)
     if rec.accepted:
         info = "" if rec.information is None else f"information ratio {rec.information:.3g}; "
-        return (f"{rec.determined} of {n_par} directions determined; {info}{gate_text()}", None)
-    if reason == "stale_input" and detail == "scattered_samples":
+        return (f"{rec.determined} of {len(rec.names)} directions determined; {info}"
+                f"{why.gate_text()}", None)
+    explain_reason = _BY_REASON.get(str(rec.reason))
+    if explain_reason is None:
+        return f"rejected: {rec.reason} ({rec.detail})", "see docs/identification.md"
+    return explain_reason(why)
+
+
+def _explain_stale(why: _Why) -> tuple[str, str | None]:
+    job, idc, limit = why.job, why.idc, why.limit
+    if why.rec.detail == "scattered_samples":
         seq, t = np.asarray(job["seq"], float), np.asarray(job["t"], float)
         fs = (seq[-1] - seq[0]) / (t[-1] - t[0]) if len(t) > 1 and t[-1] > t[0] else 0.0
-        return _stale(job, labels, idc.filter_error_scattered_fraction if limit is None
+        return _stale(job, why.labels, idc.filter_error_scattered_fraction if limit is None
                       else limit, scattered_gap=int(round(idc.gap_s * fs)))
-    if reason == "stale_input":
-        return _stale(job, labels, idc.stale_fraction if limit is None else limit)
-    if reason == "not_converged":
-        text = (f"stopped after {rec.iterations} iterations (identification.max_iterations "
-                f"{idc.max_iterations} per stage: a warm start, then the full search) without "
-                f"meeting the tolerance; {_trend(rec)}")
-        if _still_falling(rec):
-            return text, ("the cost was still falling at the limit: the starting angles were "
-                          "far off; the next window continues from here (or raise "
-                          "identification.max_iterations)")
-        return text, ("the cost barely moves but the steps do not settle: a flat direction "
-                      "(the window's loads too little varied, or a ramp in it); the next "
-                      "window is tried")
-    if reason == "diverged":
-        return (f"the run diverged after {rec.iterations} iterations; {_trend(rec)}",
-                "the run left the region where the model holds (a transient in the window, or "
-                "starting angles far off); the next window is tried")
-    if reason == "not_identifiable":
-        smax = math.degrees(idc.sigma_max_rad)
-        if detail == "information_ratio":
-            ratio = rec.information if rec.information is not None else float("nan")
-            least = idc.min_information if limit is None else limit
-            return (f"largest information ratio {ratio:.3g} below identification."
-                    f"min_information {least:g}",
-                    "the loads did not vary enough in this window: apply the load conditions "
-                    "the record's next_conditions lists (known loads), or wait for manoeuvres")
-        if detail == "nonlinear":
-            nl = getattr(rec, "nonlinearity", None)
-            return (f"the run's Gaussian summary misses the likelihood's curvature by "
-                    f"{nl if nl is not None else float('nan'):.3g} (χ²; "
-                    "identification.nonlinearity_limit "
-                    f"{idc.nonlinearity_limit if limit is None else limit:g})",
-                    "the angles are still far from known in some directions (the cold start); "
-                    "the window's information is kept and the next window is solved with it")
-        if detail == "own_information":
-            return (f"the window alone determines no direction to σ ≤ {smax:g}° "
-                    "(identification.sigma_max_deg)",
-                    "more load variation (manoeuvres, rotor-speed changes) or a longer window "
-                    "(identification.window_s)")
-        return ("no direction stays determined once the score's variance is taken from the "
-                "data (sandwich), not assumed white",
-                "the innovations are coloured beyond the filter model: load content outside "
-                "the model (a resonance, a transient); steadier excitation helps")
-    if reason == "inconsistent":
-        if detail == "innovations":
-            inn, lim = getattr(rec, "innovation", None), getattr(rec, "innovation_limit", None)
-            fig = ("" if inn is None or lim is None else
-                   f": {inn:.3g}× their predicted mean, limit {lim:.3g}×")
-            return (f"the innovations exceed what the filter model predicts{fig}",
-                    "load content the filter model does not hold (a manoeuvre, a ramp, a "
-                    "resonance): no evidence about the angles; the reset streak is unchanged")
-        if detail == "structure":
-            return ("the structure test rejects constant angles (structure not_constant)",
-                    "the angles change with the load: see the record's candidates; rsra "
-                    "calibrate fits a structure")
-        return (f"this window's angles disagree with the posterior: {gate_text()}",
-                f"a change in the rig (a cell moved, a load path changed) or an unmodelled "
-                f"load; {idc.reset_after} in a row reset the posterior")
-    if reason == "reset":
-        return (f"{idc.reset_after} inconsistent runs in a row ({gate_text()}): the posterior "
-                "σ reopened to the prior around the current mean",
-                "a real change of the rig is likely: the next runs identify the angles again")
-    if reason == "out_of_range":
-        lim = math.degrees(idc.angle_limit_rad)
-        theta = getattr(rec, "run_theta", None)
-        worst = ""
-        if theta is not None and len(theta) == n_par:
-            k = int(np.argmax(np.abs(theta)))
-            worst = f": {rec.names[k]} at {math.degrees(float(theta[k])):+.3g}°"
-        return (f"the run's angles leave the physical range ±{lim:g}° "
-                f"(identification.angle_limit_deg){worst}",
-                "a wrong rig description (cell positions, nominal axes) or a bad channel: "
-                "check --config and the cells' readings")
-    return f"rejected: {reason} ({detail})", "see docs/identification.md"
+    return _stale(job, why.labels, idc.stale_fraction if limit is None else limit)
+
+
+def _explain_not_converged(why: _Why) -> tuple[str, str | None]:
+    rec, idc = why.rec, why.idc
+    text = (f"stopped after {rec.iterations} iterations (identification.max_iterations "
+            f"{idc.max_iterations} per stage: a warm start, then the full search) without "
+            f"meeting the tolerance; {_trend(rec)}")
+    if _still_falling(rec):
+        return text, ("the cost was still falling at the limit: the starting angles were "
+                      "far off; the next window continues from here (or raise "
+                      "identification.max_iterations)")
+    return text, ("the cost barely moves but the steps do not settle: a flat direction "
+                  "(the window's loads too little varied, or a ramp in it); the next "
+                  "window is tried")
+
+
+def _explain_diverged(why: _Why) -> tuple[str, str | None]:
+    return (f"the run diverged after {why.rec.iterations} iterations; {_trend(why.rec)}",
+            "the run left the region where the model holds (a transient in the window, or "
+            "starting angles far off); the next window is tried")
+
+
+def _explain_not_identifiable(why: _Why) -> tuple[str, str | None]:
+    rec, idc, limit, detail = why.rec, why.idc, why.limit, why.rec.detail
+    smax = math.degrees(idc.sigma_max_rad)
+    if detail == "information_ratio":
+        ratio = rec.information if rec.information is not None else float("nan")
+        least = idc.min_information if limit is None else limit
+        return (f"largest information ratio {ratio:.3g} below identification."
+                f"min_information {least:g}",
+                "this window adds less than the posterior already knows: it is held and "
+                "used with the next windows (nothing is lost); to learn faster, apply the "
+                "load conditions the record's next_conditions lists")
+    if detail == "nonlinear":
+        nl = getattr(rec, "nonlinearity", None)
+        return (f"the run's Gaussian summary misses the likelihood's curvature by "
+                f"{nl if nl is not None else float('nan'):.3g} (χ²; "
+                "identification.nonlinearity_limit "
+                f"{idc.nonlinearity_limit if limit is None else limit:g})",
+                "the angles are still far from known in some directions (the cold start); "
+                "the window's information is kept and the next window is solved with it")
+    if detail == "own_information":
+        return (f"the window alone determines no direction to σ ≤ {smax:g}° "
+                "(identification.sigma_max_deg)",
+                "more load variation (manoeuvres, rotor-speed changes) or a longer window "
+                "(identification.window_s)")
+    return ("no direction stays determined once the score's variance is taken from the "
+            "data (sandwich), not assumed white",
+            "the innovations are coloured beyond the filter model: load content outside "
+            "the model (a resonance, a transient); steadier excitation helps")
+
+
+def _explain_inconsistent(why: _Why) -> tuple[str, str | None]:
+    rec, idc = why.rec, why.idc
+    if rec.detail == "innovations":
+        inn, lim = getattr(rec, "innovation", None), getattr(rec, "innovation_limit", None)
+        fig = ("" if inn is None or lim is None else
+               f": {inn:.3g}× their predicted mean, limit {lim:.3g}×")
+        return (f"the innovations exceed what the filter model predicts{fig}",
+                "load content the filter model does not hold (a manoeuvre, a ramp, a "
+                "resonance): no evidence about the angles; the reset streak is unchanged")
+    if rec.detail == "structure":
+        return ("the structure test rejects constant angles (structure not_constant)",
+                "the angles change with the load: see the record's candidates; rsra "
+                "calibrate fits a structure")
+    return (f"this window's angles disagree with the posterior: {why.gate_text()}",
+            f"a change in the rig (a cell moved, a load path changed) or an unmodelled "
+            f"load; {idc.reset_after} in a row reset the posterior")
+
+
+def _explain_reset(why: _Why) -> tuple[str, str | None]:
+    return (f"{why.idc.reset_after} inconsistent runs in a row ({why.gate_text()}): the "
+            "posterior σ reopened to the prior around the current mean",
+            "a real change of the rig is likely: the next runs identify the angles again")
+
+
+def _explain_out_of_range(why: _Why) -> tuple[str, str | None]:
+    rec = why.rec
+    lim = math.degrees(why.idc.angle_limit_rad)
+    theta = getattr(rec, "run_theta", None)
+    worst = ""
+    if theta is not None and len(theta) == len(rec.names):
+        k = int(np.argmax(np.abs(theta)))
+        worst = f": {rec.names[k]} at {math.degrees(float(theta[k])):+.3g}°"
+    return (f"the run's angles leave the physical range ±{lim:g}° "
+            f"(identification.angle_limit_deg){worst}",
+            "a wrong rig description (cell positions, nominal axes) or a bad channel: "
+            "check --config and the cells' readings")
+
+
+#: the explanation of each reason a run is not accepted
+_BY_REASON = {"stale_input": _explain_stale, "not_converged": _explain_not_converged,
+              "diverged": _explain_diverged, "not_identifiable": _explain_not_identifiable,
+              "inconsistent": _explain_inconsistent, "reset": _explain_reset,
+              "out_of_range": _explain_out_of_range}

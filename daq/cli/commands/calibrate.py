@@ -118,18 +118,28 @@ class _Progress:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rsra.daq.analysis.calibrate import (
-        CalibrationError,
-        calibrate,
-        fragment_toml,
-        load_known_load_data,
-        parse_params,
-    )
+    from rsra.daq.analysis.calibrate import CalibrationError, parse_params
+    from rsra.daq.bus.replay import config_for
     from rsra.daq.cli.options import UsageError
-    from rsra.daq.jsonout import dumps
-    from rsra.daq.bus.replay import ReplayError, config_for, expand
-    from rsra.daq.runtime.posterior_file import load_checked
-    from rsra.estimator.posterior import PosteriorFileError
+
+    _check_arguments(args)
+    out = Path(args.out) if args.out else None
+    cfg = config_for(args.logs, args.config)  # ConfigError → exit 2 in daq.cli
+    try:
+        names = parse_params(args.params, cfg)
+    except CalibrationError as e:
+        raise UsageError(str(e)) from None
+    if args.posterior:
+        _check_posterior_output(args.posterior, names, cfg)
+    alpha_start = _starting_angles(args, cfg)
+    parts, result = _identify(args, cfg, names, alpha_start)
+    return _report(args, cfg, result, out, parts, alpha_start)
+
+
+def _check_arguments(args: argparse.Namespace) -> None:
+    """The options checked before anything is read (one line, exit 2)."""
+    from rsra.daq.bus.replay import ReplayError, expand
+    from rsra.daq.cli.options import UsageError
 
     if args.prior_sigma_deg is not None and not (math.isfinite(args.prior_sigma_deg)
                                                  and args.prior_sigma_deg > 0):
@@ -144,27 +154,36 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else None
     if out is not None and not os.access(out.resolve().parent, os.W_OK):
         raise UsageError(f"--out {args.out}: folder {out.resolve().parent} is not writable")
-    cfg = config_for(args.logs, args.config)  # ConfigError → exit 2 in daq.cli
+
+
+def _starting_angles(args: argparse.Namespace, cfg) -> np.ndarray | None:
+    """--angles: the saved posterior's angles over the configured ones (None without it)."""
+    from rsra.daq.cli.options import UsageError
+    from rsra.daq.runtime.posterior_file import load_checked
+    from rsra.estimator.posterior import PosteriorFileError
+
+    if not args.angles:
+        return None
     try:
-        names = parse_params(args.params, cfg)
-    except CalibrationError as e:
+        state, warning = load_checked(cfg, args.angles,
+                                      accept_rig_mismatch=args.accept_rig_mismatch)
+    except PosteriorFileError as e:
         raise UsageError(str(e)) from None
-    if args.posterior:
-        _check_posterior_output(args.posterior, names, cfg)
-    alpha_start = None
-    if args.angles:
-        try:
-            state, warning = load_checked(cfg, args.angles,
-                                          accept_rig_mismatch=args.accept_rig_mismatch)
-        except PosteriorFileError as e:
-            raise UsageError(str(e)) from None
-        if warning:
-            print(f"rsra calibrate: warning: {warning}", file=sys.stderr)
-        angle_names = cfg.rig_model().geometry.angle_names
-        alpha_start = np.asarray(cfg.identification.initial_angles_rad, float).copy()
-        for n, v in zip(state.names, state.theta):
-            if n in angle_names:
-                alpha_start[angle_names.index(n)] = v
+    if warning:
+        print(f"rsra calibrate: warning: {warning}", file=sys.stderr)
+    angle_names = cfg.rig_model().geometry.angle_names
+    alpha_start = np.asarray(cfg.identification.initial_angles_rad, float).copy()
+    for n, v in zip(state.names, state.theta):
+        if n in angle_names:
+            alpha_start[angle_names.index(n)] = v
+    return alpha_start
+
+
+def _identify(args: argparse.Namespace, cfg, names, alpha_start):
+    """The recordings' known-load windows (each on its own with --posterior) and the
+    identification over all of them: (the parts or None, the result)."""
+    from rsra.daq.analysis.calibrate import CalibrationError, calibrate, load_known_load_data
+    from rsra.daq.cli.options import UsageError
 
     progress = _Progress(enabled=sys.stderr.isatty())
     try:
@@ -190,27 +209,30 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(str(e)) from None
     finally:
         progress.close()
+    return parts, result
 
+
+def _report(args: argparse.Namespace, cfg, result, out: Path | None, parts,
+            alpha_start) -> int:
+    """The tables (or --json), the fragment (--out) and the pooled posterior (--posterior);
+    the exit status."""
+    from rsra.daq.analysis.calibrate import fragment_toml, structure_of
+    from rsra.daq.jsonout import dumps
     from rsra.daq.runtime.next_conditions import for_calibration
 
-    from rsra.daq.analysis.calibrate import structure_of
-
-    nxt = for_calibration(cfg, result) if result.status != "diverged" else None
-    struct = structure_of(cfg, result) if result.status != "diverged" else None
+    ok = result.status != "diverged"
+    nxt = for_calibration(cfg, result) if ok else None
+    struct = structure_of(cfg, result) if ok else None
     notes = _notes(cfg, result)
-    pooled = None if parts is None or result.status == "diverged" else _pool(cfg, args, parts,
-                                                                               alpha_start)
+    pooled = _pool(cfg, args, parts, alpha_start) if parts is not None and ok else None
     wrote = None
-    if out is not None and result.status != "diverged":
+    if out is not None and ok:
         write_text_atomic(out, fragment_toml(cfg, result, struct))
         wrote = str(out)
     if args.json:
         d = result.to_dict(cfg)
-        d["notes"] = notes
-        d["fragment"] = wrote
-        d["next_conditions"] = nxt
-        d["structure"] = struct
-        d["posterior"] = None if pooled is None else pooled.report()
+        d.update(notes=notes, fragment=wrote, next_conditions=nxt, structure=struct,
+                 posterior=None if pooled is None else pooled.report())
         print(dumps(d))
     else:
         _print_tables(cfg, result, args.units, notes, wrote, nxt)
@@ -220,7 +242,7 @@ def run(args: argparse.Namespace) -> int:
             from rsra.daq.analysis.information import summary_lines
 
             print("\n".join(summary_lines(pooled.report())))
-    if result.status == "diverged":
+    if not ok:
         print("rsra calibrate: the identification diverged; no fragment written (check the "
               "recordings and the starting values)", file=sys.stderr)
         return 1
