@@ -1,0 +1,1 @@
+"""Campaigns: many recordings reprocessed into one dataset (docs/user-guide.md "Campaigns")."""
