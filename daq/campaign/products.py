@@ -84,7 +84,7 @@ def telemetry(ctx: ProductContext) -> None:
     outputs = {k: ctx.output(k) for k in schemas}
     tables = ParquetTables(schemas, outputs, names, metadata=ctx.metadata)
     try:
-        ctx.stats.update(replay_to_tables(ctx.cfg, ctx.paths, tables, ctx.options))
+        ctx.stats.update(replay_to_tables(ctx.cfg, [ctx.source], tables, ctx.options))
     finally:
         tables.close(empty=True)
     ctx.stats["rows"] = dict(tables.counts)

@@ -47,7 +47,7 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
     where.add_argument("--scheduler-file", metavar="FILE", default=None,
                        help="run on an existing Dask cluster (the file `dask scheduler "
                        "--scheduler-file` wrote)")
-    where.add_argument("--pool", action="store_true",
+    p.add_argument("--pool", action="store_true",
                        help="a plain ProcessPoolExecutor instead of Dask (one machine; a dead "
                        "worker is not retried)")
     p.add_argument("--dashboard", metavar="HOST:PORT", default=None,
@@ -61,6 +61,9 @@ def run(args: argparse.Namespace) -> int:
     from rsra.daq.campaign.progress import Progress
     from rsra.daq.campaign.runner import Runner, make_plan
 
+    if args.pool and (args.scheduler or args.scheduler_file):
+        raise CampaignError("--pool runs on this machine; fix: leave out --pool or "
+                            "--scheduler/--scheduler-file")
     if args.workers is not None and args.workers < 1:
         raise CampaignError(f"--workers {args.workers}: must be 1 or more")
     dataset = Path(args.dataset)
