@@ -294,8 +294,10 @@ def _sigma_deg(payload: dict, known: Sequence[str] | None) -> dict[str, float | 
             continue
         row = P[i]
         v = row[i] if isinstance(row, list) and len(row) == len(names) else None
-        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and v >= 0.0
-        out[f"{SIGMA_DEG}.{name}"] = math.degrees(math.sqrt(v)) if ok else None
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and v >= 0.0:
+            out[f"{SIGMA_DEG}.{name}"] = math.degrees(math.sqrt(v))
+        else:
+            out[f"{SIGMA_DEG}.{name}"] = None
     return out
 
 

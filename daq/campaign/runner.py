@@ -104,7 +104,7 @@ def _changed(old: dict, item: Item, software: str, opts_text: str) -> str:
 
 
 def _row(plan: Plan, item: Item, result: dict[str, Any] | None) -> dict[str, Any]:
-    row = {"recording": item.recording, "source": str(item.source),
+    row: dict[str, Any] = {"recording": item.recording, "source": str(item.source),
            "content_hash": item.content_hash, "config_hash": item.config_hash,
            "rsra_version": plan.software, "options": keys.canonical(plan.options),
            "key": item.key,
