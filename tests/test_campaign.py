@@ -282,7 +282,7 @@ def test_ctrl_c_keeps_the_finished_and_leaves_the_manifest_consistent(recordings
               str(recordings / "g1"), str(long_recording))
     try:
         _wait_for(lambda: (ds / MANIFEST).exists(), 180, "the first recording to finish")
-        p.send_signal(signal.SIGINT)
+        os.killpg(p.pid, signal.SIGINT)  # as a terminal's Ctrl-C: the workers get it too
         out, _ = p.communicate(timeout=60)
     finally:
         if p.poll() is None:
@@ -292,6 +292,7 @@ def test_ctrl_c_keeps_the_finished_and_leaves_the_manifest_consistent(recordings
     assert "interrupted" in out and "Traceback" not in out
     m = read_manifest(ds)
     assert [r["status"] for r in m.values()] == ["ok"] * len(m) and len(m) >= 1
+    assert not list(ds.rglob(".*"))  # no staging folder or temporary file left
     for rid in m:  # every row's tables are there, whole
         for table in TABLES:
             pq.read_table(ds / table / f"recording={rid}" / "part.parquet")

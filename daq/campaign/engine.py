@@ -50,7 +50,7 @@ class PoolEngine(Engine):
 
     def __init__(self, workers: int):
         self.workers = workers
-        self.executor = ProcessPoolExecutor(max_workers=workers)
+        self.executor = ProcessPoolExecutor(max_workers=workers, initializer=ignore_sigint)
         self.describe = f"{workers} processes (ProcessPoolExecutor)"
 
 
@@ -79,6 +79,31 @@ class DaskEngine(Engine):
             self.client.close()
             if self.cluster is not None:
                 self.cluster.close()
+
+
+def ignore_sigint() -> None:
+    """In a worker process: Ctrl-C is the driver's (it cancels, keeps what finished and
+    closes the workers); a worker would only die of it with a traceback."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+@contextlib.contextmanager
+def _sigint_ignored() -> Iterator[None]:
+    """SIGINT ignored while the local cluster starts its worker processes (they inherit it,
+    and neither Python nor asyncio then installs a handler of its own)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
 
 
 def cores() -> int:
@@ -112,7 +137,8 @@ def _dask(workers: int | None, scheduler: str | None, scheduler_file: str | None
     from distributed import Client, LocalCluster
 
     for name in ("distributed", "bokeh", "tornado"):
-        logging.getLogger(name).setLevel(logging.ERROR)  # the user sees our lines, not theirs
+        # the user sees our lines (a lost worker: the recording's reason), not theirs
+        logging.getLogger(name).setLevel(logging.CRITICAL)
     if scheduler or scheduler_file:
         what = f"--scheduler {scheduler}" if scheduler else f"--scheduler-file {scheduler_file}"
         try:
@@ -135,14 +161,18 @@ def _dask(workers: int | None, scheduler: str | None, scheduler_file: str | None
                                 "worker SCHEDULER_ADDRESS` on each machine")
         return DaskEngine(client)
     n = workers or cores()
+    # the workers' own log (a scheduler gone at Ctrl-C, a lost worker): the recording's
+    # reason and our lines say what matters; read by each worker process as it starts
+    os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "critical")
     # the identification worker of a recomputed replay is a child of the task's process:
     # worker processes are not daemonic; a task whose worker died runs once more
     dask.config.set({"distributed.worker.daemon": False,
                      "distributed.scheduler.allowed-failures": ALLOWED_FAILURES,
                      "distributed.admin.system-monitor.gil.enabled": False})
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                           host="127.0.0.1", scheduler_port=0,
-                           dashboard_address=dashboard, worker_dashboard_address=None)
+    with _sigint_ignored():
+        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                               host="127.0.0.1", scheduler_port=0,
+                               dashboard_address=dashboard, worker_dashboard_address=None)
     try:
         client = Client(cluster)
     except BaseException:

@@ -154,6 +154,14 @@ class Runner:
             self.save(force=True)
             return 1 if plan.of("fail") else 0
         self._clean_leftovers()
+        try:
+            return self._run(open_engine, todo)
+        except KeyboardInterrupt:
+            self._clean_leftovers()  # (the workers are gone: what they left half-written)
+            raise
+
+    def _run(self, open_engine: Any, todo: list[Item]) -> int:
+        plan = self.plan
         with open_engine() as engine:
             self.progress.start(len(todo), sum(i.size for i in todo), engine.describe)
             self._check_visible(engine, todo)
