@@ -1,8 +1,8 @@
 """C1 — `rsra campaign run` on N workers against 1 worker, the same campaign (docs/user-guide.md
 "Campaigns").
 
-A campaign of recordings of mixed length (full size: 16 recordings of 10 … 60 s; tiny: 2 of
-1 s), run into a fresh dataset with ``--workers 1`` and with ``--workers N`` (N = the usable
+A campaign of recordings of mixed length (full size: 16 recordings of 10 … 60 s, ``--recordings K --longest S``
+for another; tiny: 2 of 1 s), run into a fresh dataset with ``--workers 1`` and with ``--workers N`` (N = the usable
 cores), each on the default engine (a Dask local cluster, cluster start-up included),
 interleaved. Figure: the speed-up t₁/t_N; target: an efficiency ≥ 0.8 per core
 (≥ 1.6× on 2 cores). Ratios in one run are the figures to trust on a shared machine.
@@ -23,10 +23,16 @@ EFFICIENCY = 0.8
 def main(argv: list[str] | None = None) -> int:
     from rsra.daq.campaign.engine import cores
 
-    args = arg_parser(__doc__.splitlines()[0]).parse_args(argv)
+    p = arg_parser(__doc__.splitlines()[0])
+    p.add_argument("--recordings", type=int, default=16, help="recordings (default 16)")
+    p.add_argument("--longest", type=float, default=60.0,
+                   help="the longest recording, s (the shortest is a sixth of it; default 60)")
+    args = p.parse_args(argv)
     w = writer_from_args(BENCH, args)
     n = cores()
-    lengths = [1.0, 1.0] if args.tiny else [10.0 + 50.0 * i / 15 for i in range(16)]
+    k_, top = args.recordings, args.longest
+    lengths = [1.0, 1.0] if args.tiny else [top / 6 + top * 5 / 6 * i / max(k_ - 1, 1)
+                                             for i in range(k_)]
     rounds = 1 if args.tiny else 2
     with tempfile.TemporaryDirectory(prefix="rsra-c1-") as tmp:
         recs = campaign_folder(Path(tmp), lengths)

@@ -370,3 +370,27 @@ def test_the_user_guide_queries_answer_across_recordings(dataset):
         if "UNPIVOT" in q:  # (these short recordings hold no identification run)
             continue
         assert {r[0] for r in rows} == recordings, q
+
+
+def test_progress_live_bar_and_plain_lines_and_summary(tmp_path):
+    import io
+
+    from rsra.daq.campaign.progress import Progress
+    from rsra.daq.campaign.runner import Item, Plan
+
+    items = [Item("a-00000000", tmp_path / "a", "run", "new", size=10),
+             Item("b-00000000", tmp_path / "b", "run", "new", size=30)]
+    plan = Plan(items, tmp_path, {}, None, "v", {}, keys.HashCache(None))
+    rows = {"a-00000000": {"status": "ok", "samples": 400, "wall_s": 1.0},
+            "b-00000000": {"status": "failed", "reason": "bad.log:3: not a frame; fix: x"}}
+    for live in (True, False):
+        out = io.StringIO()
+        p = Progress(out, live=live)
+        p.start(2, 40, "test engine")
+        for item in items:
+            p.done(item, rows[item.recording])
+        p.summary(plan, rows)
+        text = out.getvalue()
+        assert "1 failed" in text and "bad.log:3" in text and "a-00000000" in text
+        if not live:
+            assert "[1/2] a-00000000: ok, 400 samples" in text and "samples/s" in text

@@ -175,8 +175,8 @@ def _angles_text(b: dict, n: dict, tol: float) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rich.console import Console
-    from rich.table import Table
+    from rsra.daq.campaign.progress import console as campaign_console
+    from rsra.daq.campaign.progress import table
 
     base, new = Path(args.base), Path(args.new)
     for d, what in ((base, "BASE_DIR"), (new, "NEW_DIR")):
@@ -187,12 +187,10 @@ def run(args: argparse.Namespace) -> int:
         if not getattr(args, name) >= 0:
             raise CampaignError(f"--{name.replace('_', '-')}: must be a number >= 0")
     rows = compare(base, new, args.hub_tol, args.angle_tol, args.flags_tol)
-    t = Table(title=f"campaign compare {base} -> {new}", title_justify="left")
-    for c in ("recording", "verdict", "changes"):
-        t.add_column(c)
+    t = table(f"campaign compare {base} -> {new}", ("recording", "verdict", "changes"))
     for r in rows:
         t.add_row(r["recording"], "REGRESSION" if r["regression"] else "ok", r["changes"])
-    console = Console(highlight=False, soft_wrap=True)
+    console = campaign_console()
     console.print(t)
     bad = sum(r["regression"] for r in rows)
     console.print(f"campaign compare: {len(rows)} recordings, {bad} regressions "

@@ -16,9 +16,6 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rich.console import Console
-    from rich.table import Table
-
     from rsra.daq.campaign.keys import HashCache
     from rsra.daq.campaign.run import options_of
     from rsra.daq.campaign.runner import make_plan
@@ -26,12 +23,13 @@ def run(args: argparse.Namespace) -> int:
     plan = make_plan(args.inputs, Path(args.dataset), args.config, options_of(args),
                      args.retry_failed)
     plan.cache = HashCache(None)  # (a dry run: the cache is not written either)
-    t = Table(title=f"campaign plan for {args.dataset}", title_justify="left")
-    for c in ("recording", "source", "action", "why"):
-        t.add_column(c)
+    from rsra.daq.campaign.progress import console as campaign_console
+    from rsra.daq.campaign.progress import table
+
+    t = table(f"campaign plan for {args.dataset}", ("recording", "source", "action", "why"))
     for i in plan.items:
         t.add_row(i.recording, str(i.source), i.action, i.why)
-    console = Console(highlight=False, soft_wrap=True)
+    console = campaign_console()
     console.print(t)
     console.print(f"campaign plan: {len(plan.of('run'))} to run, {len(plan.of('skip'))} "
                   f"skipped, {len(plan.of('fail'))} cannot be read", markup=False)

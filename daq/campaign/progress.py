@@ -10,10 +10,8 @@ from typing import Any, TextIO
 
 class Progress:
     def __init__(self, out: TextIO | None = None, live: bool | None = None):
-        from rich.console import Console
-
         self.out = out or sys.stdout
-        self.console = Console(file=self.out, highlight=False, soft_wrap=True)
+        self.console = console(self.out)
         #: a live bar (a terminal), or plain lines
         self.live = self.console.is_terminal if live is None else live
         self.total = 0
@@ -77,14 +75,10 @@ class Progress:
             self._bar = None
 
     def summary(self, plan: Any, rows: dict[str, dict[str, Any]]) -> None:
-        from rich.table import Table
-
         self.stop()
-        t = Table(title=f"campaign {plan.dataset}", title_justify="left")
-        for c in ("recording", "action", "status", "samples", "lost", "accepted runs",
-                  "wall s", "why / reason"):
-            t.add_column(c, justify="right" if c in ("samples", "lost", "accepted runs",
-                                                     "wall s") else "left")
+        t = table(f"campaign {plan.dataset}", ("recording", "action", "status", "samples",
+                                                "lost", "accepted runs", "wall s",
+                                                "why / reason"))
         for item in plan.items:
             r = rows.get(item.recording, {})
             ran = item.action != "skip"
@@ -102,6 +96,32 @@ class Progress:
         self.console.print(f"campaign: {counts['run']} run, {counts['skip']} skipped, "
                            f"{failed} failed; {self.samples} samples in {el:.1f} s "
                            f"({self.rate():,.0f} samples/s)", markup=False)
+
+
+NUMERIC = ("samples", "lost", "accepted runs", "wall s")
+PLAIN_WIDTH = 200  # columns of a table off a terminal (a log file: the ids stay whole)
+
+
+def console(out: TextIO | None = None):
+    """A rich console on ``out`` (standard output): the terminal's width, or wide off one."""
+    from rich.console import Console
+
+    out = out or sys.stdout
+    c = Console(file=out, highlight=False, soft_wrap=True)
+    if not c.is_terminal:
+        c = Console(file=out, highlight=False, soft_wrap=True, width=PLAIN_WIDTH)
+    return c
+
+
+def table(title: str, columns: tuple[str, ...]):
+    """A rich table of recordings: every cell folded, never cut (an id stays whole)."""
+    from rich.table import Table
+
+    t = Table(title=title, title_justify="left")
+    for c in columns:
+        t.add_column(c, overflow="fold", no_wrap=c == "recording",
+                     justify="right" if c in NUMERIC else "left")
+    return t
 
 
 def _n(v: Any) -> str:
