@@ -273,6 +273,7 @@ def test_a_killed_worker_is_retried_once(long_recording, tmp_path):
             p.wait()
     assert p.returncode == 0, out
     assert read_manifest(ds)[_rid(long_recording)]["status"] == "ok"
+    assert not list(ds.rglob(".*"))  # what the killed task left is gone
 
 
 def test_ctrl_c_keeps_the_finished_and_leaves_the_manifest_consistent(recordings,

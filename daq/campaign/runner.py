@@ -182,6 +182,7 @@ class Runner:
                 self.progress.interrupted(len(todo) - len(self._finished_run))
                 raise
         self.save(force=True)
+        self._clean_leftovers()  # (a worker that died left its task's files half-written)
         return 1 if any(r.get("status") == "failed" for r in self._finished.values()) else 0
 
     def finish(self, item: Item, result: dict[str, Any] | None) -> None:
