@@ -67,3 +67,20 @@ def test_the_sigma_column_is_the_root_of_the_posterior_variance_in_degrees(kinds
         for i, name in enumerate(row["names"]):
             assert row[f"sigma_deg.{name}"] == pytest.approx(
                 math.degrees(math.sqrt(row["P"][i][i])), rel=1e-12)
+
+
+def test_a_value_of_another_type_than_declared_is_left_out_and_named(tmp_path, capsys):
+    """A telemetry file from elsewhere whose value does not fit its declared column (a
+    scalar where a list is declared) is exported without it, and the command says so —
+    instead of the internal error the flight rig's records once gave."""
+    import json
+
+    rec = {"key": "innovations", "seq": 1, "t": 1.0, "e": [1.0] * 6, "nis": 2.0}
+    src = tmp_path / "results.jsonl"
+    src.write_text(json.dumps(rec) + "\n" + json.dumps({**rec, "seq": 2, "nis": [1, 2]}) + "\n")
+    assert main(["export", str(src), "--parquet", str(tmp_path / "pq")]) == 0
+    t = pq.read_table(tmp_path / "pq" / "innovations.parquet")
+    assert t.column("seq").to_pylist() == [1, 2] and t.column("e.X").to_pylist() == [1.0, 1.0]
+    assert t.column("nis").to_pylist() == [2.0, None]
+    out = capsys.readouterr().out
+    assert "left out: nis" in out
