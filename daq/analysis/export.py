@@ -18,6 +18,7 @@ docs/telemetry.md by tests/test_export.py.
 from __future__ import annotations
 
 import json
+import math
 import re
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
@@ -273,7 +274,31 @@ def flatten(key: str, payload: dict, names: dict[str, tuple[str, ...]]) -> dict[
             row[path] = v
 
     walk("", payload)
+    if key == "angles":
+        row.update(_sigma_deg(payload, names.get("angles")))
     return row
+
+
+SIGMA_DEG = "sigma_deg"  # the angles table's column prefix: each angle's posterior σ in degrees
+
+
+def _sigma_deg(payload: dict, known: Sequence[str] | None) -> dict[str, float | None]:
+    """``sigma_deg.<angle>``: √P_ii of the record's posterior covariance, in degrees, for each
+    of the rig's angles the record names (None where P is missing or not a variance)."""
+    names, P = payload.get("names"), payload.get("P")
+    if not isinstance(names, list) or not isinstance(P, list) or len(P) != len(names):
+        return {}
+    out: dict[str, float | None] = {}
+    for i, name in enumerate(names):
+        if known and name not in known:
+            continue
+        row = P[i]
+        v = row[i] if isinstance(row, list) and len(row) == len(names) else None
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and v >= 0.0:
+            out[f"{SIGMA_DEG}.{name}"] = math.degrees(math.sqrt(v))
+        else:
+            out[f"{SIGMA_DEG}.{name}"] = None
+    return out
 
 
 _FIELD_RES = {key: [(re.compile("^" + re.escape(p).replace(re.escape("<node>"), "[^.]+")
@@ -284,6 +309,8 @@ _FIELD_RES = {key: [(re.compile("^" + re.escape(p).replace(re.escape("<node>"), 
 def column_unit(key: str, column: str) -> str:
     """The unit of a flat column, from :data:`FIELDS` ('' when none)."""
     parts = column.split(".")
+    if key == "angles" and parts[0] == SIGMA_DEG:
+        return "deg"
     for n in range(len(parts), 0, -1):
         head = ".".join(parts[:n])
         for rx, _, unit in _FIELD_RES.get(key, ()):
@@ -393,6 +420,9 @@ def declared_columns(key: str, names: dict[str, tuple[str, ...]]) -> list[tuple[
             elif key == "channels" and path == "accel":
                 out += [(f"accel.{a}.{x}", "number") for a in names.get("accel", ())
                         for x in "xyz"]
+            elif key == "angles" and path == "P":
+                out.append((col, jtype))
+                out += [(f"{SIGMA_DEG}.{n}", "number") for n in names.get("angles", ())]
             elif (key, path) in _BY_NAME:
                 if key == "angles":
                     out.append((col, jtype))
@@ -458,53 +488,115 @@ def _cell(v: Any, typ) -> Any:
     return v
 
 
+class ParquetTables:
+    """Rows of every key into its own Parquet file under its declared schema, pushed one
+    record at a time (:meth:`add`) and written ``batch`` rows at a time (bounded memory);
+    :meth:`close` writes the rest. ``outputs[key]`` is a path or a binary file object (an
+    atomic output: daq.runtime.persistence.AtomicOutput). ``metadata`` (provenance) is added
+    to every file's key-value metadata. ``counts`` the rows per key; a value in a column the
+    schema does not declare, or of another type than declared, is left out and its column
+    named in ``left_out`` (the declaration is incomplete: tests/test_export.py keeps it
+    complete for what rsra publishes)."""
+
+    def __init__(self, schemas: dict, outputs: dict[str, Any], names: dict[str, tuple[str, ...]],
+                 batch: int = 4096, left_out: dict[str, set[str]] | None = None,
+                 metadata: dict[str, str] | None = None):
+        if metadata:
+            schemas = {k: sch.with_metadata({**(sch.metadata or {}),
+                                             **{a.encode(): b.encode()
+                                                for a, b in metadata.items()}})
+                       for k, sch in schemas.items()}
+        #: the Arrow schema of each key's file
+        self.schemas: dict = schemas
+        #: where each key's file goes (path or binary file object)
+        self.outputs = outputs
+        #: the rig's names the vectors are flattened by (:func:`vector_names`)
+        self.names = names
+        #: rows held per key before a write
+        self.batch = batch
+        #: rows written per key
+        self.counts: dict[str, int] = {k: 0 for k in schemas}
+        #: columns whose values were left out, per key
+        self.left_out: dict[str, set[str]] = {} if left_out is None else left_out
+        self._writers: dict[str, Any] = {}
+        self._pending: dict[str, list[dict]] = {k: [] for k in schemas}
+        self._declared = {k: set(sch.names) for k, sch in schemas.items()}
+
+    def add(self, key: str, payload: dict) -> None:
+        row = flatten(key, payload, self.names)
+        cols = self._declared[key]
+        for col, v in row.items():
+            if v is not None and col not in cols:
+                self.left_out.setdefault(key, set()).add(col)
+        pending = self._pending[key]
+        pending.append(row)
+        if len(pending) >= self.batch:
+            self._flush(key)
+
+    def _flush(self, key: str) -> None:
+        import pyarrow as pa
+
+        rows = self._pending[key]
+        if not rows:
+            return
+        sch = self.schemas[key]
+        arrays = [self._column(key, rows, f) for f in sch]
+        self._write(key, pa.Table.from_arrays(arrays, schema=sch))
+        rows.clear()
+
+    def _write(self, key: str, table) -> None:
+        import pyarrow.parquet as pq
+
+        if key not in self._writers:
+            self._writers[key] = pq.ParquetWriter(self.outputs[key], self.schemas[key])
+        self._writers[key].write_table(table)
+        self.counts[key] += table.num_rows
+
+    def _column(self, key: str, rows: list[dict], f):
+        """One column of the batch; a value of another type than declared is left out."""
+        import pyarrow as pa
+
+        values = [_cell(r.get(f.name), f.type) for r in rows]
+        try:
+            return pa.array(values, type=f.type)
+        except (pa.ArrowInvalid, pa.ArrowTypeError):
+            kept = []
+            for v in values:
+                try:
+                    pa.array([v], type=f.type)
+                    kept.append(v)
+                except (pa.ArrowInvalid, pa.ArrowTypeError):
+                    kept.append(None)
+                    self.left_out.setdefault(key, set()).add(f.name)
+            return pa.array(kept, type=f.type)
+
+    def close(self, empty: bool = False) -> None:
+        """Write what is pending and close the files; ``empty``: a key without rows still
+        gets its file (its schema, no rows), so every key of a dataset has its file."""
+        try:
+            for key in self.schemas:
+                self._flush(key)
+                if empty and key not in self._writers:
+                    self._write(key, self.schemas[key].empty_table())
+        finally:
+            for w in self._writers.values():
+                w.close()
+            self._writers.clear()
+
+
 def write_parquet(records: Iterable[tuple[str, dict]], schemas: dict, paths: dict[str, Path],
                   names: dict[str, tuple[str, ...]], batch: int = 4096,
                   left_out: dict[str, set[str]] | None = None) -> dict[str, int]:
-    """Rows of every key into its Parquet file (``paths[key]``) under its schema, ``batch``
-    rows at a time (bounded memory). Returns the row count per key; a value in a column the
-    schema does not declare is left out, and its column named in ``left_out`` (the
-    declaration is incomplete: tests/test_export.py keeps it complete for what rsra
-    publishes)."""
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
-    writers: dict[str, Any] = {}
-    pending: dict[str, list[dict]] = {k: [] for k in schemas}
-    counts = {k: 0 for k in schemas}
-    declared = {k: set(sch.names) for k, sch in schemas.items()}
-    if left_out is None:
-        left_out = {}
-
-    def flush(key: str) -> None:
-        rows = pending[key]
-        if not rows:
-            return
-        sch = schemas[key]
-        arrays = [pa.array([_cell(r.get(f.name), f.type) for r in rows], type=f.type)
-                  for f in sch]
-        if key not in writers:
-            writers[key] = pq.ParquetWriter(paths[key], sch)
-        writers[key].write_table(pa.Table.from_arrays(arrays, schema=sch))
-        counts[key] += len(rows)
-        rows.clear()
-
+    """Rows of every key into its Parquet file (``paths[key]``) under its schema
+    (:class:`ParquetTables`). Returns the row count per key; values left out are named in
+    ``left_out``."""
+    tables = ParquetTables(schemas, dict(paths), names, batch, left_out)
     try:
         for key, payload in records:
-            row = flatten(key, payload, names)
-            cols = declared[key]
-            for col, v in row.items():
-                if v is not None and col not in cols:
-                    left_out.setdefault(key, set()).add(col)
-            pending[key].append(row)
-            if len(pending[key]) >= batch:
-                flush(key)
-        for key in schemas:
-            flush(key)
+            tables.add(key, payload)
     finally:
-        for w in writers.values():
-            w.close()
-    return counts
+        tables.close()
+    return tables.counts
 
 
 def vector_names(cfg: RigConfig) -> dict[str, tuple[str, ...]]:

@@ -1,1 +1,1 @@
-"""`rsra campaign`: many recordings reprocessed into one dataset (docs/cli.md)."""
+"""Campaigns: many recordings reprocessed into one dataset (docs/user-guide.md "Campaigns")."""

@@ -63,7 +63,7 @@ FIELDS: dict[str, list[tuple[str, str, str]]] = {
         ("missing_inputs", "array:object", ""),
         ("missing_inputs[].input", "string", ""), ("missing_inputs[].fraction", "number", ""),
         ("load_excursion", "object", ""), ("load_excursion.delta", "array:number", "N, N·m"),
-        ("load_excursion.sigma", "array:number", "rad"),
+        ("load_excursion.sigma", "number", "rad"),  # one σ, the same for every angle
         ("reference_move", "object", ""), ("reference_move.delta", "array:number", "N, N·m"),
         ("reference_move.sigma", "number", "rad"),
         ("advice", "object", ""), ("advice.determined", "integer", ""),

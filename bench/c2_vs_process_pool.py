@@ -1,0 +1,64 @@
+"""C2 — `rsra campaign run` on Dask against a plain ProcessPoolExecutor over the same tasks
+(docs/user-guide.md "Campaigns").
+
+The campaign of C1 (tiny: 2 recordings of 1 s) into a fresh dataset on N = the usable cores,
+once on the default engine (a Dask local cluster) and once with ``--pool`` (the same tasks
+through the engine seam on a ``concurrent.futures.ProcessPoolExecutor``), interleaved, start-up
+included in both. Target: Dask's wall time ≤ 1.05 × the pool's.
+"""
+from __future__ import annotations
+
+import shutil
+import tempfile
+from pathlib import Path
+
+from bench.campaign_data import campaign_folder, run_campaign
+from bench.common import arg_parser, interleaved, ratio, writer_from_args
+
+BENCH = "c2_vs_process_pool"
+LIMIT = 1.05
+
+
+def main(argv: list[str] | None = None) -> int:
+    from rsra.daq.campaign.engine import cores
+
+    p = arg_parser(__doc__.splitlines()[0])
+    p.add_argument("--recordings", type=int, default=16, help="recordings (default 16)")
+    p.add_argument("--longest", type=float, default=60.0,
+                   help="the longest recording, s (the shortest is a sixth of it; default 60)")
+    args = p.parse_args(argv)
+    w = writer_from_args(BENCH, args)
+    n = cores()
+    k_, top = args.recordings, args.longest
+    lengths = [1.0, 1.0] if args.tiny else [top / 6 + top * 5 / 6 * i / max(k_ - 1, 1)
+                                             for i in range(k_)]
+    rounds = 1 if args.tiny else 2
+    with tempfile.TemporaryDirectory(prefix="rsra-c2-") as tmp:
+        recs = campaign_folder(Path(tmp), lengths)
+        k = [0]
+
+        def on(*engine: str):
+            def go() -> float:
+                k[0] += 1
+                ds = Path(tmp) / f"ds{k[0]}"
+                rc, t = run_campaign(["--dataset", str(ds), "--workers", str(n), *engine,
+                                      str(recs)])
+                shutil.rmtree(ds, ignore_errors=True)
+                if rc != 0:
+                    raise RuntimeError(f"campaign run exited {rc}")
+                return t
+            return go
+
+        res = interleaved({"dask": on(), "pool": on("--pool")}, rounds)
+    td, tp = min(res["dask"]), min(res["pool"])
+    r = ratio(tp, td)
+    w.add(f"dask_vs_pool_{n}_workers", td, "s", peer="ProcessPoolExecutor, same tasks",
+          peer_figure=tp, ratio_value=r, ratio_is="peer/figure",
+          target=f"Dask wall ≤ {LIMIT:g} × the pool's (ratio ≥ {1 / LIMIT:.3f})",
+          met=r is not None and r >= 1 / LIMIT, workers=n, recordings=len(lengths),
+          rounds=rounds, all_rounds=res, statistic="best of rounds (start-up included)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,109 @@
+"""What a campaign task makes of one recording: a registry of products (:data:`PRODUCTS`).
+
+A product is a name and a callable of a :class:`ProductContext` (the recording's source and
+files, its effective rig, the options, a staging folder) that returns
+
+* a pyarrow Table, or a list of row dicts: written as ``DIR/<name>/recording=<id>/part.parquet``
+  with the recording's provenance in the file's metadata; or
+* ``None``: it wrote its tables itself through :meth:`ProductContext.output` (the telemetry
+  product: one table per record key, from one replay).
+
+Every file goes under a temporary name and is renamed only when every product of the
+recording succeeded, so a recording's outputs appear together or not at all (and a failed
+re-run leaves the previous ones whole). A product adds what the manifest needs to
+``ctx.stats``. Adding a product is one entry in :data:`PRODUCTS`.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+from rsra.config.rig import RigConfig
+from rsra.daq.runtime.persistence import AtomicOutput
+
+#: the record keys of the telemetry product, each a table of the dataset
+TELEMETRY_TABLES = ("hub_loads", "channels", "innovations", "angles", "health")
+
+
+@dataclass
+class ProductContext:
+    #: the recording as named (a folder or a log file), and the files its replay reads
+    source: Path
+    paths: list[Path]
+    #: the recording's effective rig
+    cfg: RigConfig
+    #: the campaign's options (JSON-ready; part of the output key)
+    options: dict[str, Any]
+    #: a folder of this task's own for scratch files (removed afterwards)
+    staging: Path
+    #: the dataset folder and the recording's id (its partition)
+    dataset: Path
+    recording: str
+    #: provenance, written into every file's key-value metadata
+    metadata: dict[str, str]
+    #: what the manifest row gets (samples, lost_samples, accepted_runs, t_start, …)
+    stats: dict[str, Any] = field(default_factory=dict)
+    _outputs: dict[str, AtomicOutput] = field(default_factory=dict)
+
+    def output(self, table: str) -> IO:
+        """The binary file of ``table``'s partition of this recording (temporary until
+        :meth:`commit`)."""
+        target = self.dataset / table / f"recording={self.recording}" / "part.parquet"
+        target.parent.mkdir(parents=True, exist_ok=True)
+        out = self._outputs[table] = AtomicOutput(target, "wb")
+        return out.open()
+
+    def commit(self) -> list[str]:
+        """Rename every file into place; returns the tables written."""
+        for out in self._outputs.values():
+            out.commit()
+        return list(self._outputs)
+
+    def discard(self) -> None:
+        for out in self._outputs.values():
+            out.discard()
+        self._outputs.clear()
+
+
+@dataclass(frozen=True)
+class Product:
+    name: str
+    build: Callable[[ProductContext], Any]
+
+
+def telemetry(ctx: ProductContext) -> None:
+    """The replay's records, one table per key, under the declared schemas of
+    ``rsra export --parquet`` (daq.analysis.export)."""
+    from rsra.daq.analysis.export import ParquetTables, parquet_schemas, vector_names
+    from rsra.daq.campaign.replay import replay_to_tables
+
+    names = vector_names(ctx.cfg)
+    schemas = parquet_schemas(TELEMETRY_TABLES, names)
+    outputs = {k: ctx.output(k) for k in schemas}
+    tables = ParquetTables(schemas, outputs, names, metadata=ctx.metadata)
+    try:
+        ctx.stats.update(replay_to_tables(ctx.cfg, [ctx.source], tables, ctx.options))
+    finally:
+        tables.close(empty=True)
+    ctx.stats["rows"] = dict(tables.counts)
+    if tables.left_out:
+        ctx.stats["left_out"] = {k: sorted(v) for k, v in tables.left_out.items()}
+
+
+def write_table(ctx: ProductContext, name: str, result: Any) -> None:
+    """A product's Table (or rows) into its partition, provenance in the metadata."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    table = result if isinstance(result, pa.Table) else pa.Table.from_pylist(list(result))
+    meta = {**(table.schema.metadata or {}),
+            **{k.encode(): v.encode() for k, v in ctx.metadata.items()}}
+    pq.write_table(table.replace_schema_metadata(meta), ctx.output(name))
+
+
+#: the products of every recording, in order
+PRODUCTS: list[Product] = [
+    Product("telemetry", telemetry),
+]
