@@ -395,3 +395,25 @@ def test_progress_live_bar_and_plain_lines_and_summary(tmp_path):
         assert "1 failed" in text and "bad.log:3" in text and "a-00000000" in text
         if not live:
             assert "[1/2] a-00000000: ok, 400 samples" in text and "samples/s" in text
+
+
+def test_campaign_calibrate_pools_the_recordings_a_campaign_run_wrote(tmp_path, capsys):
+    """The whole loop of issue 47 item 6 through the dataset: `campaign run` writes each
+    recording's information product; `campaign calibrate` pools them into a posterior in the
+    state-file format that `rsra angles show` reads (two seeds are two aircraft: their angles
+    differ, and the homogeneity test refuses to pool them)."""
+    recs = tmp_path / "recs"
+    recs.mkdir()
+    for name in ("k4a", "k4b"):  # one aircraft (a seed draws its angles) recorded twice
+        _record(recs / name, 4, "11")
+    ds = tmp_path / "ds"
+    assert main(["campaign", "run", "--dataset", str(ds), "--workers", "1", "--pool",
+                 str(recs)]) == 0
+    parts = sorted((ds / "information").glob("recording=*/part.parquet"))
+    assert len(parts) == 2 and all(pq.read_table(p).num_rows >= 1 for p in parts)
+    capsys.readouterr()
+    post = tmp_path / "P.json"
+    assert main(["campaign", "calibrate", "--dataset", str(ds), "--out", str(post)]) == 0
+    assert post.is_file()
+    assert main(["angles", "show", str(post)]) == 0
+    assert "delta_A" in capsys.readouterr().out

@@ -152,8 +152,12 @@ def software_version() -> str:
 
 
 def output_key(content: str, config: str, software: str, options: dict) -> str:
+    from rsra.daq.campaign.products import PRODUCTS
+
+    # the products a task makes are part of the layout: a product added re-runs every one
+    schema = [SCHEMA_VERSION, [p.name for p in PRODUCTS]]
     return _sha(canonical({"content": content, "config": config, "software": software,
-                           "schema": SCHEMA_VERSION, "options": options}).encode())[:32]
+                           "schema": schema, "options": options}).encode())[:32]
 
 
 def recording_id(source: Path) -> str:

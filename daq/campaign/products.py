@@ -103,7 +103,18 @@ def write_table(ctx: ProductContext, name: str, result: Any) -> None:
     pq.write_table(table.replace_schema_metadata(meta), ctx.output(name))
 
 
+def information(ctx: ProductContext) -> Any:
+    """The recording's known-load information (daq.analysis.information: the moments of its
+    windows), what `rsra campaign calibrate` pools across recordings; the recording id is
+    the partition's."""
+    from rsra.daq.analysis.information import recording_information
+
+    table = recording_information(ctx.cfg, ctx.source, ctx.recording)
+    return table.drop_columns(["recording"])
+
+
 #: the products of every recording, in order
 PRODUCTS: list[Product] = [
     Product("telemetry", telemetry),
+    Product("information", information),
 ]

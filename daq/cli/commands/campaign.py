@@ -1,4 +1,4 @@
-"""`rsra campaign run|plan|status|compare`: many recordings into one dataset (docs/cli.md).
+"""`rsra campaign run|plan|status|compare|calibrate`: many recordings into one dataset (docs/cli.md).
 
 A table of subcommands, each a module of daq/campaign with add_parser(sub, name) and
 run(args), as the command table of daq/cli does."""
@@ -12,6 +12,7 @@ SUBCOMMANDS = {
     "plan": "plan",
     "status": "status",
     "compare": "compare",
+    "calibrate": "calibrate",
 }
 
 OUTPUTS = {"dataset": "folder"}  # against the inputs (daq.cli.outputs)
