@@ -178,6 +178,17 @@ class Outputs:
                             config_file=opts.zenoh_config)
         self.session = session = zenoh.open(conf)
         self._stack.callback(session.close)
+        # two processes never publish into one stream: another service's token under this
+        # prefix (on the sessions this one reaches) refuses the start (docs/telemetry.md)
+        from rsra.daq.runtime.instances import publishing
+
+        prefix = cfg.telemetry.prefix
+        others = publishing(session, f"{prefix}/alive/*/*/*/*")
+        if others:
+            raise ConfigError("telemetry.prefix", prefix,
+                              f"another rsra publishes there ({others[0].describe()})",
+                              "stop that service, or give this one its own prefix "
+                              "(telemetry.prefix in a rig file)")
         # state/config tells the endpoints the session really uses (options, config file)
         effective = cfg.effective()
         tel = effective.setdefault("telemetry", {})

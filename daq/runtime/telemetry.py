@@ -131,6 +131,12 @@ class TelemetryPublisher:
         if effective_config is not None:
             self._state["config"] = dumps(redact_secrets(effective_config)).encode()
         self._token = declared(session.liveliness().declare_token(f"{prefix}/alive"))
+        # who publishes: <prefix>/alive/<rig>/<host>/<pid>/<started> (daq.runtime.instances)
+        from rsra.daq.runtime.instances import this_instance
+
+        rig = ((effective_config or {}).get("rig") or {}).get("name") or "rig"
+        self.instance = this_instance(prefix, str(rig))
+        self._instance_token = declared(session.liveliness().declare_token(self.instance.key))
         self._state_keys = {n: zenoh.KeyExpr(f"{prefix}/state/{n}") for n in STATE_KEYS}
         # a callback queryable: zenoh's own thread runs _answer per query, so an idle service
         # has no thread polling for queries (a 10-ms poll woke the GIL 100 times a second)

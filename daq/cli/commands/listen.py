@@ -65,7 +65,10 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
                        description="Subscribe to <prefix>/** and show the latest values, rates, "
                        "missed samples, staleness and node health.")
     common_options(p)
-    p.add_argument("--prefix", default=None, help="key prefix (default: the config's, rsra/bench)")
+    p.add_argument("--prefix", default=None,
+                   help="key prefix (default: the rig publishing, else the config's rsra/bench)")
+    p.add_argument("--rig", default=None, metavar="NAME",
+                   help="show the rig of this name (rig.name) among those publishing")
     p.add_argument("--key", action="append", default=[], metavar="K",
                    help="only this key under the prefix (repeatable), e.g. hub_loads")
     p.add_argument("--json", action="store_true", help="print one JSON object per message")
@@ -88,6 +91,8 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
 # events and are never dropped by Zenoh (congestion control BLOCK): not counted.
 EVERY_SAMPLE = ("hub_loads", "channels")
 EVERY_NTH_SAMPLE = ("innovations",)
+STALE_INTERVALS = 5  # a key's rate falls to 0 after this many of its intervals without one
+REDISCOVER_S = 2.0  # while no rig is chosen, look for one this often
 
 
 class KeyStats:
@@ -132,11 +137,19 @@ class KeyStats:
         self.arrivals.append(now)
         self.latest = payload if isinstance(payload, dict) else {"value": payload}
 
-    def rate(self) -> float:
+    def rate(self, now: float | None = None) -> float:
+        """Messages per second over the recent arrivals; 0 once none has come for
+        STALE_INTERVALS of their own interval (at least a second): a stopped service's keys
+        fall to 0 instead of showing their last rate."""
         if len(self.arrivals) < 2:
             return 0.0
         span = self.arrivals[-1] - self.arrivals[0]
-        return (len(self.arrivals) - 1) / span if span > 0 else 0.0
+        if span <= 0:
+            return 0.0
+        interval = span / (len(self.arrivals) - 1)
+        if now is not None and now - self.arrivals[-1] > max(1.0, STALE_INTERVALS * interval):
+            return 0.0
+        return 1.0 / interval
 
 
 def _fmt(v, width: int = 9) -> str:
@@ -146,18 +159,20 @@ def _fmt(v, width: int = 9) -> str:
 
 
 def render(stats: dict[str, KeyStats], prefix: str, units: str, now: float,
-           notes: list[str] | None = None):
+           notes: list[str] | None = None, source: str | None = None):
+    """The live view; ``source``: whose telemetry it is (daq.runtime.instances), or why
+    nothing is shown."""
     from rich.console import Group
     from rich.table import Table
 
     parts: list[RenderableType] = []
-    t = Table(title=f"rsra telemetry — {_text(prefix)}", expand=False)
+    t = Table(title=f"rsra telemetry — {_text(source or prefix)}", expand=False)
     for col in ("key", "messages", "rate /s", "missed", "age s"):
         t.add_column(col, justify="right" if col != "key" else "left")
     for key in sorted(stats):
         s = stats[key]
         missed = s.missed
-        t.add_row(_text(key), str(s.count), f"{s.rate():.1f}", "—" if missed is None else str(missed),
+        t.add_row(_text(key), str(s.count), f"{s.rate(now):.1f}", "—" if missed is None else str(missed),
                   f"{now - s.last_arrival:.2f}")
     parts.append(t)
     hl = stats.get("hub_loads")
@@ -272,6 +287,81 @@ class Listener:
         return out
 
 
+class Whose:
+    """Which service the view shows (daq.runtime.instances): ``--prefix``, ``--rig NAME``, or
+    the only rig publishing; several without a choice are a usage error listing them; none
+    yet: the config's prefix, looked for again until one appears. Its liveliness token's
+    DELETE says it stopped."""
+
+    def __init__(self, session: Any, default_prefix: str, prefix: str | None,
+                 rig: str | None) -> None:
+        self._session = session
+        self._default = default_prefix
+        self._want_prefix, self._want_rig = prefix, rig
+        self._root = (prefix or default_prefix).split("/")[0]
+        #: the prefix subscribed to (None: a --rig not found yet)
+        self.prefix: str | None = None
+        #: the service shown, when its token was found
+        self.instance: Any = None
+        #: why no service is named (nothing publishing, none of that name)
+        self.why: str | None = None
+        self.stopped: str | None = None  # the UTC time its token went away
+        self._alive: Any = None
+        self._looked = 0.0
+
+    def discover(self, now: float) -> None:
+        """Look for the services publishing; raise UsageError when several could be meant."""
+        from rsra.daq.cli.options import UsageError
+        from rsra.daq.runtime.instances import choose, publishing
+
+        self._looked = now
+        found = publishing(self._session, f"{self._root}/**/alive/*/*/*/*")
+        inst, why = choose(found, self._want_rig, self._want_prefix)
+        if inst is None and found and self._want_rig is None and self._want_prefix is None:
+            raise UsageError(f"{why}")
+        self.why = why
+        if inst is not None and (self.prefix is None or inst.prefix == self.prefix):
+            self._follow(inst)
+        elif self.prefix is None and self._want_rig is None:
+            self.prefix = self._want_prefix or self._default
+
+    def _follow(self, inst: Any) -> None:
+        import zenoh
+
+        self.instance, self.prefix, self.why, self.stopped = inst, inst.prefix, None, None
+        if self._alive is None:
+            self._alive = self._session.liveliness().declare_subscriber(
+                f"{inst.prefix}/alive/*/*/*/*", handler=zenoh.handlers.RingChannel(64))
+
+    def poll(self, now: float) -> None:
+        """Hear the service stop (or another start on the prefix); look again while none."""
+        import zenoh
+
+        from rsra.daq.runtime.instances import parse
+
+        while self._alive is not None and (s := self._alive.handler.try_recv()) is not None:
+            inst = parse(str(s.key_expr))
+            if inst is None:
+                continue
+            if s.kind == zenoh.SampleKind.DELETE and inst == self.instance:
+                self.stopped = time.strftime("%H:%M:%S UTC", time.gmtime())
+            elif s.kind == zenoh.SampleKind.PUT and inst != self.instance:
+                self.instance, self.stopped = inst, None
+        if self.instance is None and now - self._looked >= REDISCOVER_S:
+            self.discover(now)
+
+    def title(self) -> str:
+        if self.instance is not None:
+            return self.instance.describe() + (f" — stopped at {self.stopped}"
+                                               if self.stopped else "")
+        return f"{self.why or 'no rig publishing'} — waiting on {self.prefix or '(no prefix)'}"
+
+    def close(self) -> None:
+        if self._alive is not None:
+            self._alive.undeclare()
+            self._alive = None
+
+
 def run(args: argparse.Namespace) -> int:
     import zenoh
 
@@ -279,7 +369,6 @@ def run(args: argparse.Namespace) -> int:
     from rsra.daq.runtime.telemetry import payload_guard, viewer_config, zenoh_config
 
     cfg = load_rig(args.config)
-    prefix = args.prefix or cfg.telemetry.prefix
     if args.zenoh_config:
         conf = zenoh_config(cfg.telemetry, config_file=args.zenoh_config)
     else:
@@ -289,21 +378,30 @@ def run(args: argparse.Namespace) -> int:
     lis = Listener(payload_guard(), sys.stdout if args.json else None)
     t_end = None if args.duration is None else time.monotonic() + args.duration
     with zenoh.open(conf) as session:
-        subs = [session.declare_subscriber(f"{prefix}/{k}", zenoh.handlers.RingChannel(4096))
-                for k in keys]
+        whose = Whose(session, cfg.telemetry.prefix, args.prefix, args.rig)
+        subs: list[Any] = []
         live = None
-        if not args.json:
-            from rich.live import Live
-
-            from rsra.daq.cli.console import make_console
-
-            live = Live(render(lis.stats, prefix, args.units, time.monotonic()),
-                        console=make_console(), refresh_per_second=4, transient=False)
-            live.start()
         try:
+            whose.discover(time.monotonic())
+            if args.json:
+                print(f"rsra listen: {whose.title()}", file=sys.stderr)
+            else:
+                from rich.live import Live
+
+                from rsra.daq.cli.console import make_console
+
+                live = Live(render(lis.stats, whose.prefix or "", args.units, time.monotonic(),
+                                   source=whose.title()),
+                            console=make_console(), refresh_per_second=4, transient=False)
+                live.start()
             last_draw = 0.0
             while True:
                 got = False
+                if not subs and whose.prefix is not None:
+                    prefix = whose.prefix
+                    subs = [session.declare_subscriber(f"{prefix}/{k}",
+                                                       zenoh.handlers.RingChannel(4096))
+                            for k in keys]
                 for sub in subs:
                     while (s := sub.handler.try_recv()) is not None:
                         got = True
@@ -312,8 +410,10 @@ def run(args: argparse.Namespace) -> int:
                         if args.count is not None and lis.received >= args.count:
                             return 0
                 now = time.monotonic()
+                whose.poll(now)
                 if live is not None and now - last_draw > 0.25:
-                    live.update(render(lis.stats, prefix, args.units, now, lis.notes()))
+                    live.update(render(lis.stats, whose.prefix or "", args.units, now,
+                                       lis.notes(), source=whose.title()))
                     last_draw = now
                 if args.json:
                     sys.stdout.flush()
@@ -325,8 +425,8 @@ def run(args: argparse.Namespace) -> int:
             return 0
         finally:
             if live is not None:
-                live.update(render(lis.stats, prefix, args.units, time.monotonic(),
-                                   lis.notes()))
+                live.update(render(lis.stats, whose.prefix or "", args.units, time.monotonic(),
+                                   lis.notes(), source=whose.title()))
                 live.stop()
             elif lis.guard.bad or lis.guard.non_finite:  # --json: stdout stays JSON lines
                 sys.stdout.flush()
@@ -334,3 +434,4 @@ def run(args: argparse.Namespace) -> int:
                     print(f"rsra listen: {line}", file=sys.stderr)
             for sub in subs:
                 sub.undeclare()
+            whose.close()
