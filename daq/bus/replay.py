@@ -19,6 +19,7 @@ import logging
 import math
 from collections.abc import Generator, Iterable, Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
 import can
 
@@ -67,7 +68,6 @@ class _CompleteLines:
 
     def __init__(self, path: Path):
         self.file = open(path, encoding="utf-8", errors="replace")
-        self.partial = 0  # cut lines dropped (0 or 1)
         self.lineno = 0  # the line last handed to the parser (1-based)
         self.line = ""
 
@@ -78,12 +78,15 @@ class _CompleteLines:
                 self.line = line
                 yield line
             else:
-                self.partial += 1
-                log.warning("%s: last line cut (a crash while recording?): dropped: %r",
-                            self.file.name, line[:80])
+                cut_line_dropped(Path(self.file.name), line)
 
     def close(self) -> None:
         self.file.close()
+
+
+def cut_line_dropped(path: Path, line: str) -> None:
+    """A last line without its newline (a cut write): dropped, said once."""
+    log.warning("%s: last line cut (a crash while recording?): dropped: %r", path, line[:80])
 
 
 def read_frames(paths: Sequence[str | Path]) -> Iterator[can.Message]:
@@ -122,20 +125,7 @@ def check_readable(paths: Sequence[str | Path]) -> None:
 def read_file(f: Path) -> Generator[can.Message, None, None]:
     """The frames of one recording file (see :func:`read_frames`)."""
     if f.suffix.lower() == ".log":
-        lines = _CompleteLines(f)
-        try:
-            with can.CanutilsLogReader(lines) as reader:  # type: ignore[arg-type]  # python-can reads any iterable of lines with close() (annotated TextIO)
-                for msg in reader:
-                    if not math.isfinite(msg.timestamp):
-                        raise ValueError(f"time stamp {msg.timestamp} is not a finite number")
-                    yield msg
-        except ReplayError:
-            raise
-        except Exception as e:  # python-can raises assorted errors on a bad line
-            raise ReplayError(
-                f"{f}:{lines.lineno}: not a candump frame ({_why(e)}): "
-                f"{lines.line.strip()[:60]!r}; fix: repair or delete that line (a candump "
-                "line reads '(1700000000.000000) can0 181#0102')") from None
+        yield from candump_frames(f, _CompleteLines(f))
         return
     n = 0
     try:
@@ -154,6 +144,25 @@ def read_file(f: Path) -> Generator[can.Message, None, None]:
             f"{f}: not a readable {f.suffix.lstrip('.').lower()} recording {where} "
             f"({_why(e)}); fix: give an undamaged recording (rename it if its suffix "
             "names the wrong format)") from None
+
+
+def candump_frames(f: Path, lines: Any) -> Generator[can.Message, None, None]:
+    """The frames of candump text ``lines`` of file ``f`` (python-can's parser); ``lines``
+    iterates text lines and tells the number (``lineno``) and text (``line``) of the last
+    one, for the error naming the line python-can refuses."""
+    try:
+        with can.CanutilsLogReader(lines) as reader:
+            for msg in reader:
+                if not math.isfinite(msg.timestamp):
+                    raise ValueError(f"time stamp {msg.timestamp} is not a finite number")
+                yield msg
+    except ReplayError:
+        raise
+    except Exception as e:  # python-can raises assorted errors on a bad line
+        raise ReplayError(
+            f"{f}:{lines.lineno}: not a candump frame ({_why(e)}): "
+            f"{lines.line.strip()[:60]!r}; fix: repair or delete that line (a candump "
+            "line reads '(1700000000.000000) can0 181#0102')") from None
 
 
 def _why(e: BaseException) -> str:
@@ -179,12 +188,22 @@ def config_for(paths: Sequence[str | Path], config: str | Path | None = None) ->
 
 def replay(cfg: RigConfig, paths: Sequence[str | Path] | None = None, *,
            frames: Iterable[can.Message] | None = None, realtime: bool = False,
-           reader: ReaderBase | None = None, finish: bool = False
+           reader: ReaderBase | None = None, finish: bool = False, streaming: bool = False
            ) -> Iterator[Sample | HealthReport]:
     """Samples and 1 Hz health reports of recordings, in order, through the reader's code
     path. ``realtime`` paces the frames at their recorded timing (``can.MessageSync``).
-    ``finish`` also passes on the last, incomplete sample when the recording ends."""
+    ``finish`` also passes on the last, incomplete sample when the recording ends.
+
+    Recordings read from ``paths`` as fast as possible take the columnar path
+    (daq.bus.columnar: the file read in blocks, the clean SYNC periods assembled per block,
+    every other frame through the reader one by one), which gives the same items;
+    ``streaming`` (or ``frames``, or ``realtime``) feeds every frame one by one."""
     r = reader or OfflineReader(cfg)
+    if frames is None and not realtime and not streaming:
+        from rsra.daq.bus.columnar import replay_columnar
+
+        yield from replay_columnar(r, paths or (), finish=finish)
+        return
     src = frames if frames is not None else read_frames(paths or ())
     if realtime:
         src = can.MessageSync(src, timestamps=True, gap=0.0)
