@@ -12,7 +12,6 @@ import re
 import sys
 from typing import NoReturn
 
-from rsra.config.rig import ConfigError
 from rsra.daq.cli.options import UsageError
 
 # name -> module under daq.commands; each module has add_parser(sub) and run(args).
@@ -51,7 +50,9 @@ def _version() -> str:
         return "unknown"
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The parser of every command, or (``only``) of that one command alone: the others are
+    left out, and with them their imports (``rsra replay --help`` imports no scipy)."""
     parser = _Parser(prog="rsra", description=(
         "Rotor hub loads from the load cells of an isolated transmission: CANopen DAQ, "
         "fixed-gain Kalman filter, on-line calibration of the load-cell angles, Zenoh telemetry."))
@@ -59,6 +60,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="print the version of rsra and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for name, module in COMMANDS.items():
+        if only is not None and name != only:
+            continue
         mod = importlib.import_module(f"rsra.daq.cli.commands.{module}")
         p = mod.add_parser(sub, name)
         p.set_defaults(_run=mod.run, _outputs={"log_file": "file", **getattr(mod, "OUTPUTS", {})},
@@ -73,8 +76,14 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
 
+def _command(argv: list[str]) -> str | None:
+    """The command ``argv`` names (its first word that is not an option), if it is one."""
+    word = next((a for a in argv if not a.startswith("-")), None)
+    return word if word in COMMANDS else None
+
+
 def _main(argv: list[str] | None) -> int:
-    parser = build_parser()
+    parser = build_parser(_command(sys.argv[1:] if argv is None else argv))
     args = parser.parse_args(argv)
     if not getattr(args, "_run", None):
         parser.print_help()
@@ -119,6 +128,7 @@ def describe_error(e: BaseException) -> tuple[int, str]:
     from rsra.daq.bus.replay import ReplayError
     from rsra.daq.runtime.service import BusOpenError
     from rsra.daq.runtime.foxglove_out import FoxgloveAddressError
+    from rsra.config.rig import ConfigError
     from rsra.estimator.posterior import PosteriorFileError
     from rsra.sim_bus.faults import FaultSpecError
 

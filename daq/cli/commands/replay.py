@@ -53,7 +53,7 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
                    "the recording's angle schedule")
     p.add_argument("--angles", metavar="STATE", default=None,
                    help="start from a saved posterior instead of the recording's")
-    from rsra.daq.runtime.posterior_file import add_accept_option
+    from rsra.daq.cli.options import add_accept_option
 
     add_accept_option(p)
     add_no_identification(p, help="neither the recorded angle schedule nor a recomputed "
