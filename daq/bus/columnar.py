@@ -280,14 +280,17 @@ def _python_can_blocks(path: Path) -> Iterator[Piece]:
         yield block()
 
 
-def read_pieces(paths: Sequence[str | Path]) -> Iterator[Piece]:
+def read_pieces(paths: Sequence[str | Path], block_bytes: int = BLOCK_BYTES
+                ) -> Iterator[Piece]:
     """Every frame of the recordings in order, as blocks of plain frames and single
-    messages (the replay's errors: replay.read_frames')."""
+    messages (the replay's errors: replay.read_frames'); candump text read
+    ``block_bytes`` at a time."""
     from rsra.daq.bus.replay import ReplayError, expand
 
     n = 0
     for f in expand(paths):
-        pieces = CandumpBlocks(f) if f.suffix.lower() == ".log" else _python_can_blocks(f)
+        pieces = CandumpBlocks(f, block_bytes) if f.suffix.lower() == ".log" \
+            else _python_can_blocks(f)
         for p in pieces:
             n += len(p) if isinstance(p, FrameBlock) else 1
             yield p
