@@ -225,7 +225,7 @@ def test_replay_out_writes_the_same_file_on_both_paths(recordings, tmp_path, kin
         outs.append([_without_pid(line) for line in out.read_bytes().splitlines()])
     assert outs[0] == outs[1] and sum(b'"key":"channels"' in x for x in outs[0]) >= 590
     if kind == "ground":
-        assert sum(b'"key":"angles"' in x and b'"accepted":true' in x for x in outs[0]) >= 1
+        assert sum(b'"key":"angles"' in x for x in outs[0]) >= 1  # an identification run
 
 
 def _without_pid(line: bytes) -> bytes:
