@@ -16,7 +16,7 @@ import pytest
 
 from rsra.daq.bus import columnar
 from rsra.daq.bus.reader import HealthReport, OfflineReader
-from rsra.daq.bus.replay import ReplayError, config_for, replay
+from rsra.daq.bus.replay import ReplayError, config_for, expand, replay
 from rsra.daq.cli import main as rsra_main
 
 ENV = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
@@ -52,7 +52,7 @@ def _items(paths, streaming: bool, block_bytes: int | None = None) -> list:
     if streaming or block_bytes is None:
         return list(replay(cfg, paths, finish=True, streaming=streaming))
     reader = OfflineReader(cfg)
-    pieces = columnar.read_pieces(paths, block_bytes=block_bytes)
+    pieces = columnar.read_pieces(expand(paths), block_bytes=block_bytes)
     return list(columnar.ColumnarReplay(reader).run(pieces, finish=True))
 
 

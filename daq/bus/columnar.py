@@ -31,6 +31,7 @@ import can
 import numpy as np
 
 from rsra.daq.bus.assembler import Sample
+from rsra.daq.bus.logfiles import ReplayError
 from rsra.daq.bus.reader import HealthReport, ReaderBase
 
 log = logging.getLogger(__name__)
@@ -133,7 +134,7 @@ class CandumpBlocks:
 
     def _odd(self, text: bytes) -> Iterator[can.Message]:
         """Lines python-can parses (the streaming path's own reading, error and all)."""
-        from rsra.daq.bus.replay import candump_frames
+        from rsra.daq.bus.logfiles import candump_frames
 
         lines = _NumberedLines(io.TextIOWrapper(io.BytesIO(text), encoding="utf-8",
                                                 errors="replace"), self.lineno, self.path)
@@ -149,7 +150,7 @@ class _NumberedLines:
         self.file, self.lineno, self.line, self.path = lines, lineno, "", path
 
     def __iter__(self) -> Iterator[str]:
-        from rsra.daq.bus.replay import cut_line_dropped
+        from rsra.daq.bus.logfiles import cut_line_dropped
 
         for line in self.file:
             if not line.endswith("\n"):
@@ -244,7 +245,7 @@ def _next_of(buf: np.ndarray, byte: int, frm: np.ndarray, default: np.ndarray) -
 def _python_can_blocks(path: Path) -> Iterator[Piece]:
     """Another format through python-can's reader (replay.read_file), the plain frames
     gathered into blocks, any other frame passed on as it is, in order."""
-    from rsra.daq.bus.replay import read_file
+    from rsra.daq.bus.logfiles import read_file
 
     t: list[float] = []
     cid: list[int] = []
@@ -280,22 +281,22 @@ def _python_can_blocks(path: Path) -> Iterator[Piece]:
         yield block()
 
 
-def read_pieces(paths: Sequence[str | Path], block_bytes: int = BLOCK_BYTES
-                ) -> Iterator[Piece]:
-    """Every frame of the recordings in order, as blocks of plain frames and single
-    messages (the replay's errors: replay.read_frames'); candump text read
+def read_pieces(files: Sequence[Path], block_bytes: int = BLOCK_BYTES,
+                names: Sequence[str | Path] | None = None) -> Iterator[Piece]:
+    """Every frame of the recording ``files`` (replay.expand's) in order, as blocks of plain
+    frames and single messages, with the errors of replay.read_frames (``names``: the
+    recordings as the user gave them, for the error of an empty one); candump text read
     ``block_bytes`` at a time."""
-    from rsra.daq.bus.replay import ReplayError, expand
-
     n = 0
-    for f in expand(paths):
+    for f in files:
         pieces = CandumpBlocks(f, block_bytes) if f.suffix.lower() == ".log" \
             else _python_can_blocks(f)
         for p in pieces:
             n += len(p) if isinstance(p, FrameBlock) else 1
             yield p
     if n == 0:
-        raise ReplayError(f"{', '.join(map(str, paths))}: no CAN frames in it (an empty "
+        shown = names if names is not None else files
+        raise ReplayError(f"{', '.join(map(str, shown))}: no CAN frames in it (an empty "
                           "recording); fix: give a recording that holds frames")
 
 
@@ -501,7 +502,9 @@ class _Periods:
         return int(self._bad[j]) if j < len(self._bad) else len(self.cand)
 
 
-def replay_columnar(reader: ReaderBase, paths: Sequence[str | Path], finish: bool = False
+def replay_columnar(reader: ReaderBase, files: Sequence[Path], finish: bool = False,
+                    names: Sequence[str | Path] | None = None
                     ) -> Iterator[Sample | HealthReport]:
-    """The items of :func:`rsra.daq.bus.replay.replay`, by the columnar path."""
-    return ColumnarReplay(reader).run(read_pieces(paths), finish=finish)
+    """The items of :func:`rsra.daq.bus.replay.replay` of the recording ``files``
+    (replay.expand's), by the columnar path."""
+    return ColumnarReplay(reader).run(read_pieces(files, names=names), finish=finish)

@@ -16,10 +16,8 @@ decode tables never depend on having seen the boot.
 from __future__ import annotations
 
 import logging
-import math
-from collections.abc import Generator, Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
-from typing import Any
 
 import can
 
@@ -28,13 +26,15 @@ from rsra.config.rig import RigConfig
 from rsra.daq.rigmodel import load_rig
 from rsra.daq.bus.reader import HealthReport, OfflineReader, ReaderBase
 from rsra.daq.bus.recorder import frame_files, recorded_config
+from rsra.daq.bus.logfiles import (  # noqa: F401  (the replay's names, where its users import them)
+    ReplayError,
+    candump_frames,
+    cut_line_dropped,
+    read_file,
+)
 
 LOG_SUFFIXES = (".log", ".blf", ".asc", ".trc", ".csv", ".mf4")
 log = logging.getLogger(__name__)
-
-
-class ReplayError(ValueError):
-    """A recording that cannot be replayed (missing, empty folder, unknown format)."""
 
 
 def expand(paths: Sequence[str | Path]) -> list[Path]:
@@ -59,34 +59,6 @@ def expand(paths: Sequence[str | Path]) -> list[Path]:
         else:
             raise ReplayError(f"{p}: no such file or folder")
     return out
-
-
-class _CompleteLines:
-    """The lines of a text log that end with a newline: a crash (``kill -9``, power loss)
-    can leave the last line cut anywhere, and a cut candump line may even parse — as a
-    shorter, wrong frame. Only the final line can be cut (the writer appends whole lines)."""
-
-    def __init__(self, path: Path):
-        self.file = open(path, encoding="utf-8", errors="replace")
-        self.lineno = 0  # the line last handed to the parser (1-based)
-        self.line = ""
-
-    def __iter__(self) -> Iterator[str]:
-        for line in self.file:
-            if line.endswith("\n"):
-                self.lineno += 1
-                self.line = line
-                yield line
-            else:
-                cut_line_dropped(Path(self.file.name), line)
-
-    def close(self) -> None:
-        self.file.close()
-
-
-def cut_line_dropped(path: Path, line: str) -> None:
-    """A last line without its newline (a cut write): dropped, said once."""
-    log.warning("%s: last line cut (a crash while recording?): dropped: %r", path, line[:80])
 
 
 def read_frames(paths: Sequence[str | Path]) -> Iterator[can.Message]:
@@ -122,57 +94,6 @@ def check_readable(paths: Sequence[str | Path]) -> None:
                           "recording); fix: give a recording that holds frames")
 
 
-def read_file(f: Path) -> Generator[can.Message, None, None]:
-    """The frames of one recording file (see :func:`read_frames`)."""
-    if f.suffix.lower() == ".log":
-        yield from candump_frames(f, _CompleteLines(f))
-        return
-    n = 0
-    try:
-        with can.LogReader(f) as reader:
-            for msg in reader:
-                if not math.isfinite(msg.timestamp):
-                    raise ValueError(f"frame {n + 1}: time stamp {msg.timestamp} is not a "
-                                     "finite number")
-                n += 1
-                yield msg
-    except ReplayError:
-        raise
-    except Exception as e:  # BLFParseError, zlib.error, struct.error, …
-        where = f"after {n} frames" if n else "at its start"
-        raise ReplayError(
-            f"{f}: not a readable {f.suffix.lstrip('.').lower()} recording {where} "
-            f"({_why(e)}); fix: give an undamaged recording (rename it if its suffix "
-            "names the wrong format)") from None
-
-
-def candump_frames(f: Path, lines: Any) -> Generator[can.Message, None, None]:
-    """The frames of candump text ``lines`` of file ``f`` (python-can's parser); ``lines``
-    iterates text lines and tells the number (``lineno``) and text (``line``) of the last
-    one, for the error naming the line python-can refuses."""
-    try:
-        with can.CanutilsLogReader(lines) as reader:
-            for msg in reader:
-                if not math.isfinite(msg.timestamp):
-                    raise ValueError(f"time stamp {msg.timestamp} is not a finite number")
-                yield msg
-    except ReplayError:
-        raise
-    except Exception as e:  # python-can raises assorted errors on a bad line
-        raise ReplayError(
-            f"{f}:{lines.lineno}: not a candump frame ({_why(e)}): "
-            f"{lines.line.strip()[:60]!r}; fix: repair or delete that line (a candump "
-            "line reads '(1700000000.000000) can0 181#0102')") from None
-
-
-def _why(e: BaseException) -> str:
-    name = type(e).__name__
-    if name == "error":  # zlib.error, struct.error: say whose
-        name = f"{type(e).__module__}.error"
-    text = " ".join(str(e).split())
-    return f"{name}: {text}" if text else name
-
-
 def config_for(paths: Sequence[str | Path], config: str | Path | None = None) -> RigConfig:
     """An explicit ``--config`` wins; else a recording folder's own effective configuration;
     else the packaged default rig."""
@@ -202,7 +123,7 @@ def replay(cfg: RigConfig, paths: Sequence[str | Path] | None = None, *,
     if frames is None and not realtime and not streaming:
         from rsra.daq.bus.columnar import replay_columnar
 
-        yield from replay_columnar(r, paths or (), finish=finish)
+        yield from replay_columnar(r, expand(paths or ()), finish=finish, names=paths or ())
         return
     src = frames if frames is not None else read_frames(paths or ())
     if realtime:
