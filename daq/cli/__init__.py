@@ -50,13 +50,26 @@ def _version() -> str:
         return "unknown"
 
 
+class _VersionAction(argparse.Action):
+    """``--version``: the version looked up only when asked (importlib.metadata's look-up
+    costs every start-up tens of ms otherwise)."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS,
+                 help=None):
+        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"rsra {_version()}")
+        parser.exit()
+
+
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     """The parser of every command, or (``only``) of that one command alone: the others are
     left out, and with them their imports (``rsra replay --help`` imports no scipy)."""
     parser = _Parser(prog="rsra", description=(
         "Rotor hub loads from the load cells of an isolated transmission: CANopen DAQ, "
         "fixed-gain Kalman filter, on-line calibration of the load-cell angles, Zenoh telemetry."))
-    parser.add_argument("--version", action="version", version=f"rsra {_version()}",
+    parser.add_argument("--version", action=_VersionAction,
                         help="print the version of rsra and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for name, module in COMMANDS.items():

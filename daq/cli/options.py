@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import logging.handlers
 import math
 import os
 import sys
@@ -152,7 +151,10 @@ def setup_logging(level: str, log_file: str | None) -> None:
         root.removeHandler(old)
     if log_file:
         try:
-            h: logging.Handler = logging.handlers.RotatingFileHandler(
+            # (only with --log-file: not imported on every start-up)
+            from logging.handlers import RotatingFileHandler
+
+            h: logging.Handler = RotatingFileHandler(
                 log_file, maxBytes=LOG_FILE_BYTES, backupCount=LOG_FILE_BACKUPS)
         except OSError as e:
                 raise UsageError(f"--log-file {log_file}: cannot be written ({e.strerror or e}); "
