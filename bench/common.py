@@ -42,6 +42,7 @@ BLAS_ENV = {"OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OMP_NUM_THREAD
 MODULES = ("p1_decode", "p2_filter_step", "p3_batch", "p4_identification", "p5_latency",
            "p5b_service_cpu",
            "p5c_shared_bus", "p6_max_rate", "p6a_shared_bus_rate", "p7_memory", "p8_busy_core",
+           "p9_replay",
            "a1_noise_budget", "a2_filter_accuracy", "a3_known_load", "a4_tracking", "a4_drift",
            "a5_paper",
            "a6_flight", "a7_structure",

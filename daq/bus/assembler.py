@@ -247,6 +247,21 @@ class SyncClock:
         if t - self.base_t > (lost + 1.5) * self.period:
             self.late += 1
 
+    # -- the columnar replay's hand-over (daq/bus/columnar.py) ------------------------------
+    def steady(self) -> bool:
+        """Nothing pending: the last SYNC was taken at its own time (the columnar replay may
+        take over the clean SYNCs that follow, :meth:`advance`)."""
+        return (self._suspect is None and self.base_t is not None and self.overflow > 1
+                and self.base_t == self._last_sync_t)
+
+    def advance(self, t: float, counter: int) -> None:
+        """Clean SYNCs, each one period after the last with the next counter, up to the
+        one at ``t`` with ``counter``, were taken by the columnar replay: the state
+        :meth:`stamp_sync` would have left (nothing lost, late, duplicated or a gap)."""
+        self.base_t = self._last_sync_t = t
+        self.base_c = counter
+        self.lost, self.duplicate, self.jumped = 0, False, False
+
     def stamp_frame(self, t: float, clock: float, sync: bool = False) -> float:
         """Any other frame (a SYNC without counter: ``sync=True``): far ahead of a running
         SYNC schedule, it is held at the clock until the next frame confirms it."""
@@ -738,3 +753,31 @@ class SampleAssembler:
 
     def counters(self) -> dict[str, int]:
         return {"complete": self.complete, "incomplete": self.incomplete, "lost": self.lost}
+
+    # -- the columnar replay's hand-over (daq/bus/columnar.py) ------------------------------
+    def steady_bits(self) -> int | None:
+        """The TPDO bits the next sample waits for when the assembler is between samples
+        with nothing pending (the last sample passed on complete, the next one expecting
+        exactly what the last one had); None otherwise. The columnar replay takes over a
+        SYNC followed by exactly these TPDOs only then."""
+        if self._open or not self._in_sample or self._stamped is not None \
+                or not self.clock.steady():
+            return None
+        have = self._have
+        expect = self._required_bits | self._alive_bits | (have & self._optional_bits)
+        return have if have == self._expect == expect and have else None
+
+    def advance(self, samples: list[Sample], counter: int, sync_t: float) -> None:
+        """``samples`` (consecutive, nothing lost before them, each a SYNC followed by the
+        :meth:`steady_bits` TPDOs) were assembled by the columnar replay: counted, and the
+        state left as the frame callbacks would have left it. ``sync_t`` is the last SYNC's
+        stamp."""
+        last = samples[-1]
+        n_complete = sum(1 for s in samples if s.complete)
+        self.complete += n_complete
+        self.incomplete += len(samples) - n_complete
+        self.emitted += len(samples)
+        self._seq, self._next_seq, self._lost = last.seq, last.seq + 1, 0
+        self._sync_t, self._sync_counter = last.t, counter
+        self._prev_have = self._have
+        self.clock.advance(sync_t, counter)

@@ -16,8 +16,7 @@ decode tables never depend on having seen the boot.
 from __future__ import annotations
 
 import logging
-import math
-from collections.abc import Generator, Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
 import can
@@ -28,13 +27,15 @@ from rsra.daq.rigmodel import load_rig
 from rsra.daq.bus.reader import HealthReport, OfflineReader, ReaderBase
 from rsra.daq.bus.recorder import frame_files, recorded_config
 from rsra.daq.bus.reorder import FrameReorder, reordered
+from rsra.daq.bus.logfiles import (  # noqa: F401  (the replay's names, where its users import them)
+    ReplayError,
+    candump_frames,
+    cut_line_dropped,
+    read_file,
+)
 
 LOG_SUFFIXES = (".log", ".blf", ".asc", ".trc", ".csv", ".mf4")
 log = logging.getLogger(__name__)
-
-
-class ReplayError(ValueError):
-    """A recording that cannot be replayed (missing, empty folder, unknown format)."""
 
 
 def expand(paths: Sequence[str | Path]) -> list[Path]:
@@ -59,32 +60,6 @@ def expand(paths: Sequence[str | Path]) -> list[Path]:
         else:
             raise ReplayError(f"{p}: no such file or folder")
     return out
-
-
-class _CompleteLines:
-    """The lines of a text log that end with a newline: a crash (``kill -9``, power loss)
-    can leave the last line cut anywhere, and a cut candump line may even parse — as a
-    shorter, wrong frame. Only the final line can be cut (the writer appends whole lines)."""
-
-    def __init__(self, path: Path):
-        self.file = open(path, encoding="utf-8", errors="replace")
-        self.partial = 0  # cut lines dropped (0 or 1)
-        self.lineno = 0  # the line last handed to the parser (1-based)
-        self.line = ""
-
-    def __iter__(self) -> Iterator[str]:
-        for line in self.file:
-            if line.endswith("\n"):
-                self.lineno += 1
-                self.line = line
-                yield line
-            else:
-                self.partial += 1
-                log.warning("%s: last line cut (a crash while recording?): dropped: %r",
-                            self.file.name, line[:80])
-
-    def close(self) -> None:
-        self.file.close()
 
 
 def read_frames(paths: Sequence[str | Path]) -> Iterator[can.Message]:
@@ -118,51 +93,6 @@ def check_readable(paths: Sequence[str | Path]) -> None:
     if empty:
         raise ReplayError(f"{', '.join(map(str, paths))}: no CAN frames in it (an empty "
                           "recording); fix: give a recording that holds frames")
-
-
-def read_file(f: Path) -> Generator[can.Message, None, None]:
-    """The frames of one recording file (see :func:`read_frames`)."""
-    if f.suffix.lower() == ".log":
-        lines = _CompleteLines(f)
-        try:
-            with can.CanutilsLogReader(lines) as reader:  # type: ignore[arg-type]  # python-can reads any iterable of lines with close() (annotated TextIO)
-                for msg in reader:
-                    if not math.isfinite(msg.timestamp):
-                        raise ValueError(f"time stamp {msg.timestamp} is not a finite number")
-                    yield msg
-        except ReplayError:
-            raise
-        except Exception as e:  # python-can raises assorted errors on a bad line
-            raise ReplayError(
-                f"{f}:{lines.lineno}: not a candump frame ({_why(e)}): "
-                f"{lines.line.strip()[:60]!r}; fix: repair or delete that line (a candump "
-                "line reads '(1700000000.000000) can0 181#0102')") from None
-        return
-    n = 0
-    try:
-        with can.LogReader(f) as reader:
-            for msg in reader:
-                if not math.isfinite(msg.timestamp):
-                    raise ValueError(f"frame {n + 1}: time stamp {msg.timestamp} is not a "
-                                     "finite number")
-                n += 1
-                yield msg
-    except ReplayError:
-        raise
-    except Exception as e:  # BLFParseError, zlib.error, struct.error, …
-        where = f"after {n} frames" if n else "at its start"
-        raise ReplayError(
-            f"{f}: not a readable {f.suffix.lstrip('.').lower()} recording {where} "
-            f"({_why(e)}); fix: give an undamaged recording (rename it if its suffix "
-            "names the wrong format)") from None
-
-
-def _why(e: BaseException) -> str:
-    name = type(e).__name__
-    if name == "error":  # zlib.error, struct.error: say whose
-        name = f"{type(e).__module__}.error"
-    text = " ".join(str(e).split())
-    return f"{name}: {text}" if text else name
 
 
 def config_for(paths: Sequence[str | Path], config: str | Path | None = None, *,
@@ -350,12 +280,22 @@ def check_consecutive(paths: Sequence[Path], cfg: RigConfig) -> None:
 
 def replay(cfg: RigConfig, paths: Sequence[str | Path] | None = None, *,
            frames: Iterable[can.Message] | None = None, realtime: bool = False,
-           reader: ReaderBase | None = None, finish: bool = False
+           reader: ReaderBase | None = None, finish: bool = False, streaming: bool = False
            ) -> Iterator[Sample | HealthReport]:
     """Samples and 1 Hz health reports of recordings, in order, through the reader's code
     path. ``realtime`` paces the frames at their recorded timing (``can.MessageSync``).
-    ``finish`` also passes on the last, incomplete sample when the recording ends."""
+    ``finish`` also passes on the last, incomplete sample when the recording ends.
+
+    Recordings read from ``paths`` as fast as possible take the columnar path
+    (daq.bus.columnar: the file read in blocks, the clean SYNC periods assembled per block,
+    every other frame through the reader one by one), which gives the same items;
+    ``streaming`` (or ``frames``, or ``realtime``) feeds every frame one by one."""
     r = reader or OfflineReader(cfg)
+    if frames is None and not realtime and not streaming:
+        from rsra.daq.bus.columnar import replay_columnar
+
+        yield from replay_columnar(r, expand(paths or ()), finish=finish, names=paths or ())
+        return
     src = frames if frames is not None else read_frames(paths or ())
     if frames is None:  # a recording: into time order first (daq.bus.reorder; late: counted)
         r.monitor.reorder = FrameReorder()

@@ -12,7 +12,6 @@ import re
 import sys
 from typing import NoReturn
 
-from rsra.config.rig import ConfigError
 from rsra.daq.cli.options import UsageError
 
 # name -> module under daq.commands; each module has add_parser(sub) and run(args).
@@ -52,14 +51,31 @@ def _version() -> str:
         return "unknown"
 
 
-def build_parser() -> argparse.ArgumentParser:
+class _VersionAction(argparse.Action):
+    """``--version``: the version looked up only when asked (importlib.metadata's look-up
+    costs every start-up tens of ms otherwise)."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS,
+                 help=None):
+        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"rsra {_version()}")
+        parser.exit()
+
+
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The parser of every command, or (``only``) of that one command alone: the others are
+    left out, and with them their imports (``rsra replay --help`` imports no scipy)."""
     parser = _Parser(prog="rsra", description=(
         "Rotor hub loads from the load cells of an isolated transmission: CANopen DAQ, "
         "fixed-gain Kalman filter, on-line calibration of the load-cell angles, Zenoh telemetry."))
-    parser.add_argument("--version", action="version", version=f"rsra {_version()}",
+    parser.add_argument("--version", action=_VersionAction,
                         help="print the version of rsra and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for name, module in COMMANDS.items():
+        if only is not None and name != only:
+            continue
         mod = importlib.import_module(f"rsra.daq.cli.commands.{module}")
         p = mod.add_parser(sub, name)
         p.set_defaults(_run=mod.run, _outputs={"log_file": "file", **getattr(mod, "OUTPUTS", {})},
@@ -74,8 +90,14 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
 
+def _command(argv: list[str]) -> str | None:
+    """The command ``argv`` names (its first word that is not an option), if it is one."""
+    word = next((a for a in argv if not a.startswith("-")), None)
+    return word if word in COMMANDS else None
+
+
 def _main(argv: list[str] | None) -> int:
-    parser = build_parser()
+    parser = build_parser(_command(sys.argv[1:] if argv is None else argv))
     args = parser.parse_args(argv)
     if not getattr(args, "_run", None):
         parser.print_help()
@@ -120,6 +142,7 @@ def describe_error(e: BaseException) -> tuple[int, str]:
     from rsra.daq.bus.replay import ReplayError
     from rsra.daq.runtime.service import BusOpenError
     from rsra.daq.runtime.foxglove_out import FoxgloveAddressError
+    from rsra.config.rig import ConfigError
     from rsra.estimator.posterior import PosteriorFileError
     from rsra.sim_bus.faults import FaultSpecError
 

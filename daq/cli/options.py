@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import logging.handlers
 import math
 import os
 import sys
@@ -128,8 +127,6 @@ def add_service_options(p: argparse.ArgumentParser) -> None:
                    help="record every frame, the angle schedule and the effective config here")
     p.add_argument("--angles", metavar="STATE", default=None,
                    help="start from a saved posterior (see identification.state_file)")
-    from rsra.daq.runtime.posterior_file import add_accept_option
-
     add_accept_option(p)
     add_no_identification(p)
     p.add_argument("--zenoh-config", metavar="FILE", default=None,
@@ -154,7 +151,10 @@ def setup_logging(level: str, log_file: str | None) -> None:
         root.removeHandler(old)
     if log_file:
         try:
-            h: logging.Handler = logging.handlers.RotatingFileHandler(
+            # (only with --log-file: not imported on every start-up)
+            from logging.handlers import RotatingFileHandler
+
+            h: logging.Handler = RotatingFileHandler(
                 log_file, maxBytes=LOG_FILE_BYTES, backupCount=LOG_FILE_BACKUPS)
         except OSError as e:
                 raise UsageError(f"--log-file {log_file}: cannot be written ({e.strerror or e}); "
@@ -220,3 +220,13 @@ def check_output_file(option: str, path: str) -> None:
     if not os.access(parent, os.W_OK):
         raise UsageError(f"{option} {path}: folder {parent} is not writable; fix: write "
                          "elsewhere")
+
+
+ACCEPT_HELP = ("use a posterior saved on a rig of another geometry (its fingerprint: cell names, "
+               "positions, nominal axes, hub position, angle names) instead of refusing it; the "
+               "angles' physical range is still enforced")
+
+
+def add_accept_option(p) -> None:
+    """``--accept-rig-mismatch`` on every command that loads a posterior (docs/cli.md)."""
+    p.add_argument("--accept-rig-mismatch", action="store_true", help=ACCEPT_HELP)

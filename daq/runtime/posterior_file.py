@@ -153,12 +153,3 @@ def prepare_state_file(cfg: RigConfig, *, accept_rig_mismatch: bool = False) -> 
                  len(removed))
     return warnings
 
-
-ACCEPT_HELP = ("use a posterior saved on a rig of another geometry (its fingerprint: cell names, "
-               "positions, nominal axes, hub position, angle names) instead of refusing it; the "
-               "angles' physical range is still enforced")
-
-
-def add_accept_option(p) -> None:
-    """``--accept-rig-mismatch`` on every command that loads a posterior (docs/cli.md)."""
-    p.add_argument("--accept-rig-mismatch", action="store_true", help=ACCEPT_HELP)

@@ -84,6 +84,7 @@ class ServiceOptions:
     replay: list[str] | None = None
     recompute: bool = False
     realtime: bool = False
+    streaming: bool = False  # replay every frame one by one (the reference path)
     # Foxglove WebSocket output (daq.foxglove_out): "HOST:PORT", browser origins let in, and
     # where its address is told (default: standard error)
     foxglove: str | None = None

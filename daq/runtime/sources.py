@@ -338,15 +338,17 @@ class LockstepSource(_Base):
 
 class ReplaySource(_Base):
     """Recorded frames through an offline reader (daq.replay), as fast as possible or at
-    recorded timing (``paced``); the angles follow the recorded schedule or are recomputed."""
+    recorded timing (``paced``); the angles follow the recorded schedule or are recomputed.
+    As fast as possible the recording is read by the columnar path (daq.bus.columnar)
+    unless ``streaming`` (every frame one by one: the reference); the items are the same."""
 
     deterministic = True
     saves_posterior = False  # identification.state_file is the live service's output (cli.md)
 
     def __init__(self, cfg: RigConfig, paths: list[str],
-                 paced: bool = False):
+                 paced: bool = False, streaming: bool = False):
         super().__init__(cfg)
-        self.paths, self.paced = list(paths), paced
+        self.paths, self.paced, self.streaming = list(paths), paced, streaming
         self._items: Iterator | None = None
 
     def describe(self) -> str:
@@ -385,7 +387,7 @@ class ReplaySource(_Base):
 
         self.reader = OfflineReader(self.cfg, table=self.table)
         self._items = replay(self.cfg, self.paths, realtime=self.paced, reader=self.reader,
-                             finish=True)
+                             finish=True, streaming=self.streaming)
 
     def items(self, stop: threading.Event) -> Iterator[Sample | HealthReport | None]:
         assert self._items is not None  # _open() made it
@@ -397,7 +399,7 @@ def make_source(cfg: RigConfig, opts: Any) -> Source:
     simulator in lock-step (``--speed`` other than 1) or real time, or a bus. Opens nothing
     (the source does, entered)."""
     if opts.replay is not None:
-        return ReplaySource(cfg, opts.replay, paced=opts.realtime)
+        return ReplaySource(cfg, opts.replay, paced=opts.realtime, streaming=opts.streaming)
     if opts.sim is not None:
         sim = SimOptions(scenario=opts.sim, seed=opts.seed, faults=opts.faults,
                          channel=opts.channel, truth=opts.truth, keep_truth=opts.keep_truth,

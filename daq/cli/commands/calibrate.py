@@ -77,7 +77,7 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
     p.add_argument("--angles", metavar="STATE", default=None,
                    help="start from the angles of a saved posterior (rsra angles show) instead of "
                    "identification.initial_angles_deg")
-    from rsra.daq.runtime.posterior_file import add_accept_option
+    from rsra.daq.cli.options import add_accept_option
 
     add_accept_option(p)
     p.add_argument("--prior-sigma-deg", type=float, default=None, metavar="DEG",

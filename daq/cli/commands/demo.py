@@ -42,7 +42,7 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
     p.add_argument("--angles", metavar="STATE", default=None,
                    help="start from a saved posterior (e.g. a ground test's "
                    "identification.state_file) instead of the configured initial angles")
-    from rsra.daq.runtime.posterior_file import add_accept_option
+    from rsra.daq.cli.options import add_accept_option
 
     add_accept_option(p)
     add_no_identification(p)

@@ -35,6 +35,10 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
                    help="recording files (replayed in the order given) or recording folders")
     p.add_argument("--realtime", action="store_true",
                    help="pace the frames at their recorded timing (can.MessageSync)")
+    p.add_argument("--streaming", action="store_true",
+                   help="feed every frame one by one through the reader (the reference path; "
+                   "by default the recording is read in blocks and the clean SYNC periods are "
+                   "assembled per block, with the same records)")
     p.add_argument("--out", metavar="FILE.jsonl", default=None,
                    help='write every published record as one JSON object per line, '
                    '{"key": "channels"|"health", …payload} (strict JSON, null for missing '
@@ -49,7 +53,7 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
                    "the recording's angle schedule")
     p.add_argument("--angles", metavar="STATE", default=None,
                    help="start from a saved posterior instead of the recording's")
-    from rsra.daq.runtime.posterior_file import add_accept_option
+    from rsra.daq.cli.options import add_accept_option
 
     add_accept_option(p)
     add_no_identification(p, help="neither the recorded angle schedule nor a recomputed "
@@ -93,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
     elif args.out:
         out = _LazyFile(Path(args.out))
     opts = ServiceOptions(replay=list(args.logs), recompute=args.recompute, realtime=args.realtime,
+                          streaming=args.streaming,
                           angles=args.angles, zenoh=args.publish,
                           accept_rig_mismatch=args.accept_rig_mismatch,
                           identification=args.identification,

@@ -85,7 +85,7 @@ Exit 0 when the fragment is written, 2 for a usage or configuration error.""")
     p.add_argument("--angles", default=None, metavar="STATE",
                    help="take α for S(α) from a saved posterior (default: the configured "
                    "initial angles)")
-    from rsra.daq.runtime.posterior_file import add_accept_option
+    from rsra.daq.cli.options import add_accept_option
 
     add_accept_option(p)
     return p
