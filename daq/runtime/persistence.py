@@ -253,16 +253,31 @@ def posterior_to_json(state) -> str:
     return json.dumps(sanitise(state.to_dict()), allow_nan=False, indent=1)
 
 
+POSTERIOR_SIGMA_MAX = 1e6  # a parameter's σ in a saved posterior, in its SI unit (rad for angles)
+
+
 def load_posterior(path: str | Path, names: Sequence[str] | None = None) -> PosteriorState:
     """Read and check a saved posterior; a missing, corrupt or mismatched file raises
-    :class:`estimator.posterior.PosteriorFileError`."""
+    :class:`estimator.posterior.PosteriorFileError`. Read without blocking and within the
+    size limit (config.readfile: a FIFO or a device is refused, not waited on); a covariance
+    whose σ exceeds :data:`POSTERIOR_SIGMA_MAX` (``1e308·I``) is refused, not computed with."""
+    import numpy as np
+
+    from rsra.config.readfile import UnreadableFile, read_text
     from rsra.estimator.posterior import PosteriorFileError, posterior_from_json
 
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise PosteriorFileError(path, "no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise PosteriorFileError(path, f"not readable JSON ({exc})") from None
-    return posterior_from_json(text, path, names)
+        text = read_text(path)
+    except UnreadableFile as e:
+        problem = "no such file" if e.problem == "file not found" else e.problem
+        raise PosteriorFileError(path, problem) from None
+    state = posterior_from_json(text, path, names)
+    variance = np.diag(state.P)
+    if variance.size and not float(np.max(variance)) <= POSTERIOR_SIGMA_MAX ** 2:
+        worst = state.names[int(np.argmax(variance))]
+        raise PosteriorFileError(path, f"the covariance of {worst} (σ = "
+                                 f"{float(np.sqrt(np.max(variance))):.3g}) exceeds "
+                                 f"{POSTERIOR_SIGMA_MAX:g}: not a posterior",
+                                 f"rsra angles reset {path}, or give another posterior file")
+    return state
