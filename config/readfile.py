@@ -140,10 +140,11 @@ def check_utf8(path: str | os.PathLike[str]) -> None:
                              "check the file and its permissions") from None
 
 
-def regular_file_problem(path: str | os.PathLike[str], limit: int = TEXT_LIMIT) -> str | None:
+def regular_file_problem(path: str | os.PathLike[str],
+                         limit: int | None = TEXT_LIMIT) -> str | None:
     """None for a regular file of at most ``limit`` bytes (a symbolic link followed), else the
     problem as a phrase — checked without opening it, for files another library opens by name
-    (an EDS: canopen)."""
+    (an EDS: canopen). ``limit`` None: any size (a telemetry file)."""
     try:
         st = os.stat(path)
     except FileNotFoundError:
@@ -153,6 +154,6 @@ def regular_file_problem(path: str | os.PathLike[str], limit: int = TEXT_LIMIT) 
     problem = kind_of(st.st_mode)
     if problem is not None:
         return f"{problem}; rsra reads only regular files"
-    if st.st_size > limit:
+    if limit is not None and st.st_size > limit:
         return f"is larger than the {size_text(limit)} limit for this kind of file"
     return None

@@ -592,6 +592,10 @@ class RigFile(Table):
                               f"{2 * f_h:.3g} Hz")
 
     def _nodes(self, base_dir: Path, packaged_dir: Path | None) -> None:
+        if not self.nodes:  # (else every cell's node would be blamed on the file naming it)
+            raise Invalid("nodes", [], "is empty: the rig would have no CAN nodes",
+                          "list the rig's [[nodes]] blocks, or remove nodes = [] to keep the "
+                          "ones it extends")
         names: dict[str, str] = {}
         ids: dict[int, str] = {}
         for i, n in enumerate(self.nodes):

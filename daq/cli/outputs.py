@@ -21,7 +21,7 @@ import tempfile
 from collections.abc import Iterable
 from pathlib import Path
 
-from rsra.config.readfile import regular_file_problem
+from rsra.config.readfile import TEXT_LIMIT, UnreadableFile, check_utf8, regular_file_problem
 from rsra.daq.cli.options import UsageError
 from rsra.daq.runtime.persistence import OutputFile, OutputRefused, temp_prefix
 
@@ -32,7 +32,10 @@ INPUT_OPTIONS = {"logs": None, "inputs": None, "results": None, "files": None,
                  "truth": "--truth"}
 # inputs that must be regular files (read whole: a FIFO would block, a device never end),
 # refused before anything starts
-FILE_OPTIONS = ("config", "zenoh_config")
+FILE_OPTIONS = ("config", "zenoh_config", "files")  # (files: `rsra web`'s telemetry files)
+# the arguments that name recordings, and the text files of a recording folder
+RECORDING_OPTIONS = ("logs", "inputs", "angles")
+RECORDING_TEXTS = ("angles.jsonl", "config.json")
 # names that belong to a recording folder (daq/bus/recorder.py): an output of that name in an
 # input recording folder would become part of that recording on its next replay
 _RECORDING_NAME = re.compile(r"^(frames(_\d+)?\.[A-Za-z0-9]+|angles\.jsonl|config\.json|"
@@ -178,16 +181,37 @@ def check_outputs(args: object, outputs: dict[str, str | tuple[str, ...]],
 def check_input_files(args: object) -> None:
     """The inputs read whole by name (rig TOMLs, a Zenoh config) are regular files within the
     size limit (config.readfile): a FIFO, a device or a folder refused in one line before
-    anything opens it (a FIFO would block that open, a device never end)."""
+    anything opens it (a FIFO would block that open, a device never end). A recording
+    folder's text files (``angles.jsonl``, ``config.json``) are regular files of UTF-8 text:
+    a bad byte is one line naming the file and the line, not a decoding error later."""
     for attr in FILE_OPTIONS:
         value = getattr(args, attr, None)
         for v in value if isinstance(value, list) else [value]:
             if not v or not isinstance(v, str) or not os.path.lexists(v):
                 continue  # not there: the command's own check says so
-            problem = regular_file_problem(v)
+            problem = regular_file_problem(v, None if attr == "files" else TEXT_LIMIT)
             if problem is not None:
-                raise UsageError(f"--{attr.replace('_', '-')} {v}: {problem}; fix: give the "
-                                 "path of the file itself")
+                option = "" if attr == "files" else f"--{attr.replace('_', '-')} "
+                raise UsageError(f"{option}{v}: {problem}; fix: give the path of the file "
+                                 "itself")
+    for attr in RECORDING_OPTIONS:
+        value = getattr(args, attr, None)
+        for v in value if isinstance(value, list) else [value]:
+            if v and isinstance(v, str) and os.path.isdir(v):
+                for name in RECORDING_TEXTS:
+                    check_text_file(Path(v) / name)
+
+
+def check_text_file(path: Path) -> None:
+    """A text file rsra reads line by line (a recording's ``angles.jsonl``, its
+    ``config.json``): if there, a regular file of UTF-8 text (streamed: no size limit) —
+    else a UsageError naming it."""
+    if not os.path.lexists(path):
+        return
+    try:
+        check_utf8(path)
+    except UnreadableFile as e:
+        raise UsageError(str(e)) from None
 
 
 def probe_file(option: str, path: str | os.PathLike[str]) -> None:
