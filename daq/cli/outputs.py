@@ -21,7 +21,13 @@ import tempfile
 from collections.abc import Iterable
 from pathlib import Path
 
-from rsra.config.readfile import TEXT_LIMIT, UnreadableFile, check_utf8, regular_file_problem
+from rsra.config.readfile import (
+    TEXT_LIMIT,
+    UnreadableFile,
+    check_utf8,
+    kind_of,
+    regular_file_problem,
+)
 from rsra.daq.cli.options import UsageError
 from rsra.daq.runtime.persistence import OutputFile, OutputRefused, temp_prefix
 
@@ -147,6 +153,9 @@ class Inputs:
             st = os.stat(folder)
         except (OSError, ValueError):
             st = None
+        if st is not None and not stat.S_ISDIR(st.st_mode):
+            what = kind_of(st.st_mode) or "is a file"
+            raise UsageError(f"{option} {folder}: {what}, not a folder; fix: give a folder")
         if st is not None:
             key = (st.st_dev, st.st_ino)
             what = self._folders.get(key) or self._inner.get(key)

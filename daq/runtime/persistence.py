@@ -232,9 +232,6 @@ class OutputFile:
         self.discard()
 
 
-AtomicOutput = OutputFile  # the name the callers knew
-
-
 def save_figure(fig, path: str | Path, **kwargs) -> None:
     """A matplotlib figure written atomically (:class:`OutputFile`), in the format of the
     target's suffix."""
