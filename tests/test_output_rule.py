@@ -113,6 +113,7 @@ def _kind(path: Path) -> str:
             else "link" if stat.S_ISLNK(mode) else "file" if stat.S_ISREG(mode) else "other")
 
 
+@pytest.mark.timeout(60)  # a FIFO waited on would hang the case: failed instead
 @pytest.mark.parametrize("command, option, kind", MATRIX,
                          ids=[f"{c} {o} {k}" for c, o, k in MATRIX])
 def test_the_output_rule(command, option, kind, top, tmp_path, monkeypatch, capsys):
