@@ -41,7 +41,8 @@ import numpy as np
 from scipy import linalg, signal
 from scipy.spatial.transform import Rotation
 
-from rsra.config.rig import G0, MISSING, ConfigError, RigConfig
+from rsra.config.rig import G0, ConfigError, RigConfig
+from rsra.config.rigfile import MISSING
 
 from .scenarios import Scenario, check_against_rig, load_scenario
 

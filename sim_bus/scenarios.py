@@ -25,7 +25,8 @@ from typing import Any
 import numpy as np
 
 from rsra.config.readfile import UnreadableFile, read_text
-from rsra.config.rig import MISSING, ConfigError, Section, config_dir
+from rsra.config.rig import ConfigError, Section, config_dir
+from rsra.config.rigfile import MISSING
 from rsra.config.units import LBF_N
 
 AXES = ("X", "Y", "Z", "L", "M", "N")

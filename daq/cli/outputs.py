@@ -154,8 +154,8 @@ class Inputs:
         except (OSError, ValueError):
             st = None
         if st is not None and not stat.S_ISDIR(st.st_mode):
-            what = kind_of(st.st_mode) or "is a file"
-            raise UsageError(f"{option} {folder}: {what}, not a folder; fix: give a folder")
+            kind = kind_of(st.st_mode) or "is a file"
+            raise UsageError(f"{option} {folder}: {kind}, not a folder; fix: give a folder")
         if st is not None:
             key = (st.st_dev, st.st_ino)
             what = self._folders.get(key) or self._inner.get(key)

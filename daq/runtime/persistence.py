@@ -179,15 +179,15 @@ class OutputFile:
                                        dir=self.target.parent)
             self.tmp = Path(tmp)
             if st is not None:
-                mode = st.st_mode & 0o7777
+                perm = st.st_mode & 0o7777
             else:
                 umask = os.umask(0)
                 os.umask(umask)
-                mode = 0o666 & ~umask
-            os.fchmod(fd, mode)
-        mode = self.mode.replace("a", "w")
-        self.file = (os.fdopen(fd, mode, encoding="utf-8") if "b" not in mode
-                     else os.fdopen(fd, mode))
+                perm = 0o666 & ~umask
+            os.fchmod(fd, perm)
+        fmode = self.mode.replace("a", "w")
+        self.file = (os.fdopen(fd, fmode, encoding="utf-8") if "b" not in fmode
+                     else os.fdopen(fd, fmode))
         return self.file
 
     def commit(self) -> None:
