@@ -250,3 +250,14 @@ def test_read_text_refuses_without_opening_for_long(tmp_path):
     with pytest.raises(readfile.UnreadableFile, match="10 bytes limit"):
         readfile.read_bytes(tmp_path / "s", limit=10)
     assert readfile.read_bytes(tmp_path / "s", limit=11) == b"x" * 11
+
+
+@pytest.mark.timeout(60)
+def test_a_zenoh_config_key_naming_a_fifo_is_refused_not_waited_on(tmp_path, capsys):
+    os.mkfifo(tmp_path / "z.json5")
+    rig = tmp_path / "rig.toml"
+    rig.write_text(f'[telemetry]\nzenoh_config = "{tmp_path / "z.json5"}"\n')
+    rc = main(["run", "--sim", "ground-test", "--speed", "max", "--duration", "0.2",
+               "--config", str(rig), *_zenoh()])
+    line = _one_line(capsys, "run")
+    assert rc == 2 and "telemetry.zenoh_config" in line and "FIFO" in line, line
