@@ -232,6 +232,10 @@ class OutputFile:
         self.discard()
 
 
+#: the writer's former name (other branches may still import it)
+AtomicOutput = OutputFile
+
+
 def save_figure(fig, path: str | Path, **kwargs) -> None:
     """A matplotlib figure written atomically (:class:`OutputFile`), in the format of the
     target's suffix."""
