@@ -499,23 +499,30 @@ def _layer_files(p: Path) -> list[tuple[Path, dict[str, Any]]]:
 
 
 def layer_paths(paths: ConfigPaths) -> list[Path]:
-    """Every rig TOML the ``--config`` files stand for (their ``extends`` bases included) and
-    every EDS file they name: what a command reads besides its recordings. Files that cannot
-    be read are left out (loading the rig says why)."""
+    """Every rig TOML a command reads for ``--config`` (the packaged rig, the files and the
+    bases they ``extends``) and every EDS file they name (beside the layer or in the packaged
+    folder): what a command reads besides its recordings. Files that cannot be read are left
+    out (loading the rig says why)."""
+    dflt = default_config_path()
     out: list[Path] = []
+    layers: list[tuple[Path, dict[str, Any]]] = []
+    try:
+        layers.append((dflt, _read_toml(dflt)))
+    except ConfigError:
+        pass
     for f in [paths] if isinstance(paths, (str, Path)) else list(paths or ()):
         try:
-            layers = _layer_files(Path(f))
+            layers += _layer_files(Path(f))
         except ConfigError:
             continue
-        for lp, layer in layers:
-            out.append(lp)
-            nodes = layer.get("nodes")
-            for n in nodes if isinstance(nodes, list) else ():
-                if isinstance(n, dict) and isinstance(n.get("eds"), str):
-                    out.append(Path(n["eds"]) if Path(n["eds"]).is_absolute()
-                               else lp.parent / n["eds"])
-    return out
+    for lp, layer in layers:
+        out.append(lp)
+        nodes = layer.get("nodes")
+        for n in nodes if isinstance(nodes, list) else ():
+            if isinstance(n, dict) and isinstance(n.get("eds"), str):
+                eds = Path(n["eds"])
+                out += [eds] if eds.is_absolute() else [lp.parent / eds, dflt.parent / eds]
+    return list(dict.fromkeys(out))
 
 
 def absolute_eds(raw: dict[str, Any], base_dir: Path) -> dict[str, Any]:

@@ -207,3 +207,20 @@ def test_a_posterior_that_is_both_angles_and_state_file_stays_allowed(top, tmp_p
     rc = main(["run", "--sim", "ground-test", "--speed", "max", "--duration", "0.2",
                "--angles", str(post), "--state-file", str(post), *_zenoh()])
     assert rc == 0, capsys.readouterr().err
+
+
+@pytest.mark.parametrize("which", ["rig", "eds"])
+def test_the_packaged_rig_and_its_eds_files_are_inputs_too(which):
+    """Checked through the rule's own API, not by running a command: with the check broken,
+    a command would overwrite the package's own files."""
+    import argparse
+
+    from rsra.config.rig import config_dir, default_config_path
+    from rsra.daq.cli.options import UsageError
+    from rsra.daq.cli.outputs import Inputs
+
+    target = default_config_path() if which == "rig" else \
+        config_dir() / load_config().nodes[0].eds
+    inputs = Inputs().add_args(argparse.Namespace(config=None))
+    with pytest.raises(UsageError, match="the input .*fix:"):
+        inputs.check("--dbc", target)

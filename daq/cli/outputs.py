@@ -98,16 +98,14 @@ class Inputs:
         return self
 
     def add_rig(self, config: list[str] | str | None) -> None:
-        """The rig files' bases (``extends``, transitively), the EDS files they name and the
-        identification.state_file they set: read (or written only as a posterior) by the
-        command, so never an output."""
-        if not config:
-            return
+        """The packaged rig, the --config files and their bases (``extends``, transitively),
+        the EDS files they name and the identification.state_file they set: read (or written
+        only as a posterior) by the command, so never an output."""
         from rsra.config.rig import ConfigError, layer_paths, merge_layers
 
-        files = [config] if isinstance(config, str) else list(config)
+        files = [config] if isinstance(config, str) else list(config or ())
         for f in layer_paths(files):
-            self.add(f, f"{f} (read through --config)")
+            self.add(f, f"{f} (a rig or EDS file the command reads)")
         try:
             raw, _ = merge_layers(files)
         except ConfigError:
