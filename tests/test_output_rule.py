@@ -224,3 +224,16 @@ def test_the_packaged_rig_and_its_eds_files_are_inputs_too(which):
     inputs = Inputs().add_args(argparse.Namespace(config=None))
     with pytest.raises(UsageError, match="the input .*fix:"):
         inputs.check("--dbc", target)
+
+
+def test_dev_stdout_piped_to_another_program_is_written_in_place(tmp_path):
+    """`rsra export --dbc /dev/stdout | …`: /dev/stdout is a link to a pipe that realpath
+    cannot follow; the kernel can, and the pipe has a reader."""
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "rsra", "export", "--dbc", "/dev/stdout"],
+                       stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=tmp_path, timeout=120)
+    assert r.returncode == 0, r.stderr.decode()
+    assert r.stdout.startswith(b'VERSION "') and b"BO_ " in r.stdout
+    assert not list(tmp_path.iterdir())

@@ -230,9 +230,12 @@ def probe_file(option: str, path: str | os.PathLike[str]) -> None:
         OutputFile(path).check()
     except OutputRefused as e:
         raise UsageError(f"{option} {e}") from None
+    try:
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            return  # a character device or a read pipe (/dev/stdout): written in place
+    except OSError:
+        pass
     p = Path(os.path.realpath(path))
-    if p.exists() and not p.is_file():
-        return  # a character device or a read pipe: written in place
     parent = p.parent
     if not parent.is_dir():
         raise UsageError(f"{option} {path}: no folder {parent}; fix: create it or write elsewhere")

@@ -152,7 +152,7 @@ class OutputFile:
         self.file: IO | None = None
 
     def check(self) -> None:
-        problem = output_problem(self.target)
+        problem = output_problem(self.path)  # (the kernel follows /dev/stdout to its pipe)
         if problem is not None:
             raise OutputRefused(f"{self.path}: {problem}")
 
@@ -160,19 +160,19 @@ class OutputFile:
         if self.file is not None:
             return self.file
         self.check()
-        try:
-            st: os.stat_result | None = os.stat(self.target)
+        try:  # what the path names, as the kernel follows it (realpath cannot: /dev/stdout)
+            st: os.stat_result | None = os.stat(self.path)
         except OSError:
             st = None
         if st is not None and stat.S_ISFIFO(st.st_mode):
             try:
-                fd = _open_fifo(self.target)
+                fd = _open_fifo(self.path)
             except OSError:
                 raise OutputRefused(f"{self.path}: is a FIFO (a named pipe) nobody reads, and "
                                     "rsra does not wait for a reader; fix: start its reader "
                                     "first, or give a file name") from None
         elif (st is not None and stat.S_ISCHR(st.st_mode)) or "a" in self.mode:
-            fd = os.open(self.target, os.O_WRONLY | os.O_CREAT | getattr(os, "O_CLOEXEC", 0)
+            fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | getattr(os, "O_CLOEXEC", 0)
                          | (os.O_APPEND if "a" in self.mode else 0), 0o666)
         else:
             fd, tmp = tempfile.mkstemp(prefix=temp_prefix(self.target), suffix=".tmp",
