@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from rsra.config.readfile import UnreadableFile, read_text
 from rsra.config.rigfile import (  # noqa: F401  (names the loader's users import from here)
     CONTENTS,
     COB_MAX_11BIT,
@@ -52,11 +53,22 @@ class ConfigError(ValueError):
     def __init__(self, key: str, value: Any, problem: str, fix: str, source: str = ""):
         self.key, self.value, self.problem, self.fix, self.source = key, value, problem, fix, source
         where = f"{source}: " if source else ""
-        shown = "" if value is MISSING else f" = {value!r}"
+        shown = "" if value is MISSING else f" = {shown_value(value)}"
         super().__init__(f"{where}{key}{shown}: {problem}; fix: {fix}")
 
 
 _MISSING = object()
+SHOWN_MAX = 120  # characters of a value an error line echoes
+
+
+def shown_value(value: Any) -> str:
+    """A value as an error line shows it: its repr, cut to :data:`SHOWN_MAX` characters (a
+    2-million-element array is named by its length, not echoed)."""
+    text = repr(value)
+    if len(text) <= SHOWN_MAX:
+        return text
+    size = f" ({len(value)} elements)" if isinstance(value, (list, tuple, dict)) else ""
+    return f"{text[:SHOWN_MAX]}…{size}"
 
 
 class Section:
@@ -439,43 +451,78 @@ ConfigPaths = str | Path | Sequence[str | Path] | None
 DEFAULT_SOURCE = "default"  # the origin of a value the packaged rig gives
 
 
-def _read_toml(p: Path) -> dict[str, Any]:
+EXTENDS_MAX = 32  # rig TOMLs in one ``extends`` chain (a longer one is a mistake, not a rig)
+
+
+def _read_toml(p: Path, key: str = "--config", source: str = "") -> dict[str, Any]:
+    """A rig TOML read without blocking and within the size limit (config.readfile);
+    ``key`` and ``source``: what named it (``--config``, or ``extends`` in a file)."""
     try:
-        text = p.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError("--config", str(p), "file not found",
-                          "give the path of a rig TOML, or omit --config for the default rig") from None
-    except (OSError, UnicodeDecodeError) as e:  # a folder, no permission, not text
-        why = e.strerror if isinstance(e, OSError) and e.strerror else str(e)
-        raise ConfigError("--config", str(p), f"cannot be read ({why})",
-                          "give the path of a rig TOML, or omit --config for the default rig") from None
+        text = read_text(p)
+    except UnreadableFile as e:
+        fix = ("give the path of a rig TOML, or omit --config for the default rig"
+               if key == "--config" else "give the path of the rig TOML this one extends")
+        raise ConfigError(key, str(p), e.problem, fix, source) from None
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ConfigError("<file>", str(p), f"not valid TOML ({e})", "fix the TOML syntax") from None
 
 
-def _layer_files(p: Path, chain: tuple[Path, ...] = ()) -> list[tuple[Path, dict[str, Any]]]:
+def _layer_files(p: Path) -> list[tuple[Path, dict[str, Any]]]:
     """The layers a rig TOML stands for, base first: its ``extends`` chain (a rig TOML it
     names, relative to it; ``"default"`` or none: the packaged rig, not listed), then
-    itself (without ``extends``)."""
-    rp = p.resolve()
-    if rp in chain:
-        raise ConfigError("extends", str(p), "the files extend each other in a circle",
-                          "make one of them extend \"default\"", str(chain[-1]))
-    raw = _read_toml(p)
-    base = raw.pop("extends", DEFAULT_SOURCE)
-    if not isinstance(base, str) or not base:
-        raise ConfigError("extends", base, "must be a path or \"default\"",
-                          "name the rig TOML this one extends", p.name)
-    out: list[tuple[Path, dict[str, Any]]] = []
-    if base != DEFAULT_SOURCE:
-        bp = Path(base) if Path(base).is_absolute() else p.parent / base
-        if not bp.is_file():
-            raise ConfigError("extends", base, f"file not found (looked in {p.parent})",
-                              "give the path of the rig TOML this one extends", p.name)
-        out = _layer_files(bp, chain + (rp,))
-    return out + [(p, raw)]
+    itself (without ``extends``). At most :data:`EXTENDS_MAX` files in a chain."""
+    chain: list[tuple[Path, dict[str, Any]]] = []
+    seen: set[Path] = set()
+    key, source = "--config", ""
+    while True:
+        rp = p.resolve()
+        if rp in seen:
+            raise ConfigError("extends", str(p), "the files extend each other in a circle",
+                              "make one of them extend \"default\"", source)
+        if len(chain) >= EXTENDS_MAX:
+            raise ConfigError("extends", str(p), f"the chain of bases is longer than "
+                              f"{EXTENDS_MAX} files", "merge some of the bases into one file",
+                              source)
+        seen.add(rp)
+        raw = _read_toml(p, key, source)
+        base = raw.pop("extends", DEFAULT_SOURCE)
+        if not isinstance(base, str) or not base:
+            raise ConfigError("extends", base, "must be a path or \"default\"",
+                              "name the rig TOML this one extends", p.name)
+        chain.append((p, raw))
+        if base == DEFAULT_SOURCE:
+            return chain[::-1]
+        key, source = "extends", str(p)
+        p = Path(base) if Path(base).is_absolute() else p.parent / base
+
+
+def layer_paths(paths: ConfigPaths) -> list[Path]:
+    """Every rig TOML a command reads for ``--config`` (the packaged rig, the files and the
+    bases they ``extends``) and every EDS file they name (beside the layer or in the packaged
+    folder): what a command reads besides its recordings. Files that cannot be read are left
+    out (loading the rig says why)."""
+    dflt = default_config_path()
+    out: list[Path] = []
+    layers: list[tuple[Path, dict[str, Any]]] = []
+    try:
+        layers.append((dflt, _read_toml(dflt)))
+    except ConfigError:
+        pass
+    for f in [paths] if isinstance(paths, (str, Path)) else list(paths or ()):
+        try:
+            layers += _layer_files(Path(f))
+        except ConfigError:
+            continue
+    for lp, layer in layers:
+        out.append(lp)
+        nodes = layer.get("nodes")
+        for n in nodes if isinstance(nodes, list) else ():
+            if isinstance(n, dict) and isinstance(n.get("eds"), str):
+                eds = Path(n["eds"])
+                out += [eds] if eds.is_absolute() else [lp.parent / eds, dflt.parent / eds]
+    return list(dict.fromkeys(out))
 
 
 def absolute_eds(raw: dict[str, Any], base_dir: Path) -> dict[str, Any]:

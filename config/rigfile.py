@@ -18,6 +18,8 @@ import re
 from pathlib import Path
 from typing import Annotated, Any, Literal, get_args, get_origin
 
+from rsra.config.readfile import regular_file_problem
+
 from pydantic import (
     AfterValidator,
     BaseModel,
@@ -590,6 +592,10 @@ class RigFile(Table):
                               f"{2 * f_h:.3g} Hz")
 
     def _nodes(self, base_dir: Path, packaged_dir: Path | None) -> None:
+        if not self.nodes:  # (else every cell's node would be blamed on the file naming it)
+            raise Invalid("nodes", [], "is empty: the rig would have no CAN nodes",
+                          "list the rig's [[nodes]] blocks, or remove nodes = [] to keep the "
+                          "ones it extends")
         names: dict[str, str] = {}
         ids: dict[int, str] = {}
         for i, n in enumerate(self.nodes):
@@ -605,12 +611,15 @@ class RigFile(Table):
             ids[n.node_id] = n.name
             eds = Path(n.eds)
             path = eds if eds.is_absolute() else base_dir / eds
-            if not path.is_file() and packaged_dir is not None \
-                    and (Path(packaged_dir) / eds).is_file():
+            if not path.exists() and packaged_dir is not None \
+                    and (Path(packaged_dir) / eds).exists():
                 path = Path(packaged_dir) / eds  # the packaged EDS folder
-            if not path.is_file():
+            if not path.exists():
                 raise Invalid(f"nodes[{i}].eds", n.eds, f"file not found (looked in {base_dir})",
                               "give the EDS path relative to the config file")
+            problem = regular_file_problem(path)  # a FIFO or device would block its reader
+            if problem is not None:
+                raise Invalid(f"nodes[{i}].eds", n.eds, problem, "give the node's EDS file")
             n._eds_path = path
         # the SYNC COB-ID against every COB-ID of the configured nodes' predefined connection
         # set (CiA 301: a SYNC on a node's COB-ID is taken for that node's frame, and the

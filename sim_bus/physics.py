@@ -41,7 +41,8 @@ import numpy as np
 from scipy import linalg, signal
 from scipy.spatial.transform import Rotation
 
-from rsra.config.rig import G0, RigConfig
+from rsra.config.rig import G0, ConfigError, RigConfig
+from rsra.config.rigfile import MISSING
 
 from .scenarios import Scenario, check_against_rig, load_scenario
 
@@ -129,6 +130,26 @@ def minimum_strain_energy_split(S: np.ndarray, k: np.ndarray, wrench: np.ndarray
 
 # --------------------------------------------------------------------------- the mounts
 
+MODE_HZ_MIN = 1e-3  # a mount mode slower than this is no mount (the cells carry nothing)
+MODE_RAD_PER_STEP_MAX = 1e6  # a mode this many radians per substep: no mass behind the cells
+
+
+def _check_modes(w2: np.ndarray, h: float) -> None:
+    """The mount modes the configured stiffness and masses give are ones the simulator can
+    integrate: a ConfigError naming the keys to change, not a numerical failure later."""
+    keys = "cells[].stiffness_N_per_m, mass.effective_mass_kg, mass.inertia_kg_m2"
+    if not np.all(np.isfinite(w2)) or float(np.max(w2)) * h * h > MODE_RAD_PER_STEP_MAX ** 2:
+        raise ConfigError("mass.effective_mass_kg", MISSING, "with the cells' stiffness the "
+                          "mount modes are too fast to simulate (a mass or inertia near zero)",
+                          f"give real masses and inertias ({keys})")
+    f_min = math.sqrt(max(float(np.min(w2)), 0.0)) / (2 * math.pi)
+    if f_min < MODE_HZ_MIN:
+        raise ConfigError("cells[].stiffness_N_per_m", MISSING, f"the slowest mount mode is "
+                          f"{f_min:.3g} Hz (below {MODE_HZ_MIN:g} Hz): the cells are too soft "
+                          "for the masses to be a mount", "raise the cells' stiffness_N_per_m "
+                          "(the packaged rig: 1e8 N/m) or check the masses")
+
+
 class _Mounts:
     """The cells at one set of true angles: S, K, normal modes and the lifted sample map."""
 
@@ -139,7 +160,9 @@ class _Mounts:
         self.C = phys.beta * self.K
         if phys.quasi_static:
             return
-        w2, V = linalg.eigh(self.K, np.diag(phys.mass_diag))  # V^T M V = I, V^T K V = diag(w2)
+        with np.errstate(all="ignore"):  # (a 1e-300 mass: judged below, not warned about)
+            w2, V = linalg.eigh(self.K, np.diag(phys.mass_diag))  # V^T M V = I, V^T K V = diag(w2)
+        _check_modes(w2, phys.dt / phys.substeps)
         self.omega_n = np.sqrt(w2)
         self.V = V
         self.VtM = V.T * phys.mass_diag  # modal coordinates eta = V^T M q

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import copy
 import math
+import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,7 +24,9 @@ from typing import Any
 
 import numpy as np
 
+from rsra.config.readfile import UnreadableFile, read_text
 from rsra.config.rig import ConfigError, Section, config_dir
+from rsra.config.rigfile import MISSING
 from rsra.config.units import LBF_N
 
 AXES = ("X", "Y", "Z", "L", "M", "N")
@@ -233,16 +236,50 @@ def load_scenario(name_or_path: str | Path, **variants: Any) -> Scenario:
         if not path.is_file():
             raise ConfigError("scenario", str(name_or_path), "no such scenario",
                               "use one of " + ", ".join(list_scenarios()) + " or a .toml path")
-    try:
-        raw = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ConfigError("scenario", str(path), "file not found",
+    try:  # without blocking, within the size limit (config.readfile)
+        raw = tomllib.loads(read_text(path))
+    except UnreadableFile as e:
+        raise ConfigError("scenario", str(path), e.problem,
                           "give the path of a scenario TOML") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError("<file>", str(path), f"not valid TOML ({e})",
                           "fix the TOML syntax", path.name) from None
     raw = _apply_variants(raw, variants, path.name)
-    return parse_scenario(raw, source=path.name, variants=variants)
+    try:
+        return parse_scenario(raw, source=path.name, variants=variants)
+    except ConfigError as e:  # a value a --variant set: that option named, not the file
+        option = _variant_of(e.key, variants)
+        if option is None:
+            raise
+        raise ConfigError(e.key, e.value, e.problem, e.fix, option) from None
+
+
+_VARIANT_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+
+
+def _variant_place(key: str) -> tuple[str, str] | None:
+    """(section, key) a variant sets, or None for a name that is not KEY or SECTION.KEY."""
+    if "." in key or "__" in key:
+        parts = key.replace("__", ".").split(".")
+        if len(parts) != 2 or not all(_VARIANT_KEY.fullmatch(x) for x in parts):
+            return None
+        return parts[0], parts[1]
+    if key in SCENARIO_KEYS:
+        return "scenario", key
+    return VARIANT_SHORTCUTS.get(key)
+
+
+def _variant_of(error_key: str, variants: dict) -> str | None:
+    """``--variant KEY=VALUE`` when the faulty key is one a variant set (or inside it)."""
+    for key, value in variants.items():
+        place = _variant_place(key)
+        if place is None:
+            continue
+        dotted = ".".join(place) if place[0] != "scenario" else place[1]
+        if error_key in (dotted, ".".join(place), place[0]) or error_key.startswith(dotted + ".") \
+                or error_key.startswith(dotted + "["):
+            return f"--variant {key}={value!r}"
+    return None
 
 
 def _plain(v: Any) -> Any:
@@ -259,20 +296,17 @@ def _plain(v: Any) -> Any:
 def _apply_variants(raw: dict, variants: dict, source: str) -> dict:
     raw = copy.deepcopy(raw)
     for key, value in variants.items():
-        if "." in key or "__" in key:
-            section, _, sub = key.replace("__", ".").partition(".")
-        elif key in SCENARIO_KEYS:
-            section, sub = "scenario", key
-        elif key in VARIANT_SHORTCUTS:
-            section, sub = VARIANT_SHORTCUTS[key]
-        else:
-            raise ConfigError(f"variant {key}", value, "unknown variant",
+        place = _variant_place(key)
+        if place is None:
+            raise ConfigError(f"--variant {key}", MISSING, "unknown variant (not KEY or "
+                              "SECTION.KEY)",
                               "use one of " + ", ".join(SCENARIO_KEYS + tuple(VARIANT_SHORTCUTS))
-                              + ' or a dotted key such as "angles.step_at_s"', source)
+                              + ' or a dotted key such as "angles.step_at_s"')
+        section, sub = place
         table = raw.setdefault(section, {})
         if not isinstance(table, dict):
             raise ConfigError(section, table, "must be a table to take a variant",
-                              f"write [{section}] as a table", source)
+                              f"write [{section}] as a table", f"--variant {key}")
         table[sub] = _plain(value)
     return raw
 

@@ -221,7 +221,7 @@ CASES = {
     "scenario with NaN loads": (nan_loads, 2, ["loads.conditions[0][5]", "finite"]),
     "scenario harmonic above Nyquist": (scenario_above_nyquist, 2, [
         "alias.toml: harmonics[1].order = 40", "Nyquist frequency 100 Hz", "fix:"]),
-    "--config naming a folder": (config_folder, 2, ["--config", "Is a directory", "fix:"]),
+    "--config naming a folder": (config_folder, 2, ["--config", "is a folder", "fix:"]),
     "--log-file in a missing folder": (log_file_nowhere, 2, ["--log-file", "fix:"]),
     "sweep of a junk file": (sweep_junk, 2, ["junk.blf", "BLFParseError"]),
     "run --seed -5": (_sim("run", "--seed", "-5"), 2, ["--seed", ">= 0"]),

@@ -141,15 +141,18 @@ def describe_error(e: BaseException) -> tuple[int, str]:
     from rsra.daq.bus.recorder import RecordingError
     from rsra.daq.bus.replay import ReplayError
     from rsra.daq.runtime.service import BusOpenError
+    from rsra.config.readfile import UnreadableFile
     from rsra.daq.runtime.foxglove_out import FoxgloveAddressError
     from rsra.config.rig import ConfigError
+    from rsra.daq.runtime.persistence import OutputRefused
     from rsra.estimator.posterior import PosteriorFileError
     from rsra.sim_bus.faults import FaultSpecError
 
     if isinstance(e, ConfigError):
         return 2, f"configuration error: {_one_line(e)}"
     if isinstance(e, (UsageError, PosteriorFileError, FaultSpecError, RecordingError,
-                      ReplayError, BusOpenError, FoxgloveAddressError)):
+                      ReplayError, BusOpenError, FoxgloveAddressError, OutputRefused,
+                      UnreadableFile)):
         return 2, f"error: {_one_line(e)}"
     if isinstance(e, BootError):
         return 1, f"the nodes could not be started: {_one_line(e)}"

@@ -207,11 +207,16 @@ def config_for_run(config: str | None, scenario: str | None, variants: dict | No
     return cfg
 
 
-def check_output_file(option: str, path: str) -> None:
+def check_output_file(option: str, path: str, suffix: str | None = None) -> None:
     """An output file named on the command line, checked before any work: not a folder, in an
-    existing folder we may write (no folder is created for it: nothing the user did not name)."""
+    existing folder we may write (no folder is created for it: nothing the user did not name);
+    with ``suffix``, a name ending in it (the file written is the file named: numpy would add
+    ``.npz`` to a truth file's name, and write a file nobody checked)."""
 
     p = Path(path)
+    if suffix is not None and not p.name.endswith(suffix):
+        raise UsageError(f"{option} {path}: the file written would be {path}{suffix}; fix: "
+                         f"give a name ending in {suffix} ({p.name}{suffix})")
     if p.is_dir():
         raise UsageError(f"{option} {path}: is a folder; fix: give a file name")
     parent = p.resolve().parent

@@ -1,14 +1,16 @@
-"""An output never replaces an input (docs/cli.md §16).
+"""An output never replaces an input (docs/cli.md §16): the one place the rule is enforced.
 
 Every command that writes a file checks each output it was given against every input it
-reads — recording files, the files of a recording folder, results, posteriors, the rig file —
-before it reads anything: the same path, a symbolic link to an input, a hard link to one
-(compared by device and inode, so no spelling of a path gets through), or a name that would
-become part of an input recording folder (``frames*.log``, ``angles.jsonl``, …) is refused
-with one line, exit 2.
-
-The files are then written under a temporary name beside the target and renamed into place
-only when complete (:class:`daq.runtime.persistence.AtomicOutput`), so a failed run leaves the old file whole.
+reads — recording files, the files of a recording folder, results, posteriors and state
+files, the rig files with every base they ``extends`` and every EDS file they name, scenario
+files, Zenoh configs — before it reads anything: the same path, a symbolic link to an input, a
+hard link to one (compared by device and inode, so no spelling of a path gets through), or a
+name that would become part of an input recording folder (``frames*.log``, ``angles.jsonl``,
+…) is refused with one line, exit 2. What the output itself is (a folder, a FIFO nobody
+reads, a block device: refused) is judged by the one writer,
+:class:`daq.runtime.persistence.OutputFile`, which then writes it: under a temporary name
+renamed into place when complete (a failed run leaves the old file whole), or in place for a
+character device or a read pipe.
 """
 from __future__ import annotations
 
@@ -19,12 +21,27 @@ import tempfile
 from collections.abc import Iterable
 from pathlib import Path
 
+from rsra.config.readfile import (
+    TEXT_LIMIT,
+    UnreadableFile,
+    check_utf8,
+    kind_of,
+    regular_file_problem,
+)
 from rsra.daq.cli.options import UsageError
-from rsra.daq.runtime.persistence import temp_prefix
+from rsra.daq.runtime.persistence import OutputFile, OutputRefused, temp_prefix
 
 # the arguments that name inputs, over every command (absent ones are skipped)
-INPUT_OPTIONS = {"logs": None, "inputs": None, "results": None, "config": "--config",
-                 "angles": "--angles", "zenoh_config": "--zenoh-config"}
+INPUT_OPTIONS = {"logs": None, "inputs": None, "results": None, "files": None,
+                 "config": "--config", "angles": "--angles", "zenoh_config": "--zenoh-config",
+                 "state_file": "--state-file", "sim": "--sim", "scenario": "--scenario",
+                 "truth": "--truth"}
+# inputs that must be regular files (read whole: a FIFO would block, a device never end),
+# refused before anything starts
+FILE_OPTIONS = ("config", "zenoh_config", "files")  # (files: `rsra web`'s telemetry files)
+# the arguments that name recordings, and the text files of a recording folder
+RECORDING_OPTIONS = ("logs", "inputs", "angles")
+RECORDING_TEXTS = ("angles.jsonl", "config.json")
 # names that belong to a recording folder (daq/bus/recorder.py): an output of that name in an
 # input recording folder would become part of that recording on its next replay
 _RECORDING_NAME = re.compile(r"^(frames(_\d+)?\.[A-Za-z0-9]+|angles\.jsonl|config\.json|"
@@ -39,7 +56,7 @@ class Inputs:
     """The files a command reads, by (device, inode), with the name the user gave."""
 
     def __init__(self) -> None:
-        self._files: dict[tuple[int, int], str] = {}
+        self._files: dict[tuple[int, int], tuple[str, str]] = {}  # (label, path)
         self._folders: dict[tuple[int, int], str] = {}
         self._inner: dict[tuple[int, int], str] = {}  # folders inside an input folder (eds/)
 
@@ -59,22 +76,44 @@ class Inputs:
                 except OSError:
                     continue
                 if stat.S_ISREG(fst.st_mode):
-                    self._files.setdefault((fst.st_dev, fst.st_ino), f"{f}")
+                    self._files.setdefault((fst.st_dev, fst.st_ino), (f"{f}", f"{f}"))
                 elif stat.S_ISDIR(fst.st_mode):
                     self._inner.setdefault((fst.st_dev, fst.st_ino), name)
         elif stat.S_ISREG(st.st_mode):
-            self._files.setdefault((st.st_dev, st.st_ino), name)
+            self._files.setdefault((st.st_dev, st.st_ino), (name, str(path)))
 
-    def add_args(self, args: object, extra: Iterable[str | None] = ()) -> Inputs:
+    def add_args(self, args: object, extra: Iterable[str | None] = (),
+                 outputs: Iterable[str] = ()) -> Inputs:
         for attr, option in INPUT_OPTIONS.items():
+            if attr in outputs:  # (--truth: an input of report, an output of run and sim)
+                continue
             value = getattr(args, attr, None)
             for v in value if isinstance(value, list) else [value]:
-                if v and v != "-":
+                if v and isinstance(v, str) and v != "-":
                     self.add(v, f"{option} {v}" if option else str(v))
         for v in extra:
             if v:
                 self.add(v)
+        self.add_rig(getattr(args, "config", None))
         return self
+
+    def add_rig(self, config: list[str] | str | None) -> None:
+        """The packaged rig, the --config files and their bases (``extends``, transitively),
+        the EDS files they name and the identification.state_file they set: read (or written
+        only as a posterior) by the command, so never an output."""
+        from rsra.config.rig import ConfigError, layer_paths, merge_layers
+
+        files = [config] if isinstance(config, str) else list(config or ())
+        for f in layer_paths(files):
+            self.add(f, f"{f} (a rig or EDS file the command reads)")
+        try:
+            raw, _ = merge_layers(files)
+        except ConfigError:
+            return
+        ident = raw.get("identification")
+        state = ident.get("state_file") if isinstance(ident, dict) else None
+        if isinstance(state, str) and state:
+            self.add(state, f"identification.state_file {state}")
 
     def check(self, option: str, path: str | os.PathLike[str]) -> None:
         """Refuse ``path`` as the output of ``option`` if it is, or links to, an input."""
@@ -84,10 +123,10 @@ class Inputs:
         except (OSError, ValueError):
             st = None
         if st is not None and (st.st_dev, st.st_ino) in self._files:
-            what = self._files[(st.st_dev, st.st_ino)]
+            what, where = self._files[(st.st_dev, st.st_ino)]
             if p.is_symlink():
                 how = "is a symbolic link to"
-            elif os.path.realpath(p) == os.path.realpath(what.split(" ")[-1]):
+            elif os.path.realpath(p) == os.path.realpath(where):
                 how = "is"
             else:
                 how = "is the same file as (a hard link to)"
@@ -112,6 +151,9 @@ class Inputs:
             st = os.stat(folder)
         except (OSError, ValueError):
             st = None
+        if st is not None and not stat.S_ISDIR(st.st_mode):
+            kind = kind_of(st.st_mode) or "is a file"
+            raise UsageError(f"{option} {folder}: {kind}, not a folder; fix: give a folder")
         if st is not None:
             key = (st.st_dev, st.st_ino)
             what = self._folders.get(key) or self._inner.get(key)
@@ -126,13 +168,15 @@ def check_outputs(args: object, outputs: dict[str, str | tuple[str, ...]],
                   more_inputs: Iterable[str] = ()) -> None:
     """The command's outputs against its inputs, before it reads anything. ``outputs`` maps an
     argument to ``"file"``, ``"folder"`` or the names it writes into a folder."""
+    check_input_files(args)
     inputs: Inputs | None = None
     for attr, kind in outputs.items():
         value = getattr(args, attr, None)
-        if not value or value == "-":
+        if not value or value == "-" or not isinstance(value, str):
             continue
         if inputs is None:
-            inputs = Inputs().add_args(args, [getattr(args, a, None) for a in more_inputs])
+            inputs = Inputs().add_args(args, [getattr(args, a, None) for a in more_inputs],
+                                       outputs)
         option = "--" + attr.replace("_", "-")
         if kind == "file":
             inputs.check(option, value)
@@ -141,13 +185,57 @@ def check_outputs(args: object, outputs: dict[str, str | tuple[str, ...]],
             inputs.check_folder(option, value, () if kind == "folder" else kind)
 
 
-def probe_file(option: str, path: str | os.PathLike[str]) -> None:
-    """An output file that cannot be written there (a read-only or virtual file system such as
-    /proc, no permission, no such folder) refused at once: a temporary file is made beside it
-    and removed again. A folder, or a device or pipe written in place, is left to the command."""
-    p = Path(os.path.realpath(path))
-    if p.exists() and not p.is_file():
+def check_input_files(args: object) -> None:
+    """The inputs read whole by name (rig TOMLs, a Zenoh config) are regular files within the
+    size limit (config.readfile): a FIFO, a device or a folder refused in one line before
+    anything opens it (a FIFO would block that open, a device never end). A recording
+    folder's text files (``angles.jsonl``, ``config.json``) are regular files of UTF-8 text:
+    a bad byte is one line naming the file and the line, not a decoding error later."""
+    for attr in FILE_OPTIONS:
+        value = getattr(args, attr, None)
+        for v in value if isinstance(value, list) else [value]:
+            if not v or not isinstance(v, str) or not os.path.lexists(v):
+                continue  # not there: the command's own check says so
+            problem = regular_file_problem(v, None if attr == "files" else TEXT_LIMIT)
+            if problem is not None:
+                option = "" if attr == "files" else f"--{attr.replace('_', '-')} "
+                raise UsageError(f"{option}{v}: {problem}; fix: give the path of the file "
+                                 "itself")
+    for attr in RECORDING_OPTIONS:
+        value = getattr(args, attr, None)
+        for v in value if isinstance(value, list) else [value]:
+            if v and isinstance(v, str) and os.path.isdir(v):
+                for name in RECORDING_TEXTS:
+                    check_text_file(Path(v) / name)
+
+
+def check_text_file(path: Path) -> None:
+    """A text file rsra reads line by line (a recording's ``angles.jsonl``, its
+    ``config.json``): if there, a regular file of UTF-8 text (streamed: no size limit) —
+    else a UsageError naming it."""
+    if not os.path.lexists(path):
         return
+    try:
+        check_utf8(path)
+    except UnreadableFile as e:
+        raise UsageError(str(e)) from None
+
+
+def probe_file(option: str, path: str | os.PathLike[str]) -> None:
+    """An output file that cannot be there (:class:`OutputFile`'s rule: a folder, a FIFO
+    nobody reads, a block device) or cannot be written there (a read-only or virtual file
+    system such as /proc, no permission, no such folder) refused at once: for a new or regular
+    file a temporary file is made beside it and removed again."""
+    try:
+        OutputFile(path).check()
+    except OutputRefused as e:
+        raise UsageError(f"{option} {e}") from None
+    try:
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            return  # a character device or a read pipe (/dev/stdout): written in place
+    except OSError:
+        pass
+    p = Path(os.path.realpath(path))
     parent = p.parent
     if not parent.is_dir():
         raise UsageError(f"{option} {path}: no folder {parent}; fix: create it or write elsewhere")

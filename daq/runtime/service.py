@@ -297,13 +297,23 @@ def _close_logged(stack: contextlib.ExitStack, close: Callable[[], None]) -> Non
 
 
 def jsonl_sink(path: str | Path):
-    """A sink writing `{"key": …, …payload}` lines (strict JSON), and its closer."""
-    f = open(path, "w", encoding="utf-8")
+    """A sink writing `{"key": …, …payload}` lines (strict JSON), and its closer (which makes
+    the file: the one writer, daq.runtime.persistence.OutputFile)."""
+    from rsra.daq.runtime.persistence import OutputFile
+
+    out = OutputFile(path)
+    f = out.open()
 
     def sink(key: str, payload: dict) -> None:
         f.write(dumps({"key": key, **payload}) + "\n")
 
-    return sink, f.close
+    def close() -> None:
+        try:
+            out.commit()
+        finally:
+            out.discard()
+
+    return sink, close
 
 
 class Service:

@@ -60,6 +60,14 @@ def zenoh_config(
     nowhere, unless the file or config says otherwise."""
     path = config_file or tel.zenoh_config
     if path:
+        from rsra.config.readfile import regular_file_problem
+
+        problem = regular_file_problem(path)  # a FIFO would block Zenoh's read, a device never end
+        if problem is not None:
+            from rsra.config.rig import ConfigError
+
+            raise ConfigError("telemetry.zenoh_config", str(path), problem,
+                              "give a valid Zenoh JSON5 config file")
         try:
             conf = zenoh.Config.from_file(path)
         except Exception as e:  # zenoh raises ZError with the parser's message

@@ -189,7 +189,13 @@ def _from_recording(path: Path) -> tuple[PosteriorState, dict]:
     from rsra.daq.cli.options import UsageError
     from rsra.daq.runtime.sources import read_angles_schedule
 
+    from rsra.config.readfile import UnreadableFile, check_utf8
+
     file = path / "angles.jsonl" if path.is_dir() else path
+    try:  # a bad byte: one line naming the file and its line, not a decoding error
+        check_utf8(file)
+    except UnreadableFile as e:
+        raise UsageError(str(e)) from None
     initial, records = read_angles_schedule(file.parent, file)
     applied = [(i, r) for i, r in enumerate(records) if r.get("accepted")]
     if applied:
@@ -223,7 +229,13 @@ def _from_recording(path: Path) -> tuple[PosteriorState, dict]:
 
 
 def _show(cfg: RigConfig, args: argparse.Namespace) -> int:
+    from rsra.config.readfile import regular_file_problem
+    from rsra.daq.cli.options import UsageError
+
     path = Path(args.state)
+    problem = None if path.is_dir() or not path.exists() else regular_file_problem(path)
+    if problem is not None:  # a FIFO would block the read, a device never end
+        raise UsageError(f"{path}: {problem}; fix: give a posterior file or a recording")
     source = None
     if _is_recording(path):
         state, source = _from_recording(path)

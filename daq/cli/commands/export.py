@@ -1,16 +1,19 @@
 """`rsra export`: files other tools open (docs/cli.md §14) — a DBC of the bus, MCAP and Parquet of the
 telemetry (daq.export).
 
-Outputs are written under a temporary name beside the target and renamed only when complete:
-a refused or failed export leaves no partial file (and removes a --parquet folder it made).
+Outputs are written by the one writer (daq.runtime.persistence.OutputFile): under a temporary
+name beside the target and renamed only when complete, so a refused or failed export leaves no
+partial file (and removes a --parquet folder it made); a device or a read pipe in place.
 """
 from __future__ import annotations
 
 import argparse
-import os
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
+from typing import IO
+
+from rsra.daq.runtime.persistence import OutputFile, OutputRefused
 
 TELEMETRY_SUFFIXES = (".jsonl", ".json")
 
@@ -42,49 +45,50 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
 
 
 class _Staged:
-    """Output files under temporary names in their own folder; ``commit`` renames them into
-    place, ``discard`` removes them (and the folder when we made it)."""
+    """The export's outputs, each an :class:`~rsra.daq.runtime.persistence.OutputFile` (the
+    one writer: a regular file renamed into place when complete, a device or a read pipe
+    written in place, anything else refused); ``commit`` makes them all, ``discard`` drops
+    them (and the --parquet folder when we made it)."""
 
     def __init__(self) -> None:
-        self.files: list[tuple[Path, Path]] = []  # (temporary, target)
+        self.files: list[OutputFile] = []
         self.made_dir: Path | None = None
 
-    def file(self, target: Path, usage: Callable[[str], Exception]) -> Path:
-        if target.is_dir():
-            raise usage(f"{target}: is a folder; fix: give a file name")
-        try:
-            fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.",
-                                       suffix=".part")
-        except OSError as e:
-            raise usage(f"{target}: cannot write there ({e.strerror}); fix: create the "
-                        "folder or write elsewhere") from None
-        os.close(fd)
-        mask = os.umask(0)  # mkstemp makes 0600: give the file the mode open() would
-        os.umask(mask)
-        os.chmod(tmp, 0o666 & ~mask)
-        self.files.append((Path(tmp), target))
-        return Path(tmp)
+    def file(self, target: Path, mode: str = "wb") -> IO:
+        from rsra.daq.cli.options import UsageError
 
-    def folder(self, target: Path, usage: Callable[[str], Exception]) -> None:
+        out = OutputFile(target, mode)
+        self.files.append(out)
+        try:
+            return out.open()
+        except OutputRefused as e:
+            raise UsageError(str(e)) from None
+        except OSError as e:
+            raise UsageError(f"{target}: cannot write there ({e.strerror}); fix: create the "
+                             "folder or write elsewhere") from None
+
+    def folder(self, target: Path) -> None:
+        from rsra.daq.cli.options import UsageError
+
         if target.exists() and not target.is_dir():
-            raise usage(f"--parquet {target}: is a file; fix: give a folder")
+            raise UsageError(f"--parquet {target}: is a file; fix: give a folder")
         if not target.exists():
             try:
                 target.mkdir()
             except OSError as e:
-                raise usage(f"--parquet {target}: cannot create ({e.strerror}); fix: "
-                            "create its parent folder or write elsewhere") from None
+                raise UsageError(f"--parquet {target}: cannot create ({e.strerror}); fix: "
+                                 "create its parent folder or write elsewhere") from None
             self.made_dir = target
 
     def commit(self) -> None:
-        for tmp, target in self.files:
-            os.replace(tmp, target)
+        for out in self.files:
+            out.commit()
         self.files.clear()
         self.made_dir = None
 
     def discard(self) -> None:
-        for tmp, _ in self.files:
-            tmp.unlink(missing_ok=True)
+        for out in self.files:
+            out.discard()
         self.files.clear()
         if self.made_dir is not None:
             try:
@@ -130,27 +134,25 @@ def run(args: argparse.Namespace) -> int:
     staged = _Staged()
     done: list[str] = []
     try:
-        dbc_tmp = staged.file(Path(args.dbc), UsageError) if args.dbc else None
-        mcap_tmp = staged.file(Path(args.mcap), UsageError) if args.mcap else None
+        dbc_out = staged.file(Path(args.dbc)) if args.dbc else None
+        mcap_out = staged.file(Path(args.mcap)) if args.mcap else None
         if args.parquet:
-            staged.folder(Path(args.parquet), UsageError)
-        if dbc_tmp is not None:
-            import cantools
-
+            staged.folder(Path(args.parquet))
+        if dbc_out is not None:
             from rsra.daq.analysis.export import build_dbc
 
             db = build_dbc(cfg)
-            cantools.database.dump_file(db, dbc_tmp, database_format="dbc")
+            # as cantools.database.dump_file writes a DBC: cp1252, its own CRLF line ends
+            dbc_out.write(db.as_dbc_string().encode("cp1252", errors="replace"))
             done.append(f"{args.dbc}: {len(db.messages)} messages, "
                         f"{sum(len(m.signals) for m in db.messages)} signals")
-        if mcap_tmp is not None or args.parquet:
+        if mcap_out is not None or args.parquet:
             with tempfile.TemporaryFile("w+", encoding="utf-8") as scratch:
                 source = telemetry
                 if telemetry is None:
                     _replay(cfg, logs, scratch, UsageError)
                 try:
-                    done += _telemetry(cfg, source, scratch, args, mcap_tmp, staged,
-                                       UsageError)
+                    done += _telemetry(cfg, source, scratch, args, mcap_out, staged)
                 except ExportError as e:
                     raise UsageError(str(e)) from None
         staged.commit()
@@ -196,8 +198,8 @@ def replay_to_jsonl(cfg, logs: list[str], out, on_error: Callable[[str], Excepti
             "" if "fix:" in why else "; fix: give an undamaged recording")) from None
 
 
-def _telemetry(cfg, source: Path | None, scratch, args, mcap_tmp: Path | None,
-               staged: _Staged, usage) -> list[str]:
+def _telemetry(cfg, source: Path | None, scratch, args, mcap_out: IO | None,
+               staged: _Staged) -> list[str]:
     """Export the telemetry records (from ``source``, or the replayed ``scratch`` stream)."""
     import json
 
@@ -223,11 +225,10 @@ def _telemetry(cfg, source: Path | None, scratch, args, mcap_tmp: Path | None,
         raise ExportError(f"{source or ' '.join(args.inputs)}: no telemetry records; fix: give a "
                           "file written by `rsra replay --out`, or a recording with samples")
     out = []
-    if mcap_tmp is not None:
+    if mcap_out is not None:
         meta = {"rig": cfg.rig_name, "source": " ".join(args.inputs),
                 "units": "SI: N, N·m, m/s², rad, rad/s; t in UNIX seconds (docs/telemetry.md)"}
-        with open(mcap_tmp, "wb") as f:
-            counts = write_mcap(records(), f, cfg.telemetry.prefix, metadata=meta)
+        counts = write_mcap(records(), mcap_out, cfg.telemetry.prefix, metadata=meta)
         out.append(f"{args.mcap}: " + ", ".join(f"{k} {n}" for k, n in counts.items()))
     if args.parquet:
         names = vector_names(cfg)
@@ -236,9 +237,10 @@ def _telemetry(cfg, source: Path | None, scratch, args, mcap_tmp: Path | None,
         # rsra does not publish
         schemas = parquet_schemas(keys, names, records())
         folder = Path(args.parquet)
-        paths = {k: staged.file(folder / f"{k}.parquet", usage) for k in schemas}
+        paths = {k: staged.file(folder / f"{k}.parquet") for k in schemas}
         left_out: dict[str, set[str]] = {}
-        counts = write_parquet(records(), schemas, paths, names, left_out=left_out)
+        counts = write_parquet(records(), schemas, paths,  # type: ignore[arg-type]
+                               names, left_out=left_out)  # (file objects: pyarrow takes either)
         out.append(f"{args.parquet}: " + ", ".join(f"{k}.parquet {n} rows"
                                                    for k, n in counts.items()))
         for k, cols in left_out.items():

@@ -150,7 +150,7 @@ class _LazyFile:
 
     def __init__(self, path: Path):
         from rsra.daq.cli.options import UsageError
-        from rsra.daq.runtime.persistence import AtomicOutput
+        from rsra.daq.runtime.persistence import OutputFile
 
         self.path = path
         self.records = 0
@@ -162,7 +162,7 @@ class _LazyFile:
         if not os.access(path if path.exists() else parent, os.W_OK):
             raise UsageError(f"--out {path}: cannot write there (permission denied); fix: "
                              "write elsewhere")
-        self.output = AtomicOutput(path)
+        self.output = OutputFile(path)
 
     def write(self, text: str) -> None:
         try:

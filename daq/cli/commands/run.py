@@ -111,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
         if not args.sim:
             raise UsageError("--truth needs --sim (the truth is the simulator's); fix: add "
                              "--sim SCENARIO or leave --truth out")
-        check_output_file("--truth", args.truth)
+        check_output_file("--truth", args.truth, suffix=".npz")
     if args.state_file is not None:
         if not args.state_file:
             raise UsageError("--state-file: give a file name")

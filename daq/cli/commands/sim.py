@@ -78,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
     if args.truth:  # found out now, not after the run
         from rsra.daq.cli.options import check_output_file
 
-        check_output_file("--truth", args.truth)
+        check_output_file("--truth", args.truth, suffix=".npz")
     cfg = load_rig(args.config)
     from rsra.daq.bus.decoder import DecodeTable
 
