@@ -51,9 +51,8 @@ def _items(paths, streaming: bool, block_bytes: int | None = None) -> list:
     cfg = config_for(paths)
     if streaming or block_bytes is None:
         return list(replay(cfg, paths, finish=True, streaming=streaming))
-    reader = OfflineReader(cfg)
-    pieces = columnar.read_pieces(expand(paths), block_bytes=block_bytes)
-    return list(columnar.ColumnarReplay(reader).run(pieces, finish=True))
+    return list(columnar.replay_columnar(OfflineReader(cfg), expand(paths), finish=True,
+                                         block_bytes=block_bytes))
 
 
 def assert_same_items(a: list, b: list) -> None:
@@ -242,3 +241,25 @@ def test_replay_help_imports_no_scipy():
                        timeout=60, env=ENV, check=True)
     assert "--streaming" in r.stdout
     assert r.stdout.strip().splitlines()[-1] == "[]", r.stdout[-500:]
+
+
+@pytest.mark.parametrize("block_bytes", [None, 3000, 200_000])
+def test_frames_out_of_order_take_the_streaming_reorder_stage_on_the_columnar_path(
+        recordings, tmp_path, block_bytes):
+    """The reorder rule written once (daq.bus.reorder): 2 000 lines shuffled (within the
+    window: the ordered log's samples) and one frame moved 2 300 lines later (beyond it, within a second: late)
+    give the streaming path's items on the columnar path, whatever the block size."""
+    import random
+
+    lines = _lines(recordings["ground"])
+    k = len(lines) // 4
+    part = lines[k:k + 2000]
+    random.Random(7).shuffle(part)
+    lines[k:k + 2000] = part
+    j = k + 2500
+    lines.insert(j + 2300, lines.pop(j))  # one frame beyond the window (~0.9 s of traffic)
+    f = tmp_path / "shuffled.log"
+    f.write_bytes(b"".join(lines))
+    items = _equal_both_ways([f], block_bytes=block_bytes)
+    last = [x for x in items if isinstance(x, HealthReport)][-1].health
+    assert last.bus.late == 1

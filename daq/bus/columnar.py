@@ -536,7 +536,14 @@ def in_time_order(pieces: Iterator[Piece], reorder: FrameReorder, sync_id: int
     last = -math.inf  # the latest time stamp seen (all seen so far in order)
     released = -math.inf  # the last time stamp passed on
     it = iter(pieces)
-    for p in it:
+    while True:
+        try:
+            p = next(it)
+        except StopIteration:
+            break
+        except Exception:  # a damaged recording: what came before it is replayed first
+            yield from held
+            raise
         t0, t1, inside = _t_range(p)
         if t0 < last or not inside:  # out of order: the stage's rule from here on
             reorder.last_out = reorder._last_in = released
@@ -558,12 +565,12 @@ def in_time_order(pieces: Iterator[Piece], reorder: FrameReorder, sync_id: int
 
 
 def replay_columnar(reader: ReaderBase, files: Sequence[Path], finish: bool = False,
-                    names: Sequence[str | Path] | None = None
-                    ) -> Iterator[Sample | HealthReport]:
+                    names: Sequence[str | Path] | None = None,
+                    block_bytes: int = BLOCK_BYTES) -> Iterator[Sample | HealthReport]:
     """The items of :func:`rsra.daq.bus.replay.replay` of the recording ``files``
     (replay.expand's), by the columnar path (frames out of order: the streaming path's
     reorder stage, :func:`in_time_order`)."""
     reorder = reader.monitor.reorder = FrameReorder()
-    pieces = in_time_order(read_pieces(files, names=names), reorder,
+    pieces = in_time_order(read_pieces(files, block_bytes, names=names), reorder,
                            reader.assembler.sync_cob_id)
     return ColumnarReplay(reader).run(pieces, finish=finish)

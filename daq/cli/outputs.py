@@ -206,6 +206,8 @@ def check_input_files(args: object) -> None:
         for v in value if isinstance(value, list) else [value]:
             if v and isinstance(v, str) and os.path.isdir(v):
                 for name in RECORDING_TEXTS:
+                    if name == "config.json" and getattr(args, "config", None):
+                        continue  # the rig is given: the recording's own is not read
                     check_text_file(Path(v) / name)
 
 
@@ -218,7 +220,11 @@ def check_text_file(path: Path) -> None:
     try:
         check_utf8(path)
     except UnreadableFile as e:
-        raise UsageError(str(e)) from None
+        if path.name != "config.json":
+            raise UsageError(str(e)) from None
+        # the rig a recording was made on: without it the replay needs the rig's file
+        raise UsageError(f"{path}: {e.problem}: the rig the recording was made on is not "
+                         "readable; fix: give the rig's file with --config") from None
 
 
 def probe_file(option: str, path: str | os.PathLike[str]) -> None:
