@@ -33,6 +33,7 @@ COMMANDS = {
     "export": "export",
     "web": "web",
     "config": "config",
+    "survey": "survey",
 }
 
 

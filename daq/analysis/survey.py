@@ -1,0 +1,570 @@
+"""The loads survey of one recording (docs/user-guide.md "Loads survey", docs/cli.md `rsra
+survey`): test points, and per point and axis the quantities of estimator/survey.py as a long
+table (``test_point, t_start, t_end, axis, quantity, value, sigma, unit, estimate, note``)
+with a Markdown + PNG report.
+
+Which estimate each quantity uses: ``mean``, ``std``, ``min``, ``max``, ``alternating``,
+``alternating_max``, the harmonics the load filter models (``[filter] harmonics``) and the
+rainflow counts and DELs come from the filtered ``H`` with ``sigma_filter`` (coloured over the
+filter's time constant) and the angles' covariance; the harmonics the filter does not model
+from ``H_static`` with the static noise bound (white) and the same angle error. The survey is
+a function of arrays (:class:`SurveyData`, :func:`survey`) so that a campaign can call it per
+recording.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import math
+import tomllib
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from rsra.config.units import axis_units, to_units
+from rsra.daq.runtime.persistence import AtomicOutput, save_figure, write_text_atomic
+from rsra.estimator import survey as num
+from rsra.estimator.noise_budget import AXES
+
+SURVEY_FILES = ("survey.parquet", "survey.csv", "survey.md", "survey_harmonics.png",
+                "survey_loads.png")
+COLUMNS = ("test_point", "t_start", "t_end", "axis", "quantity", "value", "sigma", "unit",
+           "estimate", "note")
+MARK_NAME_MAX = 200  # characters of a test point's name (marks, TOML)
+TEST_POINTS_MAX = 10_000
+MIN_POINT_S = 1.0  # a test point found in the recording is at least this long
+NO_AZIMUTH = ("no measured azimuth in this test point (no rotor-speed node sending it, or "
+              "fewer than one whole revolution measured): never computed from a nominal Ω")
+
+
+class SurveyError(ValueError):
+    """An input the survey cannot use (one line naming it and the fix)."""
+
+
+@dataclass(frozen=True)
+class TestPoint:
+    """A stretch of a recording surveyed as one condition, in the samples' own time (``t``)."""
+
+    name: str
+    start: float
+    end: float
+    source: str  # "marks", "file", "scenario", "transient"
+
+
+@dataclass(frozen=True)
+class AngleState:
+    """The angles in force from sample ``from_seq`` on, and their covariance (model order)."""
+
+    from_seq: int
+    alpha: np.ndarray
+    P: np.ndarray
+
+
+@dataclass
+class SurveyData:
+    """One recording's hub-load samples and what their errors need (arrays of N samples)."""
+
+    t: np.ndarray
+    seq: np.ndarray
+    H: np.ndarray  # (N, 6) SI, in ``frame``
+    H_static: np.ndarray
+    sigma_angles: np.ndarray
+    sigma_filter: np.ndarray
+    transient: np.ndarray  # bool (N,)
+    azimuth: np.ndarray  # rad (NaN: none)
+    T: np.ndarray  # (N, 7) cell loads (NaN: none)
+    angles: list[AngleState] = field(default_factory=list)
+    frame: str = "body"
+
+
+class RecordCollector:
+    """Builds :class:`SurveyData` from published records (``key, payload``): a results JSONL
+    or a replay's sink. Keeps only the numbers the survey needs."""
+
+    def __init__(self, angle_names: Sequence[str]) -> None:
+        #: the model's angle names: an angles record over others is not used
+        self.angle_names = list(angle_names)
+        self.hub: dict[str, list] = {k: [] for k in ("t", "seq", "H", "H_static", "sa", "sf",
+                                                       "tr")}
+        #: seq -> (azimuth, T) from the channels records
+        self.channels: dict[int, tuple[float, list[float]]] = {}
+        self.angles: list[AngleState] = []
+        self.frames: set[str] = set()
+
+    def add(self, key: str, rec: dict) -> None:
+        if key == "hub_loads":
+            h = self.hub
+            h["t"].append(_num(rec.get("t")))
+            h["seq"].append(int(rec["seq"]))
+            h["H"].append(_vec(rec.get("H"), 6))
+            h["H_static"].append(_vec(rec.get("H_static"), 6))
+            h["sa"].append(_vec(rec.get("sigma_angles"), 6))
+            h["sf"].append(_vec(rec.get("sigma_filter"), 6))
+            h["tr"].append("transient" in (rec.get("flags") or ()))
+            self.frames.add(str(rec.get("frame") or "body"))
+        elif key == "channels":
+            self.channels[int(rec["seq"])] = (_num(rec.get("azimuth")), _vec(rec.get("T"), 7))
+        elif key == "angles":
+            self._angles(rec)
+
+    def _angles(self, rec: dict) -> None:
+        if list(rec.get("names") or ()) != self.angle_names or rec.get("P") is None:
+            return
+        start = rec.get("applies_from_seq")
+        alpha = rec.get("alpha_all") if rec.get("initial") else rec.get("alpha")
+        self.angles.append(AngleState(-1 if start is None else int(start),
+                                      np.asarray(_vec(alpha, len(self.angle_names))),
+                                      np.asarray(rec["P"], float)))
+
+    def finish(self) -> SurveyData:
+        h = self.hub
+        if not h["seq"]:
+            raise SurveyError("no hub_loads records; fix: give a recording, or the JSONL "
+                              "written by `rsra replay --out` / `rsra run --out`")
+        if len(self.frames) > 1:
+            raise SurveyError(f"hub_loads records in more than one frame ({sorted(self.frames)})")
+        seq = np.asarray(h["seq"], np.int64)
+        ch = [self.channels.get(int(s), (math.nan, [math.nan] * 7)) for s in seq]
+        return SurveyData(
+            t=np.asarray(h["t"], float), seq=seq,
+            H=np.asarray(h["H"], float).reshape(-1, 6),
+            H_static=np.asarray(h["H_static"], float).reshape(-1, 6),
+            sigma_angles=np.asarray(h["sa"], float).reshape(-1, 6),
+            sigma_filter=np.asarray(h["sf"], float).reshape(-1, 6),
+            transient=np.asarray(h["tr"], bool),
+            azimuth=np.asarray([c[0] for c in ch], float),
+            T=np.asarray([c[1] for c in ch], float).reshape(-1, 7),
+            angles=sorted(self.angles, key=lambda a: a.from_seq),
+            frame=self.frames.pop() if self.frames else "body")
+
+
+def _vec(x, n: int) -> list[float]:
+    if x is None or isinstance(x, (str, bytes, dict)):
+        return [math.nan] * n
+    out = [math.nan if v is None else float(v) for v in list(x)[:n]]
+    return out + [math.nan] * (n - len(out))
+
+
+def _num(x) -> float:
+    return math.nan if x is None else float(x)
+
+
+def load_results(path: Path, angle_names: Sequence[str]) -> SurveyData:
+    from rsra.daq.analysis.export import ExportError, read_records
+
+    col = RecordCollector(angle_names)
+    try:
+        for key, rec in read_records(path):
+            col.add(key, rec)
+    except ExportError as e:
+        raise SurveyError(str(e)) from None
+    except (KeyError, TypeError, ValueError) as e:
+        raise SurveyError(f"{path}: a record without a valid {e} field (docs/telemetry.md §2); "
+                          "fix: give the JSONL written by `rsra replay --out`") from None
+    return col.finish()
+
+
+# ---------------------------------------------------------------------------------------------
+# test points
+
+
+def points_from_transient(t: np.ndarray, transient: np.ndarray,
+                          min_s: float = MIN_POINT_S) -> list[TestPoint]:
+    """The held stretches between the edges of the ``transient`` flag (each at least
+    ``min_s`` long), named ``held 1``, ``held 2``, …"""
+    out: list[TestPoint] = []
+    held = ~np.asarray(transient, bool)
+    n = len(held)
+    i = 0
+    while i < n:
+        if not held[i]:
+            i += 1
+            continue
+        j = i
+        while j + 1 < n and held[j + 1]:
+            j += 1
+        if t[j] - t[i] >= min_s:
+            out.append(TestPoint(f"held {len(out) + 1}", float(t[i]), float(t[j]), "transient"))
+        i = j + 1
+    return out
+
+
+def points_from_marks(marks: Sequence[dict], t_end: float) -> list[TestPoint]:
+    """Operator marks (marks.jsonl: ``{"t": …, "name": …}`` or ``{"t": …, "end": true}``): a
+    mark opens a test point that lasts until the next mark, an end mark or the recording's
+    end."""
+    out: list[TestPoint] = []
+    ms = sorted((m for m in marks if math.isfinite(float(m.get("t", math.nan)))),
+                key=lambda m: float(m["t"]))
+    for i, m in enumerate(ms):
+        if m.get("end"):
+            continue
+        stop = float(ms[i + 1]["t"]) if i + 1 < len(ms) else float(t_end)
+        if stop > float(m["t"]):
+            out.append(TestPoint(str(m.get("name") or f"mark {i + 1}"), float(m["t"]), stop,
+                                 "marks"))
+    return out
+
+
+def read_marks(path: Path) -> list[dict]:
+    """marks.jsonl of a recording folder; a line that is not a valid mark is named."""
+    import json
+
+    out = []
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise SurveyError(f"{path}: cannot read ({e}); fix: check the file") from None
+    for n, line in enumerate(text.splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            m = json.loads(line)
+            float(m["t"])
+        except (ValueError, KeyError, TypeError):
+            raise SurveyError(f"{path} line {n}: not a mark ({{\"t\": …, \"name\": …}}); "
+                              "fix: remove or correct the line") from None
+        out.append(m)
+    return out
+
+
+def points_from_toml(path: Path, t0: float) -> list[TestPoint]:
+    """``[[test_point]]`` tables with ``name``, ``start``, ``end`` (s); with top-level
+    ``time = "from_start"`` the times count from the recording's first sample (``t0``),
+    else they are the samples' own time (``t``)."""
+    try:
+        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as e:
+        raise SurveyError(f"--test-points {path}: cannot read ({e}); fix: give a TOML "
+                          "file") from None
+    except tomllib.TOMLDecodeError as e:
+        raise SurveyError(f"--test-points {path}: not TOML ({e}); fix: correct the "
+                          "file") from None
+    base = raw.get("time", "absolute")
+    if base not in ("absolute", "from_start"):
+        raise SurveyError(f"--test-points {path}: time = {base!r}; fix: \"absolute\" or "
+                          "\"from_start\"")
+    tps = raw.get("test_point")
+    if not isinstance(tps, list) or not tps or len(tps) > TEST_POINTS_MAX:
+        raise SurveyError(f"--test-points {path}: no [[test_point]] tables (or more than "
+                          f"{TEST_POINTS_MAX}); fix: write [[test_point]] name = \"hover\" "
+                          "start = 10.0 end = 20.0")
+    off = t0 if base == "from_start" else 0.0
+    out = []
+    for i, tp in enumerate(tps, 1):
+        try:
+            name = str(tp["name"])[:MARK_NAME_MAX]
+            start, end = float(tp["start"]), float(tp["end"])
+        except (KeyError, TypeError, ValueError):
+            raise SurveyError(f"--test-points {path}: test_point {i} needs name, start and "
+                              "end (numbers, s); fix: complete it") from None
+        if not (math.isfinite(start) and math.isfinite(end) and end > start):
+            raise SurveyError(f"--test-points {path}: test_point {i} ({name!r}) start "
+                              f"{start} end {end}; fix: finite times with end > start")
+        out.append(TestPoint(name, start + off, end + off, "file"))
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# the survey
+
+
+@dataclass(frozen=True)
+class SurveyRig:
+    """What the survey takes from the rig configuration."""
+
+    blades: int
+    modelled: tuple[int, ...]  # harmonic orders the load filter models
+    dt: float
+    time_constant_s: float
+    bound: np.ndarray  # (6,) the static noise bound (SI, the records' frame)
+    angle_names: tuple[str, ...]
+    #: alpha -> A = R⁻¹ ∂S/∂α (6, 7, 14) in the records' frame
+    sensitivity: object = None
+
+
+@dataclass(frozen=True)
+class SurveyOptions:
+    slopes: tuple[float, ...] = (4.0, 10.0)
+    reference_cycles: float | None = None  # None: 1 per second of the test point
+    draws: int = 50
+    units: str = "si"
+    seed: int = 0
+
+
+def _angle_state(data: SurveyData, seq0: int, seq1: int) -> AngleState | None:
+    """The angles in force over [seq0, seq1]: of those in force at some sample, the one
+    with the largest covariance (trace)."""
+    cands = []
+    before = [a for a in data.angles if a.from_seq <= seq0]
+    if before:
+        cands.append(before[-1])
+    cands += [a for a in data.angles if seq0 < a.from_seq <= seq1]
+    if not cands:
+        return None
+    return max(cands, key=lambda a: float(np.trace(a.P)))
+
+
+def _sqrt_psd(P: np.ndarray) -> np.ndarray:
+    lam, V = np.linalg.eigh(0.5 * (P + P.T))
+    result: np.ndarray = V * np.sqrt(np.clip(lam, 0.0, None))[None, :]
+    return result
+
+
+def _models(data: SurveyData, rig: SurveyRig, idx: np.ndarray, k: int,
+            angle_sens: np.ndarray | None) -> tuple[num.ErrorModel, num.ErrorModel]:
+    """(the error model of H, of H_static) on axis k over the samples ``idx``."""
+    sa = np.nan_to_num(data.sigma_angles[idx, k], nan=0.0)
+    sf = data.sigma_filter[idx, k]
+    sf = np.where(np.isfinite(sf), sf, rig.bound[k])
+    rho = math.exp(-rig.dt / rig.time_constant_s)
+    T = data.T[idx]
+    if angle_sens is not None and np.isfinite(T).all():
+        sens = angle_sens[k]
+        return (num.ErrorModel(sf, rho, T, sens),
+                num.ErrorModel(np.full(len(idx), rig.bound[k]), 0.0, T, sens))
+    return (num.ErrorModel(sf, rho, sigma_angles=sa),
+            num.ErrorModel(np.full(len(idx), rig.bound[k]), 0.0, sigma_angles=sa))
+
+
+def survey(data: SurveyData, points: Sequence[TestPoint], rig: SurveyRig,
+           opts: SurveyOptions) -> list[dict]:
+    """The long table's rows (SI or US units per ``opts.units``) for every test point."""
+    rows: list[dict] = []
+    rng = np.random.default_rng(opts.seed)
+    for tp in points:
+        rows += survey_point(data, tp, rig, opts, rng)
+    return rows
+
+
+def survey_point(data: SurveyData, tp: TestPoint, rig: SurveyRig, opts: SurveyOptions,
+                 rng: np.random.Generator) -> list[dict]:
+    sel = np.flatnonzero((data.t >= tp.start) & (data.t <= tp.end)
+                         & np.isfinite(data.H).all(axis=1))
+    if len(sel) < 3:
+        return [_row(tp, "-", "samples", float(len(sel)), math.nan, "", "H",
+                     "fewer than 3 samples with H in the test point: nothing surveyed")]
+    st = _angle_state(data, int(data.seq[sel[0]]), int(data.seq[sel[-1]]))
+    angle_sens = None
+    if st is not None and rig.sensitivity is not None:
+        A = rig.sensitivity(st.alpha)  # type: ignore[operator]
+        L = _sqrt_psd(st.P)
+        angle_sens = np.einsum("kij,jl->kil", A, L)
+    psi = num.unwrap_azimuth(data.azimuth[sel])
+    has_psi = np.isfinite(psi)
+    revs = num.whole_revolutions(psi) if has_psi.all() else []
+    orders = list(range(1, rig.blades + 1))
+    duration = float(data.t[sel[-1]] - data.t[sel[0]]) + rig.dt
+    n_ref = opts.reference_cycles or duration
+    units = axis_units(opts.units)
+    rows: list[dict] = []
+    for k, ax in enumerate(AXES):
+        scale = float(to_units(np.eye(6)[k], opts.units)[k])
+        unit = units[k]
+        mH, mS = _models(data, rig, sel, k, angle_sens)
+        y = data.H[sel, k]
+
+        def add(q: str, v: num.Value | None, est: str = "H", note: str = "",
+                u: str = unit, s: float = scale) -> None:
+            rows.append(_row(tp, ax, q, math.nan if v is None else v.value * s,
+                             math.nan if v is None else v.sigma * s, u, est, note))
+        mean, std = num.mean_std(y, mH)
+        add("mean", mean)
+        add("std", std)
+        add("min", num.peak(y, mH, "min"))
+        add("max", num.peak(y, mH, "max"))
+        alt = num.alternating(y, revs, mH) if revs else None
+        add("alternating", alt[0] if alt else None,
+            note="" if alt else NO_AZIMUTH)
+        add("alternating_max", alt[1] if alt else None,
+            note="" if alt else NO_AZIMUTH)
+        rows += _harmonic_rows(data, tp, rig, sel, k, psi, has_psi, revs, orders, mH, mS,
+                               scale, unit)
+        count, dels = num.fatigue(y, opts.slopes, n_ref)
+        s_count, s_dels = num.fatigue_sigma(y, mH, opts.slopes, n_ref, opts.draws, rng)
+        est = f"H, σ from {opts.draws} Monte Carlo draws"
+        add("rainflow_cycles", num.Value(count, s_count), est, u="cycles", s=1.0)
+        for m, d, sd in zip(opts.slopes, dels, s_dels):
+            add(f"del_m{m:g}", num.Value(d, sd), est,
+                note=f"reference {n_ref:.6g} cycles, S-N slope {m:g}")
+    return rows
+
+
+def _harmonic_rows(data: SurveyData, tp: TestPoint, rig: SurveyRig, sel: np.ndarray, k: int,
+                   psi: np.ndarray, has_psi: np.ndarray, revs: list, orders: list[int],
+                   mH: num.ErrorModel, mS: num.ErrorModel, scale: float, unit: str
+                   ) -> list[dict]:
+    ax = AXES[k]
+    rows = []
+    if not revs:
+        for o in orders:
+            rows.append(_row(tp, ax, f"h{o}_amplitude", math.nan, math.nan, unit, "", NO_AZIMUTH))
+            rows.append(_row(tp, ax, f"h{o}_phase_deg", math.nan, math.nan, "deg", "",
+                             NO_AZIMUTH))
+        return rows
+    modelled = [o for o in orders if o in rig.modelled]
+    other = [o for o in orders if o not in rig.modelled]
+    found: dict[int, tuple[num.Harmonic, str]] = {}
+    if modelled:
+        for h in num.harmonics(data.H[sel, k], psi, modelled, mH):
+            found[h.order] = (h, "H")
+    ys = data.H_static[sel, k]
+    ok = np.isfinite(ys)
+    if other and ok.sum() > 2 * len(other) + 1:
+        mS_ok = mS.subset(ok)
+        for h in num.harmonics(ys[ok], psi[ok], other, mS_ok):
+            found[h.order] = (h, "H_static")
+    for o in orders:
+        if o not in found:
+            note = "no H_static samples in the test point"
+            rows.append(_row(tp, ax, f"h{o}_amplitude", math.nan, math.nan, unit, "", note))
+            rows.append(_row(tp, ax, f"h{o}_phase_deg", math.nan, math.nan, "deg", "", note))
+            continue
+        h, est = found[o]
+        note = "" if est == "H" else "not modelled by the load filter: from H_static"
+        rows.append(_row(tp, ax, f"h{o}_amplitude", h.amplitude * scale,
+                         h.amplitude_sigma * scale, unit, est, note))
+        rows.append(_row(tp, ax, f"h{o}_phase_deg", h.phase_deg, h.phase_sigma_deg, "deg", est,
+                         note))
+    return rows
+
+
+def _row(tp: TestPoint, axis: str, q: str, v: float, s: float, unit: str, est: str,
+         note: str) -> dict:
+    return {"test_point": tp.name, "t_start": tp.start, "t_end": tp.end, "axis": axis,
+            "quantity": q, "value": v, "sigma": s, "unit": unit, "estimate": est, "note": note}
+
+
+# ---------------------------------------------------------------------------------------------
+# outputs
+
+
+def write_table(rows: Sequence[dict], out: Path) -> None:
+    """DIR/survey.parquet and DIR/survey.csv, each written atomically."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    types = {"t_start": pa.float64(), "t_end": pa.float64(), "value": pa.float64(),
+             "sigma": pa.float64()}
+    cols = {c: [_cell(r[c]) for r in rows] for c in COLUMNS}
+    table = pa.table({c: pa.array(v, type=types.get(c, pa.string())) for c, v in cols.items()})
+    dst = AtomicOutput(out / "survey.parquet", "wb")
+    try:
+        pq.write_table(table, dst.open())
+        dst.commit()
+    finally:
+        dst.discard()
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(COLUMNS)
+    for r in rows:
+        w.writerow(["" if _cell(r[c]) is None else r[c] for c in COLUMNS])
+    write_text_atomic(out / "survey.csv", buf.getvalue())
+
+
+def _cell(v):
+    return None if isinstance(v, float) and not math.isfinite(v) else v
+
+
+def _fmt(v: float, s: float) -> str:
+    if not math.isfinite(v):
+        return "—"
+    return f"{v:.4g} ± {s:.2g}" if math.isfinite(s) else f"{v:.4g}"
+
+
+def markdown(rows: Sequence[dict], points: Sequence[TestPoint], rig: SurveyRig,
+             opts: SurveyOptions, source: str) -> str:
+    by = {(r["test_point"], r["axis"], r["quantity"]): r for r in rows}
+    units = axis_units(opts.units)
+    lines = [f"# Loads survey of {source}", "",
+             f"{len(points)} test points; values ± 1 σ ({opts.units.upper()} units). Mean, "
+             "std, min, max, alternating and the harmonics the load filter models "
+             f"({', '.join(f'{o}/rev' for o in rig.modelled)}) from the filtered H; the other "
+             "harmonics from H_static; rainflow counts and DELs from H with σ from "
+             f"{opts.draws} Monte Carlo draws. Phases: degrees from the measured azimuth's "
+             "zero, h(ψ) = A cos(kψ − φ).", "",
+             "| test point | source | t_start | t_end |", "|---|---|---|---|"]
+    lines += [f"| {tp.name} | {tp.source} | {tp.start:.3f} | {tp.end:.3f} |" for tp in points]
+    orders = range(1, rig.blades + 1)
+    for k, ax in enumerate(AXES):
+        lines += ["", f"## {ax} [{units[k]}]", "",
+                  "| test point | mean | alternating | alternating_max | min | max | "
+                  + " | ".join(f"h{o} amplitude (phase °)" for o in orders) + " |",
+                  "|---" * (6 + len(orders)) + "|"]
+        for tp in points:
+            def g(q: str) -> str:
+                r = by.get((tp.name, ax, q))
+                return "—" if r is None else _fmt(r["value"], r["sigma"])
+            cells = [g(q) for q in ("mean", "alternating", "alternating_max", "min", "max")]
+            cells += [f"{g(f'h{o}_amplitude')} ({g(f'h{o}_phase_deg')})" for o in orders]
+            lines.append(f"| {tp.name} | " + " | ".join(cells) + " |")
+    notes = sorted({r["note"] for r in rows if r["note"] and "S-N" not in r["note"]})
+    if notes:
+        lines += ["", "Notes:", ""] + [f"* {n}" for n in notes]
+    return "\n".join(lines) + "\n"
+
+
+def plot(rows: Sequence[dict], points: Sequence[TestPoint], rig: SurveyRig,
+         opts: SurveyOptions, out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    by = {(r["test_point"], r["axis"], r["quantity"]): r for r in rows}
+    units = axis_units(opts.units)
+    names = [tp.name for tp in points]
+    x = np.arange(len(names))
+
+    def get(name: str, ax: str, q: str) -> tuple[float, float]:
+        r = by.get((name, ax, q))
+        return (math.nan, math.nan) if r is None else (r["value"], r["sigma"])
+
+    orders = list(range(1, rig.blades + 1))
+    fig, axs = plt.subplots(3, 2, figsize=(12, 10), squeeze=False)
+    width = 0.8 / max(len(orders), 1)
+    for k, ax in enumerate(AXES):
+        a = axs[k // 2][k % 2]
+        for j, o in enumerate(orders):
+            v = np.array([get(n, ax, f"h{o}_amplitude") for n in names]).reshape(-1, 2)
+            a.bar(x + (j - (len(orders) - 1) / 2) * width, v[:, 0], width, yerr=v[:, 1],
+                  capsize=2, label=f"{o}/rev")
+        a.set_title(f"{ax}: harmonic amplitudes ± 1σ")
+        a.set_ylabel(units[k])
+        a.set_xticks(x, names, rotation=30, ha="right", fontsize=7)
+    axs[0][0].legend(fontsize=7)
+    fig.tight_layout()
+    save_figure(fig, out / "survey_harmonics.png", dpi=90)
+    plt.close(fig)
+    fig, axs = plt.subplots(3, 2, figsize=(12, 10), squeeze=False)
+    for k, ax in enumerate(AXES):
+        a = axs[k // 2][k % 2]
+        for q, off in (("mean", -0.15), ("alternating", 0.15)):
+            v = np.array([get(n, ax, q) for n in names]).reshape(-1, 2)
+            a.errorbar(x + off, v[:, 0], yerr=v[:, 1], fmt="o", capsize=3,
+                       label="steady (mean)" if q == "mean" else "alternating")
+        a.axhline(0.0, color="0.7", lw=0.5)
+        a.set_title(f"{ax}: steady and alternating ± 1σ")
+        a.set_ylabel(units[k])
+        a.set_xticks(x, names, rotation=30, ha="right", fontsize=7)
+    axs[0][0].legend(fontsize=7)
+    fig.tight_layout()
+    save_figure(fig, out / "survey_loads.png", dpi=90)
+    plt.close(fig)
+
+
+def write_outputs(rows: Sequence[dict], points: Sequence[TestPoint], rig: SurveyRig,
+                  opts: SurveyOptions, out: Path, source: str) -> None:
+    write_table(rows, out)
+    write_text_atomic(out / "survey.md", markdown(rows, points, rig, opts, source))
+    plot(rows, points, rig, opts, out)
+
+
+def filter_points(points: Iterable[TestPoint], t: np.ndarray) -> list[TestPoint]:
+    """The test points that overlap the samples (the others name nothing to survey)."""
+    if not len(t):
+        return []
+    lo, hi = float(np.nanmin(t)), float(np.nanmax(t))
+    return [tp for tp in points if tp.end >= lo and tp.start <= hi]
