@@ -55,11 +55,17 @@ class ErrorModel:
     T: np.ndarray | None = None
     sens: np.ndarray | None = None
     sigma_angles: np.ndarray | None = None
+    #: where the coloured error's power may sit: 0 the low frequencies, k a band around k/rev
+    #: on the measured azimuth ``psi`` (a filter with harmonic states errs there too). A
+    #: functional's variance is taken in the band where it is largest (conservative).
+    bands: tuple[int, ...] = (0,)
+    psi: np.ndarray | None = None
 
     def subset(self, idx: np.ndarray | slice) -> ErrorModel:
         return ErrorModel(self.sigma_noise[idx], self.rho,
                           None if self.T is None else self.T[idx], self.sens,
-                          None if self.sigma_angles is None else self.sigma_angles[idx])
+                          None if self.sigma_angles is None else self.sigma_angles[idx],
+                          self.bands, None if self.psi is None else self.psi[idx])
 
     @property
     def has_angle_covariance(self) -> bool:
@@ -76,11 +82,29 @@ def _two_sided(u: np.ndarray, rho: float) -> np.ndarray:
     return result
 
 
-def functional_cov(W: np.ndarray, model: ErrorModel) -> np.ndarray:
-    """Covariance (m, m) of the errors of the linear functionals ``W @ y`` (W: (m, N))."""
+def _band_cov(U: np.ndarray, rho: float, k: int, psi: np.ndarray | None) -> np.ndarray:
+    """``Σ_ij u_i u_j ρ^|i−j| cos k(ψ_i − ψ_j)``: an AR(1) envelope around k/rev."""
+    if k == 0 or psi is None or rho <= 0.0:
+        result: np.ndarray = U @ _two_sided(U, rho).T
+        return result
+    ph = np.exp(1j * k * psi)[None, :]
+    G = _two_sided(U * ph.conj(), rho)
+    return np.real((U * ph) @ G.T)
+
+
+def functional_cov(W: np.ndarray, model: ErrorModel,
+                   groups: Sequence[Sequence[int]] | None = None) -> np.ndarray:
+    """Covariance (m, m) of the errors of the linear functionals ``W @ y`` (W: (m, N)). The
+    coloured part per group of rows (default each row) in the band where its trace is
+    largest."""
     W = np.atleast_2d(np.asarray(W, float))
     U = W * model.sigma_noise[None, :]
-    C: np.ndarray = U @ _two_sided(U, model.rho).T
+    bands = [_band_cov(U, model.rho, k, model.psi) for k in model.bands]
+    C: np.ndarray = bands[0].copy()
+    for g in groups if groups is not None else [[i] for i in range(W.shape[0])]:
+        ix = np.ix_(list(g), list(g))
+        best = max(bands, key=lambda B: float(np.trace(B[ix])))
+        C[ix] = best[ix]
     if model.has_angle_covariance:
         assert model.T is not None and model.sens is not None
         B = (W @ model.T) @ model.sens  # (m, n)
@@ -196,11 +220,15 @@ def amplitude_phase(a: float, b: float, cov: np.ndarray, order: int) -> Harmonic
     return Harmonic(order, amp, s_amp, math.degrees(phi), min(math.degrees(s_phi), 180.0))
 
 
-def harmonics(y: np.ndarray, psi_u: np.ndarray, orders: Sequence[int], model: ErrorModel
-              ) -> list[Harmonic]:
+def harmonics(y: np.ndarray, psi_u: np.ndarray, orders: Sequence[int], model: ErrorModel,
+              model_sigma: float = 0.0) -> list[Harmonic]:
+    """Amplitude and phase of each order by least squares on the measured azimuth, σ from the
+    error model plus ``model_sigma`` on each of the coefficients (a coherent model error at
+    the harmonic, which no averaging removes)."""
     W = harmonic_weights(psi_u, orders)
     coef = W @ y
-    C = functional_cov(W, model)
+    groups = [[0]] + [[1 + 2 * n, 2 + 2 * n] for n in range(len(orders))]
+    C = functional_cov(W, model, groups) + model_sigma ** 2 * np.eye(W.shape[0])
     out = []
     for n, k in enumerate(orders):
         i = 1 + 2 * n
@@ -234,26 +262,67 @@ def peak(y: np.ndarray, model: ErrorModel, which: str) -> Value:
     return Value(float(y[i]), float(functional_sigma(w, model)[0]))
 
 
-def alternating(y: np.ndarray, revs: Iterable[tuple[int, int]], model: ErrorModel
-                ) -> tuple[Value, Value] | None:
-    """(the mean over whole revolutions of half the peak-to-peak, the largest one), each with
-    its σ; None without a whole revolution."""
-    rows = []
-    vals = []
+@dataclass(frozen=True)
+class Revolutions:
+    """Per whole revolution, the fit of the harmonics 1 … N_b/rev on the measured azimuth:
+    its half peak-to-peak (``halves``), the linear functional of the samples that gives each
+    (``rows``, (R, N)), and the fit evaluated at the revolution's samples (``fit``, NaN
+    outside whole revolutions). The fit takes the harmonics out of the noise, so the half
+    peak-to-peak is not inflated by it (the raw peak-to-peak of a noisy series is)."""
+
+    halves: np.ndarray
+    rows: np.ndarray
+    fit: np.ndarray
+
+
+def per_revolution(y: np.ndarray, psi_u: np.ndarray, revs: Iterable[tuple[int, int]],
+                   orders: Sequence[int], grid: int = 360) -> Revolutions:
+    n = len(y)
+    halves, rows = [], []
+    fit = np.full(n, np.nan)
     for i0, i1 in revs:
-        seg = y[i0:i1]
-        hi, lo = i0 + int(np.argmax(seg)), i0 + int(np.argmin(seg))
-        w = np.zeros(len(y))
-        w[hi] += 0.5
-        w[lo] -= 0.5
+        p, yy = psi_u[i0:i1], y[i0:i1]
+        if i1 - i0 <= 2 * len(orders) + 1 or not np.isfinite(yy).all():
+            continue
+        W = harmonic_weights(p, orders)
+        c = W @ yy
+        g = TWO_PI * math.floor(p[0] / TWO_PI) + np.linspace(0.0, TWO_PI, grid, endpoint=False)
+        Xg = harmonic_design(g, orders)
+        f = Xg @ c
+        hi, lo = int(np.argmax(f)), int(np.argmin(f))
+        w = np.zeros(n)
+        w[i0:i1] = 0.5 * (Xg[hi] - Xg[lo]) @ W
         rows.append(w)
-        vals.append(0.5 * (y[hi] - y[lo]))
-    if not rows:
+        halves.append(0.5 * (f[hi] - f[lo]))
+        fit[i0:i1] = harmonic_design(p, orders) @ c
+    return Revolutions(np.asarray(halves, float),
+                       np.vstack(rows) if rows else np.zeros((0, n)), fit)
+
+
+def alternating(y: np.ndarray, psi_u: np.ndarray, revs: Sequence[tuple[int, int]],
+                orders: Sequence[int], model: ErrorModel, model_sigma: float = 0.0,
+                draws: int = 0, rng: np.random.Generator | None = None
+                ) -> tuple[Value, Value] | None:
+    """(the mean over whole revolutions of half the peak-to-peak of the per-revolution fit,
+    the largest one), each with its σ (linearised; ``model_sigma``, a coherent model error,
+    in quadrature); None without a whole revolution.
+
+    A peak-to-peak is a convex function of the noisy coefficients, so noise inflates it (and
+    the largest of R halves more, by the selection): with ``draws`` the bias is estimated from
+    Monte Carlo draws of the error model and taken off (a parametric bootstrap correction)."""
+    rv = per_revolution(y, psi_u, revs, orders)
+    if not len(rv.halves):
         return None
-    W = np.vstack(rows)
-    k = int(np.argmax(vals))
-    sig = functional_sigma(np.vstack([W.mean(axis=0), W[k]]), model)
-    return Value(float(np.mean(vals)), float(sig[0])), Value(float(vals[k]), float(sig[1]))
+    k = int(np.argmax(rv.halves))
+    sig = np.hypot(functional_sigma(np.vstack([rv.rows.mean(axis=0), rv.rows[k]]), model),
+                   model_sigma)
+    mean, top = float(np.mean(rv.halves)), float(rv.halves[k])
+    if draws and rng is not None:
+        sims = [per_revolution(y + e, psi_u, revs, orders).halves
+                for e in draw_errors(model, draws, rng)]
+        mean -= float(np.mean([np.mean(h) for h in sims if len(h)])) - mean
+        top -= float(np.mean([np.max(h) for h in sims if len(h)])) - top
+    return Value(mean, float(sig[0])), Value(top, float(sig[1]))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -299,18 +368,20 @@ def damage_equivalent(ranges: np.ndarray, counts: np.ndarray, slope: float,
 
 def fatigue(y: np.ndarray, slopes: Sequence[float], reference_cycles: float
             ) -> tuple[float, list[float]]:
-    """(rainflow cycle count, [DEL per slope])."""
-    r, c = rainflow_ranges(y)
+    """(rainflow cycle count, [DEL per slope]) of the finite samples of ``y``."""
+    r, c = rainflow_ranges(y[np.isfinite(y)])
     return float(np.sum(c)), [damage_equivalent(r, c, m, reference_cycles) for m in slopes]
 
 
 def fatigue_sigma(y: np.ndarray, model: ErrorModel, slopes: Sequence[float],
-                  reference_cycles: float, draws: int, rng: np.random.Generator
-                  ) -> tuple[float, list[float]]:
+                  reference_cycles: float, draws: int, rng: np.random.Generator,
+                  series=None) -> tuple[float, list[float]]:
     """σ of the cycle count and of each DEL over ``draws`` Monte Carlo draws of the error
-    (the spread of the counting on ``y + e``)."""
+    (the spread of the counting on ``series(y + e)``; ``series``: what is counted, e.g. the
+    per-revolution fit, default the samples themselves)."""
     e = draw_errors(model, draws, rng)
-    out = np.array([[n, *d] for n, d in (fatigue(y + ei, slopes, reference_cycles)
+    f = series or (lambda x: x)
+    out = np.array([[n, *d] for n, d in (fatigue(f(y + ei), slopes, reference_cycles)
                                          for ei in e)])
     sd = out.std(axis=0, ddof=1) if draws > 1 else np.full(out.shape[1], math.nan)
     return float(sd[0]), [float(s) for s in sd[1:]]

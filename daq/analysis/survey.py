@@ -230,6 +230,48 @@ def read_marks(path: Path) -> list[dict]:
     return out
 
 
+SETTLE_S = 0.5  # after a ramp or a manoeuvre, before a held condition's test point starts
+START_S = 2.0  # the filter's start from a zero state: the first test point starts after it
+
+
+def points_from_schedule(sc, t_sim: np.ndarray, t_samples: np.ndarray) -> list[TestPoint]:
+    """The simulator's held conditions (``sc.loads``: from ``SETTLE_S`` after the ramp into
+    one to the start of the ramp out of it; manoeuvres cut out) and its manoeuvres as test
+    points, each cycle of the schedule on its own. ``t_sim``: the truth's simulated time of
+    every sample, ``t_samples`` the samples' own time (the truth's SYNC time). ``sc`` is a
+    scenario of the simulator (sim_bus.scenarios.Scenario: duck-typed here)."""
+    ts = np.asarray(t_sim, float)
+    if not len(ts):
+        return []
+
+    def at(x: float) -> float:
+        return float(np.interp(x, ts, t_samples))
+
+    L = sc.loads
+    ramp = L.ramp_s if len(L.conditions) > 1 else 0.0
+    cycles = int(math.ceil((ts[-1] + 1e-9) / sc.duration_s))
+    out = []
+    for c in range(cycles):
+        c0 = c * sc.duration_s
+        tag = f" #{c + 1}" if cycles > 1 else ""
+        cuts = sorted((c0 + m.start_s, c0 + m.start_s + m.duration_s) for m in sc.manoeuvres)
+        for i in range(len(L.conditions)):
+            lo = max(c0 + i * L.hold_s + (SETTLE_S if i or c else 0.0), START_S)
+            pieces = [(lo, c0 + (i + 1) * L.hold_s - ramp)]
+            for a, b in cuts:
+                pieces = [q for p in pieces for q in ((p[0], min(p[1], a)),
+                                                     (max(p[0], b + SETTLE_S), p[1]))]
+            pieces = [q for q in pieces if q[1] - q[0] >= MIN_POINT_S]
+            for j, (a, b) in enumerate(pieces):
+                name = f"condition {i + 1}{tag}" + (f".{j + 1}" if len(pieces) > 1 else "")
+                out.append(TestPoint(name, at(a), at(b), "scenario"))
+        for j, m in enumerate(sc.manoeuvres):
+            a, b = c0 + m.start_s, c0 + m.start_s + m.duration_s
+            out.append(TestPoint(f"manoeuvre {j + 1}{tag}", at(a), at(b), "scenario"))
+    end = float(np.nanmax(t_samples))
+    return sorted((tp for tp in out if tp.start < end), key=lambda tp: tp.start)
+
+
 def points_from_toml(path: Path, t0: float) -> list[TestPoint]:
     """``[[test_point]]`` tables with ``name``, ``start``, ``end`` (s); with top-level
     ``time = "from_start"`` the times count from the recording's first sample (``t0``),
@@ -283,6 +325,9 @@ class SurveyRig:
     angle_names: tuple[str, ...]
     #: alpha -> A = R⁻¹ ∂S/∂α (6, 7, 14) in the records' frame
     sensitivity: object = None
+    #: (6,) a coherent model error of the rotor-frequency content per axis: the unmeasured
+    #: angular inertial loads (``identification.moment_floor_Nm`` on L, M, N; 0 on X, Y, Z)
+    model_sigma: np.ndarray = field(default_factory=lambda: np.zeros(6))
 
 
 @dataclass(frozen=True)
@@ -292,6 +337,13 @@ class SurveyOptions:
     draws: int = 50
     units: str = "si"
     seed: int = 0
+
+
+def moment_model_sigma(moment_floor: float) -> np.ndarray:
+    """SurveyRig.model_sigma from the configured model error of the moment rows
+    (``identification.moment_floor_Nm``: the angular inertial loads one accelerometer does
+    not measure); the forces have none."""
+    return np.array([0.0, 0.0, 0.0, moment_floor, moment_floor, moment_floor])
 
 
 def _angle_state(data: SurveyData, seq0: int, seq1: int) -> AngleState | None:
@@ -321,12 +373,15 @@ def _models(data: SurveyData, rig: SurveyRig, idx: np.ndarray, k: int,
     sf = np.where(np.isfinite(sf), sf, rig.bound[k])
     rho = math.exp(-rig.dt / rig.time_constant_s)
     T = data.T[idx]
+    psi = num.unwrap_azimuth(data.azimuth[idx])
+    bands = (0,) + rig.modelled if np.isfinite(psi).all() else (0,)
+    white = np.full(len(idx), rig.bound[k])
     if angle_sens is not None and np.isfinite(T).all():
         sens = angle_sens[k]
-        return (num.ErrorModel(sf, rho, T, sens),
-                num.ErrorModel(np.full(len(idx), rig.bound[k]), 0.0, T, sens))
-    return (num.ErrorModel(sf, rho, sigma_angles=sa),
-            num.ErrorModel(np.full(len(idx), rig.bound[k]), 0.0, sigma_angles=sa))
+        return (num.ErrorModel(sf, rho, T, sens, bands=bands, psi=psi),
+                num.ErrorModel(white, 0.0, T, sens))
+    return (num.ErrorModel(sf, rho, sigma_angles=sa, bands=bands, psi=psi),
+            num.ErrorModel(white, 0.0, sigma_angles=sa))
 
 
 def survey(data: SurveyData, points: Sequence[TestPoint], rig: SurveyRig,
@@ -353,8 +408,7 @@ def survey_point(data: SurveyData, tp: TestPoint, rig: SurveyRig, opts: SurveyOp
         L = _sqrt_psd(st.P)
         angle_sens = np.einsum("kij,jl->kil", A, L)
     psi = num.unwrap_azimuth(data.azimuth[sel])
-    has_psi = np.isfinite(psi)
-    revs = num.whole_revolutions(psi) if has_psi.all() else []
+    revs = num.whole_revolutions(psi) if np.isfinite(psi).all() else []
     orders = list(range(1, rig.blades + 1))
     duration = float(data.t[sel[-1]] - data.t[sel[0]]) + rig.dt
     n_ref = opts.reference_cycles or duration
@@ -370,21 +424,27 @@ def survey_point(data: SurveyData, tp: TestPoint, rig: SurveyRig, opts: SurveyOp
                 u: str = unit, s: float = scale) -> None:
             rows.append(_row(tp, ax, q, math.nan if v is None else v.value * s,
                              math.nan if v is None else v.sigma * s, u, est, note))
+        ms = float(rig.model_sigma[k])
         mean, std = num.mean_std(y, mH)
         add("mean", mean)
-        add("std", std)
-        add("min", num.peak(y, mH, "min"))
-        add("max", num.peak(y, mH, "max"))
-        alt = num.alternating(y, revs, mH) if revs else None
-        add("alternating", alt[0] if alt else None,
-            note="" if alt else NO_AZIMUTH)
-        add("alternating_max", alt[1] if alt else None,
-            note="" if alt else NO_AZIMUTH)
-        rows += _harmonic_rows(data, tp, rig, sel, k, psi, has_psi, revs, orders, mH, mS,
-                               scale, unit)
+        add("std", _widen(std, ms))
+        add("min", _widen(num.peak(y, mH, "min"), ms))
+        add("max", _widen(num.peak(y, mH, "max"), ms))
+        hrows, present = _harmonic_rows(data, tp, rig, sel, k, psi, revs, orders, mH, mS, scale,
+                                        unit)
+        # the alternating load from the fit of the harmonics present over the point (> 3σ;
+        # 1/rev at least): a fit of absent ones would add their noise to every peak-to-peak
+        alt = (num.alternating(data.H_static[sel, k], psi, revs, present or [1], mS, ms,
+                               opts.draws, rng) if revs else None)
+        est = (f"H_static, per-revolution fit of the harmonics present, bias from {opts.draws} "
+               "Monte Carlo draws taken off")
+        add("alternating", alt[0] if alt else None, est, "" if alt else NO_AZIMUTH)
+        add("alternating_max", alt[1] if alt else None, est, "" if alt else NO_AZIMUTH)
+        rows += hrows
         count, dels = num.fatigue(y, opts.slopes, n_ref)
         s_count, s_dels = num.fatigue_sigma(y, mH, opts.slopes, n_ref, opts.draws, rng)
-        est = f"H, σ from {opts.draws} Monte Carlo draws"
+        est = "H"
+        est += f", σ from {opts.draws} Monte Carlo draws"
         add("rainflow_cycles", num.Value(count, s_count), est, u="cycles", s=1.0)
         for m, d, sd in zip(opts.slopes, dels, s_dels):
             add(f"del_m{m:g}", num.Value(d, sd), est,
@@ -392,29 +452,35 @@ def survey_point(data: SurveyData, tp: TestPoint, rig: SurveyRig, opts: SurveyOp
     return rows
 
 
+def _widen(v: num.Value, model_sigma: float) -> num.Value:
+    return num.Value(v.value, math.hypot(v.sigma, model_sigma))
+
+
 def _harmonic_rows(data: SurveyData, tp: TestPoint, rig: SurveyRig, sel: np.ndarray, k: int,
-                   psi: np.ndarray, has_psi: np.ndarray, revs: list, orders: list[int],
+                   psi: np.ndarray, revs: list, orders: list[int],
                    mH: num.ErrorModel, mS: num.ErrorModel, scale: float, unit: str
-                   ) -> list[dict]:
+                   ) -> tuple[list[dict], list[int]]:
+    """The harmonic rows of one axis, and the orders whose amplitude exceeds 3σ."""
     ax = AXES[k]
-    rows = []
+    rows: list[dict] = []
     if not revs:
         for o in orders:
             rows.append(_row(tp, ax, f"h{o}_amplitude", math.nan, math.nan, unit, "", NO_AZIMUTH))
             rows.append(_row(tp, ax, f"h{o}_phase_deg", math.nan, math.nan, "deg", "",
                              NO_AZIMUTH))
-        return rows
+        return rows, []
     modelled = [o for o in orders if o in rig.modelled]
     other = [o for o in orders if o not in rig.modelled]
     found: dict[int, tuple[num.Harmonic, str]] = {}
     if modelled:
-        for h in num.harmonics(data.H[sel, k], psi, modelled, mH):
+        for h in num.harmonics(data.H[sel, k], psi, modelled, mH,
+                               float(rig.model_sigma[k])):
             found[h.order] = (h, "H")
     ys = data.H_static[sel, k]
     ok = np.isfinite(ys)
     if other and ok.sum() > 2 * len(other) + 1:
         mS_ok = mS.subset(ok)
-        for h in num.harmonics(ys[ok], psi[ok], other, mS_ok):
+        for h in num.harmonics(ys[ok], psi[ok], other, mS_ok, float(rig.model_sigma[k])):
             found[h.order] = (h, "H_static")
     for o in orders:
         if o not in found:
@@ -428,7 +494,8 @@ def _harmonic_rows(data: SurveyData, tp: TestPoint, rig: SurveyRig, sel: np.ndar
                          h.amplitude_sigma * scale, unit, est, note))
         rows.append(_row(tp, ax, f"h{o}_phase_deg", h.phase_deg, h.phase_sigma_deg, "deg", est,
                          note))
-    return rows
+    present = [o for o, (h, _e) in sorted(found.items()) if h.amplitude > 3 * h.amplitude_sigma]
+    return rows, present
 
 
 def _row(tp: TestPoint, axis: str, q: str, v: float, s: float, unit: str, est: str,

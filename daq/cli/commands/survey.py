@@ -125,7 +125,7 @@ def _run(args: argparse.Namespace, sv) -> int:
 def _rig(cfg):
     from functools import partial
 
-    from rsra.daq.analysis.survey import SurveyRig
+    from rsra.daq.analysis.survey import SurveyRig, moment_model_sigma
     from rsra.estimator.angle_uncertainty import hub_angle_sensitivity
     from rsra.estimator.noise_budget import noise_budget
 
@@ -135,7 +135,8 @@ def _rig(cfg):
                      dt=cfg.sample_period_s, time_constant_s=cfg.filter.time_constant_s,
                      bound=nb.total, angle_names=tuple(model.geometry.angle_names),
                      sensitivity=partial(hub_angle_sensitivity, model.geometry,
-                                         frame=cfg.hub_frame))
+                                         frame=cfg.hub_frame),
+                     model_sigma=moment_model_sigma(cfg.identification.moment_floor_Nm))
 
 
 def _replay(cfg, logs: list[str], rig):
@@ -179,8 +180,8 @@ def _points(args, sv, data, folder: Path):
 
 
 def _scenario_points(truth_path: Path, sv):
-    """The simulator's held conditions (after 5 filter time constants of settling) and its
-    manoeuvres, on the samples' time base (the truth's SYNC times)."""
+    """The simulator's conditions and manoeuvres (daq.analysis.survey.points_from_schedule)
+    on the samples' time base (the truth's SYNC times); [] without a usable scenario."""
     import numpy as np
 
     from rsra.sim_bus.scenarios import load_scenario
@@ -193,33 +194,4 @@ def _scenario_points(truth_path: Path, sv):
     except Exception:  # noqa: BLE001 - no usable scenario: the next source is tried
         return []
     ts = np.asarray(tr["t"], float)
-    sync = np.asarray(tr.get("sync_time", ts), float)
-    if not len(ts):
-        return []
-
-    def at(x: float) -> float:
-        return float(np.interp(x, ts, sync))
-
-    L = sc.loads
-    settle = 0.5
-    cycles = int(math.ceil((ts[-1] + 1e-9) / sc.duration_s))
-    out = []
-    for c in range(cycles):
-        c0 = c * sc.duration_s
-        cuts = sorted((c0 + m.start_s, c0 + m.start_s + m.duration_s) for m in sc.manoeuvres)
-        for i in range(len(L.conditions)):
-            lo = c0 + i * L.hold_s + (settle if i or c else 0.0)
-            hi = c0 + (i + 1) * L.hold_s - (L.ramp_s if len(L.conditions) > 1 else 0.0)
-            pieces = [(lo, hi)]
-            for a, b in cuts:
-                pieces = [q for p in pieces for q in ((p[0], min(p[1], a)),
-                                                     (max(p[0], b + settle), p[1]))]
-            tag = f" #{c + 1}" if cycles > 1 else ""
-            for j, (a, b) in enumerate(q for q in pieces if q[1] - q[0] >= sv.MIN_POINT_S):
-                name = f"condition {i + 1}{tag}" + (f".{j + 1}" if len(pieces) > 1 else "")
-                out.append(sv.TestPoint(name, at(a), at(b), "scenario"))
-        for j, m in enumerate(sc.manoeuvres):
-            a, b = c0 + m.start_s, c0 + m.start_s + m.duration_s
-            out.append(sv.TestPoint(f"manoeuvre {j + 1}{f' #{c + 1}' if cycles > 1 else ''}",
-                                    at(a), at(b), "scenario"))
-    return [tp for tp in out if tp.start < float(sync[-1])]
+    return sv.points_from_schedule(sc, ts, np.asarray(tr.get("sync_time", ts), float))
