@@ -34,6 +34,7 @@ COMMANDS = {
     "web": "web",
     "config": "config",
     "survey": "survey",
+    "mark": "mark",
 }
 
 
