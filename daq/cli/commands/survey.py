@@ -99,6 +99,8 @@ def _run(args: argparse.Namespace, sv) -> int:
         if not p.exists():
             raise sv.SurveyError(f"{p}: no such file or folder; fix: give a recording folder "
                                  "or a results JSONL")
+    if args.test_points not in POINT_SOURCES:  # a bad file refused before any work
+        sv.points_from_toml(Path(args.test_points), 0.0)
     results = len(inputs) == 1 and inputs[0].is_file() and inputs[0].suffix == ".jsonl"
     cfg = config_for([] if results else args.logs, args.config)
     rig = _rig(cfg)
