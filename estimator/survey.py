@@ -112,7 +112,8 @@ def functional_cov(W: np.ndarray, model: ErrorModel,
     elif model.sigma_angles is not None:
         s = np.abs(W) @ model.sigma_angles
         C = C + np.outer(s, s)
-    return 0.5 * (C + C.T)
+    result: np.ndarray = 0.5 * (C + C.T)
+    return result
 
 
 def functional_sigma(W: np.ndarray, model: ErrorModel) -> np.ndarray:
@@ -348,7 +349,7 @@ def turning_points(y: np.ndarray) -> np.ndarray:
 def rainflow_ranges(y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(ranges, counts): the rainflow cycles of ``y`` — a half cycle counts 0.5 (ASTM
     E1049-85 through the `rainflow` package; exact ranges, no binning)."""
-    import rainflow
+    import rainflow  # type: ignore[import-untyped]  # (no annotations published)
 
     cyc = rainflow.count_cycles(turning_points(y))
     if not cyc:
@@ -374,14 +375,12 @@ def fatigue(y: np.ndarray, slopes: Sequence[float], reference_cycles: float
 
 
 def fatigue_sigma(y: np.ndarray, model: ErrorModel, slopes: Sequence[float],
-                  reference_cycles: float, draws: int, rng: np.random.Generator,
-                  series=None) -> tuple[float, list[float]]:
+                  reference_cycles: float, draws: int, rng: np.random.Generator
+                  ) -> tuple[float, list[float]]:
     """σ of the cycle count and of each DEL over ``draws`` Monte Carlo draws of the error
-    (the spread of the counting on ``series(y + e)``; ``series``: what is counted, e.g. the
-    per-revolution fit, default the samples themselves)."""
+    (the spread of the counting on ``y + e``)."""
     e = draw_errors(model, draws, rng)
-    f = series or (lambda x: x)
-    out = np.array([[n, *d] for n, d in (fatigue(f(y + ei), slopes, reference_cycles)
+    out = np.array([[n, *d] for n, d in (fatigue(y + ei, slopes, reference_cycles)
                                          for ei in e)])
     sd = out.std(axis=0, ddof=1) if draws > 1 else np.full(out.shape[1], math.nan)
     return float(sd[0]), [float(s) for s in sd[1:]]
