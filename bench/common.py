@@ -44,7 +44,7 @@ MODULES = ("p1_decode", "p2_filter_step", "p3_batch", "p4_identification", "p5_l
            "p5c_shared_bus", "p6_max_rate", "p6a_shared_bus_rate", "p7_memory", "p8_busy_core",
            "a1_noise_budget", "a2_filter_accuracy", "a3_known_load", "a4_tracking", "a4_drift",
            "a5_paper",
-           "a6_flight", "a7_structure")
+           "a6_flight", "a7_structure", "a8_survey")
 
 _LIBRARIES = {"numpy": "numpy", "scipy": "scipy", "python-can": "python-can",
               "canopen": "canopen", "zenoh": "eclipse-zenoh", "filterpy": "filterpy",
