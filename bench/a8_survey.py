@@ -43,7 +43,7 @@ SCENARIO = "ground-test"
 SEEDS = 100
 DURATION_S = 60.0
 ANGLE_SIGMA_DEG = 0.05
-DRAWS = 30
+DRAWS = 20
 TARGET_PCT = 0.5
 SCORED = ("mean", "alternating", "alternating_max", "h1_amplitude", "h1_phase_deg",
           "h5_amplitude", "h5_phase_deg")

@@ -276,28 +276,46 @@ class Revolutions:
     fit: np.ndarray
 
 
+def _revolution_fits(y: np.ndarray, psi_u: np.ndarray, revs: Iterable[tuple[int, int]],
+                     orders: Sequence[int], grid: int
+                     ) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+    """(i0, i1, W, Xg) per usable revolution: its least-squares weights and the design on a
+    fine grid of its azimuth (the continuous turn)."""
+    out = []
+    for i0, i1 in revs:
+        p = psi_u[i0:i1]
+        if i1 - i0 <= 2 * len(orders) + 1 or not np.isfinite(y[i0:i1]).all():
+            continue
+        g = TWO_PI * math.floor(p[0] / TWO_PI) + np.linspace(0.0, TWO_PI, grid, endpoint=False)
+        out.append((i0, i1, harmonic_weights(p, orders), harmonic_design(g, orders)))
+    return out
+
+
 def per_revolution(y: np.ndarray, psi_u: np.ndarray, revs: Iterable[tuple[int, int]],
                    orders: Sequence[int], grid: int = 360) -> Revolutions:
     n = len(y)
     halves, rows = [], []
     fit = np.full(n, np.nan)
-    for i0, i1 in revs:
-        p, yy = psi_u[i0:i1], y[i0:i1]
-        if i1 - i0 <= 2 * len(orders) + 1 or not np.isfinite(yy).all():
-            continue
-        W = harmonic_weights(p, orders)
-        c = W @ yy
-        g = TWO_PI * math.floor(p[0] / TWO_PI) + np.linspace(0.0, TWO_PI, grid, endpoint=False)
-        Xg = harmonic_design(g, orders)
+    for i0, i1, W, Xg in _revolution_fits(y, psi_u, revs, orders, grid):
+        c = W @ y[i0:i1]
         f = Xg @ c
         hi, lo = int(np.argmax(f)), int(np.argmin(f))
         w = np.zeros(n)
         w[i0:i1] = 0.5 * (Xg[hi] - Xg[lo]) @ W
         rows.append(w)
         halves.append(0.5 * (f[hi] - f[lo]))
-        fit[i0:i1] = harmonic_design(p, orders) @ c
+        fit[i0:i1] = harmonic_design(psi_u[i0:i1], orders) @ c
     return Revolutions(np.asarray(halves, float),
                        np.vstack(rows) if rows else np.zeros((0, n)), fit)
+
+
+def _halves_of_draws(Y: np.ndarray, fits: list) -> np.ndarray:
+    """Half peak-to-peak per revolution (R, D) of each series of Y (D, N)."""
+    out = []
+    for i0, i1, W, Xg in fits:
+        F = Xg @ (W @ Y[:, i0:i1].T)  # (grid, D)
+        out.append(0.5 * (F.max(axis=0) - F.min(axis=0)))
+    return np.asarray(out)
 
 
 def alternating(y: np.ndarray, psi_u: np.ndarray, revs: Sequence[tuple[int, int]],
@@ -319,10 +337,10 @@ def alternating(y: np.ndarray, psi_u: np.ndarray, revs: Sequence[tuple[int, int]
                    model_sigma)
     mean, top = float(np.mean(rv.halves)), float(rv.halves[k])
     if draws and rng is not None:
-        sims = [per_revolution(y + e, psi_u, revs, orders).halves
-                for e in draw_errors(model, draws, rng)]
-        mean -= float(np.mean([np.mean(h) for h in sims if len(h)])) - mean
-        top -= float(np.mean([np.max(h) for h in sims if len(h)])) - top
+        sims = _halves_of_draws(y[None, :] + draw_errors(model, draws, rng),
+                                _revolution_fits(y, psi_u, revs, orders, 360))  # (R, D)
+        mean -= float(np.mean(sims)) - mean
+        top -= float(np.mean(sims.max(axis=0))) - top
     return Value(mean, float(sig[0])), Value(top, float(sig[1]))
 
 
