@@ -309,7 +309,8 @@ def per_revolution(y: np.ndarray, psi_u: np.ndarray, revs: Iterable[tuple[int, i
                        np.vstack(rows) if rows else np.zeros((0, n)), fit)
 
 
-def _halves_of_draws(Y: np.ndarray, fits: list) -> np.ndarray:
+def _halves_of_draws(Y: np.ndarray, fits: list[tuple[int, int, np.ndarray, np.ndarray]]
+                     ) -> np.ndarray:
     """Half peak-to-peak per revolution (R, D) of each series of Y (D, N)."""
     out = []
     for i0, i1, W, Xg in fits:

@@ -229,3 +229,39 @@ class _nothing:
 
     def __exit__(self, *a):
         return False
+
+
+def test_a_campaign_dataset_is_surveyed_per_recording(tmp_path):
+    """`<key>/recording=<id>/*.parquet` with the columns of `rsra export --parquet`."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from rsra.estimator.noise_budget import AXES
+
+    d = _data(1200, azimuth=True)
+    hub = {"seq": d.seq, "t": d.t, "frame": ["body"] * len(d.t),
+           "flags": [["transient"] if 500 <= i < 520 else [] for i in range(len(d.t))]}
+    for name, arr in (("H", d.H), ("H_static", d.H_static), ("sigma_angles", d.sigma_angles),
+                      ("sigma_filter", d.sigma_filter)):
+        hub.update({f"{name}.{a}": arr[:, k] for k, a in enumerate(AXES)})
+    ch = {"seq": d.seq, "t": d.t, "azimuth": d.azimuth,
+          **{f"T.{c}": np.full(len(d.t), 1e4) for c in "ABCDEFG"}}
+    for rid in ("r1", "r2"):
+        for key, cols in (("hub_loads", hub), ("channels", ch)):
+            part = tmp_path / "ds" / key / f"recording={rid}"
+            part.mkdir(parents=True)
+            pq.write_table(pa.table(cols), part / "part-0.parquet")
+    assert sv.is_dataset(tmp_path / "ds")
+    data = sv.load_dataset(tmp_path / "ds", RIG.angle_names)
+    assert sorted(data) == ["r1", "r2"]
+    np.testing.assert_allclose(data["r1"].H, d.H)
+    np.testing.assert_allclose(data["r1"].azimuth, d.azimuth)
+    assert data["r1"].transient.sum() == 20
+    from rsra.daq.cli import main
+
+    assert main(["survey", str(tmp_path / "ds"), "--out", str(tmp_path / "o"), "--draws",
+                 "2"]) == 0
+    rows = pq.read_table(tmp_path / "o" / "survey.parquet").to_pylist()
+    assert {r["recording"] for r in rows} == {"r1", "r2"}
+    assert {r["test_point"] for r in rows} == {"r1: held 1", "r1: held 2", "r2: held 1",
+                                               "r2: held 2"}

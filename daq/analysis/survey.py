@@ -30,7 +30,7 @@ from rsra.estimator.noise_budget import AXES
 
 SURVEY_FILES = ("survey.parquet", "survey.csv", "survey.md", "survey_harmonics.png",
                 "survey_loads.png")
-COLUMNS = ("test_point", "t_start", "t_end", "axis", "quantity", "value", "sigma", "unit",
+COLUMNS = ("recording", "test_point", "t_start", "t_end", "axis", "quantity", "value", "sigma", "unit",
            "estimate", "note")
 MARK_NAME_MAX = 200  # characters of a test point's name (marks, TOML)
 TEST_POINTS_MAX = 10_000
@@ -164,6 +164,78 @@ def load_results(path: Path, angle_names: Sequence[str]) -> SurveyData:
         raise SurveyError(f"{path}: a record without a valid {e} field (docs/telemetry.md §2); "
                           "fix: give the JSONL written by `rsra replay --out`") from None
     return col.finish()
+
+
+def is_dataset(path: Path) -> bool:
+    """A Parquet dataset: a campaign's ``<key>/recording=<id>/*.parquet`` folders, or one
+    recording's ``rsra export --parquet`` folder (``hub_loads.parquet``, …)."""
+    return path.is_dir() and ((path / "hub_loads").is_dir() or (path / "hub_loads.parquet")
+                              .is_file())
+
+
+def load_dataset(path: Path, angle_names: Sequence[str]) -> dict[str, SurveyData]:
+    """Per recording, its :class:`SurveyData` from the Parquet tables of `rsra export
+    --parquet` (columns ``H.X``, ``T.A``, …; docs/user-guide.md): ``hub_loads`` (required),
+    ``channels`` (the azimuth, the cell loads) and ``angles`` (the covariance in force)."""
+    import pyarrow.parquet as pq
+
+    def tables(key: str) -> dict[str, object]:
+        if (path / f"{key}.parquet").is_file():
+            return {path.name: pq.read_table(path / f"{key}.parquet")}
+        out: dict[str, object] = {}
+        for part in sorted((path / key).glob("recording=*")) if (path / key).is_dir() else []:
+            out[part.name.split("=", 1)[1]] = pq.read_table(part)
+        return out
+
+    try:
+        hub, ch, ang = tables("hub_loads"), tables("channels"), tables("angles")
+    except Exception as e:  # noqa: BLE001 - any unreadable file is the user's input problem
+        raise SurveyError(f"{path}: not a readable Parquet dataset ({e}); fix: give the folder "
+                          "written by `rsra export --parquet` or a campaign") from None
+    if not hub:
+        raise SurveyError(f"{path}: no hub_loads table; fix: give the folder written by "
+                          "`rsra export --parquet` or a campaign")
+    return {rid: _from_tables(table, ch.get(rid), ang.get(rid), angle_names, path)
+            for rid, table in hub.items()}
+
+
+def _column(table, name: str, n: int) -> np.ndarray:
+    if name not in table.column_names:
+        return np.full(n, np.nan)
+    return np.asarray(table.column(name).to_numpy(zero_copy_only=False), float)
+
+
+def _from_tables(hub, ch, ang, angle_names: Sequence[str], path: Path) -> SurveyData:
+    n = hub.num_rows
+    if "seq" not in hub.column_names or "t" not in hub.column_names:
+        raise SurveyError(f"{path}: hub_loads without seq and t columns; fix: give the folder "
+                          "written by `rsra export --parquet`")
+
+    def six(prefix: str) -> np.ndarray:
+        return np.column_stack([_column(hub, f"{prefix}.{a}", n) for a in AXES])
+
+    seq = np.asarray(hub.column("seq").to_numpy(zero_copy_only=False), np.int64)
+    flags = hub.column("flags").to_pylist() if "flags" in hub.column_names else [None] * n
+    azimuth, T = np.full(n, np.nan), np.full((n, 7), np.nan)
+    if ch is not None and "seq" in ch.column_names:
+        cseq = np.asarray(ch.column("seq").to_numpy(zero_copy_only=False), np.int64)
+        where = {int(q): i for i, q in enumerate(cseq)}
+        idx = np.array([where.get(int(q), -1) for q in seq])
+        ok = idx >= 0
+        az = _column(ch, "azimuth", ch.num_rows)
+        cells = [c for c in ch.column_names if c.startswith("T.")][:7]
+        Tc = np.column_stack([_column(ch, c, ch.num_rows) for c in cells]) if len(cells) == 7 \
+            else np.full((ch.num_rows, 7), np.nan)
+        azimuth[ok], T[ok] = az[idx[ok]], Tc[idx[ok]]
+    col = RecordCollector(angle_names)
+    for rec in ang.to_pylist() if ang is not None else []:
+        col.add("angles", rec)
+    frames = set(hub.column("frame").to_pylist()) if "frame" in hub.column_names else {"body"}
+    return SurveyData(t=_column(hub, "t", n), seq=seq, H=six("H"), H_static=six("H_static"),
+                      sigma_angles=six("sigma_angles"), sigma_filter=six("sigma_filter"),
+                      transient=np.array(["transient" in (f or ()) for f in flags], bool),
+                      azimuth=azimuth, T=T, angles=sorted(col.angles, key=lambda a: a.from_seq),
+                      frame=str(frames.pop() or "body") if len(frames) == 1 else "body")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -385,12 +457,15 @@ def _models(data: SurveyData, rig: SurveyRig, idx: np.ndarray, k: int,
 
 
 def survey(data: SurveyData, points: Sequence[TestPoint], rig: SurveyRig,
-           opts: SurveyOptions) -> list[dict]:
-    """The long table's rows (SI or US units per ``opts.units``) for every test point."""
+           opts: SurveyOptions, recording: str = "") -> list[dict]:
+    """The long table's rows (SI or US units per ``opts.units``) for every test point of one
+    recording (named in the ``recording`` column: a campaign surveys each of its own)."""
     rows: list[dict] = []
     rng = np.random.default_rng(opts.seed)
     for tp in points:
         rows += survey_point(data, tp, rig, opts, rng)
+    for r in rows:
+        r["recording"] = recording
     return rows
 
 

@@ -6,6 +6,8 @@ import argparse
 import math
 from pathlib import Path
 
+import numpy as np
+
 from rsra.daq.analysis.survey import SURVEY_FILES
 
 OUTPUTS = {"out": SURVEY_FILES}  # checked against the inputs before any work (daq.cli.outputs)
@@ -27,9 +29,10 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
         "Writes DIR/survey.parquet, survey.csv (columns test_point, t_start, t_end, axis, "
         "quantity, value, sigma, unit, estimate, note), survey.md and two PNG charts.")
     common_options(p)
-    p.add_argument("logs", nargs="+", metavar="RECORDING|RESULTS.jsonl",
+    p.add_argument("logs", nargs="+", metavar="RECORDING|RESULTS.jsonl|DATASET",
                    help="a recording folder (or recording files), replayed with its recorded "
-                   "angle schedule; or the JSONL written by `rsra replay --out`")
+                   "angle schedule; the JSONL written by `rsra replay --out`; or a Parquet "
+                   "dataset (a campaign's <key>/recording=<id>/, or `rsra export --parquet`)")
     p.add_argument("--out", metavar="DIR", required=True,
                    help="folder for survey.parquet, survey.csv, survey.md and the PNG charts "
                    "(created if missing)")
@@ -101,27 +104,57 @@ def _run(args: argparse.Namespace, sv) -> int:
                                  "or a results JSONL")
     if args.test_points not in POINT_SOURCES:  # a bad file refused before any work
         sv.points_from_toml(Path(args.test_points), 0.0)
-    results = len(inputs) == 1 and inputs[0].is_file() and inputs[0].suffix == ".jsonl"
-    cfg = config_for([] if results else args.logs, args.config)
-    rig = _rig(cfg)
-    if results:
-        data = sv.load_results(inputs[0], rig.angle_names)
-    else:
-        data = _replay(cfg, args.logs, rig)
-    folder = inputs[0] if inputs[0].is_dir() else inputs[0].parent
-    points = _points(args, sv, data, folder)
-    if not points:
-        raise sv.SurveyError(f"{args.logs[0]}: no test point found ({args.test_points}); "
-                             "fix: give --test-points FILE.toml with [[test_point]] tables")
     opts = sv.SurveyOptions(slopes=args.sn_slopes, reference_cycles=args.del_cycles,
                             draws=args.draws, units=args.units)
-    rows = sv.survey(data, points, rig, opts)
+    if len(inputs) == 1 and sv.is_dataset(inputs[0]):
+        cfg = config_for([], args.config)
+        rig = _rig(cfg)
+        rows, points = _survey_dataset(args, sv, inputs[0], rig, opts)
+    else:
+        results = len(inputs) == 1 and inputs[0].is_file() and inputs[0].suffix == ".jsonl"
+        cfg = config_for([] if results else args.logs, args.config)
+        rig = _rig(cfg)
+        data = (sv.load_results(inputs[0], rig.angle_names) if results
+                else _replay(cfg, args.logs, rig))
+        folder = inputs[0] if inputs[0].is_dir() else inputs[0].parent
+        points = _points(args, sv, data, folder)
+        if not points:
+            raise sv.SurveyError(f"{args.logs[0]}: no test point found ({args.test_points}); "
+                                 "fix: give --test-points FILE.toml with [[test_point]] tables")
+        rows = sv.survey(data, points, rig, opts, recording=folder.name if not results
+                         else inputs[0].stem)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)  # only now: a refused input leaves no folder
     sv.write_outputs(rows, points, rig, opts, out, str(args.logs[0]))
     print(f"survey: {len(points)} test points, {len(rows)} rows -> {out}/survey.parquet, "
           "survey.csv, survey.md, survey_harmonics.png, survey_loads.png")
     return 0
+
+
+def _survey_dataset(args, sv, path: Path, rig, opts):
+    """Every recording of a Parquet dataset (a campaign's, or one `rsra export --parquet`),
+    its test points named ``<recording>: <name>``."""
+    from dataclasses import replace
+
+    if args.test_points in ("marks", "scenario"):
+        raise sv.SurveyError(f"{path}: a Parquet dataset holds no {args.test_points}; fix: "
+                             "--test-points FILE.toml or transient")
+    rows, points = [], []
+    for rid, data in sv.load_dataset(path, rig.angle_names).items():
+        t = data.t[np.isfinite(data.t)]
+        if not len(t):
+            continue
+        pts = (sv.points_from_transient(data.t, data.transient)
+               if args.test_points in POINT_SOURCES
+               else sv.filter_points(sv.points_from_toml(Path(args.test_points),
+                                                         float(t.min())), t))
+        pts = [replace(tp, name=f"{rid}: {tp.name}") for tp in pts]
+        rows += sv.survey(data, pts, rig, opts, recording=rid)
+        points += pts
+    if not points:
+        raise sv.SurveyError(f"{path}: no test point in any recording ({args.test_points}); "
+                             "fix: give --test-points FILE.toml with [[test_point]] tables")
+    return rows, points
 
 
 def _rig(cfg):
