@@ -265,3 +265,14 @@ def test_a_campaign_dataset_is_surveyed_per_recording(tmp_path):
     assert {r["recording"] for r in rows} == {"r1", "r2"}
     assert {r["test_point"] for r in rows} == {"r1: held 1", "r1: held 2", "r2: held 1",
                                                "r2: held 2"}
+
+
+def test_peaks_against_the_rigs_limits():
+    d = _data(1500, azimuth=True)
+    tp = sv.TestPoint("p", float(d.t[0]), float(d.t[-1]), "file")
+    opts = sv.SurveyOptions(draws=2, limits=(math.nan, math.nan, 100000.0) + (math.nan,) * 3)
+    rows = {(r["axis"], r["quantity"]): r for r in sv.survey(d, [tp], RIG, opts)}
+    r = rows[("Z", "peak_fraction_of_limit")]
+    assert r["value"] == pytest.approx(-rows[("Z", "min")]["value"] / 100000.0)
+    assert r["sigma"] == pytest.approx(rows[("Z", "min")]["sigma"] / 100000.0)
+    assert ("X", "peak_fraction_of_limit") not in rows

@@ -409,6 +409,8 @@ class SurveyOptions:
     draws: int = 50
     units: str = "si"
     seed: int = 0
+    #: per axis the rig's limit (SI; NaN: none): ``peak_fraction_of_limit``
+    limits: tuple[float, ...] = (math.nan,) * 6
 
 
 def moment_model_sigma(moment_floor: float) -> np.ndarray:
@@ -503,8 +505,14 @@ def survey_point(data: SurveyData, tp: TestPoint, rig: SurveyRig, opts: SurveyOp
         mean, std = num.mean_std(y, mH)
         add("mean", mean)
         add("std", _widen(std, ms))
-        add("min", _widen(num.peak(y, mH, "min"), ms))
-        add("max", _widen(num.peak(y, mH, "max"), ms))
+        lo, hi = _widen(num.peak(y, mH, "min"), ms), _widen(num.peak(y, mH, "max"), ms)
+        add("min", lo)
+        add("max", hi)
+        limit = opts.limits[k]
+        if math.isfinite(limit):
+            top = hi if abs(hi.value) >= abs(lo.value) else lo
+            add("peak_fraction_of_limit", num.Value(abs(top.value) / limit, top.sigma / limit),
+                u="fraction", s=1.0, note=f"limit {limit * scale:g} {unit}")
         hrows, present = _harmonic_rows(data, tp, rig, sel, k, psi, revs, orders, mH, mS, scale,
                                         unit)
         # the alternating load from the fit of the harmonics present over the point (> 3σ;

@@ -48,6 +48,9 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
     p.add_argument("--del-cycles", metavar="N", type=_positive, default=None,
                    help="reference cycle count of the DELs (default: one per second of the "
                    "test point, the 1 Hz equivalent load)")
+    p.add_argument("--limit", metavar="AXIS=VALUE", action="append", default=[], type=_limit,
+                   help="the rig's limit of an axis (X Y Z L M N), in the --units, repeatable: "
+                   "adds peak_fraction_of_limit, the largest |load| over the limit, with its σ")
     p.add_argument("--draws", metavar="N", type=_draws, default=50,
                    help="Monte Carlo draws for the σ of the rainflow counts and DELs (default 50)")
     return p
@@ -72,6 +75,25 @@ def _positive(text: str) -> float:
     if not 0 < v < math.inf:
         raise argparse.ArgumentTypeError("must be a finite number > 0")
     return v
+
+
+def _limit(text: str) -> tuple[str, float]:
+    axis, _, value = text.partition("=")
+    if axis not in ("X", "Y", "Z", "L", "M", "N"):
+        raise argparse.ArgumentTypeError(f"'{text}': give AXIS=VALUE with AXIS one of X Y Z L "
+                                         "M N, e.g. M=20000")
+    return axis, _positive(value)
+
+
+def _limits(given: list[tuple[str, float]], units: str) -> tuple[float, ...]:
+    """Per axis the limit in SI (NaN: none)."""
+    from rsra.config.units import to_units
+
+    raw = np.full(6, np.nan)
+    for axis, value in given:
+        raw["XYZLMN".index(axis)] = value
+    si = raw / to_units(np.ones(6), units)
+    return tuple(float(v) for v in si)
 
 
 def _draws(text: str) -> int:
@@ -105,7 +127,8 @@ def _run(args: argparse.Namespace, sv) -> int:
     if args.test_points not in POINT_SOURCES:  # a bad file refused before any work
         sv.points_from_toml(Path(args.test_points), 0.0)
     opts = sv.SurveyOptions(slopes=args.sn_slopes, reference_cycles=args.del_cycles,
-                            draws=args.draws, units=args.units)
+                            draws=args.draws, units=args.units,
+                            limits=_limits(args.limit, args.units))
     if len(inputs) == 1 and sv.is_dataset(inputs[0]):
         cfg = config_for([], args.config)
         rig = _rig(cfg)
