@@ -342,6 +342,11 @@ def alternating(y: np.ndarray, psi_u: np.ndarray, revs: Sequence[tuple[int, int]
                                 _revolution_fits(y, psi_u, revs, orders, 360))  # (R, D)
         mean -= float(np.mean(sims)) - mean
         top -= float(np.mean(sims.max(axis=0))) - top
+        # the largest half is the noisiest statistic: which revolution wins varies with the
+        # noise; the spread of its excess over that revolution's own half joins its σ
+        excess = sims.max(axis=0) - sims[k]
+        if len(excess) > 1:
+            sig[1] = math.hypot(sig[1], float(np.std(excess, ddof=1)))
     return Value(mean, float(sig[0])), Value(top, float(sig[1]))
 
 
