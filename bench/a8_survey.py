@@ -158,12 +158,18 @@ def main(argv: list[str] | None = None) -> int:
                        "del_m4", "del_m10"):
         s = score(rows, q)
         scored = q in SCORED
-        w.add(q, s["beyond_3sigma_pct"], "% of (test point, axis) beyond 3σ",
+        counted = q.startswith(("rainflow", "del_"))
+        unit = (f"% of (test point, axis) beyond 3σ; RMS err/σ {s['rms_err_over_sigma']:.2f}"
+                + (f"; estimate vs truth: median |err|/truth {s['median_rel_err']:.1%}"
+                   if counted else ""))
+        target = (f"≤ {TARGET_PCT} % beyond 3σ over ≥ 100 seeds" if scored else
+                  "reported: rainflow on the estimate vs on the truth, not decided" if counted
+                  else "reported: an absent harmonic's amplitude (Rayleigh: 1.1 % beyond 3σ "
+                  "for a true σ), not decided")
+        w.add(q, s["beyond_3sigma_pct"], unit,
               peer="the √N rule (per-sample σ / √N) on the same errors",
               peer_figure=s["beyond_3sigma_pct_sqrt_n_rule"],
-              target=(f"≤ {TARGET_PCT} % beyond 3σ over ≥ 100 seeds" if scored else
-                      "reported (an amplitude of a harmonic that is not there, or a Monte "
-                      "Carlo σ of a counting): not decided"),
+              target=target,
               met=(s["beyond_3sigma_pct"] <= TARGET_PCT and n_seeds >= 100) if scored
               else True,
               rms_err_over_sigma=s["rms_err_over_sigma"], samples=s["n"], seeds=n_seeds,
