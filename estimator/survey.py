@@ -401,10 +401,16 @@ def fatigue(y: np.ndarray, slopes: Sequence[float], reference_cycles: float
 def fatigue_sigma(y: np.ndarray, model: ErrorModel, slopes: Sequence[float],
                   reference_cycles: float, draws: int, rng: np.random.Generator
                   ) -> tuple[float, list[float]]:
-    """σ of the cycle count and of each DEL over ``draws`` Monte Carlo draws of the error
-    (the spread of the counting on ``y + e``)."""
+    """σ of the cycle count and of each DEL from ``draws`` Monte Carlo draws of the error: the
+    spread of the counting on ``y + e``, and the shift the draws show (noise adds small cycles
+    and widens ranges: a bias of the counting on a noisy estimate, not a spread, which the
+    model's error — larger than the filter's actual one — bounds from above) in quadrature."""
     e = draw_errors(model, draws, rng)
     out = np.array([[n, *d] for n, d in (fatigue(y + ei, slopes, reference_cycles)
                                          for ei in e)])
-    sd = out.std(axis=0, ddof=1) if draws > 1 else np.full(out.shape[1], math.nan)
+    if draws < 2:
+        return math.nan, [math.nan] * len(slopes)
+    n0, d0 = fatigue(y, slopes, reference_cycles)
+    shift = out.mean(axis=0) - np.array([n0, *d0])
+    sd = np.hypot(out.std(axis=0, ddof=1), shift)
     return float(sd[0]), [float(s) for s in sd[1:]]

@@ -529,8 +529,8 @@ def survey_point(data: SurveyData, tp: TestPoint, rig: SurveyRig, opts: SurveyOp
         est = "H"
         est += f", σ from {opts.draws} Monte Carlo draws"
         add("rainflow_cycles", num.Value(count, s_count), est, u="cycles", s=1.0)
-        for m, d, sd in zip(opts.slopes, dels, s_dels):
-            add(f"del_m{m:g}", num.Value(d, sd), est,
+        for m, d, sd in zip(opts.slopes, dels, s_dels):  # (a range: twice the model error)
+            add(f"del_m{m:g}", num.Value(d, math.hypot(sd, 2.0 * ms)), est,
                 note=f"reference {n_ref:.6g} cycles, S-N slope {m:g}")
     return rows
 
