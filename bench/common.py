@@ -45,7 +45,7 @@ MODULES = ("p1_decode", "p2_filter_step", "p3_batch", "p4_identification", "p5_l
            "p9_replay",
            "a1_noise_budget", "a2_filter_accuracy", "a3_known_load", "a4_tracking", "a4_drift",
            "a5_paper",
-           "a6_flight", "a7_structure",
+           "a6_flight", "a7_structure", "a8_survey",
            "c1_campaign_speedup", "c2_vs_process_pool", "c3_worker_rate", "c4_rerun_unchanged",
            "c5_pooled")
 

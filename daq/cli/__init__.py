@@ -33,6 +33,8 @@ COMMANDS = {
     "web": "web",
     "config": "config",
     "campaign": "campaign",
+    "survey": "survey",
+    "mark": "mark",
 }
 
 

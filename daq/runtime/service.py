@@ -451,6 +451,13 @@ class Service:
                 self.source.reader.keep_angles_open = True
             if self.recorder is not None:
                 self.recorder.write_angles(plan.initial_record().to_dict())
+                if outputs.session is not None:  # operator marks (rsra mark): marks.jsonl
+                    from rsra.daq.runtime.marks import MarkRecorder
+
+                    marks = MarkRecorder(outputs.session, cfg.telemetry.prefix,
+                                         self.recorder.folder)
+                    outputs.sinks.append(marks.observe)
+                    _close_logged(stack, marks.close)
             log.info("service started: %s", self.source.describe())
             # the compiled hub path (daq/runtime/hubpath.py) or why not (health too): said once
             # everything has started (a start that fails stays one line)

@@ -1,0 +1,255 @@
+"""`rsra survey`: the loads survey of a recording or a results JSONL (docs/cli.md, docs/
+user-guide.md "Loads survey"; daq/analysis/survey.py, estimator/survey.py)."""
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+import numpy as np
+
+from rsra.daq.analysis.survey import SURVEY_FILES
+
+OUTPUTS = {"out": SURVEY_FILES}  # checked against the inputs before any work (daq.cli.outputs)
+INPUTS = ("test_points_file",)
+POINT_SOURCES = ("auto", "marks", "scenario", "transient")
+
+
+def add_parser(sub, name: str) -> argparse.ArgumentParser:
+    from rsra.daq.cli.options import common_options
+
+    p = sub.add_parser(
+        name, help="loads survey: per test point, steady/alternating loads, harmonics, peaks, "
+        "fatigue cycles, each with 1σ",
+        description="Per test point and hub-load axis (X Y Z L M N): mean, std, min, max, "
+        "alternating (mean over whole revolutions of half the peak-to-peak, on the measured "
+        "azimuth) and alternating_max, harmonic amplitude and phase 1/rev … N_b/rev by least "
+        "squares on the measured azimuth, rainflow cycle counts and damage-equivalent loads, "
+        "each with its 1σ from the published σ of the hub loads and the angles' covariance. "
+        "Writes DIR/survey.parquet, survey.csv (columns test_point, t_start, t_end, axis, "
+        "quantity, value, sigma, unit, estimate, note), survey.md and two PNG charts.")
+    common_options(p)
+    p.add_argument("logs", nargs="+", metavar="RECORDING|RESULTS.jsonl|DATASET",
+                   help="a recording folder (or recording files), replayed with its recorded "
+                   "angle schedule; the JSONL written by `rsra replay --out`; or a Parquet "
+                   "dataset (a campaign's <key>/recording=<id>/, or `rsra export --parquet`)")
+    p.add_argument("--out", metavar="DIR", required=True,
+                   help="folder for survey.parquet, survey.csv, survey.md and the PNG charts "
+                   "(created if missing)")
+    p.add_argument("--test-points", metavar="FILE|SOURCE", default="auto",
+                   help="a TOML of [[test_point]] name/start/end (s, the samples' own time; "
+                   "time = \"from_start\" counts from the first sample), or where to find them "
+                   "in the recording: marks (the operator's, marks.jsonl), scenario (the "
+                   "simulator's conditions and manoeuvres, from truth.npz), transient (the "
+                   "held stretches between the transient flag's edges); default auto: marks, "
+                   "else scenario, else transient")
+    p.add_argument("--sn-slopes", metavar="M[,M…]", default="4,10", type=_slopes,
+                   help="S-N curve slopes for the damage-equivalent loads del_m<M> (default 4,10)")
+    p.add_argument("--del-cycles", metavar="N", type=_positive, default=None,
+                   help="reference cycle count of the DELs (default: one per second of the "
+                   "test point, the 1 Hz equivalent load)")
+    p.add_argument("--limit", metavar="AXIS=VALUE", action="append", default=[], type=_limit,
+                   help="the rig's limit of an axis (X Y Z L M N), in the --units, repeatable: "
+                   "adds peak_fraction_of_limit, the largest |load| over the limit, with its σ")
+    p.add_argument("--draws", metavar="N", type=_draws, default=50,
+                   help="Monte Carlo draws for the σ of the rainflow counts and DELs (default 50)")
+    return p
+
+
+def _slopes(text: str) -> tuple[float, ...]:
+    try:
+        out = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a list of numbers (e.g. 4,10)") \
+            from None
+    if not out or not all(0 < m < 100 for m in out):
+        raise argparse.ArgumentTypeError("each slope must be > 0 and < 100")
+    return out
+
+
+def _positive(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a number") from None
+    if not 0 < v < math.inf:
+        raise argparse.ArgumentTypeError("must be a finite number > 0")
+    return v
+
+
+def _limit(text: str) -> tuple[str, float]:
+    axis, _, value = text.partition("=")
+    if axis not in ("X", "Y", "Z", "L", "M", "N"):
+        raise argparse.ArgumentTypeError(f"'{text}': give AXIS=VALUE with AXIS one of X Y Z L "
+                                         "M N, e.g. M=20000")
+    return axis, _positive(value)
+
+
+def _limits(given: list[tuple[str, float]], units: str) -> tuple[float, ...]:
+    """Per axis the limit in SI (NaN: none)."""
+    from rsra.config.units import to_units
+
+    raw = np.full(6, np.nan)
+    for axis, value in given:
+        raw["XYZLMN".index(axis)] = value
+    si = raw / to_units(np.ones(6), units)
+    return tuple(float(v) for v in si)
+
+
+def _draws(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number") from None
+    if not 2 <= v <= 10_000:
+        raise argparse.ArgumentTypeError("must be between 2 and 10000")
+    return v
+
+
+def run(args: argparse.Namespace) -> int:
+    from rsra.daq.analysis import survey as sv
+    from rsra.daq.cli.options import UsageError
+
+    try:
+        return _run(args, sv)
+    except sv.SurveyError as e:
+        raise UsageError(str(e)) from None
+
+
+def _run(args: argparse.Namespace, sv) -> int:
+    from rsra.daq.bus.replay import config_for
+
+    inputs = [Path(p) for p in args.logs]
+    for p in inputs:
+        if not p.exists():
+            raise sv.SurveyError(f"{p}: no such file or folder; fix: give a recording folder "
+                                 "or a results JSONL")
+    if args.test_points not in POINT_SOURCES:  # a bad file refused before any work
+        sv.points_from_toml(Path(args.test_points), 0.0)
+    opts = sv.SurveyOptions(slopes=args.sn_slopes, reference_cycles=args.del_cycles,
+                            draws=args.draws, units=args.units,
+                            limits=_limits(args.limit, args.units))
+    if len(inputs) == 1 and sv.is_dataset(inputs[0]):
+        cfg = config_for([], args.config)
+        rig = _rig(cfg)
+        rows, points = _survey_dataset(args, sv, inputs[0], rig, opts)
+    else:
+        results = len(inputs) == 1 and inputs[0].is_file() and inputs[0].suffix == ".jsonl"
+        cfg = config_for([] if results else args.logs, args.config)
+        rig = _rig(cfg)
+        data = (sv.load_results(inputs[0], rig.angle_names) if results
+                else _replay(cfg, args.logs, rig))
+        folder = inputs[0] if inputs[0].is_dir() else inputs[0].parent
+        points = _points(args, sv, data, folder)
+        if not points:
+            raise sv.SurveyError(f"{args.logs[0]}: no test point found ({args.test_points}); "
+                                 "fix: give --test-points FILE.toml with [[test_point]] tables")
+        rows = sv.survey(data, points, rig, opts, recording=folder.name if not results
+                         else inputs[0].stem)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)  # only now: a refused input leaves no folder
+    sv.write_outputs(rows, points, rig, opts, out, str(args.logs[0]))
+    print(f"survey: {len(points)} test points, {len(rows)} rows -> {out}/survey.parquet, "
+          "survey.csv, survey.md, survey_harmonics.png, survey_loads.png")
+    return 0
+
+
+def _survey_dataset(args, sv, path: Path, rig, opts):
+    """Every recording of a Parquet dataset (a campaign's, or one `rsra export --parquet`),
+    its test points named ``<recording>: <name>``."""
+    from dataclasses import replace
+
+    if args.test_points in ("marks", "scenario"):
+        raise sv.SurveyError(f"{path}: a Parquet dataset holds no {args.test_points}; fix: "
+                             "--test-points FILE.toml or transient")
+    rows, points = [], []
+    for rid, data in sv.load_dataset(path, rig.angle_names).items():
+        t = data.t[np.isfinite(data.t)]
+        if not len(t):
+            continue
+        pts = (sv.points_from_transient(data.t, data.transient)
+               if args.test_points in POINT_SOURCES
+               else sv.filter_points(sv.points_from_toml(Path(args.test_points),
+                                                         float(t.min())), t))
+        pts = [replace(tp, name=f"{rid}: {tp.name}") for tp in pts]
+        rows += sv.survey(data, pts, rig, opts, recording=rid)
+        points += pts
+    if not points:
+        raise sv.SurveyError(f"{path}: no test point in any recording ({args.test_points}); "
+                             "fix: give --test-points FILE.toml with [[test_point]] tables")
+    return rows, points
+
+
+def _rig(cfg):
+    from functools import partial
+
+    from rsra.daq.analysis.survey import SurveyRig, moment_model_sigma
+    from rsra.estimator.angle_uncertainty import hub_angle_sensitivity
+    from rsra.estimator.noise_budget import noise_budget
+
+    model = cfg.rig_model()
+    nb = noise_budget(model, cfg.identification.initial_angles_rad, cfg.hub_frame)
+    return SurveyRig(blades=int(cfg.rotor.blades), modelled=tuple(cfg.filter.harmonics),
+                     dt=cfg.sample_period_s, time_constant_s=cfg.filter.time_constant_s,
+                     bound=nb.total, angle_names=tuple(model.geometry.angle_names),
+                     sensitivity=partial(hub_angle_sensitivity, model.geometry,
+                                         frame=cfg.hub_frame),
+                     model_sigma=moment_model_sigma(cfg.identification.moment_floor_Nm))
+
+
+def _replay(cfg, logs: list[str], rig):
+    from rsra.daq.analysis.survey import RecordCollector
+    from rsra.daq.bus.replay import ReplayError, check_readable, expand
+    from rsra.daq.cli.options import UsageError
+    from rsra.daq.runtime.service import Service, ServiceOptions
+
+    try:
+        files = expand(logs)
+        check_readable(files)
+    except ReplayError as e:
+        raise UsageError(str(e)) from None
+    col = RecordCollector(rig.angle_names)
+    service = Service(cfg, ServiceOptions(replay=list(logs), zenoh=False))
+    service.add_sink(col.add)
+    service.run()
+    return col.finish()
+
+
+def _points(args, sv, data, folder: Path):
+    src = args.test_points
+    t = data.t[data.t == data.t]
+    if src not in POINT_SOURCES:
+        return sv.filter_points(sv.points_from_toml(Path(src), float(t.min())), t)
+    marks = folder / "marks.jsonl"
+    if src in ("auto", "marks") and marks.is_file():
+        return sv.filter_points(sv.points_from_marks(sv.read_marks(marks), float(t.max())), t)
+    if src == "marks":
+        raise sv.SurveyError(f"{folder}: no marks.jsonl (no `rsra mark` during the run); fix: "
+                             "--test-points FILE.toml, scenario or transient")
+    truth = folder / "truth.npz"
+    if src in ("auto", "scenario") and truth.is_file():
+        pts = _scenario_points(truth, sv)
+        if pts:
+            return sv.filter_points(pts, t)
+    if src == "scenario":
+        raise sv.SurveyError(f"{folder}: no simulator truth (truth.npz) with a scenario; fix: "
+                             "--test-points FILE.toml, marks or transient")
+    return sv.points_from_transient(data.t, data.transient)
+
+
+def _scenario_points(truth_path: Path, sv):
+    """The simulator's conditions and manoeuvres (daq.analysis.survey.points_from_schedule)
+    on the samples' time base (the truth's SYNC times); [] without a usable scenario."""
+    import numpy as np
+
+    from rsra.sim_bus.scenarios import load_scenario
+    from rsra.sim_bus.truth import read_truth
+
+    try:
+        tr = read_truth(truth_path)
+        meta = tr["meta"]
+        sc = load_scenario(meta["scenario"], **(meta.get("variants") or {}))
+    except Exception:  # noqa: BLE001 - no usable scenario: the next source is tried
+        return []
+    ts = np.asarray(tr["t"], float)
+    return sv.points_from_schedule(sc, ts, np.asarray(tr.get("sync_time", ts), float))
