@@ -417,6 +417,26 @@ def config_dir() -> Path:
     return Path(str(resources.files("rsra.config")))
 
 
+def packaged_rigs() -> dict[str, Path]:
+    """The rigs that come with rsra, by name: ``default`` (``rig.toml``) and ``<name>`` for
+    every ``<name>-rig.toml`` beside it (``flight``: the flight rig)."""
+    out = {DEFAULT_SOURCE: default_config_path()}
+    for f in sorted(config_dir().glob("*-rig.toml")):
+        out[f.name[:-len("-rig.toml")]] = f
+    return out
+
+
+def rig_path(given: str | Path) -> Path:
+    """Where ``--config`` (or ``extends``) points: an existing path always wins; a bare name
+    (no ``/``, no ``.toml``) names a packaged rig (:func:`packaged_rigs`); anything else is
+    the path as given (not there: loading it says so)."""
+    p = Path(given)
+    text = str(given)
+    if p.exists() or "/" in text or text.endswith(".toml"):
+        return p
+    return packaged_rigs().get(text, p)
+
+
 def build_rig_model(cfg: RigConfig) -> RigModel:
     geometry = Geometry(
         cell_names=tuple(c.name for c in cfg.cells),
@@ -460,8 +480,14 @@ def _read_toml(p: Path, key: str = "--config", source: str = "") -> dict[str, An
     try:
         text = read_text(p)
     except UnreadableFile as e:
-        fix = ("give the path of a rig TOML, or omit --config for the default rig"
-               if key == "--config" else "give the path of the rig TOML this one extends")
+        names = ", ".join(packaged_rigs())
+        bare = "/" not in str(p) and not str(p).endswith(".toml")
+        fix = ((f"give the path of a rig TOML or a packaged rig's name ({names}; `rsra "
+                "config list`)" if bare else
+                "give the path of a rig TOML, or omit --config for the default rig")
+               if key == "--config" else
+               f"give the path of the rig TOML this one extends, or a packaged rig's name "
+               f"({names})")
         raise ConfigError(key, str(p), e.problem, fix, source) from None
     try:
         return tomllib.loads(text)
@@ -476,6 +502,7 @@ def _layer_files(p: Path) -> list[tuple[Path, dict[str, Any]]]:
     chain: list[tuple[Path, dict[str, Any]]] = []
     seen: set[Path] = set()
     key, source = "--config", ""
+    p = rig_path(p)
     while True:
         rp = p.resolve()
         if rp in seen:
@@ -495,7 +522,8 @@ def _layer_files(p: Path) -> list[tuple[Path, dict[str, Any]]]:
         if base == DEFAULT_SOURCE:
             return chain[::-1]
         key, source = "extends", str(p)
-        p = Path(base) if Path(base).is_absolute() else p.parent / base
+        here = Path(base) if Path(base).is_absolute() else p.parent / base
+        p = here if here.exists() else rig_path(base)  # a file beside it, else a rig's name
 
 
 def layer_paths(paths: ConfigPaths) -> list[Path]:
@@ -597,7 +625,7 @@ def load_config(path: ConfigPaths = None, overrides: dict[str, Any] | None = Non
     if overrides:
         raw = _merge(raw, overrides)
         _note(overrides, "", "<overrides>", origins)
-    source = ", ".join(Path(f).name for f in files)
+    source = ", ".join(rig_path(f).name for f in files)
     try:
         cfg = parse_config(raw, source=source, base_dir=config_dir())
     except ConfigError as e:

@@ -1,4 +1,4 @@
-"""`rsra config show`: the effective rig — the packaged default with the ``--config`` layers
+"""`rsra config show|list`: the effective rig — the packaged default with the ``--config`` layers
 applied in order — as TOML, each value with the file it came from (docs/cli.md,
 docs/configuration.md "Layers")."""
 from __future__ import annotations
@@ -16,7 +16,9 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
                        "--config files (the packaged default rig, then each --config in order, "
                        "each after the rig it extends), printed as TOML with the file every "
                        "value came from as a comment; checked as every command checks it.")
-    p.add_argument("action", choices=("show",), metavar="show", help="show the effective rig")
+    p.add_argument("action", choices=("show", "list"), metavar="show|list",
+                   help="show: the effective rig; list: the packaged rigs by name (what "
+                   "--config NAME and extends = \"NAME\" accept)")
     common_options(p, units=False)
     p.add_argument("--json", action="store_true",
                    help='print {"rig": the effective rig, "origins": {dotted key: file}}')
@@ -62,10 +64,33 @@ def toml_lines(raw: dict, origins: dict[str, str]) -> list[str]:
     return lines
 
 
+def list_rigs(as_json: bool) -> int:
+    """`rsra config list`: the packaged rigs, each with its file and first comment line."""
+    from rsra.config.rig import load_config, packaged_rigs
+
+    rows = []
+    for name, path in packaged_rigs().items():
+        cfg = load_config(None if name == "default" else path)
+        first = next((ln.lstrip("# ").strip() for ln in path.read_text().splitlines()
+                      if ln.startswith("#")), "")
+        rows.append({"name": name, "file": str(path), "rig": cfg.rig_name,
+                     "prefix": cfg.telemetry.prefix, "about": first})
+    if as_json:
+        print(json.dumps(rows, ensure_ascii=False, indent=1))
+        return 0
+    print("packaged rigs (--config NAME, extends = \"NAME\"; a path always wins):")
+    for r in rows:
+        print(f"  {r['name']:10s} rig.name {r['rig']!r}, telemetry {r['prefix']}: {r['about']}")
+        print(f"  {'':10s} {r['file']}")
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
     from rsra.config.rig import absolute_eds, config_dir, merge_layers
     from rsra.daq.rigmodel import load_rig
 
+    if args.action == "list":
+        return list_rigs(args.json)
     load_rig(args.config)  # refused in one line, as by every other command
     raw, origins = merge_layers(args.config)
     # the packaged rig's EDS paths absolute: what is printed is a rig TOML usable anywhere
