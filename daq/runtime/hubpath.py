@@ -41,7 +41,7 @@ OFF_ENV = "RSRA_HUB_KERNEL"  # "off": the pure-Python path (benchmarks' before/a
 # brought in line and tests/test_hubpath.py shows both paths equal again (then put the new
 # fingerprint here: ``python -c "from rsra.daq.runtime import hubpath; print(hubpath.
 # estimator_fingerprint())"``).
-MIRRORS_FINGERPRINT = "fdd135b476dbca4a"  # design mode; azimuth mode takes the reference path
+MIRRORS_FINGERPRINT = "fe119818fa35fe3e"  # design mode; azimuth mode takes the reference path
 
 
 def _code_only(source: str) -> str:
@@ -86,7 +86,8 @@ def estimator_fingerprint() -> str:
     from rsra.estimator.transient import TransientDetector
 
     h = hashlib.sha256()
-    for f in (LoadFilter._build, LoadFilter.step, TransientDetector.update,
+    for f in (LoadFilter._build, LoadFilter.step, LoadFilter._measured, LoadFilter._predicted,
+              TransientDetector.update,
               HubAngleVariance.variance, HubAngleVariance.__init__, ContentFilter._step,
               ContentFilter.process, FilterSigma.update):
         try:
