@@ -532,6 +532,7 @@ def test_web_sheds_history_requests_beyond_its_bound_and_stays_responsive(dic, m
 
     async def go():
         gw = gateway(dic)
+        gw.max_waiting["history"] = 0  # (the waiting room: the next test)
         for i in range(100):
             gw.ingest("hub_loads", json.dumps({**HUB, "seq": i, "t": 1.0 + i / 200}).encode())
         async with TestClient(TestServer(gw.app(), host="127.0.0.1")) as c:
@@ -559,3 +560,45 @@ def test_web_sheds_history_requests_beyond_its_bound_and_stays_responsive(dic, m
         asyncio.run(go())
     finally:
         gate.set()
+
+
+def test_history_requests_beyond_the_running_ones_wait_in_a_bounded_room(dic, monkeypatch):
+    """An Open MCT page asks for the history of every object it shows at once: beyond the
+    requests being answered (4) up to MAX_HISTORY_WAITING wait for a place and are answered
+    in turn; only past that room is a request shed (503, a JSON body, Retry-After)."""
+    from aiohttp.test_utils import TestClient, TestServer
+
+    import rsra.daq.web.server as server
+
+    gate = threading.Event()
+    real = server.points_of
+
+    def held(*a):
+        gate.wait(20)
+        return real(*a)
+
+    monkeypatch.setattr(server, "points_of", held)
+
+    async def go():
+        gw = gateway(dic)
+        gw.max_waiting["history"] = 10
+        for i in range(20):
+            gw.ingest("hub_loads", json.dumps({**HUB, "seq": i, "t": 1.0 + i / 200}).encode())
+        async with TestClient(TestServer(gw.app(), host="127.0.0.1")) as c:
+            gw.hosts = allowed_hosts("127.0.0.1", c.server.port)
+            h = {"Host": f"127.0.0.1:{c.server.port}"}
+            tasks = [asyncio.create_task(c.get("/api/history?id=hub.H.Z", headers=h))
+                     for _ in range(20)]
+            for _ in range(2000):
+                if gw.busy["history"] == 4 and gw.waiting["history"] == 10:
+                    break
+                await asyncio.sleep(0.01)
+            assert (gw.busy["history"], gw.waiting["history"]) == (4, 10)
+            gate.set()
+            rs = await asyncio.gather(*tasks)
+            assert sorted(r.status for r in rs) == [200] * 14 + [503] * 6
+            shed = [await r.json() for r in rs if r.status == 503]
+            assert all(b["error"] == "busy" for b in shed)
+            assert gw.busy["history"] == 0 and gw.waiting["history"] == 0
+
+    asyncio.run(go())

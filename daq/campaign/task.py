@@ -14,7 +14,16 @@ from typing import Any
 def run_recording(job: dict[str, Any]) -> dict[str, Any]:
     """``job``: recording, source, dataset, config (or None), options, provenance (JSON-ready
     strings). Returns the manifest row's fields the task knows."""
-    logging.getLogger("rsra").setLevel(logging.ERROR)  # a worker's log is not the user's
+    rsra_log = logging.getLogger("rsra")
+    level = rsra_log.level
+    rsra_log.setLevel(logging.ERROR)  # a worker's log is not the user's (restored below:
+    try:  # a task run in the caller's process — a bench, a test — leaves its logging as it was)
+        return _run_recording(job)
+    finally:
+        rsra_log.setLevel(level)
+
+
+def _run_recording(job: dict[str, Any]) -> dict[str, Any]:
     t0 = time.perf_counter()
     out: dict[str, Any] = {"recording": job["recording"], "status": "ok", "reason": None}
     staging = Path(tempfile.mkdtemp(prefix=f".{job['recording']}.", dir=job["dataset"]))

@@ -53,6 +53,9 @@ EVERY_SAMPLE = ("hub_loads", "channels")
 # the event loop); one more gets 503 with Retry-After (2 000 at once used to stall the
 # gateway for ~30 s)
 MAX_HISTORY_REQUESTS = 4
+# history requests that wait for one of those (an Open MCT page asks for every object it shows
+# at once: a few dozen); one more than these gets the 503
+MAX_HISTORY_WAITING = 128
 MAX_BROWSERS = 64  # WebSocket connections at once (each holds a bounded queue)
 RETRY_AFTER_S = 1
 
@@ -167,6 +170,7 @@ class Gateway:
                  hosts: set[str], *, guard: PayloadGuard, static_dir: Path = STATIC_DIR,
                  openmct: Path | None = None, max_batches: int = MAX_BATCHES,
                  max_history_requests: int = MAX_HISTORY_REQUESTS,
+                 max_history_waiting: int = MAX_HISTORY_WAITING,
                  max_browsers: int = MAX_BROWSERS):
         self.dic = dic
         #: every received payload is checked here first (the telemetry keys' schemas)
@@ -185,6 +189,10 @@ class Gateway:
         self.limits = {"history": max_history_requests, "browsers": max_browsers}
         self.busy = dict.fromkeys(self.limits, 0)
         self.shed = dict.fromkeys(self.limits, 0)  # answered 503 (over the limit)
+        #: requests of each kind that may wait for a free place (beyond: 503), those waiting
+        self.max_waiting = {"history": max_history_waiting, "browsers": 0}
+        self.waiting = dict.fromkeys(self.limits, 0)
+        self._free: dict[str, asyncio.Condition] = {}
         self.dropped_closed = 0  # points dropped by browsers that have gone
         self.sent_closed = 0
         self.seq: dict[str, list[int]] = {}  # key -> [first, last, received in order]
@@ -252,7 +260,7 @@ class Gateway:
             "points_sent": self.sent_closed + sum(c.sent for c in self.clients),
             "points_dropped": self.dropped_closed + sum(c.dropped for c in self.clients),
             "refused": self.refused,
-            "shed": dict(self.shed),
+            "shed": dict(self.shed), "waiting": dict(self.waiting),
         }
 
     # -- HTTP ----------------------------------------------------------------------------
@@ -266,17 +274,29 @@ class Gateway:
         kind = COSTLY.get(request.path)
         if kind is None:
             resp = await handler(request)
-        elif self.busy[kind] >= self.limits[kind]:
+        elif (self.busy[kind] >= self.limits[kind]
+              and self.waiting[kind] >= self.max_waiting[kind]):
             self.shed[kind] += 1
-            resp = web.Response(status=503, text=f"busy: {self.limits[kind]} {kind} requests "
-                                "at once; retry later\n",
-                                headers={"Retry-After": str(RETRY_AFTER_S)})
+            resp = web.json_response(
+                {"error": "busy", "detail": f"{self.limits[kind]} {kind} requests at once and "
+                 f"{self.max_waiting[kind]} waiting; retry later"}, status=503,
+                headers={"Retry-After": str(RETRY_AFTER_S)})
         else:
+            free = self._free.setdefault(kind, asyncio.Condition())
+            if self.busy[kind] >= self.limits[kind]:  # wait for a place (bounded above)
+                self.waiting[kind] += 1
+                try:
+                    async with free:
+                        await free.wait_for(lambda: self.busy[kind] < self.limits[kind])
+                finally:
+                    self.waiting[kind] -= 1
             self.busy[kind] += 1
             try:
                 resp = await handler(request)
             finally:
                 self.busy[kind] -= 1
+                async with free:
+                    free.notify()
         resp.headers.setdefault("X-Content-Type-Options", "nosniff")
         resp.headers.setdefault("X-Frame-Options", "DENY")
         resp.headers.setdefault("Referrer-Policy", "no-referrer")

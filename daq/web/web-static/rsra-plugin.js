@@ -270,7 +270,15 @@
           if (options.strategy === 'latest') {
             q.set('strategy', 'latest');
           }
-          return fetch('/api/history?' + q.toString()).then((r) => r.json()).then(function (d) {
+          // a gateway under load answers 503 with Retry-After: ask again (a few times)
+          const ask = (tries) => fetch('/api/history?' + q.toString()).then(function (r) {
+            if (r.status === 503 && tries > 0) {
+              const s = Number(r.headers.get('Retry-After')) || 1;
+              return new Promise((ok) => setTimeout(ok, 1000 * s)).then(() => ask(tries - 1));
+            }
+            return r.ok ? r.json() : [];
+          });
+          return ask(5).then(function (d) {
             const st = window.rsraStats.history;
             st[o.identifier.key] = (st[o.identifier.key] || 0) + d.length;
             return options.strategy === 'latest' ? d
