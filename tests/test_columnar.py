@@ -263,3 +263,53 @@ def test_frames_out_of_order_take_the_streaming_reorder_stage_on_the_columnar_pa
     items = _equal_both_ways([f], block_bytes=block_bytes)
     last = [x for x in items if isinstance(x, HealthReport)][-1].health
     assert last.bus.late == 1
+
+
+def test_a_line_longer_than_any_frame_is_read_only_to_its_limit_on_both_paths(recordings,
+                                                                             tmp_path):
+    """A 3 MB line of NUL bytes in the middle of a log (a damaged disk): neither path reads it
+    whole — its first MAX_LINE_CHARS stand for it, the same error naming the line on both; at
+    the end of the file (no newline) it is a cut line, dropped, the frames before it kept."""
+    from rsra.daq.bus.logfiles import MAX_LINE_CHARS
+
+    lines = _lines(recordings["ground"])
+    k = len(lines) // 2
+    nul = b"\0" * 3_000_000
+    mid = tmp_path / "mid.log"
+    mid.write_bytes(b"".join(lines[:k]) + nul + b"\n" + b"".join(lines[k:]))
+    errors = []
+    for streaming in (True, False):
+        with pytest.raises(ReplayError) as e:
+            list(replay(config_for([mid]), [mid], finish=True, streaming=streaming))
+        errors.append(str(e.value))
+    assert errors[0] == errors[1] and f":{k + 1}: not a candump frame" in errors[0]
+    end = tmp_path / "end.log"
+    end.write_bytes(b"".join(lines) + nul)
+    items = _equal_both_ways([end], block_bytes=MAX_LINE_CHARS // 3)
+    assert len([x for x in items if not isinstance(x, HealthReport)]) >= 590
+
+
+def test_neither_reader_holds_an_over_long_line(tmp_path, monkeypatch):
+    """What the readers hold of a 3 MB line: at most MAX_LINE_CHARS (and its newline)."""
+    from rsra.daq.bus.logfiles import MAX_LINE_CHARS, _CompleteLines
+
+    f = tmp_path / "nul.log"
+    good = b"(1796674406.998000) sim 711#05 R\n"
+    f.write_bytes(good + b"\0" * 3_000_000 + b"\n" + good)
+    lines = _CompleteLines(f)
+    try:
+        got = list(lines)
+    finally:
+        lines.close()
+    assert [len(x) for x in got] == [len(good), MAX_LINE_CHARS + 1, len(good)]
+    seen: list[int] = []
+    real = columnar.CandumpBlocks._lines
+
+    def lines_of(self, chunk):
+        seen.append(max(len(x) for x in chunk.split(b"\n")))
+        return real(self, chunk)
+
+    monkeypatch.setattr(columnar.CandumpBlocks, "_lines", lines_of)
+    with pytest.raises(ReplayError):
+        list(columnar.CandumpBlocks(f, block_bytes=64 * 1024))
+    assert seen and max(seen) <= MAX_LINE_CHARS

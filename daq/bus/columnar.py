@@ -34,7 +34,7 @@ import can
 import numpy as np
 
 from rsra.daq.bus.assembler import Sample
-from rsra.daq.bus.logfiles import ReplayError
+from rsra.daq.bus.logfiles import MAX_LINE_CHARS, ReplayError
 from rsra.daq.bus.reader import HealthReport, ReaderBase
 from rsra.daq.bus.reorder import FrameReorder, reordered
 
@@ -94,17 +94,29 @@ class CandumpBlocks:
 
     def __iter__(self) -> Iterator[Piece]:
         tail = b""
+        skipping = False  # inside a line longer than any frame: its start kept in tail
         with open(self.path, "rb") as f:
             while True:
                 chunk = f.read(self.block_bytes)
                 if not chunk:
                     break
+                if skipping:  # the rest of an over-long line dropped unread into memory
+                    nl = chunk.find(b"\n")
+                    if nl < 0:
+                        continue
+                    chunk, skipping = chunk[nl:], False
                 buf = tail + chunk
                 end = buf.rfind(b"\n") + 1
                 tail = buf[end:]
                 if end:
                     yield from self._lines(buf[:end])
-        if tail:  # no newline at its end: a cut write (or lines that end in '\r' alone)
+                if len(tail) > MAX_LINE_CHARS:  # as the streaming path: its start stands for it
+                    tail, skipping = tail[:MAX_LINE_CHARS], True
+        if tail and skipping:  # the file ended inside an over-long line: a cut line
+            from rsra.daq.bus.logfiles import cut_line_dropped
+
+            cut_line_dropped(self.path, tail[:80].decode("utf-8", "replace"))
+        elif tail:  # no newline at its end: a cut write (or lines that end in '\r' alone)
             yield from self._odd(tail)
 
     def _lines(self, chunk: bytes) -> Iterator[Piece]:

@@ -28,7 +28,9 @@ class _CompleteLines:
         self.line = ""
 
     def __iter__(self) -> Iterator[str]:
-        for line in self.file:
+        while line := self.file.readline(MAX_LINE_CHARS + 1):  # bounded: never a whole 2 GB
+            if len(line) > MAX_LINE_CHARS and not line.endswith("\n"):
+                line = self._rest_skipped(line[:MAX_LINE_CHARS])
             if line.endswith("\n"):
                 self.lineno += 1
                 self.line = line
@@ -36,8 +38,23 @@ class _CompleteLines:
             else:
                 cut_line_dropped(Path(self.file.name), line)
 
+    def _rest_skipped(self, kept: str) -> str:
+        """A line longer than any frame: its first MAX_LINE_CHARS characters stand for it (a
+        frame-shaped one is then counted malformed, anything else refused naming the line),
+        the rest read and dropped up to its newline — memory stays bounded."""
+        while more := self.file.readline(MAX_LINE_CHARS):
+            if more.endswith("\n"):
+                return kept + "\n"
+        return kept  # the file ended inside it: a cut line
+
     def close(self) -> None:
         self.file.close()
+
+
+#: no candump line is longer (the longest valid one, a CAN FD frame of 64 bytes on a long
+#: channel name, is about 250): a longer one is read only to this length (the rest dropped
+#: unread into memory) — a frame-shaped one is then a malformed frame, anything else refused
+MAX_LINE_CHARS = 4096
 
 
 def cut_line_dropped(path: Path, line: str) -> None:

@@ -120,8 +120,9 @@ class HealthReporter:
         err = h.recording.error
         if err and err != prev:
             log.error("recording stopped: %s", err)
-        self._rate_low.check(h.sync, getattr(loop.source, "interface", None),
-                             loop.pipeline.cfg.sample_rate_hz)
+        if loop.live:  # (a replay's rate is the recording's: said by its health alone)
+            self._rate_low.check(h.sync, getattr(loop.source, "interface", None),
+                                 loop.pipeline.cfg.sample_rate_hz)
         self.last = h
         outputs.publish("health", h)
 
