@@ -513,12 +513,8 @@ def test_end_to_end_a_bad_payload_is_counted_by_listen_and_web(dic):
 
 
 # -- rsra web sheds load ------------------------------------------------------------------------
-def test_web_sheds_history_requests_beyond_its_bound_and_stays_responsive(dic, monkeypatch):
-    """40 history requests at once while each answer is held (a gate in the parse, lock-step):
-    4 are answered, 36 get 503 with Retry-After at once; /status answers meanwhile; once the
-    gate opens, the 4 get 200 and the next history request gets 200."""
-    from aiohttp.test_utils import TestClient, TestServer
-
+def _hold_history(monkeypatch) -> threading.Event:
+    """Every history answer held until the returned gate is set (lock-step)."""
     import rsra.daq.web.server as server
 
     gate = threading.Event()
@@ -529,6 +525,16 @@ def test_web_sheds_history_requests_beyond_its_bound_and_stays_responsive(dic, m
         return real(*a)
 
     monkeypatch.setattr(server, "points_of", held)
+    return gate
+
+
+def test_web_sheds_history_requests_beyond_its_bound_and_stays_responsive(dic, monkeypatch):
+    """40 history requests at once while each answer is held (a gate in the parse, lock-step):
+    4 are answered, 36 get 503 with Retry-After at once; /status answers meanwhile; once the
+    gate opens, the 4 get 200 and the next history request gets 200."""
+    from aiohttp.test_utils import TestClient, TestServer
+
+    gate = _hold_history(monkeypatch)
 
     async def go():
         gw = gateway(dic)
@@ -568,16 +574,7 @@ def test_history_requests_beyond_the_running_ones_wait_in_a_bounded_room(dic, mo
     in turn; only past that room is a request shed (503, a JSON body, Retry-After)."""
     from aiohttp.test_utils import TestClient, TestServer
 
-    import rsra.daq.web.server as server
-
-    gate = threading.Event()
-    real = server.points_of
-
-    def held(*a):
-        gate.wait(20)
-        return real(*a)
-
-    monkeypatch.setattr(server, "points_of", held)
+    gate = _hold_history(monkeypatch)
 
     async def go():
         gw = gateway(dic)

@@ -3,12 +3,12 @@ user-guide.md "Loads survey"; daq/analysis/survey.py, estimator/survey.py)."""
 from __future__ import annotations
 
 import argparse
-import math
 from pathlib import Path
 
 import numpy as np
 
 from rsra.daq.analysis.survey import SURVEY_FILES
+from rsra.daq.cli.options import positive_float
 
 OUTPUTS = {"out": SURVEY_FILES}  # checked against the inputs before any work (daq.cli.outputs)
 INPUTS = ("test_points_file",)
@@ -45,7 +45,7 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
                    "else scenario, else transient")
     p.add_argument("--sn-slopes", metavar="M[,M…]", default="4,10", type=_slopes,
                    help="S-N curve slopes for the damage-equivalent loads del_m<M> (default 4,10)")
-    p.add_argument("--del-cycles", metavar="N", type=_positive, default=None,
+    p.add_argument("--del-cycles", metavar="N", type=positive_float, default=None,
                    help="reference cycle count of the DELs (default: one per second of the "
                    "test point, the 1 Hz equivalent load)")
     p.add_argument("--limit", metavar="AXIS=VALUE", action="append", default=[], type=_limit,
@@ -67,22 +67,12 @@ def _slopes(text: str) -> tuple[float, ...]:
     return out
 
 
-def _positive(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"'{text}' is not a number") from None
-    if not 0 < v < math.inf:
-        raise argparse.ArgumentTypeError("must be a finite number > 0")
-    return v
-
-
 def _limit(text: str) -> tuple[str, float]:
     axis, _, value = text.partition("=")
     if axis not in ("X", "Y", "Z", "L", "M", "N"):
         raise argparse.ArgumentTypeError(f"'{text}': give AXIS=VALUE with AXIS one of X Y Z L "
                                          "M N, e.g. M=20000")
-    return axis, _positive(value)
+    return axis, positive_float(value)
 
 
 def _limits(given: list[tuple[str, float]], units: str) -> tuple[float, ...]:
