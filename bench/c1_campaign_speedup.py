@@ -13,8 +13,8 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from bench.campaign_data import campaign_folder, run_campaign
-from bench.common import arg_parser, interleaved, ratio, writer_from_args
+from bench.campaign_data import campaign_folder, campaign_setup, run_campaign
+from bench.common import interleaved, ratio
 
 BENCH = "c1_campaign_speedup"
 EFFICIENCY = 0.8
@@ -23,17 +23,8 @@ EFFICIENCY = 0.8
 def main(argv: list[str] | None = None) -> int:
     from rsra.daq.campaign.engine import cores
 
-    p = arg_parser(__doc__.splitlines()[0])
-    p.add_argument("--recordings", type=int, default=16, help="recordings (default 16)")
-    p.add_argument("--longest", type=float, default=60.0,
-                   help="the longest recording, s (the shortest is a sixth of it; default 60)")
-    args = p.parse_args(argv)
-    w = writer_from_args(BENCH, args)
+    args, w, lengths, rounds = campaign_setup(__doc__, BENCH, argv)
     n = cores()
-    k_, top = args.recordings, args.longest
-    lengths = [1.0, 1.0] if args.tiny else [top / 6 + top * 5 / 6 * i / max(k_ - 1, 1)
-                                             for i in range(k_)]
-    rounds = 1 if args.tiny else 2
     with tempfile.TemporaryDirectory(prefix="rsra-c1-") as tmp:
         recs = campaign_folder(Path(tmp), lengths)
         k = [0]

@@ -74,3 +74,19 @@ def run_campaign(argv: list[str]) -> tuple[int, float]:
     with contextlib.redirect_stdout(io.StringIO()):
         rc = main(["campaign", "run", *argv])
     return rc, time.perf_counter() - t0
+
+
+def campaign_setup(doc: str, bench: str, argv: list[str] | None):
+    """The options C1 and C2 share (``--recordings``, ``--longest``, the common ones) and what
+    they give: (args, writer, the recordings' lengths in s, rounds)."""
+    from bench.common import arg_parser, writer_from_args
+
+    p = arg_parser(doc.splitlines()[0])
+    p.add_argument("--recordings", type=int, default=16, help="recordings (default 16)")
+    p.add_argument("--longest", type=float, default=60.0,
+                   help="the longest recording, s (the shortest is a sixth of it; default 60)")
+    args = p.parse_args(argv)
+    k, top = args.recordings, args.longest
+    lengths = [1.0, 1.0] if args.tiny else [top / 6 + top * 5 / 6 * i / max(k - 1, 1)
+                                             for i in range(k)]
+    return args, writer_from_args(bench, args), lengths, 1 if args.tiny else 2
