@@ -1,5 +1,5 @@
-"""Optional internal timing of the service's own share of the latency (docs/performance.md
-P5b): the last frame of a sample received → ``hub_loads`` handed to Zenoh.
+"""Optional internal timing of the service's own share of the latency (the SYNC →
+hub_loads latency): the last frame of a sample received → ``hub_loads`` handed to Zenoh.
 
 Off by default and then free: ``TIMER`` is None and the two call sites test one module
 global. A benchmark switches it on for one process by setting ``RSRA_STAGE_TIMING`` to a

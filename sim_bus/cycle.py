@@ -1,6 +1,6 @@
 """One SYNC cycle of the simulated aircraft, and its schedule: the SYNC counter, the heartbeats
 due as time moves, the physics sample drawn for each SYNC, and the answer to the next SYNC
-built ahead of it in real time (docs/performance.md P5; the module docstring of
+built ahead of it in real time (so the SYNC's answer costs no computation; the module docstring of
 sim_bus.bus_sim).
 
 Every SYNC does the same steps in the same order (:meth:`SyncCycle.answer`): heartbeats due,

@@ -299,14 +299,14 @@ class RealtimeSim(_Served):
     """Real time: the wall clock; a Notifier thread serves NMT, SDO and SYNC; a ticker thread
     sends the heartbeats when due and, half a period after each SYNC, has the simulator
     compute the next physics block (``prefetch``) and build the next SYNC's answer
-    (``prepare_next``), so the SYNC only sends pre-built frames (docs/performance.md P5).
+    (``prepare_next``), so the SYNC only sends pre-built frames.
     :meth:`run` produces SYNC at the sample rate (autostart) or lets time pass while a
     master's SYNCs are answered.
 
     At periods of ``INLINE_PLAN_PERIOD_S`` or less the next answer is built in the SYNC's own
     wake-up, right after this SYNC's answer went out: a ticker woken half a period later is
-    often late at such periods, and the SYNC then finds no plan (docs/performance.md,
-    "Issue 26, session 21"). The frames are the same either way (pure functions of seed,
+    often late at such periods, and the SYNC then finds no plan (measured at 5 ms periods
+    on a 2-core machine). The frames are the same either way (pure functions of seed,
     sample and slot)."""
 
     INLINE_PLAN_PERIOD_S = 0.002  # 500 samples/s and above
@@ -351,7 +351,7 @@ class RealtimeSim(_Served):
     def _on_sync_frame(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if self.sim.dt <= self.INLINE_PLAN_PERIOD_S:
             # a short period: build the next answer in this wake-up, right after this one;
-            # a ticker woken half a period later is often late (docs/performance.md P6b)
+            # a ticker woken half a period later is often late at short periods
             self.sim.prefetch()
             self.sim.prepare_next()
         self._schedule_ahead()
@@ -364,8 +364,8 @@ class RealtimeSim(_Served):
             wake = self._ticker_wake_at
             # the ticker already plans to wake about then (it expects the SYNCs' rhythm; a
             # quarter of a period later still works ahead in time): not woken now, when this
-            # SYNC's answer is being received and its hub loads computed (docs/performance.md
-            # P5b); it waits on to ``at`` if it wakes before
+            # SYNC's answer is being received and its hub loads computed (the latency
+            # path); it waits on to ``at`` if it wakes before
             if wake is None or wake > at + self.AHEAD_SLACK * dt:
                 self._wake.set()
 
@@ -404,7 +404,7 @@ class RealtimeSim(_Served):
                 if ahead and self._compute_ahead is not None:
                     # the physics' next block (1-2 ms for 100 samples), outside the
                     # simulator's lock: the next SYNCs are answered meanwhile, and the block
-                    # is ready long before its boundary (docs/performance.md P6b)
+                    # is ready long before its boundary
                     self._compute_ahead()
             except Exception as e:  # noqa: BLE001 - re-raised by check()
                 if bus_failure(e):  # the bus went away: the owner reports it, once

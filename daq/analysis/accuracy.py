@@ -1,5 +1,5 @@
 """Hub-load accuracy against truth, split by phase and judged against the σ the service
-published for each sample (issue 28): the figures of `rsra report`, the demo's summary and its
+published for each sample: the figures of `rsra report`, the demo's summary and its
 live view.
 
 Three phases, because one figure over a whole run mixes three different things:

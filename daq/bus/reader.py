@@ -39,7 +39,7 @@ classes and small objects, never as flags (python-can's ``BusABC``: variation in
 
 A combination that cannot work has no spelling: the lock-step reader takes only the
 node policies that need no bus thread, ``send_sync`` exists only on the on-demand policy,
-``supervise`` only on the restart one. (Issue 16 replaced the keywords ``master``,
+``supervise`` only on the restart one. (These replaced the keywords ``master``,
 ``restart_nodes``, ``periodic_sync``, ``wall_clock``, ``overflow``, ``queue_size``,
 ``offline``, ``bus_kwargs`` and ``start(notifier=False)`` by these; no keyword is kept.)
 
@@ -568,7 +568,7 @@ class ItemQueue:
     ``first_step``, when given, is called with each Sample in the producer's thread (the bus
     thread, under the tap's lock: one sample at a time, in order) before it is queued, and
     what it returns is queued instead: the service publishes a sample's hub loads there,
-    with no hand-off to another thread (docs/performance.md P5b)."""
+    with no hand-off to another thread: the SYNC → hub_loads latency is what it saves."""
 
     def __init__(self, size: int = DEFAULT_QUEUE,
                  first_step: Callable[[Sample], Any] | None = None):
@@ -894,7 +894,7 @@ class _BusReader(ReaderBase):
     @property
     def wakeups(self) -> tuple[int, int] | None:
         """(wake-ups, frames) of the bus thread so far: how often it woke for a frame and
-        how many frames it took (docs/performance.md P6b); None without a bus thread."""
+        how many frames it took (the bus thread's backlog); None without a bus thread."""
         notifier = self.network.notifier
         if not isinstance(notifier, BatchNotifier):
             return None

@@ -1,5 +1,5 @@
-"""What would determine the directions a filter-error window leaves undetermined (issue 25
-item 5; docs/identification.md "Which additions would determine the rest"): the rig's side of
+"""What would determine the directions a filter-error window leaves undetermined
+(docs/identification.md "Which additions would determine the rest"): the rig's side of
 :mod:`estimator.flight_advice` — the candidates from ``[identification.advice]`` and the
 ``advice`` object of the filter-error `angles` records (docs/telemetry.md). Runs on the
 identification worker after the window's run: one more pass of the calibration filter's

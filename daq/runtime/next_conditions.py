@@ -1,4 +1,4 @@
-"""The next load conditions to apply (issue 19, docs/identification.md "The next load
+"""The next load conditions to apply (docs/identification.md "The next load
 conditions"): the rig's side of :mod:`estimator.design` — the candidate conditions from the
 configured load limits, the structures from the current posterior and the conditions seen,
 and the ``next_conditions`` list that `rsra calibrate` and the live known-load `angles`

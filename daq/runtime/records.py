@@ -78,16 +78,16 @@ class AnglesRecord:
     late: Any = ABSENT
     restarted: Any = ABSENT
     condition: Any = ABSENT
-    structure: Any = ABSENT  # known loads: the structure test (issue 19)
+    structure: Any = ABSENT  # known loads: the structure test
     candidates: Any = ABSENT
-    next_conditions: Any = ABSENT  # known loads: the experiment design (issue 19)
-    structure_fit: Any = ABSENT  # known loads: the structure the hub loads use (issue 19)
-    explanation: Any = ABSENT  # one line: the figures behind reason/detail (issue 28)
+    next_conditions: Any = ABSENT  # known loads: the experiment design
+    structure_fit: Any = ABSENT  # known loads: the structure the hub loads use
+    explanation: Any = ABSENT  # one line: the figures behind reason/detail
     hint: Any = ABSENT  # one line: the likely cause and what to do (null when accepted)
-    drift: Any = ABSENT  # known loads: the drift test, angles on a trend (issue 27)
-    samples_used: Any = ABSENT  # the window's samples the likelihood used (issue 29)
-    missing_inputs: Any = ABSENT  # the inputs the window's other samples lacked (issue 29)
-    advice: Any = ABSENT  # filter error: what would determine the rest (issue 25 item 5)
+    drift: Any = ABSENT  # known loads: the drift test, angles on a trend
+    samples_used: Any = ABSENT  # the window's samples the likelihood used
+    missing_inputs: Any = ABSENT  # the inputs the window's other samples lacked
+    advice: Any = ABSENT  # filter error: what would determine the rest
     extra: tuple[tuple[str, Any], ...] = ()  # keys not declared above, in their order
 
     FIELDS: ClassVar[tuple[str, ...]]
@@ -132,7 +132,7 @@ class InitialAngles:
     alpha: list[float]
     P: list[list[float]]
     alpha_all: list[float]
-    structure_fit: dict | None = None  # the saved posterior's structure (issue 19), if any
+    structure_fit: dict | None = None  # the saved posterior's structure, if any
 
     def to_dict(self) -> dict[str, Any]:
         d = {"initial": True, "names": self.names, "alpha": self.alpha, "P": self.P,
@@ -161,12 +161,12 @@ class IdentJob:
     known: np.ndarray
     omega: np.ndarray
     # the rotor's turn since the previous sample (rad; NaN where the azimuth was missing or
-    # refused), azimuth mode only (issue 25): the calibration filter's Φ(Δψ)
+    # refused), azimuth mode only: the calibration filter's Φ(Δψ)
     dpsi: np.ndarray | None = None
     # what each sample lacked (bits: calibration_branch.CalibrationBranch.input_labels)
     missing: np.ndarray | None = None
     # the window's mean raw cell loads (7,) and z (6,) over its complete samples: its static
-    # load, for the filter-error load excursion (issue 25); None: no complete sample
+    # load, for the filter-error load excursion; None: no complete sample
     T_mean: np.ndarray | None = None
     z_mean: np.ndarray | None = None
 

@@ -19,7 +19,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("rsra.service")
 
-# What the shared loopback bus carries (docs/performance.md P6a: the do-nothing master and
+# What the shared loopback bus carries (measured with a do-nothing master and
 # responder through python-can-remote on a 2-core machine): quoted, not enforced
 SHARED_BUS_CEILING_HZ = 112
 
@@ -31,7 +31,7 @@ def rate_low_reason(interface: str | None, rate: float, target: float) -> str:
     if interface == "remote":
         return head + (f"the shared bus (python-can-remote, `rsra bus`) carries about "
                        f"{SHARED_BUS_CEILING_HZ} samples/s of this rig's frames on a 2-core "
-                       "machine (docs/performance.md, P6a) — set rig.sample_rate_hz to about "
+                       "machine (docs/performance.md, the shared bus's rate) — set rig.sample_rate_hz to about "
                        "100 in a rig file for both sides, or run on a real bus (socketcan)")
     return head + ("this bus or this machine does not keep up — check the health's bus "
                    "errors and the nodes, lower rig.sample_rate_hz in a rig file, or free "

@@ -250,7 +250,7 @@ class SampleLoop:
     def first_step(self, s: Any) -> Any:
         """The bus thread, as a sample completes (live): the pipeline's first step and the
         publication of its records (hub_loads, and angles applied from this sample) at once,
-        with no hand-off to another thread (docs/performance.md P5b). The service thread
+        with no hand-off to another thread (the latency path). The service thread
         finishes the sample (:meth:`on_sample`). Samples after the last one wanted, or
         once stopping, are passed on untouched (the loop ends before them)."""
         if self.stop_event.is_set() or self._past_last(s.seq):
@@ -320,7 +320,7 @@ class SampleLoop:
         if self.first_t is None:
             self.first_t = s.t
         self.last_t = s.t
-        if live:  # after the sample, off the SYNC → hub_loads path (docs/performance.md P5b):
+        if live:  # after the sample, off the SYNC → hub_loads path:
             self.supervision.poll(self.last_seq)  # a result in now applies from the next
             if counted:                           # sample at the earliest
                 self._whole_done += 1  # the bus thread may take first steps again

@@ -238,7 +238,7 @@ def gil_switch_interval(seconds: float):
     A thread that wants the interpreter waits until the one holding it reaches the interval
     (CPython's default: 5 ms) — a period at 200 samples/s. In real time the bus thread and
     the simulator's answer then waited behind the low-rate publisher encoding an angles
-    record, or the worker queue's feeder pickling a window: P8's late periods were at the
+    record, or the worker queue's feeder pickling a window: with a busy core the late periods were at the
     samples where a result comes into force and at a window's cut (docs/performance.md "The
     interpreter's switch interval"). At ``LIVE_SWITCH_INTERVAL_S`` such a wait is a tenth of
     a period."""
@@ -443,7 +443,7 @@ class Service:
                 if loop.live:  # the worker yields the cores to the real-time threads
                     init = chained(init, background_scheduling)
                 supervision.start(cfg, plan.state, initializer=init)
-            if loop.live:  # hub_loads from the bus thread (P5b)
+            if loop.live:  # hub_loads from the bus thread (no hand-off on the latency path)
                 self.source.first_step = loop.first_step
             stack.enter_context(self.source)
             if self.source.reader is not None and hasattr(self.source.reader,

@@ -131,7 +131,7 @@ def plan_start(cfg: RigConfig, opts: Any, source: Source) -> StartPlan:
         for warning in prepare_state_file(cfg, accept_rig_mismatch=opts.accept_rig_mismatch):
             log.warning("%s", warning)
             warnings.append(warning)
-    # the structure the hub loads use from the start (issue 19): the recording's first line
+    # the structure the hub loads use from the start: the recording's first line
     # in a replay; else the saved posterior's, else the config's
     if recorded_initial is not None:
         start_fit = recorded_initial.get("structure_fit")

@@ -155,7 +155,7 @@ class StuckDetector:
         self._run = np.zeros(n, np.int64)
         # after samples that took the shortcut in Python (update_fresh): the last one's
         # readings; the arrays above are brought up to date only when read or when a sample
-        # takes the vectorised path (docs/performance.md P5b: a dozen numpy calls saved)
+        # takes the vectorised path (a dozen numpy calls saved on the per-sample path)
         self._last: list[float] | None = None
         self.episodes = np.zeros(n, np.int64)  # runs that reached k
         self.samples = np.zeros(n, np.int64)  # samples flagged
@@ -164,7 +164,7 @@ class StuckDetector:
         self.fresh = False  # the last sample took the shortcut below (every reading present)
         # the common sample — every reading present and new — restarts every run at 1, and
         # flags nothing when no channel flags at a run of 1: then it is three ufuncs and
-        # two copies (the estimator's per-sample path, docs/performance.md P5b)
+        # two copies (the estimator's per-sample path)
         self._fresh_ok = bool(n) and int(self._k_flag.min()) >= 2
         self._none = np.zeros(n, bool)
         self._none.flags.writeable = False
@@ -224,7 +224,7 @@ class StuckDetector:
         present = np.isfinite(x)
         same = x == self.value  # NaN equals nothing: a repeat is always a present reading
         new = present ^ same  # present and different: a new run starts at 1
-        # in place (the estimator's per-sample path, docs/performance.md P5)
+        # in place (the estimator's per-sample path)
         run = self._run
         run += same
         np.copyto(run, 1, where=new)

@@ -164,7 +164,7 @@ class TelemetryPublisher:
         """Publish one record; returns its JSON text (UTF-8 bytes, as put)."""
         # a record the compiled hub path encoded carries its text (daq/runtime/hubpath.py)
         data = getattr(payload, "encoded", None) or dumpb(payload)
-        timer = stagetiming.TIMER  # None unless a benchmark asked (docs/performance.md P5b)
+        timer = stagetiming.TIMER  # None unless a benchmark asked for the stage timing
         if timer is not None and key == "hub_loads":
             timer.handed_on(payload["seq"])
         try:

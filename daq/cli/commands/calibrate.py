@@ -309,7 +309,7 @@ def _save_posterior(args, pooled) -> int:
 
 
 def _print_structure(struct: dict) -> None:
-    """The structure test's verdict (issue 19): constant angles, or what explains the data."""
+    """The structure test's verdict: constant angles, or what explains the data."""
     print(f"structure: {struct['structure']} ({struct['conditions']} load conditions, "
           f"{struct['looks']} windows)")
     for c in struct["candidates"][:4]:
