@@ -22,7 +22,7 @@ import math
 import re
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from rsra.config.rig import RigConfig
 from rsra.daq.bus.decoder import (
@@ -34,6 +34,7 @@ from rsra.daq.bus.decoder import (
     od_variable,
 )
 from rsra.config.units import AXIS_KIND
+from rsra.daq.jsonlines import json_lines
 from rsra.daq.runtime.schema import FIELDS, VEC6, json_schema, log_time_ns  # noqa: F401 - FIELDS re-exported
 
 AXES = ("X", "Y", "Z", "L", "M", "N")
@@ -174,28 +175,18 @@ def dbc_text(cfg: RigConfig) -> str:
 # -- telemetry records (JSONL of `rsra replay --out`) ------------------------------------------
 def read_records(path: Path) -> Iterator[tuple[str, dict]]:
     """(key, payload) of every line of a telemetry JSONL file; ExportError on a bad line."""
+    def bad(n: int, why: str) -> NoReturn:
+        raise ExportError(f"{path}:{n}: {why}; fix: give a file written by `rsra replay --out`")
+
     try:
-        with open(path, encoding="utf-8", errors="replace") as f:
-            yield from _parse_lines(path, f)
+        for n, rec in json_lines(path, bad):
+            if not isinstance(rec, dict) or not isinstance(rec.get("key"), str):
+                bad(n, 'a record without a "key"')
+            key = rec.pop("key")
+            yield key, rec
     except OSError as e:
         raise ExportError(f"{path}: cannot read ({e.strerror}); fix: check the path and "
                           "its permissions") from None
-
-
-def _parse_lines(path: Path, f) -> Iterator[tuple[str, dict]]:
-    for n, line in enumerate(f, start=1):
-        if not line.strip():
-            continue
-        try:
-            rec = json.loads(line)
-        except json.JSONDecodeError as e:
-            raise ExportError(f"{path}:{n}: not a JSON line ({e.msg}); fix: give a file "
-                              "written by `rsra replay --out`") from None
-        if not isinstance(rec, dict) or not isinstance(rec.get("key"), str):
-            raise ExportError(f"{path}:{n}: a record without a \"key\"; fix: give a file "
-                              "written by `rsra replay --out`")
-        key = rec.pop("key")
-        yield key, rec
 
 
 def write_mcap(records: Iterable[tuple[str, dict]], out, prefix: str,
