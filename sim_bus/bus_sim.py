@@ -61,13 +61,14 @@ from typing import TYPE_CHECKING, Any, Callable, cast
 import can
 import numpy as np
 
+from rsra.config.devices import device_profile
 from rsra.config.rig import RigConfig
 from rsra.sim_bus.clocks import Clock, SampleSource, SimulatedTime, WallClock
 from rsra.sim_bus.cycle import SyncCycle
 from rsra.sim_bus.endpoint import FRAME_OVERHEAD_BITS, BusEndpoint, RecordError
 from rsra.sim_bus.fault_apply import FaultApplier
 from rsra.sim_bus.faults import Fault, FaultInjector, FaultLog, parse_faults, validate_faults
-from rsra.sim_bus.nodes import COB_NMT, ROLE_CHANNELS, SimNode
+from rsra.sim_bus.nodes import COB_NMT, SimNode
 from rsra.sim_bus.nodeset import DEFAULT_BITRATE, NodeSet
 from rsra.sim_bus.simtruth import MAX_TRUTH_SAMPLES, RECENT_SAMPLES, SimTruth, SyncLog, TruthBuffer
 
@@ -88,7 +89,7 @@ log = logging.getLogger(__name__)
 
 
 def _validate(parsed: tuple[Fault, ...], nodes: list[tuple[str, str]], autostart: bool) -> None:
-    validate_faults(parsed, dict(nodes), {name: ROLE_CHANNELS[role] for name, role in nodes},
+    validate_faults(parsed, dict(nodes), {name: device_profile(role).names for name, role in nodes},
                     autostart)
 
 
