@@ -7,11 +7,13 @@ canopen 2.4.1) is replaced here:
 * NMT: LocalNode stays in INITIALISING after a reset. ``SimNode`` runs its own CiA 301 state
   machine (boot-up frame on start and after every reset, then pre-operational; start, stop,
   enter pre-operational; reset communication restores 0x1000–0x1FFF, reset application the
-  whole dictionary) and keeps LocalNode's ``nmt`` state in step with it.
+  whole dictionary) and keeps LocalNode's ``nmt`` state in step with it (through the NMT
+  slave's own command handler: no private state of canopen's is written).
 * Heartbeat: LocalNode produces it with python-can's wall-clock periodic send and restarts
-  that task on every write to 0x1017. ``SimNode`` instead reports the heartbeats that are
-  due at the acquisition clock's time (model §8.3 "Time"): simulated time in lock-step, the
-  wall clock live. A write to 0x1017 re-arms that schedule.
+  that task on every write to 0x1017 (:class:`QuietLocalNode` declines that). ``SimNode``
+  instead reports the heartbeats that are due at the acquisition clock's time (model §8.3
+  "Time"): simulated time in lock-step, the wall clock live. A write to 0x1017 re-arms that
+  schedule.
 * TPDOs: LocalNode sends none on SYNC and does not share TPDO values with its SDO server.
   ``SimNode.sync`` encodes every valid TPDO from the mapping *currently in its dictionary*
   (0x1800…/0x1A00…, re-read after any SDO write to them), honours the transmission type
@@ -54,6 +56,9 @@ INITIALISING, STOPPED, OPERATIONAL, PRE_OPERATIONAL = 0x00, 0x04, 0x05, 0x7F
 STATE_NAMES = {INITIALISING: "INITIALISING", STOPPED: "STOPPED", OPERATIONAL: "OPERATIONAL",
                PRE_OPERATIONAL: "PRE-OPERATIONAL"}
 NMT_START, NMT_STOP, NMT_PRE_OPERATIONAL, NMT_RESET_NODE, NMT_RESET_COMM = 0x01, 0x02, 0x80, 0x81, 0x82
+# the command that leads to each state (a reset ends in INITIALISING)
+_COMMAND_TO = {INITIALISING: NMT_RESET_NODE, STOPPED: NMT_STOP, OPERATIONAL: NMT_START,
+               PRE_OPERATIONAL: NMT_PRE_OPERATIONAL}
 
 # CiA 301 function codes (COB-ID = function code + node id where the EDS gives no other).
 COB_NMT, COB_EMCY_BASE, COB_SDO_TX, COB_SDO_RX, COB_HEARTBEAT = 0x000, 0x080, 0x580, 0x600, 0x700
@@ -435,6 +440,20 @@ class ErrorState:
         self.register = 0
 
 
+class QuietLocalNode(canopen.LocalNode):
+    """canopen's LocalNode without its wall-clock heartbeat: LocalNode registers its NMT
+    slave's ``on_write``, which starts python-can's periodic send on every write to 0x1017;
+    a simulated node reports its heartbeats on the acquisition clock instead
+    (:class:`HeartbeatSchedule`), so that one registration is declined. Every other write
+    callback is kept."""
+
+    def add_write_callback(self, callback: Callable[..., None]) -> None:
+        nmt = getattr(self, "nmt", None)  # (registered from LocalNode.__init__)
+        if nmt is not None and callback == nmt.on_write:
+            return
+        super().add_write_callback(callback)
+
+
 class SimNode:
     """One simulated CANopen slave: a LocalNode from the EDS with the NMT, heartbeat, SYNC/TPDO
     and EMCY behaviour of CiA 301 done properly (see the module docstring).
@@ -454,7 +473,7 @@ class SimNode:
         self.name, self.role, self.node_id = name, role, int(node_id)
         self.eds = Path(eds)
         self.od = load_od(eds, node_id)
-        self.local = canopen.LocalNode(self.node_id, self.od)
+        self.local = QuietLocalNode(self.node_id, self.od)
         self._clock = clock
         self._lock = lock if lock is not None else contextlib.nullcontext()
         #: the role's channels (the device profile's, config.devices) with the OD variables
@@ -474,10 +493,7 @@ class SimNode:
         # its SYNC (real time) then, so the event applies to the state it would have met
         self.before_change: Callable[[], None] | None = None
         self.local.add_read_callback(self._on_sdo_read)
-        # LocalNode registers its NMT slave's on_write, which would start a wall-clock
-        # heartbeat task on every write to 0x1017: replace it by our own.
-        self.local._write_callbacks.remove(self.local.nmt.on_write)
-        self.local.add_write_callback(self._on_sdo_write)
+        self.local.add_write_callback(self._on_sdo_write)  # (0x1017 re-arms our heartbeat)
 
     # ---- network --------------------------------------------------------------------------
     def attach(self, network: canopen.Network) -> None:
@@ -511,7 +527,9 @@ class SimNode:
 
     def _set_state(self, state: int) -> None:
         self.state = state
-        self.local.nmt._state = state  # keep LocalNode's view (and its users) in step
+        # LocalNode's view (and its users) kept in step through its NMT slave's own command
+        # handler, given the command that leads to the state (no frame is sent)
+        self.local.nmt.on_command(COB_NMT, bytes((_COMMAND_TO[state], self.node_id)), 0.0)
 
     def boot(self, t: float | None = None) -> list[Frame]:
         """Power-on (or the end of a reset): boot-up frame, then PRE-OPERATIONAL; the heartbeat
