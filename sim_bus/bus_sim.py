@@ -42,7 +42,8 @@ caller's thread, in order, so a master that sends NMT start then SYNC and calls 
 gets a deterministic answer without any sleep; or a driver's Notifier thread hands them over
 as they arrive (SDO needs that when the client blocks).
 
-Answers built ahead (``prepare_next``; only ``RealtimeSim`` asks, docs/performance.md P5):
+Answers built ahead (``prepare_next``; only ``RealtimeSim`` asks, so that a SYNC in real
+time is answered within the latency the service's telemetry is measured against):
 half a period after each SYNC the driver's ticker computes the next physics sample
 (``prefetch``) and has the whole answer to the next SYNC built (process image, TPDOs due, the
 drop/malformed/unknown/errorframe draws, the frames as python-can messages, the fault-log

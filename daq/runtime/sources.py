@@ -110,8 +110,9 @@ class _Base:
         self.truth_error: str | None = None  # the simulator's truth file could not be written
         self._stack = contextlib.ExitStack()
         # a live source runs this on each sample in its bus thread before queueing it (the
-        # service's first step: hub loads published with no hand-off, docs/performance.md
-        # P5b); set before the source is opened; sources that are not live ignore it
+        # service's first step: hub loads published with no hand-off between threads, so the
+        # service's own share of the latency stays a fraction of the sample period); set
+        # before the source is opened; sources that are not live ignore it
         self.first_step: Callable[[Sample], Any] | None = None
 
     def angles_plan(self, identification: bool, recompute: bool) -> AnglesPlan:
