@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from rsra.config.readfile import UnreadableFile, read_text
+from rsra.config.units import G0 as G0  # (re-exported: the loader's users import it from here)
 from rsra.config.rigfile import (  # noqa: F401  (names the loader's users import from here)
     CONTENTS,
     COB_MAX_11BIT,
@@ -43,8 +44,6 @@ from rsra.estimator.params import (
     MassProperties,
     RigModel,
 )
-
-G0 = 9.80665  # standard gravity, m/s^2
 
 
 class ConfigError(ValueError):

@@ -18,6 +18,7 @@ import re
 from pathlib import Path
 from typing import Annotated, Any, Literal, get_args, get_origin
 
+from rsra.config.devices import DEVICE_PROFILES
 from rsra.config.readfile import regular_file_problem
 
 from pydantic import (
@@ -36,7 +37,8 @@ from pydantic.fields import FieldInfo
 from pydantic_core import ErrorDetails, PydanticCustomError
 
 MAX_SAMPLE_RATE_HZ = 10_000.0  # a SYNC every 100 µs: more than any CAN bus carries
-ROLES = ("load_cell", "accelerometer", "rotor_speed", "balance", "drive_load")
+# the sensor roles a [[nodes]] block may name: those of the device-profile table
+ROLES = tuple(DEVICE_PROFILES)
 CONTENTS = ("static", "harmonics", "broadband", "vibration")
 COB_MAX_11BIT = 0x7FF
 # the rotor-speed band the load filter is designed for at start-up (flight: +-2 %); every
@@ -105,6 +107,15 @@ def _near(x: float) -> float:
 def _meta(**kw: Any) -> Any:
     """Field metadata the error messages use: ``unit`` (of a vector's numbers), ``fix``."""
     return Field(json_schema_extra=kw)
+
+
+def _known_role(role: str) -> str:
+    """A role of the device-profile table (read when validating: a role added to the table
+    is a choice at once), refused as an unknown choice otherwise."""
+    if role not in DEVICE_PROFILES:
+        raise PydanticCustomError("literal_error", "Input should be {expected}", {
+            "expected": ", ".join(repr(r) for r in DEVICE_PROFILES)})
+    return role
 
 
 Pos = Annotated[float, Field(gt=0)]
@@ -393,7 +404,7 @@ class HeartbeatTable(Table):
 
 class NodeTable(Table):
     name: str
-    role: Literal[ROLES]  # type: ignore[valid-type]
+    role: Annotated[str, AfterValidator(_known_role)]
     node_id: Whole
     eds: str
     required: bool = True

@@ -8,6 +8,7 @@ from numpy.typing import ArrayLike
 
 LBF_N = 4.4482216152605  # N per lbf
 FT_LBF_NM = 1.3558179483314004  # N m per ft lbf
+G0 = 9.80665  # standard gravity, m/s^2
 
 AXIS_KIND = ("force", "force", "force", "moment", "moment", "moment")
 

@@ -42,7 +42,8 @@ caller's thread, in order, so a master that sends NMT start then SYNC and calls 
 gets a deterministic answer without any sleep; or a driver's Notifier thread hands them over
 as they arrive (SDO needs that when the client blocks).
 
-Answers built ahead (``prepare_next``; only ``RealtimeSim`` asks, to keep the SYNC's answer cheap):
+Answers built ahead (``prepare_next``; only ``RealtimeSim`` asks, so that a SYNC in real
+time is answered within the latency the service's telemetry is measured against):
 half a period after each SYNC the driver's ticker computes the next physics sample
 (``prefetch``) and has the whole answer to the next SYNC built (process image, TPDOs due, the
 drop/malformed/unknown/errorframe draws, the frames as python-can messages, the fault-log
@@ -61,13 +62,14 @@ from typing import TYPE_CHECKING, Any, Callable, cast
 import can
 import numpy as np
 
+from rsra.config.devices import device_profile
 from rsra.config.rig import RigConfig
 from rsra.sim_bus.clocks import Clock, SampleSource, SimulatedTime, WallClock
 from rsra.sim_bus.cycle import SyncCycle
 from rsra.sim_bus.endpoint import FRAME_OVERHEAD_BITS, BusEndpoint, RecordError
 from rsra.sim_bus.fault_apply import FaultApplier
 from rsra.sim_bus.faults import Fault, FaultInjector, FaultLog, parse_faults, validate_faults
-from rsra.sim_bus.nodes import COB_NMT, ROLE_CHANNELS, SimNode
+from rsra.sim_bus.nodes import COB_NMT, SimNode
 from rsra.sim_bus.nodeset import DEFAULT_BITRATE, NodeSet
 from rsra.sim_bus.simtruth import MAX_TRUTH_SAMPLES, RECENT_SAMPLES, SimTruth, SyncLog, TruthBuffer
 
@@ -88,7 +90,7 @@ log = logging.getLogger(__name__)
 
 
 def _validate(parsed: tuple[Fault, ...], nodes: list[tuple[str, str]], autostart: bool) -> None:
-    validate_faults(parsed, dict(nodes), {name: ROLE_CHANNELS[role] for name, role in nodes},
+    validate_faults(parsed, dict(nodes), {name: device_profile(role).names for name, role in nodes},
                     autostart)
 
 

@@ -23,7 +23,7 @@ from rsra.sim_bus.faults import (
     Fault,
     FaultInjector,
 )
-from rsra.sim_bus.nodes import OPERATIONAL, PRE_OPERATIONAL, ROLE_CHANNELS, Frame, SimNode
+from rsra.sim_bus.nodes import OPERATIONAL, PRE_OPERATIONAL, Frame, SimNode
 
 if TYPE_CHECKING:
     from rsra.sim_bus.nodeset import NodeFeed, NodeSet
@@ -74,7 +74,7 @@ class FaultApplier:
         started = []
         for f, name, on in fi.window_changes(k, st, names):
             node = by_name[name]
-            if f.kind in ("overrange", "sensor") and "status" not in ROLE_CHANNELS[node.role]:
+            if f.kind in ("overrange", "sensor") and "status" not in node.channel_names:
                 continue
             fi.record(k, st, f.kind, name, event="start" if on else "end",
                       channel=f.channel, spec=f.token)
@@ -107,7 +107,7 @@ class FaultApplier:
         """The node-level faults on ``feed``'s node's process image: stuck channels hold
         their value, an over-range reads full scale, status bits set."""
         fi, node = self.faults, feed.node
-        chans = [c for c in ROLE_CHANNELS[node.role] if c != "status"]
+        chans = [c for c in node.channel_names if c != "status"]
         for f, n in started:  # a stuck channel holds the value it had when the fault began
             if n is node and f.kind == "stuck":
                 for ch in ([f.channel] if f.channel else chans):
@@ -119,7 +119,7 @@ class FaultApplier:
                 v = self._frozen.get((f.index, node.name, ch))
                 if v is not None:
                     node.set_raw(ch, v)
-        if "status" in ROLE_CHANNELS[node.role]:
+        if "status" in node.channel_names:
             status = int(node.raw("status") or 0)
             if fi.active("overrange", node.name) is not None:
                 status |= STATUS_OVER_RANGE
@@ -133,7 +133,7 @@ class FaultApplier:
     def status_emcy(feed: NodeFeed) -> list[Frame]:
         """EMCY when a status bit appears or clears (CiA 301: only in pre-op or operational)."""
         node = feed.node
-        if "status" not in ROLE_CHANNELS[node.role] or node.state not in (PRE_OPERATIONAL, OPERATIONAL):
+        if "status" not in node.channel_names or node.state not in (PRE_OPERATIONAL, OPERATIONAL):
             return []
         status = int(node.raw("status") or 0)
         out = []

@@ -7,11 +7,13 @@ canopen 2.4.1) is replaced here:
 * NMT: LocalNode stays in INITIALISING after a reset. ``SimNode`` runs its own CiA 301 state
   machine (boot-up frame on start and after every reset, then pre-operational; start, stop,
   enter pre-operational; reset communication restores 0x1000–0x1FFF, reset application the
-  whole dictionary) and keeps LocalNode's ``nmt`` state in step with it.
+  whole dictionary) and keeps LocalNode's ``nmt`` state in step with it (through the NMT
+  slave's own command handler: no private state of canopen's is written).
 * Heartbeat: LocalNode produces it with python-can's wall-clock periodic send and restarts
-  that task on every write to 0x1017. ``SimNode`` instead reports the heartbeats that are
-  due at the acquisition clock's time (model §8.3 "Time"): simulated time in lock-step, the
-  wall clock live. A write to 0x1017 re-arms that schedule.
+  that task on every write to 0x1017 (:class:`QuietLocalNode` declines that). ``SimNode``
+  instead reports the heartbeats that are due at the acquisition clock's time (model §8.3
+  "Time"): simulated time in lock-step, the wall clock live. A write to 0x1017 re-arms that
+  schedule.
 * TPDOs: LocalNode sends none on SYNC and does not share TPDO values with its SDO server.
   ``SimNode.sync`` encodes every valid TPDO from the mapping *currently in its dictionary*
   (0x1800…/0x1A00…, re-read after any SDO write to them), honours the transmission type
@@ -41,29 +43,22 @@ from canopen import objectdictionary as od_mod
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable
 from canopen.sdo import SdoAbortedError
 
-from rsra.config.rig import G0
+from rsra.config.devices import DEVICE_PROFILES, TURN, device_profile
 
 log = logging.getLogger(__name__)
 
-# The channels of each node role, in the order of the node's TPDO mapping entries (docs/bus.md §1
-# "Nodes" table). The OD objects that carry them come from the EDS mapping, never from here.
-ROLE_CHANNELS: dict[str, tuple[str, ...]] = {
-    "load_cell": ("force", "status"),
-    "accelerometer": ("x", "y", "z"),
-    "rotor_speed": ("omega", "azimuth"),
-    "balance": ("X", "Y", "Z", "L", "M", "N"),
-    "drive_load": ("torque",),
-}
-
-# Engineering unit -> bus count conversions that are part of the bus contract (docs/bus.md §1):
-# accelerometers send 1 count = 1 mg; the azimuth spans the whole unsigned range over 2π.
-MG_PER_M_S2 = 1.0 / (G0 * 1e-3)
+# The channels of each node role and their bus units are the device profile's
+# (config.devices: in the order of the node's TPDO mapping entries, docs/bus.md §1 "Nodes"); the
+# OD objects that carry them come from the EDS mapping, never from here.
 
 # CiA 301 NMT states (the heartbeat byte) and command specifiers.
 INITIALISING, STOPPED, OPERATIONAL, PRE_OPERATIONAL = 0x00, 0x04, 0x05, 0x7F
 STATE_NAMES = {INITIALISING: "INITIALISING", STOPPED: "STOPPED", OPERATIONAL: "OPERATIONAL",
                PRE_OPERATIONAL: "PRE-OPERATIONAL"}
 NMT_START, NMT_STOP, NMT_PRE_OPERATIONAL, NMT_RESET_NODE, NMT_RESET_COMM = 0x01, 0x02, 0x80, 0x81, 0x82
+# the command that leads to each state (a reset ends in INITIALISING)
+_COMMAND_TO = {INITIALISING: NMT_RESET_NODE, STOPPED: NMT_STOP, OPERATIONAL: NMT_START,
+               PRE_OPERATIONAL: NMT_PRE_OPERATIONAL}
 
 # CiA 301 function codes (COB-ID = function code + node id where the EDS gives no other).
 COB_NMT, COB_EMCY_BASE, COB_SDO_TX, COB_SDO_RX, COB_HEARTBEAT = 0x000, 0x080, 0x580, 0x600, 0x700
@@ -130,12 +125,23 @@ def _int_range(var: ODVariable) -> tuple[int, int]:
     return 0, (1 << bits) - 1
 
 
-def encode_channel(role: str, channel: str, value: float, var: ODVariable) -> int | float:
-    """Engineering value -> the raw value of OD variable ``var`` (docs/bus.md §1 units).
+def _counts_per_unit(role: str, channel: str) -> float | str | None:
+    """Bus counts per engineering unit of a channel (the profile's scale inverted), TURN for
+    an angle spanning one turn, None where count and unit are one (a factor of 1, a status)."""
+    scale = device_profile(role).channel(channel).scale
+    if scale == TURN:
+        return TURN
+    return None if scale is None or scale == 1.0 else 1.0 / float(scale)
 
-    Accelerometer axes: m/s² -> mg counts, rounded half-to-even and saturated to the data
-    type. Azimuth: rad -> 0…2^bits over 0…2π, wrapped. Integers elsewhere: rounded and
-    saturated. Floats: the value itself (the packer rounds to REAL32).
+
+def encode_channel(role: str, channel: str, value: float, var: ODVariable) -> int | float:
+    """Engineering value -> the raw value of OD variable ``var`` (the device profile's units,
+    config.devices).
+
+    Scaled channels (accelerometer axes: m/s² -> mg counts): rounded half-to-even and
+    saturated to the data type. An angle spanning one turn (the azimuth): rad -> 0…2^bits
+    over 0…2π, wrapped. Integers elsewhere: rounded and saturated. Floats: the value itself
+    (the packer rounds to REAL32).
     """
     dt = var.data_type
     if dt == od_mod.REAL32:
@@ -143,11 +149,12 @@ def encode_channel(role: str, channel: str, value: float, var: ODVariable) -> in
     if dt in od_mod.FLOAT_TYPES:
         return float(value)
     lo, hi = _int_range(var)
-    if role == "rotor_speed" and channel == "azimuth":
+    per_unit = _counts_per_unit(role, channel)
+    if per_unit == TURN:
         span = hi - lo + 1
         return int(round((float(value) % (2 * math.pi)) / (2 * math.pi) * span)) % span + lo
-    if role == "accelerometer":
-        value = float(value) * MG_PER_M_S2
+    if isinstance(per_unit, float):
+        value = float(value) * per_unit
     if not math.isfinite(value):
         return hi if value > 0 else lo
     return int(min(max(round(value), lo), hi))
@@ -157,11 +164,12 @@ def decode_channel(role: str, channel: str, raw: int | float, var: ODVariable) -
     """The inverse of ``encode_channel`` (to the encoding's resolution)."""
     if var.data_type in od_mod.FLOAT_TYPES:
         return float(raw)
-    if role == "rotor_speed" and channel == "azimuth":
+    per_unit = _counts_per_unit(role, channel)
+    if per_unit == TURN:
         lo, hi = _int_range(var)
         return (int(raw) - lo) / (hi - lo + 1) * 2 * math.pi
-    if role == "accelerometer":
-        return float(raw) / MG_PER_M_S2
+    if isinstance(per_unit, float):
+        return float(raw) / per_unit
     return float(raw)
 
 
@@ -190,7 +198,7 @@ def _record(od: "canopen.ObjectDictionary", index: int) -> ODRecord | ODArray:
 def role_channel_vars(od: "canopen.ObjectDictionary", role: str) -> list[tuple[str, ODVariable]]:
     """The role's channels paired with the OD variables of the EDS's default TPDO mapping, in
     order (TPDO1 entry 1, 2, …, TPDO2 …). Raises ValueError when the EDS maps fewer objects."""
-    names = ROLE_CHANNELS[role]
+    names = device_profile(role).names
     mapped: list[ODVariable] = []
     for n in range(512):
         if 0x1A00 + n not in od:
@@ -432,6 +440,20 @@ class ErrorState:
         self.register = 0
 
 
+class QuietLocalNode(canopen.LocalNode):
+    """canopen's LocalNode without its wall-clock heartbeat: LocalNode registers its NMT
+    slave's ``on_write``, which starts python-can's periodic send on every write to 0x1017;
+    a simulated node reports its heartbeats on the acquisition clock instead
+    (:class:`HeartbeatSchedule`), so that one registration is declined. Every other write
+    callback is kept."""
+
+    def add_write_callback(self, callback: Callable[..., None]) -> None:
+        nmt = getattr(self, "nmt", None)  # (registered from LocalNode.__init__)
+        if nmt is not None and callback == nmt.on_write:
+            return
+        super().add_write_callback(callback)
+
+
 class SimNode:
     """One simulated CANopen slave: a LocalNode from the EDS with the NMT, heartbeat, SYNC/TPDO
     and EMCY behaviour of CiA 301 done properly (see the module docstring).
@@ -446,15 +468,19 @@ class SimNode:
 
     def __init__(self, name: str, role: str, node_id: int, eds: str | Path,
                  clock: Callable[[], float], lock: "threading.RLock | None" = None):
-        if role not in ROLE_CHANNELS:
+        if role not in DEVICE_PROFILES:
             raise ValueError(f"node {name!r}: unknown role {role!r}")
         self.name, self.role, self.node_id = name, role, int(node_id)
         self.eds = Path(eds)
         self.od = load_od(eds, node_id)
-        self.local = canopen.LocalNode(self.node_id, self.od)
+        self.local = QuietLocalNode(self.node_id, self.od)
         self._clock = clock
         self._lock = lock if lock is not None else contextlib.nullcontext()
+        #: the role's channels (the device profile's, config.devices) with the OD variables
+        #: of the EDS's default mapping that carry them
         self.channels = role_channel_vars(self.od, role)
+        #: the channel names, in the profile's order
+        self.channel_names: tuple[str, ...] = tuple(ch for ch, _ in self.channels)
         self._channel_key = {ch: (v.index, v.subindex) for ch, v in self.channels}
         self.state = INITIALISING
         self.silent = False  # fault: the node neither sends nor hears anything
@@ -467,10 +493,7 @@ class SimNode:
         # its SYNC (real time) then, so the event applies to the state it would have met
         self.before_change: Callable[[], None] | None = None
         self.local.add_read_callback(self._on_sdo_read)
-        # LocalNode registers its NMT slave's on_write, which would start a wall-clock
-        # heartbeat task on every write to 0x1017: replace it by our own.
-        self.local._write_callbacks.remove(self.local.nmt.on_write)
-        self.local.add_write_callback(self._on_sdo_write)
+        self.local.add_write_callback(self._on_sdo_write)  # (0x1017 re-arms our heartbeat)
 
     # ---- network --------------------------------------------------------------------------
     def attach(self, network: canopen.Network) -> None:
@@ -504,7 +527,9 @@ class SimNode:
 
     def _set_state(self, state: int) -> None:
         self.state = state
-        self.local.nmt._state = state  # keep LocalNode's view (and its users) in step
+        # LocalNode's view (and its users) kept in step through its NMT slave's own command
+        # handler, given the command that leads to the state (no frame is sent)
+        self.local.nmt.on_command(COB_NMT, bytes((_COMMAND_TO[state], self.node_id)), 0.0)
 
     def boot(self, t: float | None = None) -> list[Frame]:
         """Power-on (or the end of a reset): boot-up frame, then PRE-OPERATIONAL; the heartbeat
@@ -585,8 +610,9 @@ class SimNode:
 
     # ---- process data and TPDOs -------------------------------------------------------------
     def update(self, values: Sequence[float] | dict[str, float]) -> None:
-        """New measured values in engineering units (ROLE_CHANNELS order or by name)."""
-        items = values.items() if isinstance(values, dict) else zip(ROLE_CHANNELS[self.role], values)
+        """New measured values in engineering units (the device profile's channel order, or
+        by name)."""
+        items = values.items() if isinstance(values, dict) else zip(self.channel_names, values)
         chans = dict(self.channels)
         process = self.tpdos.process
         for ch, v in items:
@@ -594,7 +620,7 @@ class SimNode:
             process[(var.index, var.subindex)] = encode_channel(self.role, ch, v, var)
 
     def set_raws(self, raws: Sequence[int | float]) -> None:
-        """Raw bus values of every channel, in ROLE_CHANNELS order (already encoded)."""
+        """Raw bus values of every channel, in the profile's order (already encoded)."""
         process = self.tpdos.process
         for (ch, var), v in zip(self.channels, raws):
             process[(var.index, var.subindex)] = v

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any, Callable
 
 from canopen.objectdictionary import datatypes as od_types
 
+from rsra.config.devices import device_profile
 from rsra.sim_bus.nodes import (
     COB_EMCY_BASE,
     COB_HEARTBEAT,
@@ -33,14 +34,12 @@ DEFAULT_BITRATE = 1_000_000  # docs/bus.md: 1 Mbit/s on the aircraft, when no ED
 COB_TIME, COB_LSS_MASTER, COB_LSS_SLAVE = 0x100, 0x7E5, 0x7E4
 _ENCODED = ("force", "status", "accel_counts", "omega", "azimuth_counts", "balance", "drive")
 
-# The data types sim_bus.offline.ChannelCodec encodes to (docs/bus.md §1 "Nodes"): the EDS must agree.
-_CODEC_TYPES = {
-    ("load_cell", "force"): od_types.REAL32, ("load_cell", "status"): od_types.UNSIGNED8,
-    ("accelerometer", "x"): od_types.INTEGER16, ("accelerometer", "y"): od_types.INTEGER16,
-    ("accelerometer", "z"): od_types.INTEGER16, ("rotor_speed", "omega"): od_types.REAL32,
-    ("rotor_speed", "azimuth"): od_types.UNSIGNED16, ("drive_load", "torque"): od_types.REAL32,
-    **{("balance", c): od_types.REAL32 for c in "XYZLMN"},
-}
+
+def codec_type(role: str, channel: str) -> int:
+    """The CANopen data type a channel is encoded to (the device profile's, config.devices:
+    what sim_bus.offline.ChannelCodec encodes a fed channel to); the EDS must agree."""
+    code: int = getattr(od_types, device_profile(role).channel(channel).data_type)
+    return code
 
 
 @dataclass
@@ -48,7 +47,7 @@ class NodeFeed:
     """What one node is fed from each sample."""
 
     node: SimNode
-    raws: Callable[[dict[str, Any]], Any]  # encoded sample (lists) -> raw values, ROLE_CHANNELS order
+    raws: Callable[[dict[str, Any]], Any]  # encoded sample (lists) -> raw values, the profile's channel order
     full_scale: float | None  # load cell: the force an over-range reads (config)
 
 
@@ -113,7 +112,7 @@ class NodeSet:
             add(x.node, drive(q))
         for f in feeds.values():
             for ch, var in f.node.channels:
-                want = _CODEC_TYPES[(f.node.role, ch)]
+                want = codec_type(f.node.role, ch)
                 if var.data_type != want:
                     raise ValueError(
                         f"node {f.node.name!r} ({f.node.eds.name}): channel {ch!r} is mapped to "

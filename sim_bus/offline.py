@@ -16,15 +16,16 @@ from typing import Any
 
 import numpy as np
 
-from rsra.config.rig import G0, RigConfig
+from rsra.config.devices import MILLI_G
+from rsra.config.rig import RigConfig
 
 from .physics import BLOCK_SIZE, SAMPLE_FIELDS, AircraftPhysics, SimSample
 from .scenarios import Scenario, load_scenario
 
-# docs/bus.md §1: accelerometer TPDO x, y, z INTEGER16, 1 count = 1 mg; azimuth "UNSIGNED16
-# (0…65535 ↔ 0…2π)". The EDS data types (0x0003 INTEGER16, 0x0006 UNSIGNED16, 0x0008 REAL32)
-# match; the EDS has no scale object, so the scales of the contract live here, once.
-ACCEL_M_S2_PER_COUNT = G0 * 1e-3
+# docs/bus.md §1: accelerometer TPDO x, y, z INTEGER16, 1 count = 1 mg (the device profile's
+# scale, config.devices); azimuth "UNSIGNED16 (0…65535 ↔ 0…2π)". The EDS data types (0x0003
+# INTEGER16, 0x0006 UNSIGNED16, 0x0008 REAL32) match (sim_bus.nodeset checks them).
+ACCEL_M_S2_PER_COUNT = MILLI_G
 INT16_MAX = 32767
 AZIMUTH_COUNTS = 65536
 CHANNEL_FIELDS = ("T", "cell_status", "accel", "omega", "azimuth", "H_balance", "drive")

@@ -17,6 +17,7 @@ import can
 import canopen
 
 from rsra.canbus import EchoFirstVirtualBus
+from rsra.sim_bus.nodes import QuietLocalNode
 
 T0 = 1_700_000_000.0  # acquisition time origin of the tests (UNIX-like: BLF needs it)
 _chan = itertools.count()
@@ -119,11 +120,10 @@ class LocalSlaves:
         for nc in cfg.nodes:
             if nc.name in absent:
                 continue
-            node = canopen.LocalNode(nc.node_id, canopen.import_od(str(nc.eds), nc.node_id))
-            self.net.add_node(node)
             # NMT and heartbeat are ours: LocalNode would start a wall-clock heartbeat on 0x1017
+            node = QuietLocalNode(nc.node_id, canopen.import_od(str(nc.eds), nc.node_id))
+            self.net.add_node(node)
             self.net.unsubscribe(0, node.nmt.on_command)
-            node._write_callbacks.remove(node.nmt.on_write)
             self.nodes[nc.name] = node
             self.state[nc.name] = 0
         for (name, index, sub), data in (overrides or {}).items():

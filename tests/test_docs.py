@@ -136,10 +136,10 @@ def test_config_doc_names_every_role_choice_and_channel():
     names = code_names(doc)
     assert set(ROLES) <= {n.strip('"') for n in names}
     assert {f'"{c}"' for c in CONTENTS} <= names
-    from rsra.daq.bus.decoder import PROFILES
+    from rsra.config.devices import DEVICE_PROFILES
 
-    for role, profile in PROFILES.items():
-        for channel, scale in profile.values():
+    for role, profile in DEVICE_PROFILES.items():
+        for channel in profile.names:
             assert f"`{channel}`" in doc, (role, channel)
     for eds in sorted((config_dir() / "eds").glob("*.eds")):
         assert f"`{eds.name}`" in doc, eds.name

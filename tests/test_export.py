@@ -145,11 +145,12 @@ def test_the_dbc_carries_the_calibration_of_every_channel(rng):
 def test_the_eds_unit_objects_say_what_the_decoder_assumes(cfg):
     import canopen
 
-    from rsra.daq.analysis.export import _CHANNEL_UNITS, eds_unit
+    from rsra.config.devices import device_profile
+    from rsra.daq.analysis.export import eds_unit
 
     od = canopen.import_od(str(EDS_DIR / "load_cell.eds"), 0x11)
     assert od[0x6131][1].default == 0x00210000  # CiA 303-2: newton, 10^0
-    assert eds_unit(od, 0x6130, 1) == _CHANNEL_UNITS["load_cell"]["force"] == "N"
+    assert eds_unit(od, 0x6130, 1) == device_profile("load_cell").channel("force").unit == "N"
 
 
 # -- EDS lint -------------------------------------------------------------------------------

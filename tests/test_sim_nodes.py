@@ -491,3 +491,26 @@ def test_the_error_state_alone():
     assert (code, register, info[:2]) == (0, ERR_GENERIC, struct.pack("<H", 0x5000))
     es.clear()
     assert es.active == {} and es.register == 0
+
+
+def test_the_node_drives_canopen_only_through_its_public_api(cell):
+    """LocalNode's NMT view follows every state through its own command handler, and a write
+    to 0x1017 on a network starts no wall-clock heartbeat task (QuietLocalNode declines
+    LocalNode's registration of it): the heartbeats are the acquisition clock's alone."""
+    net = canopen.Network()  # never connected: nothing to send on, only the calls counted
+    periodic: list[tuple] = []
+    net.send_periodic = lambda *a, **kw: periodic.append(a)  # type: ignore[method-assign]
+    cell.attach(net)
+    try:
+        cell.boot(0.0)
+        seen = [cell.local.nmt.state]
+        for cmd in (NMT_START, NMT_STOP, NMT_PRE_OPERATIONAL, NMT_START):
+            cell.nmt(cmd, 0)
+            seen.append(cell.local.nmt.state)
+        assert seen == ["PRE-OPERATIONAL", "OPERATIONAL", "STOPPED", "PRE-OPERATIONAL",
+                        "OPERATIONAL"]
+        cell.local.sdo.download(0x1017, 0, struct.pack("<H", 20))
+        assert periodic == [] and cell.heartbeat_period_s == 0.02
+        assert cell.local.sdo.upload(0x1017, 0) == struct.pack("<H", 20)
+    finally:
+        cell.detach()

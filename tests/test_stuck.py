@@ -15,7 +15,7 @@ import pytest
 from scipy.stats import norm, poisson
 
 from rsra.config.rig import ConfigError, load_config
-from rsra.daq.bus.decoder import MILLI_G
+from rsra.config.devices import MILLI_G
 from rsra.daq.runtime.stuck import (
     SECONDS_PER_HOUR,
     StuckDetector,

@@ -22,33 +22,23 @@ import math
 import re
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
+from rsra.config.devices import MILLI_G, device_profile
 from rsra.config.rig import RigConfig
 from rsra.daq.bus.decoder import (
-    MILLI_G,
-    PROFILES,
     STATUS_FAULT,
     STATUS_OVERRANGE,
     DecodeTable,
     od_variable,
 )
 from rsra.config.units import AXIS_KIND
+from rsra.daq.jsonlines import json_lines
 from rsra.daq.runtime.schema import FIELDS, VEC6, json_schema, log_time_ns  # noqa: F401 - FIELDS re-exported
 
 AXES = ("X", "Y", "Z", "L", "M", "N")
 AXIS_UNIT = {"force": "N", "moment": "N·m"}
 
-# -- units of the bus channels (the device profiles of docs/bus.md §1; cf. daq.decoder.PROFILES) ---
-# DBC units are plain ASCII (DBC files are read as cp1252/latin-1 by most tools).
-_CHANNEL_UNITS: dict[str, dict[str, str]] = {
-    "load_cell": {"force": "N", "status": ""},
-    "accelerometer": {"x": "m/s^2", "y": "m/s^2", "z": "m/s^2"},
-    "rotor_speed": {"omega": "rad/s", "azimuth": "rad"},
-    "balance": {n: ("N" if k == "force" else "Nm") for n, k in zip(AXES, AXIS_KIND)},
-    "drive_load": {"torque": "Nm"},
-}
-assert all(set(_CHANNEL_UNITS[r]) == {n for n, _ in PROFILES[r].values()} for r in PROFILES)
 # CiA 303-2 unit codes (numerator byte of a CiA 404 "physical unit" object such as 0x6131)
 CIA_303_2_UNITS = {0x00: "", 0x01: "m", 0x02: "kg", 0x03: "s", 0x10: "rad", 0x20: "Hz",
                    0x21: "N", 0x22: "Pa", 0x23: "J", 0x24: "W"}
@@ -92,7 +82,7 @@ def build_dbc(cfg: RigConfig, table: DecodeTable | None = None):
         node = _ident(nl.name)
         nodes.append(Node(name=node, comment=f"{nl.role}, node id {nl.node_id}, EDS "
                                              f"{Path(nl.eds).name}"))
-        units = _CHANNEL_UNITS.get(nl.role, {})
+        profile = device_profile(nl.role)
         for lay in nl.tpdos:
             signals = []
             bit = 0
@@ -119,7 +109,8 @@ def build_dbc(cfg: RigConfig, table: DecodeTable | None = None):
                 else:
                     conv = BaseConversion.factory(scale=c.gain * c.scale, offset=c.offset,
                                                   is_float=code in "fd")
-                    unit = eds_unit(nl.od, index, sub) or units.get(c.name, "")
+                    known = profile.at(index, sub)
+                    unit = eds_unit(nl.od, index, sub) or (known.unit if known else "")
                     if c.name in ("x", "y", "z") and c.scale == MILLI_G:
                         comment += "; 1 count = 1 mg"
                 signals.append(Signal(
@@ -174,28 +165,18 @@ def dbc_text(cfg: RigConfig) -> str:
 # -- telemetry records (JSONL of `rsra replay --out`) ------------------------------------------
 def read_records(path: Path) -> Iterator[tuple[str, dict]]:
     """(key, payload) of every line of a telemetry JSONL file; ExportError on a bad line."""
+    def bad(n: int, why: str) -> NoReturn:
+        raise ExportError(f"{path}:{n}: {why}; fix: give a file written by `rsra replay --out`")
+
     try:
-        with open(path, encoding="utf-8", errors="replace") as f:
-            yield from _parse_lines(path, f)
+        for n, rec in json_lines(path, bad):
+            if not isinstance(rec, dict) or not isinstance(rec.get("key"), str):
+                bad(n, 'a record without a "key"')
+            key = rec.pop("key")
+            yield key, rec
     except OSError as e:
         raise ExportError(f"{path}: cannot read ({e.strerror}); fix: check the path and "
                           "its permissions") from None
-
-
-def _parse_lines(path: Path, f) -> Iterator[tuple[str, dict]]:
-    for n, line in enumerate(f, start=1):
-        if not line.strip():
-            continue
-        try:
-            rec = json.loads(line)
-        except json.JSONDecodeError as e:
-            raise ExportError(f"{path}:{n}: not a JSON line ({e.msg}); fix: give a file "
-                              "written by `rsra replay --out`") from None
-        if not isinstance(rec, dict) or not isinstance(rec.get("key"), str):
-            raise ExportError(f"{path}:{n}: a record without a \"key\"; fix: give a file "
-                              "written by `rsra replay --out`")
-        key = rec.pop("key")
-        yield key, rec
 
 
 def write_mcap(records: Iterable[tuple[str, dict]], out, prefix: str,

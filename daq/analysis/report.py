@@ -20,12 +20,13 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 from scipy import signal, stats
 
 from rsra.config.rig import RigConfig
+from rsra.daq.jsonlines import json_lines
 from rsra.daq.jsonout import dumps
 from rsra.daq.runtime.persistence import save_figure, write_text_atomic
 from rsra.config.units import axis_units, to_units
@@ -85,21 +86,16 @@ def load_records(path: str | Path) -> Records:
     angles: list[dict] = []
     health: list[dict] = []
     initial: dict | None = None
+
+    def bad(n: int, why: str) -> NoReturn:
+        raise ReportError(f"{p} line {n}: not a JSON record with a \"key\" field ({why}); "
+                          "give the JSONL written by `rsra replay --out`")
+
     try:
-        f = open(p, encoding="utf-8")
-    except OSError as e:
-        raise ReportError(f"{p}: cannot read ({e.strerror})") from None
-    with f:
-        for n, line in enumerate(f, 1):
-            line = line.strip()
-            if not line:
-                continue
-            try:
-                rec = json.loads(line)
-                key = rec["key"]
-            except (ValueError, KeyError, TypeError):
-                raise ReportError(f"{p} line {n}: not a JSON record with a \"key\" field; give "
-                                  "the JSONL written by `rsra replay --out`") from None
+        for n, rec in json_lines(p, bad):
+            if not isinstance(rec, dict) or not isinstance(rec.get("key"), str):
+                bad(n, "no \"key\" naming it")
+            key = rec["key"]
             counts[key] = counts.get(key, 0) + 1
             try:
                 if key == "channels":
@@ -134,6 +130,8 @@ def load_records(path: str | Path) -> Records:
             except (KeyError, TypeError, ValueError) as e:
                 raise ReportError(f"{p} line {n}: a {key!r} record without a valid {e} field "
                                   "(docs/telemetry.md §2 payload)") from None
+    except OSError as e:
+        raise ReportError(f"{p}: cannot read ({e.strerror})") from None
     if not counts:
         raise ReportError(f"{p}: no records (empty file)")
     if len(frames) > 1:

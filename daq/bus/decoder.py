@@ -4,8 +4,8 @@ Nothing here is hard-coded per rig: every COB-ID, frame layout and data type com
 EDS default of each node's TPDO communication (0x1800+n) and mapping (0x1A00+n) parameters,
 evaluated for the node id of the rig config, and every gain/offset from
 ``cfg.calibration["<node>.<channel>"]``. What *is* fixed is the device profile of each role
-(which mapped object is which physical channel and its unit), the same way a CiA 404/410
-profile fixes it for every vendor.
+(which mapped object is which physical channel and its unit: config.devices), the same way a
+CiA 404/410 profile fixes it for every vendor.
 
 One precompiled little-endian :class:`struct.Struct` per COB-ID (CANopen is little-endian),
 and one for a whole sample (every TPDO's frame, joined in bit order): the hot path keeps the
@@ -22,7 +22,8 @@ import canopen
 import numpy as np
 from canopen.objectdictionary import ODVariable, datatypes
 
-from rsra.config.rig import G0, ConfigError, RigConfig
+from rsra.config.devices import TURN, device_profile
+from rsra.config.rig import ConfigError, RigConfig
 from rsra.config.rigfile import predefined_cob_ids
 
 # CANopen basic data types -> struct codes (CiA 301 §7.1.4); the bit length in the mapping
@@ -35,25 +36,6 @@ _STRUCT_CODE = {
 }
 _UNSIGNED = (datatypes.UNSIGNED8, datatypes.UNSIGNED16, datatypes.UNSIGNED32, datatypes.UNSIGNED64)
 
-# Unit conversions of the device profiles (docs/bus.md §1 "Nodes").
-MILLI_G = 1.0e-3 * G0  # accelerometers: 1 count = 1 mg of specific force, in m/s^2
-TURN = "turn"  # marker: an unsigned angle that spans one turn (0 … 2^bits ↔ 0 … 2π)
-
-# Device profile per role: (object index, sub-index) -> (channel name, unit scale).
-# scale None marks a status byte (bit field, never calibrated).
-PROFILES: dict[str, dict[tuple[int, int], tuple[str, float | str | None]]] = {
-    "load_cell": {(0x6130, 1): ("force", 1.0), (0x6150, 1): ("status", None)},
-    "accelerometer": {(0x6401, 1): ("x", MILLI_G), (0x6401, 2): ("y", MILLI_G),
-                      (0x6401, 3): ("z", MILLI_G)},
-    "rotor_speed": {(0x2100, 1): ("omega", 1.0), (0x2100, 2): ("azimuth", TURN)},
-    "balance": {(0x2200, k): (n, 1.0) for k, n in enumerate("XYZLMN", start=1)},
-    "drive_load": {(0x2300, 1): ("torque", 1.0)},
-}
-# Channels the reader needs from each role (a rig whose EDS lacks one is refused).
-REQUIRED_CHANNELS = {
-    "load_cell": ("force", "status"), "accelerometer": ("x", "y", "z"),
-    "rotor_speed": ("omega", "azimuth"), "balance": tuple("XYZLMN"), "drive_load": (),
-}
 # Status bits of a load cell (docs/bus.md §1: 0x6150:1 bit 0 over-range, bit 1 sensor fault).
 STATUS_OVERRANGE = 0x01
 STATUS_FAULT = 0x02
@@ -216,7 +198,7 @@ class DecodeTable:
                     why = " ".join(str(e).split())  # one line: configparser's text spans several
                     raise ConfigError(f"nodes[{ni}].eds", str(nc.eds), f"cannot be read ({why})",
                                       "give a valid CiA 306 EDS file") from None
-                profile = PROFILES[nc.role]
+                profile = device_profile(nc.role)
                 node_start = len(channels)
                 node_tpdos = []
                 node_mask = 0
@@ -247,7 +229,9 @@ class DecodeTable:
                                           "split the mapping over two TPDOs")
                     start = len(channels)
                     for index, sub, dtype in values:
-                        name, scale = profile.get((index, sub), (f"0x{index:04X}_{sub}", 1.0))
+                        known = profile.at(index, sub)  # an object outside the profile:
+                        name, scale = (known.name, known.scale) if known else (  # by its address
+                            f"0x{index:04X}_{sub}", 1.0)
                         key = f"{nc.name}.{name}"
                         gain, offset = cfg.calibration.get(key, (1.0, 0.0))
                         wrap = None
@@ -288,7 +272,7 @@ class DecodeTable:
                     node_mask |= bit
                     bit <<= 1
                 names = {c.name for c in channels[node_start:]}
-                for need in REQUIRED_CHANNELS[nc.role]:
+                for need in profile.required:
                     if need not in names:
                         raise ConfigError(f"nodes[{ni}].eds", str(nc.eds),
                                           f"no TPDO maps the {nc.role} channel {need!r}",

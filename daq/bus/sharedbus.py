@@ -13,7 +13,6 @@ between processes"): python-can-remote's server, wrapped — never re-implemente
 """
 from __future__ import annotations
 
-import ipaddress
 import logging
 import threading
 from collections.abc import Callable
@@ -27,14 +26,6 @@ log = logging.getLogger(__name__)
 DEFAULT_PORT = 54701  # python-can-remote's own default
 LOOPBACK = "127.0.0.1"
 
-
-def is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 def _handler_class():

@@ -20,13 +20,14 @@
 """
 from __future__ import annotations
 
-import ipaddress
 import json
 import logging
 import socket
 import sys
 import threading
 from collections.abc import Callable, Iterable
+
+from rsra.daq.netaddr import is_loopback
 
 log = logging.getLogger("rsra.foxglove")
 
@@ -99,14 +100,6 @@ def check_option(args) -> None:
     if getattr(args, "foxglove", None):
         check_address(*parse_address(args.foxglove))
 
-
-def is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 def risk_line(host: str, port: int) -> str | None:

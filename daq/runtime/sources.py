@@ -23,7 +23,6 @@ simulator's truth file written after the simulator stopped.
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import math
 import threading
@@ -33,6 +32,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Protocol, TypeGuard, cast
 
+from rsra.daq.jsonlines import json_lines
 from rsra.daq.runtime.records import AnglesRecord
 
 if TYPE_CHECKING:
@@ -110,8 +110,9 @@ class _Base:
         self.truth_error: str | None = None  # the simulator's truth file could not be written
         self._stack = contextlib.ExitStack()
         # a live source runs this on each sample in its bus thread before queueing it (the
-        # service's first step: hub loads published with no hand-off to
-        # another thread); set before the source is opened; sources that are not live ignore it
+        # service's first step: hub loads published with no hand-off between threads, so the
+        # service's own share of the latency stays a fraction of the sample period); set
+        # before the source is opened; sources that are not live ignore it
         self.first_step: Callable[[Sample], Any] | None = None
 
     def angles_plan(self, identification: bool, recompute: bool) -> AnglesPlan:
@@ -420,26 +421,21 @@ def read_angles_schedule(folder: Path, file: Path | None = None
     if not p.is_file():
         return None, []
     initial, records = None, []
-    with open(p, encoding="utf-8") as f:
-        for n, line in enumerate(f, 1):
-            line = line.strip()
-            if not line:
-                continue
-            try:
-                rec = json.loads(line)
-            except ValueError:
-                log.warning("%s:%d: unreadable angles record skipped (a crash mid-write?)", p, n)
-                continue
-            problem = _schedule_problem(rec)
-            if problem:
-                from rsra.daq.bus.replay import ReplayError
 
-                raise ReplayError(f"{p}:{n}: {problem}; fix: replay with --recompute (runs the "
-                                  "identification again) or repair that line")
-            if rec.get("initial"):
-                initial = rec
-            else:
-                records.append(rec)
+    def skip(n: int, why: str) -> None:
+        log.warning("%s:%d: unreadable angles record skipped (%s; a crash mid-write?)", p, n, why)
+
+    for n, rec in json_lines(p, skip):
+        problem = _schedule_problem(rec)
+        if problem:
+            from rsra.daq.bus.replay import ReplayError
+
+            raise ReplayError(f"{p}:{n}: {problem}; fix: replay with --recompute (runs the "
+                              "identification again) or repair that line")
+        if rec.get("initial"):
+            initial = rec
+        else:
+            records.append(rec)
     return initial, records
 
 

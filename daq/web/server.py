@@ -22,7 +22,6 @@ under a flood of requests.
 from __future__ import annotations
 
 import asyncio
-import ipaddress
 import json
 import logging
 import time
@@ -33,6 +32,7 @@ from pathlib import Path
 from aiohttp import WSMsgType, web
 
 from rsra.daq.jsonout import dumps
+from rsra.daq.netaddr import is_loopback
 from rsra.daq.payload_guard import PayloadGuard, Received
 from rsra.daq.web.dictionary import Dictionary, points
 from rsra.daq.web.history import (History, HistoryFileError, TelemetryFile, merged_query,
@@ -64,14 +64,6 @@ def openmct_dir() -> Path | None:
     """Where the Open MCT files are, or None (run `make web`)."""
     return OPENMCT_DIR if (OPENMCT_DIR / "openmct.js").is_file() else None
 
-
-def is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host.strip("[]")).is_loopback
-    except ValueError:
-        return False
 
 
 def allowed_hosts(host: str, port: int, extra: Sequence[str] = ()) -> set[str]:

@@ -33,7 +33,8 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     from rsra.daq.cli.options import UsageError
-    from rsra.daq.bus.sharedbus import BusServer, is_loopback
+    from rsra.daq.bus.sharedbus import BusServer
+    from rsra.daq.netaddr import is_loopback
 
     if not 0 <= args.port <= 65535:
         raise UsageError(f"--port {args.port}: give a TCP port 0–65535")

@@ -1,5 +1,6 @@
-"""`rsra export`: files other tools open (docs/cli.md §14) — a DBC of the bus, MCAP and Parquet of the
-telemetry (daq.export).
+"""`rsra export`: files other tools open (docs/cli.md §14), one option per format of the
+registry (daq.analysis.export_formats.EXPORT_FORMATS: a DBC of the bus, MCAP and Parquet of the
+telemetry); this command names none of them.
 
 Outputs are written by the one writer (daq.runtime.persistence.OutputFile): under a temporary
 name beside the target and renamed only when complete, so a refused or failed export leaves no
@@ -9,38 +10,58 @@ from __future__ import annotations
 
 import argparse
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import IO
 
+from rsra.daq.analysis.export_formats import EXPORT_FORMATS, ExportJob, Records
 from rsra.daq.runtime.persistence import OutputFile, OutputRefused
 
 TELEMETRY_SUFFIXES = (".jsonl", ".json")
 
 
-OUTPUTS = {"dbc": "file", "mcap": "file", "parquet": "folder"}  # against the inputs (daq.cli.outputs)
+class _FormatOutputs(Mapping[str, str]):
+    """Each registered format's option against the inputs (daq.cli.outputs): "file" or
+    "folder", read from the registry when the parser is built."""
+
+    def __getitem__(self, name: str) -> str:
+        return EXPORT_FORMATS[name].output
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(EXPORT_FORMATS)
+
+    def __len__(self) -> int:
+        return len(EXPORT_FORMATS)
+
+
+OUTPUTS = _FormatOutputs()  # against the inputs (daq.cli.outputs)
+
+
+def _options(telemetry: bool | None = None) -> list[str]:
+    """``--<name> METAVAR`` of every format (``telemetry``: only those that need, or do not
+    need, the telemetry)."""
+    return [f"--{n} {f.metavar}" for n, f in EXPORT_FORMATS.items()
+            if telemetry is None or f.telemetry == telemetry]
+
+
+def _either(words: list[str], conj: str) -> str:
+    return words[0] if len(words) == 1 else f"{', '.join(words[:-1])} {conj} {words[-1]}"
 
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
     from rsra.daq.cli.options import common_options
 
     p = sub.add_parser(
-        name, help="write a DBC of the bus, or MCAP / Parquet files of the telemetry",
-        description="--dbc FILE: a DBC of the rig's bus from its EDS files and config (every "
-        "TPDO with float signals for REAL32 values, units and calibration; SYNC, heartbeats, "
-        "EMCY), for cantools, SavvyCAN, PlotJuggler, asammdf. --mcap FILE / --parquet DIR: "
-        "the telemetry of a `rsra replay --out` file (RESULTS.jsonl), or of recordings, which "
-        "are replayed first exactly as `rsra replay` does: MCAP with one JSON topic per key "
-        "(Foxglove, Lichtblick, PlotJuggler), Parquet with one table per key (pandas, polars, "
-        "DuckDB).")
+        name, help="write " + _either([f.title for f in EXPORT_FORMATS.values()], "or"),
+        description=" ".join(f.description for f in EXPORT_FORMATS.values()) + " The "
+        "telemetry comes from a `rsra replay --out` file (RESULTS.jsonl), or from recordings, "
+        "which are replayed first exactly as `rsra replay` does.")
     common_options(p, units=False)
     p.add_argument("inputs", nargs="*", metavar="RESULTS.jsonl|LOG|DIR",
                    help="a telemetry file written by `rsra replay --out`, or recordings "
                    "(frame files or recording folders, as for `rsra replay`)")
-    p.add_argument("--dbc", metavar="FILE", default=None, help="write a DBC of the bus")
-    p.add_argument("--mcap", metavar="FILE", default=None, help="write the telemetry as MCAP")
-    p.add_argument("--parquet", metavar="DIR", default=None,
-                   help="write the telemetry as Parquet, one <key>.parquet per key in DIR")
+    for option, fmt in EXPORT_FORMATS.items():
+        p.add_argument(f"--{option}", metavar=fmt.metavar, default=None, help=fmt.help)
     return p
 
 
@@ -48,7 +69,8 @@ class _Staged:
     """The export's outputs, each an :class:`~rsra.daq.runtime.persistence.OutputFile` (the
     one writer: a regular file renamed into place when complete, a device or a read pipe
     written in place, anything else refused); ``commit`` makes them all, ``discard`` drops
-    them (and the --parquet folder when we made it)."""
+    them (and a folder we made). The :class:`~rsra.daq.analysis.export_formats.Outputs` of
+    every format."""
 
     def __init__(self) -> None:
         self.files: list[OutputFile] = []
@@ -67,16 +89,16 @@ class _Staged:
             raise UsageError(f"{target}: cannot write there ({e.strerror}); fix: create the "
                              "folder or write elsewhere") from None
 
-    def folder(self, target: Path) -> None:
+    def folder(self, target: Path, option: str) -> None:
         from rsra.daq.cli.options import UsageError
 
         if target.exists() and not target.is_dir():
-            raise UsageError(f"--parquet {target}: is a file; fix: give a folder")
+            raise UsageError(f"{option} {target}: is a file; fix: give a folder")
         if not target.exists():
             try:
                 target.mkdir()
             except OSError as e:
-                raise UsageError(f"--parquet {target}: cannot create ({e.strerror}); fix: "
+                raise UsageError(f"{option} {target}: cannot create ({e.strerror}); fix: "
                                  "create its parent folder or write elsewhere") from None
             self.made_dir = target
 
@@ -98,61 +120,62 @@ class _Staged:
             self.made_dir = None
 
 
+def _inputs(args: argparse.Namespace) -> tuple[Path | None, list[str]]:
+    """The telemetry file, or the recordings, the inputs name (both empty: none given)."""
+    from rsra.daq.cli.options import UsageError
+    from rsra.daq.bus.replay import ReplayError, expand
+
+    if not args.inputs:
+        return None, []
+    tel = [p for p in args.inputs if Path(p).suffix.lower() in TELEMETRY_SUFFIXES]
+    if tel and len(args.inputs) > 1:
+        raise UsageError(f"{tel[0]}: a telemetry file among other inputs; fix: export "
+                         "one telemetry file at a time, on its own")
+    if tel:
+        telemetry = Path(tel[0])
+        if not telemetry.is_file():
+            raise UsageError(f"{telemetry}: no such file; fix: give a file written by "
+                             "`rsra replay --out`")
+        return telemetry, []
+    try:
+        expand(args.inputs)
+    except ReplayError as e:
+        raise UsageError(f"{e}" + ("" if "fix:" in str(e) else (
+            "; fix: give recordings (frame files or recording folders) or a "
+            "RESULTS.jsonl written by `rsra replay --out`"))) from None
+    return None, list(args.inputs)
+
+
 def run(args: argparse.Namespace) -> int:
+    from rsra.daq.analysis.export import ExportError
     from rsra.daq.cli.options import UsageError
     from rsra.daq.rigmodel import load_rig
-    from rsra.daq.analysis.export import ExportError
-    from rsra.daq.bus.replay import ReplayError, config_for, expand
+    from rsra.daq.bus.replay import config_for
 
-    if not (args.dbc or args.mcap or args.parquet):
-        raise UsageError("nothing to write; fix: give --dbc FILE, --mcap FILE or --parquet DIR")
-    telemetry = None
-    logs: list[str] = []
-    if args.inputs:
-        tel = [p for p in args.inputs if Path(p).suffix.lower() in TELEMETRY_SUFFIXES]
-        if tel and len(args.inputs) > 1:
-            raise UsageError(f"{tel[0]}: a telemetry file among other inputs; fix: export "
-                             "one telemetry file at a time, on its own")
-        if tel:
-            telemetry = Path(tel[0])
-            if not telemetry.is_file():
-                raise UsageError(f"{telemetry}: no such file; fix: give a file written by "
-                                 "`rsra replay --out`")
-        else:
-            try:
-                expand(args.inputs)
-            except ReplayError as e:
-                raise UsageError(f"{e}" + ("" if "fix:" in str(e) else (
-                    "; fix: give recordings (frame files or recording folders) or a "
-                    "RESULTS.jsonl written by `rsra replay --out`"))) from None
-            logs = list(args.inputs)
-    elif args.mcap or args.parquet:
-        raise UsageError("--mcap and --parquet need the telemetry to export; fix: give a "
+    chosen = [(f"--{n}", Path(getattr(args, n)), fmt) for n, fmt in EXPORT_FORMATS.items()
+              if getattr(args, n, None)]
+    if not chosen:
+        raise UsageError(f"nothing to write; fix: give {_either(_options(), 'or')}")
+    telemetry, logs = _inputs(args)
+    if not args.inputs and any(fmt.telemetry for _, _, fmt in chosen):
+        needy = [o.split()[0] for o in _options(telemetry=True)]
+        raise UsageError(f"{_either(needy, 'and')} need the telemetry to export; fix: give a "
                          "RESULTS.jsonl from `rsra replay --out`, or recordings")
     cfg = config_for(logs, args.config, several="parts") if logs else load_rig(args.config)
 
     staged = _Staged()
     done: list[str] = []
     try:
-        dbc_out = staged.file(Path(args.dbc)) if args.dbc else None
-        mcap_out = staged.file(Path(args.mcap)) if args.mcap else None
-        if args.parquet:
-            staged.folder(Path(args.parquet))
-        if dbc_out is not None:
-            from rsra.daq.analysis.export import build_dbc
-
-            db = build_dbc(cfg)
-            # as cantools.database.dump_file writes a DBC: cp1252, its own CRLF line ends
-            dbc_out.write(db.as_dbc_string().encode("cp1252", errors="replace"))
-            done.append(f"{args.dbc}: {len(db.messages)} messages, "
-                        f"{sum(len(m.signals) for m in db.messages)} signals")
-        if mcap_out is not None or args.parquet:
-            with tempfile.TemporaryFile("w+", encoding="utf-8") as scratch:
-                source = telemetry
-                if telemetry is None:
-                    _replay(cfg, logs, scratch, UsageError)
+        formats = [fmt(option, target, staged) for option, target, fmt in chosen]
+        for f in formats:  # every output claimed before any work
+            f.claim()
+        with tempfile.TemporaryFile("w+", encoding="utf-8") as scratch:
+            job = ExportJob(cfg, " ".join(args.inputs),
+                            _records(cfg, telemetry, logs, scratch, args) if args.inputs
+                            else None)
+            for f in sorted(formats, key=lambda f: f.telemetry):  # the rig's first
                 try:
-                    done += _telemetry(cfg, source, scratch, args, mcap_out, staged)
+                    done += f.write(job)
                 except ExportError as e:
                     raise UsageError(str(e)) from None
         staged.commit()
@@ -162,6 +185,43 @@ def run(args: argparse.Namespace) -> int:
     for line in done:
         print(line)
     return 0
+
+
+def _records(cfg, telemetry: Path | None, logs: list[str], scratch, args) -> Records:
+    """The telemetry records, read again from the start on every call: the telemetry
+    file's, or those of the recordings replayed into ``scratch`` (once, at the first call);
+    ExportError when there are none."""
+    import json
+
+    from rsra.daq.cli.options import UsageError
+    from rsra.daq.analysis.export import ExportError, read_records
+
+    replayed = False
+
+    def records() -> Iterator[tuple[str, dict]]:
+        nonlocal replayed
+        if telemetry is not None:
+            yield from read_records(telemetry)
+            return
+        if not replayed:
+            _replay(cfg, logs, scratch, UsageError)
+            replayed = True
+        scratch.seek(0)
+        for line in scratch:
+            rec = json.loads(line)
+            yield rec.pop("key"), rec
+
+    def checked() -> Iterator[tuple[str, dict]]:
+        first = records()
+        head = next(first, None)
+        if head is None:
+            raise ExportError(f"{telemetry or ' '.join(args.inputs)}: no telemetry records; "
+                              "fix: give a file written by `rsra replay --out`, or a "
+                              "recording with samples")
+        yield head
+        yield from first
+
+    return checked
 
 
 def _replay(cfg, logs: list[str], scratch, usage) -> None:
@@ -196,54 +256,3 @@ def replay_to_jsonl(cfg, logs: list[str], out, on_error: Callable[[str], Excepti
         why = " ".join(str(e).split())
         raise on_error(f"cannot read the recording: {why}" + (
             "" if "fix:" in why else "; fix: give an undamaged recording")) from None
-
-
-def _telemetry(cfg, source: Path | None, scratch, args, mcap_out: IO | None,
-               staged: _Staged) -> list[str]:
-    """Export the telemetry records (from ``source``, or the replayed ``scratch`` stream)."""
-    import json
-
-    from rsra.daq.analysis.export import (
-        ExportError,
-        parquet_schemas,
-        read_records,
-        vector_names,
-        write_mcap,
-        write_parquet,
-    )
-
-    def records():
-        if source is not None:
-            yield from read_records(source)
-            return
-        scratch.seek(0)
-        for line in scratch:
-            rec = json.loads(line)
-            yield rec.pop("key"), rec
-
-    if next(records(), None) is None:
-        raise ExportError(f"{source or ' '.join(args.inputs)}: no telemetry records; fix: give a "
-                          "file written by `rsra replay --out`, or a recording with samples")
-    out = []
-    if mcap_out is not None:
-        meta = {"rig": cfg.rig_name, "source": " ".join(args.inputs),
-                "units": "SI: N, N·m, m/s², rad, rad/s; t in UNIX seconds (docs/telemetry.md)"}
-        counts = write_mcap(records(), mcap_out, cfg.telemetry.prefix, metadata=meta)
-        out.append(f"{args.mcap}: " + ", ".join(f"{k} {n}" for k, n in counts.items()))
-    if args.parquet:
-        names = vector_names(cfg)
-        keys = list(dict.fromkeys(k for k, _ in records()))
-        # declared schemas (independent of the data); a pass over the data only for keys
-        # rsra does not publish
-        schemas = parquet_schemas(keys, names, records())
-        folder = Path(args.parquet)
-        paths = {k: staged.file(folder / f"{k}.parquet") for k in schemas}
-        left_out: dict[str, set[str]] = {}
-        counts = write_parquet(records(), schemas, paths,  # type: ignore[arg-type]
-                               names, left_out=left_out)  # (file objects: pyarrow takes either)
-        out.append(f"{args.parquet}: " + ", ".join(f"{k}.parquet {n} rows"
-                                                   for k, n in counts.items()))
-        for k, cols in left_out.items():
-            out.append(f"{args.parquet}: {k}: values of undeclared fields left out: "
-                       f"{', '.join(sorted(cols)[:8])}{' …' if len(cols) > 8 else ''}")
-    return out

@@ -56,7 +56,8 @@ def run(args: argparse.Namespace) -> int:
     from rsra.daq.runtime.telemetry import payload_guard, viewer_config, zenoh_config
     from rsra.daq.web.dictionary import build_dictionary
     from rsra.daq.web.history import History, HistoryFileError, TelemetryFile, key_rates
-    from rsra.daq.web.server import Gateway, allowed_hosts, is_loopback, openmct_dir, serve
+    from rsra.daq.netaddr import is_loopback
+    from rsra.daq.web.server import Gateway, allowed_hosts, openmct_dir, serve
 
     omct = openmct_dir()
     if omct is None:
