@@ -137,3 +137,24 @@ def test_an_unmodelled_load_path_at_a_modelled_harmonic_is_in_sigma(cfg):
     design = design_cache(cfg).design_for(cfg.rotor.omega_nominal_rad_s)
     held = np.sqrt(np.diag(modelled_covariance(design)))
     assert np.abs(run.unmodelled[m][:, 3]).max() > 3 * held[3]
+
+
+def test_reference_sigma_is_the_error_the_reference_shows():
+    """ReferenceSigma on its own: d = Ĥ − H_ref of known spread — the excess is its variance less
+    the reference's own noise, σ widened to it and never narrowed; no reading: σ unchanged."""
+    from rsra.estimator.filter_sigma import ReferenceSigma
+
+    rng = np.random.default_rng(4)
+    noise = np.full(6, 10.0)
+    ref = ReferenceSigma(1 / 200, 0.1, noise ** 2)
+    sigma = np.array([50.0, 50, 50, 500, 500, 500])
+    assert ref.widen(sigma) is sigma  # nothing seen yet
+    ref.update(np.zeros(6), np.full(6, np.nan))  # a reading not finite: not taken
+    assert ref.excess is None
+    spread = np.array([200.0, 200, 200, 10, 10, 10])  # the first three: errors beyond σ
+    for _ in range(4000):
+        ref.update(rng.standard_normal(6) * spread, np.zeros(6))
+    wide = ref.widen(sigma)
+    # the slow average over 2 s (400 samples) of a χ²₁: ±10 % (1 s.d. 7 %), the max of two ≥ it
+    assert np.all(wide[:3] > 0.85 * 200) and np.all(wide[:3] < 1.3 * 200)
+    np.testing.assert_array_equal(wide[3:], sigma[3:])  # 10 ≈ the noise: nothing to add
