@@ -37,6 +37,7 @@ another state layout with the same measurement form keeps it valid. Pure numeric
 """
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -222,15 +223,15 @@ def filter_sigma_batch(design: FilterDesign, e: np.ndarray, dt: float, time_cons
 
 
 class ReferenceSigma:
-    """What a reference balance on the bus shows of the filtered loads' error (module doc,
-    "The reference"): ``update(H, known)`` once per sample with the published Ĥ and the
-    reference's reading (in the hub loads' frame), ``widen(sigma)`` the σ no smaller than
-    the error the reference shows. d = Ĥ − H_ref = (Ĥ − H) − n_ref, so E[d²] − σ_ref² is the
+    """What a reference balance on the bus shows of the filtered loads' error (module doc):
+    ``update(d)`` once per sample with d = Ĥ − H_ref, the published Ĥ less the reference's
+    reading (in the hub loads' frame), ``widen(sigma)`` the σ no smaller than the error the
+    reference shows. d = Ĥ − H_ref = (Ĥ − H) − n_ref, so E[d²] − σ_ref² is the
     error's variance, whatever its cause — an unmodelled load path at a modelled harmonic
     included, which neither H_static nor the innovations can show. Two exponential averages
     of d² as :class:`FilterSigma`'s (fast, and slow from the settling on), the larger used.
     No reference reading: the averages hold (and widen nothing before the first). Bounded:
-    four (6,) vectors of state."""
+    three (6,) vectors of state."""
 
     def __init__(self, dt: float, time_constant_s: float, noise_var: np.ndarray) -> None:
         if not (dt > 0 and time_constant_s > 0):
@@ -252,21 +253,24 @@ class ReferenceSigma:
         self._n = 0
         self.excess = None
 
-    def update(self, H: np.ndarray, known: np.ndarray) -> None:
-        d = np.asarray(H, float) - np.asarray(known, float)
-        if not np.isfinite(d).all():
-            return
+    def update(self, d: np.ndarray) -> None:
+        """One sample's d = Ĥ − H_ref (6,); not all finite: not taken."""
         d2 = d * d
+        if not math.isfinite(float(d2.sum())):
+            return
+        mf, ms = self._mf, self._ms
         if self._n == 0:
-            self._mf[:] = d2
-        self._mf += self.beta_fast * (d2 - self._mf)
-        m = self._mf
+            mf[:] = d2
+        mf += self.beta_fast * (d2 - mf)
         if self._n >= self.settle:  # the slow average: from 0, divided by its weight so far
-            self._ms += self.beta_slow * (d2 - self._ms)
+            ms += self.beta_slow * (d2 - ms)
             self._w += self.beta_slow * (1.0 - self._w)
-            m = np.maximum(self._mf, self._ms / self._w)
+            np.maximum(mf, ms / self._w, out=d2)
+        else:
+            d2[:] = mf
         self._n += 1
-        self.excess = np.maximum(m - self.noise_var, 0.0)
+        d2 -= self.noise_var
+        self.excess = np.maximum(d2, 0.0, out=d2)
 
     def widen(self, sigma: np.ndarray) -> np.ndarray:
         """σ per axis no smaller than the error the reference shows (a new array)."""

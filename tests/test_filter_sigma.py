@@ -149,11 +149,11 @@ def test_reference_sigma_is_the_error_the_reference_shows():
     ref = ReferenceSigma(1 / 200, 0.1, noise ** 2)
     sigma = np.array([50.0, 50, 50, 500, 500, 500])
     assert ref.widen(sigma) is sigma  # nothing seen yet
-    ref.update(np.zeros(6), np.full(6, np.nan))  # a reading not finite: not taken
+    ref.update(np.full(6, np.nan))  # a reading not finite: not taken
     assert ref.excess is None
     spread = np.array([200.0, 200, 200, 10, 10, 10])  # the first three: errors beyond σ
     for _ in range(4000):
-        ref.update(rng.standard_normal(6) * spread, np.zeros(6))
+        ref.update(rng.standard_normal(6) * spread)
     wide = ref.widen(sigma)
     # the slow average over 2 s (400 samples) of a χ²₁: ±10 % (1 s.d. 7 %), the max of two ≥ it
     assert np.all(wide[:3] > 0.85 * 200) and np.all(wide[:3] < 1.3 * 200)

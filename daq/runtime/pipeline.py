@@ -89,11 +89,11 @@ class EstimatorPipeline:
             noise=measurement_covariance(self.model, cfg.identification.initial_angles_rad,
                                          moment_floor=0.0))
         # the reference reads body axes at the hub: into the hub loads' frame
-        self._to_hub = self._Rinv @ hub_transfer_matrix(self.model.geometry, "body")
+        to_hub = self._Rinv @ hub_transfer_matrix(self.model.geometry, "body")
+        self._to_hub = None if np.allclose(to_hub, np.eye(6), rtol=0, atol=1e-12) else to_hub
         self.reference_sigma = ReferenceSigma(
             1.0 / self.fs, f.time_constant_s,
-            np.einsum("ij,j,ij->i", self._to_hub, np.asarray(self.model.balance_sigma) ** 2,
-                      self._to_hub))
+            np.einsum("ij,j,ij->i", to_hub, np.asarray(self.model.balance_sigma) ** 2, to_hub))
         self.cell_names = [c.name for c in cfg.cells]
         self.innov_every = max(1, int(round(self.fs / cfg.telemetry.innovations_hz)))
         idc = cfg.identification
@@ -255,10 +255,11 @@ class EstimatorPipeline:
         if known is None or hub["H"] is None:
             return
         known = np.asarray(known, float)
-        if known.shape != (6,) or not np.isfinite(known).all():
+        if known.shape != (6,):
             return
-        self.reference_sigma.update(hub["H"], self._to_hub @ known)
-        hub["sigma_filter"] = self.reference_sigma.widen(hub["sigma_filter"])
+        ref = self.reference_sigma
+        ref.update(hub["H"] - (known if self._to_hub is None else self._to_hub @ known))
+        hub["sigma_filter"] = ref.widen(hub["sigma_filter"])
 
     def _first_reference(self, s, seq, T, accel, q, flags, measured, acc_ok, drive_ok,
                          out) -> tuple:
