@@ -144,7 +144,7 @@ class FilterSigma:
         self.sigma = None
 
     def modelled_sigma(self, design: FilterDesign) -> np.ndarray:
-        """The design's term alone: sqrt(diag C P⁺ Cᵀ)."""
+        """The held load's term alone: sqrt(diag C P⁺₀ Cᵀ) (the sensors' noise through the gain)."""
         return np.sqrt(self._for(design).modelled)
 
     def update(self, design: FilterDesign, e: np.ndarray | None) -> np.ndarray | None:
