@@ -29,8 +29,8 @@ from rsra.daq.runtime.records import AnglesRecord, IdentJob
 from rsra.daq.runtime.result_schedule import ResultSchedule
 from rsra.daq.runtime.stuck import StuckMonitor
 from rsra.estimator.angle_uncertainty import ANGLES_UNCERTAIN
-from rsra.estimator.balance import inertial_load_matrix
-from rsra.estimator.filter_sigma import FilterSigma
+from rsra.estimator.balance import inertial_load_matrix, measurement_covariance
+from rsra.estimator.filter_sigma import FilterSigma, ReferenceSigma
 from rsra.estimator.filters import AZIMUTH_MISSING, AzimuthTracker, DesignCache, LoadFilter
 from rsra.estimator.geometry import hub_transfer_matrix
 from rsra.estimator.noise_budget import noise_budget
@@ -79,11 +79,21 @@ class EstimatorPipeline:
         # the filter's lag behind a moving static load: flag `transient` (estimator/transient.py)
         self.transient = TransientDetector(1.0 / self.fs,
                                            TIME_CONSTANT_FRACTION * f.time_constant_s)
-        # the filter's own error σ (`sigma_filter`): its design's covariance plus what the
-        # innovations show it does not follow (estimator/filter_sigma.py)
+        # the filter's own error σ (`sigma_filter`): the sensors' noise through the gain for a
+        # held load plus what the innovations show it does not follow, no smaller than the
+        # error a reference balance on the bus shows (estimator/filter_sigma.py)
+        # (the sensors' noise as the config states it: W without the identification's
+        # model-error floor on the moment rows, which is no noise the sensors make)
         self.filter_sigma = FilterSigma(
             1.0 / self.fs, f.time_constant_s,
-            floor=noise_budget(self.model, cfg.identification.initial_angles_rad).total)
+            noise=measurement_covariance(self.model, cfg.identification.initial_angles_rad,
+                                         moment_floor=0.0))
+        # the reference reads body axes at the hub: into the hub loads' frame
+        to_hub = self._Rinv @ hub_transfer_matrix(self.model.geometry, "body")
+        self._to_hub = None if np.allclose(to_hub, np.eye(6), rtol=0, atol=1e-12) else to_hub
+        self.reference_sigma = ReferenceSigma(
+            1.0 / self.fs, f.time_constant_s,
+            np.einsum("ij,j,ij->i", to_hub, np.asarray(self.model.balance_sigma) ** 2, to_hub))
         self.cell_names = [c.name for c in cfg.cells]
         self.innov_every = max(1, int(round(self.fs / cfg.telemetry.innovations_hz)))
         idc = cfg.identification
@@ -221,6 +231,9 @@ class EstimatorPipeline:
         else:
             I, z, e, nis, omega, dpsi = self._first_reference(s, seq, T, accel, q, flags,
                                                               measured, acc_ok, drive_ok, out)
+        kind, hub = out.records[-1]
+        if kind == "hub_loads" and isinstance(hub, dict):
+            self._reference_sigma(s, hub)
         yield out
         out = PipelineOutput()
         status = s.cell_status
@@ -234,6 +247,19 @@ class EstimatorPipeline:
             out.job = self.calibration.step(s, seq, seq - self.first_seq + 1, T, z, measured,
                                             omega, alpha, dpsi, flags, self.hub_kernel)
         yield out
+
+    def _reference_sigma(self, s, hub: dict) -> None:
+        """A reference balance's reading on this sample: sigma_filter no smaller than the
+        error of H it shows (estimator/filter_sigma.ReferenceSigma; either path's record)."""
+        known = getattr(s, "known_H", None)
+        if known is None or hub["H"] is None:
+            return
+        known = np.asarray(known, float)
+        if known.shape != (6,):
+            return
+        ref = self.reference_sigma
+        ref.update(hub["H"] - (known if self._to_hub is None else self._to_hub @ known))
+        hub["sigma_filter"] = ref.widen(hub["sigma_filter"])
 
     def _first_reference(self, s, seq, T, accel, q, flags, measured, acc_ok, drive_ok,
                          out) -> tuple:
