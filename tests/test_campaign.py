@@ -411,6 +411,17 @@ def test_campaign_calibrate_pools_the_recordings_a_campaign_run_wrote(tmp_path, 
                  str(recs)]) == 0
     parts = sorted((ds / "information").glob("recording=*/part.parquet"))
     assert len(parts) == 2 and all(pq.read_table(p).num_rows >= 1 for p in parts)
+    # the task derives it from its one replay (the telemetry's samples): the same table, to
+    # the bit, as the recording read on its own for its known loads
+    from rsra.daq.analysis.information import recording_information
+    from rsra.daq.bus.replay import config_for
+
+    for name in ("k4a", "k4b"):
+        src = recs / name
+        alone = recording_information(config_for([src]), src, _rid(src))
+        part = pq.read_table(ds / "information" / f"recording={_rid(src)}" / "part.parquet")
+        assert part.num_rows == alone.num_rows
+        assert part.equals(alone.drop_columns(["recording"]).select(part.column_names))
     capsys.readouterr()
     post = tmp_path / "P.json"
     assert main(["campaign", "calibrate", "--dataset", str(ds), "--out", str(post)]) == 0

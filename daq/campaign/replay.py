@@ -8,7 +8,7 @@ manifest needs. A faster replay path goes behind this one function.
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -22,9 +22,10 @@ class RecordingFailed(RuntimeError):
 
 
 def replay_to_tables(cfg: RigConfig, paths: Sequence[str | Path], tables: ParquetTables,
-                     options: dict[str, Any]) -> dict[str, Any]:
-    """Replay ``paths`` (one recording) into ``tables``; returns samples, lost samples,
-    and accepted identification runs."""
+                     options: dict[str, Any],
+                     observers: Sequence[Callable[[Any], None]] = ()) -> dict[str, Any]:
+    """Replay ``paths`` (one recording) into ``tables``, every assembled sample shown to
+    ``observers`` too; returns samples, lost samples, and accepted identification runs."""
     from can.io.blf import BLFParseError
 
     from rsra.config.rig import ConfigError
@@ -46,6 +47,8 @@ def replay_to_tables(cfg: RigConfig, paths: Sequence[str | Path], tables: Parque
                                           recompute=bool(options.get("recompute")),
                                           identification=not options.get("no_identification")))
     service.add_sink(sink)
+    for observe in observers:
+        service.add_sample_observer(observe)
     try:
         summary = service.run()
     except (PosteriorFileError, ConfigError) as e:
