@@ -261,9 +261,10 @@ def test_a_killed_worker_is_retried_once(long_recording, tmp_path):
         # the task has started when its staging folder appears
         _wait_for(lambda: ds.is_dir() and any(x.name.startswith(".long-") for x in
                                                ds.iterdir()), 120, "the task to start")
+        # the local cluster's worker: the driver's child process (forked by its nanny),
+        # not multiprocessing's resource tracker
         workers = [c for c in _children(p.pid)
-                   if "spawn_main" in Path(f"/proc/{c}/cmdline").read_text()
-                   and "resource_tracker" not in Path(f"/proc/{c}/cmdline").read_text()]
+                   if "resource_tracker" not in Path(f"/proc/{c}/cmdline").read_text()]
         assert workers
         os.kill(workers[0], signal.SIGKILL)
         out, _ = p.communicate(timeout=300)
