@@ -3,8 +3,12 @@
 
 The campaign of C1 (tiny: 2 recordings of 1 s) into a fresh dataset on N = the usable cores,
 once on the default engine (a Dask local cluster) and once with ``--pool`` (the same tasks
-through the engine seam on a ``concurrent.futures.ProcessPoolExecutor``), interleaved, start-up
-included in both. Target: Dask's wall time ≤ 1.05 × the pool's.
+through the engine seam on a ``concurrent.futures.ProcessPoolExecutor``), interleaved. Each
+side's wall time is the whole `rsra campaign run` in this process: the plan (every recording
+hashed into a fresh dataset's cache), the engine's start (Dask: importing distributed, the
+scheduler, N nannies and their forked workers; the pool: its forked processes), the same
+per-recording tasks, the manifest, the summary and the engine's close. Target: Dask's wall
+time ≤ 1.05 × the pool's.
 """
 from __future__ import annotations
 

@@ -3,7 +3,8 @@
 
 One recording (full size: 60 s, 12 000 samples; tiny: 1 s), in this process, interleaved:
 the campaign's per-recording task (``rsra.daq.campaign.task.run_recording``: the replay
-through its seam, the Parquet tables of every key, the manifest summary) against
+through its seam, the Parquet tables of every key, the information product from the same
+replay's samples, the manifest summary) against
 ``rsra replay REC --out /dev/null`` (the same replay, JSON lines thrown away). Target: the
 task ≥ 0.9 × replay's samples/s.
 """

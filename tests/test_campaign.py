@@ -241,6 +241,19 @@ def _children(pid: int) -> list[int]:
     return [int(x) for x in out.split()]
 
 
+def _listening(pids) -> set[str]:
+    """The addresses processes ``pids`` and their children listen on."""
+    import psutil
+
+    out = set()
+    for pid in pids:
+        top = psutil.Process(pid)
+        for proc in (top, *top.children(recursive=True)):
+            out |= {c.laddr.ip for c in proc.net_connections(kind="inet")
+                    if c.status == psutil.CONN_LISTEN}
+    return out
+
+
 def _wait_for(cond, timeout: float, what: str) -> None:
     end = time.monotonic() + timeout
     while not cond():
@@ -261,9 +274,10 @@ def test_a_killed_worker_is_retried_once(long_recording, tmp_path):
         # the task has started when its staging folder appears
         _wait_for(lambda: ds.is_dir() and any(x.name.startswith(".long-") for x in
                                                ds.iterdir()), 120, "the task to start")
+        # the local cluster's worker: the driver's child process (forked by its nanny),
+        # not multiprocessing's resource tracker
         workers = [c for c in _children(p.pid)
-                   if "spawn_main" in Path(f"/proc/{c}/cmdline").read_text()
-                   and "resource_tracker" not in Path(f"/proc/{c}/cmdline").read_text()]
+                   if "resource_tracker" not in Path(f"/proc/{c}/cmdline").read_text()]
         assert workers
         os.kill(workers[0], signal.SIGKILL)
         out, _ = p.communicate(timeout=300)
@@ -308,9 +322,12 @@ def test_a_dask_cluster_started_by_hand_gives_the_same_dataset(recordings, datas
     sched_file = tmp_path / "scheduler.json"
     env = {**os.environ, "DASK_DISTRIBUTED__WORKER__DAEMON": "False",
            "DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES": "1"}
+    # as the user guide starts them ("On a cluster", one machine): --no-dashboard alone
+    # still serves the scheduler's and each worker's HTTP routes on every interface
     procs = [subprocess.Popen([str(BIN / "dask"), "scheduler", "--host", "127.0.0.1",
-                               "--port", "0", "--no-dashboard", "--scheduler-file",
-                               str(sched_file)], env=env, stdout=subprocess.DEVNULL,
+                               "--port", "0", "--no-dashboard", "--dashboard-address",
+                               "127.0.0.1:0", "--scheduler-file", str(sched_file)],
+                              env=env, stdout=subprocess.DEVNULL,
                               stderr=subprocess.DEVNULL, start_new_session=True)]
     try:
         _wait_for(sched_file.exists, 60, "the scheduler")
@@ -318,7 +335,7 @@ def test_a_dask_cluster_started_by_hand_gives_the_same_dataset(recordings, datas
             procs.append(subprocess.Popen(
                 [str(BIN / "dask"), "worker", "--scheduler-file", str(sched_file),
                  "--host", "127.0.0.1", "--nthreads", "1", "--nworkers", "1",
-                 "--no-dashboard"], env=env, stdout=subprocess.DEVNULL,
+                 "--no-dashboard", "--dashboard-address", "127.0.0.1:0"], env=env, stdout=subprocess.DEVNULL,
                 stderr=subprocess.DEVNULL, start_new_session=True))
         from distributed import Client
 
@@ -326,6 +343,7 @@ def test_a_dask_cluster_started_by_hand_gives_the_same_dataset(recordings, datas
             c.wait_for_workers(2, timeout=60)
             addr = c.scheduler.address
         assert addr.startswith("tcp://127.0.0.1:")
+        assert _listening(p.pid for p in procs) <= {"127.0.0.1"}  # loopback only
         ds = tmp_path / "ds"
         assert main(["campaign", "run", "--dataset", str(ds), "--scheduler", addr,
                      str(recordings)]) == 0
@@ -411,6 +429,17 @@ def test_campaign_calibrate_pools_the_recordings_a_campaign_run_wrote(tmp_path, 
                  str(recs)]) == 0
     parts = sorted((ds / "information").glob("recording=*/part.parquet"))
     assert len(parts) == 2 and all(pq.read_table(p).num_rows >= 1 for p in parts)
+    # the task derives it from its one replay (the telemetry's samples): the same table, to
+    # the bit, as the recording read on its own for its known loads
+    from rsra.daq.analysis.information import recording_information
+    from rsra.daq.bus.replay import config_for
+
+    for name in ("k4a", "k4b"):
+        src = recs / name
+        alone = recording_information(config_for([src]), src, _rid(src))
+        part = pq.read_table(ds / "information" / f"recording={_rid(src)}" / "part.parquet")
+        assert part.num_rows == alone.num_rows
+        assert part.equals(alone.drop_columns(["recording"]).select(part.column_names))
     capsys.readouterr()
     post = tmp_path / "P.json"
     assert main(["campaign", "calibrate", "--dataset", str(ds), "--out", str(post)]) == 0

@@ -205,6 +205,140 @@ def _reject_reason(s: Sample, T: np.ndarray, acc: np.ndarray, H: np.ndarray | No
     return None
 
 
+class KnownLoadCollector:
+    """The known-load data of recordings, built sample by sample as a replay assembles them
+    (:func:`load_known_load_data` drives it over its own replay; a campaign task feeds it the
+    samples of the service's replay, so a recording is read once for both products).
+
+    :meth:`begin` starts each recording (a new continuous stretch), :meth:`add` takes each
+    :class:`Sample` in order, :meth:`end` closes the recording, :meth:`data` returns the
+    content-filtered data or raises :class:`CalibrationError`, as ``load_known_load_data``.
+    ``progress(recorded_seconds, samples)`` is called every ``progress_every`` samples."""
+
+    def __init__(self, cfg: RigConfig, content: str | None = None,
+                 progress: Callable[[float, int], None] | None = None,
+                 progress_every: int = 1000):
+        self.kind = kind = content or cfg.identification.content_known_loads
+        if kind not in KINDS:
+            raise CalibrationError(f"--content: unknown content {kind!r}; use one of "
+                                   f"{', '.join(KINDS)}")
+        if not cfg.balance.node:
+            raise CalibrationError("the rig config has no reference balance (balance.node is "
+                                   "empty): known-load calibration needs the balance's "
+                                   "measured hub loads")
+        self.cfg = cfg
+        model = cfg.rig_model()
+        self.Mf = inertial_load_matrix(model)
+        self.nc, self.Q = model.geometry.n_cells, model.external.wrenches.shape[1]
+        self.ncol = 6 + self.nc + 6 + self.Q
+        self.fs = cfg.sample_rate_hz
+        self.gap = max(1, round(cfg.identification.gap_s * self.fs))
+        self.settle = ContentFilter(kind, self.fs, cfg.rotor.omega_nominal_rad_s,
+                                    tuple(cfg.filter.harmonics), 1,
+                                    cfg.identification.settle_time_constants).settle_samples
+        self.progress, self.progress_every = progress, progress_every
+        # (filtered x, valid, scored) of each continuous stretch
+        self.outs: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self.rejected: dict[str, int] = {}
+        self.samples_read = 0
+        self.t_first: float | None = None
+        self.t_last: float | None = None
+        self._seg = _Segment(self.ncol)
+        self._last_seq: int | None = None
+
+    def begin(self) -> None:
+        """A new recording: a new continuous stretch, its sample numbers its own."""
+        self._seg = _Segment(self.ncol)
+        self._last_seq = None
+
+    def end(self) -> None:
+        """The recording's last stretch content-filtered and kept."""
+        self._close_segment(self._seg)
+        self._seg = _Segment(self.ncol)
+
+    def _close_segment(self, seg: _Segment) -> None:
+        X, valid = seg.arrays()
+        if not valid.any():
+            return
+        first = int(np.argmax(valid))  # a segment starts at its first valid sample
+        X, valid = X[first:], valid[first:]
+        # one causal filter on every channel alike (model §7): the balance holds filtered too
+        cfg = self.cfg
+        cf = ContentFilter(self.kind, self.fs, cfg.rotor.omega_nominal_rad_s,
+                           tuple(cfg.filter.harmonics), self.ncol,
+                           cfg.identification.settle_time_constants)
+        Y = cf.process(X)
+        scored = valid & scored_mask(valid, self.settle, self.gap, True)
+        self.outs.append((Y, valid, scored))
+
+    def add(self, s: Sample) -> None:
+        """One assembled sample, in order."""
+        self.samples_read += 1
+        self.t_first = s.t if self.t_first is None else self.t_first
+        self.t_last = s.t
+        if self.progress is not None and self.samples_read % self.progress_every == 0:
+            self.progress(s.t - self.t_first, self.samples_read)
+        seq = int(s.seq)
+        if self._last_seq is not None:
+            skipped = seq - self._last_seq - 1
+            if skipped > self.gap:  # a long hole: a new continuous stretch
+                self._close_segment(self._seg)
+                self._seg = _Segment(self.ncol)
+            else:
+                for _ in range(max(skipped, 0)):  # lost samples: invalid, held
+                    self._seg.put(None)
+        self._last_seq = seq
+        T = np.asarray(s.T, float)
+        acc = np.asarray(s.accel, float).reshape(-1)
+        H = None if s.known_H is None else np.asarray(s.known_H, float)
+        q = None if s.drive is None else np.asarray(s.drive, float)
+        why = _reject_reason(s, T, acc, H, q, self.Q > 0)
+        if why is not None:
+            self.rejected[why] = self.rejected.get(why, 0) + 1
+            self._seg.put(None)
+            return
+        z = self.Mf @ acc  # inertial loads (model §3); D q stays in the model's E block
+        parts = [z, T, H]
+        if self.Q:
+            assert q is not None  # _reject_reason: without it the sample is rejected
+            parts.append(q[: self.Q])
+        self._seg.put(np.concatenate(parts))
+
+    def data(self, paths: Sequence[str | Path]) -> CalibrationData:
+        """The known-load data of the recordings read (``paths``: named in errors and kept
+        in the result), or :class:`CalibrationError` saying why there is none."""
+        named = ", ".join(map(str, paths))
+        samples_read, rejected, outs = self.samples_read, self.rejected, self.outs
+        if samples_read == 0:
+            raise CalibrationError(f"{named}: no samples in the recording(s)")
+        if not outs:
+            no_bal = rejected.get("no balance", 0)
+            if no_bal == samples_read:
+                raise CalibrationError(
+                    f"{named}: no known loads: none of the {samples_read} samples carries "
+                    f"reference-balance data (node {self.cfg.balance.node!r}); record with the "
+                    "balance on the bus")
+            raise CalibrationError(f"{named}: no usable sample with known loads "
+                                   f"({_reasons(rejected)})")
+        X = np.vstack([o[0] for o in outs])
+        valid = np.concatenate([o[1] for o in outs])
+        scored = np.concatenate([o[2] for o in outs])
+        if not scored.any():
+            raise CalibrationError(
+                f"{named}: {int(valid.sum())} usable samples with known loads, all within the "
+                f"content filter's settling ({self.settle} samples after each start or gap); "
+                "record longer stretches")
+        nc, t_first, t_last = self.nc, self.t_first, self.t_last
+        return CalibrationData(
+            z=X[:, :6], T=X[:, 6:6 + nc], H=X[:, 6 + nc:12 + nc],
+            q=X[:, 12 + nc:] if self.Q else None, valid=valid, scored=scored,
+            content=self.kind, fs=self.fs, files=tuple(map(str, paths)), segments=len(outs),
+            samples_read=samples_read, rejected=rejected,
+            duration_s=0.0 if t_first is None or t_last is None
+            else float(t_last - t_first) + 1.0 / self.fs,
+            t_first=math.nan if t_first is None else float(t_first))
+
+
 def load_known_load_data(
     cfg: RigConfig,
     paths: Sequence[str | Path],
@@ -214,7 +348,8 @@ def load_known_load_data(
     progress_every: int = 1000,
 ) -> CalibrationData:
     """Read ``paths`` (each a log file or a recording folder, read in order through the
-    reader's code path) and return the content-filtered known-load data.
+    reader's code path) and return the content-filtered known-load data
+    (:class:`KnownLoadCollector`).
 
     Raises :class:`CalibrationError` when the config has no balance node, or the recordings
     hold no usable sample with known loads. ``progress(recorded_seconds, samples)`` is called
@@ -223,120 +358,26 @@ def load_known_load_data(
     from rsra.daq.bus.reader import OfflineReader
     from rsra.daq.bus.replay import ReplayError, expand, replay
 
-    kind = content or cfg.identification.content_known_loads
-    if kind not in KINDS:
-        raise CalibrationError(f"--content: unknown content {kind!r}; use one of {', '.join(KINDS)}")
-    if not cfg.balance.node:
-        raise CalibrationError("the rig config has no reference balance (balance.node is empty): "
-                               "known-load calibration needs the balance's measured hub loads")
+    collector = KnownLoadCollector(cfg, content, progress, progress_every)
     try:
         expand(paths)
     except ReplayError as e:
         raise CalibrationError(str(e)) from None
-    model = cfg.rig_model()
-    Mf = inertial_load_matrix(model)
-    nc, Q = model.geometry.n_cells, model.external.wrenches.shape[1]
-    ncol = 6 + nc + 6 + Q
-    fs = cfg.sample_rate_hz
-    gap = max(1, round(cfg.identification.gap_s * fs))
-    omega0 = cfg.rotor.omega_nominal_rad_s
-    harmonics = tuple(cfg.filter.harmonics)
-    settle = ContentFilter(kind, fs, omega0, harmonics, 1,
-                           cfg.identification.settle_time_constants).settle_samples
-
-    outs: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (filtered x, valid, scored)
-    rejected: dict[str, int] = {}
-    samples_read = 0
-    t_first = t_last = None
-
-    def close_segment(seg: _Segment) -> None:
-        X, valid = seg.arrays()
-        if not valid.any():
-            return
-        first = int(np.argmax(valid))  # a segment starts at its first valid sample
-        X, valid = X[first:], valid[first:]
-        # one causal filter on every channel alike (model §7): the balance holds filtered too
-        cf = ContentFilter(kind, fs, omega0, harmonics, ncol,
-                           cfg.identification.settle_time_constants)
-        Y = cf.process(X)
-        scored = valid & scored_mask(valid, settle, gap, True)
-        outs.append((Y, valid, scored))
-
     for path in map(str, paths):
         reader = OfflineReader(cfg)
-        seg = _Segment(ncol)
-        last_seq: int | None = None
+        collector.begin()
         try:
             for item in replay(cfg, [path], reader=reader, finish=True):
-                if not isinstance(item, Sample):
-                    continue
-                s = item
-                samples_read += 1
-                t_first = s.t if t_first is None else t_first
-                t_last = s.t
-                if progress is not None and samples_read % progress_every == 0:
-                    progress(s.t - t_first, samples_read)
-                seq = int(s.seq)
-                if last_seq is not None:
-                    skipped = seq - last_seq - 1
-                    if skipped > gap:  # a long hole: a new continuous stretch
-                        close_segment(seg)
-                        seg = _Segment(ncol)
-                    else:
-                        for _ in range(max(skipped, 0)):  # lost samples: invalid, held
-                            seg.put(None)
-                last_seq = seq
-                T = np.asarray(s.T, float)
-                acc = np.asarray(s.accel, float).reshape(-1)
-                H = None if s.known_H is None else np.asarray(s.known_H, float)
-                q = None if s.drive is None else np.asarray(s.drive, float)
-                why = _reject_reason(s, T, acc, H, q, Q > 0)
-                if why is not None:
-                    rejected[why] = rejected.get(why, 0) + 1
-                    seg.put(None)
-                    continue
-                z = Mf @ acc  # inertial loads (model §3); D q stays in the model's E block
-                parts = [z, T, H]
-                if Q:
-                    assert q is not None  # _reject_reason: without it the sample is rejected
-                    parts.append(q[:Q])
-                seg.put(np.concatenate(parts))
+                if isinstance(item, Sample):
+                    collector.add(item)
         except (ValueError, OSError) as e:  # a corrupt or truncated log file
-            from rsra.daq.bus.replay import ReplayError
-
             if isinstance(e, ReplayError):  # names the file (and line) already
                 raise CalibrationError(str(e)) from None
             raise CalibrationError(f"{path}: cannot read the recording ({e})") from None
         finally:
             reader.close()
-        close_segment(seg)
-
-    if samples_read == 0:
-        raise CalibrationError(f"{', '.join(map(str, paths))}: no samples in the recording(s)")
-    if not outs:
-        no_bal = rejected.get("no balance", 0)
-        if no_bal == samples_read:
-            raise CalibrationError(
-                f"{', '.join(map(str, paths))}: no known loads: none of the {samples_read} "
-                f"samples carries reference-balance data (node {cfg.balance.node!r}); record "
-                "with the balance on the bus")
-        raise CalibrationError(f"{', '.join(map(str, paths))}: no usable sample with known loads "
-                               f"({_reasons(rejected)})")
-    X = np.vstack([o[0] for o in outs])
-    valid = np.concatenate([o[1] for o in outs])
-    scored = np.concatenate([o[2] for o in outs])
-    if not scored.any():
-        raise CalibrationError(
-            f"{', '.join(map(str, paths))}: {int(valid.sum())} usable samples with known loads, "
-            f"all within the content filter's settling ({settle} samples after each start or "
-            "gap); record longer stretches")
-    return CalibrationData(
-        z=X[:, :6], T=X[:, 6:6 + nc], H=X[:, 6 + nc:12 + nc], q=X[:, 12 + nc:] if Q else None,
-        valid=valid, scored=scored, content=kind, fs=fs, files=tuple(map(str, paths)),
-        segments=len(outs), samples_read=samples_read, rejected=rejected,
-        duration_s=0.0 if t_first is None or t_last is None
-        else float(t_last - t_first) + 1.0 / fs,
-        t_first=math.nan if t_first is None else float(t_first))
+        collector.end()
+    return collector.data(paths)
 
 
 def _reasons(rejected: dict[str, int]) -> str:

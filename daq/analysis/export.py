@@ -457,16 +457,16 @@ def _inferred_columns(records: Iterable[tuple[str, dict]], keys: set[str]
     return cols
 
 
-def _cell(v: Any, typ) -> Any:
+def _cells(values: list, typ) -> list:
+    """A column's values as its declared type takes them: JSON text for what is not a string
+    in a string column, a float for an integer in a float column (decided once a column)."""
     import pyarrow as pa
 
-    if v is None:
-        return None
-    if pa.types.is_string(typ) and not isinstance(v, str):
-        return json.dumps(v)
-    if pa.types.is_floating(typ) and isinstance(v, int):
-        return float(v)
-    return v
+    if pa.types.is_string(typ):
+        return [v if v is None or isinstance(v, str) else json.dumps(v) for v in values]
+    if pa.types.is_floating(typ):
+        return [float(v) if isinstance(v, int) else v for v in values]
+    return values
 
 
 class ParquetTables:
@@ -537,7 +537,8 @@ class ParquetTables:
         """One column of the batch; a value of another type than declared is left out."""
         import pyarrow as pa
 
-        values = [_cell(r.get(f.name), f.type) for r in rows]
+        name = f.name
+        values = _cells([r.get(name) for r in rows], f.type)
         try:
             return pa.array(values, type=f.type)
         except (pa.ArrowInvalid, pa.ArrowTypeError):

@@ -44,7 +44,13 @@ from typing import Any
 import numpy as np
 
 from rsra.config.rig import RigConfig
-from rsra.daq.analysis.calibrate import CalibrationData, CalibrationError, load_known_load_data, prior_sigmas
+from rsra.daq.analysis.calibrate import (
+    CalibrationData,
+    CalibrationError,
+    KnownLoadCollector,
+    load_known_load_data,
+    prior_sigmas,
+)
 from rsra.daq.runtime.posterior_file import rig_of
 from rsra.estimator.balance import static_estimate
 from rsra.estimator.identification import Parameterisation
@@ -127,6 +133,39 @@ def recording_information(cfg: RigConfig, source: str | Path, recording: str | N
     except CalibrationError as e:
         return information_table(cfg, None, rid, str(e))
     return information_table(cfg, data, rid)
+
+
+class InformationCollector:
+    """One recording's information table built from the samples of a replay run for another
+    product (a campaign task's telemetry replay): :meth:`observe` each sample in order, then
+    :meth:`table`. The same table as :func:`recording_information` of the recording, which
+    reads it on its own."""
+
+    def __init__(self, cfg: RigConfig, recording: str, content: str | None = None):
+        self.cfg, self.recording = cfg, recording
+        self.reason: str | None = None
+        self.collector: KnownLoadCollector | None = None
+        try:
+            self.collector = KnownLoadCollector(cfg, content)
+        except CalibrationError as e:  # no balance on the rig: no rows, and why
+            self.reason = str(e)
+        else:
+            self.collector.begin()
+
+    def observe(self, sample: Any) -> None:
+        if self.collector is not None:
+            self.collector.add(sample)
+
+    def table(self, source: str | Path):
+        """The information table once the replay of ``source`` has ended (module doc)."""
+        if self.collector is None:
+            return information_table(self.cfg, None, self.recording, self.reason)
+        self.collector.end()
+        try:
+            data = self.collector.data([source])
+        except CalibrationError as e:
+            return information_table(self.cfg, None, self.recording, str(e))
+        return information_table(self.cfg, data, self.recording)
 
 
 def information_product(source: str | Path, cfg: RigConfig, options: Mapping[str, Any],

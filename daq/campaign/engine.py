@@ -67,6 +67,8 @@ class DaskEngine(Engine):
         self.describe = f"Dask {where}, {self.workers} workers"
 
     def missing(self, paths: list[str]) -> dict[str, list[str]]:
+        if self.cluster is not None:  # our own workers on this machine see what we see
+            return {}
         from rsra.daq.campaign.task import check_visible
 
         out = self.client.run(check_visible, paths)
@@ -104,6 +106,13 @@ def _sigint_ignored() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGINT, old)
+
+
+def _start_method() -> str:
+    """How the local cluster's nannies start their worker: fork where the platform has it."""
+    import multiprocessing
+
+    return "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
 
 
 def cores() -> int:
@@ -168,7 +177,18 @@ def _dask(workers: int | None, scheduler: str | None, scheduler_file: str | None
     # worker processes are not daemonic; a task whose worker died runs once more
     dask.config.set({"distributed.worker.daemon": False,
                      "distributed.scheduler.allowed-failures": ALLOWED_FAILURES,
-                     "distributed.admin.system-monitor.gil.enabled": False})
+                     "distributed.admin.system-monitor.gil.enabled": False,
+                     # one task a worker thread, the rest queued at the scheduler: a worker
+                     # free takes the next recording (no task waiting behind a long one on a
+                     # busy worker while another idles at the end of the campaign)
+                     "distributed.scheduler.worker-saturation": 1.0,
+                     # the workers forked from this process, as a ProcessPoolExecutor's are:
+                     # spawned, each re-imports Python, distributed and numpy/scipy/pyarrow
+                     # and takes seconds more to start and to close (docs/performance.md C2)
+                     "distributed.worker.multiprocessing-method": _start_method(),
+                     # the statistical profiler samples every worker thread every 10 ms for
+                     # the dashboard's profile: only when there is a dashboard
+                     "distributed.worker.profile.enabled": dashboard is not None})
     with _sigint_ignored():
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                                host="127.0.0.1", scheduler_port=0,

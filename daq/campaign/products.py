@@ -45,6 +45,11 @@ class ProductContext:
     metadata: dict[str, str]
     #: what the manifest row gets (samples, lost_samples, accepted_runs, t_start, …)
     stats: dict[str, Any] = field(default_factory=dict)
+    #: shown every assembled sample of the recording's one replay, in order (a product's
+    #: :attr:`Product.prepare` adds itself here; the telemetry product's replay calls them)
+    sample_observers: list[Callable[[Any], None]] = field(default_factory=list)
+    #: what a product's prepare keeps for its build, by product name
+    state: dict[str, Any] = field(default_factory=dict)
     _outputs: dict[str, AtomicOutput] = field(default_factory=dict)
 
     def output(self, table: str) -> IO:
@@ -71,6 +76,10 @@ class ProductContext:
 class Product:
     name: str
     build: Callable[[ProductContext], Any]
+    #: called for every product before any is built: a product that derives its table from
+    #: the samples of the telemetry product's replay registers an observer here (a recording
+    #: is read once)
+    prepare: Callable[[ProductContext], None] | None = None
 
 
 def telemetry(ctx: ProductContext) -> None:
@@ -84,7 +93,8 @@ def telemetry(ctx: ProductContext) -> None:
     outputs = {k: ctx.output(k) for k in schemas}
     tables = ParquetTables(schemas, outputs, names, metadata=ctx.metadata)
     try:
-        ctx.stats.update(replay_to_tables(ctx.cfg, [ctx.source], tables, ctx.options))
+        ctx.stats.update(replay_to_tables(ctx.cfg, [ctx.source], tables, ctx.options,
+                                          ctx.sample_observers))
     finally:
         tables.close(empty=True)
     ctx.stats["rows"] = dict(tables.counts)
@@ -103,18 +113,25 @@ def write_table(ctx: ProductContext, name: str, result: Any) -> None:
     pq.write_table(table.replace_schema_metadata(meta), ctx.output(name))
 
 
+def information_prepare(ctx: ProductContext) -> None:
+    """The information product sees the telemetry product's replay (one read of the
+    recording)."""
+    from rsra.daq.analysis.information import InformationCollector
+
+    collector = ctx.state["information"] = InformationCollector(ctx.cfg, ctx.recording)
+    ctx.sample_observers.append(collector.observe)
+
+
 def information(ctx: ProductContext) -> Any:
     """The recording's known-load information (daq.analysis.information: the moments of its
-    windows), what `rsra campaign calibrate` pools across recordings; the recording id is
-    the partition's."""
-    from rsra.daq.analysis.information import recording_information
-
-    table = recording_information(ctx.cfg, ctx.source, ctx.recording)
+    windows), what `rsra campaign calibrate` pools across recordings, from the samples of
+    the telemetry product's replay; the recording id is the partition's."""
+    table = ctx.state["information"].table(ctx.source)
     return table.drop_columns(["recording"])
 
 
 #: the products of every recording, in order
 PRODUCTS: list[Product] = [
     Product("telemetry", telemetry),
-    Product("information", information),
+    Product("information", information, prepare=information_prepare),
 ]

@@ -33,6 +33,9 @@ def _run_recording(job: dict[str, Any]) -> dict[str, Any]:
         from rsra.daq.campaign.products import PRODUCTS, write_table
 
         for product in PRODUCTS:
+            if product.prepare is not None:
+                product.prepare(ctx)
+        for product in PRODUCTS:
             result = product.build(ctx)
             if result is not None:
                 write_table(ctx, product.name, result)

@@ -31,7 +31,7 @@ import queue
 import signal
 import threading
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -296,6 +296,22 @@ def _close_logged(stack: contextlib.ExitStack, close: Callable[[], None]) -> Non
     stack.callback(run)
 
 
+def _observed(items: Iterator, observers: list[Callable[[Any], None]]) -> Iterator:
+    """``items`` with each assembled sample shown to ``observers`` first."""
+    if not observers:
+        return items
+    from rsra.daq.bus.assembler import Sample
+
+    def tap() -> Iterator:
+        for item in items:
+            if isinstance(item, Sample):
+                for observe in observers:
+                    observe(item)
+            yield item
+
+    return tap()
+
+
 def jsonl_sink(path: str | Path):
     """A sink writing `{"key": …, …payload}` lines (strict JSON), and its closer (which makes
     the file: the one writer, daq.runtime.persistence.OutputFile)."""
@@ -341,6 +357,7 @@ class Service:
         self.dt = 1.0 / self.fs
         self.summary: dict[str, Any] = {}
         self._extra_sinks: list[Callable[[str, dict], None]] = []
+        self._sample_observers: list[Callable[[Any], None]] = []
         self.warnings: list[str] = []  # start-up problems the service went on with
         self.schedule: dict | None = None  # replay: where the angles come from
         self.worker_initializer: Callable[[], None] | None = None  # first in the worker (tests)
@@ -396,6 +413,12 @@ class Service:
 
     def add_sink(self, sink: Callable[[str, dict], None]) -> None:
         self._extra_sinks.append(sink)
+
+    def add_sample_observer(self, observe: Callable[[Any], None]) -> None:
+        """``observe(sample)`` for every assembled sample the source gives, in order, before
+        the pipeline takes it (a campaign task derives a second product from the same replay
+        instead of reading the recording twice)."""
+        self._sample_observers.append(observe)
 
     def stop(self, *_: Any) -> None:
         self.stop_event.set()
@@ -467,7 +490,7 @@ class Service:
                 log.warning("hub path: the compiled kernel is %s; the pure-Python path runs "
                             "(the same records, more CPU per sample)",
                             pipeline.hub_kernel_status)
-            loop.run(self.source.items(self.stop_event))
+            loop.run(_observed(self.source.items(self.stop_event), self._sample_observers))
         self.summary = run_summary(loop, self.reader, self.warnings, self.schedule, cfg)
         return self.summary
 
