@@ -22,18 +22,21 @@ from tests.helpers_proc import launch_chromium, spawn, stop
 
 VIEWPORTS = ((1600, 1000), (1280, 800))
 REPORT_PNGS = ("hub_loads.png", "hub_load_errors.png", "angles.png", "innovations.png")
-PALETTE = 96  # colours kept per image: plots and the dark theme need few
+REPORT_WIDTH = 900  # px: the report's plots, scaled down (the docs show them at about that)
+REPORT_COLOURS = 32
+SCREEN_COLOURS = 48  # Open MCT's dark theme
 
 
-def shrink(src: Path, dst: Path, width: int | None = None) -> None:
-    """``src`` as a palette PNG at ``dst`` (scaled to ``width`` px when given)."""
+def shrink(src: Path, dst: Path, width: int | None = None, colours: int = SCREEN_COLOURS) -> None:
+    """``src`` as a palette PNG of ``colours`` at ``dst`` (scaled to ``width`` px when
+    given): a few hundred kB for all the images."""
     from PIL import Image
 
     with Image.open(src) as im:
         img = im.convert("RGB")
         if width is not None and img.width > width:
             img = img.resize((width, round(img.height * width / img.width)), Image.LANCZOS)
-        img.quantize(colors=PALETTE, method=Image.Quantize.MEDIANCUT).save(
+        img.quantize(colors=colours, method=Image.Quantize.MEDIANCUT).save(
             dst, optimize=True)
 
 
@@ -60,9 +63,18 @@ def report_images(out: Path, work: Path, flight_s: float) -> list[Path]:
     made = []
     for name in REPORT_PNGS:
         dst = out / f"report-{name}"
-        shrink(work / "report" / name, dst, width=1200)
+        shrink(work / "report" / name, dst, REPORT_WIDTH, REPORT_COLOURS)
         made.append(dst)
     return made
+
+
+def _wait_for(log: Path, text: str, proc: subprocess.Popen, timeout: float = 300.0) -> None:
+    """Until ``text`` is in the file ``log`` (what ``proc`` writes)."""
+    end = time.monotonic() + timeout
+    while text not in log.read_text(errors="replace"):
+        if proc.poll() is not None or time.monotonic() > end:
+            raise SystemExit(f"docs_img: no {text!r} in {log}")
+        time.sleep(0.5)
 
 
 def browser_images(out: Path, work: Path, live_s: float) -> list[Path]:
@@ -79,6 +91,8 @@ def browser_images(out: Path, work: Path, live_s: float) -> list[Path]:
             procs.append(spawn(["run", "--sim", "ground-test", "--duration",
                                 str(live_s + 300), "--zenoh-listen", ep],
                                stdout=subprocess.DEVNULL, stderr=rlog))
+            _wait_for(work / "live-run.log", "service started", procs[0])  # so the page
+            # names it: rsra web picks the rig publishing when it starts
             web = spawn(["web", "--port", str(wport), "--zenoh-connect", ep],
                         stdout=subprocess.PIPE, stderr=wlog)
             procs.append(web)
@@ -97,7 +111,8 @@ def browser_images(out: Path, work: Path, live_s: float) -> list[Path]:
                         page.goto(url, timeout=120_000)
                         page.locator(".gl-plot").first.wait_for()
                         page.wait_for_function(
-                            "() => (window.rsraStats.history['hub.H.Z'] || 0) > 0")
+                            "() => ['X', 'Y', 'Z', 'L', 'M', 'N'].every((a) => "
+                            "(window.rsraStats.history['hub.H.' + a] || 0) > 0)")
                         page.wait_for_function("() => document.querySelectorAll("
                                                "'.c-telemetry-table tbody td').length > 0")
                         page.wait_for_timeout(3000)  # the plots draw

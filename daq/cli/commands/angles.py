@@ -307,6 +307,13 @@ def _show(cfg: RigConfig, args: argparse.Namespace) -> int:
     if len(undet) > SHOW_DIRECTIONS:
         console.print(f"  … and {len(undet) - SHOW_DIRECTIONS} more (--json lists them all)",
                       highlight=False)
+    _notes(console, d, source)
+    return 0
+
+
+def _notes(console: Any, d: dict, source: dict | None) -> None:
+    """The lines under `show`'s table: a recording's latest advice, the records after the one
+    shown, and what the service would say of the file."""
     adv = source.get("advice") if source is not None else None
     if adv is not None and adv["sentence"]:
         console.print(f"advice (record {adv['index']}, the latest filter-error window with "
@@ -323,7 +330,6 @@ def _show(cfg: RigConfig, args: argparse.Namespace) -> int:
     if not d["matches_config"]:
         console.print("note: the config identifies other parameters: the service would refuse "
                       "this file (reset it or check --config)", highlight=False)
-    return 0
 
 
 def _reset(cfg: RigConfig, args: argparse.Namespace) -> int:
