@@ -66,6 +66,8 @@ def test_dictionary_is_built_from_the_rig_config(cfg, dic):
     assert {f"node.{n.name}" for n in cfg.nodes} <= set(ids)
     assert {"ident.verdict", "ident.determined", "health.bus.errors",
             "health.samples.lost"} <= set(ids)
+    # the posterior's count, named as the log's calibration line names it (not the window's)
+    assert ids["ident.determined"].name == "directions determined (posterior, of 14)"
     nb = noise_budget(cfg.rig_model(), cfg.identification.initial_angles_rad).total
     assert dic.sigma_static == pytest.approx(list(nb))
     json.dumps(dic.as_json(), allow_nan=False)  # strict JSON for the browser

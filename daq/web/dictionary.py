@@ -173,7 +173,10 @@ def build_dictionary(cfg, prefix: str | None = None, source: str = "") -> Dictio
                           format="string", extra=(("detail", "decided by", ""),
                                                   ("mode", "mode", ""),
                                                   ("content", "content", ""))))
-    ms.append(Measurement("ident.determined", "directions determined", "Identification",
+    # named as the log's calibration line and `rsra angles show` name it (the posterior's);
+    # the advice says what one window determines
+    ms.append(Measurement("ident.determined",
+                          f"directions determined (posterior, of {len(angles)})", "Identification",
                           "angles", format="integer"))
     ms.append(Measurement("ident.advice", "what would determine the rest", "Identification",
                           "angles", format="string"))
