@@ -21,7 +21,7 @@ $(shell mkdir -p $(VENV) && find rsra daq estimator sim_bus config \( -name __py
 	{ cmp -s $(PKG_FILES).new $(PKG_FILES) || mv $(PKG_FILES).new $(PKG_FILES); }; \
 	rm -f $(PKG_FILES).new)
 
-.PHONY: setup web demo test test-all bench lint metrics clean
+.PHONY: setup web demo test test-all bench lint metrics clean docs-img
 
 # (setup.py and the C kernel too: an edited kernel is rebuilt into the venv by the next make;
 # a file added to a package is linked by the next make)
@@ -49,6 +49,13 @@ $(OPENMCT)/openmct.js: package.json package-lock.json
 	rm -rf $(OPENMCT)/types
 
 web: $(OPENMCT)/openmct.js
+
+# docs/img/: the report's plots of a 60-s flight-rig run (rsra run --config flight --sim
+# flight --speed max --record, replay, report --truth) and the browser view of a live ground
+# test at 1600×1000 and 1280×800 (rsra run + rsra web on loopback, headless Chromium after
+# two minutes); every process it starts is stopped at the end (about 4 minutes)
+docs-img: $(STAMP) web
+	$(BIN)/python -m tests.docs_img --out docs/img
 
 demo: $(STAMP)
 	$(BIN)/rsra demo

@@ -5,10 +5,8 @@ from __future__ import annotations
 
 import asyncio
 import json
-import os
-import signal
+import math
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -24,9 +22,8 @@ from rsra.daq.web.server import (Client, Gateway, allowed_hosts, openmct_dir,  #
 from rsra.daq.runtime.telemetry import payload_guard  # noqa: E402
 from tests.helpers_net import free_tcp_port  # noqa: E402
 
-CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_FLAGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                  "--disable-component-update", "--disable-sync", "--no-first-run"]
+from tests.helpers_proc import (CHROMIUM, CHROMIUM_FLAGS, launch_chromium,  # noqa: E402
+                                spawn as _spawn, stop as _stop)
 
 
 @pytest.fixture(scope="module")
@@ -69,6 +66,8 @@ def test_dictionary_is_built_from_the_rig_config(cfg, dic):
     assert {f"node.{n.name}" for n in cfg.nodes} <= set(ids)
     assert {"ident.verdict", "ident.determined", "health.bus.errors",
             "health.samples.lost"} <= set(ids)
+    # the posterior's count, named as the log's calibration line names it (not the window's)
+    assert ids["ident.determined"].name == "directions determined (posterior, of 14)"
     nb = noise_budget(cfg.rig_model(), cfg.identification.initial_angles_rad).total
     assert dic.sigma_static == pytest.approx(list(nb))
     json.dumps(dic.as_json(), allow_nan=False)  # strict JSON for the browser
@@ -387,31 +386,6 @@ def test_web_command_bad_input(tmp_path, capsys, monkeypatch):
 
 
 # -- a real browser ------------------------------------------------------------------------
-def _die_with_parent() -> None:
-    try:
-        import ctypes
-
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-    except OSError:
-        pass
-
-
-def _spawn(args, **kw) -> subprocess.Popen:
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    return subprocess.Popen([sys.executable, "-m", "rsra", *args], env=env,
-                            preexec_fn=_die_with_parent, text=True, **kw)
-
-
-def _stop(p: subprocess.Popen) -> None:
-    if p.poll() is None:
-        p.send_signal(signal.SIGINT)
-        try:
-            p.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait(timeout=10)
-
-
 def _browser_skip_reason() -> str | None:
     if not Path(CHROMIUM).is_file():
         return f"chromium is not installed ({CHROMIUM}; .ci/run installs Debian's chromium)"
@@ -646,6 +620,240 @@ def test_browser_breaks_the_line_at_a_gap_and_shows_the_node_values(cfg, tmp_pat
             if web is not None:
                 _stop(web)
                 web.stdout.close()
+    out = _read(log)
+    log.close()
+    assert "Traceback" not in out, out
+
+
+# -- readable at 1600×1000 and 1280×800 (issue 51) -----------------------------------------
+def test_the_band_lines_are_their_envelope_live_and_in_history(dic):
+    """Over minutes the band lines enclose the estimate instead of merging with it: each
+    band point given is the furthest out of its chunk of time (every sample's H ± 3.29 σ lies
+    within the lines), one per chunk, the same live and in history; other series pass
+    unchanged. Break-checked: keeping the first point of a chunk instead of the furthest out
+    fails the first assertion."""
+    rng = np.random.default_rng(51)
+    t0 = 1_000.0
+    recs = [_hub(i, t0 + i / 200.0, H=[5000.0 * math.sin(i / 5.0) + 300.0 * rng.standard_normal(),
+                                      0.0, -8e4, 0.0, 0.0, 0.0]) for i in range(2000)]
+    live, raw = D.BandEnvelope(), []
+    got: list[tuple[str, dict]] = []
+    for r in recs:
+        pts = D.points(dic, "hub_loads", r)
+        raw += pts
+        got += live.reduce(pts)
+    chunk = D.BAND_CHUNK_MS
+    for pid, side in (("hub.upper.X", 1), ("hub.lower.X", -1)):
+        mine = [d for i, d in raw if i == pid]
+        by_chunk: dict[int, list[float]] = {}
+        for d in mine:
+            by_chunk.setdefault(math.floor(d["utc"] / chunk), []).append(d["value"])
+        want = [(max if side > 0 else min)(v) for _, v in sorted(by_chunk.items())]
+        hist = D.envelope(pid, mine)
+        assert [d["value"] for d in hist] == want
+        shown = [d["value"] for i, d in got if i == pid]
+        assert shown == want[:-1]  # live: a chunk is given when the next starts
+    assert [d for i, d in got if i == "hub.H.X"] == [d for i, d in raw if i == "hub.H.X"]
+    assert D.envelope("hub.H.X", [{"utc": 1.0, "value": 2.0}]) == [{"utc": 1.0, "value": 2.0}]
+
+
+def test_web_names_the_rig_publishing_and_takes_its_packaged_config(tmp_path):
+    """`rsra web` without --config, with only the flight rig publishing, shows it: its prefix,
+    its packaged config (the page's cells and angles) and its name in the page's words; with a
+    --config of another rig it refuses in one line; --rig NAME of none publishing too.
+    Break-checked: without the packaged config it returns the bench rig and fails."""
+    import argparse
+
+    import zenoh
+
+    from rsra.config.rig import load_config
+    from rsra.daq.cli.commands.web import _whose
+    from rsra.daq.cli.options import UsageError
+    from rsra.daq.runtime.telemetry import TelemetryPublisher, viewer_config, zenoh_config
+
+    cfg = load_config()
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    conf = viewer_config([ep])
+
+    def args(**kw):
+        return argparse.Namespace(**{"prefix": None, "rig": None, "config": None, **kw})
+
+    with zenoh.open(zenoh_config(cfg.telemetry, listen=[ep])) as rig:
+        pub = TelemetryPublisher(rig, "rsra/flight", {"rig": {"name": "flight"}})
+        try:
+            for _ in range(50):
+                got, prefix, source = _whose(args(), cfg, conf)
+                if prefix == "rsra/flight":
+                    break
+            assert prefix == "rsra/flight" and got.rig_name == "flight"
+            assert source.startswith("rig flight on rsra/flight — host ")
+            with pytest.raises(UsageError, match="--config describes rig bench"):
+                _whose(args(config=["default"]), cfg, conf)
+            with pytest.raises(UsageError, match="--rig hover: no rig hover publishing"):
+                _whose(args(rig="hover"), cfg, conf)
+        finally:
+            pub.close()
+
+
+_LABEL_OVERLAPS = """() => {
+  // the drawn text of every axis label and tick label of every plot (the union of its
+  // text nodes' boxes: the elements are wider than their text), and the pairs that overlap
+  const textBox = (e) => {
+    const walk = document.createTreeWalker(e, NodeFilter.SHOW_TEXT);
+    let box = null;
+    for (let n = walk.nextNode(); n; n = walk.nextNode()) {
+      if (!n.textContent.trim()) { continue; }
+      const r = document.createRange();
+      r.selectNodeContents(n);
+      const b = r.getBoundingClientRect();
+      box = box === null ? { left: b.left, top: b.top, right: b.right, bottom: b.bottom }
+        : { left: Math.min(box.left, b.left), top: Math.min(box.top, b.top),
+          right: Math.max(box.right, b.right), bottom: Math.max(box.bottom, b.bottom) };
+    }
+    return box;
+  };
+  const out = [];
+  let n = 0;
+  document.querySelectorAll('.gl-plot').forEach((plot) => {
+    const bs = Array.from(plot.querySelectorAll('.gl-plot-tick, .gl-plot-label'))
+      .filter((e) => getComputedStyle(e).visibility !== 'hidden')
+      .map((e) => ({ t: e.textContent.trim(), r: textBox(e) }))
+      .filter((b) => b.r !== null && b.r.right > b.r.left && b.r.bottom > b.r.top);
+    n += bs.length;
+    for (let i = 0; i < bs.length; i++) {
+      for (let j = i + 1; j < bs.length; j++) {
+        const a = bs[i].r, b = bs[j].r;
+        const w = Math.min(a.right, b.right) - Math.max(a.left, b.left);
+        const h = Math.min(a.bottom, b.bottom) - Math.max(a.top, b.top);
+        if (w > 0.5 && h > 0.5) {
+          out.push(bs[i].t + ' / ' + bs[j].t + ' (' + w.toFixed(1) + '×' + h.toFixed(1) + ' px)');
+        }
+      }
+    }
+  });
+  return { labels: n, overlaps: out };
+}"""
+
+# every row of the nodes-and-health table and of the angle table on screen, not scrolled
+_PANELS_VISIBLE = """() => {
+  const shown = (el) => {
+    const r = el.getBoundingClientRect();
+    if (r.height <= 0 || r.top < 0 || r.left < 0 || r.bottom > innerHeight + 0.5
+        || r.right > innerWidth + 0.5) { return false; }
+    for (let p = el.parentElement; p; p = p.parentElement) {
+      if (!/(auto|scroll|hidden)/.test(getComputedStyle(p).overflowY)) { continue; }
+      const q = p.getBoundingClientRect();
+      if (r.top < q.top - 0.5 || r.bottom > q.bottom + 0.5) { return false; }
+    }
+    return true;
+  };
+  const out = [];
+  const lad = Array.from(document.querySelectorAll('.c-lad-table'))
+    .find((t) => t.textContent.includes('bus frames'));
+  if (!lad) { out.push('no nodes-and-health table'); } else {
+    const rows = Array.from(lad.querySelectorAll('tbody tr'));
+    rows.filter((tr) => !shown(tr)).forEach((tr) => out.push('health row not on screen: '
+      + tr.textContent.trim().slice(0, 40)));
+    if (rows.length < 20) { out.push('only ' + rows.length + ' health rows'); }
+  }
+  const table = Array.from(document.querySelectorAll('.c-telemetry-table'))
+    .find((t) => t.textContent.includes('delta_A'));
+  if (!table) { out.push('no angle table'); } else {
+    const rows = Array.from(table.querySelectorAll('tbody tr'))
+      .filter((tr) => tr.textContent.trim() !== '');
+    rows.filter((tr) => !shown(tr)).forEach((tr) => out.push('angle row not on screen: '
+      + tr.textContent.trim().slice(0, 40)));
+    if (rows.length !== 14) { out.push(rows.length + ' angle rows rendered, not 14'); }
+  }
+  return out;
+}"""
+
+
+def _run_for_layout(cfg, t0: float, seconds: float = 125.0) -> list[tuple[str, dict]]:
+    """Two minutes of a ground test as records (50 samples/s: enough for every pixel): hub
+    loads stepping between load conditions with a 1/rev swing and noise, the NIS at 10/s with
+    spikes at the steps, health every second, one identification."""
+    rng = np.random.default_rng(7)
+    names = list(cfg.rig_model().geometry.angle_names)
+    nodes = {n.name: {"state": "operational", "required": n.required} for n in cfg.nodes}
+    recs: list[tuple[str, dict]] = []
+    for i in range(int(seconds * 50)):
+        t = t0 + i / 50.0
+        step = 12000.0 * (int((t - t0) / 30.0) % 2)
+        swing = 4000.0 * math.sin(2 * math.pi * 3.1 * (t - t0))
+        H = [step + swing + 800.0 * rng.standard_normal(), swing, -8e4 + step,
+             2 * step + swing, step, swing]
+        recs.append(("hub_loads", _hub(i, t, H=H, S=[h + 900.0 * rng.standard_normal()
+                                                      for h in H])))
+        if i % 5 == 0:
+            nis = float(rng.chisquare(6)) * (40.0 if i % 1500 < 10 else 1.0)
+            recs.append(("innovations", {"seq": i, "t": t, "nis": nis, "e": [0.0] * 6}))
+        if i % 50 == 0:
+            recs.append(("health", {"t": t, "nodes": nodes, "bus": {"frames": 10 * i,
+                                                                    "errors": 0},
+                                    "samples": {"complete": i, "lost": 0}}))
+    recs.append(("angles", {"t": t0 + seconds - 5, "names": names, "alpha": [0.0123] * 14,
+                            "P": np.diag([np.radians(0.05) ** 2] * 14).tolist(),
+                            "accepted": True, "reason": None, "determined": 14,
+                            "mode": "known_loads", "content": "static"}))
+    recs.sort(key=lambda kr: kr[1]["t"])
+    return recs
+
+
+@pytest.mark.timeout(300)
+def test_browser_layout_is_readable_at_1600x1000_and_1280x800(cfg, tmp_path):
+    """Two minutes of telemetry in the default layout: no axis label or tick number of any
+    plot overlaps another (the drawn text, at 1600×1000 and 1280×800), and at 1600×1000 every
+    row of the nodes-and-health table and all 14 angles are on screen without scrolling.
+    Break-checked: without the y-axis labels' room (index.html's tick padding) the overlap
+    assertion fails ("X kN / 0"); with the former two-column layout the panel assertion."""
+    why = _browser_skip_reason()
+    if why:
+        pytest.skip(why)
+    import time
+
+    from playwright.sync_api import sync_playwright
+
+    t0 = time.time() - 3600.0
+    jl = tmp_path / "two-minutes.jsonl"
+    jl.write_text("".join(json.dumps({"key": k, **p}) + "\n"
+                          for k, p in _run_for_layout(cfg, t0)))
+    wport = free_tcp_port()
+    log = open(tmp_path / "web.log", "w+")
+    web = _spawn(["web", "--port", str(wport), "--zenoh-connect",
+                  f"tcp/127.0.0.1:{free_tcp_port()}", str(jl)],
+                 stdout=subprocess.PIPE, stderr=log)
+    try:
+        line = web.stdout.readline()
+        assert f"http://127.0.0.1:{wport}/" in line, line + _read(log)
+        url = line.split("open ", 1)[1].split()[0].rstrip("/")
+        s, e = int(t0 * 1000), int((t0 + 125) * 1000)
+        with sync_playwright() as pw:
+            for w, h in ((1600, 1000), (1280, 800)):
+                ctx = launch_chromium(pw, tmp_path / f"profile-{w}", w, h)
+                try:
+                    page = ctx.new_page()
+                    page.set_default_timeout(120_000)  # a loaded machine: no timing asserted
+                    page.goto(f"{url}/#/browse/rsra:root/rsra:layout?hideTree=true"
+                              f"&hideInspector=true&tc.mode=fixed&tc.startBound={s}"
+                              f"&tc.endBound={e}&tc.timeSystem=utc")
+                    page.wait_for_function(
+                        "() => ['X', 'Y', 'Z', 'L', 'M', 'N', 'nis'].every((a) => "
+                        "(window.rsraStats.history[a === 'nis' ? a : 'hub.H.' + a] || 0) > 0)")
+                    page.wait_for_function("() => document.querySelectorAll("
+                                           "'.c-telemetry-table tbody td').length >= 14")
+                    page.wait_for_timeout(2000)  # the plots draw (nothing timed)
+                    page.screenshot(path=str(tmp_path / f"layout-{w}.png"))
+                    got = page.evaluate(_LABEL_OVERLAPS)
+                    assert got["labels"] > 40, got  # the six hub plots' and the NIS' labels
+                    assert got["overlaps"] == [], (w, got["overlaps"])
+                    if w == 1600:
+                        assert page.evaluate(_PANELS_VISIBLE) == []
+                finally:
+                    ctx.close()
+    finally:
+        _stop(web)
+        web.stdout.close()
     out = _read(log)
     log.close()
     assert "Traceback" not in out, out

@@ -257,7 +257,21 @@ def flatten(key: str, payload: dict, names: dict[str, tuple[str, ...]]) -> dict[
     walk("", payload)
     if key == "angles":
         row.update(_sigma_deg(payload, names.get("angles")))
+        row[ADVICE_TEXT] = _advice_text(payload)
     return row
+
+
+ADVICE_TEXT = "advice_text"  # the angles table's column: the advice as the log says it
+
+
+def _advice_text(payload: dict) -> str | None:
+    """The sentence of a filter-error record's ``advice`` (estimator.flight_advice), None
+    where the record has none."""
+    from rsra.estimator.flight_advice import advice_summary
+
+    names = payload.get("names")
+    return advice_summary(payload.get("advice"),
+                          len(names) if isinstance(names, list) and names else None)
 
 
 SIGMA_DEG = "sigma_deg"  # the angles table's column prefix: each angle's posterior σ in degrees
@@ -410,6 +424,8 @@ def declared_columns(key: str, names: dict[str, tuple[str, ...]]) -> list[tuple[
                 out += [(f"{col}.{n}", "number") for n in names.get(_BY_NAME[key, path], ())]
             else:
                 out.append((col, jtype))
+    if key == "angles":
+        out.append((ADVICE_TEXT, "string"))
     return out
 
 

@@ -79,7 +79,9 @@ class Measurement:
     # a plotted series' line breaks where no point came for longer than this (ms; a stopped
     # or restarted service); None: never (tables, strings, low-rate keys)
     gap_ms: float | None = None
-
+    # shown in thousands (kN, kN·m: values stay SI in the points): the hub loads, whose tick
+    # numbers of five digits ran into the plots' axis labels
+    kilo: bool = False
 
     def as_json(self) -> dict:
         d = {"id": self.id, "name": self.name, "group": self.group, "source": self.source,
@@ -90,6 +92,8 @@ class Measurement:
             d["limits"] = self.limits
         if self.gap_ms is not None:
             d["gap_ms"] = self.gap_ms
+        if self.kilo:
+            d["kilo"] = True
         return d
 
 
@@ -104,13 +108,17 @@ class Dictionary:
     accelerometers: tuple[str, ...]
     nodes: tuple[str, ...]
     angles: tuple[str, ...]
+    #: whose telemetry it is, in words (the service's rig, host, process and start; or why
+    #: none is named): the page's title says it
+    source: str = ""
     by_id: dict[str, Measurement] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.by_id = {m.id: m for m in self.measurements}
 
     def as_json(self) -> dict:
-        return {"rig": self.rig, "prefix": self.prefix, "frame": self.frame,
+        return {"rig": self.rig, "prefix": self.prefix, "source": self.source,
+                "frame": self.frame,
                 "sigma_static": self.sigma_static, "z_yellow": Z_YELLOW, "z_red": Z_RED,
                 "nis_band": list(NIS_YELLOW), "nis_red": NIS_RED_HIGH,
                 "cells": list(self.cells), "accelerometers": list(self.accelerometers),
@@ -118,8 +126,9 @@ class Dictionary:
                 "measurements": [m.as_json() for m in self.measurements]}
 
 
-def build_dictionary(cfg, prefix: str | None = None) -> Dictionary:
-    """The dictionary of a rig config (:class:`rsra.config.rig.RigConfig`)."""
+def build_dictionary(cfg, prefix: str | None = None, source: str = "") -> Dictionary:
+    """The dictionary of a rig config (:class:`rsra.config.rig.RigConfig`); ``source``: whose
+    telemetry the page shows, in words."""
     from rsra.estimator.noise_budget import noise_budget
 
     model = cfg.rig_model()
@@ -134,9 +143,9 @@ def build_dictionary(cfg, prefix: str | None = None) -> Dictionary:
         ms.append(Measurement(f"hub.H.{ax}", f"{ax} filter", "Hub loads", "hub_loads", u))
         ms.append(Measurement(f"hub.static.{ax}", f"{ax} static", "Hub loads", "hub_loads", u,
                               extra=(("ref", "filter", u), ("dev", "deviation", "σ"))))
-        ms.append(Measurement(f"hub.upper.{ax}", f"{ax} filter +{Z_YELLOW:.2f}σ", "Hub loads",
+        ms.append(Measurement(f"hub.upper.{ax}", f"{ax} band +{Z_YELLOW:.2f}σ", "Hub loads",
                               "hub_loads", u))
-        ms.append(Measurement(f"hub.lower.{ax}", f"{ax} filter −{Z_YELLOW:.2f}σ", "Hub loads",
+        ms.append(Measurement(f"hub.lower.{ax}", f"{ax} band −{Z_YELLOW:.2f}σ", "Hub loads",
                               "hub_loads", u))
         ms.append(Measurement(f"hub.angles.{ax}", f"{ax} σ from the angles", "Hub loads",
                               "hub_loads", u))
@@ -164,7 +173,10 @@ def build_dictionary(cfg, prefix: str | None = None) -> Dictionary:
                           format="string", extra=(("detail", "decided by", ""),
                                                   ("mode", "mode", ""),
                                                   ("content", "content", ""))))
-    ms.append(Measurement("ident.determined", "directions determined", "Identification",
+    # named as the log's calibration line and `rsra angles show` name it (the posterior's);
+    # the advice says what one window determines
+    ms.append(Measurement("ident.determined",
+                          f"directions determined (posterior, of {len(angles)})", "Identification",
                           "angles", format="integer"))
     ms.append(Measurement("ident.advice", "what would determine the rest", "Identification",
                           "angles", format="string"))
@@ -181,11 +193,67 @@ def build_dictionary(cfg, prefix: str | None = None) -> Dictionary:
     for m in ms:
         if m.id.startswith(plotted):
             m.gap_ms = gap_ms(cfg.sample_rate_hz)
+        m.kilo = m.group == "Hub loads" and m.unit in ("N", "N·m")
     return Dictionary(cfg.rig_name, prefix or cfg.telemetry.prefix, cfg.hub_frame, ms, sigma,
-                      cells, accs, nodes, angles)
+                      cells, accs, nodes, angles, source)
 
 
 GAP_MIN_S = 1.0  # a break in a plotted line: at least this long without a point
+# The band lines are drawn as their envelope over this much time (a rotor revolution or more):
+# over the real-time window's two minutes the per-sample band lines (H ± 3.29 σ, which swing
+# with H's 1/rev loads) merged with the estimate into one block
+BAND_CHUNK_MS = 500.0
+BAND_SIDES = {"hub.upper.": 1, "hub.lower.": -1}
+
+
+def band_side(pid: str) -> int:
+    """+1 for an upper band line, −1 for a lower one, 0 for any other series."""
+    return BAND_SIDES.get(pid[:len("hub.upper.")], 0)
+
+
+class BandEnvelope:
+    """The band lines (``hub.upper.*``, ``hub.lower.*``) as their envelope: in each chunk of
+    BAND_CHUNK_MS the point furthest out, so every sample's H ± 3.29 σ lies between the two
+    lines and the estimate shows between them over minutes. A chunk's point is given when
+    the next chunk starts (one chunk late); bounded: one open chunk per band series."""
+
+    def __init__(self, chunk_ms: float = BAND_CHUNK_MS) -> None:
+        self.chunk_ms = chunk_ms
+        #: per band series: its open chunk's number and the point furthest out in it
+        self.open: dict[str, tuple[int, dict]] = {}
+
+    def add(self, pid: str, d: dict) -> dict | None:
+        """Take one band point; returns the finished chunk's point when ``d`` starts another."""
+        c = math.floor(d["utc"] / self.chunk_ms)
+        cur = self.open.get(pid)
+        if cur is not None and cur[0] == c:
+            if band_side(pid) * (d["value"] - cur[1]["value"]) > 0:
+                self.open[pid] = (c, d)
+            return None
+        self.open[pid] = (c, d)
+        return None if cur is None else cur[1]
+
+    def reduce(self, pts: list[tuple[str, dict]]) -> list[tuple[str, dict]]:
+        """Live points with the band lines' replaced by their envelope's."""
+        out = []
+        for pid, d in pts:
+            if not band_side(pid):
+                out.append((pid, d))
+            elif (done := self.add(pid, d)) is not None:
+                out.append((pid, done))
+        return out
+
+
+def envelope(pid: str, data: list[dict], chunk_ms: float = BAND_CHUNK_MS) -> list[dict]:
+    """A history answer (in time order) of series ``pid``: a band line's envelope, any other
+    series unchanged."""
+    if not band_side(pid):
+        return data
+    env = BandEnvelope(chunk_ms)
+    out = [done for d in data if (done := env.add(pid, d)) is not None]
+    if pid in env.open:
+        out.append(env.open[pid][1])
+    return out
 
 
 def gap_ms(rate_hz: float) -> float:

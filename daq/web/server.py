@@ -34,7 +34,7 @@ from aiohttp import WSMsgType, web
 from rsra.daq.jsonout import dumps
 from rsra.daq.netaddr import is_loopback
 from rsra.daq.payload_guard import PayloadGuard, Received
-from rsra.daq.web.dictionary import Dictionary, points
+from rsra.daq.web.dictionary import BandEnvelope, Dictionary, envelope, points
 from rsra.daq.web.history import (History, HistoryFileError, TelemetryFile, merged_query,
                                   points_of)
 
@@ -188,6 +188,8 @@ class Gateway:
         self.dropped_closed = 0  # points dropped by browsers that have gone
         self.sent_closed = 0
         self.seq: dict[str, list[int]] = {}  # key -> [first, last, received in order]
+        #: the live band lines, reduced to their envelope (dictionary.BandEnvelope)
+        self.bands = BandEnvelope()
         self.started = time.monotonic()
 
     # -- telemetry in --------------------------------------------------------------------
@@ -219,7 +221,7 @@ class Gateway:
         t = payload.get("t")
         if isinstance(t, (int, float)) and not isinstance(t, bool):
             self.history.add(key, float(t), text)
-        pts = points(self.dic, key, payload)
+        pts = self.bands.reduce(points(self.dic, key, payload))
         if pts:
             for c in self.clients:
                 c.offer(pts)
@@ -327,7 +329,7 @@ class Gateway:
                 return got
 
             sources.append(answer)
-        out = merged_query(sources)
+        out = envelope(mid, merged_query(sources))
         if q.get("strategy") == "latest":
             out = out[-1:]
         return web.json_response(out, dumps=dumps)  # strict: overflows are null

@@ -210,6 +210,7 @@ def _from_recording(path: Path) -> tuple[PosteriorState, dict]:
     else:
         raise UsageError(f"{file}: holds no angles record (an empty schedule); fix: give a "
                          "recording made with identification on, or a posterior file")
+    source["advice"] = _latest_advice(records)
     names, alpha, P = rec.get("names"), rec.get("alpha"), rec.get("P")
     try:
         theta = np.asarray(alpha, float).reshape(-1)
@@ -226,6 +227,21 @@ def _from_recording(path: Path) -> tuple[PosteriorState, dict]:
                            applies_from_seq=seq if isinstance(seq, int) else None, t=rec.get("t"),
                            structure=rec.get("structure_fit"))
     return state, source
+
+
+def _latest_advice(records: list[dict]) -> dict | None:
+    """The advice of the latest filter-error window that has one (applied or not): its time,
+    record number and sentence (estimator.flight_advice.advice_summary, as the log and the
+    report say it); None when no record carries advice."""
+    from rsra.estimator.flight_advice import advice_summary
+
+    for i in range(len(records) - 1, -1, -1):
+        r = records[i]
+        if isinstance(r.get("advice"), dict):
+            t = r.get("t")
+            return {"index": i + 1, "t": t if isinstance(t, (int, float)) else None,
+                    "sentence": advice_summary(r["advice"], len(r.get("names") or []) or None)}
+    return None
 
 
 def _show(cfg: RigConfig, args: argparse.Namespace) -> int:
@@ -291,6 +307,17 @@ def _show(cfg: RigConfig, args: argparse.Namespace) -> int:
     if len(undet) > SHOW_DIRECTIONS:
         console.print(f"  … and {len(undet) - SHOW_DIRECTIONS} more (--json lists them all)",
                       highlight=False)
+    _notes(console, d, source)
+    return 0
+
+
+def _notes(console: Any, d: dict, source: dict | None) -> None:
+    """The lines under `show`'s table: a recording's latest advice, the records after the one
+    shown, and what the service would say of the file."""
+    adv = source.get("advice") if source is not None else None
+    if adv is not None and adv["sentence"]:
+        console.print(f"advice (record {adv['index']}, the latest filter-error window with "
+                      f"advice): {adv['sentence']}", highlight=False)
     if source is not None and source["after"]:
         console.print(f"note: {source['after']} later record(s) not applied"
                       + ("; a later reset reopened the σ (the last record's P is the current "
@@ -303,7 +330,6 @@ def _show(cfg: RigConfig, args: argparse.Namespace) -> int:
     if not d["matches_config"]:
         console.print("note: the config identifies other parameters: the service would refuse "
                       "this file (reset it or check --config)", highlight=False)
-    return 0
 
 
 def _reset(cfg: RigConfig, args: argparse.Namespace) -> int:

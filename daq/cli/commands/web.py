@@ -30,7 +30,10 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
     p.add_argument("--allow-host", action="append", default=[], metavar="NAME",
                    help="another name the browser may use for this server in its address "
                    "(the Host header), e.g. the machine's DNS name (repeatable)")
-    p.add_argument("--prefix", default=None, help="key prefix (default: the config's)")
+    p.add_argument("--prefix", default=None,
+                   help="key prefix (default: the rig publishing, else the config's)")
+    p.add_argument("--rig", default=None, metavar="NAME",
+                   help="show the rig of this name (rig.name) among those publishing")
     p.add_argument("--zenoh-connect", action="append", default=[], metavar="EP",
                    help="endpoint to connect to (default: the config's listen endpoints)")
     p.add_argument("--zenoh-config", default=None, metavar="FILE",
@@ -70,18 +73,18 @@ def run(args: argparse.Namespace) -> int:
                          "it reads the rig's telemetry (no login, no TLS); fix: add "
                          "--allow-remote if that is what you want, or keep 127.0.0.1")
     cfg = load_rig(args.config)
-    prefix = args.prefix or cfg.telemetry.prefix
+    if args.zenoh_config:
+        conf = zenoh_config(cfg.telemetry, config_file=args.zenoh_config)
+    else:
+        conf = viewer_config(args.zenoh_connect or list(cfg.telemetry.listen))
+    cfg, prefix, source = _whose(args, cfg, conf)
     files = []
     for f in args.files:
         try:
             files.append(TelemetryFile(f, prefix))
         except HistoryFileError as e:
             raise UsageError(str(e)) from None
-    if args.zenoh_config:
-        conf = zenoh_config(cfg.telemetry, config_file=args.zenoh_config)
-    else:
-        conf = viewer_config(args.zenoh_connect or list(cfg.telemetry.listen))
-    dic = build_dictionary(cfg, prefix)
+    dic = build_dictionary(cfg, prefix, source)
     history = History(args.history_s, key_rates(cfg))
 
     async def main() -> dict:
@@ -103,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
                     print("rsra web: browsers must use an address given with --allow-host "
                           "(the Host check refuses others)", file=sys.stderr)
             print(f"rsra web: open http://{shown}:{port}/ (Ctrl-C stops)", flush=True)
+            print(f"rsra web: showing {source}", file=sys.stderr, flush=True)
 
         gw = Gateway(dic, history, files, set(), guard=payload_guard(), openmct=omct)
         await serve(gw, args.host, args.port, conf, prefix, on_ready=ready, stop=stop)
@@ -117,3 +121,39 @@ def run(args: argparse.Namespace) -> int:
         print(f"rsra web: {line}", file=sys.stderr)
     print(json.dumps({"summary": summary}), flush=True)
     return 0
+
+
+def _whose(args: argparse.Namespace, cfg, conf):
+    """The rig the page shows (daq.cli.whose, as `rsra listen`): ``--prefix``, ``--rig NAME``
+    or the only rig publishing, and its config — the configured one, or without --config the
+    packaged rig of the name it publishes under (its cells, angles and nodes make the page).
+    Returns (config, prefix, whose it is in words)."""
+    import time
+
+    import zenoh
+
+    from rsra.config.rig import packaged_rigs
+    from rsra.daq.cli.options import UsageError
+    from rsra.daq.cli.whose import Whose
+    from rsra.daq.rigmodel import load_rig
+
+    with zenoh.open(conf) as session:
+        whose = Whose(session, cfg.telemetry.prefix, args.prefix, args.rig)
+        try:
+            whose.discover(time.monotonic())
+        finally:
+            whose.close()
+    inst = whose.instance
+    if inst is None:
+        if args.rig is not None:
+            raise UsageError(f"--rig {args.rig}: {whose.why}; fix: start that rig's service "
+                             "first, or leave out --rig")
+        return cfg, whose.prefix or cfg.telemetry.prefix, whose.title()
+    if inst.rig != cfg.rig_name:
+        if args.config is None and inst.rig in packaged_rigs():
+            cfg = load_rig(inst.rig)  # its cells, angles and nodes
+        else:
+            raise UsageError(f"{inst.describe()}, but --config describes rig {cfg.rig_name}: "
+                             f"its page would show the wrong cells and angles; fix: give rig "
+                             f"{inst.rig}'s file with --config, or --rig {cfg.rig_name}")
+    return cfg, inst.prefix, whose.title()

@@ -79,14 +79,20 @@
     return { namespace: NS, key: key };
   }
 
+  // values shown in thousands (kN, kN·m; the points stay SI): short tick numbers
+  const KILO = { key: 'rsra.kilo', parse: (v) => Number(v), validate: () => true,
+    format: (v) => (typeof v === 'number' && Number.isFinite(v)
+      ? String(Number((v / 1000).toPrecision(4))) : String(v)) };
+
   function valueMeta(m) {
-    const fmt = m.format === 'string' ? { format: 'string' }
-      : m.format === 'integer' ? { formatString: '%d' }
-        : { formatString: '%0.' + (m.decimals === undefined ? 1 : m.decimals) + 'f' };
+    const fmt = m.kilo ? { format: KILO.key }
+      : m.format === 'string' ? { format: 'string' }
+        : m.format === 'integer' ? { formatString: '%d' }
+          : { formatString: '%0.' + (m.decimals === undefined ? 1 : m.decimals) + 'f' };
     const values = [
       { key: 'utc', source: 'utc', name: 'Time', format: 'utc', hints: { domain: 1 } },
-      Object.assign({ key: 'value', name: m.value_name || m.name, unit: m.unit,
-        hints: { range: 1 } }, fmt)
+      Object.assign({ key: 'value', name: m.value_name || m.name,
+        unit: m.kilo ? 'k' + m.unit : m.unit, hints: { range: 1 } }, fmt)
     ];
     (m.extra || []).forEach(function (e, i) {
       values.push({ key: e.key, name: e.name, unit: e.unit,
@@ -102,6 +108,12 @@
       limitLines: Boolean(limitLines) };
   }
 
+  // a plot's y axis: a short label of its own (the default, the first series' name, ran
+  // into the tick numbers), log scale where asked
+  function yAxis(label, log) {
+    return { label: label, logMode: Boolean(log), autoscale: true, autoscalePadding: 0.1 };
+  }
+
   function buildObjects(dic) {
     const objs = {};
     const groups = {};
@@ -115,59 +127,65 @@
     const axes = ['X', 'Y', 'Z', 'L', 'M', 'N'];
     const hubPlots = axes.map(function (ax) {
       const key = 'plot.hub.' + ax;
+      const unit = 'k' + dic.measurements.find((m) => m.id === 'hub.H.' + ax).unit;
       objs[key] = {
         identifier: id(key), type: 'telemetry.plot.overlay', location: NS + ':plot.hub',
-        name: ax + ' (' + dic.measurements.find((m) => m.id === 'hub.H.' + ax).unit + ')',
+        name: ax + ' (' + unit + ')',
         composition: ['hub.lower.', 'hub.upper.', 'hub.static.', 'hub.H.'].map((p) => id(p + ax)),
         configuration: { series: [
-          series('hub.lower.' + ax, '#c8a600'), series('hub.upper.' + ax, '#c8a600'),
+          series('hub.lower.' + ax, '#e0b800'), series('hub.upper.' + ax, '#e0b800'),
           series('hub.static.' + ax, '#6f7f8f'), series('hub.H.' + ax, '#35c7ff')
-        ] }
+        ], yAxis: yAxis(ax + ' ' + unit) }
       };
       return id(key);
     });
     const layoutParts = {
       'plot.hub': { type: 'telemetry.plot.stacked', name: 'Hub loads (' + dic.frame
-        + ' axes): filter, static, ±' + dic.z_yellow.toFixed(2) + 'σ static noise bound',
+        + ' axes): filter H (blue), static (grey), H ± ' + dic.z_yellow.toFixed(2)
+        + 'σ static noise bound (yellow)',
         composition: hubPlots },
-      'plot.nis': { type: 'telemetry.plot.overlay', name: 'NIS against its χ² band (6 dof)',
-        composition: [id('nis')],
-        configuration: { series: [series('nis', '#35c7ff', true)] } },
+      // log scale: the NIS spans 1 to thousands (a faulted sample), its χ² band 0.5 to 27
+      'plot.nis': { type: 'telemetry.plot.overlay',
+        name: 'NIS against its χ² band (6 dof, log scale)', composition: [id('nis')],
+        configuration: { series: [series('nis', '#35c7ff', true)], yAxis: yAxis('NIS', true) } },
       'lad.nodes': { type: 'LadTable', name: 'Nodes and health',
         composition: dic.nodes.map((n) => id('node.' + n))
           .concat([id('hub.flags'), id('hub.omega')])
           .concat(dic.measurements.filter((m) => m.group === 'Health').map((m) => id(m.id))),
         configuration: { hiddenColumns: { timestamp: true, type: true }, isFixedLayout: false } },
+      // with its time: the angles' below are this run's
       'lad.ident': { type: 'LadTable', name: 'Latest identification',
         composition: [id('ident.verdict'), id('ident.determined'), id('ident.advice')],
-        configuration: { hiddenColumns: { timestamp: true, type: true }, isFixedLayout: false } },
+        configuration: { hiddenColumns: { type: true }, isFixedLayout: false } },
       'table.angles': { type: 'table', name: 'Load-cell angles (deg) and their σ',
         composition: dic.angles.map((n) => id('angle.' + n)),
-        // name, time, angle, σ: every column on screen in the right column from 1280 px (the
-        // ∓1σ bounds, angle ∓ σ, pushed +1σ 37 px out of view at 1600 px; they stay in the
-        // telemetry for plots), every unit deg, said in the name
-        configuration: { hiddenColumns: { 'value-unit': true, 'sigma-unit': true, lo: true,
-          'lo-unit': true, hi: true, 'hi-unit': true }, rowLimit: dic.angles.length } }
+        // name, angle, σ: every unit deg, said in the name; the ∓1σ bounds stay in the
+        // telemetry for plots. The time is the identification's, whole in the table above
+        // (Open MCT splits a table's width evenly: a time column was cut at 1600 px)
+        configuration: { hiddenColumns: { utc: true, 'value-unit': true, 'sigma-unit': true,
+          lo: true, 'lo-unit': true, hi: true, 'hi-unit': true }, rowLimit: dic.angles.length } }
     };
     Object.keys(layoutParts).forEach(function (k) {
       objs[k] = Object.assign({ identifier: id(k), location: NS + ':layout' }, layoutParts[k]);
     });
     // a flexible layout (sizes in % of the page, not pixels: every part fits the width the
-    // browser gives it; the pixel grid of a display layout cut the right column at 1600 px);
-    // halves: the angle table's four columns need 360 px, which 40 % gave from 1600 px only
+    // browser gives it); three columns, so that the hub loads, every node and health counter,
+    // the identification and all 14 angles with their time are on screen without scrolling
+    // from 1600×1000 (the browse tree and the inspector start hidden: index.html)
     function frame(key, size) {
       return { id: 'rsra-' + key, domainObjectIdentifier: id(key), size: size, noFrame: false };
     }
     objs.layout = {
       identifier: id('layout'), type: 'flexible-layout', location: NS + ':root',
-      name: 'Rig ' + dic.rig + ' — default layout',
+      name: 'Rig ' + dic.rig + ' — ' + (dic.source || 'default layout'),
       composition: Object.keys(layoutParts).map(id),
       configuration: {
         rowsLayout: false,
         containers: [
-          { id: 'rsra-left', size: 50, frames: [frame('plot.hub', 100)] },
-          { id: 'rsra-right', size: 50, frames: [frame('lad.nodes', 36), frame('lad.ident', 12),
-            frame('table.angles', 32), frame('plot.nis', 20)] }
+          { id: 'rsra-left', size: 41, frames: [frame('plot.hub', 100)] },
+          { id: 'rsra-middle', size: 24, frames: [frame('lad.nodes', 100)] },
+          { id: 'rsra-right', size: 35, frames: [frame('lad.ident', 17),
+            frame('table.angles', 45), frame('plot.nis', 38)] }
         ]
       }
     };
@@ -242,6 +260,7 @@
   window.RsraPlugin = function (dic) {
     return function install(openmct) {
       const objs = buildObjects(dic);
+      openmct.telemetry.addFormat(KILO);
       openmct.types.addType(TYPE, { name: 'rsra telemetry', cssClass: 'icon-telemetry',
         description: 'A series of the rsra rig telemetry', creatable: false });
       openmct.objects.addRoot(id('root'));
