@@ -35,8 +35,6 @@ ALLOWED = frozenset({
     "daq/runtime/pipeline.py EstimatorPipeline._first_reference",
     "daq/web/dictionary.py points",
     "config/rigfile.py describe",
-    "sim_bus/faults.py parse_faults",
-    "sim_bus/scenarios.py parse_scenario",
 })
 
 
