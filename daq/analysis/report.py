@@ -1080,167 +1080,204 @@ class Report:
         s = self.summary
         lines = [f"report: {len(self.plots)} plots and summary.md/summary.json in {self.out}"]
         hub = s.get("hub_loads", {})
-        bp = (hub.get("by_phase") or {}) if isinstance(hub, dict) else {}
-        if bp:
-            from rsra.daq.analysis.accuracy import phase_lines
-
-            lines.append("  hub-load error against truth, by phase (RMS error/σ and the "
-                         "fraction beyond 3σ per axis, σ as published for each sample):")
-            for name in ("H", "H_static"):
-                lines += [x for x in phase_lines(bp.get(name) or {}, name, "    ")
-                          if not x.lstrip().startswith("(")]
-            from rsra.daq.analysis.accuracy import MEANING
-
-            lines += [f"    {p}: {m}" for p, m in MEANING.items()
-                      if (bp.get("H") or {}).get(p) or (bp.get("H_static") or {}).get(p)]
-        ang = s.get("angles", {})
-        if "joint_chi2" in ang and ang["joint_chi2"]:
-            j = ang["joint_chi2"]
-            lines.append(f"  final angles: joint χ² {j['value']:.1f} on {j['dof']} dof "
-                         f"(threshold {j['threshold']:.1f}): "
-                         + ("consistent" if j["consistent"] else "INCONSISTENT"))
-        if isinstance(ang.get("advice"), dict):
-            lines.append(f"  advice (the last filter-error window, {ang['advice']['t']:.1f} s): "
-                         f"{ang['advice']['sentence']}")
-        inn = s.get("innovations", {})
-        if "mean_nis" in inn:
-            lines.append(f"  innovations, whole run (the phases below mixed): mean NIS "
-                         f"{inn['mean_nis']:.2f} (expected 6), "
-                         f"{inn['fraction_outside'] * 100:.2f} % outside the χ²₆ band: "
-                         f"{inn['verdict'].upper() if inn['verdict'] != 'consistent' else 'consistent'}")
-            for state, v in (inn.get("by_phase") or inn.get("by_state") or {}).items():
-                if v["records"]:
-                    lines.append(f"    {state}: {v['records']} records, mean NIS "
-                                 f"{v['mean_nis']:.2f}, {v['above'] * 100:.2f} % above / "
-                                 f"{v['below'] * 100:.2f} % below the band: "
-                                 + (v["verdict"] if v["verdict"] == "consistent"
-                                    else v["verdict"].upper()))
-        for k, v in self.skipped.items():
-            lines.append(f"  skipped {k}: {v}")
+        lines += _brief_hub((hub.get("by_phase") or {}) if isinstance(hub, dict) else {})
+        lines += _brief_angles(s.get("angles", {}))
+        lines += _brief_innovations(s.get("innovations", {}))
+        lines += [f"  skipped {k}: {v}" for k, v in self.skipped.items()]
         return "\n".join(lines)
 
 
-def _markdown(s: dict, units: str) -> str:
-    u = axis_units(units)
-    L = ["# rsra report", ""]
-    inp = s["inputs"]
+def _brief_hub(bp: dict) -> list[str]:
+    """The hub-load error against truth by phase, for the terminal."""
+    if not bp:
+        return []
+    from rsra.daq.analysis.accuracy import MEANING, phase_lines
+
+    lines = ["  hub-load error against truth, by phase (RMS error/σ and the fraction beyond 3σ "
+             "per axis, σ as published for each sample):"]
+    for name in ("H", "H_static"):
+        lines += [x for x in phase_lines(bp.get(name) or {}, name, "    ")
+                  if not x.lstrip().startswith("(")]
+    return lines + [f"    {p}: {m}" for p, m in MEANING.items()
+                    if (bp.get("H") or {}).get(p) or (bp.get("H_static") or {}).get(p)]
+
+
+def _brief_angles(ang: dict) -> list[str]:
+    lines = []
+    j = ang.get("joint_chi2")
+    if j:
+        lines.append(f"  final angles: joint χ² {j['value']:.1f} on {j['dof']} dof "
+                     f"(threshold {j['threshold']:.1f}): "
+                     + ("consistent" if j["consistent"] else "INCONSISTENT"))
+    if isinstance(ang.get("advice"), dict):
+        lines.append(f"  advice (the last filter-error window, {ang['advice']['t']:.1f} s): "
+                     f"{ang['advice']['sentence']}")
+    return lines
+
+
+def _loud(verdict: str, consistent: str = "consistent") -> str:
+    """A verdict as the terminal says it: an inconsistent one in capitals."""
+    return consistent if verdict == "consistent" else verdict.upper()
+
+
+def _brief_innovations(inn: dict) -> list[str]:
+    if "mean_nis" not in inn:
+        return []
+    lines = [f"  innovations, whole run (the phases below mixed): mean NIS "
+             f"{inn['mean_nis']:.2f} (expected 6), "
+             f"{inn['fraction_outside'] * 100:.2f} % outside the χ²₆ band: "
+             f"{_loud(inn['verdict'])}"]
+    for state, v in (inn.get("by_phase") or inn.get("by_state") or {}).items():
+        if v["records"]:
+            lines.append(f"    {state}: {v['records']} records, mean NIS "
+                         f"{v['mean_nis']:.2f}, {v['above'] * 100:.2f} % above / "
+                         f"{v['below'] * 100:.2f} % below the band: " + _loud(v["verdict"]))
+    return lines
+
+
+def _bold(verdict: str) -> str:
+    """A verdict as the markdown says it: an inconsistent one in bold."""
+    return "consistent" if verdict == "consistent" else f"**{verdict}**"
+
+
+def _md_inputs(inp: dict, units: str) -> list[str]:
     recs = ", ".join(f"{k} {v}" for k, v in inp["records"].items())
-    L += [f"* results: `{inp['results']}` ({recs})",
-          f"* truth: `{inp['truth']}`" + (f", aligned by {inp['alignment']} "
-                                          f"({inp['matched'] * 100:.1f} % of records matched)"
-                                          if inp.get("alignment") else ""),
-          f"* span: {inp['span_s']:.2f} s; units: {units.upper()}", ""]
-    hub = s["hub_loads"]
-    L.append("## Hub loads")
+    aligned = (f", aligned by {inp['alignment']} ({inp['matched'] * 100:.1f} % of records "
+               "matched)" if inp.get("alignment") else "")
+    return [f"* results: `{inp['results']}` ({recs})", f"* truth: `{inp['truth']}`{aligned}",
+            f"* span: {inp['span_s']:.2f} s; units: {units.upper()}", ""]
+
+
+def _pair(e: dict | None, i: int) -> str:
+    """An estimate's RMS error and RMS error/σ on axis ``i`` as two table cells."""
+    if not e:
+        return "– | –"
+    return f"{e['rms_error'][i]:.1f} | {e['rms_over_sigma_static'][i]:.3f}"
+
+
+def _md_hub_errors(hub: dict, u: list[str]) -> list[str]:
+    errs = hub["errors"]
+    L = ["", f"RMS error against truth (H scored after {hub['settle_s']:.2f} s of "
+         "filter settling) vs the static noise-budget σ (model §4):", "",
+         "| axis | unit | static σ | RMS H | RMS H / σ | RMS H_static | RMS H_static / σ |",
+         "|---|---|---|---|---|---|---|"]
+    for i, a in enumerate(AXES):
+        L.append(f"| {a} | {u[i]} | {hub['sigma_static'][i]:.1f} | "
+                 f"{_pair(errs.get('H'), i)} | {_pair(errs.get('H_static'), i)} |")
+    return L
+
+
+def _md_hub_by_phase(bp: dict, u: list[str]) -> list[str]:
+    L = ["", "By phase, each sample against the σ its record published "
+         f"({bp['sigma']}): RMS error, RMS error/σ and the fraction beyond 3σ "
+         "(0.27 % for an error of that σ).", ""]
+    L += [f"* **{p}**: {m}" for p, m in bp["meaning"].items()]
+    L += ["", "| estimate | phase | samples | axis | RMS error | RMS error / σ | beyond 3σ |",
+          "|---|---|---|---|---|---|---|"]
+    for name in ("H", "H_static"):
+        for p, v in (bp.get(name) or {}).items():
+            L += [f"| {name} | {p} | {v['samples']} | {a} [{u[i]}] | "
+                  f"{v['rms_error'][i]:.1f} | {v['rms_over_sigma'][i]:.3f} | "
+                  f"{100 * v['beyond_3sigma'][i]:.2f} % |" for i, a in enumerate(AXES) if v]
+    return L
+
+
+def _md_hub(hub: dict, units: str) -> list[str]:
     if "skipped" in hub:
-        L.append(f"Skipped: {hub['skipped']}.")
-    else:
-        L.append(f"{hub['records']} records, {hub['frame']} axes; H null in {hub['H_null']}, "
-                 f"H_static null in {hub['H_static_null']}.")
-        errs = hub.get("errors")
-        if errs:
-            L += ["", f"RMS error against truth (H scored after {hub['settle_s']:.2f} s of "
-                  "filter settling) vs the static noise-budget σ (model §4):", "",
-                  "| axis | unit | static σ | RMS H | RMS H / σ | RMS H_static "
-                  "| RMS H_static / σ |",
-                  "|---|---|---|---|---|---|---|"]
-            for i, a in enumerate(AXES):
-                h, hs = errs.get("H"), errs.get("H_static")
-                L.append(f"| {a} | {u[i]} | {hub['sigma_static'][i]:.1f} | "
-                         + (f"{h['rms_error'][i]:.1f} | {h['rms_over_sigma_static'][i]:.3f}"
-                            if h else "– | –") + " | "
-                         + (f"{hs['rms_error'][i]:.1f} | {hs['rms_over_sigma_static'][i]:.3f}"
-                            if hs else "– | –") + " |")
-            bp = hub.get("by_phase") or {}
-            if bp:
-                L += ["", "By phase, each sample against the σ its record published "
-                      f"({bp['sigma']}): RMS error, RMS error/σ and the fraction beyond 3σ "
-                      "(0.27 % for an error of that σ).", ""]
-                for p, m in bp["meaning"].items():
-                    L.append(f"* **{p}**: {m}")
-                L += ["", "| estimate | phase | samples | axis | RMS error | RMS error / σ "
-                      "| beyond 3σ |", "|---|---|---|---|---|---|---|"]
-                for name in ("H", "H_static"):
-                    for p, v in (bp.get(name) or {}).items():
-                        if not v:
-                            continue
-                        for i, a in enumerate(AXES):
-                            L.append(f"| {name} | {p} | {v['samples']} | {a} [{u[i]}] | "
-                                     f"{v['rms_error'][i]:.1f} | {v['rms_over_sigma'][i]:.3f} | "
-                                     f"{100 * v['beyond_3sigma'][i]:.2f} % |")
-        else:
-            L.append("No truth: errors not computed.")
-    L += ["", "## Angles"]
-    ang = s["angles"]
+        return ["## Hub loads", f"Skipped: {hub['skipped']}."]
+    L = ["## Hub loads", f"{hub['records']} records, {hub['frame']} axes; H null in "
+         f"{hub['H_null']}, H_static null in {hub['H_static_null']}."]
+    if not hub.get("errors"):
+        return L + ["No truth: errors not computed."]
+    u = axis_units(units)
+    L += _md_hub_errors(hub, u)
+    if hub.get("by_phase"):
+        L += _md_hub_by_phase(hub["by_phase"], u)
+    return L
+
+
+def _md_final_angles(ang: dict) -> list[str]:
+    fin = ang["final"]
+    L = ["", "Final estimate against truth:", "",
+         "| angle | estimate [deg] | truth [deg] | error [deg] | σ_CR [deg] | error / σ |",
+         "|---|---|---|---|---|---|"]
+    L += [f"| {nm} | {fin['estimate_deg'][k]:.3f} | {fin['truth_deg'][k]:.3f} | "
+          f"{fin['error_deg'][k]:+.3f} | {fin['sigma_cr_deg'][k]:.3f} | "
+          f"{fin['error_over_sigma'][k]:+.2f} |" for k, nm in enumerate(fin["names"])]
+    j = ang.get("joint_chi2")
+    if j:
+        L += ["", f"Joint χ² with the posterior covariance: {j['value']:.2f} on {j['dof']} "
+              f"dof, threshold {j['threshold']:.2f} (false alarm {j['false_alarm']:g}): "
+              + ("consistent." if j["consistent"] else "**inconsistent**.")]
+    return L
+
+
+def _md_angles(ang: dict) -> list[str]:
     if "skipped" in ang:
-        L.append(f"Skipped: {ang['skipped']}.")
+        return ["", "## Angles", f"Skipped: {ang['skipped']}."]
+    rej = ", ".join(f"{k} {v}" for k, v in ang["rejected"].items()) or "none"
+    L = ["", "## Angles",
+         f"{ang['runs']} identification runs: {ang['accepted']} accepted; rejected: {rej}."]
+    if "error_deg" in ang["final"]:
+        L += _md_final_angles(ang)
     else:
-        rej = ", ".join(f"{k} {v}" for k, v in ang["rejected"].items()) or "none"
-        L.append(f"{ang['runs']} identification runs: {ang['accepted']} accepted; rejected: {rej}.")
-        fin = ang["final"]
-        if "error_deg" in fin:
-            L += ["", "Final estimate against truth:", "",
-                  "| angle | estimate [deg] | truth [deg] | error [deg] | σ_CR [deg] | error / σ |",
-                  "|---|---|---|---|---|---|"]
-            for k, nm in enumerate(fin["names"]):
-                L.append(f"| {nm} | {fin['estimate_deg'][k]:.3f} | {fin['truth_deg'][k]:.3f} | "
-                         f"{fin['error_deg'][k]:+.3f} | {fin['sigma_cr_deg'][k]:.3f} | "
-                         f"{fin['error_over_sigma'][k]:+.2f} |")
-            j = ang.get("joint_chi2")
-            if j:
-                L += ["", f"Joint χ² with the posterior covariance: {j['value']:.2f} on {j['dof']} "
-                      f"dof, threshold {j['threshold']:.2f} (false alarm {j['false_alarm']:g}): "
-                      + ("consistent." if j["consistent"] else "**inconsistent**.")]
-        else:
-            L.append("No truth: final errors not computed.")
-        if isinstance(ang.get("advice"), dict):
-            L += ["", f"Advice of the last filter-error window ({ang['advice']['t']:.1f} s): "
-                  f"{ang['advice']['sentence']}"]
-    L += ["", "## Innovations"]
-    inn = s["innovations"]
+        L.append("No truth: final errors not computed.")
+    if isinstance(ang.get("advice"), dict):
+        L += ["", f"Advice of the last filter-error window ({ang['advice']['t']:.1f} s): "
+              f"{ang['advice']['sentence']}"]
+    return L
+
+
+def _md_state(state: str, v: dict) -> str:
+    """The NIS of one load state (steady, transient)."""
+    which = "hub_loads flagged `transient`" if state == "transient" else "not flagged"
+    lags = state == "transient" and v["verdict"] != "consistent"
+    return (f"* {state} load ({which}): {v['records']} records, mean NIS {v['mean_nis']:.3f}, "
+            f"{v['above'] * 100:.3f} % above and {v['below'] * 100:.3f} % below the band "
+            f"(each tail at most {v['limit'] * 100:.3f} % when consistent): "
+            + _bold(v["verdict"])
+            + (" — the filter lags the moving load; the σ that holds there is H_static's "
+               "static bound (model.md, Transients)." if lags else "."))
+
+
+def _md_innovations(inn: dict) -> list[str]:
     if "skipped" in inn:
-        L.append(f"Skipped: {inn['skipped']}.")
-    else:
-        j = inn["joint_chi2"]
-        L.append(f"{inn['records']} records; mean NIS {inn['mean_nis']:.3f} (χ²₆: 6); "
-                 f"{inn['fraction_outside'] * 100:.2f} % outside [{inn['band'][0]:.3g}, "
-                 f"{inn['band'][1]:.3g}] (expected {FALSE_ALARM * 100:g} %); joint χ² "
-                 f"{j['value']:.1f} on {j['dof']} dof (band [{j['band'][0]:.1f}, "
-                 f"{j['band'][1]:.1f}]; records are correlated, so this is indicative): "
-                 + (f"**{inn['verdict']}**." if inn["verdict"] != "consistent" else "consistent."))
-        for state, v in (inn.get("by_phase") or {}).items():
-            if v["records"]:
-                L.append(f"* phase {state}: {v['records']} records, mean NIS "
-                         f"{v['mean_nis']:.3f}, {v['above'] * 100:.3f} % above and "
-                         f"{v['below'] * 100:.3f} % below the band: "
-                         + (f"**{v['verdict']}**" if v["verdict"] != "consistent"
-                            else "consistent") + ".")
-        for state, v in (inn.get("by_state") or {}).items():
-            if v["records"]:
-                L.append(f"* {state} load ({'hub_loads flagged `transient`' if state == 'transient' else 'not flagged'}): "
-                         f"{v['records']} records, mean NIS {v['mean_nis']:.3f}, "
-                         f"{v['above'] * 100:.3f} % above and {v['below'] * 100:.3f} % below "
-                         f"the band (each tail at most {v['limit'] * 100:.3f} % when consistent): "
-                         + (f"**{v['verdict']}**" if v["verdict"] != "consistent"
-                            else "consistent")
-                         + (" — the filter lags the moving load; the σ that holds there is "
-                            "H_static's static bound (model.md, Transients)."
-                            if state == "transient" and v["verdict"] != "consistent" else "."))
-    L += ["", "## Flags and health"]
-    fl = s["flags"]
+        return ["", "## Innovations", f"Skipped: {inn['skipped']}."]
+    j = inn["joint_chi2"]
+    L = ["", "## Innovations",
+         f"{inn['records']} records; mean NIS {inn['mean_nis']:.3f} (χ²₆: 6); "
+         f"{inn['fraction_outside'] * 100:.2f} % outside [{inn['band'][0]:.3g}, "
+         f"{inn['band'][1]:.3g}] (expected {FALSE_ALARM * 100:g} %); joint χ² "
+         f"{j['value']:.1f} on {j['dof']} dof (band [{j['band'][0]:.1f}, "
+         f"{j['band'][1]:.1f}]; records are correlated, so this is indicative): "
+         f"{_bold(inn['verdict'])}."]
+    L += [f"* phase {state}: {v['records']} records, mean NIS {v['mean_nis']:.3f}, "
+          f"{v['above'] * 100:.3f} % above and {v['below'] * 100:.3f} % below the band: "
+          f"{_bold(v['verdict'])}." for state, v in (inn.get("by_phase") or {}).items()
+          if v["records"]]
+    L += [_md_state(state, v) for state, v in (inn.get("by_state") or {}).items()
+          if v["records"]]
+    return L
+
+
+def _md_flags(fl: dict) -> list[str]:
+    L = ["", "## Flags and health"]
     if fl.get("hub_loads") is not None:
         L.append(f"Samples with a flag: {fl['samples_flagged']}.")
-        for k, v in fl["hub_loads"].items():
-            L.append(f"* `{k}`: {v}")
+        L += [f"* `{k}`: {v}" for k, v in fl["hub_loads"].items()]
     if fl.get("health"):
         L.append(f"Last health: `{json.dumps(fl['health'])}`")
     if not fl:
         L.append("No hub_loads or health records.")
-    L += ["", "## Plots", ""]
-    for p in s["plots"]:
-        L.append(f"* ![{p}]({p})")
-    for k, v in s["skipped"].items():
-        L.append(f"* {k}: skipped — {v}")
+    return L
+
+
+def _markdown(s: dict, units: str) -> str:
+    L = ["# rsra report", "", *_md_inputs(s["inputs"], units), *_md_hub(s["hub_loads"], units),
+         *_md_angles(s["angles"]), *_md_innovations(s["innovations"]), *_md_flags(s["flags"]),
+         "", "## Plots", ""]
+    L += [f"* ![{p}]({p})" for p in s["plots"]]
+    L += [f"* {k}: skipped — {v}" for k, v in s["skipped"].items()]
     return "\n".join(L) + "\n"
 
 
