@@ -32,7 +32,6 @@ ALLOWED = frozenset({
     "daq/bus/decoder.py DecodeTable.__init__",
     "daq/runtime/pipeline.py EstimatorPipeline._first_reference",
     "daq/web/dictionary.py points",
-    "config/rigfile.py describe",
 })
 
 
