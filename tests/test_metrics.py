@@ -26,7 +26,6 @@ GRADE_E = 31  # radon's grade E starts here (A 1–5, B 6–10, C 11–20, D 21�
 ALLOWED = frozenset({
     "daq/analysis/calibrate.py fragment_toml",
     "daq/analysis/calibrate.py load_known_load_data",
-    "daq/analysis/tare.py tare",
     "daq/bus/assembler.py SampleLayout.__init__",
     "daq/bus/assembler.py SampleLayout.sample",
     "daq/bus/decoder.py DecodeTable.__init__",
