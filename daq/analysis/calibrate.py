@@ -205,6 +205,134 @@ def _reject_reason(s: Sample, T: np.ndarray, acc: np.ndarray, H: np.ndarray | No
     return None
 
 
+class _KnownLoadReader:
+    """The known-load samples of recordings read one after another, in continuous stretches
+    (a new recording or a hole longer than identification.gap_s starts one), each through
+    its own content filter."""
+
+    def __init__(self, cfg: RigConfig, kind: str,
+                 progress: Callable[[float, int], None] | None, progress_every: int):
+        model = cfg.rig_model()
+        self.cfg, self.kind = cfg, kind
+        self.progress, self.progress_every = progress, progress_every
+        self.Mf = inertial_load_matrix(model)
+        self.nc, self.Q = model.geometry.n_cells, model.external.wrenches.shape[1]
+        self.ncol = 6 + self.nc + 6 + self.Q
+        self.fs = cfg.sample_rate_hz
+        self.gap = max(1, round(cfg.identification.gap_s * self.fs))
+        self.settle = self._filter(1).settle_samples
+        self.outs: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (x, valid, scored)
+        self.rejected: dict[str, int] = {}
+        self.samples_read = 0
+        self.t_first: float | None = None
+        self.t_last: float | None = None
+
+    def _filter(self, n_channels: int) -> ContentFilter:
+        cfg = self.cfg
+        return ContentFilter(self.kind, self.fs, cfg.rotor.omega_nominal_rad_s,
+                             tuple(cfg.filter.harmonics), n_channels,
+                             cfg.identification.settle_time_constants)
+
+    def close_segment(self, seg: _Segment) -> None:
+        X, valid = seg.arrays()
+        if not valid.any():
+            return
+        first = int(np.argmax(valid))  # a segment starts at its first valid sample
+        X, valid = X[first:], valid[first:]
+        # one causal filter on every channel alike (model §7): the balance holds filtered too
+        Y = self._filter(self.ncol).process(X)
+        scored = valid & scored_mask(valid, self.settle, self.gap, True)
+        self.outs.append((Y, valid, scored))
+
+    def _count(self, s: Sample) -> None:
+        self.samples_read += 1
+        self.t_first = s.t if self.t_first is None else self.t_first
+        self.t_last = s.t
+        if self.progress is not None and self.samples_read % self.progress_every == 0:
+            self.progress(s.t - self.t_first, self.samples_read)
+
+    def _row(self, s: Sample) -> np.ndarray | None:
+        """The sample's row (inertial loads, cells, balance, external loads), or None when
+        it is rejected (counted by reason)."""
+        T = np.asarray(s.T, float)
+        acc = np.asarray(s.accel, float).reshape(-1)
+        H = None if s.known_H is None else np.asarray(s.known_H, float)
+        q = None if s.drive is None else np.asarray(s.drive, float)
+        why = _reject_reason(s, T, acc, H, q, self.Q > 0)
+        if why is not None:
+            self.rejected[why] = self.rejected.get(why, 0) + 1
+            return None
+        z = self.Mf @ acc  # inertial loads (model §3); D q stays in the model's E block
+        return np.concatenate([z, T, H, q[:self.Q]] if self.Q and q is not None else [z, T, H])
+
+    def read(self, path: str) -> None:
+        from rsra.daq.bus.reader import OfflineReader
+        from rsra.daq.bus.replay import ReplayError, replay
+
+        reader = OfflineReader(self.cfg)
+        seg = _Segment(self.ncol)
+        last_seq: int | None = None
+        try:
+            for s in replay(self.cfg, [path], reader=reader, finish=True):
+                if isinstance(s, Sample):
+                    self._count(s)
+                    seg = self._hole(seg, last_seq, int(s.seq))
+                    last_seq = int(s.seq)
+                    seg.put(self._row(s))
+        except ReplayError as e:  # names the file (and line) already
+            raise CalibrationError(str(e)) from None
+        except (ValueError, OSError) as e:  # a corrupt or truncated log file
+            raise CalibrationError(f"{path}: cannot read the recording ({e})") from None
+        finally:
+            reader.close()
+        self.close_segment(seg)
+
+    def _hole(self, seg: _Segment, last_seq: int | None, seq: int) -> _Segment:
+        """Samples lost before ``seq``: held as invalid, or past gap_s a new stretch."""
+        if last_seq is None:
+            return seg
+        skipped = seq - last_seq - 1
+        if skipped > self.gap:  # a long hole: a new continuous stretch
+            self.close_segment(seg)
+            return _Segment(self.ncol)
+        for _ in range(max(skipped, 0)):  # lost samples: invalid, held
+            seg.put(None)
+        return seg
+
+    def _refuse_empty(self, named: str) -> None:
+        if self.samples_read == 0:
+            raise CalibrationError(f"{named}: no samples in the recording(s)")
+        if self.outs:
+            return
+        if self.rejected.get("no balance", 0) == self.samples_read:
+            raise CalibrationError(
+                f"{named}: no known loads: none of the {self.samples_read} samples carries "
+                f"reference-balance data (node {self.cfg.balance.node!r}); record with the "
+                "balance on the bus")
+        raise CalibrationError(f"{named}: no usable sample with known loads "
+                               f"({_reasons(self.rejected)})")
+
+    def data(self, paths: Sequence[str | Path]) -> CalibrationData:
+        named = ", ".join(map(str, paths))
+        self._refuse_empty(named)
+        X = np.vstack([o[0] for o in self.outs])
+        valid = np.concatenate([o[1] for o in self.outs])
+        scored = np.concatenate([o[2] for o in self.outs])
+        if not scored.any():
+            raise CalibrationError(
+                f"{named}: {int(valid.sum())} usable samples with known loads, all within the "
+                f"content filter's settling ({self.settle} samples after each start or gap); "
+                "record longer stretches")
+        nc, fs, t0, t1 = self.nc, self.fs, self.t_first, self.t_last
+        return CalibrationData(
+            z=X[:, :6], T=X[:, 6:6 + nc], H=X[:, 6 + nc:12 + nc],
+            q=X[:, 12 + nc:] if self.Q else None, valid=valid, scored=scored,
+            content=self.kind, fs=fs, files=tuple(map(str, paths)), segments=len(self.outs),
+            samples_read=self.samples_read, rejected=self.rejected,
+            duration_s=0.0 if t0 is None or t1 is None else float(t1 - t0) + 1.0 / fs,
+            t_first=math.nan if t0 is None else float(t0))
+
+
 def load_known_load_data(
     cfg: RigConfig,
     paths: Sequence[str | Path],
@@ -220,8 +348,7 @@ def load_known_load_data(
     hold no usable sample with known loads. ``progress(recorded_seconds, samples)`` is called
     every ``progress_every`` samples.
     """
-    from rsra.daq.bus.reader import OfflineReader
-    from rsra.daq.bus.replay import ReplayError, expand, replay
+    from rsra.daq.bus.replay import ReplayError, expand
 
     kind = content or cfg.identification.content_known_loads
     if kind not in KINDS:
@@ -233,110 +360,10 @@ def load_known_load_data(
         expand(paths)
     except ReplayError as e:
         raise CalibrationError(str(e)) from None
-    model = cfg.rig_model()
-    Mf = inertial_load_matrix(model)
-    nc, Q = model.geometry.n_cells, model.external.wrenches.shape[1]
-    ncol = 6 + nc + 6 + Q
-    fs = cfg.sample_rate_hz
-    gap = max(1, round(cfg.identification.gap_s * fs))
-    omega0 = cfg.rotor.omega_nominal_rad_s
-    harmonics = tuple(cfg.filter.harmonics)
-    settle = ContentFilter(kind, fs, omega0, harmonics, 1,
-                           cfg.identification.settle_time_constants).settle_samples
-
-    outs: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (filtered x, valid, scored)
-    rejected: dict[str, int] = {}
-    samples_read = 0
-    t_first = t_last = None
-
-    def close_segment(seg: _Segment) -> None:
-        X, valid = seg.arrays()
-        if not valid.any():
-            return
-        first = int(np.argmax(valid))  # a segment starts at its first valid sample
-        X, valid = X[first:], valid[first:]
-        # one causal filter on every channel alike (model §7): the balance holds filtered too
-        cf = ContentFilter(kind, fs, omega0, harmonics, ncol,
-                           cfg.identification.settle_time_constants)
-        Y = cf.process(X)
-        scored = valid & scored_mask(valid, settle, gap, True)
-        outs.append((Y, valid, scored))
-
+    known = _KnownLoadReader(cfg, kind, progress, progress_every)
     for path in map(str, paths):
-        reader = OfflineReader(cfg)
-        seg = _Segment(ncol)
-        last_seq: int | None = None
-        try:
-            for item in replay(cfg, [path], reader=reader, finish=True):
-                if not isinstance(item, Sample):
-                    continue
-                s = item
-                samples_read += 1
-                t_first = s.t if t_first is None else t_first
-                t_last = s.t
-                if progress is not None and samples_read % progress_every == 0:
-                    progress(s.t - t_first, samples_read)
-                seq = int(s.seq)
-                if last_seq is not None:
-                    skipped = seq - last_seq - 1
-                    if skipped > gap:  # a long hole: a new continuous stretch
-                        close_segment(seg)
-                        seg = _Segment(ncol)
-                    else:
-                        for _ in range(max(skipped, 0)):  # lost samples: invalid, held
-                            seg.put(None)
-                last_seq = seq
-                T = np.asarray(s.T, float)
-                acc = np.asarray(s.accel, float).reshape(-1)
-                H = None if s.known_H is None else np.asarray(s.known_H, float)
-                q = None if s.drive is None else np.asarray(s.drive, float)
-                why = _reject_reason(s, T, acc, H, q, Q > 0)
-                if why is not None:
-                    rejected[why] = rejected.get(why, 0) + 1
-                    seg.put(None)
-                    continue
-                z = Mf @ acc  # inertial loads (model §3); D q stays in the model's E block
-                parts = [z, T, H]
-                if Q:
-                    assert q is not None  # _reject_reason: without it the sample is rejected
-                    parts.append(q[:Q])
-                seg.put(np.concatenate(parts))
-        except (ValueError, OSError) as e:  # a corrupt or truncated log file
-            from rsra.daq.bus.replay import ReplayError
-
-            if isinstance(e, ReplayError):  # names the file (and line) already
-                raise CalibrationError(str(e)) from None
-            raise CalibrationError(f"{path}: cannot read the recording ({e})") from None
-        finally:
-            reader.close()
-        close_segment(seg)
-
-    if samples_read == 0:
-        raise CalibrationError(f"{', '.join(map(str, paths))}: no samples in the recording(s)")
-    if not outs:
-        no_bal = rejected.get("no balance", 0)
-        if no_bal == samples_read:
-            raise CalibrationError(
-                f"{', '.join(map(str, paths))}: no known loads: none of the {samples_read} "
-                f"samples carries reference-balance data (node {cfg.balance.node!r}); record "
-                "with the balance on the bus")
-        raise CalibrationError(f"{', '.join(map(str, paths))}: no usable sample with known loads "
-                               f"({_reasons(rejected)})")
-    X = np.vstack([o[0] for o in outs])
-    valid = np.concatenate([o[1] for o in outs])
-    scored = np.concatenate([o[2] for o in outs])
-    if not scored.any():
-        raise CalibrationError(
-            f"{', '.join(map(str, paths))}: {int(valid.sum())} usable samples with known loads, "
-            f"all within the content filter's settling ({settle} samples after each start or "
-            "gap); record longer stretches")
-    return CalibrationData(
-        z=X[:, :6], T=X[:, 6:6 + nc], H=X[:, 6 + nc:12 + nc], q=X[:, 12 + nc:] if Q else None,
-        valid=valid, scored=scored, content=kind, fs=fs, files=tuple(map(str, paths)),
-        segments=len(outs), samples_read=samples_read, rejected=rejected,
-        duration_s=0.0 if t_first is None or t_last is None
-        else float(t_last - t_first) + 1.0 / fs,
-        t_first=math.nan if t_first is None else float(t_first))
+        known.read(path)
+    return known.data(paths)
 
 
 def _reasons(rejected: dict[str, int]) -> str:
@@ -617,6 +644,105 @@ def _toml_value(v) -> str:
     raise TypeError(f"cannot write {v!r} as TOML")
 
 
+@dataclass(frozen=True)
+class _Estimates:
+    """The identified parameters by name: estimate, Cramér–Rao σ and σ corrected for
+    coloured residuals."""
+
+    est: dict[str, float]
+    sig: dict[str, float]
+    sig_mk: dict[str, float]
+
+    @classmethod
+    def of(cls, result: CalibrationResult) -> "_Estimates":
+        names = result.names
+        return cls(dict(zip(names, result.estimate)), dict(zip(names, result.sigma)),
+                   dict(zip(names, result.sigma_corrected)))
+
+
+def _frag_head(result: CalibrationResult) -> list[str]:
+    when = datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+    d = result.data
+    flags = "" if not result.flags else "; PLAUSIBILITY FLAGS: " + "; ".join(
+        f"{f.name} {f.problem}" for f in result.flags)
+    return [
+        "# rsra calibrate: off-line known-load calibration (model.md §7, report Appendix C)",
+        f"# from: {', '.join(d.files)}",
+        (f"# {when}; content {d.content}; {d.n_scored} samples scored of {d.samples_read} read; "
+         f"status {result.status} after {result.ident.iterations} iterations"),
+        "# sigma: Cramér-Rao bound (in brackets: corrected for coloured residuals)" + flags,
+        "",
+    ]
+
+
+def _frag_angles(angles: Sequence[str], e: _Estimates, result: CalibrationResult) -> list[str]:
+    """``[identification] initial_angles_deg``: all 14, the non-identified at their start."""
+    lines = ["[identification]"]
+    for a in angles:
+        tag = (f"{math.degrees(e.est[a]):+.4f} deg, sigma {math.degrees(e.sig[a]):.4f} deg "
+               f"({math.degrees(e.sig_mk[a]):.4f})"
+               if a in e.est else "not identified: start value kept")
+        lines.append(f"# {a}: {tag}")
+    return lines + [f"initial_angles_deg = {_vec(np.degrees(result.alpha_all), 6)}", ""]
+
+
+def _frag_structure(fit: dict) -> list[str]:
+    """``[identification.structure]``: the structure the hub loads use (config.rig)."""
+    lines = ["[identification.structure]",
+             f"# the structure test selected {fit['structure']!r} (docs/identification.md); "
+             "the hub loads use it from the start"]
+    lines += [f"# {nm}: {b:.6g}, sigma {'-' if sb is None else f'{sb:.3g}'} (SI)"
+              for nm, b, sb in zip(fit["parameters"], fit["beta"], fit["beta_sigma"])]
+    return lines + [f'structure = "{fit["structure"]}"',
+                    f"alpha0_deg = {_vec(np.degrees(fit['alpha0']), 6)}",
+                    f"beta = [{', '.join(repr(float(b)) for b in fit['beta'])}]",
+                    f"T_ref_N = {_vec(fit['T_ref'], 2)}", ""]
+
+
+def _frag_hub(cfg: RigConfig, hub: list[str], e: _Estimates) -> list[str]:
+    v = np.asarray(cfg.hub_centre_m, float).copy()
+    lines = ["[geometry]"]
+    for n in hub:
+        v["xyz".index(n[-1])] = e.est[n]
+        lines.append(f"# {n}: {e.est[n]:.6f} m, sigma {e.sig[n]:.6f} m ({e.sig_mk[n]:.6f})")
+    return lines + [f"hub_centre_m = {_vec(v, 6)}", ""]
+
+
+def _frag_mass(cfg: RigConfig, mass: list[str], e: _Estimates) -> list[str]:
+    m = np.asarray(cfg.effective_mass_kg, float).copy()
+    inertia = np.asarray(cfg.inertia_kg_m2, float).copy()
+    lines = ["[mass]"]
+    for n in mass:
+        unit = "kg" if n.startswith("m_") else "kg m^2"
+        lines.append(f"# {n}: {e.est[n]:.3f} {unit}, sigma {e.sig[n]:.3f} {unit} "
+                     f"({e.sig_mk[n]:.3f})")
+        if n.startswith("m_"):
+            m["xyz".index(n[-1])] = e.est[n]
+        else:
+            inertia[("I_xx", "I_yy", "I_zz").index(n)] = e.est[n]
+    if any(n.startswith("m_") for n in mass):
+        lines.append(f"effective_mass_kg = {_vec(m, 4)}")
+    if any(n.startswith("I_") for n in mass):
+        lines.append(f"inertia_kg_m2 = {_vec(inertia, 4)}")
+    return lines + [""]
+
+
+def _frag_cell(block: dict, e: _Estimates) -> list[str]:
+    """One ``[[cells]]`` block as the rig gives it, its identified position coordinates
+    replaced."""
+    cell = block["name"]
+    p = [float(x) for x in block["position_m"]]
+    notes = []
+    for i, ax in enumerate("xyz"):
+        n = f"{ax}_{cell}"
+        if n in e.est:
+            p[i] = float(e.est[n])
+            notes.append(f"# {n}: {e.est[n]:.6f} m, sigma {e.sig[n]:.6f} m ({e.sig_mk[n]:.6f})")
+    return ["[[cells]]", *notes,
+            *(f"{k} = {_vec(p, 6) if k == 'position_m' else _toml_value(v)}"
+              for k, v in block.items()), ""]
+
+
 def fragment_toml(cfg: RigConfig, result: CalibrationResult,
                   structure: dict | None = None) -> str:
     """A TOML fragment to merge into the rig config (``load_config(overrides=…)`` accepts it):
@@ -625,90 +751,22 @@ def fragment_toml(cfg: RigConfig, result: CalibrationResult,
     ``inertia_kg_m2`` and the seven ``[[cells]]`` blocks (complete: TOML arrays of tables
     replace, they do not merge) when those parameters were. Comments give each value's σ and
     the source recordings."""
-    model = cfg.rig_model()
-    angles = model.geometry.angle_names
+    angles = cfg.rig_model().geometry.angle_names
     names = result.names
-    est = dict(zip(names, result.estimate))
-    sig = dict(zip(names, result.sigma))
-    sig_mk = dict(zip(names, result.sigma_corrected))
-    when = datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
-    d = result.data
-    lines = [
-        "# rsra calibrate: off-line known-load calibration (model.md §7, report Appendix C)",
-        f"# from: {', '.join(d.files)}",
-        (f"# {when}; content {d.content}; {d.n_scored} samples scored of {d.samples_read} read; "
-         f"status {result.status} after {result.ident.iterations} iterations"),
-        "# sigma: Cramér-Rao bound (in brackets: corrected for coloured residuals)"
-        + ("" if not result.flags else
-           "; PLAUSIBILITY FLAGS: " + "; ".join(f"{f.name} {f.problem}" for f in result.flags)),
-        "",
-    ]
+    e = _Estimates.of(result)
+    lines = _frag_head(result)
     if any(n in angles for n in names):
-        lines.append("[identification]")
-        for a in angles:
-            tag = (f"{math.degrees(est[a]):+.4f} deg, sigma {math.degrees(sig[a]):.4f} deg "
-                   f"({math.degrees(sig_mk[a]):.4f})"
-                   if a in est else "not identified: start value kept")
-            lines.append(f"# {a}: {tag}")
-        lines.append(f"initial_angles_deg = {_vec(np.degrees(result.alpha_all), 6)}")
-        lines.append("")
+        lines += _frag_angles(angles, e, result)
     fit = None if structure is None else structure.get("structure_fit")
-    if fit is not None:  # the structure the hub loads use (issue 19; config.rig)
-        lines.append("[identification.structure]")
-        lines.append(f"# the structure test selected {fit['structure']!r} (docs/identification.md); "
-                     "the hub loads use it from the start")
-        for nm, b, sb in zip(fit["parameters"], fit["beta"], fit["beta_sigma"]):
-            lines.append(f"# {nm}: {b:.6g}, sigma {'-' if sb is None else f'{sb:.3g}'} (SI)")
-        lines.append(f'structure = "{fit["structure"]}"')
-        lines.append(f"alpha0_deg = {_vec(np.degrees(fit['alpha0']), 6)}")
-        lines.append(f"beta = [{', '.join(repr(float(b)) for b in fit['beta'])}]")
-        lines.append(f"T_ref_N = {_vec(fit['T_ref'], 2)}")
-        lines.append("")
+    if fit is not None:
+        lines += _frag_structure(fit)
     hub = [n for n in names if n.startswith("hub_")]
     if hub:
-        v = np.asarray(cfg.hub_centre_m, float).copy()
-        lines.append("[geometry]")
-        for n in hub:
-            i = "xyz".index(n[-1])
-            v[i] = est[n]
-            lines.append(f"# {n}: {est[n]:.6f} m, sigma {sig[n]:.6f} m ({sig_mk[n]:.6f})")
-        lines.append(f"hub_centre_m = {_vec(v, 6)}")
-        lines.append("")
+        lines += _frag_hub(cfg, hub, e)
     mass = [n for n in names if n.startswith(("m_", "I_"))]
     if mass:
-        m = np.asarray(cfg.effective_mass_kg, float).copy()
-        inertia = np.asarray(cfg.inertia_kg_m2, float).copy()
-        lines.append("[mass]")
-        for n in mass:
-            unit = "kg" if n.startswith("m_") else "kg m^2"
-            lines.append(f"# {n}: {est[n]:.3f} {unit}, sigma {sig[n]:.3f} {unit} ({sig_mk[n]:.3f})")
-            if n.startswith("m_"):
-                m["xyz".index(n[-1])] = est[n]
-            else:
-                inertia[("I_xx", "I_yy", "I_zz").index(n)] = est[n]
-        if any(n.startswith("m_") for n in mass):
-            lines.append(f"effective_mass_kg = {_vec(m, 4)}")
-        if any(n.startswith("I_") for n in mass):
-            lines.append(f"inertia_kg_m2 = {_vec(inertia, 4)}")
-        lines.append("")
-    pos = [n for n in names if n not in angles and n not in hub and n not in mass]
-    if pos:
-        raw_cells = cfg.raw.get("cells", [])
-        for block in raw_cells:
-            cell = block["name"]
-            p = [float(x) for x in block["position_m"]]
-            notes = []
-            for i, ax in enumerate("xyz"):
-                n = f"{ax}_{cell}"
-                if n in est:
-                    p[i] = float(est[n])
-                    notes.append(f"{n}: {est[n]:.6f} m, sigma {sig[n]:.6f} m ({sig_mk[n]:.6f})")
-            lines.append("[[cells]]")
-            lines.extend(f"# {x}" for x in notes)
-            for k, v in block.items():
-                val = _vec(p, 6) if k == "position_m" else _toml_value(v)
-                lines.append(f"{k} = {val}")
-            lines.append("")
+        lines += _frag_mass(cfg, mass, e)
+    if any(n not in angles and n not in hub and n not in mass for n in names):
+        for block in cfg.raw.get("cells", []):
+            lines += _frag_cell(block, e)
     return "\n".join(lines).rstrip() + "\n"
-
-
