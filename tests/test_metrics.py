@@ -27,7 +27,6 @@ ALLOWED = frozenset({
     "daq/bus/assembler.py SampleLayout.__init__",
     "daq/bus/assembler.py SampleLayout.sample",
     "daq/bus/decoder.py DecodeTable.__init__",
-    "daq/runtime/pipeline.py EstimatorPipeline._first_reference",
     "daq/web/dictionary.py points",
 })
 
