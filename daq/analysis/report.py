@@ -203,15 +203,10 @@ def _nearest(tt: np.ndarray, t: np.ndarray, tol: float) -> np.ndarray:
     return np.where(ok & np.isfinite(t), idx, -1)
 
 
-def align_truth(truth: dict, t: np.ndarray, seq: np.ndarray, dt: float,
-                sync: np.ndarray | None = None, method: str | None = None) -> Alignment:
-    """Truth sample of each record: by time (the truth's SYNC time, else its simulated time;
-    nearest within half a sample) when at least 90 % of the records match; otherwise by
-    ``seq`` (lost samples keep their number), shifted so that the SYNC counters agree when the
-    records carry them. ``method`` forces one."""
-    t = np.asarray(t, float)
-    seq = np.asarray(seq, np.int64)
-    n = len(truth["t"])
+def _align_by_time(truth: dict, t: np.ndarray, dt: float, method: str | None
+                   ) -> Alignment | None:
+    """By the truth's SYNC time, else its simulated time (nearest within half a sample),
+    when at least 90 % of the records match (or ``method`` forces it); else None."""
     if method in ("sync_time", "t"):
         cands = [method]
     elif method is None:
@@ -226,21 +221,42 @@ def align_truth(truth: dict, t: np.ndarray, seq: np.ndarray, dt: float,
         frac = float(np.mean(idx >= 0)) if len(idx) else 0.0
         if frac >= 0.9 or method is not None:
             return Alignment(m, idx, frac)
-    # by sample number
-    offset = 0
+    return None
+
+
+def _sync_offset(truth: dict, seq: np.ndarray, sync: np.ndarray | None) -> int:
+    """The shift of ``seq`` that makes the most SYNC counters agree with the truth's (0
+    without counters)."""
     sc = truth.get("sync_counter")
-    if sync is not None and sc is not None and len(sc) and np.any(np.asarray(sync) > 0):
-        sync = np.asarray(sync, np.int64)
-        sc = np.asarray(sc, np.int64)
-        period = int(sc.max()) if sc.max() > 0 else 1
-        best = -1
-        for k in range(-int(seq.min()), -int(seq.min()) + period):
-            j = seq + k
-            ok = (j >= 0) & (j < n)
-            score = int(np.sum(sc[j[ok]] == sync[ok]))
-            if score > best:
-                best, offset = score, k
-    j = seq + offset
+    if sync is None or sc is None or not len(sc) or not np.any(np.asarray(sync) > 0):
+        return 0
+    n = len(truth["t"])
+    sync = np.asarray(sync, np.int64)
+    sc = np.asarray(sc, np.int64)
+    period = int(sc.max()) if sc.max() > 0 else 1
+    best, offset = -1, 0
+    for k in range(-int(seq.min()), -int(seq.min()) + period):
+        j = seq + k
+        ok = (j >= 0) & (j < n)
+        score = int(np.sum(sc[j[ok]] == sync[ok]))
+        if score > best:
+            best, offset = score, k
+    return offset
+
+
+def align_truth(truth: dict, t: np.ndarray, seq: np.ndarray, dt: float,
+                sync: np.ndarray | None = None, method: str | None = None) -> Alignment:
+    """Truth sample of each record: by time (the truth's SYNC time, else its simulated time;
+    nearest within half a sample) when at least 90 % of the records match; otherwise by
+    ``seq`` (lost samples keep their number), shifted so that the SYNC counters agree when the
+    records carry them. ``method`` forces one."""
+    t = np.asarray(t, float)
+    seq = np.asarray(seq, np.int64)
+    by_time = _align_by_time(truth, t, dt, method)
+    if by_time is not None:
+        return by_time
+    n = len(truth["t"])
+    j = seq + _sync_offset(truth, seq, sync)
     idx = np.where((j >= 0) & (j < n), j, -1)
     return Alignment("seq", idx, float(np.mean(idx >= 0)) if len(idx) else 0.0)
 
@@ -494,6 +510,32 @@ def _truth_alpha_at(d: ReportData, t_abs: float) -> np.ndarray | None:
     return d.alpha_truth_hub[j]
 
 
+def _joint_chi2(d: ReportData, last: dict, tr: np.ndarray) -> dict | None:
+    """The final angles' joint consistency with the whole posterior covariance over the
+    identified names; None when P is singular."""
+    e = last["alpha_sub"] - tr[[d.angle_names.index(n) for n in last["names"]]]
+    try:
+        chi2 = float(e @ np.linalg.solve(last["P"], e))
+    except np.linalg.LinAlgError:
+        return None
+    dof = len(e)
+    thr = float(stats.chi2.ppf(1 - FALSE_ALARM, dof))
+    return {"value": chi2, "dof": dof, "threshold": thr, "false_alarm": FALSE_ALARM,
+            "consistent": chi2 <= thr}
+
+
+def _last_advice(d: ReportData) -> dict | None:
+    """Filter-error windows: what would determine the rest, the latest."""
+    advised = [r for r in d.rec.angles if isinstance(r.get("advice"), dict)]
+    if not advised:
+        return None
+    from rsra.estimator.flight_advice import advice_summary
+
+    r = advised[-1]
+    return {"t": _num(r.get("t")) - d.t0, "sentence": advice_summary(
+        r["advice"], len(r.get("names") or []) or None), "advice": r["advice"]}
+
+
 def _angles_summary(d: ReportData) -> dict:
     runs = _angle_records(d)
     if not runs:
@@ -501,8 +543,7 @@ def _angles_summary(d: ReportData) -> dict:
     reasons: dict[str, int] = {}
     for r in runs:
         if not r["accepted"]:
-            k = str(r["reason"])
-            reasons[k] = reasons.get(k, 0) + 1
+            reasons[str(r["reason"])] = reasons.get(str(r["reason"]), 0) + 1
     last = runs[-1]
     out: dict = {"runs": len(runs), "accepted": sum(r["accepted"] for r in runs),
                  "rejected": reasons,
@@ -515,27 +556,12 @@ def _angles_summary(d: ReportData) -> dict:
         err = last["alpha"] - tr
         final.update(truth_deg=np.degrees(tr).tolist(), error_deg=np.degrees(err).tolist(),
                      error_over_sigma=(err / last["sigma"]).tolist())
-        # joint consistency with the whole posterior covariance over the identified names
-        if last["P"] is not None:
-            sub = [d.angle_names.index(n) for n in last["names"] if n in d.angle_names]
-            if len(sub) == len(last["names"]):
-                e = last["alpha_sub"] - tr[sub]
-                try:
-                    chi2 = float(e @ np.linalg.solve(last["P"], e))
-                    dof = len(e)
-                    thr = float(stats.chi2.ppf(1 - FALSE_ALARM, dof))
-                    out["joint_chi2"] = {"value": chi2, "dof": dof, "threshold": thr,
-                                         "false_alarm": FALSE_ALARM, "consistent": chi2 <= thr}
-                except np.linalg.LinAlgError:
-                    out["joint_chi2"] = None
+        if last["P"] is not None and all(n in d.angle_names for n in last["names"]):
+            out["joint_chi2"] = _joint_chi2(d, last, tr)
     out["final"] = final
-    advised = [r for r in d.rec.angles if isinstance(r.get("advice"), dict)]
-    if advised:  # filter-error windows: what would determine the rest, the latest
-        from rsra.estimator.flight_advice import advice_summary
-
-        r = advised[-1]
-        out["advice"] = {"t": _num(r.get("t")) - d.t0, "sentence": advice_summary(
-            r["advice"], len(r.get("names") or []) or None), "advice": r["advice"]}
+    advice = _last_advice(d)
+    if advice is not None:
+        out["advice"] = advice
     return out
 
 
@@ -1000,28 +1026,61 @@ def plot_nis(d: ReportData, out: Path, summ: dict | None = None) -> Path:
     return _save(fig, out / "innovations.png")
 
 
+def _spectrum_series(d: ReportData) -> list[tuple[str, np.ndarray]]:
+    """The load cells and the hub loads (H, H_static) on a uniform grid, each with enough
+    of its samples present."""
+    candidates = []
+    if d.rec.channels is not None:
+        candidates.append(("cells", d.rec.channels["seq"], d.rec.channels["T"]))
+    if d.rec.hub is not None:
+        candidates += [(name, d.rec.hub["seq"], d.rec.hub[name]) for name in ("H", "H_static")]
+    series = []
+    for name, seq, values in candidates:
+        g, frac = _uniform(seq, values)
+        if g is not None and frac >= MIN_UNIFORM_FRACTION:
+            series.append((name, g))
+    return series
+
+
+def _plot_asd(d: ReportData, ax_of: dict, name: str, f: np.ndarray, asd: np.ndarray,
+              colors) -> None:
+    sc = _axis_scale(d.units)
+    if name == "cells":
+        cells = [c.name for c in d.cfg.cells]
+        for j in range(asd.shape[1]):
+            ax_of["cells"].semilogy(f, asd[:, j] * sc[0], lw=0.9, color=colors(j),
+                                    label=f"cell {cells[j]}")
+        return
+    style = dict(lw=1.0) if name == "H" else dict(lw=0.7, ls=":", alpha=0.8)
+    for j in range(6):
+        a = ax_of["forces"] if j < 3 else ax_of["moments"]
+        a.semilogy(f, asd[:, j] * sc[j], color=colors(j % 3), label=f"{AXES[j]} ({name})",
+                   **style)
+
+
+def _mark_revolutions(d: ReportData, a) -> None:
+    """1/rev and N_b/rev on a spectrum's frequency axis."""
+    if not d.omega:
+        return
+    f1 = d.omega / (2 * math.pi)
+    for k, lab in ((1, "1/rev"), (d.cfg.rotor.blades, f"{d.cfg.rotor.blades}/rev")):
+        a.axvline(k * f1, color="crimson", ls="--", lw=1)
+        a.text(k * f1, 0.97, f" {lab}", color="crimson", transform=a.get_xaxis_transform(),
+               va="top", fontsize=9)
+
+
 def plot_spectra(d: ReportData, out: Path) -> tuple[Path | None, str | None]:
     """Welch amplitude spectral densities of the load cells and the hub loads (filter H and
     static H_static), with 1/rev and N_b/rev marked."""
     plt = _plt()
     fs = d.cfg.sample_rate_hz
-    series = []
-    if d.rec.channels is not None:
-        g, frac = _uniform(d.rec.channels["seq"], d.rec.channels["T"])
-        if g is not None and frac >= MIN_UNIFORM_FRACTION:
-            series.append(("cells", g))
-    if d.rec.hub is not None:
-        for name in ("H", "H_static"):
-            g, frac = _uniform(d.rec.hub["seq"], d.rec.hub[name])
-            if g is not None and frac >= MIN_UNIFORM_FRACTION:
-                series.append((name, g))
+    series = _spectrum_series(d)
     if not series:
         return None, "no load-cell or hub-load series with enough samples"
     n = min(len(g) for _, g in series)
     if n < 64:
         return None, f"too few samples for a spectrum ({n})"
     nper = min(n, 2 ** int(math.log2(max(64, min(n // 4, int(8 * fs))))))
-    sc = _axis_scale(d.units)
     u = axis_units(d.units)
     has_cells = any(name == "cells" for name, _ in series)
     has_hub = any(name != "cells" for name, _ in series)
@@ -1029,31 +1088,15 @@ def plot_spectra(d: ReportData, out: Path) -> tuple[Path | None, str | None]:
     fig, axs = plt.subplots(len(kinds), 1, figsize=FIG_SIZE, layout="constrained",
                             sharex=True, squeeze=False)
     ax_of = dict(zip(kinds, axs[:, 0]))
-    cells = [c.name for c in d.cfg.cells]
     colors = plt.get_cmap("tab10")
     for name, g in series:
         f, P = signal.welch(g, fs=fs, nperseg=nper, axis=0, detrend="constant")
-        asd = np.sqrt(P)
-        if name == "cells":
-            for j in range(g.shape[1]):
-                ax_of["cells"].semilogy(f, asd[:, j] * sc[0], lw=0.9, color=colors(j),
-                                        label=f"cell {cells[j]}")
-        else:
-            style = dict(lw=1.0) if name == "H" else dict(lw=0.7, ls=":", alpha=0.8)
-            for j in range(6):
-                a = ax_of["forces"] if j < 3 else ax_of["moments"]
-                a.semilogy(f, asd[:, j] * sc[j], color=colors(j % 3), label=f"{AXES[j]} ({name})",
-                           **style)
+        _plot_asd(d, ax_of, name, f, np.sqrt(P), colors)
     titles = {"cells": f"Load cells [{u[0]}/√Hz]", "forces": f"Hub forces [{u[0]}/√Hz]",
               "moments": f"Hub moments [{u[3]}/√Hz]"}
     axs = axs[:, 0]
     for kind, a in ax_of.items():
-        if d.omega:
-            f1 = d.omega / (2 * math.pi)
-            for k, lab in ((1, "1/rev"), (d.cfg.rotor.blades, f"{d.cfg.rotor.blades}/rev")):
-                a.axvline(k * f1, color="crimson", ls="--", lw=1)
-                a.text(k * f1, 0.97, f" {lab}", color="crimson", transform=a.get_xaxis_transform(),
-                       va="top", fontsize=9)
+        _mark_revolutions(d, a)
         a.set_title(titles[kind])
         a.set_ylabel("amplitude spectral density")
         a.grid(True, which="both", alpha=0.3)
