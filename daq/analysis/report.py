@@ -323,6 +323,36 @@ class ReportData:
     summary: dict = field(default_factory=dict)
 
 
+def _truth_hub(d: ReportData, truth: dict, geometry) -> Alignment | None:
+    """The truth's hub loads at each hub_loads record, in the records' frame."""
+    rec = d.rec
+    if rec.hub is None:
+        return None
+    d.hub_align = al = align_truth(truth, rec.hub["t"], rec.hub["seq"], d.cfg.sample_period_s,
+                                   rec.hub["sync"])
+    ok = al.valid()
+    H = np.full((len(ok), 6), np.nan)
+    H[ok] = truth_in_frame(np.asarray(truth["H_true"])[al.idx[ok]], geometry, d.frame)
+    d.H_truth = H
+    return al
+
+
+def _truth_angles(d: ReportData, truth: dict, hub_al: Alignment | None) -> None:
+    """The truth's angles at each hub_loads record (else each channels record)."""
+    rec = d.rec
+    base = rec.hub if rec.hub is not None else rec.channels
+    if base is None:
+        return
+    al = hub_al if hub_al is not None else align_truth(
+        truth, base["t"], base["seq"], d.cfg.sample_period_s)
+    d.ch_align = al
+    ok = al.valid()
+    A = np.full((len(ok), np.asarray(truth["alpha_true"]).shape[1]), np.nan)
+    A[ok] = np.asarray(truth["alpha_true"])[al.idx[ok]]
+    d.alpha_truth_hub = A
+    d.alpha_truth_t = base["t"] - d.t0
+
+
 def prepare(cfg: RigConfig, rec: Records, truth: dict | None, units: str = "si") -> ReportData:
     model = cfg.rig_model()
     frame = rec.hub["frame"] if rec.hub else cfg.hub_frame
@@ -335,32 +365,11 @@ def prepare(cfg: RigConfig, rec: Records, truth: dict | None, units: str = "si")
                    sigma_static=nb.total, angle_names=tuple(model.geometry.angle_names),
                    alpha_config=alpha_cfg,
                    settle_s=cfg.identification.settle_time_constants * cfg.filter.time_constant_s)
-    dt = cfg.sample_period_s
-    om = []
-    for s in (rec.hub, rec.channels):
-        if s is not None and np.isfinite(s["omega"]).any():
-            om.append(float(np.nanmedian(s["omega"])))
+    om = [float(np.nanmedian(s["omega"])) for s in (rec.hub, rec.channels)
+          if s is not None and np.isfinite(s["omega"]).any()]
     d.omega = om[0] if om else (None if cfg.rotor.stopped else cfg.rotor.omega_nominal_rad_s)
     if truth is not None:
-        hub_al = None
-        if rec.hub is not None:
-            d.hub_align = hub_al = align_truth(truth, rec.hub["t"], rec.hub["seq"], dt,
-                                               rec.hub["sync"])
-            ok = hub_al.valid()
-            H = np.full((len(ok), 6), np.nan)
-            H[ok] = truth_in_frame(np.asarray(truth["H_true"])[hub_al.idx[ok]],
-                                   model.geometry, frame)
-            d.H_truth = H
-        base = rec.hub if rec.hub is not None else rec.channels
-        if base is not None:
-            al = hub_al if hub_al is not None else align_truth(
-                truth, base["t"], base["seq"], dt)
-            d.ch_align = al
-            ok = al.valid()
-            A = np.full((len(ok), np.asarray(truth["alpha_true"]).shape[1]), np.nan)
-            A[ok] = np.asarray(truth["alpha_true"])[al.idx[ok]]
-            d.alpha_truth_hub = A
-            d.alpha_truth_t = base["t"] - t0
+        _truth_angles(d, truth, _truth_hub(d, truth, model.geometry))
     return d
 
 
@@ -902,6 +911,47 @@ def angle_steps(d: ReportData, runs: list[dict]
     return tt, A, S, start_what
 
 
+def _run_marks(a, d: ReportData, runs: list[dict], i: int) -> None:
+    """Each run's estimate of angle ``i``: accepted ± its σ_CR, rejected as a cross."""
+    for acc, fmt, color, label in ((True, "o", "tab:green", "accepted run ± σ_CR"),
+                                   (False, "x", "tab:red", "rejected run")):
+        sel = [r for r in runs if r["accepted"] == acc]
+        if not sel:
+            continue
+        tr_ = np.array([r["t"] - d.t0 for r in sel])
+        va = np.degrees(np.array([r["alpha"][i] for r in sel]))
+        if acc:
+            err = np.degrees(np.array([r["sigma"][i] for r in sel]))
+            a.errorbar(tr_, va, yerr=np.where(np.isfinite(err), err, 0.0), fmt=fmt,
+                       color=color, ms=4, lw=0.8, capsize=2, label=label)
+        else:
+            a.plot(tr_, va, fmt, color=color, ms=6, mew=1.5, label=label)
+
+
+def _readable_range(a, d: ReportData, A: np.ndarray, S: np.ndarray, i: int) -> None:
+    """A readable range: every run's estimate ± its posterior σ and the truth (a wide prior
+    before the first run may leave the frame), at least 1° tall."""
+    vals = np.concatenate([A[1:, i] - S[1:, i], A[1:, i] + S[1:, i]])
+    if d.alpha_truth_hub is not None:
+        vals = np.concatenate([vals, d.alpha_truth_hub[:, i]])
+    vals = np.degrees(vals[np.isfinite(vals)])
+    if len(vals):
+        lo, hi = float(vals.min()), float(vals.max())
+        mid, half = (lo + hi) / 2, max(0.5, 0.55 * (hi - lo))
+        a.set_ylim(mid - half, mid + half)
+
+
+def _angles_legend(axs, n: int) -> None:
+    """One legend in the first free panel, with the marker kinds only some panels have."""
+    handles, labels = axs.flat[0].get_legend_handles_labels()
+    for r_ax in axs.flat[:n]:
+        for h, lab in zip(*r_ax.get_legend_handles_labels()):
+            if lab not in labels:
+                handles.append(h)
+                labels.append(lab)
+    axs.flat[n].legend(handles, labels, loc="center", fontsize=10)
+
+
 def plot_angles(d: ReportData, out: Path) -> Path:
     """Angles over time: the estimate in force with its posterior ±σ band (sqrt diag P of
     each record), truth, each run's estimate with its own Cramér–Rao σ_CR, accepted or
@@ -922,45 +972,17 @@ def plot_angles(d: ReportData, out: Path) -> Path:
         if d.alpha_truth_hub is not None:
             a.plot(d.alpha_truth_t, np.degrees(d.alpha_truth_hub[:, i]), color="k", lw=1.0,
                    ls="--", label="truth")
-        for acc, fmt, color, label in ((True, "o", "tab:green", "accepted run ± σ_CR"),
-                                       (False, "x", "tab:red", "rejected run")):
-            sel = [r for r in runs if r["accepted"] == acc]
-            if not sel:
-                continue
-            tr_ = np.array([r["t"] - d.t0 for r in sel])
-            va = np.degrees(np.array([r["alpha"][i] for r in sel]))
-            if acc:
-                err = np.degrees(np.array([r["sigma"][i] for r in sel]))
-                a.errorbar(tr_, va, yerr=np.where(np.isfinite(err), err, 0.0), fmt=fmt,
-                           color=color, ms=4, lw=0.8, capsize=2, label=label)
-            else:
-                a.plot(tr_, va, fmt, color=color, ms=6, mew=1.5, label=label)
-        # a readable range: every run's estimate ± its posterior σ and the truth (a wide
-        # prior before the first run may leave the frame), at least 1° tall
-        vals = np.concatenate([A[1:, i] - S[1:, i], A[1:, i] + S[1:, i]])
-        if d.alpha_truth_hub is not None:
-            vals = np.concatenate([vals, d.alpha_truth_hub[:, i]])
-        vals = np.degrees(vals[np.isfinite(vals)])
-        if len(vals):
-            lo, hi = float(vals.min()), float(vals.max())
-            mid, half = (lo + hi) / 2, max(0.5, 0.55 * (hi - lo))
-            a.set_ylim(mid - half, mid + half)
+        _run_marks(a, d, runs, i)
+        _readable_range(a, d, A, S, i)
         a.set_title(nm, fontsize=10)
         a.set_ylabel("angle [deg]")
         a.grid(True, alpha=0.3)
     for j in range(len(names), 16):
         axs.flat[j].axis("off")
-    handles, labels = axs.flat[0].get_legend_handles_labels()
-    for r_ax in axs.flat[:len(names)]:  # collect marker kinds that only some panels have
-        for h, lab in zip(*r_ax.get_legend_handles_labels()):
-            if lab not in labels:
-                handles.append(h)
-                labels.append(lab)
-    axs.flat[len(names)].legend(handles, labels, loc="center", fontsize=10)
-    for j in range(len(names)):  # the lowest used panel of each column gets the time axis
-        if j + 4 >= len(names):
-            axs.flat[j].set_xlabel("time since start [s]")
-            axs.flat[j].xaxis.set_tick_params(labelbottom=True)
+    _angles_legend(axs, len(names))
+    for j in range(max(0, len(names) - 4), len(names)):  # each column's lowest used panel
+        axs.flat[j].set_xlabel("time since start [s]")
+        axs.flat[j].xaxis.set_tick_params(labelbottom=True)
     fig.suptitle("Load-cell deformation angles: the estimate in force with its posterior ±σ, "
                  f"truth, each run with its σ_CR; before the first run: {start_what}")
     return _save(fig, out / "angles.png")
