@@ -491,6 +491,22 @@ class StuckTable(Table):
         return v
 
 
+def _eds_file(i: int, name: str, base_dir: Path, packaged_dir: Path | None) -> Path:
+    """The EDS file node ``i`` names: relative to the rig file, else in the packaged EDS
+    folder; a regular file."""
+    eds = Path(name)
+    path = eds if eds.is_absolute() else base_dir / eds
+    if not path.exists() and packaged_dir is not None and (Path(packaged_dir) / eds).exists():
+        path = Path(packaged_dir) / eds  # the packaged EDS folder
+    if not path.exists():
+        raise Invalid(f"nodes[{i}].eds", name, f"file not found (looked in {base_dir})",
+                      "give the EDS path relative to the config file")
+    problem = regular_file_problem(path)  # a FIFO or device would block its reader
+    if problem is not None:
+        raise Invalid(f"nodes[{i}].eds", name, problem, "give the node's EDS file")
+    return path
+
+
 def predefined_cob_ids(node_id: int) -> dict[int, str]:
     """COB-ID -> use, for a node's CiA 301 predefined connection set (and NMT)."""
     ids = {0x000: "NMT", 0x080 + node_id: "EMCY", 0x580 + node_id: "SDO response",
@@ -531,6 +547,15 @@ class RigFile(Table):
             raise Invalid("accelerometers", [], "at least one triaxial accelerometer is needed",
                           "add an [[accelerometers]] block")
         self._harmonics()
+        self._windows()
+        context = info.context or {}
+        self._nodes(Path(context.get("base_dir", ".")), context.get("packaged_dir"))
+        self._references()
+        self._prefix()
+        return self
+
+    def _windows(self) -> None:
+        """The identification's window and period each at least one sample long."""
         rate = self.rig.sample_rate_hz
         idt = self.identification
         for key, v in (("window_s", idt.window_s), ("period_s", idt.period_s)):
@@ -538,14 +563,12 @@ class RigFile(Table):
                 raise Invalid(f"identification.{key}", v,
                               f"is less than one sample at rig.sample_rate_hz = {rate:g}",
                               f"give at least {1 / rate:g} s (one sample); the default is 5.0")
-        self._nodes(Path((info.context or {}).get("base_dir", ".")),
-                    (info.context or {}).get("packaged_dir"))
-        self._references()
+
+    def _prefix(self) -> None:
         prefix = self.telemetry.prefix or f"rsra/{self.rig.name}"
         if prefix.startswith("/") or prefix.endswith("/") or any(c in prefix for c in "*$?#"):
             raise Invalid("telemetry.prefix", prefix, "not a valid Zenoh key prefix",
                           'use e.g. "rsra/bench" (no wildcards, no leading or trailing /)')
-        return self
 
     def _cells(self) -> None:
         seen: dict[str, str] = {}
@@ -611,22 +634,14 @@ class RigFile(Table):
                               f"id already used by node {ids[n.node_id]!r}",
                               "give every node its own id")
             ids[n.node_id] = n.name
-            eds = Path(n.eds)
-            path = eds if eds.is_absolute() else base_dir / eds
-            if not path.exists() and packaged_dir is not None \
-                    and (Path(packaged_dir) / eds).exists():
-                path = Path(packaged_dir) / eds  # the packaged EDS folder
-            if not path.exists():
-                raise Invalid(f"nodes[{i}].eds", n.eds, f"file not found (looked in {base_dir})",
-                              "give the EDS path relative to the config file")
-            problem = regular_file_problem(path)  # a FIFO or device would block its reader
-            if problem is not None:
-                raise Invalid(f"nodes[{i}].eds", n.eds, problem, "give the node's EDS file")
-            n._eds_path = path
-        # the SYNC COB-ID against every COB-ID of the configured nodes' predefined connection
-        # set (CiA 301: a SYNC on a node's COB-ID is taken for that node's frame, and the
-        # reverse, so no sample is ever assembled); the TPDO COB-IDs the EDS files give are
-        # checked against it again with the decode table (daq.decoder)
+            n._eds_path = _eds_file(i, n.eds, base_dir, packaged_dir)
+        self._sync_cob_id()
+
+    def _sync_cob_id(self) -> None:
+        """The SYNC COB-ID against every COB-ID of the configured nodes' predefined
+        connection set (CiA 301: a SYNC on a node's COB-ID is taken for that node's frame, and
+        the reverse, so no sample is ever assembled); the TPDO COB-IDs the EDS files give are
+        checked against it again with the decode table (daq.decoder)."""
         cob = self.sync.cob_id
         for n in self.nodes:
             owner = predefined_cob_ids(n.node_id).get(cob)
