@@ -124,18 +124,22 @@ class KeyStats:
         self.count += 1
         seq = payload.get("seq") if isinstance(payload, dict) else None
         if self.counted and isinstance(seq, int) and not isinstance(seq, bool):
-            if self.first_seq is None or self.last_seq is None:  # (the two are set together)
-                self.first_seq = seq
-                self.last_seq = seq
-                self.n_seq = 1
-            elif seq > self.last_seq:
-                if self.key not in EVERY_SAMPLE:
-                    self.stride = math.gcd(self.stride, seq - self.last_seq)
-                self.last_seq = seq
-                self.n_seq += 1
+            self._seq(seq)
         self.last_arrival = now
         self.arrivals.append(now)
         self.latest = payload if isinstance(payload, dict) else {"value": payload}
+
+    def _seq(self, seq: int) -> None:
+        """A message's seq: the first, or a later one (a gap counts as missed; the stride of
+        every n-th sample is the greatest common divisor of the steps)."""
+        if self.first_seq is None or self.last_seq is None:  # (the two are set together)
+            self.first_seq = self.last_seq = seq
+            self.n_seq = 1
+        elif seq > self.last_seq:
+            if self.key not in EVERY_SAMPLE:
+                self.stride = math.gcd(self.stride, seq - self.last_seq)
+            self.last_seq = seq
+            self.n_seq += 1
 
     def rate(self, now: float | None = None) -> float:
         """Messages per second over the recent arrivals; 0 once none has come for
@@ -370,14 +374,17 @@ class Whose:
 
         while self._alive is not None and (s := self._alive.handler.try_recv()) is not None:
             inst = parse(str(s.key_expr))
-            if inst is None:
-                continue
-            if s.kind == zenoh.SampleKind.DELETE and inst == self.instance:
-                self.stopped = time.strftime("%H:%M:%S UTC", time.gmtime())
-            elif s.kind == zenoh.SampleKind.PUT and inst != self.instance:
-                self.instance, self.stopped = inst, None
+            if inst is not None:
+                self._hear(s.kind == zenoh.SampleKind.PUT, inst)
         if self.instance is None and now - self._looked >= REDISCOVER_S:
             self.discover(now)
+
+    def _hear(self, put: bool, inst: Any) -> None:
+        """A liveliness token of the prefix: ours gone (stopped), or another one started."""
+        if not put and inst == self.instance:
+            self.stopped = time.strftime("%H:%M:%S UTC", time.gmtime())
+        elif put and inst != self.instance:
+            self.instance, self.stopped = inst, None
 
     def title(self) -> str:
         if self.instance is not None:
