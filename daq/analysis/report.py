@@ -602,17 +602,19 @@ def _innovations_summary(d: ReportData) -> dict:
     from rsra.daq.analysis.accuracy import PHASES
 
     ph = record_phases(d, inn["seq"][sel])
-    out["by_phase"] = {p: {"records": int((ph == p).sum()),
-                           "mean_nis": float(nis[ph == p].mean()) if (ph == p).any() else None,
-                           **nis_consistency(nis[ph == p], lo, hi)} for p in PHASES}
+    out["by_phase"] = {p: _nis_group(nis, ph == p, lo, hi) for p in PHASES}
     if hub is not None:
         moving = {int(q) for q, f in zip(hub["seq"], hub["flags"]) if "transient" in f}
         tr = np.array([int(q) in moving for q in inn["seq"][sel]], bool)
-        out["by_state"] = {state: {"records": int(m.sum()),
-                                   "mean_nis": float(nis[m].mean()) if m.any() else None,
-                                   **nis_consistency(nis[m], lo, hi)}
+        out["by_state"] = {state: _nis_group(nis, m, lo, hi)
                            for state, m in (("held", ~tr), ("transient", tr))}
     return out
+
+
+def _nis_group(nis: np.ndarray, m: np.ndarray, lo: float, hi: float) -> dict:
+    """The NIS of the records ``m`` selects: how many, their mean and their consistency."""
+    return {"records": int(m.sum()), "mean_nis": float(nis[m].mean()) if m.any() else None,
+            **nis_consistency(nis[m], lo, hi)}
 
 
 def effective_records(x: np.ndarray, max_lag: int = 200) -> float:
@@ -1378,20 +1380,9 @@ def build_report(cfg: RigConfig, rec: Records, truth: dict | None, out: str | Pa
     except OSError as e:
         raise ReportError(f"--out {out}: cannot create the folder ({e.strerror})") from None
     d, summary = summarise(cfg, rec, truth, units, truth_name)
-    hub_s = summary["hub_loads"]
     plots: list[Path] = []
     skipped: dict[str, str] = {}
-    if rec.hub is not None and (np.isfinite(rec.hub["H"]).any()
-                                or np.isfinite(rec.hub["H_static"]).any()):
-        plots.append(plot_hub_loads(d, out))
-        if d.H_truth is not None and np.isfinite(d.H_truth).any():
-            plots.append(plot_hub_errors(d, out, hub_s))
-        else:
-            skipped["hub_load_errors.png"] = "no truth (give --truth)" if truth is None else \
-                "no record matched a truth sample"
-    else:
-        skipped["hub_loads.png"] = "no hub_loads records with estimates"
-        skipped["hub_load_errors.png"] = "no hub_loads records with estimates"
+    _hub_plots(d, summary["hub_loads"], out, plots, skipped)
     if rec.angles:
         plots.append(plot_angles(d, out))
     else:
@@ -1411,6 +1402,22 @@ def build_report(cfg: RigConfig, rec: Records, truth: dict | None, out: str | Pa
     write_text_atomic(out / "summary.json", dumps(summary) + "\n")
     write_text_atomic(out / "summary.md", _markdown(summary, units))
     return Report(out=out, plots=plots, skipped=skipped, summary=summary)
+
+
+def _hub_plots(d: ReportData, hub_s: dict, out: Path, plots: list[Path],
+               skipped: dict[str, str]) -> None:
+    """The hub loads' plot and, against truth, their errors' (or why not)."""
+    hub = d.rec.hub
+    if hub is None or not (np.isfinite(hub["H"]).any() or np.isfinite(hub["H_static"]).any()):
+        skipped["hub_loads.png"] = "no hub_loads records with estimates"
+        skipped["hub_load_errors.png"] = "no hub_loads records with estimates"
+        return
+    plots.append(plot_hub_loads(d, out))
+    if d.H_truth is not None and np.isfinite(d.H_truth).any():
+        plots.append(plot_hub_errors(d, out, hub_s))
+    else:
+        skipped["hub_load_errors.png"] = "no truth (give --truth)" if d.truth is None else \
+            "no record matched a truth sample"
 
 
 def write_report(cfg: RigConfig, results: str | Path, truth: str | Path | None,
