@@ -203,27 +203,40 @@ def parse_faults(spec: str | None) -> tuple[Fault, ...]:
     return tuple(parse_fault(tok, i) for i, tok in items if tok)
 
 
+def _check_node(f: Fault, node_roles: dict[str, str]) -> None:
+    if f.node is not None and f.node != "*" and f.node not in node_roles:
+        near = difflib.get_close_matches(f.node, list(node_roles), n=1)
+        raise FaultSpecError(f.token, f"no node {f.node!r} on the simulated bus"
+                             + (f" (did you mean {near[0]!r}?)" if near else ""),
+                             "nodes: " + ", ".join(node_roles))
+
+
+def _check_channel(f: Fault, channels: dict[str, tuple[str, ...]]) -> None:
+    if f.channel is None:
+        return
+    if f.node is None or f.node == "*":
+        raise FaultSpecError(f.token, "a channel needs a named node", "write e.g. stuck:accel_1.z")
+    if f.channel not in channels[f.node]:
+        raise FaultSpecError(f.token, f"node {f.node!r} has no channel {f.channel!r}",
+                             "channels: " + ", ".join(channels[f.node]))
+
+
+def _check_status(f: Fault, node_roles: dict[str, str],
+                  channels: dict[str, tuple[str, ...]]) -> None:
+    # "*" applies a status fault to the nodes that have a status channel only
+    if f.kind in STATUS_KINDS and f.node is not None and f.node != "*" \
+            and "status" not in channels[f.node]:
+        raise FaultSpecError(f.token, f"node {f.node!r} ({node_roles[f.node]}) has no "
+                             "status channel", "use it on a load cell")
+
+
 def validate_faults(faults: tuple[Fault, ...], node_roles: dict[str, str],
                     channels: dict[str, tuple[str, ...]], autostart: bool) -> None:
     """Check node and channel names against the configured nodes and the mode."""
     for f in faults:
-        if f.node is not None and f.node != "*" and f.node not in node_roles:
-            near = difflib.get_close_matches(f.node, list(node_roles), n=1)
-            raise FaultSpecError(f.token, f"no node {f.node!r} on the simulated bus"
-                                 + (f" (did you mean {near[0]!r}?)" if near else ""),
-                                 "nodes: " + ", ".join(node_roles))
-        if f.channel is not None:
-            if f.node is None or f.node == "*":
-                raise FaultSpecError(f.token, "a channel needs a named node",
-                                     "write e.g. stuck:accel_1.z")
-            if f.channel not in channels[f.node]:
-                raise FaultSpecError(f.token, f"node {f.node!r} has no channel {f.channel!r}",
-                                     "channels: " + ", ".join(channels[f.node]))
-        # "*" applies a status fault to the nodes that have a status channel only
-        if f.kind in STATUS_KINDS and f.node is not None and f.node != "*" \
-                and "status" not in channels[f.node]:
-            raise FaultSpecError(f.token, f"node {f.node!r} ({node_roles[f.node]}) has no "
-                                 "status channel", "use it on a load cell")
+        _check_node(f, node_roles)
+        _check_channel(f, channels)
+        _check_status(f, node_roles, channels)
         if f.kind in AUTOSTART_KINDS and not autostart:
             raise FaultSpecError(f.token, "the simulator produces SYNC only with --autostart",
                                  "add --autostart or drop this fault")
