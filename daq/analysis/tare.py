@@ -30,11 +30,13 @@ few samples.
 """
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from collections import Counter
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
+from collections.abc import Iterator
 from typing import Any, Callable
 
 import numpy as np
@@ -108,9 +110,9 @@ def channel_specs(cfg: RigConfig, table: DecodeTable,
     """Every calibrated channel the estimator uses, in sample order: the seven load cells,
     each accelerometer's x y z, Ω, the balance X…N, the drive loads."""
     specs: list[ChannelSpec] = []
-
-    def add(key: str, kind: str, quantity: str, sigma: float | None, full_scale: float | None,
-            target: float | None) -> None:
+    for key, kind, quantity, sigma, full_scale, target in itertools.chain(
+            _cell_rows(cfg), _accel_rows(cfg), _omega_rows(cfg), _balance_rows(cfg),
+            _drive_rows(cfg, table)):
         if not table.has_channel(key):
             from rsra.config.rig import ConfigError
             raise ConfigError("nodes", key.split(".")[0], f"the EDS maps no channel {key!r}",
@@ -120,26 +122,46 @@ def channel_specs(cfg: RigConfig, table: DecodeTable,
         specs.append(ChannelSpec(key, kind, quantity, bool(node and node.required), sigma,
                                  None if full_scale is None else max_offset_fs * full_scale,
                                  target, float(gain), float(offset)))
+    return specs
 
+
+# (key, kind, quantity, sensor σ, full scale, target at rest) of each kind of channel, in
+# sample order
+_Row = tuple[str, str, str, float | None, float | None, float | None]
+
+
+def _cell_rows(cfg: RigConfig) -> Iterator[_Row]:
     for c in cfg.cells:
-        add(f"{c.node}.force", "cell", "force", c.sigma_N, c.full_scale_N, None)
+        yield f"{c.node}.force", "cell", "force", c.sigma_N, c.full_scale_N, None
+
+
+def _accel_rows(cfg: RigConfig) -> Iterator[_Row]:
     for a in cfg.accelerometers:
         for j, ax in enumerate("xyz"):
-            add(f"{a.node}.{ax}", "accel", "accel", a.sigma_m_s2, a.full_scale_g * G0,
-                float(GRAVITY_AT_REST[j]))
+            yield (f"{a.node}.{ax}", "accel", "accel", a.sigma_m_s2, a.full_scale_g * G0,
+                   float(GRAVITY_AT_REST[j]))
+
+
+def _omega_rows(cfg: RigConfig) -> Iterator[_Row]:
     if cfg.rotor.node:
-        add(f"{cfg.rotor.node}.omega", "omega", "rate", None, None, 0.0)
-    if cfg.balance.node:
-        b = cfg.balance
-        for j, ax in enumerate("XYZLMN"):
-            fs = b.full_scale_force_N if j < 3 else b.full_scale_moment_Nm
-            add(f"{b.node}.{ax}", "balance", "force" if j < 3 else "moment",
-                float(b.sigma[j]), fs, 0.0)
+        yield f"{cfg.rotor.node}.omega", "omega", "rate", None, None, 0.0
+
+
+def _balance_rows(cfg: RigConfig) -> Iterator[_Row]:
+    b = cfg.balance
+    if not b.node:
+        return
+    for j, ax in enumerate("XYZLMN"):
+        fs = b.full_scale_force_N if j < 3 else b.full_scale_moment_Nm
+        yield (f"{b.node}.{ax}", "balance", "force" if j < 3 else "moment", float(b.sigma[j]),
+               fs, 0.0)
+
+
+def _drive_rows(cfg: RigConfig, table: DecodeTable) -> Iterator[_Row]:
     for e in cfg.external_loads:
         nl = table.node(e.node)
         keys = [c.key for c in table.channels[nl.start:nl.stop] if not c.is_status]
-        add(keys[0], "drive", "moment", e.sigma, None, 0.0)
-    return specs
+        yield keys[0], "drive", "moment", e.sigma, None, 0.0
 
 
 def extractor(cfg: RigConfig, specs: list[ChannelSpec]) -> Callable[[Any], np.ndarray]:
