@@ -777,6 +777,46 @@ def _per_revolution(t: np.ndarray, x: np.ndarray, period: float
             np.minimum.reduceat(x, starts), np.maximum.reduceat(x, starts))
 
 
+def _whole_run_panel(a, d: ReportData, t: np.ndarray, i: int, rev: float) -> None:
+    """Hub-load axis ``i`` over the whole run: mean and range per revolution of H and of the
+    truth, the phases shaded."""
+    sc = _axis_scale(d.units)
+    hub = d.rec.hub
+    assert hub is not None  # build_report: with hub_loads records only
+    shade_phases(a, phase_spans(d))
+    if d.H_truth is not None:
+        tt, m, lo, hi = _per_revolution(t, d.H_truth[:, i] * sc[i], rev)
+        a.fill_between(tt, lo, hi, color="0.8", lw=0, label="truth: range per revolution")
+        a.plot(tt, m, color="k", lw=1.4, label="truth: mean per revolution")
+    tt, m, lo, hi = _per_revolution(t, hub["H"][:, i] * sc[i], rev)
+    if d.H_truth is None:
+        a.fill_between(tt, lo, hi, color="tab:blue", alpha=0.2, lw=0,
+                       label="H: range per revolution")
+    a.plot(tt, m, color="tab:blue", lw=1.0, ls="--" if d.H_truth is not None else "-",
+           label="H: mean per revolution")
+    a.set_title(f"{AXES[i]}: whole run", fontsize=10)
+
+
+def _last_revolutions_panel(a, d: ReportData, t: np.ndarray, i: int, win: np.ndarray,
+                            span: float) -> None:
+    """Hub-load axis ``i`` over the last revolutions: H, H_static and the truth with the
+    static noise-budget band."""
+    sc = _axis_scale(d.units)
+    hub = d.rec.hub
+    assert hub is not None  # build_report: with hub_loads records only
+    tw = t[win]
+    ref = d.H_truth[win, i] if d.H_truth is not None else hub["H"][win, i]
+    band = d.sigma_static[i] * sc[i]
+    a.fill_between(tw, ref * sc[i] - band, ref * sc[i] + band, color="0.85",
+                   label=("truth" if d.H_truth is not None else "H") + " ± static σ")
+    if d.H_truth is not None:
+        a.plot(tw, d.H_truth[win, i] * sc[i], color="k", lw=1.6, label="truth")
+    a.plot(tw, hub["H_static"][win, i] * sc[i], color="tab:orange", lw=0.8, alpha=0.8,
+           label="H_static (per sample)")
+    a.plot(tw, hub["H"][win, i] * sc[i], color="tab:blue", lw=1.2, label="H (load filter)")
+    a.set_title(f"{AXES[i]}: last {span:.1f} s", fontsize=10)
+
+
 def plot_hub_loads(d: ReportData, out: Path) -> Path:
     """The whole run (per-revolution mean and range of H and of the truth, phases shaded), then
     the estimates (filter H, static H_static) vs truth over the last rotor revolutions with
@@ -788,46 +828,18 @@ def plot_hub_loads(d: ReportData, out: Path) -> Path:
     rev = 2 * math.pi / d.omega if d.omega else 0.25
     span = ZOOM_REVOLUTIONS * rev if d.omega else 2.0
     win = t >= (np.nanmax(t) - span)
-    sc = _axis_scale(d.units)
     u = axis_units(d.units)
-    spans = phase_spans(d)
     fig, axs = plt.subplots(4, 3, figsize=(14, 14), layout="constrained")
     for i in range(6):
-        a = axs[i // 3, i % 3]  # the whole run
-        shade_phases(a, spans)
-        if d.H_truth is not None:
-            tt, m, lo, hi = _per_revolution(t, d.H_truth[:, i] * sc[i], rev)
-            a.fill_between(tt, lo, hi, color="0.8", lw=0, label="truth: range per revolution")
-            a.plot(tt, m, color="k", lw=1.4, label="truth: mean per revolution")
-        tt, m, lo, hi = _per_revolution(t, hub["H"][:, i] * sc[i], rev)
-        if d.H_truth is None:
-            a.fill_between(tt, lo, hi, color="tab:blue", alpha=0.2, lw=0,
-                           label="H: range per revolution")
-        a.plot(tt, m, color="tab:blue", lw=1.0, ls="--" if d.H_truth is not None else "-",
-               label="H: mean per revolution")
-        a.set_title(f"{AXES[i]}: whole run", fontsize=10)
-        a.set_ylabel(f"{AXES[i]} [{u[i]}]")
-        a.grid(True, alpha=0.3)
-        if i >= 3:
-            a.set_xlabel("time since start [s]")
+        _whole_run_panel(axs[i // 3, i % 3], d, t, i, rev)
+        _last_revolutions_panel(axs[2 + i // 3, i % 3], d, t, i, win, span)
+    for i in range(6):  # the forces' row and the moments' (time axis) of both halves
+        for a in (axs[i // 3, i % 3], axs[2 + i // 3, i % 3]):
+            a.set_ylabel(f"{AXES[i]} [{u[i]}]")
+            a.grid(True, alpha=0.3)
+            if i >= 3:
+                a.set_xlabel("time since start [s]")
     axs[0, 0].legend(fontsize=7, loc="best")
-    for i in range(6):
-        a = axs[2 + i // 3, i % 3]  # the last revolutions
-        tw = t[win]
-        ref = d.H_truth[win, i] if d.H_truth is not None else hub["H"][win, i]
-        band = d.sigma_static[i] * sc[i]
-        a.fill_between(tw, ref * sc[i] - band, ref * sc[i] + band, color="0.85",
-                       label=("truth" if d.H_truth is not None else "H") + " ± static σ")
-        if d.H_truth is not None:
-            a.plot(tw, d.H_truth[win, i] * sc[i], color="k", lw=1.6, label="truth")
-        a.plot(tw, hub["H_static"][win, i] * sc[i], color="tab:orange", lw=0.8, alpha=0.8,
-               label="H_static (per sample)")
-        a.plot(tw, hub["H"][win, i] * sc[i], color="tab:blue", lw=1.2, label="H (load filter)")
-        a.set_title(f"{AXES[i]}: last {span:.1f} s", fontsize=10)
-        a.set_ylabel(f"{AXES[i]} [{u[i]}]")
-        a.grid(True, alpha=0.3)
-        if i >= 3:
-            a.set_xlabel("time since start [s]")
     axs[2, 0].legend(fontsize=7, loc="best")
     what = f"{ZOOM_REVOLUTIONS} rotor revolutions" if d.omega else "no rotor speed"
     fig.suptitle(f"Hub loads ({d.frame} axes). Rows 1–2: the whole run, mean and range per "
