@@ -106,10 +106,7 @@ class Section:
     def number(self, name: str, default: Any = _MISSING, *, positive: bool = False,
                nonneg: bool = False, integer: bool = False, fix: str = "") -> float:
         v = self.get(name, default)
-        ok = isinstance(v, (int, float)) and not isinstance(v, bool)
-        if integer:
-            ok = ok and float(v).is_integer()
-        if not ok or not math.isfinite(float(v)):
+        if not _is_number(v, integer):
             kind = "a whole number" if integer else "a finite number"
             raise self.error(name, v, f"must be {kind}", fix or f"set {name} to {kind}")
         if positive and v <= 0:
@@ -147,17 +144,9 @@ class Section:
                              f"give {length} numbers{unit}")
         a = np.asarray(v, dtype=float)
         for i, x in enumerate(a):
-            if not math.isfinite(x):
-                raise ConfigError(f"{self.key(name)}[{i}]", x, "must be finite",
-                                  "replace it with a finite number", self.source)
-            if positive and x <= 0:
-                raise ConfigError(f"{self.key(name)}[{i}]", float(x), "must be > 0",
-                                  f"give a positive value{unit}", self.source)
-            if max_abs is not None and abs(x) > max_abs:
-                u = unit.replace(" in ", " ").rstrip()
-                raise ConfigError(f"{self.key(name)}[{i}]", float(x),
-                                  f"is more than {max_abs:g}{u} from the reference point",
-                                  f"give the position{unit}, within +-{max_abs:g}", self.source)
+            problem = _element_problem(x, positive, unit, max_abs)
+            if problem is not None:
+                raise ConfigError(f"{self.key(name)}[{i}]", *problem, self.source)
         return a
 
     def table(self, name: str, default: Any = _MISSING) -> "Section":
@@ -176,6 +165,28 @@ class Section:
                 near = difflib.get_close_matches(k, sorted(self.used), n=1)
                 hint = f'rename it to "{near[0]}"' if near else "remove it"
                 raise ConfigError(self.key(k), self.data[k], "unknown key", hint, self.source)
+
+
+def _is_number(v: Any, integer: bool) -> bool:
+    """A finite number (a whole one if ``integer``), not a bool."""
+    ok = isinstance(v, (int, float)) and not isinstance(v, bool)
+    if integer:
+        ok = ok and float(v).is_integer()
+    return ok and math.isfinite(float(v))
+
+
+def _element_problem(x: Any, positive: bool, unit: str, max_abs: float | None
+                     ) -> tuple[Any, str, str] | None:
+    """What is wrong with one number of a vector (the value shown, problem, fix), or None."""
+    if not math.isfinite(x):
+        return x, "must be finite", "replace it with a finite number"
+    if positive and x <= 0:
+        return float(x), "must be > 0", f"give a positive value{unit}"
+    if max_abs is not None and abs(x) > max_abs:
+        u = unit.replace(" in ", " ").rstrip()
+        return (float(x), f"is more than {max_abs:g}{u} from the reference point",
+                f"give the position{unit}, within +-{max_abs:g}")
+    return None
 
 
 @dataclass(frozen=True)
