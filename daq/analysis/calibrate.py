@@ -562,30 +562,41 @@ def calibrate(
                           else SIGMA_MAX_OTHER_FRACTION * prior_sigma[k]
                           for k, nm in enumerate(names)])
     sc = np.array([_display_scale(nm, cfg) for nm in names])
-    directions: list[dict[str, Any]] = []
-    if np.all(np.isfinite(res.P)):
-        det, U, cond = determined_directions(res.P, sigma_max)
-        Lp = np.diag(prior_sigma)  # P_p^½ (the prior is diagonal)
-        lam = np.linalg.eigvalsh(Lp @ res.information @ Lp)
-        ratio = (float(lam[0]), float(lam[-1]))
-        P_disp = res.P * np.outer(sc, sc)
-        for j in range(U.shape[1]):
-            d = U[:, j] * sc  # in display units (degrees for angles)
-            d = d / np.linalg.norm(d)
-            d = d if d[np.argmax(np.abs(d))] > 0 else -d  # sign: largest component positive
-            directions.append({
-                "sigma": float(math.sqrt(max(float(d @ P_disp @ d), 0.0))),
-                "components": {nm: round(float(w), 3) for nm, w in zip(names, d)
-                               if abs(w) >= DIRECTION_COMPONENT_MIN}})
-    else:
-        det, cond, ratio = 0, math.inf, (math.nan, math.nan)
-    directions.sort(key=lambda x: -x["sigma"])
+    det, cond, ratio, directions = _information(res, names, prior_sigma, sigma_max, sc)
     flags = plausibility(cfg, names, res.theta, config_values)
     return CalibrationResult(
         names=names, start=start, prior_sigma=prior_sigma, ident=res, residual_rms=rms,
         residual_expected=expected, determined=det, sigma_max=sigma_max, condition=cond,
         undetermined=directions, information_ratio=ratio, flags=flags,
         alpha_all=par.alpha(res.theta), data=data, content_gain=gain)
+
+
+def _information(res: Any, names: Sequence[str], prior_sigma: np.ndarray,
+                 sigma_max: np.ndarray, sc: np.ndarray
+                 ) -> tuple[int, float, tuple[float, float], list[dict[str, Any]]]:
+    """The information of a run: determined directions, condition, data-to-prior ratio and
+    the undetermined directions, largest σ first (none where P is not finite)."""
+    if not np.all(np.isfinite(res.P)):
+        return 0, math.inf, (math.nan, math.nan), []
+    det, U, cond = determined_directions(res.P, sigma_max)
+    Lp = np.diag(prior_sigma)  # P_p^½ (the prior is diagonal)
+    lam = np.linalg.eigvalsh(Lp @ res.information @ Lp)
+    P_disp = res.P * np.outer(sc, sc)
+    directions = [_direction(U[:, j], sc, P_disp, names) for j in range(U.shape[1])]
+    directions.sort(key=lambda x: -x["sigma"])
+    return det, cond, (float(lam[0]), float(lam[-1])), directions
+
+
+def _direction(u: np.ndarray, sc: np.ndarray, P_disp: np.ndarray, names: Sequence[str]
+               ) -> dict[str, Any]:
+    """An undetermined direction in display units (degrees for angles), its largest
+    component positive: its σ and the components worth naming."""
+    d = u * sc
+    d = d / np.linalg.norm(d)
+    d = d if d[np.argmax(np.abs(d))] > 0 else -d
+    return {"sigma": float(math.sqrt(max(float(d @ P_disp @ d), 0.0))),
+            "components": {nm: round(float(w), 3) for nm, w in zip(names, d)
+                           if abs(w) >= DIRECTION_COMPONENT_MIN}}
 
 
 def structure_of(cfg: RigConfig, result: CalibrationResult) -> dict | None:
@@ -658,6 +669,23 @@ class _Estimates:
         names = result.names
         return cls(dict(zip(names, result.estimate)), dict(zip(names, result.sigma)),
                    dict(zip(names, result.sigma_corrected)))
+
+
+@dataclass(frozen=True)
+class _ParameterGroups:
+    """The identified parameters by the table of the rig file they go to."""
+
+    angles: list[str]  # [identification] initial_angles_deg
+    hub: list[str]  # [geometry] hub_centre_m
+    mass: list[str]  # [mass]
+    cells: list[str]  # [[cells]] position_m
+
+    @classmethod
+    def of(cls, names: Sequence[str], angles: Sequence[str]) -> "_ParameterGroups":
+        ang = [n for n in names if n in angles]
+        hub = [n for n in names if n.startswith("hub_")]
+        mass = [n for n in names if n.startswith(("m_", "I_"))]
+        return cls(ang, hub, mass, [n for n in names if n not in ang + hub + mass])
 
 
 def _frag_head(result: CalibrationResult) -> list[str]:
@@ -752,21 +780,19 @@ def fragment_toml(cfg: RigConfig, result: CalibrationResult,
     replace, they do not merge) when those parameters were. Comments give each value's σ and
     the source recordings."""
     angles = cfg.rig_model().geometry.angle_names
-    names = result.names
+    g = _ParameterGroups.of(result.names, angles)
     e = _Estimates.of(result)
     lines = _frag_head(result)
-    if any(n in angles for n in names):
+    if g.angles:
         lines += _frag_angles(angles, e, result)
     fit = None if structure is None else structure.get("structure_fit")
     if fit is not None:
         lines += _frag_structure(fit)
-    hub = [n for n in names if n.startswith("hub_")]
-    if hub:
-        lines += _frag_hub(cfg, hub, e)
-    mass = [n for n in names if n.startswith(("m_", "I_"))]
-    if mass:
-        lines += _frag_mass(cfg, mass, e)
-    if any(n not in angles and n not in hub and n not in mass for n in names):
+    if g.hub:
+        lines += _frag_hub(cfg, g.hub, e)
+    if g.mass:
+        lines += _frag_mass(cfg, g.mass, e)
+    if g.cells:
         for block in cfg.raw.get("cells", []):
             lines += _frag_cell(block, e)
     return "\n".join(lines).rstrip() + "\n"
