@@ -427,6 +427,22 @@ def _start(lis: Listener, whose: Whose, args: argparse.Namespace):
     return live
 
 
+def _subscribe(session: Any, prefix: str, keys: list[str]) -> list[Any]:
+    import zenoh
+
+    return [session.declare_subscriber(f"{prefix}/{k}", zenoh.handlers.RingChannel(4096))
+            for k in keys]
+
+
+def _redraw(live, lis: Listener, whose: Whose, args: argparse.Namespace, now: float,
+            last_draw: float) -> float:
+    """The table drawn again at most four times a second; when it was last drawn."""
+    if live is None or now - last_draw <= 0.25:
+        return last_draw
+    live.update(_view(lis, whose, args, now))
+    return now
+
+
 def _drain(subs: list[Any], prefix: str, lis: Listener, count: int | None) -> tuple[bool, bool]:
     """Every message waiting on the subscribers fed to the listener: (any came, --count
     reached)."""
@@ -475,17 +491,13 @@ def run(args: argparse.Namespace) -> int:
             while True:
                 if not subs and whose.prefix is not None:
                     prefix = whose.prefix
-                    subs = [session.declare_subscriber(f"{prefix}/{k}",
-                                                       zenoh.handlers.RingChannel(4096))
-                            for k in keys]
+                    subs = _subscribe(session, prefix, keys)
                 got, done = _drain(subs, prefix, lis, args.count)
                 if done:
                     return 0
                 now = time.monotonic()
                 whose.poll(now)
-                if live is not None and now - last_draw > 0.25:
-                    live.update(_view(lis, whose, args, now))
-                    last_draw = now
+                last_draw = _redraw(live, lis, whose, args, now, last_draw)
                 if args.json:
                     sys.stdout.flush()
                 if t_end is not None and now >= t_end:
