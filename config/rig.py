@@ -555,19 +555,28 @@ def layer_paths(paths: ConfigPaths) -> list[Path]:
         layers.append((dflt, _read_toml(dflt)))
     except ConfigError:
         pass
-    for f in [paths] if isinstance(paths, (str, Path)) else list(paths or ()):
+    for f in config_files(paths):
         try:
             layers += _layer_files(Path(f))
         except ConfigError:
             continue
     for lp, layer in layers:
         out.append(lp)
-        nodes = layer.get("nodes")
-        for n in nodes if isinstance(nodes, list) else ():
-            if isinstance(n, dict) and isinstance(n.get("eds"), str):
-                eds = Path(n["eds"])
-                out += [eds] if eds.is_absolute() else [lp.parent / eds, dflt.parent / eds]
+        for eds in map(Path, _eds_named(layer)):
+            out += [eds] if eds.is_absolute() else [lp.parent / eds, dflt.parent / eds]
     return list(dict.fromkeys(out))
+
+
+def config_files(paths: ConfigPaths) -> list[str | Path]:
+    """``--config`` as a list of files (one path, several, or none)."""
+    return [paths] if isinstance(paths, (str, Path)) else list(paths or ())
+
+
+def _eds_named(layer: dict[str, Any]) -> list[str]:
+    """The EDS paths a layer's ``[[nodes]]`` blocks give (as written)."""
+    nodes = layer.get("nodes")
+    return [n["eds"] for n in (nodes if isinstance(nodes, list) else ())
+            if isinstance(n, dict) and isinstance(n.get("eds"), str)]
 
 
 def absolute_eds(raw: dict[str, Any], base_dir: Path) -> dict[str, Any]:
@@ -593,7 +602,7 @@ def merge_layers(paths: ConfigPaths) -> tuple[dict[str, Any], dict[str, str]]:
 
     The rule: tables merge key by key; a value, an array, an array of tables (``[[cells]]``,
     ``[[nodes]]``, …) is replaced whole by the last layer that gives it."""
-    files = [paths] if isinstance(paths, (str, Path)) else list(paths or ())
+    files = config_files(paths)
     dflt = default_config_path()
     raw = _read_toml(dflt)  # its EDS paths stay relative (to the package's config folder)
     origins: dict[str, str] = {}
@@ -631,7 +640,7 @@ def load_config(path: ConfigPaths = None, overrides: dict[str, Any] | None = Non
     """Load and check a rig: the packaged rig, with the ``--config`` files (one path or a
     list) applied over it in order (:func:`merge_layers`). Raises ConfigError naming the
     file the faulty value came from."""
-    files = [path] if isinstance(path, (str, Path)) else list(path or ())
+    files = config_files(path)
     if not files:  # the packaged rig alone, exactly as before
         p = default_config_path()
         raw = _read_toml(p)

@@ -112,9 +112,9 @@ class Inputs:
         """The packaged rig, the --config files and their bases (``extends``, transitively),
         the EDS files they name and the identification.state_file they set: read (or written
         only as a posterior) by the command, so never an output."""
-        from rsra.config.rig import ConfigError, layer_paths, merge_layers
+        from rsra.config.rig import ConfigError, config_files, layer_paths, merge_layers
 
-        files = [config] if isinstance(config, str) else list(config or ())
+        files = config_files(config)
         for f in layer_paths(files):
             self.add(f, f"{f} (a rig or EDS file the command reads)")
         try:
