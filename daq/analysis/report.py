@@ -483,29 +483,33 @@ def _angle_record(d: ReportData, r: dict) -> dict:
     """One angles record as arrays over the rig's angles: ``alpha``, ``sigma`` (the run's
     σ_CR, else the posterior's), ``sigma_post`` (sqrt diag P), and the record's own fields."""
     names = r.get("names") or list(d.angle_names)
-    alpha = np.full(len(d.angle_names), np.nan)
-    sig = np.full(len(d.angle_names), np.nan)
     a = _vec(r.get("alpha"), len(names))
     s = r.get("sigma_cr")
     P = r.get("P")
-    Pm = None
-    if P is not None:
-        Pm = np.array([_vec(row, len(names)) for row in P], float)
+    Pm = None if P is None else np.array([_vec(row, len(names)) for row in P], float)
     if s is None and Pm is not None:
         s = np.sqrt(np.clip(np.diag(Pm), 0, None)).tolist()
     s = _vec(s, len(names)) if s is not None else [math.nan] * len(names)
     post = (np.sqrt(np.clip(np.diag(Pm), 0, None)) if Pm is not None and Pm.shape ==
             (len(names), len(names)) else np.full(len(names), np.nan))
-    sig_post = np.full(len(d.angle_names), np.nan)
-    for k, nm in enumerate(names):
-        if nm in d.angle_names:
-            i = d.angle_names.index(nm)
-            alpha[i], sig[i], sig_post[i] = a[k], s[k], post[k]
+    alpha, sig, sig_post = _on_rig_angles(d, names, a, s, post)
     return {"t": _num(r.get("t")), "accepted": bool(r.get("accepted")),
             "reason": r.get("reason"), "alpha": alpha, "sigma": sig,
             "sigma_post": sig_post, "names": names,
             "P": Pm, "alpha_sub": np.array(a), "determined": r.get("determined"),
             "window": r.get("window")}
+
+
+def _on_rig_angles(d: ReportData, names: list[str], *values: Any) -> list[np.ndarray]:
+    """Each of ``values`` (one number per name) placed on the rig's angles (nan for the
+    angles the names leave out; names that are not the rig's angles dropped)."""
+    out = [np.full(len(d.angle_names), np.nan) for _ in values]
+    for k, nm in enumerate(names):
+        if nm in d.angle_names:
+            i = d.angle_names.index(nm)
+            for o, v in zip(out, values):
+                o[i] = v[k]
+    return out
 
 
 def _truth_alpha_at(d: ReportData, t_abs: float) -> np.ndarray | None:
@@ -1025,30 +1029,11 @@ def plot_nis(d: ReportData, out: Path, summ: dict | None = None) -> Path:
     a.axhline(6.0, color="tab:green", ls="--", lw=1, label="expected mean 6")
     a.set_yscale("log")
     a.set_ylabel("NIS = eᵀ B⁻¹ e")
-    steady = ((summ or {}).get("by_phase") or {}).get("steady") or {}
-    if steady.get("records"):
-        a.set_title(f"Calibrated steady state: {steady['records']} records, mean NIS "
-                    f"{steady['mean_nis']:.2f} (band of the mean "
-                    f"{steady['mean_band'][0]:.2f}–{steady['mean_band'][1]:.2f}), "
-                    f"{steady['above'] * 100:.2f} % above / {steady['below'] * 100:.2f} % "
-                    f"below the band: {steady['verdict']}", fontsize=10)
-    elif len(sn):
-        a.set_title(f"Normalised innovations after {d.settle_s:g} s of settling ({len(sn)} "
-                    f"records, mean {sn.mean():.2f}, "
-                    f"{np.mean((sn < lo) | (sn > hi)) * 100:.2f} % outside the band)")
+    _nis_title(a, d, summ, sn, lo, hi)
     a.grid(True, which="both", alpha=0.3)
     b = axs[1]
     if len(sn) >= M:  # windows entirely after the settling
-        run = np.convolve(sn, np.ones(M) / M, mode="valid")
-        lo_m, hi_m = (v / M for v in _chi2_band(6 * M))
-        b.plot(t[settled][M - 1:], run, color="tab:blue", lw=1.0,
-               label=f"running mean of {M} records")
-        b.axhspan(lo_m, hi_m, color="tab:green", alpha=0.12,
-                  label=f"band of a mean of {M} independent χ²₆ [{lo_m:.3g}, {hi_m:.3g}]")
-        pos = run[run > 0]
-        if len(pos):
-            b.set_ylim(min(0.5 * lo_m, 0.8 * float(pos.min())),
-                       max(2.0 * hi_m, 1.25 * float(pos.max())))
+        _running_mean(b, t[settled], sn, M)
     b.set_yscale("log")
     b.axhline(6.0, color="tab:green", ls="--", lw=1)
     b.set_ylabel("running mean NIS")
@@ -1060,6 +1045,36 @@ def plot_nis(d: ReportData, out: Path, summ: dict | None = None) -> Path:
         ax.legend(fontsize=8, loc="upper right")
     fig.suptitle("Load-filter innovations against χ²₆ (model §6: B normalises the NIS)")
     return _save(fig, out / "innovations.png")
+
+
+def _nis_title(a, d: ReportData, summ: dict | None, sn: np.ndarray, lo: float, hi: float
+               ) -> None:
+    """The calibrated steady state's verdict, else the settled records' figures."""
+    steady = ((summ or {}).get("by_phase") or {}).get("steady") or {}
+    if steady.get("records"):
+        a.set_title(f"Calibrated steady state: {steady['records']} records, mean NIS "
+                    f"{steady['mean_nis']:.2f} (band of the mean "
+                    f"{steady['mean_band'][0]:.2f}–{steady['mean_band'][1]:.2f}), "
+                    f"{steady['above'] * 100:.2f} % above / {steady['below'] * 100:.2f} % "
+                    f"below the band: {steady['verdict']}", fontsize=10)
+    elif len(sn):
+        a.set_title(f"Normalised innovations after {d.settle_s:g} s of settling ({len(sn)} "
+                    f"records, mean {sn.mean():.2f}, "
+                    f"{np.mean((sn < lo) | (sn > hi)) * 100:.2f} % outside the band)")
+
+
+def _running_mean(b, t: np.ndarray, sn: np.ndarray, M: int) -> None:
+    """The running mean of ``M`` settled records against the band of a mean of M
+    independent χ²₆."""
+    run = np.convolve(sn, np.ones(M) / M, mode="valid")
+    lo_m, hi_m = (v / M for v in _chi2_band(6 * M))
+    b.plot(t[M - 1:], run, color="tab:blue", lw=1.0, label=f"running mean of {M} records")
+    b.axhspan(lo_m, hi_m, color="tab:green", alpha=0.12,
+              label=f"band of a mean of {M} independent χ²₆ [{lo_m:.3g}, {hi_m:.3g}]")
+    pos = run[run > 0]
+    if len(pos):
+        b.set_ylim(min(0.5 * lo_m, 0.8 * float(pos.min())),
+                   max(2.0 * hi_m, 1.25 * float(pos.max())))
 
 
 def _spectrum_series(d: ReportData) -> list[tuple[str, np.ndarray]]:
