@@ -215,14 +215,18 @@ def check_input_files(args: object) -> None:
         for v in _strings(args, attr):
             if os.path.lexists(v):  # (not there: the command's own check says so)
                 _check_whole_file(attr, v)
-    # the rig is given: the recording's own config.json is not read
+    _check_recording_texts(args)
+
+
+def _check_recording_texts(args: object) -> None:
+    """The text files of every recording folder given (its ``config.json`` only when the
+    rig is not given: then the recording's own is not read)."""
     texts = [n for n in RECORDING_TEXTS
              if not (n == "config.json" and getattr(args, "config", None))]
-    for attr in RECORDING_OPTIONS:
-        for v in _strings(args, attr):
-            if os.path.isdir(v):
-                for name in texts:
-                    check_text_file(Path(v) / name)
+    folders = [v for attr in RECORDING_OPTIONS for v in _strings(args, attr) if os.path.isdir(v)]
+    for v in folders:
+        for name in texts:
+            check_text_file(Path(v) / name)
 
 
 def _check_whole_file(attr: str, v: str) -> None:
