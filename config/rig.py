@@ -13,13 +13,15 @@ import difflib
 import math
 import re
 import tomllib
+import typing
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
+from pydantic import BaseModel
 
 from rsra.config.readfile import UnreadableFile, read_text
 from rsra.config.units import G0 as G0  # (re-exported: the loader's users import it from here)
@@ -32,7 +34,10 @@ from rsra.config.rigfile import (  # noqa: F401  (names the loader's users impor
     POSITION_MAX_M,
     ROLES,
     STRUCTURE_PARAMETERS,
+    AccelerometerTable,
+    AdviceTable,
     RigFile,
+    StructureTable,
     predefined_cob_ids,
     validate,
     zenoh_endpoint_problem,
@@ -44,6 +49,8 @@ from rsra.estimator.params import (
     MassProperties,
     RigModel,
 )
+
+T = TypeVar("T")
 
 
 class ConfigError(ValueError):
@@ -99,10 +106,7 @@ class Section:
     def number(self, name: str, default: Any = _MISSING, *, positive: bool = False,
                nonneg: bool = False, integer: bool = False, fix: str = "") -> float:
         v = self.get(name, default)
-        ok = isinstance(v, (int, float)) and not isinstance(v, bool)
-        if integer:
-            ok = ok and float(v).is_integer()
-        if not ok or not math.isfinite(float(v)):
+        if not _is_number(v, integer):
             kind = "a whole number" if integer else "a finite number"
             raise self.error(name, v, f"must be {kind}", fix or f"set {name} to {kind}")
         if positive and v <= 0:
@@ -140,17 +144,9 @@ class Section:
                              f"give {length} numbers{unit}")
         a = np.asarray(v, dtype=float)
         for i, x in enumerate(a):
-            if not math.isfinite(x):
-                raise ConfigError(f"{self.key(name)}[{i}]", x, "must be finite",
-                                  "replace it with a finite number", self.source)
-            if positive and x <= 0:
-                raise ConfigError(f"{self.key(name)}[{i}]", float(x), "must be > 0",
-                                  f"give a positive value{unit}", self.source)
-            if max_abs is not None and abs(x) > max_abs:
-                u = unit.replace(" in ", " ").rstrip()
-                raise ConfigError(f"{self.key(name)}[{i}]", float(x),
-                                  f"is more than {max_abs:g}{u} from the reference point",
-                                  f"give the position{unit}, within +-{max_abs:g}", self.source)
+            problem = _element_problem(x, positive, unit, max_abs)
+            if problem is not None:
+                raise ConfigError(f"{self.key(name)}[{i}]", *problem, self.source)
         return a
 
     def table(self, name: str, default: Any = _MISSING) -> "Section":
@@ -169,6 +165,28 @@ class Section:
                 near = difflib.get_close_matches(k, sorted(self.used), n=1)
                 hint = f'rename it to "{near[0]}"' if near else "remove it"
                 raise ConfigError(self.key(k), self.data[k], "unknown key", hint, self.source)
+
+
+def _is_number(v: Any, integer: bool) -> bool:
+    """A finite number (a whole one if ``integer``), not a bool."""
+    ok = isinstance(v, (int, float)) and not isinstance(v, bool)
+    if integer:
+        ok = ok and float(v).is_integer()
+    return ok and math.isfinite(float(v))
+
+
+def _element_problem(x: Any, positive: bool, unit: str, max_abs: float | None
+                     ) -> tuple[Any, str, str] | None:
+    """What is wrong with one number of a vector (the value shown, problem, fix), or None."""
+    if not math.isfinite(x):
+        return x, "must be finite", "replace it with a finite number"
+    if positive and x <= 0:
+        return float(x), "must be > 0", f"give a positive value{unit}"
+    if max_abs is not None and abs(x) > max_abs:
+        u = unit.replace(" in ", " ").rstrip()
+        return (float(x), f"is more than {max_abs:g}{u} from the reference point",
+                f"give the position{unit}, within +-{max_abs:g}")
+    return None
 
 
 @dataclass(frozen=True)
@@ -217,9 +235,9 @@ class RotorConfig:
     redesign_band: float
     cache_resolution: float
     stopped: bool
-    # issue 25: "design" (the harmonic states advance by the design's Ω, the default) or
-    # "azimuth" (by the measured azimuth of the rotor-speed node; gain held ±5 %)
-    harmonic_phase: str = "design"
+    # "design" (the harmonic states advance by the design's Ω) or "azimuth" (by the measured
+    # azimuth of the rotor-speed node; gain held ±5 %)
+    harmonic_phase: str
 
 
 @dataclass(frozen=True)
@@ -274,27 +292,27 @@ class IdentificationConfig:
     settle_time_constants: float
     gap_s: float
     state_file: str
-    angle_limit_rad: float = math.radians(10.0)
-    # filter-error runs (issue 25): the update rule ("consider": only along the window's
-    # determined directions; "bayes": its information in full) and the windows' systematic
-    # error σ_b, a floor on the fused σ along each window's determined directions
-    filter_error_update: str = "consider"
-    filter_error_floor_rad: float = 0.0
+    angle_limit_rad: float
+    # filter-error runs: the update rule ("consider": only along the window's determined
+    # directions; "bayes": its information in full) and the windows' systematic error σ_b, a
+    # floor on the fused σ along each window's determined directions
+    filter_error_update: str
+    filter_error_floor_rad: float
     # a bound (1 σ, rad per N / N·m) on the angles' dependence on the static hub load away
-    # from the reference (trim) load: filter-error windows away from trim carry it (issue 25)
-    angle_load_sensitivity_rad_per_unit: tuple[float, ...] = (0.0,) * 6
-    # filter-error windows: at most this fraction missing in short runs (issue 29)
-    filter_error_scattered_fraction: float = 0.02
+    # from the reference (trim) load: filter-error windows away from trim carry it
+    angle_load_sensitivity_rad_per_unit: tuple[float, ...]
+    # filter-error windows: at most this fraction missing in short runs
+    filter_error_scattered_fraction: float
     # known loads: a run whose Gaussian summary misses the curvature of the likelihood's
-    # valley by more than this (χ² units) is held (estimator.curvature, issue 27); inf: off
-    nonlinearity_check: bool = True  # docs/configuration.md
-    nonlinearity_limit: float = 1.0
-    # [identification.structure] (issue 19; `rsra calibrate` writes it): the structure the
-    # hub loads use from the start, as estimator.structure.fit_payload (SI); None: constant
-    structure_fit: dict[str, Any] | None = None
-    # [identification.advice] (issue 25 item 5): the additions a filter-error window's advice
-    # weighs; None: no advice
-    advice: "AdviceConfig | None" = None
+    # valley by more than this (χ² units) is held (estimator.curvature); inf: off
+    nonlinearity_check: bool  # docs/configuration.md
+    nonlinearity_limit: float
+    # [identification.structure] (`rsra calibrate` writes it): the structure the hub loads
+    # use from the start, as estimator.structure.fit_payload (SI); None: constant
+    structure_fit: dict[str, Any] | None
+    # [identification.advice]: the additions a filter-error window's advice weighs; None: no
+    # advice
+    advice: "AdviceConfig | None"
 
 
 @dataclass(frozen=True)
@@ -349,9 +367,9 @@ class SimulatorConfig:
 class StuckConfig:
     """Stuck-channel detection (daq/runtime/stuck.py): a run of exactly equal readings."""
 
-    enabled: bool = True
-    false_alarm_per_hour: float = 1.0e-6  # per channel, honest channel at rest
-    max_delay_s: float = 0.5  # a channel needing a longer run to meet the rate is untested
+    enabled: bool
+    false_alarm_per_hour: float  # per channel, honest channel at rest
+    max_delay_s: float  # a channel needing a longer run to meet the rate is untested
 
 
 @dataclass(frozen=True)
@@ -379,7 +397,7 @@ class RigConfig:
     telemetry: TelemetryConfig
     recording: RecordingConfig
     simulator: SimulatorConfig
-    stuck: StuckConfig = field(default_factory=StuckConfig)
+    stuck: StuckConfig
     raw: dict[str, Any] = field(repr=False, default_factory=dict)
     #: dotted key -> the file its value came from ("default": the packaged rig); empty when
     #: the rig was not loaded from layered files (config.rig.merge_layers)
@@ -537,19 +555,28 @@ def layer_paths(paths: ConfigPaths) -> list[Path]:
         layers.append((dflt, _read_toml(dflt)))
     except ConfigError:
         pass
-    for f in [paths] if isinstance(paths, (str, Path)) else list(paths or ()):
+    for f in config_files(paths):
         try:
             layers += _layer_files(Path(f))
         except ConfigError:
             continue
     for lp, layer in layers:
         out.append(lp)
-        nodes = layer.get("nodes")
-        for n in nodes if isinstance(nodes, list) else ():
-            if isinstance(n, dict) and isinstance(n.get("eds"), str):
-                eds = Path(n["eds"])
-                out += [eds] if eds.is_absolute() else [lp.parent / eds, dflt.parent / eds]
+        for eds in map(Path, _eds_named(layer)):
+            out += [eds] if eds.is_absolute() else [lp.parent / eds, dflt.parent / eds]
     return list(dict.fromkeys(out))
+
+
+def config_files(paths: ConfigPaths) -> list[str | Path]:
+    """``--config`` as a list of files (one path, several, or none)."""
+    return [paths] if isinstance(paths, (str, Path)) else list(paths or ())
+
+
+def _eds_named(layer: dict[str, Any]) -> list[str]:
+    """The EDS paths a layer's ``[[nodes]]`` blocks give (as written)."""
+    nodes = layer.get("nodes")
+    return [n["eds"] for n in (nodes if isinstance(nodes, list) else ())
+            if isinstance(n, dict) and isinstance(n.get("eds"), str)]
 
 
 def absolute_eds(raw: dict[str, Any], base_dir: Path) -> dict[str, Any]:
@@ -575,7 +602,7 @@ def merge_layers(paths: ConfigPaths) -> tuple[dict[str, Any], dict[str, str]]:
 
     The rule: tables merge key by key; a value, an array, an array of tables (``[[cells]]``,
     ``[[nodes]]``, …) is replaced whole by the last layer that gives it."""
-    files = [paths] if isinstance(paths, (str, Path)) else list(paths or ())
+    files = config_files(paths)
     dflt = default_config_path()
     raw = _read_toml(dflt)  # its EDS paths stay relative (to the package's config folder)
     origins: dict[str, str] = {}
@@ -613,7 +640,7 @@ def load_config(path: ConfigPaths = None, overrides: dict[str, Any] | None = Non
     """Load and check a rig: the packaged rig, with the ``--config`` files (one path or a
     list) applied over it in order (:func:`merge_layers`). Raises ConfigError naming the
     file the faulty value came from."""
-    files = [path] if isinstance(path, (str, Path)) else list(path or ())
+    files = config_files(path)
     if not files:  # the packaged rig alone, exactly as before
         p = default_config_path()
         raw = _read_toml(p)
@@ -643,91 +670,95 @@ def _merge(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _radians(v: Any) -> Any:
+    return [math.radians(float(x)) for x in v] if isinstance(v, list) else math.radians(v)
+
+
+def _schema_value(tables: Sequence[BaseModel], name: str) -> Any:
+    """The value of a dataclass field in the first schema table that has it: the key of the
+    same name, or for a ``…_rad…`` field the table's ``…_deg…`` key in radians."""
+    deg = name.replace("_rad", "_deg")
+    for t in tables:
+        if name in type(t).model_fields:
+            return getattr(t, name)
+        if deg != name and deg in type(t).model_fields:
+            return _radians(getattr(t, deg))
+    raise KeyError(f"{name}: no schema table holds it; give it to from_schema")
+
+
+def _typed(hint: Any, v: Any) -> Any:
+    """A schema value as the dataclass field holds it: a table as the field's dataclass, an
+    array of tables as a tuple of them, a list of numbers as an array (where the field is
+    one) or a tuple."""
+    if isinstance(v, BaseModel):
+        return from_schema(hint, v)
+    if isinstance(v, list) and v and isinstance(v[0], BaseModel):
+        return tuple(from_schema(typing.get_args(hint)[0], t) for t in v)
+    if isinstance(v, list):
+        return np.asarray(v, float) if np.ndarray in (hint, *typing.get_args(hint)) else tuple(v)
+    return v
+
+
+def from_schema(cls: type[T], *tables: BaseModel, **given: Any) -> T:
+    """A config dataclass built from its validated schema tables (config.rigfile), the only
+    place a default is written: every field without a default here takes the tables' value
+    of the same name (:func:`_schema_value`, :func:`_typed`); ``given``: the fields the file
+    holds in another shape (a unit vector, a sorted tuple, a value made of several keys)."""
+    hints = typing.get_type_hints(cls)
+    values = dict(given)
+    for f in dataclasses.fields(cls):  # type: ignore[arg-type]
+        own_default = f.default is not dataclasses.MISSING \
+            or f.default_factory is not dataclasses.MISSING
+        if f.name not in given and not own_default:
+            values[f.name] = _typed(hints[f.name], _schema_value(tables, f.name))
+    return cls(**values)
+
+
+def _structure_fit(st: StructureTable | None) -> dict[str, Any] | None:
+    """``[identification.structure]`` as estimator.structure.fit_payload (SI); None: the
+    constant structure."""
+    if st is None:
+        return None
+    return {"structure": st.structure, "alpha0": np.radians(st.alpha0_deg).tolist(),
+            "beta": [float(b) for b in st.beta], "T_ref": [float(t) for t in st.T_ref_N]}
+
+
+def _advice(adv: AdviceTable, first: AccelerometerTable) -> AdviceConfig | None:
+    """``[identification.advice]``; a candidate position's noise is the rig's first
+    accelerometer's unless it gives its own."""
+    if not adv.enabled:
+        return None
+    return from_schema(AdviceConfig, adv, accelerometers=tuple(
+        (a.name, np.asarray(a.position_m, float),
+         (a.full_scale_g or first.full_scale_g) * G0 * (a.accuracy_fs or first.accuracy_fs))
+        for a in adv.accelerometers))
+
+
+def _identification(f: RigFile) -> IdentificationConfig:
+    idt = f.identification
+    init = np.broadcast_to(np.asarray(idt.initial_angles_deg, float), (14,))
+    return from_schema(IdentificationConfig, idt, initial_angles_rad=np.radians(init),
+                       structure_fit=_structure_fit(idt.structure),
+                       advice=_advice(idt.advice, f.accelerometers[0]))
+
+
 def parse_config(raw: dict[str, Any], source: str = "<config>",
                  base_dir: Path | None = None) -> RigConfig:
-    """Validate a whole rig (config.rigfile's pydantic schema) and build its RigConfig.
-    Raises ConfigError naming the key, the value and the fix."""
+    """Validate a whole rig (config.rigfile's pydantic schema) and build its RigConfig from
+    it (:func:`from_schema`). Raises ConfigError naming the key, the value and the fix."""
     base_dir = base_dir or config_dir()
     f = validate(raw, base_dir=base_dir, packaged_dir=config_dir())
     if not isinstance(f, RigFile):
         raise ConfigError(*f, source)
-    rig, rot, flt, idt = f.rig, f.rotor, f.filter, f.identification
-    rate = rig.sample_rate_hz
-    cells = tuple(CellConfig(
-        name=c.name, node=c.node, position_m=np.asarray(c.position_m, float),
-        nominal_axis=np.asarray(c.nominal_axis, float) / np.linalg.norm(c.nominal_axis),
-        full_scale_N=c.full_scale_N, accuracy_fs=c.accuracy_fs,
-        stiffness_N_per_m=c.stiffness_N_per_m) for c in f.cells)
-    accs = tuple(AccelerometerConfig(
-        name=a.name, node=a.node, position_m=np.asarray(a.position_m, float),
-        full_scale_g=a.full_scale_g, accuracy_fs=a.accuracy_fs) for a in f.accelerometers)
-    init = idt.initial_angles_deg
-    st = idt.structure
-    adv = idt.advice
-    a0 = f.accelerometers[0]
-    advice = None if not adv.enabled else AdviceConfig(
-        band_hz=(float(adv.band_hz[0]), float(adv.band_hz[1])),
-        manoeuvre_rms=tuple(float(x) for x in adv.manoeuvre_rms),
-        accelerometers=tuple(
-            (a.name, np.asarray(a.position_m, float),
-             (a.full_scale_g or a0.full_scale_g) * G0 * (a.accuracy_fs or a0.accuracy_fs))
-            for a in adv.accelerometers))
-    return RigConfig(
-        source=source, rig_name=rig.name, sample_rate_hz=rate,
-        hub_centre_m=np.asarray(f.geometry.hub_centre_m, float),
-        shaft_tilt_rad=math.radians(f.geometry.shaft_tilt_deg), hub_frame=f.geometry.hub_frame,
-        effective_mass_kg=np.asarray(f.mass.effective_mass_kg, float),
-        inertia_kg_m2=np.asarray(f.mass.inertia_kg_m2, float),
-        cells=cells, angular=f.inertial.angular, accelerometers=accs,
-        rotor=RotorConfig(**rot.model_dump()),
-        balance=BalanceConfig(**f.balance.model_dump()),
-        external_loads=tuple(ExternalLoadConfig(
-            name=e.name, node=e.node, wrench_per_unit=np.asarray(e.wrench_per_unit, float),
-            sigma=e.sigma) for e in f.external_loads),
-        filter=FilterConfig(
-            harmonics=tuple(sorted(flt.harmonics)),
-            low_frequency_states=flt.low_frequency_states, tuning=flt.tuning,
-            time_constant_s=flt.time_constant_s,
-            process_noise_psd=flt.process_noise_psd if isinstance(flt.process_noise_psd, str)
-            else np.asarray(flt.process_noise_psd, float),
-            invalid_after_s=flt.invalid_after_s),
-        identification=IdentificationConfig(
-            parameters=idt.parameters,
-            initial_angles_rad=np.radians(np.broadcast_to(np.asarray(init, float), (14,))),
-            prior_sigma_rad=math.radians(idt.prior_sigma_deg),
-            period_s=idt.period_s, window_s=idt.window_s,
-            drift_rate_rad2_s=idt.drift_rate_rad2_s, min_information=idt.min_information,
-            sigma_max_rad=math.radians(idt.sigma_max_deg), apply_delay_s=idt.apply_delay_s,
-            content_known_loads=idt.content_known_loads,
-            content_filter_error=idt.content_filter_error,
-            moment_floor_Nm=idt.moment_floor_Nm, max_iterations=idt.max_iterations,
-            reset_after=idt.reset_after, stale_fraction=idt.stale_fraction,
-            settle_time_constants=idt.settle_time_constants, gap_s=idt.gap_s,
-            state_file=idt.state_file, angle_limit_rad=math.radians(idt.angle_limit_deg),
-            filter_error_update=idt.filter_error_update,
-            filter_error_floor_rad=math.radians(idt.filter_error_floor_deg),
-            angle_load_sensitivity_rad_per_unit=tuple(
-                math.radians(float(k)) for k in idt.angle_load_sensitivity_deg_per_unit),
-            filter_error_scattered_fraction=idt.filter_error_scattered_fraction,
-            nonlinearity_check=idt.nonlinearity_check,
-            nonlinearity_limit=idt.nonlinearity_limit,
-            # as estimator.structure.fit_payload (SI); None: the constant structure
-            structure_fit=None if st is None else {
-                "structure": st.structure, "alpha0": np.radians(st.alpha0_deg).tolist(),
-                "beta": [float(b) for b in st.beta], "T_ref": [float(t) for t in st.T_ref_N]},
-            advice=advice),
-        sync=SyncConfig(**f.sync.model_dump()),
-        heartbeat=HeartbeatConfig(**f.heartbeat.model_dump()),
-        nodes=tuple(NodeConfig(name=n.name, role=n.role, node_id=n.node_id, eds=n.eds_path,
-                               required=n.required) for n in f.nodes),
+    return from_schema(
+        RigConfig, f, f.rig, f.geometry, f.mass, f.inertial,
+        source=source, rig_name=f.rig.name, raw=raw,
+        cells=tuple(from_schema(CellConfig, c, nominal_axis=np.asarray(c.nominal_axis, float)
+                                / np.linalg.norm(c.nominal_axis)) for c in f.cells),
+        filter=from_schema(FilterConfig, f.filter, harmonics=tuple(sorted(f.filter.harmonics))),
+        identification=_identification(f),
+        nodes=tuple(from_schema(NodeConfig, n, eds=n.eds_path) for n in f.nodes),
         calibration={k: (e.gain, e.offset) for k, e in f.calibration.items()},
-        telemetry=TelemetryConfig(
-            prefix=f.telemetry.prefix or f"rsra/{rig.name}", mode=f.telemetry.mode,
-            listen=tuple(f.telemetry.listen), connect=tuple(f.telemetry.connect),
-            multicast_scouting=f.telemetry.multicast_scouting,
-            innovations_hz=f.telemetry.innovations_hz, zenoh_config=f.telemetry.zenoh_config),
-        recording=RecordingConfig(**f.recording.model_dump()),
-        simulator=SimulatorConfig(**f.simulator.model_dump()),
-        stuck=StuckConfig(**f.stuck.model_dump()),
-        raw=raw,
+        telemetry=from_schema(TelemetryConfig, f.telemetry,
+                              prefix=f.telemetry.prefix or f"rsra/{f.rig.name}"),
     )

@@ -15,6 +15,8 @@ validators raising :class:`Invalid`, which names the key relative to the table c
 import difflib
 import math
 import re
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal, get_args, get_origin
 
@@ -500,6 +502,22 @@ class StuckTable(Table):
         return v
 
 
+def _eds_file(i: int, name: str, base_dir: Path, packaged_dir: Path | None) -> Path:
+    """The EDS file node ``i`` names: relative to the rig file, else in the packaged EDS
+    folder; a regular file."""
+    eds = Path(name)
+    path = eds if eds.is_absolute() else base_dir / eds
+    if not path.exists() and packaged_dir is not None and (Path(packaged_dir) / eds).exists():
+        path = Path(packaged_dir) / eds  # the packaged EDS folder
+    if not path.exists():
+        raise Invalid(f"nodes[{i}].eds", name, f"file not found (looked in {base_dir})",
+                      "give the EDS path relative to the config file")
+    problem = regular_file_problem(path)  # a FIFO or device would block its reader
+    if problem is not None:
+        raise Invalid(f"nodes[{i}].eds", name, problem, "give the node's EDS file")
+    return path
+
+
 def predefined_cob_ids(node_id: int) -> dict[int, str]:
     """COB-ID -> use, for a node's CiA 301 predefined connection set (and NMT)."""
     ids = {0x000: "NMT", 0x080 + node_id: "EMCY", 0x580 + node_id: "SDO response",
@@ -540,6 +558,15 @@ class RigFile(Table):
             raise Invalid("accelerometers", [], "at least one triaxial accelerometer is needed",
                           "add an [[accelerometers]] block")
         self._harmonics()
+        self._windows()
+        context = info.context or {}
+        self._nodes(Path(context.get("base_dir", ".")), context.get("packaged_dir"))
+        self._references()
+        self._prefix()
+        return self
+
+    def _windows(self) -> None:
+        """The identification's window and period each at least one sample long."""
         rate = self.rig.sample_rate_hz
         idt = self.identification
         for key, v in (("window_s", idt.window_s), ("period_s", idt.period_s)):
@@ -547,14 +574,12 @@ class RigFile(Table):
                 raise Invalid(f"identification.{key}", v,
                               f"is less than one sample at rig.sample_rate_hz = {rate:g}",
                               f"give at least {1 / rate:g} s (one sample); the default is 5.0")
-        self._nodes(Path((info.context or {}).get("base_dir", ".")),
-                    (info.context or {}).get("packaged_dir"))
-        self._references()
+
+    def _prefix(self) -> None:
         prefix = self.telemetry.prefix or f"rsra/{self.rig.name}"
         if prefix.startswith("/") or prefix.endswith("/") or any(c in prefix for c in "*$?#"):
             raise Invalid("telemetry.prefix", prefix, "not a valid Zenoh key prefix",
                           'use e.g. "rsra/bench" (no wildcards, no leading or trailing /)')
-        return self
 
     def _cells(self) -> None:
         seen: dict[str, str] = {}
@@ -620,22 +645,14 @@ class RigFile(Table):
                               f"id already used by node {ids[n.node_id]!r}",
                               "give every node its own id")
             ids[n.node_id] = n.name
-            eds = Path(n.eds)
-            path = eds if eds.is_absolute() else base_dir / eds
-            if not path.exists() and packaged_dir is not None \
-                    and (Path(packaged_dir) / eds).exists():
-                path = Path(packaged_dir) / eds  # the packaged EDS folder
-            if not path.exists():
-                raise Invalid(f"nodes[{i}].eds", n.eds, f"file not found (looked in {base_dir})",
-                              "give the EDS path relative to the config file")
-            problem = regular_file_problem(path)  # a FIFO or device would block its reader
-            if problem is not None:
-                raise Invalid(f"nodes[{i}].eds", n.eds, problem, "give the node's EDS file")
-            n._eds_path = path
-        # the SYNC COB-ID against every COB-ID of the configured nodes' predefined connection
-        # set (CiA 301: a SYNC on a node's COB-ID is taken for that node's frame, and the
-        # reverse, so no sample is ever assembled); the TPDO COB-IDs the EDS files give are
-        # checked against it again with the decode table (daq.decoder)
+            n._eds_path = _eds_file(i, n.eds, base_dir, packaged_dir)
+        self._sync_cob_id()
+
+    def _sync_cob_id(self) -> None:
+        """The SYNC COB-ID against every COB-ID of the configured nodes' predefined
+        connection set (CiA 301: a SYNC on a node's COB-ID is taken for that node's frame, and
+        the reverse, so no sample is ever assembled); the TPDO COB-IDs the EDS files give are
+        checked against it again with the decode table (daq.decoder)."""
         cob = self.sync.cob_id
         for n in self.nodes:
             owner = predefined_cob_ids(n.node_id).get(cob)
@@ -751,6 +768,109 @@ def _extra(fi: FieldInfo | None, what: str) -> str:
     return str(e.get(what, ""))
 
 
+@dataclass(frozen=True)
+class _Error:
+    """A pydantic error located in the schema: what the messages below are made of."""
+
+    loc: tuple[str | int, ...]
+    key: str  # dotted, as the file writes it
+    value: Any
+    ctx: dict[str, Any]
+    tp: Any  # the type at the location
+    unit: str  # of a vector's numbers (the field's metadata)
+    own_fix: str  # the field's own fix, if it has one
+
+    @property
+    def name(self) -> str:
+        """The last named key of the location."""
+        return next((p for p in reversed(self.loc) if isinstance(p, str)), self.key)
+
+    @property
+    def element(self) -> bool:
+        """The location is an element of an array."""
+        return bool(self.loc) and isinstance(self.loc[-1], int)
+
+    def says(self, problem: str, fix: str) -> tuple[str, Any, str, str]:
+        return self.key, self.value, problem, fix
+
+
+def _missing(e: _Error) -> tuple[str, Any, str, str]:
+    loc, key = e.loc, e.key
+    if len(loc) == 1:  # a whole table (only a rig given whole, not as layers, lacks one)
+        blocks = _model(_item(e.tp)) is not None and get_origin(_strip(e.tp)) is list
+        return key, MISSING, "is missing", f"add [[{key}]] blocks" if blocks else \
+            f"add a [{key}] table, or give only what differs from the packaged rig"
+    where = f"this [[{_key(loc[:-2])}]] block" if isinstance(loc[-2], int) \
+        else f"[{_key(loc[:-1])}]"
+    return key, MISSING, "is missing", f"add {e.name} = … to {where}"
+
+
+def _not_a_table(e: _Error) -> tuple[str, Any, str, str]:
+    if e.element:
+        return e.says("must be a table", f"write it as a [[{_key(e.loc[:-1])}]] block")
+    return e.says("must be a table", f"write [{e.key}] as a TOML table")
+
+
+def _not_a_list(e: _Error) -> tuple[str, Any, str, str]:
+    if _model(_item(e.tp)) is not None:
+        return e.says("must be an array of tables", f"write [[{e.key}]] blocks")
+    if _strip(_item(e.tp)) is str:
+        return e.says("must be a list of strings", e.own_fix or f'write {e.name} = ["…"]')
+    return e.says("must be a list of numbers", f"write {e.name} = [x, y, …]{e.unit}")
+
+
+def _not_a_number(e: _Error) -> tuple[str, Any, str, str]:
+    if e.element:
+        return e.says("must be finite" if e.ctx.get("typ") == "finite_number"
+                      else "must be a finite number", "replace it with a finite number")
+    return e.says("must be a finite number", e.own_fix or f"set {e.name} to a finite number")
+
+
+def _not_positive(e: _Error) -> tuple[str, Any, str, str]:
+    fix = f"give a positive value{e.unit}" if e.element else f"set {e.name} to a positive value"
+    return e.says("must be > 0", e.own_fix or fix)
+
+
+def _length(e: _Error) -> tuple[str, Any, str, str]:
+    n = e.ctx.get("min_length") if e.ctx.get("typ") == "too_short" else e.ctx.get("max_length")
+    return e.says(f"must have {n} values, has {e.ctx.get('actual_length')}",
+                  f"give {n} numbers{e.unit}")
+
+
+def _unknown_value(e: _Error) -> tuple[str, Any, str, str]:
+    choices = re.findall(r"'([^']*)'", str(e.ctx.get("expected", "")))
+    near = difflib.get_close_matches(str(e.value), choices, n=1) \
+        if isinstance(e.value, str) else []
+    hint = f' (did you mean "{near[0]}"?)' if near else ""
+    return e.says(f"unknown value{hint}", "use one of " + ", ".join(f'"{c}"' for c in choices))
+
+
+# pydantic's error type -> the line in the file's words
+_DESCRIBE: dict[str, Callable[[_Error], tuple[str, Any, str, str]]] = {
+    "missing": _missing,
+    "model_type": _not_a_table, "model_attributes_type": _not_a_table, "dict_type": _not_a_table,
+    "list_type": _not_a_list,
+    "float_type": _not_a_number, "finite_number": _not_a_number, "float_parsing": _not_a_number,
+    "int_type": lambda e: e.says("must be a whole number",
+                                 e.own_fix or f"set {e.name} to a whole number"),
+    "greater_than": _not_positive,
+    "greater_than_equal": lambda e: e.says("must be >= 0",
+                                           e.own_fix or f"set {e.name} to zero or more"),
+    "too_short": _length, "too_long": _length,
+    "string_type": lambda e: e.says("must be a string", e.own_fix or f'write {e.name} = "…"'),
+    "bool_type": lambda e: e.says("must be true or false", f"write {e.name} = true or false"),
+    "literal_error": _unknown_value,
+}
+_DESCRIBE["int_from_float"] = _DESCRIBE["int_parsing"] = _DESCRIBE["int_type"]
+
+
+def _unknown_key(loc: tuple[str | int, ...], key: str, value: Any) -> tuple[str, Any, str, str]:
+    parent = _model(_field_at(loc[:-1])[2]) if loc[:-1] else RigFile
+    near = difflib.get_close_matches(str(loc[-1]), sorted(parent.model_fields), n=1) \
+        if parent is not None else []
+    return key, value, "unknown key", f'rename it to "{near[0]}"' if near else "remove it"
+
+
 def describe(err: ErrorDetails) -> tuple[str, Any, str, str]:
     """One pydantic error → (dotted key, value, problem, fix)."""
     loc, typ, ctx, value = tuple(err["loc"]), err["type"], err.get("ctx") or {}, err["input"]
@@ -758,61 +878,15 @@ def describe(err: ErrorDetails) -> tuple[str, Any, str, str]:
     error = ctx.get("error")
     if isinstance(error, Invalid):
         return _join(key, error.key), error.value, error.problem, error.fix
-    name = next((p for p in reversed(loc) if isinstance(p, str)), key)
-    element = bool(loc) and isinstance(loc[-1], int)
     if typ == "extra_forbidden":
-        parent = _model(_field_at(loc[:-1])[2]) if loc[:-1] else RigFile
-        near = difflib.get_close_matches(str(loc[-1]), sorted(parent.model_fields), n=1) \
-            if parent is not None else []
-        return key, value, "unknown key", f'rename it to "{near[0]}"' if near else "remove it"
+        return _unknown_key(loc, key, value)
     fi, _, tp = _field_at(loc)
-    unit, own_fix = _extra(fi, "unit"), _extra(fi, "fix")
-    if typ == "missing":
-        if len(loc) == 1:  # a whole table (only a rig given whole, not as layers, lacks one)
-            blocks = _model(_item(tp)) is not None and get_origin(_strip(tp)) is list
-            return key, MISSING, "is missing", f"add [[{key}]] blocks" if blocks else \
-                f"add a [{key}] table, or give only what differs from the packaged rig"
-        where = f"this [[{_key(loc[:-2])}]] block" if isinstance(loc[-2], int) \
-            else f"[{_key(loc[:-1])}]"
-        return key, MISSING, "is missing", f"add {name} = … to {where}"
-    if typ in ("model_type", "model_attributes_type", "dict_type"):
-        if element:
-            return key, value, "must be a table", f"write it as a [[{_key(loc[:-1])}]] block"
-        return key, value, "must be a table", f"write [{key}] as a TOML table"
-    if typ == "list_type":
-        if _model(_item(tp)) is not None:
-            return key, value, "must be an array of tables", f"write [[{key}]] blocks"
-        if _strip(_item(tp)) is str:
-            return key, value, "must be a list of strings", own_fix or f'write {name} = ["…"]'
-        return key, value, "must be a list of numbers", f"write {name} = [x, y, …]{unit}"
-    if typ in ("float_type", "finite_number", "float_parsing"):
-        if element:
-            return key, value, "must be finite" if typ == "finite_number" else \
-                "must be a finite number", "replace it with a finite number"
-        return key, value, "must be a finite number", own_fix or f"set {name} to a finite number"
-    if typ in ("int_type", "int_from_float", "int_parsing"):
-        return key, value, "must be a whole number", own_fix or f"set {name} to a whole number"
-    if typ == "greater_than":
-        fix = f"give a positive value{unit}" if element else f"set {name} to a positive value"
-        return key, value, "must be > 0", own_fix or fix
-    if typ == "greater_than_equal":
-        return key, value, "must be >= 0", own_fix or f"set {name} to zero or more"
-    if typ in ("too_short", "too_long"):
-        n = ctx.get("min_length") if typ == "too_short" else ctx.get("max_length")
-        return key, value, f"must have {n} values, has {ctx.get('actual_length')}", \
-            f"give {n} numbers{unit}"
-    if typ == "string_type":
-        return key, value, "must be a string", own_fix or f'write {name} = "…"'
-    if typ == "bool_type":
-        return key, value, "must be true or false", f"write {name} = true or false"
-    if typ == "literal_error":
-        choices = re.findall(r"'([^']*)'", str(ctx.get("expected", "")))
-        near = difflib.get_close_matches(str(value), choices, n=1) if isinstance(value, str) else []
-        hint = f' (did you mean "{near[0]}"?)' if near else ""
-        return key, value, f"unknown value{hint}", "use one of " + ", ".join(
-            f'"{c}"' for c in choices)
+    e = _Error(loc, key, value, {**ctx, "typ": typ}, tp, _extra(fi, "unit"), _extra(fi, "fix"))
+    handler = _DESCRIBE.get(typ)
+    if handler is not None:
+        return handler(e)
     return key, value, err["msg"][0].lower() + err["msg"][1:], \
-        ctx.get("fix") or own_fix or "see docs/configuration.md for this key"
+        ctx.get("fix") or e.own_fix or "see docs/configuration.md for this key"
 
 
 def validate(raw: dict[str, Any], base_dir: Path, packaged_dir: Path | None = None

@@ -103,96 +103,140 @@ def _probability(tok: str, text: str) -> float:
     return p
 
 
+def _kind(tok: str, written: str) -> str:
+    kind = written.lower()
+    if kind not in KINDS:
+        near = difflib.get_close_matches(kind, KINDS, n=1)
+        raise FaultSpecError(tok, f"unknown fault kind {written!r}"
+                             + (f" (did you mean {near[0]!r}?)" if near else ""),
+                             "use one of " + ", ".join(KINDS))
+    return kind
+
+
+def _window(tok: str, kind: str, when: str) -> tuple[float, float]:
+    """``@T``, ``@T1-T2`` or ``@T1-`` as (start, end); none: the whole run (a reboot needs an
+    instant)."""
+    if not when:
+        if kind == "reboot":
+            raise FaultSpecError(tok, "a reboot needs a time", "write e.g. reboot:cell_C@12.5")
+        return 0.0, math.inf
+    if "-" not in when:
+        return _duration(tok, when, "time"), math.inf
+    a, _, b = when.partition("-")
+    start = _duration(tok, a, "start time")
+    end = _duration(tok, b, "end time") if b.strip() else math.inf
+    if end <= start:
+        raise FaultSpecError(tok, f"window {when!r} ends before it starts",
+                             "write @T1-T2 with T1 < T2")
+    if kind == "reboot":
+        raise FaultSpecError(tok, "a reboot happens at an instant", "write reboot:NODE@T")
+    return start, end
+
+
+def _node(tok: str, kind: str, args: list[str]) -> tuple[str, str | None]:
+    """A node kind's NODE[.CHANNEL] (taken from ``args``)."""
+    if not args or not args[0]:
+        raise FaultSpecError(tok, "needs a node", f"write e.g. {kind}:cell_A…")
+    node, dot, channel = args.pop(0).partition(".")
+    if not dot:
+        return node, None
+    if kind != "stuck":
+        raise FaultSpecError(tok, "only stuck takes a channel", f"write {kind}:{node}")
+    return node, channel
+
+
+def _cob_id(tok: str, args: list[str]) -> int:
+    """``unknown:COBID:P``'s COB-ID (taken from ``args``)."""
+    try:
+        cob = int(args.pop(0), 0)
+    except ValueError:
+        raise FaultSpecError(tok, "COB-ID is not a number", "write e.g. unknown:0x1FF:0.05") from None
+    if not 0 < cob <= 0x7FF:
+        raise FaultSpecError(tok, f"COB-ID 0x{cob:X} is not an 11-bit identifier",
+                             "use 0x001…0x7FF")
+    return cob
+
+
+_VALUE_EXAMPLES = {"jitter": "jitter:0.5ms", "drop": "drop:cell_A:0.1",
+                   "malformed": "malformed:cell_A:0.01", "unknown": "unknown:0.05"}
+
+
+def _value(tok: str, kind: str, args: list[str]) -> float | None:
+    """The probability (or jitter's σ) the kind takes as its last argument; no other
+    argument is left."""
+    if kind not in PROBABILITY_KINDS and kind != "jitter":
+        if args:
+            raise FaultSpecError(tok, f"unexpected argument(s) {':'.join(args)!r}",
+                                 f"write {kind}:NODE[@WHEN]")
+        return None
+    if len(args) != 1:
+        what = "a standard deviation" if kind == "jitter" else "a probability"
+        raise FaultSpecError(tok, f"needs {what}",
+                             f"write e.g. {_VALUE_EXAMPLES.get(kind, f'{kind}:0.01')}")
+    if kind == "jitter":
+        return _duration(tok, args[0], "standard deviation")
+    return _probability(tok, args[0])
+
+
+def parse_fault(tok: str, index: int) -> Fault:
+    """One item ``KIND[:ARG…][@WHEN]`` of a SPEC, at ``index`` in it."""
+    body, _, when = tok.partition("@")
+    parts = [p.strip() for p in body.split(":")]
+    kind = _kind(tok, parts[0])
+    start, end = _window(tok, kind, when)
+    args = parts[1:]
+    node = channel = None
+    cob = None
+    if kind in NODE_KINDS:
+        node, channel = _node(tok, kind, args)
+    elif kind == "unknown" and len(args) == 2:
+        cob = _cob_id(tok, args)
+    return Fault(kind=kind, token=tok, node=node, channel=channel,
+                 value=_value(tok, kind, args), cob_id=cob, start=start, end=end, index=index)
+
+
 def parse_faults(spec: str | None) -> tuple[Fault, ...]:
     """Parse a SPEC (syntax in the module docstring). Raises FaultSpecError naming the item."""
     if not spec or not spec.strip():
         return ()
-    out = []
-    for i, raw in enumerate(s for s in spec.split(";")):
-        tok = raw.strip()
-        if not tok:
-            continue
-        body, _, when = tok.partition("@")
-        parts = [p.strip() for p in body.split(":")]
-        kind = parts[0].lower()
-        if kind not in KINDS:
-            near = difflib.get_close_matches(kind, KINDS, n=1)
-            raise FaultSpecError(tok, f"unknown fault kind {parts[0]!r}"
-                                 + (f" (did you mean {near[0]!r}?)" if near else ""),
-                                 "use one of " + ", ".join(KINDS))
-        start, end = 0.0, math.inf
-        if when:
-            if "-" in when:
-                a, _, b = when.partition("-")
-                start = _duration(tok, a, "start time")
-                end = _duration(tok, b, "end time") if b.strip() else math.inf
-                if end <= start:
-                    raise FaultSpecError(tok, f"window {when!r} ends before it starts",
-                                         "write @T1-T2 with T1 < T2")
-            else:
-                start = _duration(tok, when, "time")
-        elif kind == "reboot":
-            raise FaultSpecError(tok, "a reboot needs a time", "write e.g. reboot:cell_C@12.5")
-        if kind == "reboot" and when and "-" in when:
-            raise FaultSpecError(tok, "a reboot happens at an instant", "write reboot:NODE@T")
-        args = parts[1:]
-        node = channel = None
-        value = None
-        cob = None
-        if kind in NODE_KINDS:
-            if not args or not args[0]:
-                raise FaultSpecError(tok, "needs a node", f"write e.g. {kind}:cell_A…")
-            node = args.pop(0)
-            if "." in node:
-                node, channel = node.split(".", 1)
-                if kind != "stuck":
-                    raise FaultSpecError(tok, "only stuck takes a channel",
-                                         f"write {kind}:{node}")
-        elif kind == "unknown" and len(args) == 2:
-            try:
-                cob = int(args.pop(0), 0)
-            except ValueError:
-                raise FaultSpecError(tok, "COB-ID is not a number", "write e.g. unknown:0x1FF:0.05") from None
-            if not 0 < cob <= 0x7FF:
-                raise FaultSpecError(tok, f"COB-ID 0x{cob:X} is not an 11-bit identifier",
-                                     "use 0x001…0x7FF")
-        if kind in PROBABILITY_KINDS or kind == "jitter":
-            if len(args) != 1:
-                what = "a standard deviation" if kind == "jitter" else "a probability"
-                ex = {"jitter": "jitter:0.5ms", "drop": "drop:cell_A:0.1",
-                      "malformed": "malformed:cell_A:0.01", "unknown": "unknown:0.05"}.get(kind, f"{kind}:0.01")
-                raise FaultSpecError(tok, f"needs {what}", f"write e.g. {ex}")
-            value = (_duration(tok, args[0], "standard deviation") if kind == "jitter"
-                     else _probability(tok, args[0]))
-        elif args:
-            raise FaultSpecError(tok, f"unexpected argument(s) {':'.join(args)!r}",
-                                 f"write {kind}:NODE[@WHEN]")
-        out.append(Fault(kind=kind, token=tok, node=node, channel=channel, value=value,
-                         cob_id=cob, start=start, end=end, index=i))
-    return tuple(out)
+    items = ((i, raw.strip()) for i, raw in enumerate(spec.split(";")))
+    return tuple(parse_fault(tok, i) for i, tok in items if tok)
+
+
+def _check_node(f: Fault, node_roles: dict[str, str]) -> None:
+    if f.node is not None and f.node != "*" and f.node not in node_roles:
+        near = difflib.get_close_matches(f.node, list(node_roles), n=1)
+        raise FaultSpecError(f.token, f"no node {f.node!r} on the simulated bus"
+                             + (f" (did you mean {near[0]!r}?)" if near else ""),
+                             "nodes: " + ", ".join(node_roles))
+
+
+def _check_channel(f: Fault, channels: dict[str, tuple[str, ...]]) -> None:
+    if f.channel is None:
+        return
+    if f.node is None or f.node == "*":
+        raise FaultSpecError(f.token, "a channel needs a named node", "write e.g. stuck:accel_1.z")
+    if f.channel not in channels[f.node]:
+        raise FaultSpecError(f.token, f"node {f.node!r} has no channel {f.channel!r}",
+                             "channels: " + ", ".join(channels[f.node]))
+
+
+def _check_status(f: Fault, node_roles: dict[str, str],
+                  channels: dict[str, tuple[str, ...]]) -> None:
+    # "*" applies a status fault to the nodes that have a status channel only
+    if f.kind in STATUS_KINDS and f.node is not None and f.node != "*" \
+            and "status" not in channels[f.node]:
+        raise FaultSpecError(f.token, f"node {f.node!r} ({node_roles[f.node]}) has no "
+                             "status channel", "use it on a load cell")
 
 
 def validate_faults(faults: tuple[Fault, ...], node_roles: dict[str, str],
                     channels: dict[str, tuple[str, ...]], autostart: bool) -> None:
     """Check node and channel names against the configured nodes and the mode."""
     for f in faults:
-        if f.node is not None and f.node != "*" and f.node not in node_roles:
-            near = difflib.get_close_matches(f.node, list(node_roles), n=1)
-            raise FaultSpecError(f.token, f"no node {f.node!r} on the simulated bus"
-                                 + (f" (did you mean {near[0]!r}?)" if near else ""),
-                                 "nodes: " + ", ".join(node_roles))
-        if f.channel is not None:
-            if f.node is None or f.node == "*":
-                raise FaultSpecError(f.token, "a channel needs a named node",
-                                     "write e.g. stuck:accel_1.z")
-            if f.channel not in channels[f.node]:
-                raise FaultSpecError(f.token, f"node {f.node!r} has no channel {f.channel!r}",
-                                     "channels: " + ", ".join(channels[f.node]))
-        # "*" applies a status fault to the nodes that have a status channel only
-        if f.kind in STATUS_KINDS and f.node is not None and f.node != "*" \
-                and "status" not in channels[f.node]:
-            raise FaultSpecError(f.token, f"node {f.node!r} ({node_roles[f.node]}) has no "
-                                 "status channel", "use it on a load cell")
+        _check_node(f, node_roles)
+        _check_channel(f, channels)
+        _check_status(f, node_roles, channels)
         if f.kind in AUTOSTART_KINDS and not autostart:
             raise FaultSpecError(f.token, "the simulator produces SYNC only with --autostart",
                                  "add --autostart or drop this fault")

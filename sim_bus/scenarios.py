@@ -334,29 +334,29 @@ def _angle_indices(sec: Section, name: str, default: list[int]) -> tuple[int, ..
     return tuple(int(i) for i in v)
 
 
-def parse_scenario(raw: dict, source: str = "<scenario>", variants: dict | None = None) -> Scenario:
-    top = Section(raw, "", source)
-
+def _head(top: Section, source: str) -> dict[str, Any]:
+    """``[scenario]``: Scenario's first fields."""
     sc = top.table("scenario")
     name = sc.string("name")
     duration = sc.number("duration_s", positive=True)
-    run_s = sc.number("run_s", duration, positive=True)
-    seed = sc.number("seed", integer=True, nonneg=True)
-    quasi = sc.boolean("quasi_static", False)
+    head: dict[str, Any] = {
+        "name": name, "source": source, "duration_s": duration,
+        "run_s": sc.number("run_s", duration, positive=True),
+        "seed": sc.number("seed", integer=True, nonneg=True),
+        "quasi_static": sc.boolean("quasi_static", False),
+    }
     nodes = sc.get("nodes_present", [])
     if not isinstance(nodes, list) or any(n not in OPTIONAL_NODE_ROLES for n in nodes):
         raise sc.error("nodes_present", nodes, "must be a list of optional node roles",
                        "use any of " + ", ".join(f'"{r}"' for r in OPTIONAL_NODE_ROLES))
-    scenario_head: dict[str, Any] = {  # Scenario's first fields
-        "name": name, "description": sc.string("description", ""), "source": source,
-        "duration_s": duration,
-        "run_s": run_s, "seed": seed, "quasi_static": quasi, "gravity": sc.boolean("gravity", True),
-        "noise": sc.boolean("noise", True), "nodes_present": tuple(nodes),
-    }
+    head |= {"description": sc.string("description", ""),
+             "gravity": sc.boolean("gravity", True), "noise": sc.boolean("noise", True),
+             "nodes_present": tuple(nodes)}
     sc.finish()
+    return head
 
-    ld = top.table("loads", {})
-    frame = ld.string("frame", "body", LOAD_FRAMES)
+
+def _conditions(ld: Section, source: str) -> np.ndarray:
     conds_raw = ld.get("conditions", [[0.0] * 6])
     if (not isinstance(conds_raw, list) or not conds_raw
             or not all(isinstance(c, list) and len(c) == 6 for c in conds_raw)
@@ -371,72 +371,92 @@ def parse_scenario(raw: dict, source: str = "<scenario>", variants: dict | None 
         raise ConfigError(f"{ld.key('conditions')}[{i}][{j}]", float(conditions[i, j]),
                           f"must be finite (the {AXES[j]} load of condition {i + 1})",
                           "replace it with a finite load in N or N·m", source)
+    return conditions
+
+
+def _loads(top: Section, duration: float, source: str) -> LoadSchedule:
+    """``[loads]``: the static load conditions, held in turn over one cycle."""
+    ld = top.table("loads", {})
+    frame = ld.string("frame", "body", LOAD_FRAMES)
+    conditions = _conditions(ld, source)
     hold = ld.number("hold_s", duration / len(conditions), positive=True)
     ramp = ld.number("ramp_s", 0.5, nonneg=True)
-    if len(conditions) > 1 and ramp >= hold:
+    several = len(conditions) > 1
+    if several and ramp >= hold:
         raise ld.error("ramp_s", ramp, f"must be shorter than hold_s = {hold}",
                        "shorten the ramp or lengthen the hold")
     loads = LoadSchedule(frame=frame, hold_s=hold, ramp_s=ramp, conditions=conditions)
-    if len(conditions) > 1 and abs(loads.cycle_s - duration) > 1e-9 * duration:
+    if several and abs(loads.cycle_s - duration) > 1e-9 * duration:
         raise ld.error("hold_s", hold, f"{len(conditions)} conditions x hold_s = {loads.cycle_s} s "
                        f"is not the cycle duration_s = {duration} s",
                        "make len(conditions) * hold_s equal scenario.duration_s")
     ld.finish()
+    return loads
 
-    harmonics = []
-    for h in top.tables("harmonics", []):
-        amin = h.vector("amplitude_min", 6, unit=" amplitudes in N and N·m")
-        amax = h.vector("amplitude_max", 6, amin.tolist(), unit=" amplitudes in N and N·m")
-        if np.any(amin < 0) or np.any(amax < amin):
-            raise h.error("amplitude_max", amax.tolist(),
-                          "needs 0 <= amplitude_min <= amplitude_max",
-                          "give non-negative ranges, min first")
-        av = h.number("amplitude_variation", 0.0, nonneg=True)
-        if av >= 1.0:
-            raise h.error("amplitude_variation", av, "must be < 1 (a fraction of the amplitude)",
-                          "e.g. amplitude_variation = 0.2")
-        harmonics.append(Harmonic(
-            order=_order(h, "order", 1), amplitude_min=amin, amplitude_max=amax,
-            amplitude_variation=av,
-            phase_variation_rad=math.radians(h.number("phase_variation_deg", 0.0, nonneg=True)),
-            variation_period_s=h.number("variation_period_s", 20.0, positive=True),
-        ))
-        h.finish()
 
-    manoeuvres = []
-    for m in top.tables("manoeuvres", []):
-        mv = Manoeuvre(start_s=m.number("start_s", nonneg=True),
-                       duration_s=m.number("duration_s", positive=True), peak=_six(m, "peak"))
-        if mv.start_s + mv.duration_s > duration:
-            raise m.error("duration_s", mv.duration_s,
-                          f"ends at {mv.start_s + mv.duration_s} s, after the cycle ({duration} s)",
-                          "keep each manoeuvre inside one cycle")
-        manoeuvres.append(mv)
-        m.finish()
+def _harmonic(h: Section) -> Harmonic:
+    """One ``[[harmonics]]`` block."""
+    amin = h.vector("amplitude_min", 6, unit=" amplitudes in N and N·m")
+    amax = h.vector("amplitude_max", 6, amin.tolist(), unit=" amplitudes in N and N·m")
+    if np.any(amin < 0) or np.any(amax < amin):
+        raise h.error("amplitude_max", amax.tolist(),
+                      "needs 0 <= amplitude_min <= amplitude_max",
+                      "give non-negative ranges, min first")
+    av = h.number("amplitude_variation", 0.0, nonneg=True)
+    if av >= 1.0:
+        raise h.error("amplitude_variation", av, "must be < 1 (a fraction of the amplitude)",
+                      "e.g. amplitude_variation = 0.2")
+    harmonic = Harmonic(
+        order=_order(h, "order", 1), amplitude_min=amin, amplitude_max=amax,
+        amplitude_variation=av,
+        phase_variation_rad=math.radians(h.number("phase_variation_deg", 0.0, nonneg=True)),
+        variation_period_s=h.number("variation_period_s", 20.0, positive=True),
+    )
+    h.finish()
+    return harmonic
 
-    shaker = None
-    if "shaker" in raw:
-        sh = top.table("shaker")
-        axes_raw = sh.get("axes", ["X", "Y", "Z"])
-        if not isinstance(axes_raw, list) or not axes_raw or any(a not in AXES for a in axes_raw):
-            raise sh.error("axes", axes_raw, "must be a list of hub-load axes",
-                           "use names from " + ", ".join(AXES))
-        lv = sh.vector("levels_lbf", None, positive=True, unit=" in lbf")
-        shaker = Shaker(
-            f_start_hz=sh.number("f_start_hz", positive=True),
-            f_stop_hz=sh.number("f_stop_hz", positive=True),
-            sweep_s=sh.number("sweep_s", positive=True),
-            ramp_s=sh.number("ramp_s", 0.5, positive=True),
-            gap_s=sh.number("gap_s", 1.0, positive=True),
-            axes=tuple(AXES.index(a) for a in axes_raw),
-            levels=tuple(float(x) * LBF_N for x in lv),
-        )
-        if shaker.cycle_s > duration + 1e-9:
-            raise sh.error("sweep_s", shaker.sweep_s,
-                           f"one pass takes {shaker.cycle_s} s, more than duration_s = {duration}",
-                           f"set scenario.duration_s >= {shaker.cycle_s}")
-        sh.finish()
 
+def _manoeuvre(m: Section, duration: float) -> Manoeuvre:
+    """One ``[[manoeuvres]]`` block, inside one cycle."""
+    mv = Manoeuvre(start_s=m.number("start_s", nonneg=True),
+                   duration_s=m.number("duration_s", positive=True), peak=_six(m, "peak"))
+    if mv.start_s + mv.duration_s > duration:
+        raise m.error("duration_s", mv.duration_s,
+                      f"ends at {mv.start_s + mv.duration_s} s, after the cycle ({duration} s)",
+                      "keep each manoeuvre inside one cycle")
+    m.finish()
+    return mv
+
+
+def _shaker(top: Section, duration: float) -> Shaker | None:
+    """``[shaker]``, or None without one."""
+    if "shaker" not in top.data:
+        return None
+    sh = top.table("shaker")
+    axes_raw = sh.get("axes", ["X", "Y", "Z"])
+    if not isinstance(axes_raw, list) or not axes_raw or any(a not in AXES for a in axes_raw):
+        raise sh.error("axes", axes_raw, "must be a list of hub-load axes",
+                       "use names from " + ", ".join(AXES))
+    lv = sh.vector("levels_lbf", None, positive=True, unit=" in lbf")
+    shaker = Shaker(
+        f_start_hz=sh.number("f_start_hz", positive=True),
+        f_stop_hz=sh.number("f_stop_hz", positive=True),
+        sweep_s=sh.number("sweep_s", positive=True),
+        ramp_s=sh.number("ramp_s", 0.5, positive=True),
+        gap_s=sh.number("gap_s", 1.0, positive=True),
+        axes=tuple(AXES.index(a) for a in axes_raw),
+        levels=tuple(float(x) * LBF_N for x in lv),
+    )
+    if shaker.cycle_s > duration + 1e-9:
+        raise sh.error("sweep_s", shaker.sweep_s,
+                       f"one pass takes {shaker.cycle_s} s, more than duration_s = {duration}",
+                       f"set scenario.duration_s >= {shaker.cycle_s}")
+    sh.finish()
+    return shaker
+
+
+def _rotor(top: Section, shaker: Shaker | None) -> RotorMotion:
+    """``[rotor]``: the rotor speed's variation and governor."""
     ro = top.table("rotor", {})
     rotor = RotorMotion(
         omega_variation=ro.number("omega_variation", 0.0, nonneg=True),
@@ -455,19 +475,27 @@ def parse_scenario(raw: dict, source: str = "<scenario>", variants: dict | None 
     if rotor.follow_shaker and shaker is None:
         raise ro.error("follow_shaker", True, "there is no [shaker]", "add [shaker] or set false")
     ro.finish()
+    return rotor
 
-    an = top.table("angles", {})
-    mode = an.string("mode", "constant", ANGLE_MODES)
+
+def _angle_base(an: Section) -> str | np.ndarray:
+    """``angles.base``: "random", one angle for all 14, or 14 angles (degrees in the file)."""
     base_raw = an.get("base", 0.0)
     if base_raw == "random":
-        base: str | np.ndarray = "random"
-    elif isinstance(base_raw, (int, float)) and not isinstance(base_raw, bool):
-        base = np.full(14, math.radians(float(base_raw)))
-    elif isinstance(base_raw, list):
-        base = np.radians(an.vector("base", 14, unit=" in degrees"))
-    else:
-        raise an.error("base", base_raw, 'must be "random", a number or 14 numbers (degrees)',
-                       'write base = "random" or base = 0.0')
+        return "random"
+    if isinstance(base_raw, (int, float)) and not isinstance(base_raw, bool):
+        return np.full(14, math.radians(float(base_raw)))
+    if isinstance(base_raw, list):
+        return np.radians(an.vector("base", 14, unit=" in degrees"))
+    raise an.error("base", base_raw, 'must be "random", a number or 14 numbers (degrees)',
+                   'write base = "random" or base = 0.0')
+
+
+def _angles(top: Section, run_s: float) -> AngleModel:
+    """``[angles]``: how the simulated load-cell angles move."""
+    an = top.table("angles", {})
+    mode = an.string("mode", "constant", ANGLE_MODES)
+    base = _angle_base(an)
     steps = an.vector("step_at_s", None, [], unit=" in s")
     angles = AngleModel(
         mode=mode, base=base,
@@ -486,32 +514,46 @@ def parse_scenario(raw: dict, source: str = "<scenario>", variants: dict | None 
         raise an.error("step_at_s", [], 'mode = "step" needs at least one step time',
                        f"e.g. step_at_s = [{run_s / 2}] (half-way through run_s)")
     an.finish()
+    return angles
 
+
+def _check_band(sec: Section, band: np.ndarray, example: str) -> tuple[float, float]:
+    """A ``band_hz = [low, high]`` key, low < high."""
+    if band[0] >= band[1]:
+        raise sec.error("band_hz", band.tolist(), "must be [low, high] with low < high",
+                        f"e.g. band_hz = {example}")
+    return float(band[0]), float(band[1])
+
+
+def _base_vibration(top: Section, quasi: bool) -> BaseVibration:
+    """``[base_vibration]``: the rig's base shaken (not in the quasi-static limit)."""
     bv = top.table("base_vibration", {})
     band = bv.vector("band_hz", 2, [5.0, 40.0], positive=True, unit=" in Hz")
     base_vibration = BaseVibration(enabled=bv.boolean("enabled", False),
                                    rms_g=bv.number("rms_g", 0.05, nonneg=True),
                                    band_hz=(float(band[0]), float(band[1])))
-    if band[0] >= band[1]:
-        raise bv.error("band_hz", band.tolist(), "must be [low, high] with low < high",
-                       "e.g. band_hz = [5.0, 40.0]")
+    _check_band(bv, band, "[5.0, 40.0]")
     if base_vibration.enabled and quasi:
         raise bv.error("enabled", True, "base vibration has no effect in the quasi-static limit",
                        "set enabled = false or scenario.quasi_static = false")
     bv.finish()
+    return base_vibration
 
+
+def _turbulence(top: Section) -> Turbulence:
+    """``[turbulence]``: broadband hub loads."""
     tb = top.table("turbulence", {})
     tband = tb.vector("band_hz", 2, [0.5, 40.0], positive=True, unit=" in Hz")
     trms = _six(tb, "rms", [2000.0, 2000.0, 3000.0, 2000.0, 2000.0, 1000.0])
-    if tband[0] >= tband[1]:
-        raise tb.error("band_hz", tband.tolist(), "must be [low, high] with low < high",
-                       "e.g. band_hz = [0.5, 40.0]")
+    band = _check_band(tb, tband, "[0.5, 40.0]")
     if np.any(trms < 0):
         raise tb.error("rms", trms.tolist(), "must be >= 0", "give RMS values in N and N·m")
-    turbulence = Turbulence(enabled=tb.boolean("enabled", False), rms=trms,
-                            band_hz=(float(tband[0]), float(tband[1])))
+    turbulence = Turbulence(enabled=tb.boolean("enabled", False), rms=trms, band_hz=band)
     tb.finish()
+    return turbulence
 
+
+def _unmodelled(top: Section) -> UnmodelledLoad:
     um = top.table("unmodelled", {})
     unmodelled = UnmodelledLoad(
         enabled=um.boolean("enabled", False),
@@ -520,7 +562,11 @@ def parse_scenario(raw: dict, source: str = "<scenario>", variants: dict | None 
         phase_rad=math.radians(um.number("phase_deg", 180.0)),
     )
     um.finish()
+    return unmodelled
 
+
+def _rig_errors(top: Section) -> RigErrors:
+    """``[rig_errors]``: where the simulated rig differs from its configuration."""
     re_ = top.table("rig_errors", {})
     rig_errors = RigErrors(
         hub_offset_m=re_.vector("hub_offset_m", 3, [0.0, 0.0, 0.0], unit=" in m"),
@@ -531,24 +577,45 @@ def parse_scenario(raw: dict, source: str = "<scenario>", variants: dict | None 
         raise re_.error("balance_scale", rig_errors.balance_scale.tolist(),
                         "must be fractions within +-0.5", "e.g. balance_scale = [0.01, 0, 0, 0, 0, 0]")
     re_.finish()
+    return rig_errors
 
+
+def _drive(top: Section) -> DriveLoads:
     dr = top.table("drive", {})
     drive = DriveLoads(static=dr.number("static", 0.0),
                        amplitude=dr.number("amplitude", 0.0, nonneg=True),
                        order=_order(dr, "order", 1))
     dr.finish()
+    return drive
 
+
+def _rig_overrides(top: Section) -> dict:
     overrides = top.get("rig_overrides", {})
     if not isinstance(overrides, dict):
         raise top.error("rig_overrides", overrides, "must be a table of rig-config overrides",
                         "write [rig_overrides.identification] initial_angles_deg = 4.0")
-    top.finish()
+    return overrides
 
-    return Scenario(**scenario_head, loads=loads, harmonics=tuple(harmonics),
-                    manoeuvres=tuple(manoeuvres), shaker=shaker, rotor=rotor, angles=angles,
-                    base_vibration=base_vibration, unmodelled=unmodelled, drive=drive,
-                    rig_overrides=overrides, variants=dict(variants or {}),
-                    turbulence=turbulence, rig_errors=rig_errors)
+
+def parse_scenario(raw: dict, source: str = "<scenario>", variants: dict | None = None) -> Scenario:
+    """A scenario TOML's tables, each checked in turn (the first mistake raised as a
+    ConfigError naming its key)."""
+    top = Section(raw, "", source)
+    head = _head(top, source)
+    duration = head["duration_s"]
+    loads = _loads(top, duration, source)
+    harmonics = tuple(_harmonic(h) for h in top.tables("harmonics", []))
+    manoeuvres = tuple(_manoeuvre(m, duration) for m in top.tables("manoeuvres", []))
+    shaker = _shaker(top, duration)
+    scenario = Scenario(**head, loads=loads, harmonics=harmonics, manoeuvres=manoeuvres,
+                        shaker=shaker, rotor=_rotor(top, shaker),
+                        angles=_angles(top, head["run_s"]),
+                        base_vibration=_base_vibration(top, head["quasi_static"]),
+                        turbulence=_turbulence(top), unmodelled=_unmodelled(top),
+                        rig_errors=_rig_errors(top), drive=_drive(top),
+                        rig_overrides=_rig_overrides(top), variants=dict(variants or {}))
+    top.finish()
+    return scenario
 
 
 def check_against_rig(sc: Scenario, sample_rate_hz: float, omega_nominal_rad_s: float,

@@ -576,30 +576,41 @@ def calibrate(
                           else SIGMA_MAX_OTHER_FRACTION * prior_sigma[k]
                           for k, nm in enumerate(names)])
     sc = np.array([_display_scale(nm, cfg) for nm in names])
-    directions: list[dict[str, Any]] = []
-    if np.all(np.isfinite(res.P)):
-        det, U, cond = determined_directions(res.P, sigma_max)
-        Lp = np.diag(prior_sigma)  # P_p^½ (the prior is diagonal)
-        lam = np.linalg.eigvalsh(Lp @ res.information @ Lp)
-        ratio = (float(lam[0]), float(lam[-1]))
-        P_disp = res.P * np.outer(sc, sc)
-        for j in range(U.shape[1]):
-            d = U[:, j] * sc  # in display units (degrees for angles)
-            d = d / np.linalg.norm(d)
-            d = d if d[np.argmax(np.abs(d))] > 0 else -d  # sign: largest component positive
-            directions.append({
-                "sigma": float(math.sqrt(max(float(d @ P_disp @ d), 0.0))),
-                "components": {nm: round(float(w), 3) for nm, w in zip(names, d)
-                               if abs(w) >= DIRECTION_COMPONENT_MIN}})
-    else:
-        det, cond, ratio = 0, math.inf, (math.nan, math.nan)
-    directions.sort(key=lambda x: -x["sigma"])
+    det, cond, ratio, directions = _information(res, names, prior_sigma, sigma_max, sc)
     flags = plausibility(cfg, names, res.theta, config_values)
     return CalibrationResult(
         names=names, start=start, prior_sigma=prior_sigma, ident=res, residual_rms=rms,
         residual_expected=expected, determined=det, sigma_max=sigma_max, condition=cond,
         undetermined=directions, information_ratio=ratio, flags=flags,
         alpha_all=par.alpha(res.theta), data=data, content_gain=gain)
+
+
+def _information(res: Any, names: Sequence[str], prior_sigma: np.ndarray,
+                 sigma_max: np.ndarray, sc: np.ndarray
+                 ) -> tuple[int, float, tuple[float, float], list[dict[str, Any]]]:
+    """The information of a run: determined directions, condition, data-to-prior ratio and
+    the undetermined directions, largest σ first (none where P is not finite)."""
+    if not np.all(np.isfinite(res.P)):
+        return 0, math.inf, (math.nan, math.nan), []
+    det, U, cond = determined_directions(res.P, sigma_max)
+    Lp = np.diag(prior_sigma)  # P_p^½ (the prior is diagonal)
+    lam = np.linalg.eigvalsh(Lp @ res.information @ Lp)
+    P_disp = res.P * np.outer(sc, sc)
+    directions = [_direction(U[:, j], sc, P_disp, names) for j in range(U.shape[1])]
+    directions.sort(key=lambda x: -x["sigma"])
+    return det, cond, (float(lam[0]), float(lam[-1])), directions
+
+
+def _direction(u: np.ndarray, sc: np.ndarray, P_disp: np.ndarray, names: Sequence[str]
+               ) -> dict[str, Any]:
+    """An undetermined direction in display units (degrees for angles), its largest
+    component positive: its σ and the components worth naming."""
+    d = u * sc
+    d = d / np.linalg.norm(d)
+    d = d if d[np.argmax(np.abs(d))] > 0 else -d
+    return {"sigma": float(math.sqrt(max(float(d @ P_disp @ d), 0.0))),
+            "components": {nm: round(float(w), 3) for nm, w in zip(names, d)
+                           if abs(w) >= DIRECTION_COMPONENT_MIN}}
 
 
 def structure_of(cfg: RigConfig, result: CalibrationResult) -> dict | None:
@@ -658,6 +669,122 @@ def _toml_value(v) -> str:
     raise TypeError(f"cannot write {v!r} as TOML")
 
 
+@dataclass(frozen=True)
+class _Estimates:
+    """The identified parameters by name: estimate, Cramér–Rao σ and σ corrected for
+    coloured residuals."""
+
+    est: dict[str, float]
+    sig: dict[str, float]
+    sig_mk: dict[str, float]
+
+    @classmethod
+    def of(cls, result: CalibrationResult) -> "_Estimates":
+        names = result.names
+        return cls(dict(zip(names, result.estimate)), dict(zip(names, result.sigma)),
+                   dict(zip(names, result.sigma_corrected)))
+
+
+@dataclass(frozen=True)
+class _ParameterGroups:
+    """The identified parameters by the table of the rig file they go to."""
+
+    angles: list[str]  # [identification] initial_angles_deg
+    hub: list[str]  # [geometry] hub_centre_m
+    mass: list[str]  # [mass]
+    cells: list[str]  # [[cells]] position_m
+
+    @classmethod
+    def of(cls, names: Sequence[str], angles: Sequence[str]) -> "_ParameterGroups":
+        ang = [n for n in names if n in angles]
+        hub = [n for n in names if n.startswith("hub_")]
+        mass = [n for n in names if n.startswith(("m_", "I_"))]
+        return cls(ang, hub, mass, [n for n in names if n not in ang + hub + mass])
+
+
+def _frag_head(result: CalibrationResult) -> list[str]:
+    when = datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+    d = result.data
+    flags = "" if not result.flags else "; PLAUSIBILITY FLAGS: " + "; ".join(
+        f"{f.name} {f.problem}" for f in result.flags)
+    return [
+        "# rsra calibrate: off-line known-load calibration (model.md §7, report Appendix C)",
+        f"# from: {', '.join(d.files)}",
+        (f"# {when}; content {d.content}; {d.n_scored} samples scored of {d.samples_read} read; "
+         f"status {result.status} after {result.ident.iterations} iterations"),
+        "# sigma: Cramér-Rao bound (in brackets: corrected for coloured residuals)" + flags,
+        "",
+    ]
+
+
+def _frag_angles(angles: Sequence[str], e: _Estimates, result: CalibrationResult) -> list[str]:
+    """``[identification] initial_angles_deg``: all 14, the non-identified at their start."""
+    lines = ["[identification]"]
+    for a in angles:
+        tag = (f"{math.degrees(e.est[a]):+.4f} deg, sigma {math.degrees(e.sig[a]):.4f} deg "
+               f"({math.degrees(e.sig_mk[a]):.4f})"
+               if a in e.est else "not identified: start value kept")
+        lines.append(f"# {a}: {tag}")
+    return lines + [f"initial_angles_deg = {_vec(np.degrees(result.alpha_all), 6)}", ""]
+
+
+def _frag_structure(fit: dict) -> list[str]:
+    """``[identification.structure]``: the structure the hub loads use (config.rig)."""
+    lines = ["[identification.structure]",
+             f"# the structure test selected {fit['structure']!r} (docs/identification.md); "
+             "the hub loads use it from the start"]
+    lines += [f"# {nm}: {b:.6g}, sigma {'-' if sb is None else f'{sb:.3g}'} (SI)"
+              for nm, b, sb in zip(fit["parameters"], fit["beta"], fit["beta_sigma"])]
+    return lines + [f'structure = "{fit["structure"]}"',
+                    f"alpha0_deg = {_vec(np.degrees(fit['alpha0']), 6)}",
+                    f"beta = [{', '.join(repr(float(b)) for b in fit['beta'])}]",
+                    f"T_ref_N = {_vec(fit['T_ref'], 2)}", ""]
+
+
+def _frag_hub(cfg: RigConfig, hub: list[str], e: _Estimates) -> list[str]:
+    v = np.asarray(cfg.hub_centre_m, float).copy()
+    lines = ["[geometry]"]
+    for n in hub:
+        v["xyz".index(n[-1])] = e.est[n]
+        lines.append(f"# {n}: {e.est[n]:.6f} m, sigma {e.sig[n]:.6f} m ({e.sig_mk[n]:.6f})")
+    return lines + [f"hub_centre_m = {_vec(v, 6)}", ""]
+
+
+def _frag_mass(cfg: RigConfig, mass: list[str], e: _Estimates) -> list[str]:
+    m = np.asarray(cfg.effective_mass_kg, float).copy()
+    inertia = np.asarray(cfg.inertia_kg_m2, float).copy()
+    lines = ["[mass]"]
+    for n in mass:
+        unit = "kg" if n.startswith("m_") else "kg m^2"
+        lines.append(f"# {n}: {e.est[n]:.3f} {unit}, sigma {e.sig[n]:.3f} {unit} "
+                     f"({e.sig_mk[n]:.3f})")
+        if n.startswith("m_"):
+            m["xyz".index(n[-1])] = e.est[n]
+        else:
+            inertia[("I_xx", "I_yy", "I_zz").index(n)] = e.est[n]
+    if any(n.startswith("m_") for n in mass):
+        lines.append(f"effective_mass_kg = {_vec(m, 4)}")
+    if any(n.startswith("I_") for n in mass):
+        lines.append(f"inertia_kg_m2 = {_vec(inertia, 4)}")
+    return lines + [""]
+
+
+def _frag_cell(block: dict, e: _Estimates) -> list[str]:
+    """One ``[[cells]]`` block as the rig gives it, its identified position coordinates
+    replaced."""
+    cell = block["name"]
+    p = [float(x) for x in block["position_m"]]
+    notes = []
+    for i, ax in enumerate("xyz"):
+        n = f"{ax}_{cell}"
+        if n in e.est:
+            p[i] = float(e.est[n])
+            notes.append(f"# {n}: {e.est[n]:.6f} m, sigma {e.sig[n]:.6f} m ({e.sig_mk[n]:.6f})")
+    return ["[[cells]]", *notes,
+            *(f"{k} = {_vec(p, 6) if k == 'position_m' else _toml_value(v)}"
+              for k, v in block.items()), ""]
+
+
 def fragment_toml(cfg: RigConfig, result: CalibrationResult,
                   structure: dict | None = None) -> str:
     """A TOML fragment to merge into the rig config (``load_config(overrides=…)`` accepts it):
@@ -666,90 +793,20 @@ def fragment_toml(cfg: RigConfig, result: CalibrationResult,
     ``inertia_kg_m2`` and the seven ``[[cells]]`` blocks (complete: TOML arrays of tables
     replace, they do not merge) when those parameters were. Comments give each value's σ and
     the source recordings."""
-    model = cfg.rig_model()
-    angles = model.geometry.angle_names
-    names = result.names
-    est = dict(zip(names, result.estimate))
-    sig = dict(zip(names, result.sigma))
-    sig_mk = dict(zip(names, result.sigma_corrected))
-    when = datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
-    d = result.data
-    lines = [
-        "# rsra calibrate: off-line known-load calibration (model.md §7, report Appendix C)",
-        f"# from: {', '.join(d.files)}",
-        (f"# {when}; content {d.content}; {d.n_scored} samples scored of {d.samples_read} read; "
-         f"status {result.status} after {result.ident.iterations} iterations"),
-        "# sigma: Cramér-Rao bound (in brackets: corrected for coloured residuals)"
-        + ("" if not result.flags else
-           "; PLAUSIBILITY FLAGS: " + "; ".join(f"{f.name} {f.problem}" for f in result.flags)),
-        "",
-    ]
-    if any(n in angles for n in names):
-        lines.append("[identification]")
-        for a in angles:
-            tag = (f"{math.degrees(est[a]):+.4f} deg, sigma {math.degrees(sig[a]):.4f} deg "
-                   f"({math.degrees(sig_mk[a]):.4f})"
-                   if a in est else "not identified: start value kept")
-            lines.append(f"# {a}: {tag}")
-        lines.append(f"initial_angles_deg = {_vec(np.degrees(result.alpha_all), 6)}")
-        lines.append("")
+    angles = cfg.rig_model().geometry.angle_names
+    g = _ParameterGroups.of(result.names, angles)
+    e = _Estimates.of(result)
+    lines = _frag_head(result)
+    if g.angles:
+        lines += _frag_angles(angles, e, result)
     fit = None if structure is None else structure.get("structure_fit")
-    if fit is not None:  # the structure the hub loads use (issue 19; config.rig)
-        lines.append("[identification.structure]")
-        lines.append(f"# the structure test selected {fit['structure']!r} (docs/identification.md); "
-                     "the hub loads use it from the start")
-        for nm, b, sb in zip(fit["parameters"], fit["beta"], fit["beta_sigma"]):
-            lines.append(f"# {nm}: {b:.6g}, sigma {'-' if sb is None else f'{sb:.3g}'} (SI)")
-        lines.append(f'structure = "{fit["structure"]}"')
-        lines.append(f"alpha0_deg = {_vec(np.degrees(fit['alpha0']), 6)}")
-        lines.append(f"beta = [{', '.join(repr(float(b)) for b in fit['beta'])}]")
-        lines.append(f"T_ref_N = {_vec(fit['T_ref'], 2)}")
-        lines.append("")
-    hub = [n for n in names if n.startswith("hub_")]
-    if hub:
-        v = np.asarray(cfg.hub_centre_m, float).copy()
-        lines.append("[geometry]")
-        for n in hub:
-            i = "xyz".index(n[-1])
-            v[i] = est[n]
-            lines.append(f"# {n}: {est[n]:.6f} m, sigma {sig[n]:.6f} m ({sig_mk[n]:.6f})")
-        lines.append(f"hub_centre_m = {_vec(v, 6)}")
-        lines.append("")
-    mass = [n for n in names if n.startswith(("m_", "I_"))]
-    if mass:
-        m = np.asarray(cfg.effective_mass_kg, float).copy()
-        inertia = np.asarray(cfg.inertia_kg_m2, float).copy()
-        lines.append("[mass]")
-        for n in mass:
-            unit = "kg" if n.startswith("m_") else "kg m^2"
-            lines.append(f"# {n}: {est[n]:.3f} {unit}, sigma {sig[n]:.3f} {unit} ({sig_mk[n]:.3f})")
-            if n.startswith("m_"):
-                m["xyz".index(n[-1])] = est[n]
-            else:
-                inertia[("I_xx", "I_yy", "I_zz").index(n)] = est[n]
-        if any(n.startswith("m_") for n in mass):
-            lines.append(f"effective_mass_kg = {_vec(m, 4)}")
-        if any(n.startswith("I_") for n in mass):
-            lines.append(f"inertia_kg_m2 = {_vec(inertia, 4)}")
-        lines.append("")
-    pos = [n for n in names if n not in angles and n not in hub and n not in mass]
-    if pos:
-        raw_cells = cfg.raw.get("cells", [])
-        for block in raw_cells:
-            cell = block["name"]
-            p = [float(x) for x in block["position_m"]]
-            notes = []
-            for i, ax in enumerate("xyz"):
-                n = f"{ax}_{cell}"
-                if n in est:
-                    p[i] = float(est[n])
-                    notes.append(f"{n}: {est[n]:.6f} m, sigma {sig[n]:.6f} m ({sig_mk[n]:.6f})")
-            lines.append("[[cells]]")
-            lines.extend(f"# {x}" for x in notes)
-            for k, v in block.items():
-                val = _vec(p, 6) if k == "position_m" else _toml_value(v)
-                lines.append(f"{k} = {val}")
-            lines.append("")
+    if fit is not None:
+        lines += _frag_structure(fit)
+    if g.hub:
+        lines += _frag_hub(cfg, g.hub, e)
+    if g.mass:
+        lines += _frag_mass(cfg, g.mass, e)
+    if g.cells:
+        for block in cfg.raw.get("cells", []):
+            lines += _frag_cell(block, e)
     return "\n".join(lines).rstrip() + "\n"
-
-

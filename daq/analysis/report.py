@@ -201,15 +201,10 @@ def _nearest(tt: np.ndarray, t: np.ndarray, tol: float) -> np.ndarray:
     return np.where(ok & np.isfinite(t), idx, -1)
 
 
-def align_truth(truth: dict, t: np.ndarray, seq: np.ndarray, dt: float,
-                sync: np.ndarray | None = None, method: str | None = None) -> Alignment:
-    """Truth sample of each record: by time (the truth's SYNC time, else its simulated time;
-    nearest within half a sample) when at least 90 % of the records match; otherwise by
-    ``seq`` (lost samples keep their number), shifted so that the SYNC counters agree when the
-    records carry them. ``method`` forces one."""
-    t = np.asarray(t, float)
-    seq = np.asarray(seq, np.int64)
-    n = len(truth["t"])
+def _align_by_time(truth: dict, t: np.ndarray, dt: float, method: str | None
+                   ) -> Alignment | None:
+    """By the truth's SYNC time, else its simulated time (nearest within half a sample),
+    when at least 90 % of the records match (or ``method`` forces it); else None."""
     if method in ("sync_time", "t"):
         cands = [method]
     elif method is None:
@@ -224,21 +219,42 @@ def align_truth(truth: dict, t: np.ndarray, seq: np.ndarray, dt: float,
         frac = float(np.mean(idx >= 0)) if len(idx) else 0.0
         if frac >= 0.9 or method is not None:
             return Alignment(m, idx, frac)
-    # by sample number
-    offset = 0
+    return None
+
+
+def _sync_offset(truth: dict, seq: np.ndarray, sync: np.ndarray | None) -> int:
+    """The shift of ``seq`` that makes the most SYNC counters agree with the truth's (0
+    without counters)."""
     sc = truth.get("sync_counter")
-    if sync is not None and sc is not None and len(sc) and np.any(np.asarray(sync) > 0):
-        sync = np.asarray(sync, np.int64)
-        sc = np.asarray(sc, np.int64)
-        period = int(sc.max()) if sc.max() > 0 else 1
-        best = -1
-        for k in range(-int(seq.min()), -int(seq.min()) + period):
-            j = seq + k
-            ok = (j >= 0) & (j < n)
-            score = int(np.sum(sc[j[ok]] == sync[ok]))
-            if score > best:
-                best, offset = score, k
-    j = seq + offset
+    if sync is None or sc is None or not len(sc) or not np.any(np.asarray(sync) > 0):
+        return 0
+    n = len(truth["t"])
+    sync = np.asarray(sync, np.int64)
+    sc = np.asarray(sc, np.int64)
+    period = int(sc.max()) if sc.max() > 0 else 1
+    best, offset = -1, 0
+    for k in range(-int(seq.min()), -int(seq.min()) + period):
+        j = seq + k
+        ok = (j >= 0) & (j < n)
+        score = int(np.sum(sc[j[ok]] == sync[ok]))
+        if score > best:
+            best, offset = score, k
+    return offset
+
+
+def align_truth(truth: dict, t: np.ndarray, seq: np.ndarray, dt: float,
+                sync: np.ndarray | None = None, method: str | None = None) -> Alignment:
+    """Truth sample of each record: by time (the truth's SYNC time, else its simulated time;
+    nearest within half a sample) when at least 90 % of the records match; otherwise by
+    ``seq`` (lost samples keep their number), shifted so that the SYNC counters agree when the
+    records carry them. ``method`` forces one."""
+    t = np.asarray(t, float)
+    seq = np.asarray(seq, np.int64)
+    by_time = _align_by_time(truth, t, dt, method)
+    if by_time is not None:
+        return by_time
+    n = len(truth["t"])
+    j = seq + _sync_offset(truth, seq, sync)
     idx = np.where((j >= 0) & (j < n), j, -1)
     return Alignment("seq", idx, float(np.mean(idx >= 0)) if len(idx) else 0.0)
 
@@ -305,6 +321,36 @@ class ReportData:
     summary: dict = field(default_factory=dict)
 
 
+def _truth_hub(d: ReportData, truth: dict, geometry) -> Alignment | None:
+    """The truth's hub loads at each hub_loads record, in the records' frame."""
+    rec = d.rec
+    if rec.hub is None:
+        return None
+    d.hub_align = al = align_truth(truth, rec.hub["t"], rec.hub["seq"], d.cfg.sample_period_s,
+                                   rec.hub["sync"])
+    ok = al.valid()
+    H = np.full((len(ok), 6), np.nan)
+    H[ok] = truth_in_frame(np.asarray(truth["H_true"])[al.idx[ok]], geometry, d.frame)
+    d.H_truth = H
+    return al
+
+
+def _truth_angles(d: ReportData, truth: dict, hub_al: Alignment | None) -> None:
+    """The truth's angles at each hub_loads record (else each channels record)."""
+    rec = d.rec
+    base = rec.hub if rec.hub is not None else rec.channels
+    if base is None:
+        return
+    al = hub_al if hub_al is not None else align_truth(
+        truth, base["t"], base["seq"], d.cfg.sample_period_s)
+    d.ch_align = al
+    ok = al.valid()
+    A = np.full((len(ok), np.asarray(truth["alpha_true"]).shape[1]), np.nan)
+    A[ok] = np.asarray(truth["alpha_true"])[al.idx[ok]]
+    d.alpha_truth_hub = A
+    d.alpha_truth_t = base["t"] - d.t0
+
+
 def prepare(cfg: RigConfig, rec: Records, truth: dict | None, units: str = "si") -> ReportData:
     model = cfg.rig_model()
     frame = rec.hub["frame"] if rec.hub else cfg.hub_frame
@@ -317,32 +363,11 @@ def prepare(cfg: RigConfig, rec: Records, truth: dict | None, units: str = "si")
                    sigma_static=nb.total, angle_names=tuple(model.geometry.angle_names),
                    alpha_config=alpha_cfg,
                    settle_s=cfg.identification.settle_time_constants * cfg.filter.time_constant_s)
-    dt = cfg.sample_period_s
-    om = []
-    for s in (rec.hub, rec.channels):
-        if s is not None and np.isfinite(s["omega"]).any():
-            om.append(float(np.nanmedian(s["omega"])))
+    om = [float(np.nanmedian(s["omega"])) for s in (rec.hub, rec.channels)
+          if s is not None and np.isfinite(s["omega"]).any()]
     d.omega = om[0] if om else (None if cfg.rotor.stopped else cfg.rotor.omega_nominal_rad_s)
     if truth is not None:
-        hub_al = None
-        if rec.hub is not None:
-            d.hub_align = hub_al = align_truth(truth, rec.hub["t"], rec.hub["seq"], dt,
-                                               rec.hub["sync"])
-            ok = hub_al.valid()
-            H = np.full((len(ok), 6), np.nan)
-            H[ok] = truth_in_frame(np.asarray(truth["H_true"])[hub_al.idx[ok]],
-                                   model.geometry, frame)
-            d.H_truth = H
-        base = rec.hub if rec.hub is not None else rec.channels
-        if base is not None:
-            al = hub_al if hub_al is not None else align_truth(
-                truth, base["t"], base["seq"], dt)
-            d.ch_align = al
-            ok = al.valid()
-            A = np.full((len(ok), np.asarray(truth["alpha_true"]).shape[1]), np.nan)
-            A[ok] = np.asarray(truth["alpha_true"])[al.idx[ok]]
-            d.alpha_truth_hub = A
-            d.alpha_truth_t = base["t"] - t0
+        _truth_angles(d, truth, _truth_hub(d, truth, model.geometry))
     return d
 
 
@@ -456,29 +481,33 @@ def _angle_record(d: ReportData, r: dict) -> dict:
     """One angles record as arrays over the rig's angles: ``alpha``, ``sigma`` (the run's
     σ_CR, else the posterior's), ``sigma_post`` (sqrt diag P), and the record's own fields."""
     names = r.get("names") or list(d.angle_names)
-    alpha = np.full(len(d.angle_names), np.nan)
-    sig = np.full(len(d.angle_names), np.nan)
     a = _vec(r.get("alpha"), len(names))
     s = r.get("sigma_cr")
     P = r.get("P")
-    Pm = None
-    if P is not None:
-        Pm = np.array([_vec(row, len(names)) for row in P], float)
+    Pm = None if P is None else np.array([_vec(row, len(names)) for row in P], float)
     if s is None and Pm is not None:
         s = np.sqrt(np.clip(np.diag(Pm), 0, None)).tolist()
     s = _vec(s, len(names)) if s is not None else [math.nan] * len(names)
     post = (np.sqrt(np.clip(np.diag(Pm), 0, None)) if Pm is not None and Pm.shape ==
             (len(names), len(names)) else np.full(len(names), np.nan))
-    sig_post = np.full(len(d.angle_names), np.nan)
-    for k, nm in enumerate(names):
-        if nm in d.angle_names:
-            i = d.angle_names.index(nm)
-            alpha[i], sig[i], sig_post[i] = a[k], s[k], post[k]
+    alpha, sig, sig_post = _on_rig_angles(d, names, a, s, post)
     return {"t": _num(r.get("t")), "accepted": bool(r.get("accepted")),
             "reason": r.get("reason"), "alpha": alpha, "sigma": sig,
             "sigma_post": sig_post, "names": names,
             "P": Pm, "alpha_sub": np.array(a), "determined": r.get("determined"),
             "window": r.get("window")}
+
+
+def _on_rig_angles(d: ReportData, names: list[str], *values: Any) -> list[np.ndarray]:
+    """Each of ``values`` (one number per name) placed on the rig's angles (nan for the
+    angles the names leave out; names that are not the rig's angles dropped)."""
+    out = [np.full(len(d.angle_names), np.nan) for _ in values]
+    for k, nm in enumerate(names):
+        if nm in d.angle_names:
+            i = d.angle_names.index(nm)
+            for o, v in zip(out, values):
+                o[i] = v[k]
+    return out
 
 
 def _truth_alpha_at(d: ReportData, t_abs: float) -> np.ndarray | None:
@@ -492,6 +521,32 @@ def _truth_alpha_at(d: ReportData, t_abs: float) -> np.ndarray | None:
     return d.alpha_truth_hub[j]
 
 
+def _joint_chi2(d: ReportData, last: dict, tr: np.ndarray) -> dict | None:
+    """The final angles' joint consistency with the whole posterior covariance over the
+    identified names; None when P is singular."""
+    e = last["alpha_sub"] - tr[[d.angle_names.index(n) for n in last["names"]]]
+    try:
+        chi2 = float(e @ np.linalg.solve(last["P"], e))
+    except np.linalg.LinAlgError:
+        return None
+    dof = len(e)
+    thr = float(stats.chi2.ppf(1 - FALSE_ALARM, dof))
+    return {"value": chi2, "dof": dof, "threshold": thr, "false_alarm": FALSE_ALARM,
+            "consistent": chi2 <= thr}
+
+
+def _last_advice(d: ReportData) -> dict | None:
+    """Filter-error windows: what would determine the rest, the latest."""
+    advised = [r for r in d.rec.angles if isinstance(r.get("advice"), dict)]
+    if not advised:
+        return None
+    from rsra.estimator.flight_advice import advice_summary
+
+    r = advised[-1]
+    return {"t": _num(r.get("t")) - d.t0, "sentence": advice_summary(
+        r["advice"], len(r.get("names") or []) or None), "advice": r["advice"]}
+
+
 def _angles_summary(d: ReportData) -> dict:
     runs = _angle_records(d)
     if not runs:
@@ -499,8 +554,7 @@ def _angles_summary(d: ReportData) -> dict:
     reasons: dict[str, int] = {}
     for r in runs:
         if not r["accepted"]:
-            k = str(r["reason"])
-            reasons[k] = reasons.get(k, 0) + 1
+            reasons[str(r["reason"])] = reasons.get(str(r["reason"]), 0) + 1
     last = runs[-1]
     out: dict = {"runs": len(runs), "accepted": sum(r["accepted"] for r in runs),
                  "rejected": reasons,
@@ -513,27 +567,12 @@ def _angles_summary(d: ReportData) -> dict:
         err = last["alpha"] - tr
         final.update(truth_deg=np.degrees(tr).tolist(), error_deg=np.degrees(err).tolist(),
                      error_over_sigma=(err / last["sigma"]).tolist())
-        # joint consistency with the whole posterior covariance over the identified names
-        if last["P"] is not None:
-            sub = [d.angle_names.index(n) for n in last["names"] if n in d.angle_names]
-            if len(sub) == len(last["names"]):
-                e = last["alpha_sub"] - tr[sub]
-                try:
-                    chi2 = float(e @ np.linalg.solve(last["P"], e))
-                    dof = len(e)
-                    thr = float(stats.chi2.ppf(1 - FALSE_ALARM, dof))
-                    out["joint_chi2"] = {"value": chi2, "dof": dof, "threshold": thr,
-                                         "false_alarm": FALSE_ALARM, "consistent": chi2 <= thr}
-                except np.linalg.LinAlgError:
-                    out["joint_chi2"] = None
+        if last["P"] is not None and all(n in d.angle_names for n in last["names"]):
+            out["joint_chi2"] = _joint_chi2(d, last, tr)
     out["final"] = final
-    advised = [r for r in d.rec.angles if isinstance(r.get("advice"), dict)]
-    if advised:  # filter-error windows: what would determine the rest, the latest
-        from rsra.estimator.flight_advice import advice_summary
-
-        r = advised[-1]
-        out["advice"] = {"t": _num(r.get("t")) - d.t0, "sentence": advice_summary(
-            r["advice"], len(r.get("names") or []) or None), "advice": r["advice"]}
+    advice = _last_advice(d)
+    if advice is not None:
+        out["advice"] = advice
     return out
 
 
@@ -565,17 +604,19 @@ def _innovations_summary(d: ReportData) -> dict:
     from rsra.daq.analysis.accuracy import PHASES
 
     ph = record_phases(d, inn["seq"][sel])
-    out["by_phase"] = {p: {"records": int((ph == p).sum()),
-                           "mean_nis": float(nis[ph == p].mean()) if (ph == p).any() else None,
-                           **nis_consistency(nis[ph == p], lo, hi)} for p in PHASES}
+    out["by_phase"] = {p: _nis_group(nis, ph == p, lo, hi) for p in PHASES}
     if hub is not None:
         moving = {int(q) for q, f in zip(hub["seq"], hub["flags"]) if "transient" in f}
         tr = np.array([int(q) in moving for q in inn["seq"][sel]], bool)
-        out["by_state"] = {state: {"records": int(m.sum()),
-                                   "mean_nis": float(nis[m].mean()) if m.any() else None,
-                                   **nis_consistency(nis[m], lo, hi)}
+        out["by_state"] = {state: _nis_group(nis, m, lo, hi)
                            for state, m in (("held", ~tr), ("transient", tr))}
     return out
+
+
+def _nis_group(nis: np.ndarray, m: np.ndarray, lo: float, hi: float) -> dict:
+    """The NIS of the records ``m`` selects: how many, their mean and their consistency."""
+    return {"records": int(m.sum()), "mean_nis": float(nis[m].mean()) if m.any() else None,
+            **nis_consistency(nis[m], lo, hi)}
 
 
 def effective_records(x: np.ndarray, max_lag: int = 200) -> float:
@@ -738,6 +779,46 @@ def _per_revolution(t: np.ndarray, x: np.ndarray, period: float
             np.minimum.reduceat(x, starts), np.maximum.reduceat(x, starts))
 
 
+def _whole_run_panel(a, d: ReportData, t: np.ndarray, i: int, rev: float) -> None:
+    """Hub-load axis ``i`` over the whole run: mean and range per revolution of H and of the
+    truth, the phases shaded."""
+    sc = _axis_scale(d.units)
+    hub = d.rec.hub
+    assert hub is not None  # build_report: with hub_loads records only
+    shade_phases(a, phase_spans(d))
+    if d.H_truth is not None:
+        tt, m, lo, hi = _per_revolution(t, d.H_truth[:, i] * sc[i], rev)
+        a.fill_between(tt, lo, hi, color="0.8", lw=0, label="truth: range per revolution")
+        a.plot(tt, m, color="k", lw=1.4, label="truth: mean per revolution")
+    tt, m, lo, hi = _per_revolution(t, hub["H"][:, i] * sc[i], rev)
+    if d.H_truth is None:
+        a.fill_between(tt, lo, hi, color="tab:blue", alpha=0.2, lw=0,
+                       label="H: range per revolution")
+    a.plot(tt, m, color="tab:blue", lw=1.0, ls="--" if d.H_truth is not None else "-",
+           label="H: mean per revolution")
+    a.set_title(f"{AXES[i]}: whole run", fontsize=10)
+
+
+def _last_revolutions_panel(a, d: ReportData, t: np.ndarray, i: int, win: np.ndarray,
+                            span: float) -> None:
+    """Hub-load axis ``i`` over the last revolutions: H, H_static and the truth with the
+    static noise-budget band."""
+    sc = _axis_scale(d.units)
+    hub = d.rec.hub
+    assert hub is not None  # build_report: with hub_loads records only
+    tw = t[win]
+    ref = d.H_truth[win, i] if d.H_truth is not None else hub["H"][win, i]
+    band = d.sigma_static[i] * sc[i]
+    a.fill_between(tw, ref * sc[i] - band, ref * sc[i] + band, color="0.85",
+                   label=("truth" if d.H_truth is not None else "H") + " ± static σ")
+    if d.H_truth is not None:
+        a.plot(tw, d.H_truth[win, i] * sc[i], color="k", lw=1.6, label="truth")
+    a.plot(tw, hub["H_static"][win, i] * sc[i], color="tab:orange", lw=0.8, alpha=0.8,
+           label="H_static (per sample)")
+    a.plot(tw, hub["H"][win, i] * sc[i], color="tab:blue", lw=1.2, label="H (load filter)")
+    a.set_title(f"{AXES[i]}: last {span:.1f} s", fontsize=10)
+
+
 def plot_hub_loads(d: ReportData, out: Path) -> Path:
     """The whole run (per-revolution mean and range of H and of the truth, phases shaded), then
     the estimates (filter H, static H_static) vs truth over the last rotor revolutions with
@@ -749,46 +830,18 @@ def plot_hub_loads(d: ReportData, out: Path) -> Path:
     rev = 2 * math.pi / d.omega if d.omega else 0.25
     span = ZOOM_REVOLUTIONS * rev if d.omega else 2.0
     win = t >= (np.nanmax(t) - span)
-    sc = _axis_scale(d.units)
     u = axis_units(d.units)
-    spans = phase_spans(d)
     fig, axs = plt.subplots(4, 3, figsize=(14, 14), layout="constrained")
     for i in range(6):
-        a = axs[i // 3, i % 3]  # the whole run
-        shade_phases(a, spans)
-        if d.H_truth is not None:
-            tt, m, lo, hi = _per_revolution(t, d.H_truth[:, i] * sc[i], rev)
-            a.fill_between(tt, lo, hi, color="0.8", lw=0, label="truth: range per revolution")
-            a.plot(tt, m, color="k", lw=1.4, label="truth: mean per revolution")
-        tt, m, lo, hi = _per_revolution(t, hub["H"][:, i] * sc[i], rev)
-        if d.H_truth is None:
-            a.fill_between(tt, lo, hi, color="tab:blue", alpha=0.2, lw=0,
-                           label="H: range per revolution")
-        a.plot(tt, m, color="tab:blue", lw=1.0, ls="--" if d.H_truth is not None else "-",
-               label="H: mean per revolution")
-        a.set_title(f"{AXES[i]}: whole run", fontsize=10)
-        a.set_ylabel(f"{AXES[i]} [{u[i]}]")
-        a.grid(True, alpha=0.3)
-        if i >= 3:
-            a.set_xlabel("time since start [s]")
+        _whole_run_panel(axs[i // 3, i % 3], d, t, i, rev)
+        _last_revolutions_panel(axs[2 + i // 3, i % 3], d, t, i, win, span)
+    for i in range(6):  # the forces' row and the moments' (time axis) of both halves
+        for a in (axs[i // 3, i % 3], axs[2 + i // 3, i % 3]):
+            a.set_ylabel(f"{AXES[i]} [{u[i]}]")
+            a.grid(True, alpha=0.3)
+            if i >= 3:
+                a.set_xlabel("time since start [s]")
     axs[0, 0].legend(fontsize=7, loc="best")
-    for i in range(6):
-        a = axs[2 + i // 3, i % 3]  # the last revolutions
-        tw = t[win]
-        ref = d.H_truth[win, i] if d.H_truth is not None else hub["H"][win, i]
-        band = d.sigma_static[i] * sc[i]
-        a.fill_between(tw, ref * sc[i] - band, ref * sc[i] + band, color="0.85",
-                       label=("truth" if d.H_truth is not None else "H") + " ± static σ")
-        if d.H_truth is not None:
-            a.plot(tw, d.H_truth[win, i] * sc[i], color="k", lw=1.6, label="truth")
-        a.plot(tw, hub["H_static"][win, i] * sc[i], color="tab:orange", lw=0.8, alpha=0.8,
-               label="H_static (per sample)")
-        a.plot(tw, hub["H"][win, i] * sc[i], color="tab:blue", lw=1.2, label="H (load filter)")
-        a.set_title(f"{AXES[i]}: last {span:.1f} s", fontsize=10)
-        a.set_ylabel(f"{AXES[i]} [{u[i]}]")
-        a.grid(True, alpha=0.3)
-        if i >= 3:
-            a.set_xlabel("time since start [s]")
     axs[2, 0].legend(fontsize=7, loc="best")
     what = f"{ZOOM_REVOLUTIONS} rotor revolutions" if d.omega else "no rotor speed"
     fig.suptitle(f"Hub loads ({d.frame} axes). Rows 1–2: the whole run, mean and range per "
@@ -874,6 +927,47 @@ def angle_steps(d: ReportData, runs: list[dict]
     return tt, A, S, start_what
 
 
+def _run_marks(a, d: ReportData, runs: list[dict], i: int) -> None:
+    """Each run's estimate of angle ``i``: accepted ± its σ_CR, rejected as a cross."""
+    for acc, fmt, color, label in ((True, "o", "tab:green", "accepted run ± σ_CR"),
+                                   (False, "x", "tab:red", "rejected run")):
+        sel = [r for r in runs if r["accepted"] == acc]
+        if not sel:
+            continue
+        tr_ = np.array([r["t"] - d.t0 for r in sel])
+        va = np.degrees(np.array([r["alpha"][i] for r in sel]))
+        if acc:
+            err = np.degrees(np.array([r["sigma"][i] for r in sel]))
+            a.errorbar(tr_, va, yerr=np.where(np.isfinite(err), err, 0.0), fmt=fmt,
+                       color=color, ms=4, lw=0.8, capsize=2, label=label)
+        else:
+            a.plot(tr_, va, fmt, color=color, ms=6, mew=1.5, label=label)
+
+
+def _readable_range(a, d: ReportData, A: np.ndarray, S: np.ndarray, i: int) -> None:
+    """A readable range: every run's estimate ± its posterior σ and the truth (a wide prior
+    before the first run may leave the frame), at least 1° tall."""
+    vals = np.concatenate([A[1:, i] - S[1:, i], A[1:, i] + S[1:, i]])
+    if d.alpha_truth_hub is not None:
+        vals = np.concatenate([vals, d.alpha_truth_hub[:, i]])
+    vals = np.degrees(vals[np.isfinite(vals)])
+    if len(vals):
+        lo, hi = float(vals.min()), float(vals.max())
+        mid, half = (lo + hi) / 2, max(0.5, 0.55 * (hi - lo))
+        a.set_ylim(mid - half, mid + half)
+
+
+def _angles_legend(axs, n: int) -> None:
+    """One legend in the first free panel, with the marker kinds only some panels have."""
+    handles, labels = axs.flat[0].get_legend_handles_labels()
+    for r_ax in axs.flat[:n]:
+        for h, lab in zip(*r_ax.get_legend_handles_labels()):
+            if lab not in labels:
+                handles.append(h)
+                labels.append(lab)
+    axs.flat[n].legend(handles, labels, loc="center", fontsize=10)
+
+
 def plot_angles(d: ReportData, out: Path) -> Path:
     """Angles over time: the estimate in force with its posterior ±σ band (sqrt diag P of
     each record), truth, each run's estimate with its own Cramér–Rao σ_CR, accepted or
@@ -894,45 +988,17 @@ def plot_angles(d: ReportData, out: Path) -> Path:
         if d.alpha_truth_hub is not None:
             a.plot(d.alpha_truth_t, np.degrees(d.alpha_truth_hub[:, i]), color="k", lw=1.0,
                    ls="--", label="truth")
-        for acc, fmt, color, label in ((True, "o", "tab:green", "accepted run ± σ_CR"),
-                                       (False, "x", "tab:red", "rejected run")):
-            sel = [r for r in runs if r["accepted"] == acc]
-            if not sel:
-                continue
-            tr_ = np.array([r["t"] - d.t0 for r in sel])
-            va = np.degrees(np.array([r["alpha"][i] for r in sel]))
-            if acc:
-                err = np.degrees(np.array([r["sigma"][i] for r in sel]))
-                a.errorbar(tr_, va, yerr=np.where(np.isfinite(err), err, 0.0), fmt=fmt,
-                           color=color, ms=4, lw=0.8, capsize=2, label=label)
-            else:
-                a.plot(tr_, va, fmt, color=color, ms=6, mew=1.5, label=label)
-        # a readable range: every run's estimate ± its posterior σ and the truth (a wide
-        # prior before the first run may leave the frame), at least 1° tall
-        vals = np.concatenate([A[1:, i] - S[1:, i], A[1:, i] + S[1:, i]])
-        if d.alpha_truth_hub is not None:
-            vals = np.concatenate([vals, d.alpha_truth_hub[:, i]])
-        vals = np.degrees(vals[np.isfinite(vals)])
-        if len(vals):
-            lo, hi = float(vals.min()), float(vals.max())
-            mid, half = (lo + hi) / 2, max(0.5, 0.55 * (hi - lo))
-            a.set_ylim(mid - half, mid + half)
+        _run_marks(a, d, runs, i)
+        _readable_range(a, d, A, S, i)
         a.set_title(nm, fontsize=10)
         a.set_ylabel("angle [deg]")
         a.grid(True, alpha=0.3)
     for j in range(len(names), 16):
         axs.flat[j].axis("off")
-    handles, labels = axs.flat[0].get_legend_handles_labels()
-    for r_ax in axs.flat[:len(names)]:  # collect marker kinds that only some panels have
-        for h, lab in zip(*r_ax.get_legend_handles_labels()):
-            if lab not in labels:
-                handles.append(h)
-                labels.append(lab)
-    axs.flat[len(names)].legend(handles, labels, loc="center", fontsize=10)
-    for j in range(len(names)):  # the lowest used panel of each column gets the time axis
-        if j + 4 >= len(names):
-            axs.flat[j].set_xlabel("time since start [s]")
-            axs.flat[j].xaxis.set_tick_params(labelbottom=True)
+    _angles_legend(axs, len(names))
+    for j in range(max(0, len(names) - 4), len(names)):  # each column's lowest used panel
+        axs.flat[j].set_xlabel("time since start [s]")
+        axs.flat[j].xaxis.set_tick_params(labelbottom=True)
     fig.suptitle("Load-cell deformation angles: the estimate in force with its posterior ±σ, "
                  f"truth, each run with its σ_CR; before the first run: {start_what}")
     return _save(fig, out / "angles.png")
@@ -961,30 +1027,11 @@ def plot_nis(d: ReportData, out: Path, summ: dict | None = None) -> Path:
     a.axhline(6.0, color="tab:green", ls="--", lw=1, label="expected mean 6")
     a.set_yscale("log")
     a.set_ylabel("NIS = eᵀ B⁻¹ e")
-    steady = ((summ or {}).get("by_phase") or {}).get("steady") or {}
-    if steady.get("records"):
-        a.set_title(f"Calibrated steady state: {steady['records']} records, mean NIS "
-                    f"{steady['mean_nis']:.2f} (band of the mean "
-                    f"{steady['mean_band'][0]:.2f}–{steady['mean_band'][1]:.2f}), "
-                    f"{steady['above'] * 100:.2f} % above / {steady['below'] * 100:.2f} % "
-                    f"below the band: {steady['verdict']}", fontsize=10)
-    elif len(sn):
-        a.set_title(f"Normalised innovations after {d.settle_s:g} s of settling ({len(sn)} "
-                    f"records, mean {sn.mean():.2f}, "
-                    f"{np.mean((sn < lo) | (sn > hi)) * 100:.2f} % outside the band)")
+    _nis_title(a, d, summ, sn, lo, hi)
     a.grid(True, which="both", alpha=0.3)
     b = axs[1]
     if len(sn) >= M:  # windows entirely after the settling
-        run = np.convolve(sn, np.ones(M) / M, mode="valid")
-        lo_m, hi_m = (v / M for v in _chi2_band(6 * M))
-        b.plot(t[settled][M - 1:], run, color="tab:blue", lw=1.0,
-               label=f"running mean of {M} records")
-        b.axhspan(lo_m, hi_m, color="tab:green", alpha=0.12,
-                  label=f"band of a mean of {M} independent χ²₆ [{lo_m:.3g}, {hi_m:.3g}]")
-        pos = run[run > 0]
-        if len(pos):
-            b.set_ylim(min(0.5 * lo_m, 0.8 * float(pos.min())),
-                       max(2.0 * hi_m, 1.25 * float(pos.max())))
+        _running_mean(b, t[settled], sn, M)
     b.set_yscale("log")
     b.axhline(6.0, color="tab:green", ls="--", lw=1)
     b.set_ylabel("running mean NIS")
@@ -998,28 +1045,91 @@ def plot_nis(d: ReportData, out: Path, summ: dict | None = None) -> Path:
     return _save(fig, out / "innovations.png")
 
 
+def _nis_title(a, d: ReportData, summ: dict | None, sn: np.ndarray, lo: float, hi: float
+               ) -> None:
+    """The calibrated steady state's verdict, else the settled records' figures."""
+    steady = ((summ or {}).get("by_phase") or {}).get("steady") or {}
+    if steady.get("records"):
+        a.set_title(f"Calibrated steady state: {steady['records']} records, mean NIS "
+                    f"{steady['mean_nis']:.2f} (band of the mean "
+                    f"{steady['mean_band'][0]:.2f}–{steady['mean_band'][1]:.2f}), "
+                    f"{steady['above'] * 100:.2f} % above / {steady['below'] * 100:.2f} % "
+                    f"below the band: {steady['verdict']}", fontsize=10)
+    elif len(sn):
+        a.set_title(f"Normalised innovations after {d.settle_s:g} s of settling ({len(sn)} "
+                    f"records, mean {sn.mean():.2f}, "
+                    f"{np.mean((sn < lo) | (sn > hi)) * 100:.2f} % outside the band)")
+
+
+def _running_mean(b, t: np.ndarray, sn: np.ndarray, M: int) -> None:
+    """The running mean of ``M`` settled records against the band of a mean of M
+    independent χ²₆."""
+    run = np.convolve(sn, np.ones(M) / M, mode="valid")
+    lo_m, hi_m = (v / M for v in _chi2_band(6 * M))
+    b.plot(t[M - 1:], run, color="tab:blue", lw=1.0, label=f"running mean of {M} records")
+    b.axhspan(lo_m, hi_m, color="tab:green", alpha=0.12,
+              label=f"band of a mean of {M} independent χ²₆ [{lo_m:.3g}, {hi_m:.3g}]")
+    pos = run[run > 0]
+    if len(pos):
+        b.set_ylim(min(0.5 * lo_m, 0.8 * float(pos.min())),
+                   max(2.0 * hi_m, 1.25 * float(pos.max())))
+
+
+def _spectrum_series(d: ReportData) -> list[tuple[str, np.ndarray]]:
+    """The load cells and the hub loads (H, H_static) on a uniform grid, each with enough
+    of its samples present."""
+    candidates = []
+    if d.rec.channels is not None:
+        candidates.append(("cells", d.rec.channels["seq"], d.rec.channels["T"]))
+    if d.rec.hub is not None:
+        candidates += [(name, d.rec.hub["seq"], d.rec.hub[name]) for name in ("H", "H_static")]
+    series = []
+    for name, seq, values in candidates:
+        g, frac = _uniform(seq, values)
+        if g is not None and frac >= MIN_UNIFORM_FRACTION:
+            series.append((name, g))
+    return series
+
+
+def _plot_asd(d: ReportData, ax_of: dict, name: str, f: np.ndarray, asd: np.ndarray,
+              colors) -> None:
+    sc = _axis_scale(d.units)
+    if name == "cells":
+        cells = [c.name for c in d.cfg.cells]
+        for j in range(asd.shape[1]):
+            ax_of["cells"].semilogy(f, asd[:, j] * sc[0], lw=0.9, color=colors(j),
+                                    label=f"cell {cells[j]}")
+        return
+    style = dict(lw=1.0) if name == "H" else dict(lw=0.7, ls=":", alpha=0.8)
+    for j in range(6):
+        a = ax_of["forces"] if j < 3 else ax_of["moments"]
+        a.semilogy(f, asd[:, j] * sc[j], color=colors(j % 3), label=f"{AXES[j]} ({name})",
+                   **style)
+
+
+def _mark_revolutions(d: ReportData, a) -> None:
+    """1/rev and N_b/rev on a spectrum's frequency axis."""
+    if not d.omega:
+        return
+    f1 = d.omega / (2 * math.pi)
+    for k, lab in ((1, "1/rev"), (d.cfg.rotor.blades, f"{d.cfg.rotor.blades}/rev")):
+        a.axvline(k * f1, color="crimson", ls="--", lw=1)
+        a.text(k * f1, 0.97, f" {lab}", color="crimson", transform=a.get_xaxis_transform(),
+               va="top", fontsize=9)
+
+
 def plot_spectra(d: ReportData, out: Path) -> tuple[Path | None, str | None]:
     """Welch amplitude spectral densities of the load cells and the hub loads (filter H and
     static H_static), with 1/rev and N_b/rev marked."""
     plt = _plt()
     fs = d.cfg.sample_rate_hz
-    series = []
-    if d.rec.channels is not None:
-        g, frac = _uniform(d.rec.channels["seq"], d.rec.channels["T"])
-        if g is not None and frac >= MIN_UNIFORM_FRACTION:
-            series.append(("cells", g))
-    if d.rec.hub is not None:
-        for name in ("H", "H_static"):
-            g, frac = _uniform(d.rec.hub["seq"], d.rec.hub[name])
-            if g is not None and frac >= MIN_UNIFORM_FRACTION:
-                series.append((name, g))
+    series = _spectrum_series(d)
     if not series:
         return None, "no load-cell or hub-load series with enough samples"
     n = min(len(g) for _, g in series)
     if n < 64:
         return None, f"too few samples for a spectrum ({n})"
     nper = min(n, 2 ** int(math.log2(max(64, min(n // 4, int(8 * fs))))))
-    sc = _axis_scale(d.units)
     u = axis_units(d.units)
     has_cells = any(name == "cells" for name, _ in series)
     has_hub = any(name != "cells" for name, _ in series)
@@ -1027,31 +1137,15 @@ def plot_spectra(d: ReportData, out: Path) -> tuple[Path | None, str | None]:
     fig, axs = plt.subplots(len(kinds), 1, figsize=FIG_SIZE, layout="constrained",
                             sharex=True, squeeze=False)
     ax_of = dict(zip(kinds, axs[:, 0]))
-    cells = [c.name for c in d.cfg.cells]
     colors = plt.get_cmap("tab10")
     for name, g in series:
         f, P = signal.welch(g, fs=fs, nperseg=nper, axis=0, detrend="constant")
-        asd = np.sqrt(P)
-        if name == "cells":
-            for j in range(g.shape[1]):
-                ax_of["cells"].semilogy(f, asd[:, j] * sc[0], lw=0.9, color=colors(j),
-                                        label=f"cell {cells[j]}")
-        else:
-            style = dict(lw=1.0) if name == "H" else dict(lw=0.7, ls=":", alpha=0.8)
-            for j in range(6):
-                a = ax_of["forces"] if j < 3 else ax_of["moments"]
-                a.semilogy(f, asd[:, j] * sc[j], color=colors(j % 3), label=f"{AXES[j]} ({name})",
-                           **style)
+        _plot_asd(d, ax_of, name, f, np.sqrt(P), colors)
     titles = {"cells": f"Load cells [{u[0]}/√Hz]", "forces": f"Hub forces [{u[0]}/√Hz]",
               "moments": f"Hub moments [{u[3]}/√Hz]"}
     axs = axs[:, 0]
     for kind, a in ax_of.items():
-        if d.omega:
-            f1 = d.omega / (2 * math.pi)
-            for k, lab in ((1, "1/rev"), (d.cfg.rotor.blades, f"{d.cfg.rotor.blades}/rev")):
-                a.axvline(k * f1, color="crimson", ls="--", lw=1)
-                a.text(k * f1, 0.97, f" {lab}", color="crimson", transform=a.get_xaxis_transform(),
-                       va="top", fontsize=9)
+        _mark_revolutions(d, a)
         a.set_title(titles[kind])
         a.set_ylabel("amplitude spectral density")
         a.grid(True, which="both", alpha=0.3)
@@ -1078,167 +1172,204 @@ class Report:
         s = self.summary
         lines = [f"report: {len(self.plots)} plots and summary.md/summary.json in {self.out}"]
         hub = s.get("hub_loads", {})
-        bp = (hub.get("by_phase") or {}) if isinstance(hub, dict) else {}
-        if bp:
-            from rsra.daq.analysis.accuracy import phase_lines
-
-            lines.append("  hub-load error against truth, by phase (RMS error/σ and the "
-                         "fraction beyond 3σ per axis, σ as published for each sample):")
-            for name in ("H", "H_static"):
-                lines += [x for x in phase_lines(bp.get(name) or {}, name, "    ")
-                          if not x.lstrip().startswith("(")]
-            from rsra.daq.analysis.accuracy import MEANING
-
-            lines += [f"    {p}: {m}" for p, m in MEANING.items()
-                      if (bp.get("H") or {}).get(p) or (bp.get("H_static") or {}).get(p)]
-        ang = s.get("angles", {})
-        if "joint_chi2" in ang and ang["joint_chi2"]:
-            j = ang["joint_chi2"]
-            lines.append(f"  final angles: joint χ² {j['value']:.1f} on {j['dof']} dof "
-                         f"(threshold {j['threshold']:.1f}): "
-                         + ("consistent" if j["consistent"] else "INCONSISTENT"))
-        if isinstance(ang.get("advice"), dict):
-            lines.append(f"  advice (the last filter-error window, {ang['advice']['t']:.1f} s): "
-                         f"{ang['advice']['sentence']}")
-        inn = s.get("innovations", {})
-        if "mean_nis" in inn:
-            lines.append(f"  innovations, whole run (the phases below mixed): mean NIS "
-                         f"{inn['mean_nis']:.2f} (expected 6), "
-                         f"{inn['fraction_outside'] * 100:.2f} % outside the χ²₆ band: "
-                         f"{inn['verdict'].upper() if inn['verdict'] != 'consistent' else 'consistent'}")
-            for state, v in (inn.get("by_phase") or inn.get("by_state") or {}).items():
-                if v["records"]:
-                    lines.append(f"    {state}: {v['records']} records, mean NIS "
-                                 f"{v['mean_nis']:.2f}, {v['above'] * 100:.2f} % above / "
-                                 f"{v['below'] * 100:.2f} % below the band: "
-                                 + (v["verdict"] if v["verdict"] == "consistent"
-                                    else v["verdict"].upper()))
-        for k, v in self.skipped.items():
-            lines.append(f"  skipped {k}: {v}")
+        lines += _brief_hub((hub.get("by_phase") or {}) if isinstance(hub, dict) else {})
+        lines += _brief_angles(s.get("angles", {}))
+        lines += _brief_innovations(s.get("innovations", {}))
+        lines += [f"  skipped {k}: {v}" for k, v in self.skipped.items()]
         return "\n".join(lines)
 
 
-def _markdown(s: dict, units: str) -> str:
-    u = axis_units(units)
-    L = ["# rsra report", ""]
-    inp = s["inputs"]
+def _brief_hub(bp: dict) -> list[str]:
+    """The hub-load error against truth by phase, for the terminal."""
+    if not bp:
+        return []
+    from rsra.daq.analysis.accuracy import MEANING, phase_lines
+
+    lines = ["  hub-load error against truth, by phase (RMS error/σ and the fraction beyond 3σ "
+             "per axis, σ as published for each sample):"]
+    for name in ("H", "H_static"):
+        lines += [x for x in phase_lines(bp.get(name) or {}, name, "    ")
+                  if not x.lstrip().startswith("(")]
+    return lines + [f"    {p}: {m}" for p, m in MEANING.items()
+                    if (bp.get("H") or {}).get(p) or (bp.get("H_static") or {}).get(p)]
+
+
+def _brief_angles(ang: dict) -> list[str]:
+    lines = []
+    j = ang.get("joint_chi2")
+    if j:
+        lines.append(f"  final angles: joint χ² {j['value']:.1f} on {j['dof']} dof "
+                     f"(threshold {j['threshold']:.1f}): "
+                     + ("consistent" if j["consistent"] else "INCONSISTENT"))
+    if isinstance(ang.get("advice"), dict):
+        lines.append(f"  advice (the last filter-error window, {ang['advice']['t']:.1f} s): "
+                     f"{ang['advice']['sentence']}")
+    return lines
+
+
+def _loud(verdict: str, consistent: str = "consistent") -> str:
+    """A verdict as the terminal says it: an inconsistent one in capitals."""
+    return consistent if verdict == "consistent" else verdict.upper()
+
+
+def _brief_innovations(inn: dict) -> list[str]:
+    if "mean_nis" not in inn:
+        return []
+    lines = [f"  innovations, whole run (the phases below mixed): mean NIS "
+             f"{inn['mean_nis']:.2f} (expected 6), "
+             f"{inn['fraction_outside'] * 100:.2f} % outside the χ²₆ band: "
+             f"{_loud(inn['verdict'])}"]
+    for state, v in (inn.get("by_phase") or inn.get("by_state") or {}).items():
+        if v["records"]:
+            lines.append(f"    {state}: {v['records']} records, mean NIS "
+                         f"{v['mean_nis']:.2f}, {v['above'] * 100:.2f} % above / "
+                         f"{v['below'] * 100:.2f} % below the band: " + _loud(v["verdict"]))
+    return lines
+
+
+def _bold(verdict: str) -> str:
+    """A verdict as the markdown says it: an inconsistent one in bold."""
+    return "consistent" if verdict == "consistent" else f"**{verdict}**"
+
+
+def _md_inputs(inp: dict, units: str) -> list[str]:
     recs = ", ".join(f"{k} {v}" for k, v in inp["records"].items())
-    L += [f"* results: `{inp['results']}` ({recs})",
-          f"* truth: `{inp['truth']}`" + (f", aligned by {inp['alignment']} "
-                                          f"({inp['matched'] * 100:.1f} % of records matched)"
-                                          if inp.get("alignment") else ""),
-          f"* span: {inp['span_s']:.2f} s; units: {units.upper()}", ""]
-    hub = s["hub_loads"]
-    L.append("## Hub loads")
+    aligned = (f", aligned by {inp['alignment']} ({inp['matched'] * 100:.1f} % of records "
+               "matched)" if inp.get("alignment") else "")
+    return [f"* results: `{inp['results']}` ({recs})", f"* truth: `{inp['truth']}`{aligned}",
+            f"* span: {inp['span_s']:.2f} s; units: {units.upper()}", ""]
+
+
+def _pair(e: dict | None, i: int) -> str:
+    """An estimate's RMS error and RMS error/σ on axis ``i`` as two table cells."""
+    if not e:
+        return "– | –"
+    return f"{e['rms_error'][i]:.1f} | {e['rms_over_sigma_static'][i]:.3f}"
+
+
+def _md_hub_errors(hub: dict, u: list[str]) -> list[str]:
+    errs = hub["errors"]
+    L = ["", f"RMS error against truth (H scored after {hub['settle_s']:.2f} s of "
+         "filter settling) vs the static noise-budget σ (model §4):", "",
+         "| axis | unit | static σ | RMS H | RMS H / σ | RMS H_static | RMS H_static / σ |",
+         "|---|---|---|---|---|---|---|"]
+    for i, a in enumerate(AXES):
+        L.append(f"| {a} | {u[i]} | {hub['sigma_static'][i]:.1f} | "
+                 f"{_pair(errs.get('H'), i)} | {_pair(errs.get('H_static'), i)} |")
+    return L
+
+
+def _md_hub_by_phase(bp: dict, u: list[str]) -> list[str]:
+    L = ["", "By phase, each sample against the σ its record published "
+         f"({bp['sigma']}): RMS error, RMS error/σ and the fraction beyond 3σ "
+         "(0.27 % for an error of that σ).", ""]
+    L += [f"* **{p}**: {m}" for p, m in bp["meaning"].items()]
+    L += ["", "| estimate | phase | samples | axis | RMS error | RMS error / σ | beyond 3σ |",
+          "|---|---|---|---|---|---|---|"]
+    for name in ("H", "H_static"):
+        for p, v in (bp.get(name) or {}).items():
+            L += [f"| {name} | {p} | {v['samples']} | {a} [{u[i]}] | "
+                  f"{v['rms_error'][i]:.1f} | {v['rms_over_sigma'][i]:.3f} | "
+                  f"{100 * v['beyond_3sigma'][i]:.2f} % |" for i, a in enumerate(AXES) if v]
+    return L
+
+
+def _md_hub(hub: dict, units: str) -> list[str]:
     if "skipped" in hub:
-        L.append(f"Skipped: {hub['skipped']}.")
-    else:
-        L.append(f"{hub['records']} records, {hub['frame']} axes; H null in {hub['H_null']}, "
-                 f"H_static null in {hub['H_static_null']}.")
-        errs = hub.get("errors")
-        if errs:
-            L += ["", f"RMS error against truth (H scored after {hub['settle_s']:.2f} s of "
-                  "filter settling) vs the static noise-budget σ (model §4):", "",
-                  "| axis | unit | static σ | RMS H | RMS H / σ | RMS H_static "
-                  "| RMS H_static / σ |",
-                  "|---|---|---|---|---|---|---|"]
-            for i, a in enumerate(AXES):
-                h, hs = errs.get("H"), errs.get("H_static")
-                L.append(f"| {a} | {u[i]} | {hub['sigma_static'][i]:.1f} | "
-                         + (f"{h['rms_error'][i]:.1f} | {h['rms_over_sigma_static'][i]:.3f}"
-                            if h else "– | –") + " | "
-                         + (f"{hs['rms_error'][i]:.1f} | {hs['rms_over_sigma_static'][i]:.3f}"
-                            if hs else "– | –") + " |")
-            bp = hub.get("by_phase") or {}
-            if bp:
-                L += ["", "By phase, each sample against the σ its record published "
-                      f"({bp['sigma']}): RMS error, RMS error/σ and the fraction beyond 3σ "
-                      "(0.27 % for an error of that σ).", ""]
-                for p, m in bp["meaning"].items():
-                    L.append(f"* **{p}**: {m}")
-                L += ["", "| estimate | phase | samples | axis | RMS error | RMS error / σ "
-                      "| beyond 3σ |", "|---|---|---|---|---|---|---|"]
-                for name in ("H", "H_static"):
-                    for p, v in (bp.get(name) or {}).items():
-                        if not v:
-                            continue
-                        for i, a in enumerate(AXES):
-                            L.append(f"| {name} | {p} | {v['samples']} | {a} [{u[i]}] | "
-                                     f"{v['rms_error'][i]:.1f} | {v['rms_over_sigma'][i]:.3f} | "
-                                     f"{100 * v['beyond_3sigma'][i]:.2f} % |")
-        else:
-            L.append("No truth: errors not computed.")
-    L += ["", "## Angles"]
-    ang = s["angles"]
+        return ["## Hub loads", f"Skipped: {hub['skipped']}."]
+    L = ["## Hub loads", f"{hub['records']} records, {hub['frame']} axes; H null in "
+         f"{hub['H_null']}, H_static null in {hub['H_static_null']}."]
+    if not hub.get("errors"):
+        return L + ["No truth: errors not computed."]
+    u = axis_units(units)
+    L += _md_hub_errors(hub, u)
+    if hub.get("by_phase"):
+        L += _md_hub_by_phase(hub["by_phase"], u)
+    return L
+
+
+def _md_final_angles(ang: dict) -> list[str]:
+    fin = ang["final"]
+    L = ["", "Final estimate against truth:", "",
+         "| angle | estimate [deg] | truth [deg] | error [deg] | σ_CR [deg] | error / σ |",
+         "|---|---|---|---|---|---|"]
+    L += [f"| {nm} | {fin['estimate_deg'][k]:.3f} | {fin['truth_deg'][k]:.3f} | "
+          f"{fin['error_deg'][k]:+.3f} | {fin['sigma_cr_deg'][k]:.3f} | "
+          f"{fin['error_over_sigma'][k]:+.2f} |" for k, nm in enumerate(fin["names"])]
+    j = ang.get("joint_chi2")
+    if j:
+        L += ["", f"Joint χ² with the posterior covariance: {j['value']:.2f} on {j['dof']} "
+              f"dof, threshold {j['threshold']:.2f} (false alarm {j['false_alarm']:g}): "
+              + ("consistent." if j["consistent"] else "**inconsistent**.")]
+    return L
+
+
+def _md_angles(ang: dict) -> list[str]:
     if "skipped" in ang:
-        L.append(f"Skipped: {ang['skipped']}.")
+        return ["", "## Angles", f"Skipped: {ang['skipped']}."]
+    rej = ", ".join(f"{k} {v}" for k, v in ang["rejected"].items()) or "none"
+    L = ["", "## Angles",
+         f"{ang['runs']} identification runs: {ang['accepted']} accepted; rejected: {rej}."]
+    if "error_deg" in ang["final"]:
+        L += _md_final_angles(ang)
     else:
-        rej = ", ".join(f"{k} {v}" for k, v in ang["rejected"].items()) or "none"
-        L.append(f"{ang['runs']} identification runs: {ang['accepted']} accepted; rejected: {rej}.")
-        fin = ang["final"]
-        if "error_deg" in fin:
-            L += ["", "Final estimate against truth:", "",
-                  "| angle | estimate [deg] | truth [deg] | error [deg] | σ_CR [deg] | error / σ |",
-                  "|---|---|---|---|---|---|"]
-            for k, nm in enumerate(fin["names"]):
-                L.append(f"| {nm} | {fin['estimate_deg'][k]:.3f} | {fin['truth_deg'][k]:.3f} | "
-                         f"{fin['error_deg'][k]:+.3f} | {fin['sigma_cr_deg'][k]:.3f} | "
-                         f"{fin['error_over_sigma'][k]:+.2f} |")
-            j = ang.get("joint_chi2")
-            if j:
-                L += ["", f"Joint χ² with the posterior covariance: {j['value']:.2f} on {j['dof']} "
-                      f"dof, threshold {j['threshold']:.2f} (false alarm {j['false_alarm']:g}): "
-                      + ("consistent." if j["consistent"] else "**inconsistent**.")]
-        else:
-            L.append("No truth: final errors not computed.")
-        if isinstance(ang.get("advice"), dict):
-            L += ["", f"Advice of the last filter-error window ({ang['advice']['t']:.1f} s): "
-                  f"{ang['advice']['sentence']}"]
-    L += ["", "## Innovations"]
-    inn = s["innovations"]
+        L.append("No truth: final errors not computed.")
+    if isinstance(ang.get("advice"), dict):
+        L += ["", f"Advice of the last filter-error window ({ang['advice']['t']:.1f} s): "
+              f"{ang['advice']['sentence']}"]
+    return L
+
+
+def _md_state(state: str, v: dict) -> str:
+    """The NIS of one load state (steady, transient)."""
+    which = "hub_loads flagged `transient`" if state == "transient" else "not flagged"
+    lags = state == "transient" and v["verdict"] != "consistent"
+    return (f"* {state} load ({which}): {v['records']} records, mean NIS {v['mean_nis']:.3f}, "
+            f"{v['above'] * 100:.3f} % above and {v['below'] * 100:.3f} % below the band "
+            f"(each tail at most {v['limit'] * 100:.3f} % when consistent): "
+            + _bold(v["verdict"])
+            + (" — the filter lags the moving load; the σ that holds there is H_static's "
+               "static bound (model.md, Transients)." if lags else "."))
+
+
+def _md_innovations(inn: dict) -> list[str]:
     if "skipped" in inn:
-        L.append(f"Skipped: {inn['skipped']}.")
-    else:
-        j = inn["joint_chi2"]
-        L.append(f"{inn['records']} records; mean NIS {inn['mean_nis']:.3f} (χ²₆: 6); "
-                 f"{inn['fraction_outside'] * 100:.2f} % outside [{inn['band'][0]:.3g}, "
-                 f"{inn['band'][1]:.3g}] (expected {FALSE_ALARM * 100:g} %); joint χ² "
-                 f"{j['value']:.1f} on {j['dof']} dof (band [{j['band'][0]:.1f}, "
-                 f"{j['band'][1]:.1f}]; records are correlated, so this is indicative): "
-                 + (f"**{inn['verdict']}**." if inn["verdict"] != "consistent" else "consistent."))
-        for state, v in (inn.get("by_phase") or {}).items():
-            if v["records"]:
-                L.append(f"* phase {state}: {v['records']} records, mean NIS "
-                         f"{v['mean_nis']:.3f}, {v['above'] * 100:.3f} % above and "
-                         f"{v['below'] * 100:.3f} % below the band: "
-                         + (f"**{v['verdict']}**" if v["verdict"] != "consistent"
-                            else "consistent") + ".")
-        for state, v in (inn.get("by_state") or {}).items():
-            if v["records"]:
-                L.append(f"* {state} load ({'hub_loads flagged `transient`' if state == 'transient' else 'not flagged'}): "
-                         f"{v['records']} records, mean NIS {v['mean_nis']:.3f}, "
-                         f"{v['above'] * 100:.3f} % above and {v['below'] * 100:.3f} % below "
-                         f"the band (each tail at most {v['limit'] * 100:.3f} % when consistent): "
-                         + (f"**{v['verdict']}**" if v["verdict"] != "consistent"
-                            else "consistent")
-                         + (" — the filter lags the moving load; the σ that holds there is "
-                            "H_static's static bound (model.md, Transients)."
-                            if state == "transient" and v["verdict"] != "consistent" else "."))
-    L += ["", "## Flags and health"]
-    fl = s["flags"]
+        return ["", "## Innovations", f"Skipped: {inn['skipped']}."]
+    j = inn["joint_chi2"]
+    L = ["", "## Innovations",
+         f"{inn['records']} records; mean NIS {inn['mean_nis']:.3f} (χ²₆: 6); "
+         f"{inn['fraction_outside'] * 100:.2f} % outside [{inn['band'][0]:.3g}, "
+         f"{inn['band'][1]:.3g}] (expected {FALSE_ALARM * 100:g} %); joint χ² "
+         f"{j['value']:.1f} on {j['dof']} dof (band [{j['band'][0]:.1f}, "
+         f"{j['band'][1]:.1f}]; records are correlated, so this is indicative): "
+         f"{_bold(inn['verdict'])}."]
+    L += [f"* phase {state}: {v['records']} records, mean NIS {v['mean_nis']:.3f}, "
+          f"{v['above'] * 100:.3f} % above and {v['below'] * 100:.3f} % below the band: "
+          f"{_bold(v['verdict'])}." for state, v in (inn.get("by_phase") or {}).items()
+          if v["records"]]
+    L += [_md_state(state, v) for state, v in (inn.get("by_state") or {}).items()
+          if v["records"]]
+    return L
+
+
+def _md_flags(fl: dict) -> list[str]:
+    L = ["", "## Flags and health"]
     if fl.get("hub_loads") is not None:
         L.append(f"Samples with a flag: {fl['samples_flagged']}.")
-        for k, v in fl["hub_loads"].items():
-            L.append(f"* `{k}`: {v}")
+        L += [f"* `{k}`: {v}" for k, v in fl["hub_loads"].items()]
     if fl.get("health"):
         L.append(f"Last health: `{json.dumps(fl['health'])}`")
     if not fl:
         L.append("No hub_loads or health records.")
-    L += ["", "## Plots", ""]
-    for p in s["plots"]:
-        L.append(f"* ![{p}]({p})")
-    for k, v in s["skipped"].items():
-        L.append(f"* {k}: skipped — {v}")
+    return L
+
+
+def _markdown(s: dict, units: str) -> str:
+    L = ["# rsra report", "", *_md_inputs(s["inputs"], units), *_md_hub(s["hub_loads"], units),
+         *_md_angles(s["angles"]), *_md_innovations(s["innovations"]), *_md_flags(s["flags"]),
+         "", "## Plots", ""]
+    L += [f"* ![{p}]({p})" for p in s["plots"]]
+    L += [f"* {k}: skipped — {v}" for k, v in s["skipped"].items()]
     return "\n".join(L) + "\n"
 
 
@@ -1274,20 +1405,9 @@ def build_report(cfg: RigConfig, rec: Records, truth: dict | None, out: str | Pa
     except OSError as e:
         raise ReportError(f"--out {out}: cannot create the folder ({e.strerror})") from None
     d, summary = summarise(cfg, rec, truth, units, truth_name)
-    hub_s = summary["hub_loads"]
     plots: list[Path] = []
     skipped: dict[str, str] = {}
-    if rec.hub is not None and (np.isfinite(rec.hub["H"]).any()
-                                or np.isfinite(rec.hub["H_static"]).any()):
-        plots.append(plot_hub_loads(d, out))
-        if d.H_truth is not None and np.isfinite(d.H_truth).any():
-            plots.append(plot_hub_errors(d, out, hub_s))
-        else:
-            skipped["hub_load_errors.png"] = "no truth (give --truth)" if truth is None else \
-                "no record matched a truth sample"
-    else:
-        skipped["hub_loads.png"] = "no hub_loads records with estimates"
-        skipped["hub_load_errors.png"] = "no hub_loads records with estimates"
+    _hub_plots(d, summary["hub_loads"], out, plots, skipped)
     if rec.angles:
         plots.append(plot_angles(d, out))
     else:
@@ -1307,6 +1427,22 @@ def build_report(cfg: RigConfig, rec: Records, truth: dict | None, out: str | Pa
     write_text_atomic(out / "summary.json", dumps(summary) + "\n")
     write_text_atomic(out / "summary.md", _markdown(summary, units))
     return Report(out=out, plots=plots, skipped=skipped, summary=summary)
+
+
+def _hub_plots(d: ReportData, hub_s: dict, out: Path, plots: list[Path],
+               skipped: dict[str, str]) -> None:
+    """The hub loads' plot and, against truth, their errors' (or why not)."""
+    hub = d.rec.hub
+    if hub is None or not (np.isfinite(hub["H"]).any() or np.isfinite(hub["H_static"]).any()):
+        skipped["hub_loads.png"] = "no hub_loads records with estimates"
+        skipped["hub_load_errors.png"] = "no hub_loads records with estimates"
+        return
+    plots.append(plot_hub_loads(d, out))
+    if d.H_truth is not None and np.isfinite(d.H_truth).any():
+        plots.append(plot_hub_errors(d, out, hub_s))
+    else:
+        skipped["hub_load_errors.png"] = "no truth (give --truth)" if d.truth is None else \
+            "no record matched a truth sample"
 
 
 def write_report(cfg: RigConfig, results: str | Path, truth: str | Path | None,

@@ -30,11 +30,13 @@ few samples.
 """
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from collections import Counter
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
+from collections.abc import Iterator
 from typing import Any, Callable
 
 import numpy as np
@@ -108,9 +110,9 @@ def channel_specs(cfg: RigConfig, table: DecodeTable,
     """Every calibrated channel the estimator uses, in sample order: the seven load cells,
     each accelerometer's x y z, Ω, the balance X…N, the drive loads."""
     specs: list[ChannelSpec] = []
-
-    def add(key: str, kind: str, quantity: str, sigma: float | None, full_scale: float | None,
-            target: float | None) -> None:
+    for key, kind, quantity, sigma, full_scale, target in itertools.chain(
+            _cell_rows(cfg), _accel_rows(cfg), _omega_rows(cfg), _balance_rows(cfg),
+            _drive_rows(cfg, table)):
         if not table.has_channel(key):
             from rsra.config.rig import ConfigError
             raise ConfigError("nodes", key.split(".")[0], f"the EDS maps no channel {key!r}",
@@ -120,26 +122,46 @@ def channel_specs(cfg: RigConfig, table: DecodeTable,
         specs.append(ChannelSpec(key, kind, quantity, bool(node and node.required), sigma,
                                  None if full_scale is None else max_offset_fs * full_scale,
                                  target, float(gain), float(offset)))
+    return specs
 
+
+# (key, kind, quantity, sensor σ, full scale, target at rest) of each kind of channel, in
+# sample order
+_Row = tuple[str, str, str, float | None, float | None, float | None]
+
+
+def _cell_rows(cfg: RigConfig) -> Iterator[_Row]:
     for c in cfg.cells:
-        add(f"{c.node}.force", "cell", "force", c.sigma_N, c.full_scale_N, None)
+        yield f"{c.node}.force", "cell", "force", c.sigma_N, c.full_scale_N, None
+
+
+def _accel_rows(cfg: RigConfig) -> Iterator[_Row]:
     for a in cfg.accelerometers:
         for j, ax in enumerate("xyz"):
-            add(f"{a.node}.{ax}", "accel", "accel", a.sigma_m_s2, a.full_scale_g * G0,
-                float(GRAVITY_AT_REST[j]))
+            yield (f"{a.node}.{ax}", "accel", "accel", a.sigma_m_s2, a.full_scale_g * G0,
+                   float(GRAVITY_AT_REST[j]))
+
+
+def _omega_rows(cfg: RigConfig) -> Iterator[_Row]:
     if cfg.rotor.node:
-        add(f"{cfg.rotor.node}.omega", "omega", "rate", None, None, 0.0)
-    if cfg.balance.node:
-        b = cfg.balance
-        for j, ax in enumerate("XYZLMN"):
-            fs = b.full_scale_force_N if j < 3 else b.full_scale_moment_Nm
-            add(f"{b.node}.{ax}", "balance", "force" if j < 3 else "moment",
-                float(b.sigma[j]), fs, 0.0)
+        yield f"{cfg.rotor.node}.omega", "omega", "rate", None, None, 0.0
+
+
+def _balance_rows(cfg: RigConfig) -> Iterator[_Row]:
+    b = cfg.balance
+    if not b.node:
+        return
+    for j, ax in enumerate("XYZLMN"):
+        fs = b.full_scale_force_N if j < 3 else b.full_scale_moment_Nm
+        yield (f"{b.node}.{ax}", "balance", "force" if j < 3 else "moment", float(b.sigma[j]),
+               fs, 0.0)
+
+
+def _drive_rows(cfg: RigConfig, table: DecodeTable) -> Iterator[_Row]:
     for e in cfg.external_loads:
         nl = table.node(e.node)
         keys = [c.key for c in table.channels[nl.start:nl.stop] if not c.is_status]
-        add(keys[0], "drive", "moment", e.sigma, None, 0.0)
-    return specs
+        yield keys[0], "drive", "moment", e.sigma, None, 0.0
 
 
 def extractor(cfg: RigConfig, specs: list[ChannelSpec]) -> Callable[[Any], np.ndarray]:
@@ -171,6 +193,124 @@ def _sigma_factor(n: int, m: int, false_alarm: float) -> float:
     return math.sqrt(float(chi2.ppf(1.0 - false_alarm / max(m, 1), n - 1)) / (n - 1))
 
 
+@dataclass(frozen=True)
+class _Stats:
+    """Per channel of one rest recording (nan where a channel has no sample)."""
+
+    n: np.ndarray  # samples
+    mean: np.ndarray
+    std: np.ndarray
+    max_abs: np.ndarray
+
+    @classmethod
+    def of(cls, values: np.ndarray) -> "_Stats":
+        C = values.shape[1]
+        finite = np.isfinite(values)
+        n = finite.sum(axis=0)
+        safe = np.where(finite, values, 0.0)
+        mean = np.divide(safe.sum(axis=0), n, out=np.full(C, np.nan), where=n > 0)
+        dev = np.where(finite, values - mean, 0.0)
+        std = np.divide(np.sqrt((dev**2).sum(axis=0)), np.sqrt(np.maximum(n - 1, 1)),
+                        out=np.full(C, np.nan), where=n > 1)
+        max_abs = np.where(n > 0, np.max(np.abs(safe), axis=0, initial=0.0), np.nan)
+        return cls(n, mean, std, max_abs)
+
+
+def _cell_targets(cfg: RigConfig, specs: list[ChannelSpec], st: _Stats, alpha: np.ndarray,
+                  target: np.ndarray, res: TareResult) -> None:
+    """The load cells' targets: the smallest σ-weighted correction b with S(α)(T̄ − b) = I
+    at rest (Eq 1.1 with H = 0, D q = 0); I = M_f f with every accelerometer at its target
+    −g. With the accelerometers too, what the rig reads now (info): Ĥ = R⁻¹(I − S T̄)."""
+    from rsra.estimator.balance import inertial_load_matrix
+    from rsra.estimator.geometry import hub_transfer_matrix, wrench_matrix
+
+    cells = [i for i, s in enumerate(specs) if s.kind == "cell"]
+    accs = [i for i, s in enumerate(specs) if s.kind == "accel"]
+    if not np.all(st.n[cells] > 0):
+        return
+    model = cfg.rig_model()
+    S = wrench_matrix(model.geometry, alpha)
+    Mf = inertial_load_matrix(model)
+    I_target = Mf @ np.tile(GRAVITY_AT_REST, len(cfg.accelerometers))
+    T_bar = st.mean[cells]
+    W = np.diag(np.array([specs[i].sigma for i in cells]) ** 2)
+    b = W @ S.T @ np.linalg.solve(S @ W @ S.T, S @ T_bar - I_target)
+    tc = T_bar - b
+    # round-off of an exact zero (a cell no weight reaches) is shown as 0
+    target[cells] = np.where(np.abs(tc) < 1e-12 * np.abs(T_bar).max(initial=1.0), 0.0, tc)
+    if np.all(st.n[accs] > 0):
+        R = hub_transfer_matrix(model.geometry)
+        res.hub_loads_now = np.linalg.solve(R, Mf @ st.mean[accs] - S @ T_bar)
+
+
+# -- refusals (problems) and notes, each check on its own -------------------------------
+
+def _few_samples(specs: list[ChannelSpec], st: _Stats, min_samples: int, res: TareResult
+                 ) -> None:
+    few = [f"{s.key} {st.n[i]}" for i, s in enumerate(specs)
+           if st.n[i] < min_samples and (s.required or st.n[i] > 0)]
+    if few:
+        res.problems.append(f"too few samples ({', '.join(few)}; need {min_samples}): acquire "
+                            "longer (--seconds) or check the bus")
+    absent = sorted({s.key.split(".")[0] for i, s in enumerate(specs) if st.n[i] == 0
+                     and not s.required})
+    res.notes += [f"optional node {node} sent no data: its channels are not tared"
+                  for node in absent]
+
+
+def _rotor_turning(cfg: RigConfig, specs: list[ChannelSpec], st: _Stats, res: TareResult
+                   ) -> None:
+    omega_min = cfg.rotor.omega_min_fraction * cfg.rotor.omega_nominal_rad_s
+    for i, s in enumerate(specs):
+        if s.kind != "omega" or st.n[i] == 0:
+            continue
+        res.omega_max = float(st.max_abs[i])
+        if st.max_abs[i] > omega_min:
+            res.problems.append(
+                f"the rotor is turning: {s.key} reaches {st.max_abs[i]:.3g} rad/s, above "
+                f"omega_min = {omega_min:.3g} rad/s (rotor.omega_min_fraction × "
+                "omega_nominal_rad_s); stop the rotor")
+    if cfg.rotor.node and res.omega_max is None:
+        res.notes.append("no rotor-speed data: make sure the rotor is stopped")
+
+
+def _status_bits(status_counts: dict[str, int], res: TareResult) -> None:
+    for flag, count in sorted(status_counts.items()):
+        kind, _, cell = flag.partition(":")
+        what = "over-range" if kind == "overrange" else "a sensor fault"
+        res.problems.append(f"load cell {cell} reported {what} in {count} samples: fix the "
+                            "cell before taring")
+
+
+def _varying(specs: list[ChannelSpec], st: _Stats, false_alarm: float, res: TareResult
+             ) -> None:
+    """A channel whose σ exceeds its sensor's at the false-alarm rate (all tested together)."""
+    tested = [(i, s, s.sigma) for i, s in enumerate(specs) if s.sigma is not None and st.n[i] > 1]
+    for i, s, sigma in tested:
+        limit = sigma * _sigma_factor(int(st.n[i]), len(tested), false_alarm)
+        if st.std[i] > limit:
+            res.problems.append(
+                f"{s.key} varies: σ = {st.std[i]:.4g} exceeds {limit:.4g} (the configured "
+                f"sensor σ {sigma:.4g} at a {false_alarm:g} false-alarm rate): a varying load "
+                "(shaker, wind, someone on the rig), vibration or a noisy sensor")
+
+
+_SHIFT_CAUSES = {"cell": "a load is applied or the cell is faulty",
+                 "accel": "the rig is not level, moving, or the accelerometer is faulty",
+                 "balance": "a load is applied to the hub"}
+
+
+def _big_shifts(specs: list[ChannelSpec], st: _Stats, target: np.ndarray, res: TareResult
+                ) -> None:
+    for i, s in enumerate(specs):
+        if s.limit is None or st.n[i] == 0 or not np.isfinite(target[i]):
+            continue
+        shift = target[i] - st.mean[i]
+        if abs(shift) > s.limit:
+            res.problems.append(f"{s.key} would shift by {shift:.4g}, more than {s.limit:.4g} "
+                                f"(--max-offset-fs of full scale): {_SHIFT_CAUSES[s.kind]}")
+
+
 def tare(cfg: RigConfig, specs: list[ChannelSpec], values: np.ndarray, *,
          alpha: np.ndarray | None = None, min_samples: int = DEFAULT_MIN_SAMPLES,
          false_alarm: float = FALSE_ALARM, status_counts: dict[str, int] | None = None,
@@ -179,95 +319,23 @@ def tare(cfg: RigConfig, specs: list[ChannelSpec], values: np.ndarray, *,
 
     ``values`` (N, C) calibrated with the current config (nan = missing); ``alpha`` the 14
     angles of S (default: the configured initial angles)."""
-    from rsra.estimator.balance import inertial_load_matrix
-    from rsra.estimator.geometry import hub_transfer_matrix, wrench_matrix
-
     values = np.asarray(values, float).reshape(-1, len(specs))
-    finite = np.isfinite(values)
-    n = finite.sum(axis=0)
-    safe = np.where(finite, values, 0.0)
-    mean = np.divide(safe.sum(axis=0), n, out=np.full(len(specs), np.nan), where=n > 0)
-    dev = np.where(finite, values - mean, 0.0)
-    std = np.divide(np.sqrt((dev**2).sum(axis=0)), np.sqrt(np.maximum(n - 1, 1)),
-                    out=np.full(len(specs), np.nan), where=n > 1)
-    max_abs = np.where(n > 0, np.max(np.abs(safe), axis=0, initial=0.0), np.nan)
+    st = _Stats.of(values)
     target = np.array([np.nan if s.target is None else s.target for s in specs])
     res = TareResult([], samples=int(values.shape[0]), span_s=float(span_s))
-    problems = res.problems
-
-    # load cells: the smallest σ-weighted correction b with S(α)(T̄ − b) = I at rest (Eq 1.1
-    # with H = 0, D q = 0); I = M_f f with every accelerometer at its target −g
-    cells = [i for i, s in enumerate(specs) if s.kind == "cell"]
-    accs = [i for i, s in enumerate(specs) if s.kind == "accel"]
-    model = cfg.rig_model()
     alpha = cfg.identification.initial_angles_rad if alpha is None else np.asarray(alpha, float)
-    if np.all(n[cells] > 0):
-        S = wrench_matrix(model.geometry, alpha)
-        Mf = inertial_load_matrix(model)
-        I_target = Mf @ np.tile(GRAVITY_AT_REST, len(cfg.accelerometers))
-        T_bar = mean[cells]
-        W = np.diag(np.array([specs[i].sigma for i in cells]) ** 2)
-        b = W @ S.T @ np.linalg.solve(S @ W @ S.T, S @ T_bar - I_target)
-        tc = T_bar - b
-        # round-off of an exact zero (a cell no weight reaches) is shown as 0
-        target[cells] = np.where(np.abs(tc) < 1e-12 * np.abs(T_bar).max(initial=1.0), 0.0, tc)
-        if np.all(n[accs] > 0):  # what the rig reads now (info): Ĥ = R⁻¹(I − S T̄)
-            R = hub_transfer_matrix(model.geometry)
-            res.hub_loads_now = np.linalg.solve(R, Mf @ mean[accs] - S @ T_bar)
+    _cell_targets(cfg, specs, st, alpha, target, res)
     new_offset = np.array([s.offset for s in specs], float)
-    have = n > 0
-    new_offset[have] += target[have] - mean[have]
-    for i, s in enumerate(specs):
-        res.channels.append(ChannelResult(s, int(n[i]), float(mean[i]), float(std[i]),
-                                          float(max_abs[i]), float(target[i]),
-                                          float(new_offset[i])))
-
-    # -- refusals ------------------------------------------------------------------------
-    few = [f"{s.key} {n[i]}" for i, s in enumerate(specs)
-           if n[i] < min_samples and (s.required or n[i] > 0)]
-    if few:
-        problems.append(f"too few samples ({', '.join(few)}; need {min_samples}): acquire "
-                        "longer (--seconds) or check the bus")
-    absent = sorted({s.key.split(".")[0] for i, s in enumerate(specs) if n[i] == 0
-                     and not s.required})
-    for node in absent:
-        res.notes.append(f"optional node {node} sent no data: its channels are not tared")
-    omega_min = cfg.rotor.omega_min_fraction * cfg.rotor.omega_nominal_rad_s
-    for i, s in enumerate(specs):
-        if s.kind == "omega" and n[i] > 0:
-            res.omega_max = float(max_abs[i])
-            if max_abs[i] > omega_min:
-                problems.append(
-                    f"the rotor is turning: {s.key} reaches {max_abs[i]:.3g} rad/s, above "
-                    f"omega_min = {omega_min:.3g} rad/s (rotor.omega_min_fraction × "
-                    "omega_nominal_rad_s); stop the rotor")
-    if cfg.rotor.node and res.omega_max is None:
-        res.notes.append("no rotor-speed data: make sure the rotor is stopped")
-    for flag, count in sorted((status_counts or {}).items()):
-        kind, _, cell = flag.partition(":")
-        what = "over-range" if kind == "overrange" else "a sensor fault"
-        problems.append(f"load cell {cell} reported {what} in {count} samples: fix the cell "
-                        "before taring")
-    tested = [i for i, s in enumerate(specs) if s.sigma is not None and n[i] > 1]
-    for i in tested:
-        s = specs[i]
-        assert s.sigma is not None  # tested: the specs with a sigma
-        limit = s.sigma * _sigma_factor(int(n[i]), len(tested), false_alarm)
-        if std[i] > limit:
-            problems.append(
-                f"{s.key} varies: σ = {std[i]:.4g} exceeds {limit:.4g} (the configured sensor "
-                f"σ {s.sigma:.4g} at a {false_alarm:g} false-alarm rate): a varying load "
-                "(shaker, wind, someone on the rig), vibration or a noisy sensor")
-    for i, s in enumerate(specs):
-        if s.limit is None or n[i] == 0 or not np.isfinite(target[i]):
-            continue
-        shift = target[i] - mean[i]
-        if abs(shift) > s.limit:
-            why = {"cell": "a load is applied or the cell is faulty",
-                   "accel": "the rig is not level, moving, or the accelerometer is faulty",
-                   "balance": "a load is applied to the hub"}[s.kind]
-            problems.append(f"{s.key} would shift by {shift:.4g}, more than {s.limit:.4g} "
-                            f"(--max-offset-fs of full scale): {why}")
+    have = st.n > 0
+    new_offset[have] += target[have] - st.mean[have]
+    res.channels += [ChannelResult(s, int(st.n[i]), float(st.mean[i]), float(st.std[i]),
+                                   float(st.max_abs[i]), float(target[i]),
+                                   float(new_offset[i])) for i, s in enumerate(specs)]
+    _few_samples(specs, st, min_samples, res)
+    _rotor_turning(cfg, specs, st, res)
+    _status_bits(status_counts or {}, res)
+    _varying(specs, st, false_alarm, res)
+    _big_shifts(specs, st, target, res)
     return res
 
 

@@ -52,6 +52,13 @@ REPORT_FILES = ("summary.json", "summary.md", "hub_loads.png", "hub_load_errors.
                 "angles.png", "innovations.png", "spectra.png")  # a folder given as input is looked through to this many entries
 
 
+def _strings(args: object, attr: str) -> list[str]:
+    """The paths an argument gives (one or a list; absent, empty and non-text left out)."""
+    value = getattr(args, attr, None)
+    return [v for v in (value if isinstance(value, list) else [value])
+            if v and isinstance(v, str)]
+
+
 class Inputs:
     """The files a command reads, by (device, inode), with the name the user gave."""
 
@@ -68,32 +75,36 @@ class Inputs:
             return
         if stat.S_ISDIR(st.st_mode):
             self._folders[(st.st_dev, st.st_ino)] = name
-            for n, f in enumerate(Path(path).rglob("*")):
-                if n >= FOLDER_FILES_MAX:
-                    break
-                try:
-                    fst = os.stat(f)
-                except OSError:
-                    continue
-                if stat.S_ISREG(fst.st_mode):
-                    self._files.setdefault((fst.st_dev, fst.st_ino), (f"{f}", f"{f}"))
-                elif stat.S_ISDIR(fst.st_mode):
-                    self._inner.setdefault((fst.st_dev, fst.st_ino), name)
+            self._add_folder(Path(path), name)
         elif stat.S_ISREG(st.st_mode):
             self._files.setdefault((st.st_dev, st.st_ino), (name, str(path)))
+
+    def _add_folder(self, folder: Path, name: str) -> None:
+        """The files of an input folder (to :data:`FOLDER_FILES_MAX` entries) and the folders
+        inside it."""
+        for n, f in enumerate(folder.rglob("*")):
+            if n >= FOLDER_FILES_MAX:
+                break
+            try:
+                fst = os.stat(f)
+            except OSError:
+                continue
+            if stat.S_ISREG(fst.st_mode):
+                self._files.setdefault((fst.st_dev, fst.st_ino), (f"{f}", f"{f}"))
+            elif stat.S_ISDIR(fst.st_mode):
+                self._inner.setdefault((fst.st_dev, fst.st_ino), name)
 
     def add_args(self, args: object, extra: Iterable[str | None] = (),
                  outputs: Iterable[str] = ()) -> Inputs:
         for attr, option in INPUT_OPTIONS.items():
             if attr in outputs:  # (--truth: an input of report, an output of run and sim)
                 continue
-            value = getattr(args, attr, None)
-            for v in value if isinstance(value, list) else [value]:
-                if v and isinstance(v, str) and v != "-":
+            for v in _strings(args, attr):
+                if v != "-":
                     self.add(v, f"{option} {v}" if option else str(v))
-        for v in extra:
-            if v:
-                self.add(v)
+        for more in extra:
+            if more:
+                self.add(more)
         self.add_rig(getattr(args, "config", None))
         return self
 
@@ -101,9 +112,9 @@ class Inputs:
         """The packaged rig, the --config files and their bases (``extends``, transitively),
         the EDS files they name and the identification.state_file they set: read (or written
         only as a posterior) by the command, so never an output."""
-        from rsra.config.rig import ConfigError, layer_paths, merge_layers
+        from rsra.config.rig import ConfigError, config_files, layer_paths, merge_layers
 
-        files = [config] if isinstance(config, str) else list(config or ())
+        files = config_files(config)
         for f in layer_paths(files):
             self.add(f, f"{f} (a rig or EDS file the command reads)")
         try:
@@ -124,24 +135,24 @@ class Inputs:
             st = None
         if st is not None and (st.st_dev, st.st_ino) in self._files:
             what, where = self._files[(st.st_dev, st.st_ino)]
-            if p.is_symlink():
-                how = "is a symbolic link to"
-            elif os.path.realpath(p) == os.path.realpath(where):
-                how = "is"
-            else:
-                how = "is the same file as (a hard link to)"
-            raise UsageError(f"{option} {path}: {how} the input {what}; an output never "
-                             "replaces an input; fix: give another file name")
+            raise UsageError(f"{option} {path}: {_how(p, where)} the input {what}; an output "
+                             "never replaces an input; fix: give another file name")
+        folder = self._recording_holding(p)
+        if folder is not None:
+            raise UsageError(f"{option} {path}: would become part of the input recording "
+                             f"{folder}; fix: give another file name or folder")
+
+    def _recording_holding(self, p: Path) -> str | None:
+        """The input recording folder a new file ``p`` would become part of, or None."""
         try:
             pst = os.stat(p.resolve().parent)
         except (OSError, ValueError, RuntimeError):
-            return
+            return None
         key = (pst.st_dev, pst.st_ino)
         folder = self._folders.get(key)
         if key in self._inner or (folder is not None and _RECORDING_NAME.match(p.resolve().name)):
-            folder = folder or self._inner[key]
-            raise UsageError(f"{option} {path}: would become part of the input recording "
-                             f"{folder}; fix: give another file name or folder")
+            return folder or self._inner[key]
+        return None
 
     def check_folder(self, option: str, folder: str | os.PathLike[str],
                      names: Iterable[str] = ()) -> None:
@@ -162,6 +173,15 @@ class Inputs:
                                  "output never goes into an input; fix: give another folder")
         for name in names:
             self.check(option, Path(folder) / name)
+
+
+def _how(p: Path, where: str) -> str:
+    """How an output path ``p`` is the input file at ``where``."""
+    if p.is_symlink():
+        return "is a symbolic link to"
+    if os.path.realpath(p) == os.path.realpath(where):
+        return "is"
+    return "is the same file as (a hard link to)"
 
 
 def check_outputs(args: object, outputs: dict[str, str | tuple[str, ...]],
@@ -192,23 +212,28 @@ def check_input_files(args: object) -> None:
     folder's text files (``angles.jsonl``, ``config.json``) are regular files of UTF-8 text:
     a bad byte is one line naming the file and the line, not a decoding error later."""
     for attr in FILE_OPTIONS:
-        value = getattr(args, attr, None)
-        for v in value if isinstance(value, list) else [value]:
-            if not v or not isinstance(v, str) or not os.path.lexists(v):
-                continue  # not there: the command's own check says so
-            problem = regular_file_problem(v, None if attr == "files" else TEXT_LIMIT)
-            if problem is not None:
-                option = "" if attr == "files" else f"--{attr.replace('_', '-')} "
-                raise UsageError(f"{option}{v}: {problem}; fix: give the path of the file "
-                                 "itself")
-    for attr in RECORDING_OPTIONS:
-        value = getattr(args, attr, None)
-        for v in value if isinstance(value, list) else [value]:
-            if v and isinstance(v, str) and os.path.isdir(v):
-                for name in RECORDING_TEXTS:
-                    if name == "config.json" and getattr(args, "config", None):
-                        continue  # the rig is given: the recording's own is not read
-                    check_text_file(Path(v) / name)
+        for v in _strings(args, attr):
+            if os.path.lexists(v):  # (not there: the command's own check says so)
+                _check_whole_file(attr, v)
+    _check_recording_texts(args)
+
+
+def _check_recording_texts(args: object) -> None:
+    """The text files of every recording folder given (its ``config.json`` only when the
+    rig is not given: then the recording's own is not read)."""
+    texts = [n for n in RECORDING_TEXTS
+             if not (n == "config.json" and getattr(args, "config", None))]
+    folders = [v for attr in RECORDING_OPTIONS for v in _strings(args, attr) if os.path.isdir(v)]
+    for v in folders:
+        for name in texts:
+            check_text_file(Path(v) / name)
+
+
+def _check_whole_file(attr: str, v: str) -> None:
+    problem = regular_file_problem(v, None if attr == "files" else TEXT_LIMIT)
+    if problem is not None:
+        option = "" if attr == "files" else f"--{attr.replace('_', '-')} "
+        raise UsageError(f"{option}{v}: {problem}; fix: give the path of the file itself")
 
 
 def check_text_file(path: Path) -> None:

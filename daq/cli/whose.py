@@ -62,14 +62,17 @@ class Whose:
 
         while self._alive is not None and (s := self._alive.handler.try_recv()) is not None:
             inst = parse(str(s.key_expr))
-            if inst is None:
-                continue
-            if s.kind == zenoh.SampleKind.DELETE and inst == self.instance:
-                self.stopped = time.strftime("%H:%M:%S UTC", time.gmtime())
-            elif s.kind == zenoh.SampleKind.PUT and inst != self.instance:
-                self.instance, self.stopped = inst, None
+            if inst is not None:
+                self._hear(s.kind == zenoh.SampleKind.PUT, inst)
         if self.instance is None and now - self._looked >= REDISCOVER_S:
             self.discover(now)
+
+    def _hear(self, put: bool, inst: Any) -> None:
+        """A liveliness token of the prefix: ours gone (stopped), or another one started."""
+        if not put and inst == self.instance:
+            self.stopped = time.strftime("%H:%M:%S UTC", time.gmtime())
+        elif put and inst != self.instance:
+            self.instance, self.stopped = inst, None
 
     def title(self) -> str:
         if self.instance is not None:

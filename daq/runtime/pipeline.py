@@ -265,45 +265,74 @@ class EstimatorPipeline:
                          out) -> tuple:
         """The first step's reference path (numpy): every sample the compiled hub path does
         not take, and all of them without it. Returns (I, z, e, nis, omega, dpsi)."""
-        # (ndarray.dot: the same BLAS gemv as @, at half the call cost on these sizes, P5b)
+        I, z, zh, H_static = self._static_hub_load(T, accel, q, measured, acc_ok, drive_ok)
+        omega, refused = self._take_omega(s.omega, flags)
+        lost = self._lost_before(s, seq)
+        dpsi = (self.azimuth.step(s.azimuth, omega, lost + 1) if self.azimuth_mode else None)
+        res = self.load_filter.step(T if measured else np.zeros(7), zh if measured else np.zeros(6),
+                                    measured=measured, lost=lost, dpsi=dpsi)
+        sigma_filter = self._after_filter(res, dpsi, flags)
+        if measured:  # (predict-only: H comes from earlier samples, and so does their σ)
+            self.angles.measure(T)
+        sigma_angles = None if res.H is None else self.angles.sigma
+        if sigma_angles is not None and self.angles.uncertain:
+            flags.append(ANGLES_UNCERTAIN)
+        omega_pub = omega if omega is not None else (
+            None if self.cfg.rotor.stopped or refused else self.cfg.rotor.omega_nominal_rad_s)
+        out.records.append(("hub_loads", {
+            "seq": seq, "sync": int(s.sync), "t": float(s.t), "frame": self.frame,
+            "H": None if res.H is None else res.H, "H_static": H_static,
+            "sigma_angles": sigma_angles,
+            "sigma_filter": None if res.H is None else sigma_filter,
+            "omega": omega_pub, "flags": flags}))
+        return I, z, res.e, res.nis, omega, dpsi
+
+    def _static_hub_load(self, T, accel, q, measured, acc_ok, drive_ok) -> tuple:
+        """(I, z, z as the structure corrects it, the static hub load or None)."""
+        # (ndarray.dot: the same BLAS gemv as @, at half the call cost on these sizes)
         I = self._Mf.dot(accel) if acc_ok else np.full(6, np.nan)
         z = I - self._D.dot(q) if (q is not None and drive_ok) else I
-        H_static = None
+        if not measured:
+            return I, z, z, None
         angles = self.angles
-        structure = angles.structure
-        zh = z if structure is None or not measured else structure.correct(z, T)
-        if measured:
-            H_static = self._Rinv.dot(zh - angles.S.dot(T))
-        omega = s.omega if s.omega is not None and math.isfinite(s.omega) else None
-        refused = omega is not None and not self.omega_low <= omega < self.omega_max
-        if refused:
+        zh = z if angles.structure is None else angles.structure.correct(z, T)
+        return I, z, zh, self._Rinv.dot(zh - angles.S.dot(T))
+
+    def _take_omega(self, omega, flags: list[str]) -> tuple[float | None, bool]:
+        """The sample's rotor speed for the filter (None: none), and whether it was refused
+        as implausible; a plausible one redesigns the filter when it must."""
+        omega = omega if omega is not None and math.isfinite(omega) else None
+        if omega is not None and not self.omega_low <= omega < self.omega_max:
             # a corrupt or impossible reading (e.g. 1e12 rad/s, or -19.4 rad/s from a
             # sign-inverted sensor): no redesign for it — the design would fail or take the
             # estimator thread for tens of ms, or say the rotor stopped — and no value
             self.implausible_omega += 1
-            omega = None
             for flag in (f"missing:{self.cfg.rotor.node}", IMPLAUSIBLE_OMEGA):
                 if flag not in flags:
                     flags.append(flag)
-        else:
-            try:
-                self.load_filter.set_omega(omega)
-            except (ValueError, np.linalg.LinAlgError) as e:  # keep the current design
-                self.design_errors += 1
-                if self.design_errors == 1:
-                    log.error("filter redesign at omega=%r failed (%s); the current design "
-                              "is kept", omega, e)
-        # samples lost before this one: SYNCs lost on the bus (lost_before), and samples
-        # that never reached this step (a whole sample dropped from a full queue live,
-        # counted in health; a replay's gap) — both keep their seq, so the gap says how far
-        # to predict (model §6: Φ^k)
+            return None, True
+        try:
+            self.load_filter.set_omega(omega)
+        except (ValueError, np.linalg.LinAlgError) as e:  # keep the current design
+            self.design_errors += 1
+            if self.design_errors == 1:
+                log.error("filter redesign at omega=%r failed (%s); the current design "
+                          "is kept", omega, e)
+        return omega, False
+
+    def _lost_before(self, s, seq: int) -> int:
+        """Samples lost before this one: SYNCs lost on the bus (lost_before), and samples
+        that never reached this step (a whole sample dropped from a full queue live, counted
+        in health; a replay's gap) — both keep their seq, so the gap says how far to predict
+        (model §6: Φ^k)."""
         lost = int(s.lost_before)
         if self._last_seq is not None and seq - self._last_seq - 1 > lost:
             lost = seq - self._last_seq - 1
         self._last_seq = seq
-        dpsi = (self.azimuth.step(s.azimuth, omega, lost + 1) if self.azimuth_mode else None)
-        res = self.load_filter.step(T if measured else np.zeros(7), zh if measured else np.zeros(6),
-                                    measured=measured, lost=lost, dpsi=dpsi)
+        return lost
+
+    def _after_filter(self, res, dpsi, flags: list[str]):
+        """The filter step's flags, the transient test and σ of the filter's error."""
         for fl in res.flags:
             if fl not in flags:
                 flags.append(fl)
@@ -315,20 +344,7 @@ class EstimatorPipeline:
         sigma_filter = self.filter_sigma.update(design, res.e)
         if self.identification_off:
             flags.append("identification_off")
-        if measured:  # (predict-only: H comes from earlier samples, and so does their σ)
-            angles.measure(T)
-        sigma_angles = None if res.H is None else angles.sigma
-        if sigma_angles is not None and angles.uncertain:
-            flags.append(ANGLES_UNCERTAIN)
-        omega_pub = omega if omega is not None else (
-            None if self.cfg.rotor.stopped or refused else self.cfg.rotor.omega_nominal_rad_s)
-        out.records.append(("hub_loads", {
-            "seq": seq, "sync": int(s.sync), "t": float(s.t), "frame": self.frame,
-            "H": None if res.H is None else res.H, "H_static": H_static,
-            "sigma_angles": sigma_angles,
-            "sigma_filter": None if res.H is None else sigma_filter,
-            "omega": omega_pub, "flags": flags}))
-        return I, z, res.e, res.nis, omega, dpsi
+        return sigma_filter
 
 
 def _load_filter(cfg: RigConfig, cache: DesignCache, alpha: np.ndarray,

@@ -124,18 +124,22 @@ class KeyStats:
         self.count += 1
         seq = payload.get("seq") if isinstance(payload, dict) else None
         if self.counted and isinstance(seq, int) and not isinstance(seq, bool):
-            if self.first_seq is None or self.last_seq is None:  # (the two are set together)
-                self.first_seq = seq
-                self.last_seq = seq
-                self.n_seq = 1
-            elif seq > self.last_seq:
-                if self.key not in EVERY_SAMPLE:
-                    self.stride = math.gcd(self.stride, seq - self.last_seq)
-                self.last_seq = seq
-                self.n_seq += 1
+            self._seq(seq)
         self.last_arrival = now
         self.arrivals.append(now)
         self.latest = payload if isinstance(payload, dict) else {"value": payload}
+
+    def _seq(self, seq: int) -> None:
+        """A message's seq: the first, or a later one (a gap counts as missed; the stride of
+        every n-th sample is the greatest common divisor of the steps)."""
+        if self.first_seq is None or self.last_seq is None:  # (the two are set together)
+            self.first_seq = self.last_seq = seq
+            self.n_seq = 1
+        elif seq > self.last_seq:
+            if self.key not in EVERY_SAMPLE:
+                self.stride = math.gcd(self.stride, seq - self.last_seq)
+            self.last_seq = seq
+            self.n_seq += 1
 
     def rate(self, now: float | None = None) -> float:
         """Messages per second over the recent arrivals; 0 once none has come for
@@ -158,88 +162,117 @@ def _fmt(v, width: int = 9) -> str:
     return f"{v:{width}.1f}"
 
 
-def render(stats: dict[str, KeyStats], prefix: str, units: str, now: float,
-           notes: list[str] | None = None, source: str | None = None):
-    """The live view; ``source``: whose telemetry it is (daq.runtime.instances), or why
-    nothing is shown."""
-    from rich.console import Group
+def _keys_table(stats: dict[str, KeyStats], title: str, now: float):
     from rich.table import Table
 
-    parts: list[RenderableType] = []
-    t = Table(title=f"rsra telemetry — {_text(source or prefix)}", expand=False)
+    t = Table(title=f"rsra telemetry — {_text(title)}", expand=False)
     for col in ("key", "messages", "rate /s", "missed", "age s"):
         t.add_column(col, justify="right" if col != "key" else "left")
     for key in sorted(stats):
         s = stats[key]
         missed = s.missed
-        t.add_row(_text(key), str(s.count), f"{s.rate(now):.1f}", "—" if missed is None else str(missed),
-                  f"{now - s.last_arrival:.2f}")
-    parts.append(t)
-    hl = stats.get("hub_loads")
-    if hl and hl.latest:
-        ht = Table(title="hub loads (" + _text(hl.latest.get("frame") or "body") + " axes)")
-        ht.add_column("")
-        u = axis_units(units)
-        for i, ax in enumerate(AXES):
-            ht.add_column(f"{ax} [{u[i]}]", justify="right")
-        for label, field in (("filter H", "H"), ("static", "H_static"),
-                             ("σ angles", "sigma_angles")):
-            v = _vec6(hl.latest.get(field))
-            vals = to_units(np.array([np.nan if x is None else x for x in v]), units).tolist()
-            ht.add_row(label, *[_fmt(x) for x in vals])
-        flags = [f for f in hl.latest.get("flags") or [] if f is not None]
-        parts.append(ht)
-        if flags:
-            parts.append(f"flags: {_text(', '.join(flags))}")
-    an = stats.get("angles")
-    if an and an.latest:
-        a = an.latest
-        names = a.get("names") or []
-        alpha = a.get("alpha") or []
-        sig = a.get("sigma_cr") or []
-        at = Table(title=f"angles — {_text(a.get('mode'))} / {_text(a.get('content'))}: "
-                   f"{'accepted' if a.get('accepted') else 'rejected'}"
-                   f"{'' if a.get('accepted') else ' (' + _text(a.get('reason')) + ')'}, "
-                   f"{_text(a.get('determined'))} of {len(names)} determined")
-        at.add_column("angle")
-        at.add_column("deg", justify="right")
-        at.add_column("σ_CR deg", justify="right")
-        for n, x, s in zip(names, alpha, sig):
-            at.add_row(_text(n), "—" if x is None else f"{np.degrees(x):7.3f}",
-                       "—" if s is None else f"{np.degrees(s):6.3f}")
-        parts.append(at)
-        from rsra.estimator.flight_advice import advice_summary
+        t.add_row(_text(key), str(s.count), f"{s.rate(now):.1f}",
+                  "—" if missed is None else str(missed), f"{now - s.last_arrival:.2f}")
+    return t
 
-        adv = advice_summary(a.get("advice"))  # filter error: what would determine the rest
-        if adv:
-            parts.append(f"advice: {_text(adv)}")
-        if not a.get("accepted") and (a.get("explanation") or a.get("hint")):
-            # why, in one line each (issue 28; records of older recordings carry neither)
-            parts.append(f"why: {_text(a.get('explanation') or a.get('detail'))}")
-            if a.get("hint"):
-                parts.append(f"hint: {_text(a.get('hint'))}")
-    he = stats.get("health")
-    if he and he.latest:
-        h = he.latest
-        nt = Table(title="nodes")
-        for col in ("node", "state", "heartbeat age s", "emcy"):
-            nt.add_column(col)
-        for name, nd in (h.get("nodes") or {}).items():
-            age = nd.get("heartbeat_age")
-            nt.add_row(_text(name), _text(nd.get("state")), "—" if age is None else f"{age:.2f}",
-                       str(len(nd.get("emcy") or [])))
-        parts.append(nt)
-        bus = h.get("bus") or {}
-        smp = h.get("samples") or {}
-        lat = h.get("latency_ms") or {}
-        parts.append(_text(
-            f"bus: frames {bus.get('frames')} errors {bus.get('errors')} bus-off {bus.get('bus_off')} "
-            f"unknown {bus.get('unknown')} malformed {bus.get('malformed')} | samples: complete "
-            f"{smp.get('complete')} incomplete {smp.get('incomplete')} lost {smp.get('lost')} | "
-            f"latency p50 {_ms(lat.get('p50'))} ms p99 {_ms(lat.get('p99'))} ms"))
-        from rsra.daq.cli.demo_view import sync_text
 
-        parts.append("sync: " + _text(sync_text(h)))
+def _hub_loads(h: dict, units: str) -> list[RenderableType]:
+    """The latest hub_loads record: H, the static H and σ of the angles' part per axis, and
+    its flags."""
+    from rich.table import Table
+
+    ht = Table(title="hub loads (" + _text(h.get("frame") or "body") + " axes)")
+    ht.add_column("")
+    u = axis_units(units)
+    for i, ax in enumerate(AXES):
+        ht.add_column(f"{ax} [{u[i]}]", justify="right")
+    for label, field in (("filter H", "H"), ("static", "H_static"),
+                         ("σ angles", "sigma_angles")):
+        v = _vec6(h.get(field))
+        vals = to_units(np.array([np.nan if x is None else x for x in v]), units).tolist()
+        ht.add_row(label, *[_fmt(x) for x in vals])
+    flags = [f for f in h.get("flags") or [] if f is not None]
+    return [ht, *([f"flags: {_text(', '.join(flags))}"] if flags else [])]
+
+
+def _degrees(x: Any, fmt: str) -> str:
+    return "—" if x is None else f"{np.degrees(x):{fmt}}"
+
+
+def _angles_table(a: dict):
+    from rich.table import Table
+
+    names = a.get("names") or []
+    verdict = "accepted" if a.get("accepted") else f"rejected ({_text(a.get('reason'))})"
+    at = Table(title=f"angles — {_text(a.get('mode'))} / {_text(a.get('content'))}: "
+               f"{verdict}, {_text(a.get('determined'))} of {len(names)} determined")
+    at.add_column("angle")
+    at.add_column("deg", justify="right")
+    at.add_column("σ_CR deg", justify="right")
+    for n, x, s in zip(names, a.get("alpha") or [], a.get("sigma_cr") or []):
+        at.add_row(_text(n), _degrees(x, "7.3f"), _degrees(s, "6.3f"))
+    return at
+
+
+def _why(a: dict) -> list[RenderableType]:
+    """A rejected run's reason in one line each (records of older recordings carry
+    neither)."""
+    if a.get("accepted") or not (a.get("explanation") or a.get("hint")):
+        return []
+    lines: list[RenderableType] = [f"why: {_text(a.get('explanation') or a.get('detail'))}"]
+    if a.get("hint"):
+        lines.append(f"hint: {_text(a.get('hint'))}")
+    return lines
+
+
+def _angles(a: dict, units: str) -> list[RenderableType]:
+    """The latest angles record: the angles, the advice (filter error: what would determine
+    the rest) and why a run was rejected."""
+    from rsra.estimator.flight_advice import advice_summary
+
+    adv = advice_summary(a.get("advice"))
+    return [_angles_table(a), *([f"advice: {_text(adv)}"] if adv else []), *_why(a)]
+
+
+def _health(h: dict, units: str) -> list[RenderableType]:
+    """The latest health record: the nodes, the bus and samples in one line, SYNC in one."""
+    from rich.table import Table
+
+    from rsra.daq.cli.demo_view import sync_text
+
+    nt = Table(title="nodes")
+    for col in ("node", "state", "heartbeat age s", "emcy"):
+        nt.add_column(col)
+    for name, nd in (h.get("nodes") or {}).items():
+        age = nd.get("heartbeat_age")
+        nt.add_row(_text(name), _text(nd.get("state")), "—" if age is None else f"{age:.2f}",
+                   str(len(nd.get("emcy") or [])))
+    bus = h.get("bus") or {}
+    smp = h.get("samples") or {}
+    lat = h.get("latency_ms") or {}
+    return [nt, _text(
+        f"bus: frames {bus.get('frames')} errors {bus.get('errors')} bus-off {bus.get('bus_off')} "
+        f"unknown {bus.get('unknown')} malformed {bus.get('malformed')} | samples: complete "
+        f"{smp.get('complete')} incomplete {smp.get('incomplete')} lost {smp.get('lost')} | "
+        f"latency p50 {_ms(lat.get('p50'))} ms p99 {_ms(lat.get('p99'))} ms"),
+        "sync: " + _text(sync_text(h))]
+
+
+# the keys shown below the table, in order, each by its latest record
+_SECTIONS = (("hub_loads", _hub_loads), ("angles", _angles), ("health", _health))
+
+
+def render(stats: dict[str, KeyStats], prefix: str, units: str, now: float,
+           notes: list[str] | None = None, source: str | None = None):
+    """The live view; ``source``: whose telemetry it is (daq.runtime.instances), or why
+    nothing is shown."""
+    from rich.console import Group
+
+    parts: list[RenderableType] = [_keys_table(stats, source or prefix, now)]
+    for key, section in _SECTIONS:
+        st = stats.get(key)
+        if st and st.latest:
+            parts += section(st.latest, units)
     parts.extend(_text(n) for n in notes or ())
     return Group(*parts)
 
@@ -287,18 +320,84 @@ class Listener:
         return out
 
 
+def _zenoh_conf(args: argparse.Namespace, cfg) -> Any:
+    from rsra.daq.runtime.telemetry import viewer_config, zenoh_config
+
+    if args.zenoh_config:
+        return zenoh_config(cfg.telemetry, config_file=args.zenoh_config)
+    return viewer_config(args.zenoh_connect or list(cfg.telemetry.listen))
+
+
+def _view(lis: Listener, whose: Whose, args: argparse.Namespace, now: float,
+          notes: bool = True):
+    return render(lis.stats, whose.prefix or "", args.units, now,
+                  lis.notes() if notes else None, source=whose.title())
+
+
+def _start(lis: Listener, whose: Whose, args: argparse.Namespace):
+    """The live table (None with --json: the source goes to stderr instead)."""
+    if args.json:
+        print(f"rsra listen: {whose.title()}", file=sys.stderr)
+        return None
+    from rich.live import Live
+
+    from rsra.daq.cli.console import make_console
+
+    live = Live(_view(lis, whose, args, time.monotonic(), notes=False),
+                console=make_console(), refresh_per_second=4, transient=False)
+    live.start()
+    return live
+
+
+def _subscribe(session: Any, prefix: str, keys: list[str]) -> list[Any]:
+    import zenoh
+
+    return [session.declare_subscriber(f"{prefix}/{k}", zenoh.handlers.RingChannel(4096))
+            for k in keys]
+
+
+def _redraw(live, lis: Listener, whose: Whose, args: argparse.Namespace, now: float,
+            last_draw: float) -> float:
+    """The table drawn again at most four times a second; when it was last drawn."""
+    if live is None or now - last_draw <= 0.25:
+        return last_draw
+    live.update(_view(lis, whose, args, now))
+    return now
+
+
+def _drain(subs: list[Any], prefix: str, lis: Listener, count: int | None) -> tuple[bool, bool]:
+    """Every message waiting on the subscribers fed to the listener: (any came, --count
+    reached)."""
+    got = False
+    for sub in subs:
+        while (s := sub.handler.try_recv()) is not None:
+            got = True
+            lis.feed(str(s.key_expr)[len(prefix) + 1:], s.payload, time.monotonic())
+            if count is not None and lis.received >= count:
+                return got, True
+    return got, False
+
+
+def _stop(live, lis: Listener, whose: Whose, args: argparse.Namespace) -> None:
+    """The table drawn a last time, or (--json, stdout stays JSON lines) the bad messages
+    said on stderr."""
+    if live is not None:
+        live.update(_view(lis, whose, args, time.monotonic()))
+        live.stop()
+    elif lis.guard.bad or lis.guard.non_finite:
+        sys.stdout.flush()
+        for line in lis.guard.lines():
+            print(f"rsra listen: {line}", file=sys.stderr)
+
+
 def run(args: argparse.Namespace) -> int:
     import zenoh
 
     from rsra.daq.rigmodel import load_rig
-    from rsra.daq.runtime.telemetry import payload_guard, viewer_config, zenoh_config
+    from rsra.daq.runtime.telemetry import payload_guard
 
     cfg = load_rig(args.config)
-    if args.zenoh_config:
-        conf = zenoh_config(cfg.telemetry, config_file=args.zenoh_config)
-    else:
-        connect = args.zenoh_connect or list(cfg.telemetry.listen)
-        conf = viewer_config(connect)
+    conf = _zenoh_conf(args, cfg)
     keys = args.key or ["**"]
     lis = Listener(payload_guard(), sys.stdout if args.json else None)
     t_end = None if args.duration is None else time.monotonic() + args.duration
@@ -308,38 +407,19 @@ def run(args: argparse.Namespace) -> int:
         live = None
         try:
             whose.discover(time.monotonic())
-            if args.json:
-                print(f"rsra listen: {whose.title()}", file=sys.stderr)
-            else:
-                from rich.live import Live
-
-                from rsra.daq.cli.console import make_console
-
-                live = Live(render(lis.stats, whose.prefix or "", args.units, time.monotonic(),
-                                   source=whose.title()),
-                            console=make_console(), refresh_per_second=4, transient=False)
-                live.start()
+            live = _start(lis, whose, args)
             last_draw = 0.0
+            prefix = ""
             while True:
-                got = False
                 if not subs and whose.prefix is not None:
                     prefix = whose.prefix
-                    subs = [session.declare_subscriber(f"{prefix}/{k}",
-                                                       zenoh.handlers.RingChannel(4096))
-                            for k in keys]
-                for sub in subs:
-                    while (s := sub.handler.try_recv()) is not None:
-                        got = True
-                        key = str(s.key_expr)[len(prefix) + 1:]
-                        lis.feed(key, s.payload, time.monotonic())
-                        if args.count is not None and lis.received >= args.count:
-                            return 0
+                    subs = _subscribe(session, prefix, keys)
+                got, done = _drain(subs, prefix, lis, args.count)
+                if done:
+                    return 0
                 now = time.monotonic()
                 whose.poll(now)
-                if live is not None and now - last_draw > 0.25:
-                    live.update(render(lis.stats, whose.prefix or "", args.units, now,
-                                       lis.notes(), source=whose.title()))
-                    last_draw = now
+                last_draw = _redraw(live, lis, whose, args, now, last_draw)
                 if args.json:
                     sys.stdout.flush()
                 if t_end is not None and now >= t_end:
@@ -349,14 +429,7 @@ def run(args: argparse.Namespace) -> int:
         except KeyboardInterrupt:
             return 0
         finally:
-            if live is not None:
-                live.update(render(lis.stats, whose.prefix or "", args.units, time.monotonic(),
-                                   lis.notes(), source=whose.title()))
-                live.stop()
-            elif lis.guard.bad or lis.guard.non_finite:  # --json: stdout stays JSON lines
-                sys.stdout.flush()
-                for line in lis.guard.lines():
-                    print(f"rsra listen: {line}", file=sys.stderr)
+            _stop(live, lis, whose, args)
             for sub in subs:
                 sub.undeclare()
             whose.close()
