@@ -48,7 +48,8 @@ class ErrorModel:
     neighbouring samples. The angle error: ``T`` (N, 7) the cell loads with ``sens`` (7, n)
     the axis's row of ``A`` times a square root of the angles' covariance (``A_k L``, with
     ``P = L Lᵀ``), so that sample i's error is ``−T_i sens z`` for one ``z ~ N(0, I)`` per
-    point; or, without them, ``sigma_angles`` (N,) per sample, taken fully correlated."""
+    point; or, without them (or on the samples whose cell loads are missing),
+    ``sigma_angles`` (N,) per sample, taken fully correlated."""
 
     sigma_noise: np.ndarray
     rho: float
@@ -105,12 +106,15 @@ def functional_cov(W: np.ndarray, model: ErrorModel,
         ix = np.ix_(list(g), list(g))
         best = max(bands, key=lambda B: float(np.trace(B[ix])))
         C[ix] = best[ix]
+    rest = np.ones(W.shape[1], bool)  # the samples whose angle error is only bounded
     if model.has_angle_covariance:
         assert model.T is not None and model.sens is not None
-        B = (W @ model.T) @ model.sens  # (m, n)
+        good = np.isfinite(model.T).all(axis=1)
+        B = (W[:, good] @ model.T[good]) @ model.sens  # (m, n)
         C = C + B @ B.T
-    elif model.sigma_angles is not None:
-        s = np.abs(W) @ model.sigma_angles
+        rest = ~good
+    if model.sigma_angles is not None and rest.any():
+        s = np.abs(W[:, rest]) @ model.sigma_angles[rest]
         C = C + np.outer(s, s)
     result: np.ndarray = 0.5 * (C + C.T)
     return result
@@ -129,12 +133,15 @@ def draw_errors(model: ErrorModel, draws: int, rng: np.random.Generator) -> np.n
         white[:, 1:] *= math.sqrt(1.0 - model.rho ** 2)
         white = lfilter([1.0], [1.0, -model.rho], white, axis=-1)
     e = white * model.sigma_noise[None, :]
+    rest = np.ones(n, bool)
     if model.has_angle_covariance:
         assert model.T is not None and model.sens is not None
+        good = np.isfinite(model.T).all(axis=1)
         z = rng.standard_normal((draws, model.sens.shape[1]))
-        e -= z @ (model.T @ model.sens).T
-    elif model.sigma_angles is not None:
-        e += rng.standard_normal((draws, 1)) * model.sigma_angles[None, :]
+        e[:, good] -= z @ (model.T[good] @ model.sens).T
+        rest = ~good
+    if model.sigma_angles is not None and rest.any():
+        e[:, rest] += rng.standard_normal((draws, 1)) * model.sigma_angles[None, rest]
     result: np.ndarray = e
     return result
 
@@ -265,11 +272,14 @@ def peak(y: np.ndarray, model: ErrorModel, which: str) -> Value:
 
 @dataclass(frozen=True)
 class Revolutions:
-    """Per whole revolution, the fit of the harmonics 1 … N_b/rev on the measured azimuth:
-    its half peak-to-peak (``halves``), the linear functional of the samples that gives each
-    (``rows``, (R, N)), and the fit evaluated at the revolution's samples (``fit``, NaN
-    outside whole revolutions). The fit takes the harmonics out of the noise, so the half
-    peak-to-peak is not inflated by it (the raw peak-to-peak of a noisy series is)."""
+    """Per whole revolution, the fit of the harmonics 1 … N_b/rev on the measured azimuth,
+    with the revolution's mean and a linear drift across it: the half peak-to-peak of its
+    periodic part (``halves``), the linear functional of the samples that gives each
+    (``rows``, (R, N)), and the periodic part with the mean at the revolution's samples
+    (``fit``, NaN outside whole revolutions). The fit takes the harmonics out of the noise,
+    so the half peak-to-peak is not inflated by it (the raw peak-to-peak of a noisy series
+    is); the drift term keeps a manoeuvre's quasi-static change within one revolution out of
+    the alternating load (a fit of harmonics alone would fold it into them)."""
 
     halves: np.ndarray
     rows: np.ndarray
@@ -284,10 +294,16 @@ def _revolution_fits(y: np.ndarray, psi_u: np.ndarray, revs: Iterable[tuple[int,
     out = []
     for i0, i1 in revs:
         p = psi_u[i0:i1]
-        if i1 - i0 <= 2 * len(orders) + 1 or not np.isfinite(y[i0:i1]).all():
+        if i1 - i0 <= 2 * len(orders) + 2 or not np.isfinite(y[i0:i1]).all():
             continue
-        g = TWO_PI * math.floor(p[0] / TWO_PI) + np.linspace(0.0, TWO_PI, grid, endpoint=False)
-        out.append((i0, i1, harmonic_weights(p, orders), harmonic_design(g, orders)))
+        base = TWO_PI * math.floor(p[0] / TWO_PI)
+        g = base + np.linspace(0.0, TWO_PI, grid, endpoint=False)
+        drift = (p - base - math.pi) / TWO_PI  # −½ … ½ across the turn
+        W = np.linalg.pinv(np.column_stack([harmonic_design(p, orders), drift]))
+        # evaluated without the drift: the periodic part (and the mean, which no
+        # peak-to-peak sees)
+        out.append((i0, i1, W, np.column_stack([harmonic_design(g, orders),
+                                                np.zeros(grid)])))
     return out
 
 
@@ -304,7 +320,7 @@ def per_revolution(y: np.ndarray, psi_u: np.ndarray, revs: Iterable[tuple[int, i
         w[i0:i1] = 0.5 * (Xg[hi] - Xg[lo]) @ W
         rows.append(w)
         halves.append(0.5 * (f[hi] - f[lo]))
-        fit[i0:i1] = harmonic_design(psi_u[i0:i1], orders) @ c
+        fit[i0:i1] = harmonic_design(psi_u[i0:i1], orders) @ c[:-1]
     return Revolutions(np.asarray(halves, float),
                        np.vstack(rows) if rows else np.zeros((0, n)), fit)
 

@@ -113,8 +113,21 @@ def information(ctx: ProductContext) -> Any:
     return table.drop_columns(["recording"])
 
 
+def survey(ctx: ProductContext) -> Any:
+    """The recording's loads survey at its own test points (daq.analysis.survey_run: marks,
+    else the transient flag's edges), the long table of `rsra survey`."""
+    from rsra.daq.analysis.survey_run import campaign_survey
+
+    table, reason = campaign_survey(ctx.cfg, ctx.source, ctx.options)
+    ctx.stats["survey_points"] = len(set(table.column("test_point").to_pylist()))
+    if reason:
+        ctx.stats["survey_reason"] = reason
+    return table
+
+
 #: the products of every recording, in order
 PRODUCTS: list[Product] = [
     Product("telemetry", telemetry),
     Product("information", information),
+    Product("survey", survey),
 ]
