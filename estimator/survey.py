@@ -229,18 +229,55 @@ def amplitude_phase(a: float, b: float, cov: np.ndarray, order: int) -> Harmonic
 
 
 def harmonics(y: np.ndarray, psi_u: np.ndarray, orders: Sequence[int], model: ErrorModel,
-              model_sigma: float = 0.0) -> list[Harmonic]:
+              model_sigma: float = 0.0, scatter: dict[int, np.ndarray] | None = None
+              ) -> list[Harmonic]:
     """Amplitude and phase of each order by least squares on the measured azimuth, σ from the
     error model plus ``model_sigma`` on each of the coefficients (a coherent model error at
-    the harmonic, which no averaging removes)."""
+    the harmonic, which no averaging removes). ``scatter``: per order a 2 × 2 covariance
+    measured from the data (:func:`revolution_scatter`), used where it is the larger."""
     W = harmonic_weights(psi_u, orders)
     coef = W @ y
     groups = [[0]] + [[1 + 2 * n, 2 + 2 * n] for n in range(len(orders))]
-    C = functional_cov(W, model, groups) + model_sigma ** 2 * np.eye(W.shape[0])
+    C = functional_cov(W, model, groups)
     out = []
     for n, k in enumerate(orders):
         i = 1 + 2 * n
-        out.append(amplitude_phase(float(coef[i]), float(coef[i + 1]), C[i:i + 2, i:i + 2], k))
+        c = C[i:i + 2, i:i + 2]
+        if scatter is not None and k in scatter and np.trace(scatter[k]) > np.trace(c):
+            c = scatter[k]
+        c = c + model_sigma ** 2 * np.eye(2)
+        out.append(amplitude_phase(float(coef[i]), float(coef[i + 1]), c, k))
+    return out
+
+
+MIN_REVOLUTIONS = 8  # for a scatter of per-revolution coefficients to mean anything
+
+
+def revolution_scatter(y: np.ndarray, psi_u: np.ndarray, revs: Iterable[tuple[int, int]],
+                       fitted: Sequence[int], wanted: Sequence[int]
+                       ) -> dict[int, np.ndarray]:
+    """Per order in ``wanted``, the covariance (2 × 2) of the mean over R whole revolutions of
+    its per-revolution coefficients (a, b) — each revolution fitted with every order of
+    ``fitted``, its mean and a linear drift — from their scatter: ``cov / R``. It measures the
+    error near that order as it is (the model's white noise misses coloured errors such as a
+    vibration the inertial correction leaves); a true harmonic whose amplitude or phase
+    varies widens it too (conservative). {} with fewer than ``MIN_REVOLUTIONS``."""
+    fitted = list(fitted)
+    coefs = []
+    for i0, i1 in revs:
+        p, seg = psi_u[i0:i1], y[i0:i1]
+        if i1 - i0 <= 2 * len(fitted) + 2 or not np.isfinite(seg).all():
+            continue
+        drift = (p - TWO_PI * math.floor(p[0] / TWO_PI) - math.pi) / TWO_PI
+        coefs.append(np.linalg.pinv(np.column_stack([harmonic_design(p, fitted), drift]))
+                     @ seg)
+    if len(coefs) < MIN_REVOLUTIONS:
+        return {}
+    c = np.asarray(coefs)
+    out = {}
+    for k in wanted:
+        j = 1 + 2 * fitted.index(k)
+        out[k] = np.cov(c[:, j:j + 2], rowvar=False) / len(c)
     return out
 
 

@@ -587,10 +587,16 @@ def _harmonic_rows(data: SurveyData, tp: TestPoint, rig: SurveyRig, sel: np.ndar
             found[h.order] = (h, "H")
     ys = data.H_static[sel, k]
     ok = np.isfinite(ys) & measured
-    if other and ok.sum() > 2 * len(other) + 1:
+    if other and ok.sum() > 2 * len(orders) + 1:
         mS_ok = mS.subset(ok)
-        for h in num.harmonics(ys[ok], psi[ok], other, mS_ok, float(rig.model_sigma[k])):
-            found[h.order] = (h, "H_static")
+        # H_static's error near an order it does not model, as the revolutions show it
+        scatter = num.revolution_scatter(ys, psi, revs, orders, other)
+        # fitted with every order (a large 1/rev or N_b/rev left out of the fit would leak
+        # into the others over a point of few revolutions); the modelled ones come from H
+        for h in num.harmonics(ys[ok], psi[ok], orders, mS_ok, float(rig.model_sigma[k]),
+                               scatter):
+            if h.order in other:
+                found[h.order] = (h, "H_static")
     for o in orders:
         if o not in found:
             note = "no H_static samples in the test point"
