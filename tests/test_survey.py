@@ -339,6 +339,11 @@ def test_a_campaign_dataset_is_surveyed_per_recording(tmp_path):
     assert {r["recording"] for r in rows} == {"r1", "r2"}
     assert {r["test_point"] for r in rows} == {"r1: held 1", "r1: held 2", "r2: held 1",
                                                "r2: held 2"}
+    for rid in ("r1", "r2"):  # a report per recording, with its own test points only
+        sub = tmp_path / "o" / "recordings" / f"r_{rid}"
+        md = (sub / "survey.md").read_text()
+        assert f"{rid}: held 2" in md and ("r2" if rid == "r1" else "r1") + ":" not in md
+        assert (sub / "survey_loads.png").stat().st_size > 0
 
 
 def test_peaks_against_the_rigs_limits():

@@ -753,8 +753,37 @@ def plot(rows: Sequence[dict], points: Sequence[TestPoint], rig: SurveyRig,
 def write_outputs(rows: Sequence[dict], points: Sequence[TestPoint], rig: SurveyRig,
                   opts: SurveyOptions, out: Path, source: str) -> None:
     write_table(rows, out)
+    write_report(rows, points, rig, opts, out, source)
+
+
+def write_report(rows: Sequence[dict], points: Sequence[TestPoint], rig: SurveyRig,
+                 opts: SurveyOptions, out: Path, source: str) -> None:
+    """survey.md and the two PNG charts in ``out``."""
     write_text_atomic(out / "survey.md", markdown(rows, points, rig, opts, source))
     plot(rows, points, rig, opts, out)
+
+
+def report_folder(recording: str) -> str:
+    """A recording id as a folder name of its own report (a dataset's ids are untrusted: no
+    separators, no leading dot)."""
+    import re
+
+    return "r_" + re.sub(r"[^A-Za-z0-9_.-]", "_", recording)[:120]
+
+
+def write_recording_reports(rows: Sequence[dict], points: Sequence[TestPoint],
+                            rig: SurveyRig, opts: SurveyOptions, out: Path) -> list[Path]:
+    """Per recording of a dataset survey, its own report (survey.md and the PNG charts) in
+    ``out/recordings/<id>/``; its test points are named ``<recording>: <name>``."""
+    folders = []
+    for rid in sorted({str(r["recording"]) for r in rows}):
+        mine = [tp for tp in points if tp.name.startswith(f"{rid}: ")]
+        sub = out / "recordings" / report_folder(rid)
+        sub.mkdir(parents=True, exist_ok=True)
+        write_report([r for r in rows if r["recording"] == rid], mine, rig, opts, sub,
+                     f"recording {rid}")
+        folders.append(sub)
+    return folders
 
 
 def filter_points(points: Iterable[TestPoint], t: np.ndarray) -> list[TestPoint]:

@@ -142,6 +142,9 @@ def _run(args: argparse.Namespace, sv) -> int:
     sv.write_outputs(rows, points, rig, opts, out, str(args.logs[0]))
     print(f"survey: {len(points)} test points, {len(rows)} rows -> {out}/survey.parquet, "
           "survey.csv, survey.md, survey_harmonics.png, survey_loads.png")
+    if len(inputs) == 1 and sv.is_dataset(inputs[0]):
+        subs = sv.write_recording_reports(rows, points, rig, opts, out)
+        print(f"survey: a report per recording in {out}/recordings/ ({len(subs)})")
     return 0
 
 
