@@ -740,7 +740,8 @@ def plot(rows: Sequence[dict], points: Sequence[TestPoint], rig: SurveyRig,
             if q == "alternating" and not np.isfinite(v[:, 0]).any():
                 a.text(0.5, 0.5, "no measured azimuth: absent", transform=a.transAxes,
                        ha="center", va="center", color="0.4")
-            a.axhline(0.0, color="0.7", lw=0.5)
+            if q == "alternating":  # (a zero line would flatten a thrust's mean and its bars)
+                a.axhline(0.0, color="0.7", lw=0.5)
             a.set_title(f"{ax}: {label} ± 1σ", fontsize=9)
             a.set_ylabel(units[k])
             a.set_xticks(x, names, rotation=30, ha="right", fontsize=7)
