@@ -48,7 +48,8 @@ class ErrorModel:
     neighbouring samples. The angle error: ``T`` (N, 7) the cell loads with ``sens`` (7, n)
     the axis's row of ``A`` times a square root of the angles' covariance (``A_k L``, with
     ``P = L Lᵀ``), so that sample i's error is ``−T_i sens z`` for one ``z ~ N(0, I)`` per
-    point; or, without them, ``sigma_angles`` (N,) per sample, taken fully correlated."""
+    point; or, without them (or on the samples whose cell loads are missing),
+    ``sigma_angles`` (N,) per sample, taken fully correlated."""
 
     sigma_noise: np.ndarray
     rho: float
@@ -105,12 +106,15 @@ def functional_cov(W: np.ndarray, model: ErrorModel,
         ix = np.ix_(list(g), list(g))
         best = max(bands, key=lambda B: float(np.trace(B[ix])))
         C[ix] = best[ix]
+    rest = np.ones(W.shape[1], bool)  # the samples whose angle error is only bounded
     if model.has_angle_covariance:
         assert model.T is not None and model.sens is not None
-        B = (W @ model.T) @ model.sens  # (m, n)
+        good = np.isfinite(model.T).all(axis=1)
+        B = (W[:, good] @ model.T[good]) @ model.sens  # (m, n)
         C = C + B @ B.T
-    elif model.sigma_angles is not None:
-        s = np.abs(W) @ model.sigma_angles
+        rest = ~good
+    if model.sigma_angles is not None and rest.any():
+        s = np.abs(W[:, rest]) @ model.sigma_angles[rest]
         C = C + np.outer(s, s)
     result: np.ndarray = 0.5 * (C + C.T)
     return result
@@ -129,12 +133,15 @@ def draw_errors(model: ErrorModel, draws: int, rng: np.random.Generator) -> np.n
         white[:, 1:] *= math.sqrt(1.0 - model.rho ** 2)
         white = lfilter([1.0], [1.0, -model.rho], white, axis=-1)
     e = white * model.sigma_noise[None, :]
+    rest = np.ones(n, bool)
     if model.has_angle_covariance:
         assert model.T is not None and model.sens is not None
+        good = np.isfinite(model.T).all(axis=1)
         z = rng.standard_normal((draws, model.sens.shape[1]))
-        e -= z @ (model.T @ model.sens).T
-    elif model.sigma_angles is not None:
-        e += rng.standard_normal((draws, 1)) * model.sigma_angles[None, :]
+        e[:, good] -= z @ (model.T[good] @ model.sens).T
+        rest = ~good
+    if model.sigma_angles is not None and rest.any():
+        e[:, rest] += rng.standard_normal((draws, 1)) * model.sigma_angles[None, rest]
     result: np.ndarray = e
     return result
 
@@ -222,18 +229,55 @@ def amplitude_phase(a: float, b: float, cov: np.ndarray, order: int) -> Harmonic
 
 
 def harmonics(y: np.ndarray, psi_u: np.ndarray, orders: Sequence[int], model: ErrorModel,
-              model_sigma: float = 0.0) -> list[Harmonic]:
+              model_sigma: float = 0.0, scatter: dict[int, np.ndarray] | None = None
+              ) -> list[Harmonic]:
     """Amplitude and phase of each order by least squares on the measured azimuth, σ from the
     error model plus ``model_sigma`` on each of the coefficients (a coherent model error at
-    the harmonic, which no averaging removes)."""
+    the harmonic, which no averaging removes). ``scatter``: per order a 2 × 2 covariance
+    measured from the data (:func:`revolution_scatter`), used where it is the larger."""
     W = harmonic_weights(psi_u, orders)
     coef = W @ y
     groups = [[0]] + [[1 + 2 * n, 2 + 2 * n] for n in range(len(orders))]
-    C = functional_cov(W, model, groups) + model_sigma ** 2 * np.eye(W.shape[0])
+    C = functional_cov(W, model, groups)
     out = []
     for n, k in enumerate(orders):
         i = 1 + 2 * n
-        out.append(amplitude_phase(float(coef[i]), float(coef[i + 1]), C[i:i + 2, i:i + 2], k))
+        c = C[i:i + 2, i:i + 2]
+        if scatter is not None and k in scatter and np.trace(scatter[k]) > np.trace(c):
+            c = scatter[k]
+        c = c + model_sigma ** 2 * np.eye(2)
+        out.append(amplitude_phase(float(coef[i]), float(coef[i + 1]), c, k))
+    return out
+
+
+MIN_REVOLUTIONS = 8  # for a scatter of per-revolution coefficients to mean anything
+
+
+def revolution_scatter(y: np.ndarray, psi_u: np.ndarray, revs: Iterable[tuple[int, int]],
+                       fitted: Sequence[int], wanted: Sequence[int]
+                       ) -> dict[int, np.ndarray]:
+    """Per order in ``wanted``, the covariance (2 × 2) of the mean over R whole revolutions of
+    its per-revolution coefficients (a, b) — each revolution fitted with every order of
+    ``fitted``, its mean and a linear drift — from their scatter: ``cov / R``. It measures the
+    error near that order as it is (the model's white noise misses coloured errors such as a
+    vibration the inertial correction leaves); a true harmonic whose amplitude or phase
+    varies widens it too (conservative). {} with fewer than ``MIN_REVOLUTIONS``."""
+    fitted = list(fitted)
+    coefs = []
+    for i0, i1 in revs:
+        p, seg = psi_u[i0:i1], y[i0:i1]
+        if i1 - i0 <= 2 * len(fitted) + 2 or not np.isfinite(seg).all():
+            continue
+        drift = (p - TWO_PI * math.floor(p[0] / TWO_PI) - math.pi) / TWO_PI
+        coefs.append(np.linalg.pinv(np.column_stack([harmonic_design(p, fitted), drift]))
+                     @ seg)
+    if len(coefs) < MIN_REVOLUTIONS:
+        return {}
+    c = np.asarray(coefs)
+    out = {}
+    for k in wanted:
+        j = 1 + 2 * fitted.index(k)
+        out[k] = np.cov(c[:, j:j + 2], rowvar=False) / len(c)
     return out
 
 
@@ -265,11 +309,14 @@ def peak(y: np.ndarray, model: ErrorModel, which: str) -> Value:
 
 @dataclass(frozen=True)
 class Revolutions:
-    """Per whole revolution, the fit of the harmonics 1 … N_b/rev on the measured azimuth:
-    its half peak-to-peak (``halves``), the linear functional of the samples that gives each
-    (``rows``, (R, N)), and the fit evaluated at the revolution's samples (``fit``, NaN
-    outside whole revolutions). The fit takes the harmonics out of the noise, so the half
-    peak-to-peak is not inflated by it (the raw peak-to-peak of a noisy series is)."""
+    """Per whole revolution, the fit of the harmonics 1 … N_b/rev on the measured azimuth,
+    with the revolution's mean and a linear drift across it: the half peak-to-peak of its
+    periodic part (``halves``), the linear functional of the samples that gives each
+    (``rows``, (R, N)), and the periodic part with the mean at the revolution's samples
+    (``fit``, NaN outside whole revolutions). The fit takes the harmonics out of the noise,
+    so the half peak-to-peak is not inflated by it (the raw peak-to-peak of a noisy series
+    is); the drift term keeps a manoeuvre's quasi-static change within one revolution out of
+    the alternating load (a fit of harmonics alone would fold it into them)."""
 
     halves: np.ndarray
     rows: np.ndarray
@@ -284,10 +331,16 @@ def _revolution_fits(y: np.ndarray, psi_u: np.ndarray, revs: Iterable[tuple[int,
     out = []
     for i0, i1 in revs:
         p = psi_u[i0:i1]
-        if i1 - i0 <= 2 * len(orders) + 1 or not np.isfinite(y[i0:i1]).all():
+        if i1 - i0 <= 2 * len(orders) + 2 or not np.isfinite(y[i0:i1]).all():
             continue
-        g = TWO_PI * math.floor(p[0] / TWO_PI) + np.linspace(0.0, TWO_PI, grid, endpoint=False)
-        out.append((i0, i1, harmonic_weights(p, orders), harmonic_design(g, orders)))
+        base = TWO_PI * math.floor(p[0] / TWO_PI)
+        g = base + np.linspace(0.0, TWO_PI, grid, endpoint=False)
+        drift = (p - base - math.pi) / TWO_PI  # −½ … ½ across the turn
+        W = np.linalg.pinv(np.column_stack([harmonic_design(p, orders), drift]))
+        # evaluated without the drift: the periodic part (and the mean, which no
+        # peak-to-peak sees)
+        out.append((i0, i1, W, np.column_stack([harmonic_design(g, orders),
+                                                np.zeros(grid)])))
     return out
 
 
@@ -304,7 +357,7 @@ def per_revolution(y: np.ndarray, psi_u: np.ndarray, revs: Iterable[tuple[int, i
         w[i0:i1] = 0.5 * (Xg[hi] - Xg[lo]) @ W
         rows.append(w)
         halves.append(0.5 * (f[hi] - f[lo]))
-        fit[i0:i1] = harmonic_design(psi_u[i0:i1], orders) @ c
+        fit[i0:i1] = harmonic_design(psi_u[i0:i1], orders) @ c[:-1]
     return Revolutions(np.asarray(halves, float),
                        np.vstack(rows) if rows else np.zeros((0, n)), fit)
 

@@ -173,6 +173,23 @@ def is_dataset(path: Path) -> bool:
                               .is_file())
 
 
+def dataset_sources(path: Path) -> dict[str, Path]:
+    """A campaign dataset's recordings whose tables are valid (the ``ok`` rows of its
+    manifest.parquet) and the folder or file each was read from; {} without a manifest."""
+    import pyarrow.parquet as pq
+
+    m = path / "manifest.parquet"
+    if not m.is_file():
+        return {}
+    try:
+        rows = pq.read_table(m, columns=["recording", "source", "status"]).to_pylist()
+    except Exception as e:  # noqa: BLE001 - any unreadable manifest is the user's input
+        raise SurveyError(f"{m}: not a campaign manifest ({' '.join(str(e).split())}); fix: "
+                          "give the dataset `rsra campaign run` wrote") from None
+    return {str(r["recording"]): Path(str(r["source"])) for r in rows
+            if r["status"] == "ok" and r["recording"] and r["source"]}
+
+
 def load_dataset(path: Path, angle_names: Sequence[str]) -> dict[str, SurveyData]:
     """Per recording, its :class:`SurveyData` from the Parquet tables of `rsra export
     --parquet` (columns ``H.X``, ``T.A``, …; docs/user-guide.md): ``hub_loads`` (required),
@@ -192,6 +209,9 @@ def load_dataset(path: Path, angle_names: Sequence[str]) -> dict[str, SurveyData
     except Exception as e:  # noqa: BLE001 - any unreadable file is the user's input problem
         raise SurveyError(f"{path}: not a readable Parquet dataset ({e}); fix: give the folder "
                           "written by `rsra export --parquet` or a campaign") from None
+    ok = dataset_sources(path) if (path / "manifest.parquet").is_file() else None
+    if ok is not None:  # a campaign's: a recording's tables are those of its ok row
+        hub = {rid: table for rid, table in hub.items() if rid in ok}
     if not hub:
         raise SurveyError(f"{path}: no hub_loads table; fix: give the folder written by "
                           "`rsra export --parquet` or a campaign")
@@ -447,13 +467,18 @@ def _models(data: SurveyData, rig: SurveyRig, idx: np.ndarray, k: int,
     sf = np.where(np.isfinite(sf), sf, rig.bound[k])
     rho = math.exp(-rig.dt / rig.time_constant_s)
     T = data.T[idx]
-    psi = num.unwrap_azimuth(data.azimuth[idx])
-    bands = (0,) + rig.modelled if np.isfinite(psi).all() else (0,)
+    measured = num.unwrap_azimuth(data.azimuth[idx])
+    fin = np.isfinite(measured)
+    if fin.any() and not fin.all():  # the error's phase across a missing azimuth: interpolated
+        i = np.arange(len(fin))
+        measured = np.interp(i, i[fin], measured[fin])
+    bands = (0,) + rig.modelled if fin.any() else (0,)
+    psi = measured if fin.any() else None
     white = np.full(len(idx), rig.bound[k])
-    if angle_sens is not None and np.isfinite(T).all():
-        sens = angle_sens[k]
-        return (num.ErrorModel(sf, rho, T, sens, bands=bands, psi=psi),
-                num.ErrorModel(white, 0.0, T, sens))
+    if angle_sens is not None and np.isfinite(T).all(axis=1).any():
+        sens = angle_sens[k]  # (σ_angles bounds the samples without cell loads)
+        return (num.ErrorModel(sf, rho, T, sens, sigma_angles=sa, bands=bands, psi=psi),
+                num.ErrorModel(white, 0.0, T, sens, sigma_angles=sa))
     return (num.ErrorModel(sf, rho, sigma_angles=sa, bands=bands, psi=psi),
             num.ErrorModel(white, 0.0, sigma_angles=sa))
 
@@ -485,7 +510,7 @@ def survey_point(data: SurveyData, tp: TestPoint, rig: SurveyRig, opts: SurveyOp
         L = _sqrt_psd(st.P)
         angle_sens = np.einsum("kij,jl->kil", A, L)
     psi = num.unwrap_azimuth(data.azimuth[sel])
-    revs = num.whole_revolutions(psi) if np.isfinite(psi).all() else []
+    revs = num.whole_revolutions(psi)  # (a sample without azimuth: its turn left out)
     orders = list(range(1, rig.blades + 1))
     duration = float(data.t[sel[-1]] - data.t[sel[0]]) + rig.dt
     n_ref = opts.reference_cycles or duration
@@ -555,16 +580,23 @@ def _harmonic_rows(data: SurveyData, tp: TestPoint, rig: SurveyRig, sel: np.ndar
     modelled = [o for o in orders if o in rig.modelled]
     other = [o for o in orders if o not in rig.modelled]
     found: dict[int, tuple[num.Harmonic, str]] = {}
+    measured = np.isfinite(psi)  # the least squares on the samples with an azimuth
     if modelled:
-        for h in num.harmonics(data.H[sel, k], psi, modelled, mH,
-                               float(rig.model_sigma[k])):
+        for h in num.harmonics(data.H[sel, k][measured], psi[measured], modelled,
+                               mH.subset(measured), float(rig.model_sigma[k])):
             found[h.order] = (h, "H")
     ys = data.H_static[sel, k]
-    ok = np.isfinite(ys)
-    if other and ok.sum() > 2 * len(other) + 1:
+    ok = np.isfinite(ys) & measured
+    if other and ok.sum() > 2 * len(orders) + 1:
         mS_ok = mS.subset(ok)
-        for h in num.harmonics(ys[ok], psi[ok], other, mS_ok, float(rig.model_sigma[k])):
-            found[h.order] = (h, "H_static")
+        # H_static's error near an order it does not model, as the revolutions show it
+        scatter = num.revolution_scatter(ys, psi, revs, orders, other)
+        # fitted with every order (a large 1/rev or N_b/rev left out of the fit would leak
+        # into the others over a point of few revolutions); the modelled ones come from H
+        for h in num.harmonics(ys[ok], psi[ok], orders, mS_ok, float(rig.model_sigma[k]),
+                               scatter):
+            if h.order in other:
+                found[h.order] = (h, "H_static")
     for o in orders:
         if o not in found:
             note = "no H_static samples in the test point"
@@ -593,13 +625,9 @@ def _row(tp: TestPoint, axis: str, q: str, v: float, s: float, unit: str, est: s
 
 def write_table(rows: Sequence[dict], out: Path) -> None:
     """DIR/survey.parquet and DIR/survey.csv, each written atomically."""
-    import pyarrow as pa
     import pyarrow.parquet as pq
 
-    types = {"t_start": pa.float64(), "t_end": pa.float64(), "value": pa.float64(),
-             "sigma": pa.float64()}
-    cols = {c: [_cell(r[c]) for r in rows] for c in COLUMNS}
-    table = pa.table({c: pa.array(v, type=types.get(c, pa.string())) for c, v in cols.items()})
+    table = table_of(rows, COLUMNS)
     dst = AtomicOutput(out / "survey.parquet", "wb")
     try:
         pq.write_table(table, dst.open())
@@ -612,6 +640,17 @@ def write_table(rows: Sequence[dict], out: Path) -> None:
     for r in rows:
         w.writerow(["" if _cell(r[c]) is None else r[c] for c in COLUMNS])
     write_text_atomic(out / "survey.csv", buf.getvalue())
+
+
+def table_of(rows: Sequence[dict], columns: Sequence[str]):
+    """The rows as a pyarrow Table of ``columns`` (times, values and σ float64, NaN as
+    null; the rest strings): the same schema whether or not a column has a value."""
+    import pyarrow as pa
+
+    types = {"t_start": pa.float64(), "t_end": pa.float64(), "value": pa.float64(),
+             "sigma": pa.float64()}
+    return pa.table({c: pa.array([_cell(r.get(c)) for r in rows],
+                                 type=types.get(c, pa.string())) for c in columns})
 
 
 def _cell(v):
@@ -688,18 +727,25 @@ def plot(rows: Sequence[dict], points: Sequence[TestPoint], rig: SurveyRig,
     fig.tight_layout()
     save_figure(fig, out / "survey_harmonics.png", dpi=90)
     plt.close(fig)
-    fig, axs = plt.subplots(3, 2, figsize=(12, 10), squeeze=False)
+    # per axis a row: the steady load on the left, the alternating on the right, each on
+    # its own scale (a thrust's mean would flatten its alternating load's bars)
+    fig, axs = plt.subplots(6, 2, figsize=(12, 18), squeeze=False)
     for k, ax in enumerate(AXES):
-        a = axs[k // 2][k % 2]
-        for q, off in (("mean", -0.15), ("alternating", 0.15)):
+        for col, (q, label, colour) in enumerate(
+                (("mean", "steady (mean)", "C0"),
+                 ("alternating", "alternating (mean half peak-to-peak per rev)", "C1"))):
+            a = axs[k][col]
             v = np.array([get(n, ax, q) for n in names]).reshape(-1, 2)
-            a.errorbar(x + off, v[:, 0], yerr=v[:, 1], fmt="o", capsize=3,
-                       label="steady (mean)" if q == "mean" else "alternating")
-        a.axhline(0.0, color="0.7", lw=0.5)
-        a.set_title(f"{ax}: steady and alternating ± 1σ")
-        a.set_ylabel(units[k])
-        a.set_xticks(x, names, rotation=30, ha="right", fontsize=7)
-    axs[0][0].legend(fontsize=7)
+            a.errorbar(x, v[:, 0], yerr=v[:, 1], fmt="o", capsize=3, color=colour)
+            if q == "alternating" and not np.isfinite(v[:, 0]).any():
+                a.text(0.5, 0.5, "no measured azimuth: absent", transform=a.transAxes,
+                       ha="center", va="center", color="0.4")
+            if q == "alternating":  # (a zero line would flatten a thrust's mean and its bars)
+                a.axhline(0.0, color="0.7", lw=0.5)
+            a.set_title(f"{ax}: {label} ± 1σ", fontsize=9)
+            a.set_ylabel(units[k])
+            a.set_xticks(x, names, rotation=30, ha="right", fontsize=7)
+            a.set_xlim(-0.5, len(names) - 0.5)
     fig.tight_layout()
     save_figure(fig, out / "survey_loads.png", dpi=90)
     plt.close(fig)
@@ -708,8 +754,37 @@ def plot(rows: Sequence[dict], points: Sequence[TestPoint], rig: SurveyRig,
 def write_outputs(rows: Sequence[dict], points: Sequence[TestPoint], rig: SurveyRig,
                   opts: SurveyOptions, out: Path, source: str) -> None:
     write_table(rows, out)
+    write_report(rows, points, rig, opts, out, source)
+
+
+def write_report(rows: Sequence[dict], points: Sequence[TestPoint], rig: SurveyRig,
+                 opts: SurveyOptions, out: Path, source: str) -> None:
+    """survey.md and the two PNG charts in ``out``."""
     write_text_atomic(out / "survey.md", markdown(rows, points, rig, opts, source))
     plot(rows, points, rig, opts, out)
+
+
+def report_folder(recording: str) -> str:
+    """A recording id as a folder name of its own report (a dataset's ids are untrusted: no
+    separators, no leading dot)."""
+    import re
+
+    return "r_" + re.sub(r"[^A-Za-z0-9_.-]", "_", recording)[:120]
+
+
+def write_recording_reports(rows: Sequence[dict], points: Sequence[TestPoint],
+                            rig: SurveyRig, opts: SurveyOptions, out: Path) -> list[Path]:
+    """Per recording of a dataset survey, its own report (survey.md and the PNG charts) in
+    ``out/recordings/<id>/``; its test points are named ``<recording>: <name>``."""
+    folders = []
+    for rid in sorted({str(r["recording"]) for r in rows}):
+        mine = [tp for tp in points if tp.name.startswith(f"{rid}: ")]
+        sub = out / "recordings" / report_folder(rid)
+        sub.mkdir(parents=True, exist_ok=True)
+        write_report([r for r in rows if r["recording"] == rid], mine, rig, opts, sub,
+                     f"recording {rid}")
+        folders.append(sub)
+    return folders
 
 
 def filter_points(points: Iterable[TestPoint], t: np.ndarray) -> list[TestPoint]:

@@ -48,6 +48,8 @@ class ProductContext:
     #: shown every assembled sample of the recording's one replay, in order (a product's
     #: :attr:`Product.prepare` adds itself here; the telemetry product's replay calls them)
     sample_observers: list[Callable[[Any], None]] = field(default_factory=list)
+    #: … and every record it publishes (key, payload), for the products made of records
+    record_sinks: list[Callable[[str, dict], None]] = field(default_factory=list)
     #: what a product's prepare keeps for its build, by product name
     state: dict[str, Any] = field(default_factory=dict)
     _outputs: dict[str, AtomicOutput] = field(default_factory=dict)
@@ -94,7 +96,7 @@ def telemetry(ctx: ProductContext) -> None:
     tables = ParquetTables(schemas, outputs, names, metadata=ctx.metadata)
     try:
         ctx.stats.update(replay_to_tables(ctx.cfg, [ctx.source], tables, ctx.options,
-                                          ctx.sample_observers))
+                                          ctx.sample_observers, ctx.record_sinks))
     finally:
         tables.close(empty=True)
     ctx.stats["rows"] = dict(tables.counts)
@@ -130,8 +132,32 @@ def information(ctx: ProductContext) -> Any:
     return table.drop_columns(["recording"])
 
 
+def survey_prepare(ctx: ProductContext) -> None:
+    """The survey product collects the hub-load records of the telemetry product's replay
+    (a recording is read once)."""
+    from rsra.daq.analysis.survey_run import survey_collector
+
+    collector = ctx.state["survey"] = survey_collector(ctx.cfg)
+    ctx.record_sinks.append(collector.add)
+
+
+def survey(ctx: ProductContext) -> Any:
+    """The recording's loads survey at its own test points (daq.analysis.survey_run: marks,
+    else the transient flag's edges), the long table of `rsra survey`, from the records of
+    the telemetry product's replay."""
+    from rsra.daq.analysis.survey_run import campaign_survey
+
+    table, reason = campaign_survey(ctx.cfg, ctx.source, ctx.options,
+                                    ctx.state["survey"])
+    ctx.stats["survey_points"] = len(set(table.column("test_point").to_pylist()))
+    if reason:
+        ctx.stats["survey_reason"] = reason
+    return table
+
+
 #: the products of every recording, in order
 PRODUCTS: list[Product] = [
     Product("telemetry", telemetry),
     Product("information", information, prepare=information_prepare),
+    Product("survey", survey, prepare=survey_prepare),
 ]

@@ -24,9 +24,10 @@ class RecordingFailed(RuntimeError):
 
 def replay_to_tables(cfg: RigConfig, paths: Sequence[str | Path], tables: ParquetTables,
                      options: dict[str, Any],
-                     observers: Sequence[Callable[[Any], None]] = ()) -> dict[str, Any]:
+                     observers: Sequence[Callable[[Any], None]] = (),
+                     sinks: Sequence[Callable[[str, dict], None]] = ()) -> dict[str, Any]:
     """Replay ``paths`` (one recording) into ``tables``, every assembled sample shown to
-    ``observers`` too; returns samples, lost samples, and accepted identification runs."""
+    ``observers`` and every published record to ``sinks`` too; returns samples, lost samples, and accepted identification runs."""
     from can.io.blf import BLFParseError
 
     from rsra.config.rig import ConfigError
@@ -51,6 +52,8 @@ def replay_to_tables(cfg: RigConfig, paths: Sequence[str | Path], tables: Parque
     service.add_sink(sink)
     for observe in observers:
         service.add_sample_observer(observe)
+    for extra in sinks:
+        service.add_sink(extra)
     try:
         summary = service.run()
     except (PosteriorFileError, ConfigError) as e:

@@ -56,7 +56,8 @@ def run(args: argparse.Namespace) -> int:
         alive = list(session.liveliness().get(f"{prefix}/alive", timeout=3.0))
         if not any(getattr(r, "ok", None) is not None for r in alive):
             print(f"rsra mark: no service with prefix {prefix} reached (no {prefix}/alive "
-                  "token); fix: start `rsra run --record DIR` or give --zenoh-connect",
+                  "token); fix: start `rsra run --record DIR`, or give the service's --config "
+                  "(its prefix is rsra/<rig name>) or --prefix, and --zenoh-connect",
                   file=sys.stderr)
             return 1
         session.put(f"{prefix}/mark", data)

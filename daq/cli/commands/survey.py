@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 
 from rsra.daq.analysis.survey import SURVEY_FILES
+from rsra.daq.analysis.survey_run import POINT_SOURCES
 from rsra.daq.cli.options import positive_float
 
 OUTPUTS = {"out": SURVEY_FILES}  # checked against the inputs before any work (daq.cli.outputs)
 INPUTS = ("test_points_file",)
-POINT_SOURCES = ("auto", "marks", "scenario", "transient")
 
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:
@@ -107,6 +107,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace, sv) -> int:
+    from rsra.daq.analysis import survey_run as sr
     from rsra.daq.bus.replay import config_for
 
     inputs = [Path(p) for p in args.logs]
@@ -121,16 +122,16 @@ def _run(args: argparse.Namespace, sv) -> int:
                             limits=_limits(args.limit, args.units))
     if len(inputs) == 1 and sv.is_dataset(inputs[0]):
         cfg = config_for([], args.config)
-        rig = _rig(cfg)
+        rig = sr.survey_rig(cfg)
         rows, points = _survey_dataset(args, sv, inputs[0], rig, opts)
     else:
         results = len(inputs) == 1 and inputs[0].is_file() and inputs[0].suffix == ".jsonl"
         cfg = config_for([] if results else args.logs, args.config)
-        rig = _rig(cfg)
+        rig = sr.survey_rig(cfg)
         data = (sv.load_results(inputs[0], rig.angle_names) if results
-                else _replay(cfg, args.logs, rig))
-        folder = inputs[0] if inputs[0].is_dir() else inputs[0].parent
-        points = _points(args, sv, data, folder)
+                else sr.replay_data(cfg, args.logs, rig))
+        folder = sr.folder_of(inputs[0])
+        points = sr.recording_points(args.test_points, data, folder, _scenario_points)
         if not points:
             raise sv.SurveyError(f"{args.logs[0]}: no test point found ({args.test_points}); "
                                  "fix: give --test-points FILE.toml with [[test_point]] tables")
@@ -141,26 +142,30 @@ def _run(args: argparse.Namespace, sv) -> int:
     sv.write_outputs(rows, points, rig, opts, out, str(args.logs[0]))
     print(f"survey: {len(points)} test points, {len(rows)} rows -> {out}/survey.parquet, "
           "survey.csv, survey.md, survey_harmonics.png, survey_loads.png")
+    if len(inputs) == 1 and sv.is_dataset(inputs[0]):
+        subs = sv.write_recording_reports(rows, points, rig, opts, out)
+        print(f"survey: a report per recording in {out}/recordings/ ({len(subs)})")
     return 0
 
 
 def _survey_dataset(args, sv, path: Path, rig, opts):
     """Every recording of a Parquet dataset (a campaign's, or one `rsra export --parquet`),
-    its test points named ``<recording>: <name>``."""
+    its test points named ``<recording>: <name>``; a campaign's manifest names each
+    recording's folder, where its marks and the simulator's truth are."""
     from dataclasses import replace
 
-    if args.test_points in ("marks", "scenario"):
-        raise sv.SurveyError(f"{path}: a Parquet dataset holds no {args.test_points}; fix: "
-                             "--test-points FILE.toml or transient")
+    from rsra.daq.analysis import survey_run as sr
+
+    sources = sv.dataset_sources(path)
     rows, points = [], []
     for rid, data in sv.load_dataset(path, rig.angle_names).items():
-        t = data.t[np.isfinite(data.t)]
-        if not len(t):
-            continue
-        pts = (sv.points_from_transient(data.t, data.transient)
-               if args.test_points in POINT_SOURCES
-               else sv.filter_points(sv.points_from_toml(Path(args.test_points),
-                                                         float(t.min())), t))
+        src = sources.get(rid)
+        if src is None and args.test_points in ("marks", "scenario"):
+            raise sv.SurveyError(f"{path}: recording {rid} has no source folder in a campaign "
+                                 f"manifest, so no {args.test_points}; fix: --test-points "
+                                 "FILE.toml or transient")
+        pts = sr.recording_points(args.test_points, data,
+                                  None if src is None else sr.folder_of(src), _scenario_points)
         pts = [replace(tp, name=f"{rid}: {tp.name}") for tp in pts]
         rows += sv.survey(data, pts, rig, opts, recording=rid)
         points += pts
@@ -170,68 +175,10 @@ def _survey_dataset(args, sv, path: Path, rig, opts):
     return rows, points
 
 
-def _rig(cfg):
-    from functools import partial
-
-    from rsra.daq.analysis.survey import SurveyRig, moment_model_sigma
-    from rsra.estimator.angle_uncertainty import hub_angle_sensitivity
-    from rsra.estimator.noise_budget import noise_budget
-
-    model = cfg.rig_model()
-    nb = noise_budget(model, cfg.identification.initial_angles_rad, cfg.hub_frame)
-    return SurveyRig(blades=int(cfg.rotor.blades), modelled=tuple(cfg.filter.harmonics),
-                     dt=cfg.sample_period_s, time_constant_s=cfg.filter.time_constant_s,
-                     bound=nb.total, angle_names=tuple(model.geometry.angle_names),
-                     sensitivity=partial(hub_angle_sensitivity, model.geometry,
-                                         frame=cfg.hub_frame),
-                     model_sigma=moment_model_sigma(cfg.identification.moment_floor_Nm))
-
-
-def _replay(cfg, logs: list[str], rig):
-    from rsra.daq.analysis.survey import RecordCollector
-    from rsra.daq.bus.replay import ReplayError, check_readable, expand
-    from rsra.daq.cli.options import UsageError
-    from rsra.daq.runtime.service import Service, ServiceOptions
-
-    try:
-        files = expand(logs)
-        check_readable(files)
-    except ReplayError as e:
-        raise UsageError(str(e)) from None
-    col = RecordCollector(rig.angle_names)
-    service = Service(cfg, ServiceOptions(replay=list(logs), zenoh=False))
-    service.add_sink(col.add)
-    service.run()
-    return col.finish()
-
-
-def _points(args, sv, data, folder: Path):
-    src = args.test_points
-    t = data.t[data.t == data.t]
-    if src not in POINT_SOURCES:
-        return sv.filter_points(sv.points_from_toml(Path(src), float(t.min())), t)
-    marks = folder / "marks.jsonl"
-    if src in ("auto", "marks") and marks.is_file():
-        return sv.filter_points(sv.points_from_marks(sv.read_marks(marks), float(t.max())), t)
-    if src == "marks":
-        raise sv.SurveyError(f"{folder}: no marks.jsonl (no `rsra mark` during the run); fix: "
-                             "--test-points FILE.toml, scenario or transient")
-    truth = folder / "truth.npz"
-    if src in ("auto", "scenario") and truth.is_file():
-        pts = _scenario_points(truth, sv)
-        if pts:
-            return sv.filter_points(pts, t)
-    if src == "scenario":
-        raise sv.SurveyError(f"{folder}: no simulator truth (truth.npz) with a scenario; fix: "
-                             "--test-points FILE.toml, marks or transient")
-    return sv.points_from_transient(data.t, data.transient)
-
-
-def _scenario_points(truth_path: Path, sv):
+def _scenario_points(truth_path: Path):
     """The simulator's conditions and manoeuvres (daq.analysis.survey.points_from_schedule)
     on the samples' time base (the truth's SYNC times); [] without a usable scenario."""
-    import numpy as np
-
+    from rsra.daq.analysis.survey import points_from_schedule
     from rsra.sim_bus.scenarios import load_scenario
     from rsra.sim_bus.truth import read_truth
 
@@ -242,4 +189,4 @@ def _scenario_points(truth_path: Path, sv):
     except Exception:  # noqa: BLE001 - no usable scenario: the next source is tried
         return []
     ts = np.asarray(tr["t"], float)
-    return sv.points_from_schedule(sc, ts, np.asarray(tr.get("sync_time", ts), float))
+    return points_from_schedule(sc, ts, np.asarray(tr.get("sync_time", ts), float))
