@@ -213,7 +213,7 @@ class RotorTable(Table):
     redesign_band: Pos = 0.005
     cache_resolution: Pos = 0.001
     stopped: bool = False
-    # issue 25: "design" (the harmonic states advance by the design's Ω) or "azimuth"
+    # "design" (the harmonic states advance by the design's Ω) or "azimuth"
     harmonic_phase: Literal["design", "azimuth"] = "design"
 
     @model_validator(mode="after")
@@ -257,7 +257,7 @@ class FilterTable(Table):
 
 
 class StructureTable(Table):
-    """``[identification.structure]`` (issue 19; `rsra calibrate` writes it)."""
+    """``[identification.structure]`` (`rsra calibrate` writes it)."""
 
     structure: Literal[tuple(STRUCTURE_PARAMETERS)]  # type: ignore[valid-type]
     alpha0_deg: Annotated[list[float], Field(min_length=14, max_length=14),
@@ -285,7 +285,7 @@ class AdviceAccelerometerTable(Table):
 
 
 class AdviceTable(Table):
-    """``[identification.advice]`` (issue 25 item 5): the additions the filter-error windows'
+    """``[identification.advice]``: the additions the filter-error windows'
     advice weighs (docs/identification.md "Which additions would determine the rest")."""
 
     enabled: bool = True
@@ -330,14 +330,14 @@ class IdentificationTable(Table):
     angle_limit_deg: Pos = 10.0
     filter_error_update: Literal["consider", "bayes"] = "consider"
     filter_error_floor_deg: NonNeg = 0.0
-    # filter-error runs (issue 25): a bound (1 σ) on how far each angle moves per unit of
+    # filter-error runs: a bound (1 σ) on how far each angle moves per unit of
     # static hub load X Y Z (N) L M N (N·m) away from the flight's reference (trim) load
     angle_load_sensitivity_deg_per_unit: Annotated[
         list[NonNeg], Field(min_length=6, max_length=6),
         _meta(unit=" in ° per N (X, Y, Z) and per N·m (L, M, N)")] = [0.0] * 6
     filter_error_scattered_fraction: NonNeg = 0.02
     # known loads: the Gaussian summary's curvature index above which a run is held
-    # (not_identifiable, detail nonlinear; estimator.curvature, issue 27)
+    # (not_identifiable, detail nonlinear; estimator.curvature)
     nonlinearity_check: bool = True
     nonlinearity_limit: NonNeg = 1.0
     structure: StructureTable | None = None

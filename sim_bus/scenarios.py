@@ -109,7 +109,7 @@ class RotorMotion:
     omega_variation: float  # fraction: Omega = Omega_nominal (1 + v m(t)), |m| <= 1
     omega_period_s: float
     follow_shaker: bool  # Omega = 2 pi f_shaker / N_b (the shaker is the N_b/rev harmonic)
-    # a governor-like oscillation on top (issue 25): + amplitude sin(2 pi f t), fraction of
+    # a governor-like oscillation on top: + amplitude sin(2 pi f t), fraction of
     # Omega_nominal; 0 = none
     governor_amplitude: float = 0.0
     governor_hz: float = 1.0
@@ -124,11 +124,11 @@ class AngleModel:
     step_at_s: tuple[float, ...]
     linear_rad_per_unit: np.ndarray  # (6,) per N, N·m of static hub load; random sign per angle
     resolution_rad: float  # the linear part is held on this grid (one discretisation per value)
-    # "cell_load": every angle moves with the static load of its own cell (issue 19), by this
+    # "cell_load": every angle moves with the static load of its own cell, by this
     # much per N, random sign per angle: the estimator's ``cell_load_angles`` structure
     cell_gain_rad_per_N: float = 0.0
     # "drift": the angles ``drift_angles`` (indices in model order) move linearly in time,
-    # ``drift_rad`` over ``drift_over_s`` (a temperature-like drift, issue 27)
+    # ``drift_rad`` over ``drift_over_s`` (a temperature-like drift)
     drift_rad: float = 0.0
     drift_over_s: float = 240.0
     drift_angles: tuple[int, ...] = ()
@@ -143,7 +143,7 @@ class BaseVibration:
 
 @dataclass(frozen=True)
 class Turbulence:
-    """Broadband hub loads outside the filter's load model (A6): band-limited Gaussian noise
+    """Broadband hub loads outside the filter's load model (flight turbulence): band-limited Gaussian noise
     (Butterworth band-pass of white noise) with the given RMS per hub-load component."""
 
     enabled: bool
@@ -164,7 +164,7 @@ class UnmodelledLoad:
 
 @dataclass(frozen=True)
 class RigErrors:
-    """Errors of the rig the estimator's constant model does not know (issue 19, the competing
+    """Errors of the rig the estimator's constant model does not know (the competing
     structures): the true hub centre is off the configured one by ``hub_offset_m``; the
     reference balance reads with per-axis scale errors and an alignment error — it reads
     ``H_b`` with ``H_true = [(I + skew φ)(1 + s_F)∘F_b; (I + skew φ)(1 + s_M)∘M_b]``. Zero:

@@ -614,7 +614,7 @@ def _direction(u: np.ndarray, sc: np.ndarray, P_disp: np.ndarray, names: Sequenc
 
 
 def structure_of(cfg: RigConfig, result: CalibrationResult) -> dict | None:
-    """The structure test over the recording (issue 19, docs/identification.md): the scored
+    """The structure test over the recording (docs/identification.md): the scored
     samples of each identification window (as the live windows see them), one look each, from the batch estimate's angles. None unless the content is ``static`` (the
     test compares window means). Returns the verdict, the ranked candidates and the fit of
     the selected structure (``structure_fit``, None when none is selected)."""

@@ -184,7 +184,7 @@ def _dask(workers: int | None, scheduler: str | None, scheduler_file: str | None
                      "distributed.scheduler.worker-saturation": 1.0,
                      # the workers forked from this process, as a ProcessPoolExecutor's are:
                      # spawned, each re-imports Python, distributed and numpy/scipy/pyarrow
-                     # and takes seconds more to start and to close (docs/performance.md C2)
+                     # and takes seconds more to start and to close (measured: docs/performance.md, the campaign against a process pool)
                      "distributed.worker.multiprocessing-method": _start_method(),
                      # the statistical profiler samples every worker thread every 10 ms for
                      # the dashboard's profile: only when there is a dashboard

@@ -1,4 +1,4 @@
-"""The compiled hub path (docs/performance.md "The compiled hub path", issue 26).
+"""The compiled hub path (docs/performance.md "The compiled hub path").
 
 For a measured sample — every reading present and finite, no status, stuck, lost or
 missing flag, no structure correction, a rotor speed the filter has its design for — the
@@ -46,7 +46,7 @@ MIRRORS_FINGERPRINT = "fe119818fa35fe3e"  # design mode; azimuth mode takes the 
 
 def _code_only(source: str) -> str:
     """The code of a function's source: its syntax tree without type annotations, docstrings
-    or comments, so that annotating the estimator (mypy, issue 27) does not turn the kernel
+    or comments, so that annotating the estimator for mypy does not turn the kernel
     off, while any change to what the code computes does."""
     import ast
     import textwrap

@@ -70,7 +70,7 @@ class EstimatorPipeline:
         self._Mf = inertial_load_matrix(self.model)
         self._D = self.model.external.wrenches
         f = cfg.filter
-        # issue 25: the harmonic states turn with the rotor's measured azimuth
+        # azimuth mode: the harmonic states turn with the rotor's measured azimuth
         self.azimuth_mode = cfg.rotor.harmonic_phase == "azimuth"
         self.azimuth = AzimuthTracker(cfg.rotor.omega_nominal_rad_s, 1.0 / self.fs)
         self.azimuth_missing = 0  # samples advanced by the design's Ω (health)
@@ -106,7 +106,7 @@ class EstimatorPipeline:
         # designed for (and no rotor gives one): such a reading is not used (model §5)
         self.omega_max = math.pi * self.fs / max(cfg.filter.harmonics)
         # a rotor turns one way: a reading below minus the stopped band (a stopped rotor's
-        # noise) is a sign-inverted or corrupt sensor, not a stopped rotor (issue 46)
+        # noise) is a sign-inverted or corrupt sensor, not a stopped rotor
         self.omega_low = -cfg.rotor.omega_min_fraction * cfg.rotor.omega_nominal_rad_s
         self.implausible_omega = 0  # readings refused (counted in health)
         self._last_seq: int | None = None
@@ -183,7 +183,7 @@ class EstimatorPipeline:
     def stages(self, s) -> Iterator[PipelineOutput]:
         """One sample in two steps the caller pulls (live): first the records up to and
         including hub_loads, then the channels, innovations and calibration branch — off the
-        SYNC → hub-load latency path (docs/performance.md P5). Both steps must be taken, in
+        SYNC → hub-load latency path. Both steps must be taken, in
         order; live, the first runs in the bus thread and the second in the service thread
         (the first step of the next sample may run while this one's second runs: what the
         second needs of the first is passed in the generator's locals, never in ``self``)."""
@@ -207,7 +207,7 @@ class EstimatorPipeline:
         if present:
             cells_ok = acc_ok = True
         else:
-            # (np.count_nonzero: a fraction of ndarray.all's cost on these short vectors, P5)
+            # (np.count_nonzero: a fraction of ndarray.all's cost on these short vectors)
             cells_ok = np.count_nonzero(np.isfinite(T)) == T.size
             acc_ok = np.count_nonzero(np.isfinite(accel)) == accel.size
         bad_status = stuck or (bool(flags) and

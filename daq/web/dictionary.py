@@ -392,7 +392,7 @@ def points(dic: Dictionary, key: str, p: dict) -> list[tuple[str, dict]]:
             out.append(("ident.determined", _datum(utc, det)))
         from rsra.estimator.flight_advice import advice_summary
 
-        adv = advice_summary(p.get("advice"))  # filter error (issue 25 item 5)
+        adv = advice_summary(p.get("advice"))  # filter error: what would determine the rest
         if adv:
             out.append(("ident.advice", _datum(utc, adv)))
     elif key == "health":
