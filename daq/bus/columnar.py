@@ -475,8 +475,8 @@ class ColumnarReplay:
         rows = idx[:, 1:]
         c = blk.cid[rows]
         if (c == c[0]).all():  # the TPDOs in the same order in every period (the rule)
-            q, j, zero = self._gather(c[0])
-            joined = blk.data.reshape(-1)[rows[:, q] * 8 + j]
+            q, byte, zero = self._gather(c[0])
+            joined = blk.data.reshape(-1)[rows[:, q] * 8 + byte]
             if zero is not None:
                 joined[:, zero] = 0
         else:
