@@ -149,6 +149,7 @@ def test_an_over_long_line_is_the_same_frame_on_both_paths(recordings, tmp_path)
 @pytest.mark.parametrize("bad", [
     b"(1796674406.998000) sim 711#0\xff R\n",  # not UTF-8, in the data
     b"(1796674406.998000) sim \xfe\xff 711#05 R\n",  # not UTF-8: a channel python-can splits
+    b"(1796674406.998000) s\tm 711#05 R\n",  # a tab: one field more (every byte counted)
 ])
 def test_a_damaged_line_fails_the_same_on_both_paths(recordings, tmp_path, bad):
     lines = _lines(recordings["ground"])

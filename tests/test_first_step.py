@@ -187,3 +187,23 @@ def test_first_step_is_quick_only_without_a_design_or_a_result_to_take_in(cfg, r
     p.outstanding[1] = 5
     p.deliver(_result(cfg, 5), arrival_seq=0, job_id=1)
     assert not p.first_step_is_quick(_sample(run, 1))  # a result to take in
+
+
+def test_a_pipeline_not_prefilled_gives_the_same_records(cfg, run):
+    """A run not paced by the wall clock (a replay) designs the load filter for each rotor
+    speed when first met instead of the whole band at start: the same records, bit for
+    bit, over a rotor speed that crosses many of the band's design points."""
+    from rsra.daq.jsonout import dumps
+
+    w0 = cfg.rotor.omega_nominal_rad_s
+    pre = EstimatorPipeline(cfg, cfg.identification.initial_angles_rad, identification=False)
+    lazy = EstimatorPipeline(cfg, cfg.identification.initial_angles_rad, identification=False,
+                             prefill=False)
+    made = lazy.cache.designs_made
+    assert made < pre.cache.designs_made  # (only the nominal speed designed at start)
+    for i in range(120):
+        s = _sample(run, i)
+        s.omega = w0 * (1 + 0.018 * np.sin(i / 10))  # through the band, back and forth
+        a, b = pre.process(s).records, lazy.process(s).records
+        assert [dumps(x) for _, x in a] == [dumps(x) for _, x in b], i
+    assert lazy.cache.designs_made > made + 5  # the speeds met were designed on the way

@@ -60,7 +60,8 @@ class EstimatorPipeline:
     calibration_branch.CalibrationBranch)."""
 
     def __init__(self, cfg: RigConfig, alpha0: np.ndarray, *, identification: bool = True,
-                 table: DecodeTable | None = None, hub_kernel: bool = True):
+                 table: DecodeTable | None = None, hub_kernel: bool = True,
+                 prefill: bool = True):
         self.cfg = cfg
         self.model = cfg.rig_model()
         self.fs = cfg.sample_rate_hz
@@ -75,7 +76,7 @@ class EstimatorPipeline:
         self.azimuth = AzimuthTracker(cfg.rotor.omega_nominal_rad_s, 1.0 / self.fs)
         self.azimuth_missing = 0  # samples advanced by the design's Ω (health)
         self.cache = design_cache(cfg, model=self.model)
-        self.load_filter = _load_filter(cfg, self.cache, alpha, self.azimuth_mode)
+        self.load_filter = _load_filter(cfg, self.cache, alpha, self.azimuth_mode, prefill)
         # the filter's lag behind a moving static load: flag `transient` (estimator/transient.py)
         self.transient = TransientDetector(1.0 / self.fs,
                                            TIME_CONSTANT_FRACTION * f.time_constant_s)
@@ -348,14 +349,19 @@ class EstimatorPipeline:
 
 
 def _load_filter(cfg: RigConfig, cache: DesignCache, alpha: np.ndarray,
-                 azimuth: bool) -> LoadFilter:
+                 azimuth: bool, prefill: bool = True) -> LoadFilter:
     """The pipeline's load filter, the rotor-speed band it is expected in designed now (a
-    redesign takes 10-60 ms, longer than a sample); a design that fails is a ConfigError."""
+    redesign takes 10-60 ms, longer than a sample); a design that fails is a ConfigError.
+    ``prefill=False`` (a run not paced by the wall clock: a replay, lock-step) designs only
+    the nominal speed now and every other one when first met: a design is a function of
+    its grid speed alone, so the records are the same, and a replay does not spend its
+    start-up on the band's designs it never meets."""
     f = cfg.filter
     fs = cfg.sample_rate_hz
     w0 = cfg.rotor.omega_nominal_rad_s
     try:
-        cache.prefill(w0 * (1 - PREFILL_BAND), w0 * (1 + PREFILL_BAND))
+        if prefill:
+            cache.prefill(w0 * (1 - PREFILL_BAND), w0 * (1 + PREFILL_BAND))
         return LoadFilter(cache, alpha, invalid_after_samples=int(round(f.invalid_after_s * fs)),
                           azimuth=azimuth)
     except (np.linalg.LinAlgError, ValueError) as e:  # the config check (Nyquist) passed

@@ -66,6 +66,9 @@ class StartPlan:
     start_fit: Any = None
     schedule: dict | None = None
     warnings: tuple[str, ...] = ()
+    #: the load filter's band designed at start (live: a redesign in the bus thread would
+    #: miss its deadline); a run not paced by the wall clock designs each speed when met
+    prefill: bool = True
 
     def initial_record(self) -> InitialAngles:
         """The first line of a recording's ``angles.jsonl``: the angles the run starts from."""
@@ -85,7 +88,8 @@ class StartPlan:
     def pipeline(self) -> EstimatorPipeline:
         """The estimator pipeline at the starting angles, their covariance (hub_loads
         sigma_angles), the starting structure and the recorded records to apply."""
-        p = EstimatorPipeline(self.cfg, self.alpha0, identification=self.use_ident)
+        p = EstimatorPipeline(self.cfg, self.alpha0, identification=self.use_ident,
+                              prefill=self.prefill)
         # the covariance of the starting angles: the recording's starting posterior in a
         # replay, else the saved posterior's or the prior
         start = (self.recorded_initial if self.recorded_initial is not None
@@ -141,4 +145,5 @@ def plan_start(cfg: RigConfig, opts: Any, source: Source) -> StartPlan:
         start_fit = cfg.identification.structure_fit
     return StartPlan(cfg=cfg, alpha0=alpha0, state=state, recorded_initial=recorded_initial,
                      recorded=list(plan.recorded), use_ident=use_ident, start_fit=start_fit,
-                     schedule=plan.schedule, warnings=tuple(warnings))
+                     schedule=plan.schedule, warnings=tuple(warnings),
+                     prefill=not source.deterministic)
