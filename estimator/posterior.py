@@ -669,7 +669,8 @@ class SequentialPosterior:
         return posterior_from_config(ident, names, angle_names, **kw)
 
     def state(self) -> PosteriorState:
-        return PosteriorState(self.names, self.theta.copy(), self.reference.reported(self.P),
+        return PosteriorState(self.names, self.reference.reported_theta(self.theta),
+                              self.reference.reported(self.P),
                               self.applies_from_seq, self.t, self.rig,
                               self.structure_fit, self.reference.load)
 
@@ -828,7 +829,8 @@ def angles_record(post: "SequentialPosterior", *, verdict: Verdict, mode: str, c
         else structure.drift.to_dict(),
         structure_verdict=structure,
         t=t, seq=int(window[1]), mode=mode, content=content, accepted=verdict.accepted,
-        reason=verdict.reason, verdict=verdict, names=post.names, alpha=post.theta.copy(), P=post.reference.reported(post.P),
+        reason=verdict.reason, verdict=verdict, names=post.names,
+        alpha=post.reference.reported_theta(post.theta), P=post.reference.reported(post.P),
         sigma_cr=None if result is None else result.sigma_cr,
         sigma_cr_corrected=None if result is None else result.sigma_cr_corrected,
         determined=det, information=information, nu=verdict.nu,
@@ -934,9 +936,11 @@ class ReferenceLoad:
 
     def __init__(self, load: np.ndarray | None = None, windows: int = 0) -> None:
         self.load, self.windows = load, windows
-        # the covariance the angles' load dependence adds at this reference (LoadSpread):
-        # set at each accepted known-load run of a rig with a sensitivity bound
+        # what solving for the angles' load dependence adds at this reference (LoadSpread):
+        # the covariance and the move of the estimate, set at each accepted known-load run of
+        # a rig with a sensitivity bound
         self.cov: np.ndarray | None = None
+        self.shift: np.ndarray | None = None
 
     @classmethod
     def restored(cls, load: Any) -> "ReferenceLoad":
@@ -955,12 +959,17 @@ class ReferenceLoad:
         """``P`` with the load spread added: what records and files state."""
         return P.copy() if self.cov is None else P + self.cov
 
+    def reported_theta(self, theta: np.ndarray) -> np.ndarray:
+        """``theta`` moved by the solved-for load dependence: what records and files state."""
+        return theta.copy() if self.shift is None else theta + self.shift
+
 
 def move_reference(post: "SequentialPosterior", reference: np.ndarray,
                    sensitivity: np.ndarray | None) -> tuple[np.ndarray, float] | None:
     """Carry ``post`` to the angles at another static load (a flight's trim):
     P + σ_L² I with σ_L² = Σ_k (s_k Δ_k)² for the move Δ from the load it referred to
-    (load_excursion_variance; the rig's 1-σ bound on the angles' load sensitivity), the mean
+    (load_excursion_variance; the rig's 1-σ bound on the angles' load sensitivity), each
+    angle's variance held within limit²/3 (an angle anywhere in its physical range), the mean
     unchanged (the bound's sign is unknown). Returns (Δ, σ_L) when it moved a reference it
     had; a posterior with none takes this one without widening (a configured start is a
     statement about the angles where the run starts)."""
@@ -968,7 +977,9 @@ def move_reference(post: "SequentialPosterior", reference: np.ndarray,
     if r.shape != (6,) or not np.all(np.isfinite(r)):
         return None
     old = post.reference.load
-    post.P = post.reference.reported(post.P)  # the ground runs' load spread goes with it
+    # the ground runs' load spread goes with it
+    post.theta = post.reference.reported_theta(post.theta)
+    post.P = post.reference.reported(post.P)
     post.reference = ReferenceLoad(r.copy(), 0)
     if old is None or sensitivity is None:
         return None
@@ -976,7 +987,10 @@ def move_reference(post: "SequentialPosterior", reference: np.ndarray,
     v = load_excursion_variance(sensitivity, delta)
     if v <= 0.0:
         return None
-    post.P = post.P + v * np.eye(len(post.P))
+    # bounded by the physical limit: no angle's variance beyond that of an angle anywhere
+    # in its ±limit range (uniform, limit²/3) — a larger move than the rig allows says nothing
+    cap = np.where(np.isfinite(post.limit), post.limit ** 2 / 3.0, math.inf)
+    post.P = post.P + np.diag(np.minimum(v, np.maximum(cap - np.diag(post.P), 0.0)))
     post.fold()
     return delta, math.sqrt(v)
 
@@ -1346,7 +1360,9 @@ class KnownLoadIdentification(PeriodicIdentification):
             post.reference.note(w.static_load)
         if self._spread is not None and moments is not None and self._own is not None:
             self._spread.after(rec, self._own, w.static_load)
-            rec.P = post.reference.reported(post.P)  # the record states the spread it added
+            # the record states the spread it added
+            rec.alpha = post.reference.reported_theta(post.theta)
+            rec.P = post.reference.reported(post.P)
         if self.structure is not None:
             self._structure_after(rec)
         if rec.accepted:
