@@ -286,6 +286,9 @@ class IdentificationConfig:
     angle_load_sensitivity_rad_per_unit: tuple[float, ...] = (0.0,) * 6
     # filter-error windows: at most this fraction missing in short runs (issue 29)
     filter_error_scattered_fraction: float = 0.02
+    # known loads: a bound (1 σ, rad/s) on each angle's drift rate, solved for beside the
+    # angles (estimator.load_spread); 0: constant angles up to the random walk
+    angle_drift_rate_rad_per_s: float = 0.0
     # known loads: a run whose Gaussian summary misses the curvature of the likelihood's
     # valley by more than this (χ² units) is held (estimator.curvature, issue 27); inf: off
     nonlinearity_check: bool = True  # docs/configuration.md
@@ -710,6 +713,7 @@ def parse_config(raw: dict[str, Any], source: str = "<config>",
             angle_load_sensitivity_rad_per_unit=tuple(
                 math.radians(float(k)) for k in idt.angle_load_sensitivity_deg_per_unit),
             filter_error_scattered_fraction=idt.filter_error_scattered_fraction,
+            angle_drift_rate_rad_per_s=math.radians(idt.angle_drift_rate_deg_per_s),
             nonlinearity_check=idt.nonlinearity_check,
             nonlinearity_limit=idt.nonlinearity_limit,
             # as estimator.structure.fit_payload (SI); None: the constant structure

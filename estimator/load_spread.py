@@ -51,16 +51,21 @@ class LoadSpread:
     accepted run's windows join the accepted ones and the posterior's ``reference.shift`` and
     ``reference.cov`` are computed afresh at its estimate."""
 
-    def __init__(self, post: Any, par: Any, sensitivity: np.ndarray) -> None:
+    def __init__(self, post: Any, par: Any, sensitivity: np.ndarray | None,
+                 drift_rate: float = 0.0) -> None:
         # post: the SequentialPosterior (not imported: posterior imports this module)
         self.post, self.par = post, par
-        self.sensitivity = np.asarray(sensitivity, float)
+        self.sensitivity = np.zeros(6) if sensitivity is None else np.asarray(sensitivity, float)
+        # the bound (1 σ, rad/s) on each angle's drift rate: time is one more axis, each
+        # window at its own time, the reference the newest accepted window's
+        self.drift_rate = float(drift_rate)
+        # (moments, scored count, [static load (6), time])
         self.windows: deque[tuple[np.ndarray, int, np.ndarray]] = deque(maxlen=MAX_WINDOWS)
         self.held: list[tuple[np.ndarray, int, np.ndarray]] = []
         self._reference: object = post.reference
 
     def after(self, rec: Any, moments: tuple[np.ndarray, int],
-              static_load: np.ndarray | None) -> None:
+              static_load: np.ndarray | None, t: float = 0.0) -> None:
         post = self.post
         if post.reference is not self._reference:  # reset, restored or carried: start again
             self.windows.clear()
@@ -69,7 +74,7 @@ class LoadSpread:
         h = None if static_load is None else np.asarray(static_load, float)
         if h is None or h.shape != (6,) or not np.all(np.isfinite(h)):
             return
-        here = (np.asarray(moments[0], float).copy(), int(moments[1]), h.copy())
+        here = (np.asarray(moments[0], float).copy(), int(moments[1]), np.append(h, float(t)))
         held_now = int(post.moments.windows_held)
         if rec.accepted:
             self.windows.extend(self.held)
@@ -103,9 +108,15 @@ class LoadSpread:
             return None
         theta = np.asarray(post.theta, float)
         p = len(theta)
-        ks = np.flatnonzero(self.sensitivity > 0)
+        # under a trend the drift is the structure test's (its rates move the posterior)
+        rate = self.drift_rate if getattr(post, "trend", None) is None else 0.0
+        bound = np.append(self.sensitivity, rate)
+        ks = np.flatnonzero(bound > 0)
         if len(ks) == 0:
             return None
+        # a window given by its load alone (the pooled calibration) is at time 0
+        wins = [(G, n, L if len(L) > 6 else np.append(L, 0.0)) for G, n, L in self.windows]
+        ref = np.append(ref, max(float(L[6]) for _, _, L in wins))
         P0 = getattr(post, "P0", None)
         lam_aa = np.zeros((p, p)) if P0 is None else np.linalg.inv(P0)
         grad = np.zeros(p)
@@ -113,12 +124,12 @@ class LoadSpread:
         B = np.zeros((m, p, p))  # s_k Σ_j ΔL_jk M_j
         C = np.zeros((m, m, p, p))  # s_k s_l Σ_j ΔL_jk ΔL_jl M_j
         b = np.zeros((m, p))  # s_k Σ_j ΔL_jk γ_j
-        for G, n, L in self.windows:
+        for G, n, L in wins:
             gm = moments_gradient_information(self.par, G, n, theta)
             if gm is None:
                 continue
             g, M = gm[0], 0.5 * (gm[1] + gm[1].T)
-            d = (L - ref)[ks] * self.sensitivity[ks]
+            d = (L - ref)[ks] * bound[ks]
             lam_aa += M
             grad += g
             B += d[:, None, None] * M[None]

@@ -1084,6 +1084,9 @@ class PeriodicIdentification:
     # loads (the trim; filter error) or the accepted windows' mean (known loads: the load
     # spread); None or zeros: the angles do not depend on the load
     angle_load_sensitivity: np.ndarray | None = None
+    # known loads: a bound (1 σ, rad/s) on each angle's drift rate, solved for beside the
+    # angles in what the posterior states (estimator.load_spread); 0: none
+    angle_drift_rate: float = 0.0
     filter_state: FilterErrorState | None = field(default=None, init=False)
     _settle_pending: int = field(default=0, init=False)
     _last_end: int | None = field(default=None, init=False)
@@ -1277,7 +1280,9 @@ class KnownLoadIdentification(PeriodicIdentification):
     def __post_init__(self) -> None:
         super().__post_init__()
         sens = self._load_reference.sensitivity
-        self._spread = None if sens is None else LoadSpread(self.posterior, self.par, sens)
+        rate = float(self.angle_drift_rate)
+        self._spread = (None if sens is None and rate <= 0.0
+                        else LoadSpread(self.posterior, self.par, sens, rate))
         self._own: tuple[np.ndarray, int] | None = None  # the window's own moments
         self._nonlinearity: float | None = None  # the last run's curvature index
         if self.structure_test and self.content == "static":
@@ -1359,7 +1364,7 @@ class KnownLoadIdentification(PeriodicIdentification):
         if rec.accepted:
             post.reference.note(w.static_load)
         if self._spread is not None and moments is not None and self._own is not None:
-            self._spread.after(rec, self._own, w.static_load)
+            self._spread.after(rec, self._own, w.static_load, float(rec.t or 0.0))
             # the record states the spread it added
             rec.alpha = post.reference.reported_theta(post.theta)
             rec.P = post.reference.reported(post.P)
@@ -1455,7 +1460,8 @@ class KnownLoadIdentification(PeriodicIdentification):
         of window means held at different loads knows nothing of it (the flight benchmark's rig_ground_load arm:
         a flight run at χ²₁₄ 59.0 against 52.3 after its ground calibration's prior was the
         bounded prediction)."""
-        if pred is None or at is None or self._spread is None:
+        if (pred is None or at is None or self._spread is None
+                or not np.any(self._spread.sensitivity > 0)):
             return pred
         C = drift.bounded_load_spread(t, look, at, self._spread.sensitivity,
                                       self.posterior.reference.load)

@@ -551,3 +551,38 @@ def test_a_ground_posterior_over_thrust_dependent_angles_narrows_as_it_learns():
         assert state.rig is not None and state.rig.get("name") == "flight"
         smax.append(s)
     assert smax[1] <= smax[0] * 1.001, np.degrees(smax)
+
+
+def _drifting_ground_test(seed, duration, rate_deg_per_s):
+    """The packaged ground rig on a ``ground-test`` whose three angles drift +0.5° over
+    240 s: per accepted run before the structure test calls ``drifting``, the χ²₁₄ of the
+    stated posterior against its window's truth (the mean true angles over the window)."""
+    from bench.a3_known_load import chi2_of, run_calibration
+    from rsra.config.rig import config_dir
+    from rsra.sim_bus import load_scenario, simulate
+
+    cfg = load_config(config_dir() / "rig.toml", overrides={
+        "identification": {"angle_drift_rate_deg_per_s": rate_deg_per_s}})
+    run = simulate(cfg, load_scenario("ground-test", angles="drift"), seed=seed,
+                   n_samples=round(duration * cfg.sample_rate_hz))
+    w = round(cfg.identification.window_s * cfg.sample_rate_hz)
+    chi = []
+    for end, rec, th, P in run_calibration(cfg, run, known_loads=True):
+        if rec.get("structure") == "drifting":
+            break
+        if rec.get("accepted"):
+            chi.append(chi2_of(th - run.alpha_true[end + 1 - w:end + 1].mean(0), P))
+    return chi
+
+
+@pytest.mark.timeout(300)
+def test_a_drifting_ground_test_accepts_nothing_inconsistent_before_the_drift_is_called():
+    """The angles' drift rates solved for beside the angles (``angle_drift_rate_deg_per_s``,
+    the packaged rig's 0.002 °/s): seed 39, whose accepted runs reached χ²₁₄ 52.9 against
+    their window's truth before ``drifting`` was called, stays within the single-run limit
+    (10⁻³) on every one. Break-checked: with the bound at 0 the same runs exceed it."""
+    limit = stats.chi2.isf(1e-3, 14)
+    chi = _drifting_ground_test(39, 80.0, 0.002)
+    assert len(chi) >= 5 and max(chi) <= limit, [round(c, 1) for c in chi]
+    bare = _drifting_ground_test(39, 80.0, 0.0)
+    assert max(bare) > limit, [round(c, 1) for c in bare]

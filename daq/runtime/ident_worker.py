@@ -106,6 +106,7 @@ def build_identification(cfg, initial_state=None):
     known = PeriodicIdentification(mode="known_loads", content=idc.content_known_loads,
                                    content_settle_samples=settle(idc.content_known_loads),
                                    angle_load_sensitivity=sens,  # the load spread
+                                   angle_drift_rate=idc.angle_drift_rate_rad_per_s,
                                    nonlinearity_limit=(idc.nonlinearity_limit if idc.nonlinearity_check
                                                        else math.inf), **common)
     design = cache.design_for(w0)
