@@ -120,7 +120,8 @@ def run_calibration(cfg, run, *, known_loads: bool, initial_state=None,
             job["missing"] = missing[sl].copy()
         rec = run_job(cfg, runs, cache, job)
         # the covariance the service states (records, files): the load spread added
-        yield end - 1, rec, post.theta.copy(), post.reference.reported(post.P)
+        yield (end - 1, rec, post.reference.reported_theta(post.theta),
+               post.reference.reported(post.P))
 
 
 def _nanmax(x: np.ndarray) -> float | None:

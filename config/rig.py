@@ -303,6 +303,9 @@ class IdentificationConfig:
     angle_load_sensitivity_rad_per_unit: tuple[float, ...]
     # filter-error windows: at most this fraction missing in short runs
     filter_error_scattered_fraction: float
+    # known loads: a bound (1 σ, rad/s) on each angle's drift rate, solved for beside the
+    # angles (estimator.load_spread); 0: constant angles up to the random walk
+    angle_drift_rate_rad_per_s: float
     # known loads: a run whose Gaussian summary misses the curvature of the likelihood's
     # valley by more than this (χ² units) is held (estimator.curvature); inf: off
     nonlinearity_check: bool  # docs/configuration.md

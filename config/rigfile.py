@@ -336,6 +336,9 @@ class IdentificationTable(Table):
         list[NonNeg], Field(min_length=6, max_length=6),
         _meta(unit=" in ° per N (X, Y, Z) and per N·m (L, M, N)")] = [0.0] * 6
     filter_error_scattered_fraction: NonNeg = 0.02
+    # known loads: a bound (1 σ) on each angle's drift rate, solved for beside the angles
+    # (estimator.load_spread); 0: constant angles up to the random walk
+    angle_drift_rate_deg_per_s: NonNeg = 0.0
     # known loads: the Gaussian summary's curvature index above which a run is held
     # (not_identifiable, detail nonlinear; estimator.curvature)
     nonlinearity_check: bool = True

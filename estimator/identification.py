@@ -285,6 +285,17 @@ def moments_information(par: Parameterisation, G: np.ndarray, n_scored: int,
     return _moments_evaluation(par, G, n_scored, theta, True, None).information
 
 
+def moments_gradient_information(par: Parameterisation, G: np.ndarray, n_scored: int,
+                                 theta: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The gradient of V and the information M about θ of known-load windows given by their
+    moments, at ``theta`` (None when either is not finite)."""
+    ev = _moments_evaluation(par, G, n_scored, theta, True, None)
+    g, M = ev.gradient, ev.information
+    if g is None or M is None or not (np.all(np.isfinite(g)) and np.all(np.isfinite(M))):
+        return None
+    return g, M
+
+
 def _moments_evaluation(par: Parameterisation, G: np.ndarray, n_scored: int, theta: np.ndarray,
                         derivatives: bool, fixed_weight: np.ndarray | None) -> Evaluation:
     """V, its gradient and M of the known-load likelihood from the moments G = Σ x xᵀ."""

@@ -669,7 +669,8 @@ class SequentialPosterior:
         return posterior_from_config(ident, names, angle_names, **kw)
 
     def state(self) -> PosteriorState:
-        return PosteriorState(self.names, self.theta.copy(), self.reference.reported(self.P),
+        return PosteriorState(self.names, self.reference.reported_theta(self.theta),
+                              self.reference.reported(self.P),
                               self.applies_from_seq, self.t, self.rig,
                               self.structure_fit, self.reference.load)
 
@@ -828,7 +829,8 @@ def angles_record(post: "SequentialPosterior", *, verdict: Verdict, mode: str, c
         else structure.drift.to_dict(),
         structure_verdict=structure,
         t=t, seq=int(window[1]), mode=mode, content=content, accepted=verdict.accepted,
-        reason=verdict.reason, verdict=verdict, names=post.names, alpha=post.theta.copy(), P=post.reference.reported(post.P),
+        reason=verdict.reason, verdict=verdict, names=post.names,
+        alpha=post.reference.reported_theta(post.theta), P=post.reference.reported(post.P),
         sigma_cr=None if result is None else result.sigma_cr,
         sigma_cr_corrected=None if result is None else result.sigma_cr_corrected,
         determined=det, information=information, nu=verdict.nu,
@@ -934,9 +936,11 @@ class ReferenceLoad:
 
     def __init__(self, load: np.ndarray | None = None, windows: int = 0) -> None:
         self.load, self.windows = load, windows
-        # the covariance the angles' load dependence adds at this reference (LoadSpread):
-        # set at each accepted known-load run of a rig with a sensitivity bound
+        # what solving for the angles' load dependence adds at this reference (LoadSpread):
+        # the covariance and the move of the estimate, set at each accepted known-load run of
+        # a rig with a sensitivity bound
         self.cov: np.ndarray | None = None
+        self.shift: np.ndarray | None = None
 
     @classmethod
     def restored(cls, load: Any) -> "ReferenceLoad":
@@ -955,12 +959,17 @@ class ReferenceLoad:
         """``P`` with the load spread added: what records and files state."""
         return P.copy() if self.cov is None else P + self.cov
 
+    def reported_theta(self, theta: np.ndarray) -> np.ndarray:
+        """``theta`` moved by the solved-for load dependence: what records and files state."""
+        return theta.copy() if self.shift is None else theta + self.shift
+
 
 def move_reference(post: "SequentialPosterior", reference: np.ndarray,
                    sensitivity: np.ndarray | None) -> tuple[np.ndarray, float] | None:
     """Carry ``post`` to the angles at another static load (a flight's trim):
     P + σ_L² I with σ_L² = Σ_k (s_k Δ_k)² for the move Δ from the load it referred to
-    (load_excursion_variance; the rig's 1-σ bound on the angles' load sensitivity), the mean
+    (load_excursion_variance; the rig's 1-σ bound on the angles' load sensitivity), each
+    angle's variance held within limit²/3 (an angle anywhere in its physical range), the mean
     unchanged (the bound's sign is unknown). Returns (Δ, σ_L) when it moved a reference it
     had; a posterior with none takes this one without widening (a configured start is a
     statement about the angles where the run starts)."""
@@ -968,7 +977,9 @@ def move_reference(post: "SequentialPosterior", reference: np.ndarray,
     if r.shape != (6,) or not np.all(np.isfinite(r)):
         return None
     old = post.reference.load
-    post.P = post.reference.reported(post.P)  # the ground runs' load spread goes with it
+    # the ground runs' load spread goes with it
+    post.theta = post.reference.reported_theta(post.theta)
+    post.P = post.reference.reported(post.P)
     post.reference = ReferenceLoad(r.copy(), 0)
     if old is None or sensitivity is None:
         return None
@@ -976,7 +987,10 @@ def move_reference(post: "SequentialPosterior", reference: np.ndarray,
     v = load_excursion_variance(sensitivity, delta)
     if v <= 0.0:
         return None
-    post.P = post.P + v * np.eye(len(post.P))
+    # bounded by the physical limit: no angle's variance beyond that of an angle anywhere
+    # in its ±limit range (uniform, limit²/3) — a larger move than the rig allows says nothing
+    cap = np.where(np.isfinite(post.limit), post.limit ** 2 / 3.0, math.inf)
+    post.P = post.P + np.diag(np.minimum(v, np.maximum(cap - np.diag(post.P), 0.0)))
     post.fold()
     return delta, math.sqrt(v)
 
@@ -1070,6 +1084,9 @@ class PeriodicIdentification:
     # loads (the trim; filter error) or the accepted windows' mean (known loads: the load
     # spread); None or zeros: the angles do not depend on the load
     angle_load_sensitivity: np.ndarray | None = None
+    # known loads: a bound (1 σ, rad/s) on each angle's drift rate, solved for beside the
+    # angles in what the posterior states (estimator.load_spread); 0: none
+    angle_drift_rate: float = 0.0
     filter_state: FilterErrorState | None = field(default=None, init=False)
     _settle_pending: int = field(default=0, init=False)
     _last_end: int | None = field(default=None, init=False)
@@ -1263,7 +1280,9 @@ class KnownLoadIdentification(PeriodicIdentification):
     def __post_init__(self) -> None:
         super().__post_init__()
         sens = self._load_reference.sensitivity
-        self._spread = None if sens is None else LoadSpread(self.posterior, self.par, sens)
+        rate = float(self.angle_drift_rate)
+        self._spread = (None if sens is None and rate <= 0.0
+                        else LoadSpread(self.posterior, self.par, sens, rate))
         self._own: tuple[np.ndarray, int] | None = None  # the window's own moments
         self._nonlinearity: float | None = None  # the last run's curvature index
         if self.structure_test and self.content == "static":
@@ -1345,8 +1364,10 @@ class KnownLoadIdentification(PeriodicIdentification):
         if rec.accepted:
             post.reference.note(w.static_load)
         if self._spread is not None and moments is not None and self._own is not None:
-            self._spread.after(rec, self._own, w.static_load)
-            rec.P = post.reference.reported(post.P)  # the record states the spread it added
+            self._spread.after(rec, self._own, w.static_load, float(rec.t or 0.0))
+            # the record states the spread it added
+            rec.alpha = post.reference.reported_theta(post.theta)
+            rec.P = post.reference.reported(post.P)
         if self.structure is not None:
             self._structure_after(rec)
         if rec.accepted:
@@ -1439,7 +1460,8 @@ class KnownLoadIdentification(PeriodicIdentification):
         of window means held at different loads knows nothing of it (the flight benchmark's rig_ground_load arm:
         a flight run at χ²₁₄ 59.0 against 52.3 after its ground calibration's prior was the
         bounded prediction)."""
-        if pred is None or at is None or self._spread is None:
+        if (pred is None or at is None or self._spread is None
+                or not np.any(self._spread.sensitivity > 0)):
             return pred
         C = drift.bounded_load_spread(t, look, at, self._spread.sensitivity,
                                       self.posterior.reference.load)

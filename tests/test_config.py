@@ -264,7 +264,9 @@ def test_the_flight_rig_layer_is_the_full_copy_it_replaced(tmp_path):
                                   filter_error_scattered_fraction=0.02, nonlinearity_check=True,
                                   nonlinearity_limit=1.0,
                                   angle_load_sensitivity_deg_per_unit=[0.0, 0.0, 1.0e-5,
-                                                                       0.0, 0.0, 0.0])
+                                                                       0.0, 0.0, 0.0],
+                                  # the packaged bound on the angles' drift rate
+                                  angle_drift_rate_deg_per_s=0.002)
     # issue 25 item 5: the advice's candidates (the default's band and excitations, the
     # flight rig's own accelerometer positions)
     full["identification"]["advice"] = {

@@ -454,10 +454,12 @@ def test_a_ground_calibration_over_loads_the_angles_follow_states_their_spread()
     """Issue 25, session 18 (estimator.load_spread): the ground test with angles following the
     thrust (1° per 100 kN; the flight rig's bound is the same) pools windows at 76–84 kN, each
     about the angles at its own load. The posterior the service states — the record's P, the
-    saved file's P, what ``run_calibration`` yields — adds Σ_k s_k² A_k A_kᵀ, so every
-    accepted run is consistent with the true angles at its reference load (the mean of the
-    accepted windows' truths). Seed 3, 60 s. Break-checked: with the spread left out
-    (``LoadSpread.covariance`` returning None) accepted runs reach χ²₁₄ 173 (limit 42.0)."""
+    saved file's P, what ``run_calibration`` yields — solves for the load gains beside the
+    angles (the marginal's increase over the windows' own posterior, the estimate moved by the
+    joint step), so every accepted run is consistent with the true angles at its reference
+    load (the mean of the accepted windows' truths). Seed 3, 60 s. Break-checked: with the
+    spread left out (``LoadSpread.covariance`` returning None) accepted runs reach χ²₁₄ 173
+    (limit 42.0)."""
     from bench.a3_known_load import run_calibration
     from bench.a6_flight import flight_rig_path
     from rsra.sim_bus import load_scenario, simulate
@@ -509,3 +511,78 @@ def test_the_drift_bound_prior_of_a_ground_calibration_states_its_load_spread():
     assert len(chi) >= 3, chi
     limit = stats.chi2.isf(1e-3 / len(chi), 14)
     assert max(chi) <= limit, (chi, limit)
+
+
+def _ground_posterior(duration):
+    """The user guide's flight-rig ground calibration (``ground-test``, thrust-dependent
+    angles, seed 1401) off-line: the state the service saves, and the accepted runs' χ²₁₄
+    against the true angles at their reference load (the accepted windows' mean truth)."""
+    from bench.a3_known_load import run_calibration
+    from rsra.sim_bus import load_scenario, simulate
+
+    cfg = load_config(FLIGHT_RIG)
+    run = simulate(cfg, load_scenario("ground-test", angles="linear"), seed=1401,
+                   duration_s=duration)
+    posts: list = []
+    truths, chi = [], []
+    for end, rec, th, P in run_calibration(cfg, run, known_loads=True, posterior_out=posts):
+        if rec["accepted"]:
+            truths.append(run.alpha_true[end - 999:end + 1].mean(0))
+            e = th - np.mean(truths, axis=0)
+            chi.append(float(e @ np.linalg.solve(P, e)))
+    return cfg, posts[0].state(), chi
+
+
+@pytest.mark.timeout(300)
+def test_a_ground_posterior_over_thrust_dependent_angles_narrows_as_it_learns():
+    """The load gains solved for beside the angles (estimator.load_spread): the saved
+    posterior's largest σ is σ_CR-sized, under 0.5°, within the angle limit, and the 240-s
+    calibration's is no wider than the 120-s one's (measured 0.35° → 0.33°); every accepted
+    run stays consistent with the truth at its reference load. Break-checked: the earlier
+    consider rule (``P Σ s² A Aᵀ`` with the service's P) states 13.5° at 120 s, 27.0° at
+    240 s."""
+    smax = []
+    for duration in (120.0, 240.0):
+        cfg, state, chi = _ground_posterior(duration)
+        assert len(chi) >= 10, chi
+        assert max(chi) <= stats.chi2.isf(1e-3 / len(chi), 14), [round(c, 1) for c in chi]
+        s = float(np.sqrt(np.linalg.eigvalsh(state.P)[-1]))
+        assert s < min(np.radians(0.5), cfg.identification.angle_limit_rad), np.degrees(s)
+        assert state.rig is not None and state.rig.get("name") == "flight"
+        smax.append(s)
+    assert smax[1] <= smax[0] * 1.001, np.degrees(smax)
+
+
+def _drifting_ground_test(seed, duration, rate_deg_per_s):
+    """The packaged ground rig on a ``ground-test`` whose three angles drift +0.5° over
+    240 s: per accepted run before the structure test calls ``drifting``, the χ²₁₄ of the
+    stated posterior against its window's truth (the mean true angles over the window)."""
+    from bench.a3_known_load import chi2_of, run_calibration
+    from rsra.config.rig import config_dir
+    from rsra.sim_bus import load_scenario, simulate
+
+    cfg = load_config(config_dir() / "rig.toml", overrides={
+        "identification": {"angle_drift_rate_deg_per_s": rate_deg_per_s}})
+    run = simulate(cfg, load_scenario("ground-test", angles="drift"), seed=seed,
+                   n_samples=round(duration * cfg.sample_rate_hz))
+    w = round(cfg.identification.window_s * cfg.sample_rate_hz)
+    chi = []
+    for end, rec, th, P in run_calibration(cfg, run, known_loads=True):
+        if rec.get("structure") == "drifting":
+            break
+        if rec.get("accepted"):
+            chi.append(chi2_of(th - run.alpha_true[end + 1 - w:end + 1].mean(0), P))
+    return chi
+
+
+@pytest.mark.timeout(300)
+def test_a_drifting_ground_test_accepts_nothing_inconsistent_before_the_drift_is_called():
+    """The angles' drift rates solved for beside the angles (``angle_drift_rate_deg_per_s``,
+    the packaged rig's 0.002 °/s): seed 39, whose accepted runs reached χ²₁₄ 52.9 against
+    their window's truth before ``drifting`` was called, stays within the single-run limit
+    (10⁻³) on every one. Break-checked: with the bound at 0 the same runs exceed it."""
+    limit = stats.chi2.isf(1e-3, 14)
+    chi = _drifting_ground_test(39, 80.0, 0.002)
+    assert len(chi) >= 5 and max(chi) <= limit, [round(c, 1) for c in chi]
+    bare = _drifting_ground_test(39, 80.0, 0.0)
+    assert max(bare) > limit, [round(c, 1) for c in bare]

@@ -403,14 +403,14 @@ def pooled_posterior(cfg: RigConfig, table, columns: Sequence[str], *,
     for _, _, L in loads:
         ref.note(L)
     sens = np.asarray(idc.angle_load_sensitivity_rad_per_unit, float)
-    P = res.P.copy()
+    theta, P = res.theta.copy(), res.P.copy()
     if np.any(sens > 0):
-        post = SimpleNamespace(theta=res.theta, P=res.P, reference=ref)
+        post = SimpleNamespace(theta=res.theta, P=res.P, P0=P_p, reference=ref)
         spread = LoadSpread(post, par, sens)
         spread.windows.extend(loads)
-        ref.cov = spread.covariance()
-        P = ref.reported(res.P)
-    state = PosteriorState(tuple(names), res.theta.copy(), 0.5 * (P + P.T), None, None,
+        spread.refresh()
+        theta, P = ref.reported_theta(res.theta), ref.reported(res.P)
+    state = PosteriorState(tuple(names), theta, 0.5 * (P + P.T), None, None,
                            rig_of(cfg), None, ref.load)
     return PooledCalibration(state, res, recs, [len(w) for w in wins], content)
 

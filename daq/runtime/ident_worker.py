@@ -74,8 +74,11 @@ def build_identification(cfg, initial_state=None):
     idc = cfg.identification
     angle_names = model.geometry.angle_names
     names = angle_names if idc.parameters == "angles" else tuple(idc.parameters)
+    # the file names its own rig beside the fingerprint (the name is not compared: a rig
+    # that extends another with the same cells reads its posteriors)
     post = SequentialPosterior.from_config(idc, names, angle_names,
-                                           rig=rig_fingerprint(model.geometry))
+                                           rig={**rig_fingerprint(model.geometry),
+                                                "name": str(cfg.rig_name)})
     if initial_state is not None:
         post.restore(initial_state)
     if post.structure_fit is None:  # the structure in force from the start (configured)
@@ -103,6 +106,7 @@ def build_identification(cfg, initial_state=None):
     known = PeriodicIdentification(mode="known_loads", content=idc.content_known_loads,
                                    content_settle_samples=settle(idc.content_known_loads),
                                    angle_load_sensitivity=sens,  # the load spread
+                                   angle_drift_rate=idc.angle_drift_rate_rad_per_s,
                                    nonlinearity_limit=(idc.nonlinearity_limit if idc.nonlinearity_check
                                                        else math.inf), **common)
     design = cache.design_for(w0)

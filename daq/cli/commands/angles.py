@@ -270,7 +270,8 @@ def _show(cfg: RigConfig, args: argparse.Namespace) -> int:
 
     console = make_console()
     smax = d["sigma_max_deg"]
-    title = f"Posterior {args.state} (rig {cfg.rig_name!r})"
+    saved_rig = state.rig.get("name") if isinstance(state.rig, dict) else None
+    title = f"Posterior {args.state} (rig {saved_rig or cfg.rig_name!r})"
     if source is not None:
         title = (f"Recording {args.state}: "
                  + (f"the last applied angles record ({source['index']} of {source['records']})"
