@@ -171,7 +171,7 @@ class FaultApplier:
         for node, fr in frames:
             if node.silent:
                 continue
-            data = fr.data
+            data: bytes | None = fr.data
             if fr.kind == "tpdo" and self.faults:
                 data = self._tpdo_draws(node, fr, k, st, acts)
             if data is not None:
