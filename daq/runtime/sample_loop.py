@@ -82,33 +82,41 @@ class AnglesTally:
         if not rec.get("accepted"):
             reason = str(rec.get("reason"))
             self.rejected[reason] = self.rejected.get(reason, 0) + 1
-        t = rec.get("t")
         if rec.get("accepted"):
-            self._accepted += 1
-            self._last_change = t if isinstance(t, (int, float)) else self._last_change
-            sig = rec.get("sigma_cr") or []
-            worst = max((x for x in sig if x is not None), default=float("nan"))
-            log.info("identification accepted (%s, %s): %d of %d directions determined, "
-                     "worst sigma_CR %.3f deg, applies from sample %s%s", rec.get("mode"),
-                     rec.get("content"), rec.get("determined", 0), len(rec.get("names") or []),
-                     math.degrees(worst), rec.get("applies_from_seq"),
-                     " (late)" if rec.get("late") else "")
+            self._on_accepted(rec)
         elif held_window(rec):
-            self._held += 1
-            info = rec.get("information")
-            adds = (f"adds {info:.2g} of what the posterior knows"
-                    if isinstance(info, (int, float)) and math.isfinite(info) else
-                    "is not identifiable on its own")
-            # once calibrated a held window is routine: the status line below says enough
-            log.log(logging.DEBUG if self._accepted else logging.INFO,
-                    "identification held (%s, %s): this window %s; its information is used "
-                    "with the next windows", rec.get("mode"), rec.get("content"), adds)
+            self._on_held(rec)
         else:
             log.info("identification rejected (%s, %s): %s: %s%s", rec.get("mode"),
                      rec.get("content"), rec.get("reason"), rec.get("explanation") or
                      rec.get("detail"), f"; hint: {rec.get('hint')}" if rec.get("hint") else "")
         self._log_advice(rec)
         self._log_status(rec)
+
+    def _on_accepted(self, rec: AnglesRecord) -> None:
+        """An accepted run: counted, its time kept for the status line, logged."""
+        t = rec.get("t")
+        self._accepted += 1
+        self._last_change = t if isinstance(t, (int, float)) else self._last_change
+        sig = rec.get("sigma_cr") or []
+        worst = max((x for x in sig if x is not None), default=float("nan"))
+        log.info("identification accepted (%s, %s): %d of %d directions determined, "
+                 "worst sigma_CR %.3f deg, applies from sample %s%s", rec.get("mode"),
+                 rec.get("content"), rec.get("determined", 0), len(rec.get("names") or []),
+                 math.degrees(worst), rec.get("applies_from_seq"),
+                 " (late)" if rec.get("late") else "")
+
+    def _on_held(self, rec: AnglesRecord) -> None:
+        """A held window: counted and logged with the information it adds."""
+        self._held += 1
+        info = rec.get("information")
+        adds = (f"adds {info:.2g} of what the posterior knows"
+                if isinstance(info, (int, float)) and math.isfinite(info) else
+                "is not identifiable on its own")
+        # once calibrated a held window is routine: the status line below says enough
+        log.log(logging.DEBUG if self._accepted else logging.INFO,
+                "identification held (%s, %s): this window %s; its information is used "
+                "with the next windows", rec.get("mode"), rec.get("content"), adds)
 
     def _log_status(self, rec: AnglesRecord) -> None:
         """Once calibrated, every STATUS_PERIOD_S of acquisition time: one line saying where
