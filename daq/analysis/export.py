@@ -465,8 +465,6 @@ def parquet_schemas(keys: Iterable[str], names: dict[str, tuple[str, ...]],
     keys of :data:`FIELDS`, units from it as field metadata ``unit`` and as the schema
     metadata ``units``. A key outside the declaration (a file from elsewhere) has its
     columns and types taken from ``records`` (a pass over the data) instead."""
-    import pyarrow as pa
-
     schemas = {}
     undeclared = [k for k in dict.fromkeys(keys) if k not in FIELDS]
     inferred = _inferred_columns(records or (), set(undeclared))
@@ -475,16 +473,24 @@ def parquet_schemas(keys: Iterable[str], names: dict[str, tuple[str, ...]],
             cols = [(c, _arrow_of(t)) for c, t in declared_columns(key, names)]
         else:
             cols = [(c, _arrow_type(kinds)) for c, kinds in inferred.get(key, {}).items()]
-        fields, units = [], {}
-        for col, typ in cols:
-            unit = column_unit(key, col)
-            units[col] = unit
-            fields.append(pa.field(col, typ, nullable=True,
-                                   metadata={"unit": unit} if unit else None))
-        schemas[key] = pa.schema(fields, metadata={
-            "rsra.key": key, "units": json.dumps(units, ensure_ascii=False),
-            "source": "rsra export (docs/telemetry.md)"})
+        schemas[key] = _schema(key, cols)
     return schemas
+
+
+def _schema(key: str, cols: list[tuple[str, Any]]):
+    """The Arrow schema of ``key``'s (column, type) list, each column's unit as its field
+    metadata and all of them as the schema metadata ``units``."""
+    import pyarrow as pa
+
+    fields, units = [], {}
+    for col, typ in cols:
+        unit = column_unit(key, col)
+        units[col] = unit
+        fields.append(pa.field(col, typ, nullable=True,
+                               metadata={"unit": unit} if unit else None))
+    return pa.schema(fields, metadata={
+        "rsra.key": key, "units": json.dumps(units, ensure_ascii=False),
+        "source": "rsra export (docs/telemetry.md)"})
 
 
 def _inferred_columns(records: Iterable[tuple[str, dict]], keys: set[str]
@@ -515,6 +521,12 @@ def _cell(v: Any, typ) -> Any:
     return v
 
 
+def _with_metadata(sch, metadata: dict[str, str]):
+    """The schema with ``metadata`` (provenance) added to its key-value metadata."""
+    return sch.with_metadata({**(sch.metadata or {}),
+                              **{a.encode(): b.encode() for a, b in metadata.items()}})
+
+
 class ParquetTables:
     """Rows of every key into its own Parquet file under its declared schema, pushed one
     record at a time (:meth:`add`) and written ``batch`` rows at a time (bounded memory);
@@ -529,10 +541,7 @@ class ParquetTables:
                  batch: int = 4096, left_out: dict[str, set[str]] | None = None,
                  metadata: dict[str, str] | None = None):
         if metadata:
-            schemas = {k: sch.with_metadata({**(sch.metadata or {}),
-                                             **{a.encode(): b.encode()
-                                                for a, b in metadata.items()}})
-                       for k, sch in schemas.items()}
+            schemas = {k: _with_metadata(sch, metadata) for k, sch in schemas.items()}
         #: the Arrow schema of each key's file
         self.schemas: dict = schemas
         #: where each key's file goes (path or binary file object)
