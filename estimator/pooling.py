@@ -248,7 +248,7 @@ def pool(par: Parameterisation, recs: Sequence[Recording], prior_mean: np.ndarra
 
 def _relinearise(par: Parameterisation, recs: Sequence[Recording],
                  lin: list[tuple[np.ndarray, np.ndarray, np.ndarray]], theta_p: np.ndarray,
-                 P_p: np.ndarray, Qs: Sequence[np.ndarray]
+                 P_p: np.ndarray, Qs: list[np.ndarray]
                  ) -> tuple[list[tuple[np.ndarray, np.ndarray, np.ndarray]], int]:
     """Each recording linearised again at the smoother's estimate for its time, until no
     estimate moves by STEP_TOL of its σ (at most SMOOTHER_ITERATIONS): the linearisations
@@ -324,12 +324,7 @@ def homogeneity(par: Parameterisation, recs: Sequence[Recording],
     pval = float(chi2.sf(stat, dof)) if dof else 1.0
     reject = bool(dof and stat > limit)
     loo, loo_p = _leave_one_out(lin, bases, est, theta_p, P_p)
-    disagree: list[int] = []
-    if reject:
-        each = false_alarm / K  # Bonferroni over the recordings
-        disagree = [k for k in range(K) if loo_p[k] < each]
-        if not disagree:  # none alone: the recording where the sequence changes most
-            disagree = [int(np.nanargmax(np.array(seq, float)))]
+    disagree = _disagreeing(loo_p, seq, false_alarm) if reject else []
     trend = trend_sig = tstat = tp = None
     t = np.array([r.t for r in recs], float)
     if K >= 3 and np.all(np.isfinite(t)) and np.ptp(t) > 0:
@@ -339,6 +334,16 @@ def homogeneity(par: Parameterisation, recs: Sequence[Recording],
                        leave_one_out_p=loo_p, determined=[len(lam) for _, lam in bases],
                        disagree=disagree, trend=trend, trend_sigma=trend_sig,
                        trend_statistic=tstat, trend_p_value=tp, estimates=est)
+
+
+def _disagreeing(loo_p: Sequence[float], seq: Sequence[float], false_alarm: float
+                 ) -> list[int]:
+    """The recordings that disagree with the rest (the test rejected): each whose
+    leave-one-out p-value is under the Bonferroni level over the recordings, or when none
+    alone, the recording where the sequence changes most."""
+    each = false_alarm / len(loo_p)
+    disagree = [k for k in range(len(loo_p)) if loo_p[k] < each]
+    return disagree or [int(np.nanargmax(np.array(seq, float)))]
 
 
 def _sequential(lin: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
