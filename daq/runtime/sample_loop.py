@@ -154,13 +154,7 @@ def calibration_status(rec: Any, accepted: int, held: int, since_change_s: float
     """``calibration: 14 of 14 directions determined, largest σ 0.117°, …`` from the latest
     angles record (its ``determined`` and posterior ``P``)."""
     names = rec.get("names") or []
-    P = rec.get("P")
-    sig = None
-    try:
-        diag = [P[i][i] for i in range(len(names))] if P is not None else []
-        sig = max(math.degrees(math.sqrt(max(float(x), 0.0))) for x in diag) if diag else None
-    except (TypeError, ValueError, IndexError):
-        sig = None
+    sig = _largest_sigma_deg(rec.get("P"), len(names))
     parts = [f"calibration: {rec.get('determined')} of {len(names)} directions determined"]
     if sig is not None:
         parts.append(f"largest σ {sig:.3f}°")
@@ -168,6 +162,15 @@ def calibration_status(rec: Any, accepted: int, held: int, since_change_s: float
     if since_change_s is not None:
         parts.append(f"last change {since_change_s:.0f} s ago")
     return ", ".join(parts)
+
+
+def _largest_sigma_deg(P: Any, n: int) -> float | None:
+    """The largest √P_ii (degrees) of the first ``n``, None without a usable P."""
+    try:
+        diag = [P[i][i] for i in range(n)] if P is not None else []
+        return max(math.degrees(math.sqrt(max(float(x), 0.0))) for x in diag) if diag else None
+    except (TypeError, ValueError, IndexError):
+        return None
 
 
 class SampleLoop:
