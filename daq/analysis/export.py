@@ -128,13 +128,21 @@ def _signal(nl, c, code: str, index: int, sub: int, bit: int, profile):
     else:
         conv = BaseConversion.factory(scale=c.gain * c.scale, offset=c.offset,
                                       is_float=code in "fd")
-        known = profile.at(index, sub)
-        unit = eds_unit(nl.od, index, sub) or (known.unit if known else "")
-        if c.name in ("x", "y", "z") and c.scale == MILLI_G:
-            comment += "; 1 count = 1 mg"
+        unit, comment = _value_unit(nl, c, index, sub, profile), comment + _count_note(c)
     return Signal(name=_ident(f"{nl.name}_{c.name}"), start=bit, length=8 * _struct_size(code),
                   byte_order="little_endian", is_signed=code in "bhiqfd" and code != "?",
                   conversion=conv, unit=unit or None, comment=comment, receivers=["rsra"])
+
+
+def _value_unit(nl, c, index: int, sub: int, profile) -> str:
+    """A value's unit: the EDS's physical-unit object, else the device profile's ('' none)."""
+    known = profile.at(index, sub)
+    return eds_unit(nl.od, index, sub) or (known.unit if known else "")
+
+
+def _count_note(c) -> str:
+    """An accelerometer axis counted in milli-g says so."""
+    return "; 1 count = 1 mg" if c.name in ("x", "y", "z") and c.scale == MILLI_G else ""
 
 
 _STATUS_CHOICES = {0: "ok", STATUS_OVERRANGE: "over-range", STATUS_FAULT: "sensor fault",
