@@ -150,15 +150,8 @@ class FaultApplier:
         if "status" not in node.channel_names or node.state not in (PRE_OPERATIONAL, OPERATIONAL):
             return []
         status = int(node.raw("status") or 0)
-        out = []
-        for bit, code in _STATUS_EMCY:
-            if status & bit and not node.has_error(code):
-                out.append(node.raise_error(code, info=bytes([status])))
-            elif not status & bit and node.has_error(code):
-                fr = node.clear_error(code)
-                if fr is not None:
-                    out.append(fr)
-        return out
+        out = [_status_change(node, status, bit, code) for bit, code in _STATUS_EMCY]
+        return [fr for fr in out if fr is not None]
 
     # ------------------------------------------------------------------------------------------
     # the answer's frames
@@ -208,3 +201,13 @@ class FaultApplier:
             acts.append(("rec", (k, st, "errorframe", None), {}))
             acts.append(("send", None, 0, b"", True))
         return acts
+
+
+def _status_change(node: SimNode, status: int, bit: int, code: int) -> Frame | None:
+    """The EMCY of one status bit: raised when it appears, cleared when it goes (None when
+    neither)."""
+    if status & bit and not node.has_error(code):
+        return node.raise_error(code, info=bytes([status]))
+    if not status & bit and node.has_error(code):
+        return node.clear_error(code)
+    return None
