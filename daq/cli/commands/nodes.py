@@ -81,34 +81,39 @@ def check_network(cfg: RigConfig, network: canopen.Network, timeout_s: float,
     sup = Supervisor(cfg, table)
     for cob, cb in sup.callbacks().items():
         network.subscribe(cob, cb)
-    remote: dict[str, canopen.RemoteNode] = {}
-    for nl in table.nodes:
-        node = canopen.RemoteNode(nl.node_id, nl.od)
-        network.add_node(node)
-        # canopen's EMCY consumer drops short frames and logs without bound: ours counts
-        network.unsubscribe(COB_EMCY + nl.node_id, node.emcy.on_emcy)
-        node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
-        remote[nl.name] = node
+    remote = {nl.name: _remote_node(network, nl) for nl in table.nodes}
     deadline = time.monotonic() + timeout_s
     for nl in table.nodes:  # a real-time protocol wait (heartbeats are periodic)
         sup.nodes[nl.name].heard.wait(max(0.0, deadline - time.monotonic()))
-    reports = []
-    for nl in table.nodes:
-        ns = sup.nodes[nl.name]
-        heard = ns.heard.is_set()
-        rep = NodeReport(nl.name, nl.node_id, nl.role, nl.required, heard=heard,
-                         state=ns.state if heard else None)
-        facts = verify_node(nl, remote[nl.name])
-        rep.sdo, rep.device_type = facts.sdo, facts.device_type
-        rep.identity = facts.identity if facts.sdo else None
-        if facts.sdo:
-            rep.mismatches = facts.mismatches
-        elif heard:  # silent over SDO: nothing else will answer either
-            rep.mismatches = [Mismatch("SDO", problem="no answer (the node sends heartbeats "
-                                       "but its SDO server does not reply: check its node id)")]
-        rep.emcy = ns.emcy_count
-        reports.append(rep)
-    return reports
+    return [_node_report(nl, sup.nodes[nl.name], remote[nl.name]) for nl in table.nodes]
+
+
+def _remote_node(network: canopen.Network, nl) -> canopen.RemoteNode:
+    """A configured node on the network, for its SDO answers."""
+    node = canopen.RemoteNode(nl.node_id, nl.od)
+    network.add_node(node)
+    # canopen's EMCY consumer drops short frames and logs without bound: ours counts
+    network.unsubscribe(COB_EMCY + nl.node_id, node.emcy.on_emcy)
+    node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
+    return node
+
+
+def _node_report(nl, ns, node: canopen.RemoteNode) -> NodeReport:
+    """One node's report: what its heartbeats said (``ns``, the supervisor's view) and what
+    it answered over SDO against its EDS."""
+    heard = ns.heard.is_set()
+    rep = NodeReport(nl.name, nl.node_id, nl.role, nl.required, heard=heard,
+                     state=ns.state if heard else None)
+    facts = verify_node(nl, node)
+    rep.sdo, rep.device_type = facts.sdo, facts.device_type
+    rep.identity = facts.identity if facts.sdo else None
+    if facts.sdo:
+        rep.mismatches = facts.mismatches
+    elif heard:  # silent over SDO: nothing else will answer either
+        rep.mismatches = [Mismatch("SDO", problem="no answer (the node sends heartbeats "
+                                   "but its SDO server does not reply: check its node id)")]
+    rep.emcy = ns.emcy_count
+    return rep
 
 
 # ---------------------------------------------------------------------------------------------
