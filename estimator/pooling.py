@@ -236,13 +236,7 @@ def pool(par: Parameterisation, recs: Sequence[Recording], prior_mean: np.ndarra
                                  for k in range(1, len(recs))]
     iterations = 0
     if drift_rate > 0 and len(recs) > 1 and ident.status != "diverged":
-        for iterations in range(1, SMOOTHER_ITERATIONS + 1):
-            _, _, ms, Ps = _smooth(theta_p, P_p, lin, Qs)
-            moved = max(float(np.max(np.abs(m - thL) / np.sqrt(np.diag(Pk))))
-                        for m, Pk, (thL, _, _) in zip(ms, Ps, lin))
-            lin = [(m.copy(), *_evaluate(par, r, m)) for m, r in zip(ms, recs)]
-            if moved < STEP_TOL:
-                break
+        lin, iterations = _relinearise(par, recs, lin, theta_p, P_p, Qs)
         _, Pf, ms, _ = _smooth(theta_p, P_p, lin, Qs)
         theta, P = ms[-1].copy(), Pf[-1].copy()
     hom = homogeneity(par, recs, lin, theta_p, P_p, Qs, false_alarm=false_alarm)
@@ -250,6 +244,24 @@ def pool(par: Parameterisation, recs: Sequence[Recording], prior_mean: np.ndarra
     return PooledResult(theta=theta, P=P, ident=ident, information=[M for _, _, M in lin],
                         homogeneity=hom, drift_rate=float(drift_rate), sigma_floor=floor,
                         smoother_iterations=iterations, order=order)
+
+
+def _relinearise(par: Parameterisation, recs: Sequence[Recording],
+                 lin: list[tuple[np.ndarray, np.ndarray, np.ndarray]], theta_p: np.ndarray,
+                 P_p: np.ndarray, Qs: list[np.ndarray]
+                 ) -> tuple[list[tuple[np.ndarray, np.ndarray, np.ndarray]], int]:
+    """Each recording linearised again at the smoother's estimate for its time, until no
+    estimate moves by STEP_TOL of its σ (at most SMOOTHER_ITERATIONS): the linearisations
+    and the iterations taken."""
+    iterations = 0
+    for iterations in range(1, SMOOTHER_ITERATIONS + 1):
+        _, _, ms, Ps = _smooth(theta_p, P_p, lin, Qs)
+        moved = max(float(np.max(np.abs(m - thL) / np.sqrt(np.diag(Pk))))
+                    for m, Pk, (thL, _, _) in zip(ms, Ps, lin))
+        lin = [(m.copy(), *_evaluate(par, r, m)) for m, r in zip(ms, recs)]
+        if moved < STEP_TOL:
+            break
+    return lin, iterations
 
 
 def sigma_floor(par: Parameterisation, recs: Sequence[Recording], Ms: Sequence[np.ndarray],
@@ -267,14 +279,7 @@ def sigma_floor(par: Parameterisation, recs: Sequence[Recording], Ms: Sequence[n
         return None
     out = np.zeros(par.n)
     for j in par.angle_pos:
-        infos = []
-        for M in Ms:
-            try:
-                v = np.linalg.inv(M)[j, j]
-            except np.linalg.LinAlgError:
-                continue
-            if np.isfinite(v) and v > 0:
-                infos.append(1.0 / v)
+        infos = _informations(Ms, j)
         if not infos:
             out[j] = np.inf
             continue
@@ -282,6 +287,19 @@ def sigma_floor(par: Parameterisation, recs: Sequence[Recording], Ms: Sequence[n
         qd = drift_rate * dt
         out[j] = math.sqrt(max((-qd + math.sqrt(qd * qd + 4 * qd / m)) / 2, 0.0))
     return out
+
+
+def _informations(Ms: Sequence[np.ndarray], j: int) -> list[float]:
+    """Parameter j's information 1/[M⁻¹]_jj from each recording that determines it."""
+    infos = []
+    for M in Ms:
+        try:
+            v = np.linalg.inv(M)[j, j]
+        except np.linalg.LinAlgError:
+            continue
+        if np.isfinite(v) and v > 0:
+            infos.append(1.0 / v)
+    return infos
 
 
 # ------------------------------------------------------------------------------------------
@@ -299,7 +317,41 @@ def homogeneity(par: Parameterisation, recs: Sequence[Recording],
     est = np.zeros((K, p))
     for k, ((thL, g, _), (U, lam)) in enumerate(zip(lin, bases)):
         est[k] = thL - U @ ((U.T @ g) / lam)
-    # sequential innovations (the filter of the pooled fit, on the projected estimates)
+    seq, seq_dof = _sequential(lin, bases, est, theta_p, P_p, Qs)
+    stat = float(np.nansum(seq[1:])) if K > 1 else 0.0
+    dof = int(sum(seq_dof[1:]))
+    limit = float(chi2.isf(false_alarm, dof)) if dof else math.inf
+    pval = float(chi2.sf(stat, dof)) if dof else 1.0
+    reject = bool(dof and stat > limit)
+    loo, loo_p = _leave_one_out(lin, bases, est, theta_p, P_p)
+    disagree = _disagreeing(loo_p, seq, false_alarm) if reject else []
+    trend = trend_sig = tstat = tp = None
+    t = np.array([r.t for r in recs], float)
+    if K >= 3 and np.all(np.isfinite(t)) and np.ptp(t) > 0:
+        trend, trend_sig, tstat, tp = _trend(t, est, bases)
+    return Homogeneity(statistic=stat, dof=dof, p_value=pval, limit=limit, reject=reject,
+                       sequential=seq, sequential_dof=seq_dof, leave_one_out=loo,
+                       leave_one_out_p=loo_p, determined=[len(lam) for _, lam in bases],
+                       disagree=disagree, trend=trend, trend_sigma=trend_sig,
+                       trend_statistic=tstat, trend_p_value=tp, estimates=est)
+
+
+def _disagreeing(loo_p: Sequence[float], seq: Sequence[float], false_alarm: float
+                 ) -> list[int]:
+    """The recordings that disagree with the rest (the test rejected): each whose
+    leave-one-out p-value is under the Bonferroni level over the recordings, or when none
+    alone, the recording where the sequence changes most."""
+    each = false_alarm / len(loo_p)
+    disagree = [k for k in range(len(loo_p)) if loo_p[k] < each]
+    return disagree or [int(np.nanargmax(np.array(seq, float)))]
+
+
+def _sequential(lin: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
+                bases: Sequence[tuple[np.ndarray, np.ndarray]], est: np.ndarray,
+                theta_p: np.ndarray, P_p: np.ndarray, Qs: Sequence[np.ndarray]
+                ) -> tuple[list[float], list[int]]:
+    """Sequential innovations (the filter of the pooled fit, on the projected estimates):
+    each recording's statistic against the ones before it and its dof (the first: nan, 0)."""
     seq, seq_dof = [math.nan], [0]
     m, P = theta_p.copy(), P_p.copy()
     for k, ((thL, g, M), (U, lam)) in enumerate(zip(lin, bases)):
@@ -312,12 +364,15 @@ def homogeneity(par: Parameterisation, recs: Sequence[Recording],
         Pn = np.linalg.inv(np.linalg.inv(P) + M)
         m = Pn @ (np.linalg.solve(P, m) + M @ thL - g)
         P = 0.5 * (Pn + Pn.T)
-    stat = float(np.nansum(seq[1:])) if K > 1 else 0.0
-    dof = int(sum(seq_dof[1:]))
-    limit = float(chi2.isf(false_alarm, dof)) if dof else math.inf
-    pval = float(chi2.sf(stat, dof)) if dof else 1.0
-    reject = bool(dof and stat > limit)
-    # leave one out, constant angles: d_k = θ̂_k − θ̂_(−k) in recording k's directions
+    return seq, seq_dof
+
+
+def _leave_one_out(lin: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
+                   bases: Sequence[tuple[np.ndarray, np.ndarray]], est: np.ndarray,
+                   theta_p: np.ndarray, P_p: np.ndarray) -> tuple[list[float], list[float]]:
+    """Leave one out, constant angles: d_k = θ̂_k − θ̂_(−k) in recording k's directions, its
+    statistic and p-value (0 and 1 for a recording that determines nothing, or alone)."""
+    K, p = len(lin), len(theta_p)
     Minfo = [M for _, _, M in lin]
     total = np.linalg.inv(P_p) + sum(Minfo, np.zeros((p, p)))
     total_b = np.linalg.solve(P_p, theta_p) + sum(
@@ -335,21 +390,7 @@ def homogeneity(par: Parameterisation, recs: Sequence[Recording],
         v = float(d @ np.linalg.solve(S, d))
         loo.append(v)
         loo_p.append(float(chi2.sf(v, len(lam))))
-    disagree: list[int] = []
-    if reject:
-        each = false_alarm / K  # Bonferroni over the recordings
-        disagree = [k for k in range(K) if loo_p[k] < each]
-        if not disagree:  # none alone: the recording where the sequence changes most
-            disagree = [int(np.nanargmax(np.array(seq, float)))]
-    trend = trend_sig = tstat = tp = None
-    t = np.array([r.t for r in recs], float)
-    if K >= 3 and np.all(np.isfinite(t)) and np.ptp(t) > 0:
-        trend, trend_sig, tstat, tp = _trend(t, est, bases)
-    return Homogeneity(statistic=stat, dof=dof, p_value=pval, limit=limit, reject=reject,
-                       sequential=seq, sequential_dof=seq_dof, leave_one_out=loo,
-                       leave_one_out_p=loo_p, determined=[len(lam) for _, lam in bases],
-                       disagree=disagree, trend=trend, trend_sigma=trend_sig,
-                       trend_statistic=tstat, trend_p_value=tp, estimates=est)
+    return loo, loo_p
 
 
 def _trend(t: np.ndarray, est: np.ndarray, bases: Sequence[tuple[np.ndarray, np.ndarray]]

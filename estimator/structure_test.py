@@ -143,26 +143,30 @@ class StructureTest:
             # window's own checks reject): nothing new
             return self.last
         self.look += 1
-        xbar, n = x.mean(axis=0), len(x)
-        restarted = False
-        j = self._find(xbar)
-        if j is not None and self._time_change(self.clusters[j], xbar, n, alpha):
-            self.restart()
-            restarted, j = True, None
-        if j is None:
-            self.clusters.append(_Cluster(x.sum(axis=0), n, 1))
-        else:
-            c = self.clusters[j]
-            c.sum_x += x.sum(axis=0)
-            c.n += n
-            c.windows += 1
-        v = self._verdict(alpha, restarted)
+        v = self._verdict(alpha, self._absorb(x, alpha))
         if self.drift is not None and t is not None:
             v.drift = self.drift.add_window(x, alpha, float(t))
-            if v.drift is not None and v.drift.selected and v.structure != "not_constant":
-                v.structure = DRIFTING
+            _mark_drifting(v)
         self.last = v
         return self.last
+
+    def _absorb(self, x: np.ndarray, alpha: np.ndarray) -> bool:
+        """The window into its condition's cluster, or a new one; True when its condition
+        changed with time (the clusters restarted before it)."""
+        xbar, n = x.mean(axis=0), len(x)
+        j = self._find(xbar)
+        restarted = j is not None and self._time_change(self.clusters[j], xbar, n, alpha)
+        if restarted:
+            self.restart()
+            j = None
+        if j is None:
+            self.clusters.append(_Cluster(x.sum(axis=0), n, 1))
+            return restarted
+        c = self.clusters[j]
+        c.sum_x += x.sum(axis=0)
+        c.n += n
+        c.windows += 1
+        return restarted
 
     def rejudge(self, alpha: np.ndarray) -> StructureVerdict:
         """The last look again from other angles (a run's own estimate) when it gave no
@@ -179,8 +183,7 @@ class StructureTest:
         start = settle_constant(self.model, alpha, means, counts, self.moment_floor)
         v = self._verdict(start, last.restarted, misfit_test=True)
         v.drift = last.drift
-        if v.drift is not None and v.drift.selected and v.structure != "not_constant":
-            v.structure = DRIFTING
+        _mark_drifting(v)
         self.last = v
         return v
 
@@ -193,13 +196,9 @@ class StructureTest:
         # far off in directions they did not determine)
         a, converged = fit_constant_converged(self.model, alpha, means, counts,
                                               self.moment_floor)
-        if not converged and not self.rejected and misfit_test:
-            # (rejudge: ``alpha`` the damped minimum from a run's estimate) Gauss–Newton
-            # diverging at the constant fit's minimum is the large-residual case: the misfit
-            # itself, χ² on 6C − rank dof under constant angles, is this look's one test
-            m, dof = constant_misfit(self.model, alpha, means, counts, self.moment_floor)
-            if dof > 0 and m > float(chi2.isf(level, dof)):
-                self.rejected, a = True, np.asarray(alpha, float)
+        if not converged and not self.rejected and misfit_test \
+                and self._misfit_rejects(alpha, means, counts, level):
+            self.rejected, a = True, np.asarray(alpha, float)
         self.alpha = a
         if not converged and not self.rejected:
             # far from the angles (a cold start, a run that did not converge): the linearised
@@ -207,14 +206,19 @@ class StructureTest:
             return StructureVerdict("undetermined", look=self.look, conditions=len(self.clusters),
                                     level=level, restarted=restarted, fits=[])
         fits, _ = test_structures(self.model, a, means, counts, self.moment_floor, level,
-                                  self.structures,
-                                  joint=(True if self.rejected else None) if self.joint_fits
-                                  else False,
-                                  starts=self._starts)
+                                  self.structures, joint=self._joint(), starts=self._starts)
         # the next look's joint fits start from these (a restart forgets them)
         self._starts = {f.structure: (f.alpha, f.beta) for f in fits if f.converged}
         base: dict[str, Any] = dict(look=self.look, conditions=len(self.clusters),
                                     level=level, restarted=restarted, fits=fits)
+        return self._judge_fits(fits, base, means, counts)
+
+    def _judge_fits(self, fits: list[StructureFit], base: dict[str, Any], means: np.ndarray,
+                    counts: np.ndarray) -> StructureVerdict:
+        """The look's verdict from the structures' fits: constant (or undetermined while no
+        fit can test it) until one rejects the constant model; then not constant, with the
+        candidates ranked and the structure to use when one is selected."""
+        level = base["level"]
         if any(f.rejects_constant for f in fits):
             self.rejected = True
         if not self.rejected:
@@ -225,6 +229,21 @@ class StructureTest:
         cands = [self._candidate(f, explaining) for f in ranked if f.rank > 0]
         selected = self._select(ranked, level, means, counts)
         return StructureVerdict("not_constant", cands, selected=selected, **base)
+
+    def _misfit_rejects(self, alpha: np.ndarray, means: np.ndarray, counts: np.ndarray,
+                        level: float) -> bool:
+        """(rejudge: ``alpha`` the damped minimum from a run's estimate) Gauss–Newton
+        diverging at the constant fit's minimum is the large-residual case: the misfit
+        itself, χ² on 6C − rank dof under constant angles, is this look's one test."""
+        m, dof = constant_misfit(self.model, alpha, means, counts, self.moment_floor)
+        return dof > 0 and m > float(chi2.isf(level, dof))
+
+    def _joint(self) -> bool | None:
+        """test_structures' ``joint``: no joint fits when they are off; once the constant
+        model is rejected, always; before, as test_structures decides (None)."""
+        if not self.joint_fits:
+            return False
+        return True if self.rejected else None
 
     def _select(self, ranked: list[StructureFit], level: float, means: np.ndarray,
                 counts: np.ndarray) -> dict[str, Any] | None:
@@ -238,12 +257,8 @@ class StructureTest:
         explains anything: until the conditions leave it dof, nothing is separated from it and
         nothing is selected (the next conditions say what to apply)."""
         top = ranked[0]
-        others = [f for f in ranked[1:] if f.explains]
-        margin = float(chi2.isf(level, 1))
-        if not (top.explains and top.determined and top.converged and all(
-                (top.structure, f.structure) in NESTED
-                or (f.misfit_dof > 0 and f.misfit - top.misfit > margin)
-                for f in others) and self._precise(top, means)):
+        if not (top.explains and top.determined and top.converged
+                and _separated(top, ranked[1:], level) and self._precise(top, means)):
             return None
         assert top.alpha is not None and top.P is not None  # _precise: a joint fit
         na = len(top.alpha)
@@ -286,3 +301,19 @@ class StructureTest:
                 "determined": f.determined,
                 "not_separated_from": [s for s in explaining if s != f.structure]
                 if f.explains else []}
+
+
+def _mark_drifting(v: StructureVerdict) -> None:
+    """The verdict is ``drifting`` when the drift test selected its trend and the load test
+    has not rejected the constant model (a load dependence is not a trend)."""
+    if v.drift is not None and v.drift.selected and v.structure != "not_constant":
+        v.structure = DRIFTING
+
+
+def _separated(top: StructureFit, others: Sequence[StructureFit], level: float) -> bool:
+    """Every other explaining structure contains ``top`` by construction (NESTED) or leaves
+    a misfit larger by more than χ²₁ at ``level``."""
+    margin = float(chi2.isf(level, 1))
+    return all((top.structure, f.structure) in NESTED
+               or (f.misfit_dof > 0 and f.misfit - top.misfit > margin)
+               for f in others if f.explains)

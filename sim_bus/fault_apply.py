@@ -106,28 +106,42 @@ class FaultApplier:
     def node_faults(self, feed: NodeFeed, started: list[tuple[Fault, SimNode]]) -> None:
         """The node-level faults on ``feed``'s node's process image: stuck channels hold
         their value, an over-range reads full scale, status bits set."""
-        fi, node = self.faults, feed.node
-        chans = [c for c in node.channel_names if c != "status"]
+        node = feed.node
         for f, n in started:  # a stuck channel holds the value it had when the fault began
             if n is node and f.kind == "stuck":
-                for ch in ([f.channel] if f.channel else chans):
+                for ch in self._stuck_channels(f, node):
                     self._frozen[(f.index, node.name, ch)] = node.raw(ch)
+        self._hold_stuck(node)
+        if "status" in node.channel_names:
+            self._status_faults(feed)
+
+    @staticmethod
+    def _stuck_channels(f: Fault, node: SimNode) -> list[str]:
+        """The channels a stuck fault holds: its own, or every value channel of the node."""
+        return [f.channel] if f.channel else [c for c in node.channel_names if c != "status"]
+
+    def _hold_stuck(self, node: SimNode) -> None:
+        """Each active stuck fault's channels back to the values they were frozen at."""
+        fi = self.faults
         for f in fi.of("stuck"):
             if (f.index, node.name) not in fi._active:
                 continue
-            for ch in ([f.channel] if f.channel else chans):
+            for ch in self._stuck_channels(f, node):
                 v = self._frozen.get((f.index, node.name, ch))
                 if v is not None:
                     node.set_raw(ch, v)
-        if "status" in node.channel_names:
-            status = int(node.raw("status") or 0)
-            if fi.active("overrange", node.name) is not None:
-                status |= STATUS_OVER_RANGE
-                force = node.raw("force") or 0.0
-                node.set_raw("force", math.copysign(feed.full_scale or abs(force), force))
-            if fi.active("sensor", node.name) is not None:
-                status |= STATUS_SENSOR_FAULT
-            node.set_raw("status", status)
+
+    def _status_faults(self, feed: NodeFeed) -> None:
+        """An over-range reads full scale with its status bit; a sensor fault sets its bit."""
+        fi, node = self.faults, feed.node
+        status = int(node.raw("status") or 0)
+        if fi.active("overrange", node.name) is not None:
+            status |= STATUS_OVER_RANGE
+            force = node.raw("force") or 0.0
+            node.set_raw("force", math.copysign(feed.full_scale or abs(force), force))
+        if fi.active("sensor", node.name) is not None:
+            status |= STATUS_SENSOR_FAULT
+        node.set_raw("status", status)
 
     @staticmethod
     def status_emcy(feed: NodeFeed) -> list[Frame]:
@@ -136,15 +150,8 @@ class FaultApplier:
         if "status" not in node.channel_names or node.state not in (PRE_OPERATIONAL, OPERATIONAL):
             return []
         status = int(node.raw("status") or 0)
-        out = []
-        for bit, code in _STATUS_EMCY:
-            if status & bit and not node.has_error(code):
-                out.append(node.raise_error(code, info=bytes([status])))
-            elif not status & bit and node.has_error(code):
-                fr = node.clear_error(code)
-                if fr is not None:
-                    out.append(fr)
-        return out
+        out = [_status_change(node, status, bit, code) for bit, code in _STATUS_EMCY]
+        return [fr for fr in out if fr is not None]
 
     # ------------------------------------------------------------------------------------------
     # the answer's frames
@@ -153,30 +160,54 @@ class FaultApplier:
         bus-level draws — a TPDO dropped or sent one byte off, then an unknown frame and an
         error frame — as the log entries and frames to send, in order. Silent nodes send
         nothing."""
-        fi = self.faults
         acts: list[Action] = []
         for node, fr in frames:
             if node.silent:
                 continue
-            data = fr.data
-            if fr.kind == "tpdo" and fi:
-                if fi.chance("drop", k, st, node.name, slot=fr.cob_id) is not None:
-                    acts.append(("rec", (k, st, "drop", node.name),
-                                 {"cob_id": fr.cob_id, "tpdo": fr.tpdo}))
-                    continue
-                if fi.chance("malformed", k, st, node.name, slot=0x1000 | fr.cob_id) is not None:
-                    data = data[:-1] if len(data) > 1 else data + b"\x00"
-                    acts.append(("rec", (k, st, "malformed", node.name),
-                                 {"cob_id": fr.cob_id, "tpdo": fr.tpdo, "length": len(data),
-                                  "expected": len(fr.data)}))
-            acts.append(("send", node, fr.cob_id, data, False))
-        if fi:
-            f = fi.chance("unknown", k, st, slot=0x2000)
-            if f is not None:
-                cob = f.cob_id if f.cob_id is not None else self._unknown_cob
-                acts.append(("rec", (k, st, "unknown", None), {"cob_id": cob}))
-                acts.append(("send", None, cob, fi.payload(k, 0x2000), False))
-            if fi.chance("errorframe", k, st, slot=0x3000) is not None:
-                acts.append(("rec", (k, st, "errorframe", None), {}))
-                acts.append(("send", None, 0, b"", True))
+            data: bytes | None = fr.data
+            if fr.kind == "tpdo" and self.faults:
+                data = self._tpdo_draws(node, fr, k, st, acts)
+            if data is not None:
+                acts.append(("send", node, fr.cob_id, data, False))
+        if self.faults:
+            acts += self._bus_draws(k, st)
         return acts
+
+    def _tpdo_draws(self, node: SimNode, fr: Frame, k: int, st: float,
+                    acts: list[Action]) -> bytes | None:
+        """A TPDO's data after its draws (None: dropped), their log entries onto ``acts``."""
+        fi = self.faults
+        if fi.chance("drop", k, st, node.name, slot=fr.cob_id) is not None:
+            acts.append(("rec", (k, st, "drop", node.name), {"cob_id": fr.cob_id, "tpdo": fr.tpdo}))
+            return None
+        data = fr.data
+        if fi.chance("malformed", k, st, node.name, slot=0x1000 | fr.cob_id) is not None:
+            data = data[:-1] if len(data) > 1 else data + b"\x00"
+            acts.append(("rec", (k, st, "malformed", node.name),
+                         {"cob_id": fr.cob_id, "tpdo": fr.tpdo, "length": len(data),
+                          "expected": len(fr.data)}))
+        return data
+
+    def _bus_draws(self, k: int, st: float) -> list[Action]:
+        """After the nodes' frames: an unknown frame, then an error frame, each when drawn."""
+        fi = self.faults
+        acts: list[Action] = []
+        f = fi.chance("unknown", k, st, slot=0x2000)
+        if f is not None:
+            cob = f.cob_id if f.cob_id is not None else self._unknown_cob
+            acts.append(("rec", (k, st, "unknown", None), {"cob_id": cob}))
+            acts.append(("send", None, cob, fi.payload(k, 0x2000), False))
+        if fi.chance("errorframe", k, st, slot=0x3000) is not None:
+            acts.append(("rec", (k, st, "errorframe", None), {}))
+            acts.append(("send", None, 0, b"", True))
+        return acts
+
+
+def _status_change(node: SimNode, status: int, bit: int, code: int) -> Frame | None:
+    """The EMCY of one status bit: raised when it appears, cleared when it goes (None when
+    neither)."""
+    if status & bit and not node.has_error(code):
+        return node.raise_error(code, info=bytes([status]))
+    if not status & bit and node.has_error(code):
+        return node.clear_error(code)
+    return None

@@ -56,6 +56,15 @@ def test_stale_input_names_the_input_its_fraction_and_the_cause(cfg, missing, ba
     assert hint in h, h
 
 
+def test_stale_input_says_the_unusable_share_of_the_window(cfg):
+    """A known-load window's unusable samples: those lacking an input and those without the
+    balance (180 + 100 of 1000), against the share the mode allows."""
+    job, labels = _job(cfg, {"missing:cell_C": slice(0, 180)}, "known_loads", slice(500, 600))
+    text, _ = explain(_rec("stale_input", detail="missing_samples"), job, cfg.identification,
+                      labels)
+    assert text.startswith("28.0 % of the window's 1000 samples unusable (allowed 50.0 %)"), text
+
+
 def test_not_converged_gives_iterations_the_cost_trend_and_which_way_it_went(cfg):
     idc = cfg.identification
     falling = _rec("not_converged", iterations=20, cost_start=100.0, cost_history=(90.0, 80.0))

@@ -128,3 +128,37 @@ def test_latency_percentiles_and_the_schedule_summary():
     assert short["uncovered_s"] == 10.0 and short["partial"] is False
     assert schedule_summary(sch, 2300, cfg)["partial"] is True  # 13 s > 10 + 1 + 1 s
     assert schedule_summary({"source": "recomputed"}, 2300, cfg) == {"source": "recomputed"}
+
+
+def _finished_loop(stuck_episodes: int = 0):
+    """A stand-in of a finished SampleLoop: what run_summary reads of it."""
+    import numpy as np
+
+    stuck = SimpleNamespace(health=lambda: {"stuck_episodes": stuck_episodes,
+                                            "stuck_samples": 7 * stuck_episodes})
+    return SimpleNamespace(
+        samples=100, lost=2, first_t=1.0, last_t=1.5, deadline_misses=0, latencies=[],
+        last_seq=99, outputs=SimpleNamespace(counts={"hub_loads": 100}),
+        angles=SimpleNamespace(rejected={"stale_input": 1}, runs=3, log=[]),
+        pipeline=SimpleNamespace(implausible_omega=0, design_errors=0, stuck=stuck,
+                                 alpha=np.zeros(2)))
+
+
+def _reader(gaps: int):
+    health = SimpleNamespace(samples=SimpleNamespace(complete=98, incomplete=2),
+                             sync=SimpleNamespace(gaps=gaps, gap_longest_s=0.25))
+    return SimpleNamespace(health=lambda: health)
+
+
+def test_the_summary_names_sync_gaps_and_stuck_episodes_only_when_there_were_some(cfg):
+    from rsra.daq.runtime.run_report import run_summary
+
+    quiet = run_summary(_finished_loop(), _reader(0), [], None, cfg)
+    assert (quiet["samples_complete"], quiet["samples_incomplete"]) == (98, 2)
+    assert quiet["accepted"] == 2 and quiet["duration_s"] == 0.5
+    assert "sync_gaps" not in quiet and "stuck" not in quiet and "implausible_omega" not in quiet
+    eventful = run_summary(_finished_loop(stuck_episodes=1), _reader(3), ["w"], None, cfg)
+    assert eventful["sync_gaps"] == {"count": 3, "longest_s": 0.25}
+    assert eventful["stuck"] == {"episodes": 1, "samples": 7}
+    assert eventful["warnings"] == ["w"]
+    assert "samples_complete" not in run_summary(_finished_loop(), None, [], None, cfg)

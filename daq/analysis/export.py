@@ -71,8 +71,7 @@ def eds_unit(od, index: int, sub: int) -> str | None:
 
 def build_dbc(cfg: RigConfig, table: DecodeTable | None = None):
     """A :class:`cantools.database.can.Database` of the rig's bus (see the module doc)."""
-    from cantools.database.can import Database, Message, Node, Signal
-    from cantools.database.conversion import BaseConversion
+    from cantools.database.can import Database, Message, Node
 
     table = table or DecodeTable(cfg)
     period_ms = max(1, round(1000.0 / cfg.sample_rate_hz))
@@ -82,73 +81,107 @@ def build_dbc(cfg: RigConfig, table: DecodeTable | None = None):
         node = _ident(nl.name)
         nodes.append(Node(name=node, comment=f"{nl.role}, node id {nl.node_id}, EDS "
                                              f"{Path(nl.eds).name}"))
-        profile = device_profile(nl.role)
         for lay in nl.tpdos:
-            signals = []
-            bit = 0
-            codes = iter(lay.codes)
-            entries = iter(range(lay.start, lay.stop))
-            for e in lay.mapping:
-                index, sub, bits = e >> 16, (e >> 8) & 0xFF, e & 0xFF
-                if 0x0001 <= index <= 0x0007:  # dummy mapping: padding
-                    bit += bits
-                    continue
-                code, i = next(codes), next(entries)
-                c = table.channels[i]
-                size = 8 * _struct_size(code)
-                param = od_variable(nl.od, index, sub)
-                comment = (f"0x{index:04X}:{sub} {param.name}"
-                           f"{'; bit 0 over-range, bit 1 sensor fault' if c.is_status else ''}")
-                if c.wrap is not None:
-                    comment += "; 0..2^bits = 0..2pi"
-                if c.is_status:
-                    conv = BaseConversion.factory(scale=1, offset=0, choices={  # type: ignore[arg-type]  # cantools annotates OrderedDict, documents and reads any dict
-                        0: "ok", STATUS_OVERRANGE: "over-range", STATUS_FAULT: "sensor fault",
-                        STATUS_OVERRANGE | STATUS_FAULT: "over-range and sensor fault"})
-                    unit = ""
-                else:
-                    conv = BaseConversion.factory(scale=c.gain * c.scale, offset=c.offset,
-                                                  is_float=code in "fd")
-                    known = profile.at(index, sub)
-                    unit = eds_unit(nl.od, index, sub) or (known.unit if known else "")
-                    if c.name in ("x", "y", "z") and c.scale == MILLI_G:
-                        comment += "; 1 count = 1 mg"
-                signals.append(Signal(
-                    name=_ident(f"{nl.name}_{c.name}"), start=bit, length=size,
-                    byte_order="little_endian", is_signed=code in "bhiqfd" and code != "?",
-                    conversion=conv, unit=unit or None, comment=comment, receivers=["rsra"]))
-                bit += size
             messages.append(Message(
                 frame_id=lay.cob_id, name=_ident(f"{nl.name}_TPDO{lay.number}"),
-                length=lay.length, signals=signals, senders=[node], send_type="Cyclic",
-                cycle_time=period_ms, comment=f"TPDO{lay.number} of {nl.name} (on SYNC)"))
-        messages.append(Message(
-            frame_id=COB_HEARTBEAT + nl.node_id, name=_ident(f"{nl.name}_heartbeat"), length=1,
-            senders=[node], cycle_time=cfg.heartbeat.producer_ms, comment="NMT heartbeat",
-            signals=[Signal(name=_ident(f"{nl.name}_nmt_state"), start=0, length=7,
-                            conversion=BaseConversion.factory(choices=dict(NMT_STATES)),  # type: ignore[arg-type]  # cantools annotates OrderedDict, documents and reads any dict
-                            receivers=["rsra"])]))
-        messages.append(Message(
-            frame_id=COB_EMCY + nl.node_id, name=_ident(f"{nl.name}_EMCY"), length=8,
-            senders=[node], comment="emergency (CiA 301)", signals=[
-                Signal(name=_ident(f"{nl.name}_emcy_code"), start=0, length=16,
-                       receivers=["rsra"]),
-                Signal(name=_ident(f"{nl.name}_emcy_register"), start=16, length=8,
-                       receivers=["rsra"]),
-                Signal(name=_ident(f"{nl.name}_emcy_info"), start=24, length=40,
-                       receivers=["rsra"], comment="manufacturer-specific bytes")]))
-    sync_len = 1 if cfg.sync.counter_overflow else 0
-    sync_signals = [Signal(name="SYNC_counter", start=0, length=8,
-                           comment=f"1..{cfg.sync.counter_overflow}, then 1 again")] \
-        if sync_len else []
-    messages.append(Message(
-        frame_id=cfg.sync.cob_id, name="SYNC", length=sync_len, signals=sync_signals,
-        senders=["rsra"] if cfg.sync.producer == "service" else None, send_type="Cyclic",
-        cycle_time=period_ms, comment=f"CANopen SYNC: one sample per SYNC, "
-                                      f"{cfg.sample_rate_hz:g} Hz"))
+                length=lay.length, signals=_tpdo_signals(nl, lay, table), senders=[node],
+                send_type="Cyclic", cycle_time=period_ms,
+                comment=f"TPDO{lay.number} of {nl.name} (on SYNC)"))
+        messages += _node_messages(nl, node, cfg.heartbeat.producer_ms)
+    messages.append(_sync_message(cfg, period_ms))
     messages.sort(key=lambda m: m.frame_id)
     return Database(messages=messages, nodes=nodes,
                     version=f"rsra rig {cfg.rig_name}")
+
+
+def _tpdo_signals(nl, lay, table: DecodeTable) -> list:
+    """The signals of one TPDO, in its mapping's order (a dummy entry is padding)."""
+    profile = device_profile(nl.role)
+    signals = []
+    bit = 0
+    codes = iter(lay.codes)
+    entries = iter(range(lay.start, lay.stop))
+    for e in lay.mapping:
+        index, sub, bits = e >> 16, (e >> 8) & 0xFF, e & 0xFF
+        if 0x0001 <= index <= 0x0007:  # dummy mapping: padding
+            bit += bits
+            continue
+        code, c = next(codes), table.channels[next(entries)]
+        signals.append(_signal(nl, c, code, index, sub, bit, profile))
+        bit += signals[-1].length
+    return signals
+
+
+def _signal(nl, c, code: str, index: int, sub: int, bit: int, profile):
+    """The signal of channel ``c`` (object ``index:sub``, struct code ``code``) at ``bit``:
+    a status byte by its flags, a value by its calibration and unit."""
+    from cantools.database.can import Signal
+    from cantools.database.conversion import BaseConversion
+
+    comment = (f"0x{index:04X}:{sub} {od_variable(nl.od, index, sub).name}"
+               f"{'; bit 0 over-range, bit 1 sensor fault' if c.is_status else ''}")
+    if c.wrap is not None:
+        comment += "; 0..2^bits = 0..2pi"
+    if c.is_status:
+        conv = BaseConversion.factory(scale=1, offset=0, choices=_STATUS_CHOICES)  # type: ignore[arg-type]  # cantools annotates OrderedDict, documents and reads any dict
+        unit = ""
+    else:
+        conv = BaseConversion.factory(scale=c.gain * c.scale, offset=c.offset,
+                                      is_float=code in "fd")
+        unit, comment = _value_unit(nl, c, index, sub, profile), comment + _count_note(c)
+    return Signal(name=_ident(f"{nl.name}_{c.name}"), start=bit, length=8 * _struct_size(code),
+                  byte_order="little_endian", is_signed=code in "bhiqfd" and code != "?",
+                  conversion=conv, unit=unit or None, comment=comment, receivers=["rsra"])
+
+
+def _value_unit(nl, c, index: int, sub: int, profile) -> str:
+    """A value's unit: the EDS's physical-unit object, else the device profile's ('' none)."""
+    known = profile.at(index, sub)
+    return eds_unit(nl.od, index, sub) or (known.unit if known else "")
+
+
+def _count_note(c) -> str:
+    """An accelerometer axis counted in milli-g says so."""
+    return "; 1 count = 1 mg" if c.name in ("x", "y", "z") and c.scale == MILLI_G else ""
+
+
+_STATUS_CHOICES = {0: "ok", STATUS_OVERRANGE: "over-range", STATUS_FAULT: "sensor fault",
+                   STATUS_OVERRANGE | STATUS_FAULT: "over-range and sensor fault"}
+
+
+def _node_messages(nl, node: str, heartbeat_ms: int) -> list:
+    """A node's heartbeat and EMCY messages."""
+    from cantools.database.can import Message, Signal
+    from cantools.database.conversion import BaseConversion
+
+    return [Message(
+        frame_id=COB_HEARTBEAT + nl.node_id, name=_ident(f"{nl.name}_heartbeat"), length=1,
+        senders=[node], cycle_time=heartbeat_ms, comment="NMT heartbeat",
+        signals=[Signal(name=_ident(f"{nl.name}_nmt_state"), start=0, length=7,
+                        conversion=BaseConversion.factory(choices=dict(NMT_STATES)),  # type: ignore[arg-type]  # cantools annotates OrderedDict, documents and reads any dict
+                        receivers=["rsra"])]), Message(
+        frame_id=COB_EMCY + nl.node_id, name=_ident(f"{nl.name}_EMCY"), length=8,
+        senders=[node], comment="emergency (CiA 301)", signals=[
+            Signal(name=_ident(f"{nl.name}_emcy_code"), start=0, length=16,
+                   receivers=["rsra"]),
+            Signal(name=_ident(f"{nl.name}_emcy_register"), start=16, length=8,
+                   receivers=["rsra"]),
+            Signal(name=_ident(f"{nl.name}_emcy_info"), start=24, length=40,
+                   receivers=["rsra"], comment="manufacturer-specific bytes")])]
+
+
+def _sync_message(cfg: RigConfig, period_ms: int):
+    """The SYNC, with its counter byte when the rig counts."""
+    from cantools.database.can import Message, Signal
+
+    overflow = cfg.sync.counter_overflow
+    signals = [Signal(name="SYNC_counter", start=0, length=8,
+                      comment=f"1..{overflow}, then 1 again")] if overflow else []
+    return Message(
+        frame_id=cfg.sync.cob_id, name="SYNC", length=1 if overflow else 0, signals=signals,
+        senders=["rsra"] if cfg.sync.producer == "service" else None, send_type="Cyclic",
+        cycle_time=period_ms, comment=f"CANopen SYNC: one sample per SYNC, "
+                                      f"{cfg.sample_rate_hz:g} Hz")
 
 
 def _struct_size(code: str) -> int:
@@ -213,22 +246,37 @@ def write_mcap(records: Iterable[tuple[str, dict]], out, prefix: str,
 
 
 # -- Parquet: one table per key, flat typed columns ------------------------------------------
+_VEC6_PATHS = ("H", "H_static", "sigma_angles", "sigma_filter", "I", "known_H", "e")
 def _components(key: str, path: str, value: list, payload: dict,
                 names: dict[str, tuple[str, ...]]) -> tuple[str, ...] | None:
     """Names of the elements of a list field that becomes one column per element."""
-    if path in ("H", "H_static", "sigma_angles", "sigma_filter", "I", "known_H", "e") \
-            and len(value) == 6:
-        return AXES
-    if key == "channels" and path in ("T", "accel", "drive"):
-        comp = names.get(path, ())
-        return comp if len(comp) == len(value) else None
-    if key == "channels" and path.startswith("accel.") and len(value) == 3:
-        return ("x", "y", "z")
-    if key == "angles" and path in ("alpha", "sigma_cr", "sigma_cr_corrected", "drift.rate",
-                                    "drift.rate_sigma"):
-        comp = tuple(payload.get("names") or ())
-        return comp if len(comp) == len(value) else None
+    if path in _VEC6_PATHS:
+        return AXES if len(value) == 6 else None
+    by_key = _COMPONENTS_BY_KEY.get(key)
+    return by_key(path, value, payload, names) if by_key else None
+
+
+def _channel_components(path: str, value: list, payload: dict,
+                        names: dict[str, tuple[str, ...]]) -> tuple[str, ...] | None:
+    """Cells, accelerometers and external loads by the rig's names; an accelerometer's x, y, z."""
+    if path in ("T", "accel", "drive"):
+        return _if_sized(names.get(path, ()), value)
+    return ("x", "y", "z") if path.startswith("accel.") and len(value) == 3 else None
+
+
+def _angle_components(path: str, value: list, payload: dict,
+                      names: dict[str, tuple[str, ...]]) -> tuple[str, ...] | None:
+    """The angles by the names the record gives them."""
+    if path in ("alpha", "sigma_cr", "sigma_cr_corrected", "drift.rate", "drift.rate_sigma"):
+        return _if_sized(tuple(payload.get("names") or ()), value)
     return None
+
+
+def _if_sized(names: tuple[str, ...], value: list) -> tuple[str, ...] | None:
+    return names if len(names) == len(value) else None
+
+
+_COMPONENTS_BY_KEY = {"channels": _channel_components, "angles": _angle_components}
 
 
 def flatten(key: str, payload: dict, names: dict[str, tuple[str, ...]]) -> dict[str, Any]:
@@ -283,17 +331,16 @@ def _sigma_deg(payload: dict, known: Sequence[str] | None) -> dict[str, float | 
     names, P = payload.get("names"), payload.get("P")
     if not isinstance(names, list) or not isinstance(P, list) or len(P) != len(names):
         return {}
-    out: dict[str, float | None] = {}
-    for i, name in enumerate(names):
-        if known and name not in known:
-            continue
-        row = P[i]
-        v = row[i] if isinstance(row, list) and len(row) == len(names) else None
-        if isinstance(v, (int, float)) and not isinstance(v, bool) and v >= 0.0:
-            out[f"{SIGMA_DEG}.{name}"] = math.degrees(math.sqrt(v))
-        else:
-            out[f"{SIGMA_DEG}.{name}"] = None
-    return out
+    return {f"{SIGMA_DEG}.{name}": _sigma_deg_of(P[i], i, len(names))
+            for i, name in enumerate(names) if not known or name in known}
+
+
+def _sigma_deg_of(row: Any, i: int, n: int) -> float | None:
+    """√P_ii in degrees from row i of an n×n covariance, None where it is not a variance."""
+    v = row[i] if isinstance(row, list) and len(row) == n else None
+    if isinstance(v, (int, float)) and not isinstance(v, bool) and v >= 0.0:
+        return math.degrees(math.sqrt(v))
+    return None
 
 
 _FIELD_RES = {key: [(re.compile("^" + re.escape(p).replace(re.escape("<node>"), "[^.]+")
@@ -317,59 +364,61 @@ def column_unit(key: str, column: str) -> str:
     return ""
 
 
+_SCALAR_KINDS = ((bool, "bool"), (int, "int"), (float, "float"), (str, "str"))  # bool before int
+# a list's kind by the kinds of its elements, the first row that holds them all
+_LIST_KINDS = ((frozenset({"int"}), "list:int"), (frozenset({"int", "float"}), "list:float"),
+               (frozenset({"str"}), "list:str"),
+               (frozenset({"list:", "list:int", "list:float"}), "list:list"))
+
+
 def _kind(v: Any) -> str:
-    if isinstance(v, bool):
-        return "bool"
-    if isinstance(v, int):
-        return "int"
-    if isinstance(v, float):
-        return "float"
-    if isinstance(v, str):
-        return "str"
-    if isinstance(v, list):
-        inner = {_kind(x) for x in v if x is not None}
-        if not inner:
-            return "list:"
-        if inner <= {"int"}:
-            return "list:int"
-        if inner <= {"int", "float"}:
-            return "list:float"
-        if inner == {"str"}:
-            return "list:str"
-        if all(k.startswith("list:") for k in inner) and inner <= {"list:", "list:int",
-                                                                   "list:float"}:
-            return "list:list"
-    return "json"
+    kind = next((name for t, name in _SCALAR_KINDS if isinstance(v, t)), None)
+    if kind is not None:
+        return kind
+    return _list_kind(v) if isinstance(v, list) else "json"
+
+
+def _list_kind(v: list) -> str:
+    inner = {_kind(x) for x in v if x is not None}
+    if not inner:
+        return "list:"
+    return next((name for allowed, name in _LIST_KINDS if inner <= allowed), "json")
+
+
+# the Arrow type of a column (or of a list column's elements) by the kinds seen in it, the first
+# row that holds them all; a list of lists is a list of float lists
+_ARROW_OF_KINDS = ((frozenset({"bool"}), "bool_"), (frozenset({"int"}), "int64"),
+                   (frozenset({"int", "float"}), "float64"), (frozenset({"str"}), "string"),
+                   (frozenset({"list"}), "float64 list"))
 
 
 def _arrow_type(kinds: set[str]):
+    """The Arrow type of an undeclared column from the kinds of its values (:func:`_kind`):
+    one type of scalar, or lists of one type of element; anything mixed is JSON text."""
     import pyarrow as pa
 
-    lists = {k for k in kinds if k.startswith("list:")}
     if not kinds:
         return pa.null()
-    if kinds == {"bool"}:
-        return pa.bool_()
-    if kinds == {"int"}:
-        return pa.int64()
-    if kinds <= {"int", "float"}:
-        return pa.float64()
-    if kinds == {"str"}:
-        return pa.string()
-    if lists == kinds:
-        if lists <= {"list:", "list:int"} and "list:int" in lists:
-            return pa.list_(pa.int64())
-        if lists <= {"list:", "list:int", "list:float"} and lists - {"list:"}:
-            return pa.list_(pa.float64())
-        if lists <= {"list:", "list:str"}:
-            return pa.list_(pa.string())
-        if lists <= {"list:", "list:list"}:
-            return pa.list_(pa.list_(pa.float64()))
-    return pa.string()  # anything mixed: JSON text
+    lists = all(k.startswith("list:") for k in kinds)
+    elements = {k.removeprefix("list:") for k in kinds} - {""} if lists else kinds
+    if not elements:  # only empty lists
+        return pa.list_(pa.string())
+    typ = _arrow_of_kinds(elements)
+    if typ is None:
+        return pa.string()  # anything mixed: JSON text
+    return pa.list_(typ) if lists else typ
+
+
+def _arrow_of_kinds(kinds: set[str]):
+    import pyarrow as pa
+
+    name = next((name for allowed, name in _ARROW_OF_KINDS if kinds <= allowed), None)
+    if name is None:
+        return None
+    return pa.list_(pa.float64()) if name == "float64 list" else getattr(pa, name)()
 
 
 # -- the declared Arrow schema of each key (FIELDS and the rig's names; never the data) ---------
-_VEC6_PATHS = ("H", "H_static", "sigma_angles", "sigma_filter", "I", "known_H", "e")
 _BY_NAME = {("channels", "T"): "T", ("channels", "drive"): "drive",
             ("angles", "alpha"): "angles", ("angles", "sigma_cr"): "angles",
             ("angles", "sigma_cr_corrected"): "angles"}
@@ -398,35 +447,40 @@ def declared_columns(key: str, names: dict[str, tuple[str, ...]]) -> list[tuple[
     fields = FIELDS[key]
     parents = {p.rsplit(".", 1)[0] for p, _, _ in fields if "." in p}
     out: list[tuple[str, str]] = []
-
-    def expand(path: str) -> list[str]:
-        paths = [""]
-        for part in path.split("."):
-            subs = names.get(part, (part,)) if part.startswith("<") else (part,)
-            paths = [f"{p}.{x}" if p else x for p in paths for x in subs]
-        return paths
-
     for path, jtype, unit in fields:
         if "[]" in path or (jtype == "object" and path in parents):
             continue  # inside a JSON-text column, or a parent of declared columns
-        for col in expand(path):
-            if path in _VEC6_PATHS and unit == VEC6:
-                out += [(f"{col}.{a}", "number") for a in AXES]
-            elif key == "channels" and path == "accel":
-                out += [(f"accel.{a}.{x}", "number") for a in names.get("accel", ())
-                        for x in "xyz"]
-            elif key == "angles" and path == "P":
-                out.append((col, jtype))
-                out += [(f"{SIGMA_DEG}.{n}", "number") for n in names.get("angles", ())]
-            elif (key, path) in _BY_NAME:
-                if key == "angles":
-                    out.append((col, jtype))
-                out += [(f"{col}.{n}", "number") for n in names.get(_BY_NAME[key, path], ())]
-            else:
-                out.append((col, jtype))
+        for col in _expand(path, names):
+            out += _field_columns(key, path, col, jtype, unit, names)
     if key == "angles":
         out.append((ADVICE_TEXT, "string"))
     return out
+
+
+def _expand(path: str, names: dict[str, tuple[str, ...]]) -> list[str]:
+    """A declared path with each ``<node>``/``<cell>`` part replaced by each of the rig's."""
+    paths = [""]
+    for part in path.split("."):
+        subs = names.get(part, (part,)) if part.startswith("<") else (part,)
+        paths = [f"{p}.{x}" if p else x for p in paths for x in subs]
+    return paths
+
+
+def _field_columns(key: str, path: str, col: str, jtype: str, unit: str,
+                   names: dict[str, tuple[str, ...]]) -> list[tuple[str, str]]:
+    """The columns of one declared field: a six-vector by axis, the accelerometers by name
+    and axis, the angles' covariance beside each angle's σ, a named vector by the rig's
+    names (the angles' also as the list), anything else itself."""
+    if path in _VEC6_PATHS and unit == VEC6:
+        return [(f"{col}.{a}", "number") for a in AXES]
+    if key == "channels" and path == "accel":
+        return [(f"accel.{a}.{x}", "number") for a in names.get("accel", ()) for x in "xyz"]
+    if key == "angles" and path == "P":
+        return [(col, jtype)] + [(f"{SIGMA_DEG}.{n}", "number") for n in names.get("angles", ())]
+    if (key, path) not in _BY_NAME:
+        return [(col, jtype)]
+    itself = [(col, jtype)] if key == "angles" else []
+    return itself + [(f"{col}.{n}", "number") for n in names.get(_BY_NAME[key, path], ())]
 
 
 def parquet_schemas(keys: Iterable[str], names: dict[str, tuple[str, ...]],
@@ -435,8 +489,6 @@ def parquet_schemas(keys: Iterable[str], names: dict[str, tuple[str, ...]],
     keys of :data:`FIELDS`, units from it as field metadata ``unit`` and as the schema
     metadata ``units``. A key outside the declaration (a file from elsewhere) has its
     columns and types taken from ``records`` (a pass over the data) instead."""
-    import pyarrow as pa
-
     schemas = {}
     undeclared = [k for k in dict.fromkeys(keys) if k not in FIELDS]
     inferred = _inferred_columns(records or (), set(undeclared))
@@ -445,16 +497,24 @@ def parquet_schemas(keys: Iterable[str], names: dict[str, tuple[str, ...]],
             cols = [(c, _arrow_of(t)) for c, t in declared_columns(key, names)]
         else:
             cols = [(c, _arrow_type(kinds)) for c, kinds in inferred.get(key, {}).items()]
-        fields, units = [], {}
-        for col, typ in cols:
-            unit = column_unit(key, col)
-            units[col] = unit
-            fields.append(pa.field(col, typ, nullable=True,
-                                   metadata={"unit": unit} if unit else None))
-        schemas[key] = pa.schema(fields, metadata={
-            "rsra.key": key, "units": json.dumps(units, ensure_ascii=False),
-            "source": "rsra export (docs/telemetry.md)"})
+        schemas[key] = _schema(key, cols)
     return schemas
+
+
+def _schema(key: str, cols: list[tuple[str, Any]]):
+    """The Arrow schema of ``key``'s (column, type) list, each column's unit as its field
+    metadata and all of them as the schema metadata ``units``."""
+    import pyarrow as pa
+
+    fields, units = [], {}
+    for col, typ in cols:
+        unit = column_unit(key, col)
+        units[col] = unit
+        fields.append(pa.field(col, typ, nullable=True,
+                               metadata={"unit": unit} if unit else None))
+    return pa.schema(fields, metadata={
+        "rsra.key": key, "units": json.dumps(units, ensure_ascii=False),
+        "source": "rsra export (docs/telemetry.md)"})
 
 
 def _inferred_columns(records: Iterable[tuple[str, dict]], keys: set[str]
@@ -485,6 +545,12 @@ def _cells(values: list, typ) -> list:
     return values
 
 
+def _with_metadata(sch, metadata: dict[str, str]):
+    """The schema with ``metadata`` (provenance) added to its key-value metadata."""
+    return sch.with_metadata({**(sch.metadata or {}),
+                              **{a.encode(): b.encode() for a, b in metadata.items()}})
+
+
 class ParquetTables:
     """Rows of every key into its own Parquet file under its declared schema, pushed one
     record at a time (:meth:`add`) and written ``batch`` rows at a time (bounded memory);
@@ -499,10 +565,7 @@ class ParquetTables:
                  batch: int = 4096, left_out: dict[str, set[str]] | None = None,
                  metadata: dict[str, str] | None = None):
         if metadata:
-            schemas = {k: sch.with_metadata({**(sch.metadata or {}),
-                                             **{a.encode(): b.encode()
-                                                for a, b in metadata.items()}})
-                       for k, sch in schemas.items()}
+            schemas = {k: _with_metadata(sch, metadata) for k, sch in schemas.items()}
         #: the Arrow schema of each key's file
         self.schemas: dict = schemas
         #: where each key's file goes (path or binary file object)

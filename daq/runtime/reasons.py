@@ -73,46 +73,60 @@ def _stale(job: Mapping[str, Any], labels: Sequence[str], stale_fraction: float,
     valid = np.asarray(job["ok"], bool)
     if job.get("mode") == "known_loads":
         valid = valid & np.asarray(job["known"], bool)
-    bad = 1.0 - float(np.count_nonzero(valid)) / n
     items = missing_inputs(job, labels)
     shown = ", ".join(f"{_input_words(lab) if lab != 'balance' else 'the balance absent'} in "
                       f"{_pct(f)}" for lab, f in items[:SHOWN_INPUTS])
     more = len(items) - SHOWN_INPUTS
-    if scattered_gap is None:
-        text = f"{_pct(bad)} of the window's {n} samples unusable (allowed {_pct(stale_fraction)})"
-    else:  # filter error: dropped frames bias the estimate (identification.md)
-        from rsra.estimator.identification import scattered_missing_fraction
-
-        text = (f"{_pct(scattered_missing_fraction(valid, scattered_gap))} of the window's {n} "
-                f"samples lacking an input in short gaps (≤ {scattered_gap} samples; allowed "
-                f"{_pct(stale_fraction)} in a filter-error window)")
+    text = _unusable_share(valid, n, stale_fraction, scattered_gap)
     text += (f": {shown}" if shown else "") + (f" and {more} more input(s)" if more > 0 else "")
     if not items:
         return text, "samples unusable without a flag naming why: check the decoding (rsra listen)"
+    return text, _stale_hint(items)
+
+
+def _unusable_share(valid: np.ndarray, n: int, stale_fraction: float,
+                    scattered_gap: int | None) -> str:
+    """How much of the window's ``n`` samples was unusable, against what its mode allows."""
+    if scattered_gap is None:
+        bad = 1.0 - float(np.count_nonzero(valid)) / n
+        return f"{_pct(bad)} of the window's {n} samples unusable (allowed {_pct(stale_fraction)})"
+    # filter error: dropped frames bias the estimate (identification.md)
+    from rsra.estimator.identification import scattered_missing_fraction
+
+    return (f"{_pct(scattered_missing_fraction(valid, scattered_gap))} of the window's {n} "
+            f"samples lacking an input in short gaps (≤ {scattered_gap} samples; allowed "
+            f"{_pct(stale_fraction)} in a filter-error window)")
+
+
+# what to check when one input is missed most, by its label's kind (missing_inputs)
+_INPUT_HINTS = {
+    "missing": "{} silent or dropping frames: check its power, wiring and node id "
+               "(rsra nodes; health shows its state)",
+    "overrange": "{} reports over range: the load exceeds its full scale "
+                 "(or the cell's zero drifted: rsra zero)",
+    "fault": "{} reads stuck or reports a fault: check the sensor and its cable",
+}
+
+
+def _stale_hint(items: list[tuple[str, float]]) -> str:
+    """What to check, from the inputs missed (most often first): the balance, many nodes at
+    once (the bus or the machine), else the input missed most."""
     top, _ = items[0]
     nodes = [lab.split(":", 1)[1] for lab, _ in items if lab.startswith("missing:")]
     if top == "balance":
-        hint = ("the balance stopped (or started) reporting during a known-load window, which "
+        return ("the balance stopped (or started) reporting during a known-load window, which "
                 "needs it throughout: check the balance node, or hold the known load until "
                 "the window is complete")
-    elif len(nodes) >= MANY_NODES:
-        hint = (f"samples incomplete across {len(nodes)} nodes: their frames arrive too late "
+    if len(nodes) >= MANY_NODES:
+        return (f"samples incomplete across {len(nodes)} nodes: their frames arrive too late "
                 "for the SYNC — a bus or a machine too slow for rig.sample_rate_hz (a shared "
                 "or loaded bus, a busy machine): lower the rate, lighten the bus or give the "
                 "service --realtime-priority")
-    elif top.startswith("missing:"):
-        who = " and ".join(nodes[:2])
-        hint = (f"{who} silent or dropping frames: check its power, wiring and node id "
-                "(rsra nodes; health shows its state)")
-    elif top.startswith("overrange:"):
-        hint = (f"{top.split(':', 1)[1]} reports over range: the load exceeds its full scale "
-                "(or the cell's zero drifted: rsra zero)")
-    elif top.startswith("fault:"):
-        hint = (f"{top.split(':', 1)[1]} reads stuck or reports a fault: check the sensor and "
-                "its cable")
-    else:
-        hint = "non-finite readings without a flag: check the decoding (rsra listen)"
-    return text, hint
+    kind, _, name = top.partition(":")
+    hint = _INPUT_HINTS.get(kind)
+    if hint is None:
+        return "non-finite readings without a flag: check the decoding (rsra listen)"
+    return hint.format(" and ".join(nodes[:2]) if kind == "missing" else name)
 
 
 def _trend(rec: Any) -> str:
@@ -122,11 +136,20 @@ def _trend(rec: Any) -> str:
         return "no cost recorded"
     j1 = hist[-1]
     text = f"cost {j0:.6g} → {j1:.6g}"
-    if math.isfinite(j0) and math.isfinite(j1) and j0 != 0:
-        text += f" ({100 * (j1 - j0) / abs(j0):+.3g} %)"
-    if len(hist) >= 2 and math.isfinite(hist[-2]) and hist[-2] != 0 and math.isfinite(j1):
-        text += f", last iteration {100 * (j1 - hist[-2]) / abs(hist[-2]):+.2g} %"
+    change = _relative_change(j0, j1)
+    if change is not None:
+        text += f" ({change:+.3g} %)"
+    last = _relative_change(hist[-2], j1) if len(hist) >= 2 else None
+    if last is not None:
+        text += f", last iteration {last:+.2g} %"
     return text
+
+
+def _relative_change(j0: float, j1: float) -> float | None:
+    """100 (j1 − j0)/|j0| (%), None when either is not finite or j0 is 0."""
+    if math.isfinite(j0) and math.isfinite(j1) and j0 != 0:
+        return 100 * (j1 - j0) / abs(j0)
+    return None
 
 
 STILL_FALLING = 1e-4  # a last iteration that lowered J by more than this (relative; the

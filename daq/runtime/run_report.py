@@ -79,40 +79,15 @@ class HealthReporter:
         self._rate_low = RateLowNotice()
 
     def __call__(self, item: Any) -> None:
-        from rsra.daq.bus.health import IdentQueue, Latency, PublisherQueue, frozen_map
+        from rsra.daq.bus.health import Latency, frozen_map
 
         loop = self._loop
         h = item.health
         lat = latency_percentiles(loop.latencies)
         latency = (Latency(deadline_misses=loop.deadline_misses, **lat) if lat is not None
                    else Latency(p50=None, p99=None))
-        queues = h.queues
-        more: dict[str, Any] = {}
-        worker = loop.supervision.worker
-        if worker is not None:
-            queues = dataclasses.replace(queues, identification=IdentQueue(
-                submitted=worker.submitted, dropped=worker.dropped,
-                errors=loop.supervision.errors))
-            more["identification"] = frozen_map(worker.health())
-        outputs = loop.outputs
-        if outputs.low_rate is not None:
-            queues = dataclasses.replace(queues, publisher=PublisherQueue(
-                depth=outputs.low_rate.queue.qsize(), dropped=outputs.low_rate.dropped))
-        if outputs.foxglove is not None:
-            more["foxglove"] = frozen_map(outputs.foxglove.health())
-        p = loop.pipeline  # readings the estimator refused (bad input, counted)
-        est = {"implausible_omega": p.implausible_omega,
-               "design_errors": p.design_errors,
-               "inertial": p.cfg.angular,
-               "harmonic_phase": p.cfg.rotor.harmonic_phase,
-               "hub_kernel": p.hub_kernel_status,
-               "hub_kernel_samples": 0 if p.hub_kernel is None else p.hub_kernel.samples}
-        if p.azimuth_mode:
-            est["azimuth_missing"] = p.azimuth_missing
-            est["azimuth_refused"] = p.azimuth.refused
-        if p.stuck is not None:
-            est.update(p.stuck.health())
-        more["estimator"] = frozen_map(est)
+        queues, more = _queues_and_parts(loop, h.queues)
+        more["estimator"] = frozen_map(_estimator_health(loop.pipeline))
         if self._warnings:
             more["warnings"] = tuple(self._warnings)
         h = dataclasses.replace(h, latency_ms=latency, queues=queues, **more)
@@ -124,7 +99,44 @@ class HealthReporter:
             self._rate_low.check(h.sync, getattr(loop.source, "interface", None),
                                  loop.pipeline.cfg.sample_rate_hz)
         self.last = h
-        outputs.publish("health", h)
+        loop.outputs.publish("health", h)
+
+
+def _queues_and_parts(loop: SampleLoop, queues: Any) -> tuple[Any, dict[str, Any]]:
+    """The reader's queues with the identification worker's and the low-rate publisher's
+    put in, and the health of the worker and the Foxglove relay (when running)."""
+    from rsra.daq.bus.health import IdentQueue, PublisherQueue, frozen_map
+
+    more: dict[str, Any] = {}
+    worker = loop.supervision.worker
+    if worker is not None:
+        queues = dataclasses.replace(queues, identification=IdentQueue(
+            submitted=worker.submitted, dropped=worker.dropped,
+            errors=loop.supervision.errors))
+        more["identification"] = frozen_map(worker.health())
+    outputs = loop.outputs
+    if outputs.low_rate is not None:
+        queues = dataclasses.replace(queues, publisher=PublisherQueue(
+            depth=outputs.low_rate.queue.qsize(), dropped=outputs.low_rate.dropped))
+    if outputs.foxglove is not None:
+        more["foxglove"] = frozen_map(outputs.foxglove.health())
+    return queues, more
+
+
+def _estimator_health(p: Any) -> dict[str, Any]:
+    """Readings the estimator refused (bad input, counted) and how it runs."""
+    est = {"implausible_omega": p.implausible_omega,
+           "design_errors": p.design_errors,
+           "inertial": p.cfg.angular,
+           "harmonic_phase": p.cfg.rotor.harmonic_phase,
+           "hub_kernel": p.hub_kernel_status,
+           "hub_kernel_samples": 0 if p.hub_kernel is None else p.hub_kernel.samples}
+    if p.azimuth_mode:
+        est["azimuth_missing"] = p.azimuth_missing
+        est["azimuth_refused"] = p.azimuth.refused
+    if p.stuck is not None:
+        est.update(p.stuck.health())
+    return est
 
 
 def run_summary(loop: SampleLoop, reader: Any, warnings: list[str],
@@ -141,34 +153,51 @@ def run_summary(loop: SampleLoop, reader: Any, warnings: list[str],
         "rejected": rej, "published": dict(loop.outputs.counts),
         "deadline_misses": loop.deadline_misses}
     if reader is not None:  # the reader's counts, as a replay of the run reports them
-        h = reader.health()
-        out["samples_complete"] = h.samples.complete
-        out["samples_incomplete"] = h.samples.incomplete
-        if h.sync.gaps:
-            out["sync_gaps"] = {"count": h.sync.gaps, "longest_s": h.sync.gap_longest_s}
+        out.update(_reader_counts(reader))
     if warnings:
         out["warnings"] = list(warnings)
     p = loop.pipeline
-    if p.implausible_omega or p.design_errors:
-        out["implausible_omega"] = p.implausible_omega
-        out["design_errors"] = p.design_errors
-    if p.stuck is not None:
-        st = p.stuck.health()
-        if st["stuck_episodes"]:
-            out["stuck"] = {"episodes": st["stuck_episodes"], "samples": st["stuck_samples"]}
+    out.update(_estimator_refusals(p))
     lat = latency_percentiles(loop.latencies)
     if lat is not None:
         out["latency_ms"] = lat
     if loop.angles.log:
-        last = loop.angles.log[-1]
-        out["angles"] = {"names": last.get("names"), "alpha": last.get("alpha"),
-                         "sigma": [math.sqrt(max(last.P[i][i], 0.0))
-                                   for i in range(len(last.get("names") or []))]
-                         if last.get("P") else None}
+        out["angles"] = _last_angles(loop.angles.log[-1])
     out["alpha_applied"] = p.alpha.tolist()
     if schedule is not None:
         out["angles_schedule"] = schedule_summary(schedule, loop.last_seq, cfg)
     return out
+
+
+def _reader_counts(reader: Any) -> dict[str, Any]:
+    """The reader's complete and incomplete samples, and the SYNC gaps when there were any."""
+    h = reader.health()
+    out: dict[str, Any] = {"samples_complete": h.samples.complete,
+                           "samples_incomplete": h.samples.incomplete}
+    if h.sync.gaps:
+        out["sync_gaps"] = {"count": h.sync.gaps, "longest_s": h.sync.gap_longest_s}
+    return out
+
+
+def _estimator_refusals(p: Any) -> dict[str, Any]:
+    """What the estimator refused: implausible rotor speeds and design errors, stuck
+    episodes (each only when it happened)."""
+    out: dict[str, Any] = {}
+    if p.implausible_omega or p.design_errors:
+        out["implausible_omega"] = p.implausible_omega
+        out["design_errors"] = p.design_errors
+    st = p.stuck.health() if p.stuck is not None else None
+    if st is not None and st["stuck_episodes"]:
+        out["stuck"] = {"episodes": st["stuck_episodes"], "samples": st["stuck_samples"]}
+    return out
+
+
+def _last_angles(last: Any) -> dict[str, Any]:
+    """The last angles record's names, angles and σ (√P_ii)."""
+    return {"names": last.get("names"), "alpha": last.get("alpha"),
+            "sigma": [math.sqrt(max(last.P[i][i], 0.0))
+                      for i in range(len(last.get("names") or []))]
+            if last.get("P") else None}
 
 
 def schedule_summary(schedule: dict, last_seq: int | None, cfg: RigConfig) -> dict:

@@ -82,33 +82,41 @@ class AnglesTally:
         if not rec.get("accepted"):
             reason = str(rec.get("reason"))
             self.rejected[reason] = self.rejected.get(reason, 0) + 1
-        t = rec.get("t")
         if rec.get("accepted"):
-            self._accepted += 1
-            self._last_change = t if isinstance(t, (int, float)) else self._last_change
-            sig = rec.get("sigma_cr") or []
-            worst = max((x for x in sig if x is not None), default=float("nan"))
-            log.info("identification accepted (%s, %s): %d of %d directions determined, "
-                     "worst sigma_CR %.3f deg, applies from sample %s%s", rec.get("mode"),
-                     rec.get("content"), rec.get("determined", 0), len(rec.get("names") or []),
-                     math.degrees(worst), rec.get("applies_from_seq"),
-                     " (late)" if rec.get("late") else "")
+            self._on_accepted(rec)
         elif held_window(rec):
-            self._held += 1
-            info = rec.get("information")
-            adds = (f"adds {info:.2g} of what the posterior knows"
-                    if isinstance(info, (int, float)) and math.isfinite(info) else
-                    "is not identifiable on its own")
-            # once calibrated a held window is routine: the status line below says enough
-            log.log(logging.DEBUG if self._accepted else logging.INFO,
-                    "identification held (%s, %s): this window %s; its information is used "
-                    "with the next windows", rec.get("mode"), rec.get("content"), adds)
+            self._on_held(rec)
         else:
             log.info("identification rejected (%s, %s): %s: %s%s", rec.get("mode"),
                      rec.get("content"), rec.get("reason"), rec.get("explanation") or
                      rec.get("detail"), f"; hint: {rec.get('hint')}" if rec.get("hint") else "")
         self._log_advice(rec)
         self._log_status(rec)
+
+    def _on_accepted(self, rec: AnglesRecord) -> None:
+        """An accepted run: counted, its time kept for the status line, logged."""
+        t = rec.get("t")
+        self._accepted += 1
+        self._last_change = t if isinstance(t, (int, float)) else self._last_change
+        sig = rec.get("sigma_cr") or []
+        worst = max((x for x in sig if x is not None), default=float("nan"))
+        log.info("identification accepted (%s, %s): %d of %d directions determined, "
+                 "worst sigma_CR %.3f deg, applies from sample %s%s", rec.get("mode"),
+                 rec.get("content"), rec.get("determined", 0), len(rec.get("names") or []),
+                 math.degrees(worst), rec.get("applies_from_seq"),
+                 " (late)" if rec.get("late") else "")
+
+    def _on_held(self, rec: AnglesRecord) -> None:
+        """A held window: counted and logged with the information it adds."""
+        self._held += 1
+        info = rec.get("information")
+        adds = (f"adds {info:.2g} of what the posterior knows"
+                if isinstance(info, (int, float)) and math.isfinite(info) else
+                "is not identifiable on its own")
+        # once calibrated a held window is routine: the status line below says enough
+        log.log(logging.DEBUG if self._accepted else logging.INFO,
+                "identification held (%s, %s): this window %s; its information is used "
+                "with the next windows", rec.get("mode"), rec.get("content"), adds)
 
     def _log_status(self, rec: AnglesRecord) -> None:
         """Once calibrated, every STATUS_PERIOD_S of acquisition time: one line saying where
@@ -146,13 +154,7 @@ def calibration_status(rec: Any, accepted: int, held: int, since_change_s: float
     """``calibration: 14 of 14 directions determined, largest σ 0.117°, …`` from the latest
     angles record (its ``determined`` and posterior ``P``)."""
     names = rec.get("names") or []
-    P = rec.get("P")
-    sig = None
-    try:
-        diag = [P[i][i] for i in range(len(names))] if P is not None else []
-        sig = max(math.degrees(math.sqrt(max(float(x), 0.0))) for x in diag) if diag else None
-    except (TypeError, ValueError, IndexError):
-        sig = None
+    sig = _largest_sigma_deg(rec.get("P"), len(names))
     parts = [f"calibration: {rec.get('determined')} of {len(names)} directions determined"]
     if sig is not None:
         parts.append(f"largest σ {sig:.3f}°")
@@ -160,6 +162,15 @@ def calibration_status(rec: Any, accepted: int, held: int, since_change_s: float
     if since_change_s is not None:
         parts.append(f"last change {since_change_s:.0f} s ago")
     return ", ".join(parts)
+
+
+def _largest_sigma_deg(P: Any, n: int) -> float | None:
+    """The largest √P_ii (degrees) of the first ``n``, None without a usable P."""
+    try:
+        diag = [P[i][i] for i in range(n)] if P is not None else []
+        return max(math.degrees(math.sqrt(max(float(x), 0.0))) for x in diag) if diag else None
+    except (TypeError, ValueError, IndexError):
+        return None
 
 
 class SampleLoop:

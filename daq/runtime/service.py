@@ -44,7 +44,7 @@ from rsra.daq.runtime.records import AnglesRecord
 from rsra.daq.runtime.run_report import HealthReporter, run_summary
 from rsra.daq.runtime.sample_loop import SampleLoop
 from rsra.daq.runtime.sources import SIM_BLOCK, BusOpenError, Source, make_source  # noqa: F401 (re-exported)
-from rsra.daq.runtime.start import initial_angles, plan_start  # noqa: F401 (re-exported)
+from rsra.daq.runtime.start import StartPlan, initial_angles, plan_start  # noqa: F401 (re-exported)
 from rsra.daq.runtime.supervision import Supervision
 
 if TYPE_CHECKING:
@@ -286,6 +286,16 @@ def normal_scheduling() -> None:
     os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
 
 
+def _say_hub_path(pipeline: EstimatorPipeline) -> None:
+    """The compiled hub path (daq/runtime/hubpath.py) or why not (health too): said once
+    everything has started (a start that fails stays one line)."""
+    if pipeline.hub_kernel is not None:
+        log.info("hub path: %s", pipeline.hub_kernel_status)
+    else:
+        log.warning("hub path: the compiled kernel is %s; the pure-Python path runs "
+                    "(the same records, more CPU per sample)", pipeline.hub_kernel_status)
+
+
 def _close_logged(stack: contextlib.ExitStack, close: Callable[[], None]) -> None:
     """Close ``close`` when ``stack`` unwinds; a failure is logged and the rest still close."""
     def run() -> None:
@@ -435,15 +445,7 @@ class Service:
         opts, cfg = self.opts, self.cfg
         with contextlib.ExitStack() as stack:
             if opts.realtime_priority is not None:
-                # first: every thread started below (Zenoh's, the bus thread, the SYNC
-                # producer, the simulator's) inherits it; the worker process drops it, and
-                # multiprocessing's resource tracker (a helper process) starts before it
-                from multiprocessing import resource_tracker
-
-                resource_tracker.ensure_running()
-                stack.callback(realtime_priority(opts.realtime_priority))
-                if self.worker_initializer is None:
-                    self.worker_initializer = normal_scheduling
+                self._raise_priority(stack, opts.realtime_priority)
             plan = plan_start(cfg, opts, self.source)
             self.schedule = plan.schedule
             self.warnings.extend(plan.warnings)
@@ -462,10 +464,7 @@ class Service:
             if loop.live:
                 stack.enter_context(gil_switch_interval(LIVE_SWITCH_INTERVAL_S))
             if plan.use_ident:
-                init = self.worker_initializer
-                if loop.live:  # the worker yields the cores to the real-time threads
-                    init = chained(init, background_scheduling)
-                supervision.start(cfg, plan.state, initializer=init)
+                self._start_worker(supervision, plan, loop.live)
             if loop.live:  # hub_loads from the bus thread (no hand-off on the latency path)
                 self.source.first_step = loop.first_step
             stack.enter_context(self.source)
@@ -473,26 +472,44 @@ class Service:
                                                           "keep_angles_open"):
                 self.source.reader.keep_angles_open = True
             if self.recorder is not None:
-                self.recorder.write_angles(plan.initial_record().to_dict())
-                if outputs.session is not None:  # operator marks (rsra mark): marks.jsonl
-                    from rsra.daq.runtime.marks import MarkRecorder
-
-                    marks = MarkRecorder(outputs.session, cfg.telemetry.prefix,
-                                         self.recorder.folder)
-                    outputs.sinks.append(marks.observe)
-                    _close_logged(stack, marks.close)
+                self._record_start(plan, outputs, stack)
             log.info("service started: %s", self.source.describe())
-            # the compiled hub path (daq/runtime/hubpath.py) or why not (health too): said once
-            # everything has started (a start that fails stays one line)
-            if pipeline.hub_kernel is not None:
-                log.info("hub path: %s", pipeline.hub_kernel_status)
-            else:
-                log.warning("hub path: the compiled kernel is %s; the pure-Python path runs "
-                            "(the same records, more CPU per sample)",
-                            pipeline.hub_kernel_status)
+            _say_hub_path(pipeline)
             loop.run(_observed(self.source.items(self.stop_event), self._sample_observers))
         self.summary = run_summary(loop, self.reader, self.warnings, self.schedule, cfg)
         return self.summary
+
+    def _raise_priority(self, stack: contextlib.ExitStack, priority: int) -> None:
+        """First: every thread started after (Zenoh's, the bus thread, the SYNC producer, the
+        simulator's) inherits it; the worker process drops it, and multiprocessing's
+        resource tracker (a helper process) starts before it."""
+        from multiprocessing import resource_tracker
+
+        resource_tracker.ensure_running()
+        stack.callback(realtime_priority(priority))
+        if self.worker_initializer is None:
+            self.worker_initializer = normal_scheduling
+
+    def _start_worker(self, supervision: Supervision, plan: StartPlan, live: bool) -> None:
+        """The identification worker; live, it yields the cores to the real-time threads."""
+        init = self.worker_initializer
+        if live:
+            init = chained(init, background_scheduling)
+        supervision.start(self.cfg, plan.state, initializer=init)
+
+    def _record_start(self, plan: StartPlan, outputs: Outputs,
+                      stack: contextlib.ExitStack) -> None:
+        """The recording's starting angles, and the operator marks (rsra mark) into its
+        marks.jsonl when Zenoh runs."""
+        assert self.recorder is not None  # (called with a recording)
+        self.recorder.write_angles(plan.initial_record().to_dict())
+        if outputs.session is not None:
+            from rsra.daq.runtime.marks import MarkRecorder
+
+            marks = MarkRecorder(outputs.session, self.cfg.telemetry.prefix,
+                                 self.recorder.folder)
+            outputs.sinks.append(marks.observe)
+            _close_logged(stack, marks.close)
 
     def _close_recorded_angles(self) -> None:
         if self.recorder is not None:

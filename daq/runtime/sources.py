@@ -372,14 +372,7 @@ class ReplaySource(_Base):
             plan.schedule = {"source": "recomputed", "why": "no angle schedule"}
         else:
             assert folder is not None  # the schedule is in it
-            plan.recorded_initial, recorded = read_angles_schedule(folder)
-            plan.recorded = [AnglesRecord.from_dict(r) for r in recorded]
-            applies = [a for a in (r.get("applies_from_seq") for r in recorded)
-                       if isinstance(a, int)]
-            plan.schedule = {"source": "recorded", "file": str(schedule),
-                             "records": len(plan.recorded),
-                             "initial": plan.recorded_initial is not None,
-                             "last_applies_from_seq": max(applies, default=None)}
+            _follow_recorded(plan, folder, schedule)
         return plan
 
     def _open(self) -> None:
@@ -439,6 +432,17 @@ def read_angles_schedule(folder: Path, file: Path | None = None
     return initial, records
 
 
+def _follow_recorded(plan: AnglesPlan, folder: Path, schedule: Path) -> None:
+    """``plan`` follows the recording's angle schedule: its starting record, its records and
+    where the last one applies from."""
+    plan.recorded_initial, recorded = read_angles_schedule(folder)
+    plan.recorded = [AnglesRecord.from_dict(r) for r in recorded]
+    applies = [a for a in (r.get("applies_from_seq") for r in recorded) if isinstance(a, int)]
+    plan.schedule = {"source": "recorded", "file": str(schedule), "records": len(plan.recorded),
+                     "initial": plan.recorded_initial is not None,
+                     "last_applies_from_seq": max(applies, default=None)}
+
+
 def _finite_numbers(x: Any) -> TypeGuard[list[int | float]]:
     return isinstance(x, list) and all(
         isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in x)
@@ -458,9 +462,12 @@ def _schedule_problem(rec: Any) -> str | None:
         return "angles record without 'applies_from_seq' (the sample it applies from)"
     if not isinstance(seq, int) or isinstance(seq, bool) or seq < 0:
         return f"'applies_from_seq' = {seq!r} is not a sample number"
-    if rec.get("accepted"):
-        names, alpha = rec.get("names"), rec.get("alpha")
-        if (not isinstance(names, list) or not all(isinstance(x, str) for x in names)
-                or not _finite_numbers(alpha) or len(names) != len(alpha)):
-            return "an accepted angles record needs 'names' and as many finite 'alpha' values"
+    if rec.get("accepted") and not _named_angles(rec.get("names"), rec.get("alpha")):
+        return "an accepted angles record needs 'names' and as many finite 'alpha' values"
     return None
+
+
+def _named_angles(names: Any, alpha: Any) -> bool:
+    """A list of names and as many finite angles."""
+    return (isinstance(names, list) and all(isinstance(x, str) for x in names)
+            and _finite_numbers(alpha) and len(names) == len(alpha))

@@ -111,15 +111,7 @@ def plan_start(cfg: RigConfig, opts: Any, source: Source) -> StartPlan:
     warnings: list[str] = []
     recorded_initial = plan.recorded_initial if not opts.angles else None
     if recorded_initial is not None:
-        alpha0 = np.asarray(recorded_initial.get("alpha_all", recorded_initial["alpha"]), float)
-        n_angles = len(cfg.rig_model().geometry.angle_names)
-        if alpha0.shape != (n_angles,):
-            from rsra.daq.bus.replay import ReplayError
-
-            folder = plan.folder if plan.folder is not None else Path(".")
-            raise ReplayError(f"{folder / 'angles.jsonl'}: the starting record holds "
-                              f"{alpha0.size} angles, the rig has {n_angles}; fix: "
-                              "replay with --recompute or give the recording's --config")
+        alpha0 = _recorded_angles(cfg, recorded_initial, plan.folder)
         state = None
     else:
         alpha0, state, warning = initial_angles(cfg, opts.angles, opts.accept_rig_mismatch)
@@ -135,15 +127,32 @@ def plan_start(cfg: RigConfig, opts: Any, source: Source) -> StartPlan:
         for warning in prepare_state_file(cfg, accept_rig_mismatch=opts.accept_rig_mismatch):
             log.warning("%s", warning)
             warnings.append(warning)
-    # the structure the hub loads use from the start: the recording's first line
-    # in a replay; else the saved posterior's, else the config's
-    if recorded_initial is not None:
-        start_fit = recorded_initial.get("structure_fit")
-    elif state is not None and state.structure is not None:
-        start_fit = state.structure
-    else:
-        start_fit = cfg.identification.structure_fit
     return StartPlan(cfg=cfg, alpha0=alpha0, state=state, recorded_initial=recorded_initial,
-                     recorded=list(plan.recorded), use_ident=use_ident, start_fit=start_fit,
+                     recorded=list(plan.recorded), use_ident=use_ident,
+                     start_fit=_start_fit(cfg, recorded_initial, state),
                      schedule=plan.schedule, warnings=tuple(warnings),
                      prefill=not source.deterministic)
+
+
+def _recorded_angles(cfg: RigConfig, recorded_initial: dict, folder: Path | None) -> np.ndarray:
+    """The recording's starting angles; a ReplayError when their count is not the rig's."""
+    alpha0 = np.asarray(recorded_initial.get("alpha_all", recorded_initial["alpha"]), float)
+    n_angles = len(cfg.rig_model().geometry.angle_names)
+    if alpha0.shape != (n_angles,):
+        from rsra.daq.bus.replay import ReplayError
+
+        folder = folder if folder is not None else Path(".")
+        raise ReplayError(f"{folder / 'angles.jsonl'}: the starting record holds "
+                          f"{alpha0.size} angles, the rig has {n_angles}; fix: "
+                          "replay with --recompute or give the recording's --config")
+    return alpha0
+
+
+def _start_fit(cfg: RigConfig, recorded_initial: dict | None, state: Any) -> Any:
+    """The structure the hub loads use from the start: the recording's first line in a
+    replay; else the saved posterior's, else the config's."""
+    if recorded_initial is not None:
+        return recorded_initial.get("structure_fit")
+    if state is not None and state.structure is not None:
+        return state.structure
+    return cfg.identification.structure_fit

@@ -265,21 +265,18 @@ class StuckMonitor:
         x = self._x  # reused: the detector keeps only copies of it
         x[:self.n_cells] = np.asarray(T, float).reshape(-1)
         x[self.n_cells:] = np.asarray(accel, float).reshape(-1)
-        explained = None
-        if flags:
-            status = {f.split(":", 1)[1] for f in flags if f.startswith(("overrange:", "fault:"))}
-            if status:
-                explained = np.array([c.flag.split(":", 1)[1] in status and i < self.n_cells
-                                      for i, c in enumerate(self.channels)])
-        hit = self.detector.update(x, explained)
+        hit = self.detector.update(x, self._explained(flags) if flags else None)
         if not self.detector.n_stuck:
             return []
-        out: list[str] = []
-        for i in np.flatnonzero(hit):
-            f = self.channels[i].flag
-            if f not in out:
-                out.append(f)
-        return out
+        return list(dict.fromkeys(self.channels[i].flag for i in np.flatnonzero(hit)))
+
+    def _explained(self, flags: tuple[str, ...] | list[str]) -> np.ndarray | None:
+        """The cells whose status (over-range, fault) explains a held value, or None."""
+        status = {f.split(":", 1)[1] for f in flags if f.startswith(("overrange:", "fault:"))}
+        if not status:
+            return None
+        return np.array([c.flag.split(":", 1)[1] in status and i < self.n_cells
+                         for i, c in enumerate(self.channels)])
 
     def _acc_flat(self, accel: np.ndarray) -> bool:
         return isinstance(accel, np.ndarray) and accel.size + self.n_cells == len(self._x)

@@ -60,28 +60,7 @@ def zenoh_config(
     nowhere, unless the file or config says otherwise."""
     path = config_file or tel.zenoh_config
     if path:
-        from rsra.config.readfile import regular_file_problem
-
-        problem = regular_file_problem(path)  # a FIFO would block Zenoh's read, a device never end
-        if problem is not None:
-            from rsra.config.rig import ConfigError
-
-            raise ConfigError("telemetry.zenoh_config", str(path), problem,
-                              "give a valid Zenoh JSON5 config file")
-        try:
-            conf = zenoh.Config.from_file(path)
-        except Exception as e:  # zenoh raises ZError with the parser's message
-            from rsra.config.rig import ConfigError
-
-            raise ConfigError("telemetry.zenoh_config", str(path), f"cannot load ({e})",
-                              "give a valid Zenoh JSON5 config file") from None
-        # Zenoh's own defaults are multicast scouting on and, for a peer, a listener on every
-        # interface (tcp/[::]:0): a file that says nothing about them gets ours instead.
-        if json.loads(conf.get_json("scouting/multicast/enabled")) is None:
-            conf.insert_json5("scouting/multicast/enabled", "false")
-        if json.loads(conf.get_json("listen/endpoints")) == _ZENOH_DEFAULT_LISTEN:
-            conf.insert_json5("listen/endpoints", "[]")
-        return conf
+        return _config_from_file(path)
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(tel.mode))
     lst = list(tel.listen if listen is None else listen)
@@ -89,6 +68,30 @@ def zenoh_config(
     conf.insert_json5("listen/endpoints", json.dumps(lst))
     conf.insert_json5("connect/endpoints", json.dumps(con))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(tel.multicast_scouting)))
+    return conf
+
+
+def _config_from_file(path: str) -> zenoh.Config:
+    """A Zenoh config file (TLS, auth, ACL) with multicast scouting off and no listener
+    unless it says otherwise; a file that is not one: a ConfigError naming it."""
+    from rsra.config.readfile import regular_file_problem
+    from rsra.config.rig import ConfigError
+
+    problem = regular_file_problem(path)  # a FIFO would block Zenoh's read, a device never end
+    if problem is not None:
+        raise ConfigError("telemetry.zenoh_config", str(path), problem,
+                          "give a valid Zenoh JSON5 config file")
+    try:
+        conf = zenoh.Config.from_file(path)
+    except Exception as e:  # zenoh raises ZError with the parser's message
+        raise ConfigError("telemetry.zenoh_config", str(path), f"cannot load ({e})",
+                          "give a valid Zenoh JSON5 config file") from None
+    # Zenoh's own defaults are multicast scouting on and, for a peer, a listener on every
+    # interface (tcp/[::]:0): a file that says nothing about them gets ours instead.
+    if json.loads(conf.get_json("scouting/multicast/enabled")) is None:
+        conf.insert_json5("scouting/multicast/enabled", "false")
+    if json.loads(conf.get_json("listen/endpoints")) == _ZENOH_DEFAULT_LISTEN:
+        conf.insert_json5("listen/endpoints", "[]")
     return conf
 
 
@@ -186,10 +189,7 @@ class TelemetryPublisher:
         payload or parameters are counted (:attr:`bad_queries`), not decoded."""
         try:
             if q.payload is not None or str(q.parameters):
-                self.bad_queries += 1
-                if self.bad_queries == 1 or self.bad_queries % 1000 == 0:
-                    log.warning("%d state queries with a payload or parameters (ignored)",
-                                self.bad_queries)
+                self._count_bad_query()
             for n, key in self._state_keys.items():
                 if not key.intersects(q.key_expr):
                     continue
@@ -201,6 +201,14 @@ class TelemetryPublisher:
             log.debug("query failed: %s", e)
         finally:
             q.drop()
+
+    def _count_bad_query(self) -> None:
+        """A query with a payload or parameters: counted, logged the first time and every
+        thousandth."""
+        self.bad_queries += 1
+        if self.bad_queries == 1 or self.bad_queries % 1000 == 0:
+            log.warning("%d state queries with a payload or parameters (ignored)",
+                        self.bad_queries)
 
     def close(self) -> None:
         self._declared.close()

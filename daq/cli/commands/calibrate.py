@@ -235,13 +235,7 @@ def _report(args: argparse.Namespace, cfg, result, out: Path | None, parts,
                  posterior=None if pooled is None else pooled.report())
         print(dumps(d))
     else:
-        _print_tables(cfg, result, args.units, notes, wrote, nxt)
-        if struct is not None:
-            _print_structure(struct)
-        if pooled is not None:
-            from rsra.daq.analysis.information import summary_lines
-
-            print("\n".join(summary_lines(pooled.report())))
+        _print_text(cfg, result, args.units, notes, wrote, nxt, struct, pooled)
     if not ok:
         print("rsra calibrate: the identification diverged; no fragment written (check the "
               "recordings and the starting values)", file=sys.stderr)
@@ -249,6 +243,18 @@ def _report(args: argparse.Namespace, cfg, result, out: Path | None, parts,
     if pooled is not None:
         return _save_posterior(args, pooled)
     return 0
+
+
+def _print_text(cfg, result, units: str, notes: list[str], wrote: str | None,
+                nxt: list[dict] | None, struct, pooled) -> None:
+    """The readable report: the tables, the structure found and the pooled posterior."""
+    _print_tables(cfg, result, units, notes, wrote, nxt)
+    if struct is not None:
+        _print_structure(struct)
+    if pooled is not None:
+        from rsra.daq.analysis.information import summary_lines
+
+        print("\n".join(summary_lines(pooled.report())))
 
 
 def _check_posterior_output(path: str, names, cfg) -> None:
@@ -359,11 +365,7 @@ def _fmt(v: float, unit: str) -> str:
 
 def _print_tables(cfg, result, units: str, notes: list[str], wrote: str | None,
                   nxt: list[dict] | None = None) -> None:
-    from rich.table import Table
-
-    from rsra.daq.analysis.calibrate import parameter_unit
     from rsra.daq.cli.console import make_console
-    from rsra.config.units import axis_units, to_units
 
     # a pipe gets the full table (rich assumes 80 columns there and would cut the numbers)
     con = make_console()
@@ -373,6 +375,17 @@ def _print_tables(cfg, result, units: str, notes: list[str], wrote: str | None,
               f"(content {d.content}, {d.segments} stretch(es))"
               + ("; rejected: " + ", ".join(f"{k} {v}" for k, v in sorted(d.rejected.items()))
                  if d.rejected else ""))
+    con.print(_estimates_table(cfg, result))
+    con.print(_residuals_table(result, units))
+    _print_closing(con, result, notes, wrote, nxt)
+
+
+def _estimates_table(cfg, result):
+    """Each parameter's start, estimate, σ's, change and flag, in its unit."""
+    from rich.table import Table
+
+    from rsra.daq.analysis.calibrate import parameter_unit
+
     t = Table(title="Estimates: σ_CR the Cramér–Rao bound, σ_MK corrected for coloured residuals "
               "(Morelli–Klein), change/σ = (estimate − start)/σ_CR")
     for col in ("parameter", "unit", "start", "estimate", "σ_CR", "σ_MK", "change/σ",
@@ -387,7 +400,15 @@ def _print_tables(cfg, result, units: str, notes: list[str], wrote: str | None,
                   f"{result.sigma[k] * s:.4g}", f"{result.sigma_corrected[k] * s:.4g}",
                   f"{result.change_in_sigma[k]:+.1f}",
                   flagged.get(n, "" if det else "undetermined"))
-    con.print(t)
+    return t
+
+
+def _residuals_table(result, units: str):
+    """The residual RMS per axis against the sensor noise through the same filter."""
+    from rich.table import Table
+
+    from rsra.config.units import axis_units, to_units
+
     ax_units = axis_units(units)
     rms, exp = to_units(result.residual_rms, units), to_units(result.residual_expected, units)
     r = Table(title="Residuals at the estimate (rows of I = S T + R₀ H at the CG, content-filtered)"
@@ -397,7 +418,13 @@ def _print_tables(cfg, result, units: str, notes: list[str], wrote: str | None,
     for i, ax in enumerate(("X", "Y", "Z", "L", "M", "N")):
         r.add_row(ax, ax_units[i], f"{rms[i]:.1f}", f"{exp[i]:.1f}",
                   f"{result.residual_ratio[i]:.2f}")
-    con.print(r)
+    return r
+
+
+def _print_closing(con, result, notes: list[str], wrote: str | None,
+                   nxt: list[dict] | None) -> None:
+    """After the tables: information, convergence, plausibility, notes, the next load
+    conditions and the fragment written."""
     lo, hi = result.information_ratio
     con.print(f"information: {result.determined} of {len(result.names)} directions determined "
               f"(σ ≤ sigma_max), condition number {result.condition:.3g}, data/prior "

@@ -85,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
     from rsra.daq.cli.options import UsageError
     from rsra.daq.cli.options import check_sim_faults, config_for_run, setup_logging
     from rsra.daq.cli.console import make_console
-    from rsra.daq.cli.demo_view import DemoState, render, render_plain
+    from rsra.daq.cli.demo_view import DemoState
     from rsra.daq.runtime.service import Service, ServiceOptions, initial_angles
     from rsra.estimator.noise_budget import noise_budget
     from rsra.estimator.posterior import PosteriorFileError
@@ -123,18 +123,7 @@ def run(args: argparse.Namespace) -> int:
     model = cfg.rig_model()
     nb = noise_budget(model, alpha0)
     state = DemoState(cfg, nb.total, model.geometry.angle_names)
-
-    def sink(key, payload):
-        truth = None
-        if key == "hub_loads" and svc.sim is not None:
-            seq = payload["seq"]
-            for s in reversed(svc.sim.recent_samples):
-                if s.index == seq:
-                    truth = s
-                    break
-        state.on_record(key, payload, truth)
-
-    svc.add_sink(sink)
+    svc.add_sink(lambda key, payload: state.on_record(key, payload, _truth_of(svc, key, payload)))
     if report_jsonl is not None:
         from rsra.daq.runtime.service import jsonl_sink
 
@@ -143,9 +132,7 @@ def run(args: argparse.Namespace) -> int:
         closers.append(jclose)
     console = make_console()
     opts.foxglove_announce = lambda line: console.print(line, markup=False, highlight=False)
-    speed = "as fast as possible (lock-step)" if args.speed is None else (
-        "real time" if args.speed == 1.0 else f"{args.speed:g}x real time (lock-step)")
-    title = f"{args.scenario}, {speed}"
+    title = f"{args.scenario}, {_speed_words(args.speed)}"
     console.print(f"[bold]rsra demo[/]: simulated aircraft '{args.scenario}' + service, "
                   f"telemetry on {listen[0]} (try `rsra listen` in another terminal)")
     if note:
@@ -160,32 +147,9 @@ def run(args: argparse.Namespace) -> int:
 
     th = threading.Thread(target=work, name="rsra-service")
     th.start()
-    live = None
-    last_line = 0.0
     try:
-        if console.is_terminal:
-            from rich.live import Live
-
-            live = Live(render(state, title, args.units), console=console, refresh_per_second=4,
-                        transient=False)
-            live.start()
-        while th.is_alive():
-            th.join(timeout=0.25)
-            if live is not None:
-                live.update(render(state, title, args.units))
-            elif time.monotonic() - last_line > PLAIN_INTERVAL_S and state.samples:
-                # not a terminal: what the view shows, as a compact plain-text table
-                last_line = time.monotonic()
-                print(render_plain(state, title, args.units), flush=True)
-    except KeyboardInterrupt:
-        svc.stop()
-        th.join()
+        _show(console, th, state, title, args.units, svc.stop)
     finally:
-        if live is not None:
-            live.update(render(state, title, args.units))
-            live.stop()
-        elif state.samples:  # the last state, as the terminal view leaves it
-            print(render_plain(state, title, args.units), flush=True)
         for c in closers:
             c()
     if "error" in result:
@@ -193,23 +157,73 @@ def run(args: argparse.Namespace) -> int:
     summary = result.get("summary", {})
     _print_summary(console, summary, state, as_json=args.json)
     if args.report:
-        from rsra.daq.analysis.report import write_report
-        from rsra.sim_bus.truth import read_truth
-
         assert report_jsonl is not None and opts.truth is not None  # made with --report above
-        rep = write_report(cfg, report_jsonl, opts.truth if Path(opts.truth).exists() else None,
-                           args.report, units=args.units, read_truth=read_truth)
-        console.print(f"report written to {args.report}: "
-                      + ", ".join(p.name for p in rep.plots) + ", summary.md, summary.json")
+        _write_report(console, cfg, report_jsonl, opts.truth, args.report, args.units)
     return 0
+
+
+def _truth_of(svc, key: str, payload: dict):
+    """The simulator's true sample a hub-loads record estimates (None: not kept, or another
+    record)."""
+    if key != "hub_loads" or svc.sim is None:
+        return None
+    seq = payload["seq"]
+    return next((s for s in reversed(svc.sim.recent_samples) if s.index == seq), None)
+
+
+def _speed_words(speed: float | None) -> str:
+    if speed is None:
+        return "as fast as possible (lock-step)"
+    return "real time" if speed == 1.0 else f"{speed:g}x real time (lock-step)"
+
+
+def _show(console, th: threading.Thread, state, title: str, units: str, stop) -> None:
+    """The view while the service thread ``th`` runs: live on a terminal, else a plain-text
+    table every PLAIN_INTERVAL_S; Ctrl-C stops the service (``stop``) and waits for it. The
+    last state stays on screen."""
+    from rsra.daq.cli.demo_view import render, render_plain
+
+    live = None
+    last_line = 0.0
+    try:
+        if console.is_terminal:
+            from rich.live import Live
+
+            live = Live(render(state, title, units), console=console, refresh_per_second=4,
+                        transient=False)
+            live.start()
+        while th.is_alive():
+            th.join(timeout=0.25)
+            if live is not None:
+                live.update(render(state, title, units))
+            elif time.monotonic() - last_line > PLAIN_INTERVAL_S and state.samples:
+                # not a terminal: what the view shows, as a compact plain-text table
+                last_line = time.monotonic()
+                print(render_plain(state, title, units), flush=True)
+    except KeyboardInterrupt:
+        stop()
+        th.join()
+    finally:
+        if live is not None:
+            live.update(render(state, title, units))
+            live.stop()
+        elif state.samples:  # the last state, as the terminal view leaves it
+            print(render_plain(state, title, units), flush=True)
+
+
+def _write_report(console, cfg, records: Path, truth: str, folder: str, units: str) -> None:
+    """``rsra report``'s report of the run into ``folder`` (the truth when the run kept it)."""
+    from rsra.daq.analysis.report import write_report
+    from rsra.sim_bus.truth import read_truth
+
+    rep = write_report(cfg, records, truth if Path(truth).exists() else None,
+                       folder, units=units, read_truth=read_truth)
+    console.print(f"report written to {folder}: "
+                  + ", ".join(p.name for p in rep.plots) + ", summary.md, summary.json")
 
 
 def _print_summary(console, summary: dict, state, as_json: bool = False) -> None:
     """The final summary as readable text (the JSON behind --json)."""
-    import numpy as np
-
-    from rsra.daq.analysis.accuracy import MEANING, phase_lines
-
     rej = summary.get("rejected") or {}
     lines = [f"samples {summary.get('samples', 0)}, lost {summary.get('lost', 0)}, "
              f"identification runs {summary.get('identification_runs', 0)} "
@@ -219,26 +233,44 @@ def _print_summary(console, summary: dict, state, as_json: bool = False) -> None
     with state.lock:
         bp = state.by_phase()
         ang, ta = state.angles, state.truth_alpha
-    if any(bp["H"].values()) or any(bp["H_static"].values()):
-        lines.append("hub-load error against truth by phase, each sample against the σ "
-                     "published for it (RMS error/σ and beyond 3σ per axis):")
-        for name in ("H", "H_static"):
-            lines += [x for x in phase_lines(bp[name], name, "  ")
-                      if not x.lstrip().startswith("(")]
-        lines += [f"  {p}: {m}" for p, m in MEANING.items() if bp["H"].get(p)
-                  or bp["H_static"].get(p)]
-    if ang and ang.get("alpha") and ta is not None:
-        names = ang["names"]
-        e = np.degrees([ang["alpha"][i] - ta[state.angle_names.index(n)]
-                        for i, n in enumerate(names) if n in state.angle_names])
-        s = np.degrees([np.sqrt(ang["P"][i][i]) for i in range(len(names))])
-        lines.append(f"angles: max |error| {np.abs(e).max():.3f} deg, max sigma {s.max():.3f} deg, "
-                     f"determined {ang.get('determined')}/{len(names)}")
-    elif not ang and summary.get("alpha_applied") and ta is not None:
-        # no identification run: the starting angles held for the whole run
-        e = np.degrees(np.asarray(summary["alpha_applied"], float) - ta)
-        lines.append(f"angles (held, no identification run): max |error| "
-                     f"{np.abs(e).max():.3f} deg")
+    lines += _hub_error_lines(bp)
+    if ta is not None:
+        lines += _angle_error_lines(ang, ta, state.angle_names, summary.get("alpha_applied"))
     console.print("[bold]summary[/]: " + "\n  ".join(lines), highlight=False)
     if as_json:
         print(json.dumps({"summary": summary}, default=str), file=sys.stdout, flush=True)
+
+
+def _hub_error_lines(bp: dict) -> list[str]:
+    """The hub-load errors against truth by phase (none when no phase has a sample)."""
+    from rsra.daq.analysis.accuracy import MEANING, phase_lines
+
+    if not (any(bp["H"].values()) or any(bp["H_static"].values())):
+        return []
+    lines = ["hub-load error against truth by phase, each sample against the σ "
+             "published for it (RMS error/σ and beyond 3σ per axis):"]
+    for name in ("H", "H_static"):
+        lines += [x for x in phase_lines(bp[name], name, "  ")
+                  if not x.lstrip().startswith("(")]
+    return lines + [f"  {p}: {m}" for p, m in MEANING.items() if bp["H"].get(p)
+                    or bp["H_static"].get(p)]
+
+
+def _angle_error_lines(ang: dict | None, ta, angle_names: tuple[str, ...],
+                       alpha_applied: list | None) -> list[str]:
+    """The identified angles' error against the true ones ``ta``, or the held starting
+    angles' when no identification ran."""
+    import numpy as np
+
+    if ang and ang.get("alpha"):
+        names = ang["names"]
+        e = np.degrees([ang["alpha"][i] - ta[angle_names.index(n)]
+                        for i, n in enumerate(names) if n in angle_names])
+        s = np.degrees([np.sqrt(ang["P"][i][i]) for i in range(len(names))])
+        return [f"angles: max |error| {np.abs(e).max():.3f} deg, max sigma {s.max():.3f} deg, "
+                f"determined {ang.get('determined')}/{len(names)}"]
+    if not ang and alpha_applied:
+        # no identification run: the starting angles held for the whole run
+        e = np.degrees(np.asarray(alpha_applied, float) - ta)
+        return [f"angles (held, no identification run): max |error| {np.abs(e).max():.3f} deg"]
+    return []

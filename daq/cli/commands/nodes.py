@@ -81,34 +81,39 @@ def check_network(cfg: RigConfig, network: canopen.Network, timeout_s: float,
     sup = Supervisor(cfg, table)
     for cob, cb in sup.callbacks().items():
         network.subscribe(cob, cb)
-    remote: dict[str, canopen.RemoteNode] = {}
-    for nl in table.nodes:
-        node = canopen.RemoteNode(nl.node_id, nl.od)
-        network.add_node(node)
-        # canopen's EMCY consumer drops short frames and logs without bound: ours counts
-        network.unsubscribe(COB_EMCY + nl.node_id, node.emcy.on_emcy)
-        node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
-        remote[nl.name] = node
+    remote = {nl.name: _remote_node(network, nl) for nl in table.nodes}
     deadline = time.monotonic() + timeout_s
     for nl in table.nodes:  # a real-time protocol wait (heartbeats are periodic)
         sup.nodes[nl.name].heard.wait(max(0.0, deadline - time.monotonic()))
-    reports = []
-    for nl in table.nodes:
-        ns = sup.nodes[nl.name]
-        heard = ns.heard.is_set()
-        rep = NodeReport(nl.name, nl.node_id, nl.role, nl.required, heard=heard,
-                         state=ns.state if heard else None)
-        facts = verify_node(nl, remote[nl.name])
-        rep.sdo, rep.device_type = facts.sdo, facts.device_type
-        rep.identity = facts.identity if facts.sdo else None
-        if facts.sdo:
-            rep.mismatches = facts.mismatches
-        elif heard:  # silent over SDO: nothing else will answer either
-            rep.mismatches = [Mismatch("SDO", problem="no answer (the node sends heartbeats "
-                                       "but its SDO server does not reply: check its node id)")]
-        rep.emcy = ns.emcy_count
-        reports.append(rep)
-    return reports
+    return [_node_report(nl, sup.nodes[nl.name], remote[nl.name]) for nl in table.nodes]
+
+
+def _remote_node(network: canopen.Network, nl) -> canopen.RemoteNode:
+    """A configured node on the network, for its SDO answers."""
+    node = canopen.RemoteNode(nl.node_id, nl.od)
+    network.add_node(node)
+    # canopen's EMCY consumer drops short frames and logs without bound: ours counts
+    network.unsubscribe(COB_EMCY + nl.node_id, node.emcy.on_emcy)
+    node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
+    return node
+
+
+def _node_report(nl, ns, node: canopen.RemoteNode) -> NodeReport:
+    """One node's report: what its heartbeats said (``ns``, the supervisor's view) and what
+    it answered over SDO against its EDS."""
+    heard = ns.heard.is_set()
+    rep = NodeReport(nl.name, nl.node_id, nl.role, nl.required, heard=heard,
+                     state=ns.state if heard else None)
+    facts = verify_node(nl, node)
+    rep.sdo, rep.device_type = facts.sdo, facts.device_type
+    rep.identity = facts.identity if facts.sdo else None
+    if facts.sdo:
+        rep.mismatches = facts.mismatches
+    elif heard:  # silent over SDO: nothing else will answer either
+        rep.mismatches = [Mismatch("SDO", problem="no answer (the node sends heartbeats "
+                                   "but its SDO server does not reply: check its node id)")]
+    rep.emcy = ns.emcy_count
+    return rep
 
 
 # ---------------------------------------------------------------------------------------------
@@ -145,8 +150,6 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    import can
-
     from rsra.daq.cli.options import UsageError
     from rsra.daq.rigmodel import load_rig
 
@@ -159,16 +162,7 @@ def run(args: argparse.Namespace) -> int:
     table = DecodeTable(cfg)
     timeout = (args.timeout if args.timeout is not None
                else cfg.heartbeat.timeout_factor * cfg.heartbeat.producer_ms / 1000.0)
-    network = canopen.Network()
-    network.NOTIFIER_CYCLE = 0.1  # quick close
-    try:
-        kw: dict[str, Any] = {"interface": args.interface}
-        if args.channel is not None:
-            kw["channel"] = args.channel
-        network.connect(**kw)
-    except (can.CanError, OSError, ValueError, ImportError) as e:
-        raise UsageError(f"cannot open the bus --interface {args.interface} --channel "
-                         f"{args.channel}: {e}; check the interface and channel") from None
+    network = _connect(args.interface, args.channel)
     # an absent node's SDO timeout is part of the answer, not an error to log
     sdo_log = logging.getLogger("canopen.sdo.client")
     level = sdo_log.level
@@ -177,14 +171,7 @@ def run(args: argparse.Namespace) -> int:
         reports = check_network(cfg, network, timeout, table)
     finally:
         sdo_log.setLevel(level)
-        bus = network.bus
-        try:
-            network.disconnect()
-        except Exception:  # the interface's own shutdown failed: closed once, quietly
-            from rsra.canbus import shutdown_bus
-
-            if bus is not None:  # (connected above)
-                shutdown_bus(bus)
+        _disconnect(network)
     ok = all(r.ok for r in reports)
     if args.json:
         print(json.dumps({"ok": ok, "interface": args.interface, "channel": args.channel,
@@ -192,6 +179,66 @@ def run(args: argparse.Namespace) -> int:
     else:
         _print_table(cfg, reports, args, ok)
     return 0 if ok else 1
+
+
+def _connect(interface: str, channel: str | None) -> canopen.Network:
+    """A canopen network on the bus; a bus that does not open: one line (exit 2)."""
+    import can
+
+    from rsra.daq.cli.options import UsageError
+
+    network = canopen.Network()
+    network.NOTIFIER_CYCLE = 0.1  # quick close
+    try:
+        kw: dict[str, Any] = {"interface": interface}
+        if channel is not None:
+            kw["channel"] = channel
+        network.connect(**kw)
+    except (can.CanError, OSError, ValueError, ImportError) as e:
+        raise UsageError(f"cannot open the bus --interface {interface} --channel "
+                         f"{channel}: {e}; check the interface and channel") from None
+    return network
+
+
+def _disconnect(network: canopen.Network) -> None:
+    """The network closed; when the interface's own shutdown fails, the bus closed once,
+    quietly."""
+    bus = network.bus
+    try:
+        network.disconnect()
+    except Exception:  # the interface's own shutdown failed: closed once, quietly
+        from rsra.canbus import shutdown_bus
+
+        if bus is not None:  # (connected above)
+            shutdown_bus(bus)
+
+
+def _identity_text(ident: dict | None) -> str:
+    """vendor/product/revision in hex and #serial, ``?`` for what the node did not give."""
+    if not ident:
+        return "—"
+    v, p, rev, ser = (ident.get(IDENTITY_NAMES[s]) for s in (1, 2, 3, 4))
+    text = "/".join("?" if x is None else f"0x{x:X}" for x in (v, p, rev))
+    return text + ("" if ser is None else f" #{ser}")
+
+
+def _result_text(r: NodeReport) -> str:
+    if r.status == "ok":
+        return "[green]OK[/green]"
+    if r.status == "mismatch":
+        return f"[red]mismatch ({len(r.mismatches)})[/red]"
+    return "[red]missing[/red]" if r.required else "[yellow]absent (optional)[/yellow]"
+
+
+def _problem_lines(r: NodeReport) -> list[str]:
+    """A node's mismatches against its EDS, or what its absence means."""
+    lines = [f"node {r.name}: {m.text()}" for m in r.mismatches]
+    if r.status == "missing":
+        what = ("required: the service cannot start without it; check its power, wiring "
+                "and node id") if r.required else "optional: its features stay off"
+        lines.append(f"node {r.name} (id 0x{r.node_id:02X}): no heartbeat, boot-up or SDO "
+                     f"answer — {what}")
+    return lines
 
 
 def _print_table(cfg: RigConfig, reports: list[NodeReport], args: argparse.Namespace,
@@ -209,32 +256,12 @@ def _print_table(cfg: RigConfig, reports: list[NodeReport], args: argparse.Names
                 "result"):
         t.add_column(col)
     for r in reports:
-        ident = r.identity or {}
-        if ident:
-            v, p, rev, ser = (ident.get(IDENTITY_NAMES[s]) for s in (1, 2, 3, 4))
-            ident_s = "/".join("?" if x is None else f"0x{x:X}" for x in (v, p, rev))
-            ident_s += "" if ser is None else f" #{ser}"
-        else:
-            ident_s = "—"
-        if r.status == "ok":
-            result = "[green]OK[/green]"
-        elif r.status == "mismatch":
-            result = f"[red]mismatch ({len(r.mismatches)})[/red]"
-        elif r.required:
-            result = "[red]missing[/red]"
-        else:
-            result = "[yellow]absent (optional)[/yellow]"
         state = r.state or ("no heartbeat" if r.sdo else "—")
-        t.add_row(r.name, f"0x{r.node_id:02X}", "yes" if r.required else "no", state, ident_s,
-                  result)
+        t.add_row(r.name, f"0x{r.node_id:02X}", "yes" if r.required else "no", state,
+                  _identity_text(r.identity), _result_text(r))
     console.print(t)
     for r in reports:
-        for m in r.mismatches:
-            console.print(f"node {r.name}: {m.text()}", highlight=False, markup=False)
-        if r.status == "missing":
-            what = ("required: the service cannot start without it; check its power, wiring "
-                    "and node id") if r.required else "optional: its features stay off"
-            console.print(f"node {r.name} (id 0x{r.node_id:02X}): no heartbeat, boot-up or SDO "
-                          f"answer — {what}", highlight=False, markup=False)
+        for line in _problem_lines(r):
+            console.print(line, highlight=False, markup=False)
     console.print("all required nodes answer and match their EDS" if ok
                   else "NOT ready: see above", highlight=False)

@@ -73,20 +73,13 @@ def run(args: argparse.Namespace) -> int:
     from rsra.daq.cli.options import UsageError
     from rsra.daq.cli.options import setup_logging
     from rsra.daq.jsonout import dumps
-    from rsra.daq.bus.replay import ReplayError, check_readable, config_for, expand
+    from rsra.daq.bus.replay import config_for
     from rsra.daq.runtime.service import Service, ServiceOptions
 
     setup_logging(args.log_level, None)
     if args.recompute and not args.identification:
         raise UsageError("--recompute and --no-identification contradict each other; give one")
-    try:
-        files = expand(args.logs)
-    except ReplayError as e:
-        raise UsageError(str(e)) from None
-    try:  # a file that is not a recording at all, or no frame at all: refused before any work
-        check_readable(files)
-    except ReplayError as e:
-        raise UsageError(str(e)) from None
+    _check_recordings(args.logs)
     cfg = config_for(args.logs, args.config, several="parts")
     from rsra.daq.runtime.foxglove_out import check_option
 
@@ -116,15 +109,7 @@ def run(args: argparse.Namespace) -> int:
 
     service.add_sink(sink)
     try:
-        summary = service.run()
-        if isinstance(out, _LazyFile):
-            out.commit()  # Ctrl-C included: what was replayed is kept
-    except ReplayError as e:  # a damaged recording: what was replayed before it is kept
-        if isinstance(out, _LazyFile) and out.records:
-            out.commit()
-            raise ReplayError(f"{e} ({args.out} holds the {out.records} records before "
-                              "it)") from None
-        raise
+        summary = _replay(service, out, args.out)
     finally:
         progress.close()
         if out is not None and out is not sys.stdout:
@@ -140,6 +125,36 @@ def run(args: argparse.Namespace) -> int:
     if note:
         print(note, file=stream)
     return 0
+
+
+def _check_recordings(logs: list[str]) -> None:
+    """The recordings named exist and each is a recording with frames: refused (one line,
+    exit 2) before any work."""
+    from rsra.daq.bus.replay import ReplayError, check_readable, expand
+    from rsra.daq.cli.options import UsageError
+
+    try:
+        check_readable(expand(logs))
+    except ReplayError as e:
+        raise UsageError(str(e)) from None
+
+
+def _replay(service, out, name: str | None) -> dict:
+    """The replay's summary; what was replayed kept in --out (``name``; Ctrl-C included),
+    and before a damaged recording, what was replayed before it."""
+    from rsra.daq.bus.replay import ReplayError
+
+    try:
+        summary = service.run()
+        if isinstance(out, _LazyFile):
+            out.commit()  # Ctrl-C included: what was replayed is kept
+    except ReplayError as e:  # a damaged recording: what was replayed before it is kept
+        if isinstance(out, _LazyFile) and out.records:
+            out.commit()
+            raise ReplayError(f"{e} ({name} holds the {out.records} records before "
+                              "it)") from None
+        raise
+    return summary
 
 
 class _LazyFile:
@@ -193,6 +208,12 @@ def schedule_note(sch: dict | None) -> str | None:
             return "angles: identification recomputed (--recompute)"
         return ("angles: the recording holds no angle schedule (no angles.jsonl): "
                 "identification recomputed")
+    return _recorded_schedule_note(sch)
+
+
+def _recorded_schedule_note(sch: dict) -> str:
+    """The recorded schedule: empty, partial (where it ends) or whole; whether it holds the
+    starting angles."""
     start = ("its starting angles" if sch["initial"] else
              "the configured initial angles or --angles (it holds no starting angles)")
     if sch["records"] == 0 or sch.get("last_applies_from_seq") is None:

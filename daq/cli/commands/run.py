@@ -44,18 +44,26 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
     return p
 
 
+# the source options that contradict each other: (when refused, the one line saying why)
+_SOURCE_CONFLICTS = (
+    (lambda a: a.sim is None and a.interface is None,
+     "give --interface and --channel for a bus, or --sim SCENARIO"),
+    (lambda a: a.sim is not None and a.interface not in (None, "virtual"),
+     "--sim runs the simulator in-process on python-can's virtual bus; for a bench rig run "
+     "`rsra sim` on that bus instead"),
+    (lambda a: a.sim is None and (a.faults or a.seed is not None or a.variant),
+     "--faults, --seed and --variant need --sim"),
+    (lambda a: a.sim is None and a.speed != 1.0,
+     "--speed needs --sim (a real bus runs in real time)"),
+)
+
+
 def options_from_args(args: argparse.Namespace):
     from rsra.daq.runtime.service import ServiceOptions
 
-    if args.sim is None and args.interface is None:
-        raise UsageError("give --interface and --channel for a bus, or --sim SCENARIO")
-    if args.sim is not None and args.interface not in (None, "virtual"):
-        raise UsageError("--sim runs the simulator in-process on python-can's virtual bus; "
-                         "for a bench rig run `rsra sim` on that bus instead")
-    if args.sim is None and (args.faults or args.seed is not None or args.variant):
-        raise UsageError("--faults, --seed and --variant need --sim")
-    if args.sim is None and args.speed != 1.0:
-        raise UsageError("--speed needs --sim (a real bus runs in real time)")
+    for refused, message in _SOURCE_CONFLICTS:
+        if refused(args):
+            raise UsageError(message)
     return ServiceOptions(
         interface=args.interface, channel=args.channel, sim=args.sim, seed=args.seed,
         faults=args.faults, speed=args.speed, record=args.record, duration=args.duration,

@@ -61,15 +61,9 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    import can
-
-    from rsra.canbus import bus_failure
     from rsra.daq.cli.options import UsageError
     from rsra.daq.rigmodel import load_rig
     from rsra.daq.cli.console import make_console
-    from rsra.sim_bus.bus_sim import RecordError
-    from rsra.sim_bus.drivers import RealtimeSim
-    from rsra.sim_bus.faults import FaultSpecError
     from rsra.sim_bus.physics import AircraftPhysics
     from rsra.sim_bus.scenarios import load_scenario
 
@@ -85,18 +79,7 @@ def run(args: argparse.Namespace) -> int:
     DecodeTable(cfg)  # an EDS canopen cannot read: a ConfigError naming the node (exit 2)
     scenario = load_scenario(args.scenario, **dict(args.variant))
     physics = AircraftPhysics(cfg, scenario, seed=args.seed)
-    try:
-        sim = RealtimeSim(cfg, physics=physics, faults=args.faults, interface=args.interface,
-                          channel=args.channel, autostart=args.autostart, record=args.record,
-                          keep_samples=bool(args.truth))
-    except FaultSpecError as e:
-        raise UsageError(f"--faults: {e}") from None
-    except RecordError as e:
-        raise UsageError(f"--record: {e}; give a writable file") from None
-    except (can.CanError, OSError, ValueError, ImportError) as e:
-        raise UsageError(f"cannot open the bus --interface {args.interface} --channel "
-                         f"{args.channel}: {e}; check the interface and channel") from None
-
+    sim = _open_sim(args, cfg, physics)
     console = make_console(stderr=True)
     stop = threading.Event()
     t_start = time.monotonic()
@@ -118,19 +101,8 @@ def run(args: argparse.Namespace) -> int:
     # both handled explicitly: a background `rsra sim … &` of a script starts with SIGINT
     # ignored, and `kill -INT` must still stop it and write the truth
     old_handlers = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    failed: BaseException | None = None
     try:
-        with sim:
-            try:
-                sim.run(args.duration, stop=stop, progress=progress)
-            except KeyboardInterrupt:  # (a handler restored by a library)
-                stopped_by.append("Ctrl-C")
-                stop.set()
-            except Exception as e:  # the bus went away (e.g. `rsra bus` stopped): say so
-                if not bus_failure(e):
-                    raise
-                failed = e
-                stop.set()
+        failed = _drive(sim, args.duration, stop, progress, stopped_by)
     finally:
         sim.close()
     try:
@@ -144,6 +116,55 @@ def run(args: argparse.Namespace) -> int:
     finally:
         for s, h in old_handlers.items():
             signal.signal(s, h)
+    _say_end(console, args, sim, truth, stopped_by, failed)
+    return 1 if failed is not None else 0
+
+
+def _open_sim(args: argparse.Namespace, cfg, physics):
+    """The simulator on its bus; a bad --faults, --record or bus: one line (exit 2)."""
+    import can
+
+    from rsra.daq.cli.options import UsageError
+    from rsra.sim_bus.bus_sim import RecordError
+    from rsra.sim_bus.drivers import RealtimeSim
+    from rsra.sim_bus.faults import FaultSpecError
+
+    try:
+        return RealtimeSim(cfg, physics=physics, faults=args.faults, interface=args.interface,
+                           channel=args.channel, autostart=args.autostart, record=args.record,
+                           keep_samples=bool(args.truth))
+    except FaultSpecError as e:
+        raise UsageError(f"--faults: {e}") from None
+    except RecordError as e:
+        raise UsageError(f"--record: {e}; give a writable file") from None
+    except (can.CanError, OSError, ValueError, ImportError) as e:
+        raise UsageError(f"cannot open the bus --interface {args.interface} --channel "
+                         f"{args.channel}: {e}; check the interface and channel") from None
+
+
+def _drive(sim, duration: float | None, stop: threading.Event, progress,
+           stopped_by: list[str]) -> BaseException | None:
+    """Run the simulator until ``duration``, ``stop`` or Ctrl-C (named in ``stopped_by``);
+    the bus failure that ended it, or None."""
+    from rsra.canbus import bus_failure
+
+    with sim:
+        try:
+            sim.run(duration, stop=stop, progress=progress)
+        except KeyboardInterrupt:  # (a handler restored by a library)
+            stopped_by.append("Ctrl-C")
+            stop.set()
+        except Exception as e:  # the bus went away (e.g. `rsra bus` stopped): say so
+            if not bus_failure(e):
+                raise
+            stop.set()
+            return e
+    return None
+
+
+def _say_end(console, args: argparse.Namespace, sim, truth, stopped_by: list[str],
+             failed: BaseException | None) -> None:
+    """How the run ended, what it sent and where its files are; why no truth was written."""
     how = (f"stopped ({stopped_by[0]})" if stopped_by
            else f"the bus failed ({type(failed).__name__}: {failed}; was it closed?)"
            if failed is not None else "done")
@@ -157,4 +178,3 @@ def run(args: argparse.Namespace) -> int:
                          f"{args.interface}:{args.channel}); fix: run `rsra run` on the same bus "
                          "or give --autostart" if not args.autostart else
                          "the run ended before the first SYNC"), highlight=False)
-    return 1 if failed is not None else 0

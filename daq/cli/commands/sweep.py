@@ -61,8 +61,7 @@ def run(args: argparse.Namespace) -> int:
     from rsra.daq.jsonout import dumps
     from rsra.daq.runtime.persistence import write_text_atomic
     from rsra.daq.bus.replay import ReplayError, config_for, expand
-    from rsra.daq.analysis.sweep import (SweepError, analyse_sweep, load_sweep_data, plot_sweep, sweep_json,
-                           sweep_table)
+    from rsra.daq.analysis.sweep import sweep_json, sweep_table
 
     try:
         expand(args.logs)
@@ -71,6 +70,23 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else _default_out(args.logs[0])
     _check_writable(out)  # created once the recording has been read: a bad one leaves nothing
     cfg = config_for(args.logs, args.config)
+    data, result, plots = _analyse(args, cfg, out)
+    table = sweep_table(result, args.units)
+    write_text_atomic(out / "sweep_table.txt", table + "\n")
+    write_text_atomic(out / "sweep.json", dumps(sweep_json(result, args.units)) + "\n")
+    print(table)
+    print(f"\nwrote {out / 'sweep_table.txt'}, {out / 'sweep.json'} and "
+          f"{len(plots)} plots in {out}")
+    _print_notes(result, data)
+    return 0
+
+
+def _analyse(args: argparse.Namespace, cfg, out: Path):
+    """The recording replayed, analysed and plotted into ``out`` (created now): (data,
+    result, plots); what cannot be read or analysed: one line (exit 2)."""
+    from rsra.daq.cli.options import UsageError
+    from rsra.daq.analysis.sweep import SweepError, analyse_sweep, load_sweep_data, plot_sweep
+
     status = _Status(sys.stderr.isatty())
     try:
         status.say("replaying the recording")
@@ -94,12 +110,11 @@ def run(args: argparse.Namespace) -> int:
         plots = plot_sweep(result, out, args.units)
     finally:
         status.close()
-    table = sweep_table(result, args.units)
-    write_text_atomic(out / "sweep_table.txt", table + "\n")
-    write_text_atomic(out / "sweep.json", dumps(sweep_json(result, args.units)) + "\n")
-    print(table)
-    print(f"\nwrote {out / 'sweep_table.txt'}, {out / 'sweep.json'} and "
-          f"{len(plots)} plots in {out}")
+    return data, result, plots
+
+
+def _print_notes(result, data) -> None:
+    """What was left out of the analysis and what was interpolated (stderr)."""
     if result.excluded:
         secs = sum(s.stop - s.start for s in result.excluded) / result.fs
         print(f"note: {len(result.excluded)} stretches of oscillating load ({secs:.1f} s) on "
@@ -108,7 +123,6 @@ def run(args: argparse.Namespace) -> int:
     if data.filled:
         print(f"note: {data.filled} of {len(data.t)} samples were missing or incomplete and "
               "were interpolated", file=sys.stderr)
-    return 0
 
 
 class _Status:

@@ -92,26 +92,10 @@ Exit 0 when the fragment is written, 2 for a usage or configuration error.""")
 
 
 def run(args: argparse.Namespace) -> int:
-    import can
-
-    from rsra.daq.cli.options import UsageError
     from rsra.daq.rigmodel import load_rig
     from rsra.daq.cli.console import make_console
-    from rsra.daq.bus.master import BootError
-    from rsra.daq.bus.reader import Reader
 
-    if args.interface is None:
-        raise UsageError("give the bus: --interface I [--channel C], e.g. --interface socketcan "
-                         "--channel vcan0")
-    if not (args.seconds > 0 and math.isfinite(args.seconds)):
-        raise UsageError(f"--seconds {args.seconds}: must be a positive number of seconds")
-    if args.min_samples < 2:
-        raise UsageError(f"--min-samples {args.min_samples}: must be at least 2")
-    if not 0 < args.max_offset_fs <= 1:
-        raise UsageError(f"--max-offset-fs {args.max_offset_fs}: must be in (0, 1]")
-    out = Path(args.out) if args.out else None
-    if out is not None and not os.access(out.resolve().parent, os.W_OK):
-        raise UsageError(f"--out {args.out}: folder {out.resolve().parent} is not writable")
+    out = _check_arguments(args)
     cfg = load_rig(args.config)
     table = DecodeTable(cfg)
     specs = channel_specs(cfg, table, args.max_offset_fs)
@@ -121,21 +105,10 @@ def run(args: argparse.Namespace) -> int:
     if not report.is_terminal:
         report.width = max(report.width, 120)
     bus = f"{args.interface}:{args.channel}" if args.channel else args.interface
-    reader = Reader(cfg, interface=args.interface, channel=args.channel, table=table)
-    try:
-        try:
-            reader.start()
-        except BootError as e:
-            print(f"rsra zero: the nodes could not be started: {e}", file=sys.stderr)
-            return 1
-        except (can.CanError, OSError, ValueError, ImportError) as e:
-            raise UsageError(f"cannot open the bus --interface {args.interface} --channel "
-                             f"{args.channel}: {e}; check the interface and channel") from None
-        with _Progress(args.seconds) as progress:
-            values, span, flags = acquire(reader, args.seconds, extractor(cfg, specs),
-                                          len(specs), progress.update)
-    finally:
-        reader.close()
+    acquired = _acquire(args, cfg, table, specs)
+    if acquired is None:
+        return 1
+    values, span, flags = acquired
     result = tare(cfg, specs, values, alpha=alpha, min_samples=args.min_samples,
                   status_counts=dict(flags), span_s=span)
     _print_report(report, cfg, result, args.units, bus)
@@ -151,6 +124,51 @@ def run(args: argparse.Namespace) -> int:
         report.print(f"rsra zero: wrote {out} ({sum(c.n > 0 for c in result.channels)} channels)",
                      highlight=False)
     return 0
+
+
+def _check_arguments(args: argparse.Namespace) -> Path | None:
+    """The options checked before the bus is touched (one line, exit 2); the --out path."""
+    from rsra.daq.cli.options import UsageError
+
+    if args.interface is None:
+        raise UsageError("give the bus: --interface I [--channel C], e.g. --interface socketcan "
+                         "--channel vcan0")
+    if not (args.seconds > 0 and math.isfinite(args.seconds)):
+        raise UsageError(f"--seconds {args.seconds}: must be a positive number of seconds")
+    if args.min_samples < 2:
+        raise UsageError(f"--min-samples {args.min_samples}: must be at least 2")
+    if not 0 < args.max_offset_fs <= 1:
+        raise UsageError(f"--max-offset-fs {args.max_offset_fs}: must be in (0, 1]")
+    out = Path(args.out) if args.out else None
+    if out is not None and not os.access(out.resolve().parent, os.W_OK):
+        raise UsageError(f"--out {args.out}: folder {out.resolve().parent} is not writable")
+    return out
+
+
+def _acquire(args: argparse.Namespace, cfg: RigConfig, table: DecodeTable, specs):
+    """--seconds of the channels from the bus: (values, span, status flags), or None when
+    the nodes could not be started (said on stderr); a bus that does not open: exit 2."""
+    import can
+
+    from rsra.daq.bus.master import BootError
+    from rsra.daq.bus.reader import Reader
+    from rsra.daq.cli.options import UsageError
+
+    reader = Reader(cfg, interface=args.interface, channel=args.channel, table=table)
+    try:
+        try:
+            reader.start()
+        except BootError as e:
+            print(f"rsra zero: the nodes could not be started: {e}", file=sys.stderr)
+            return None
+        except (can.CanError, OSError, ValueError, ImportError) as e:
+            raise UsageError(f"cannot open the bus --interface {args.interface} --channel "
+                             f"{args.channel}: {e}; check the interface and channel") from None
+        with _Progress(args.seconds) as progress:
+            return acquire(reader, args.seconds, extractor(cfg, specs), len(specs),
+                           progress.update)
+    finally:
+        reader.close()
 
 
 def _angles(cfg: RigConfig, state: str | None,
