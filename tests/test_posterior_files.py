@@ -510,7 +510,7 @@ def test_angles_show_recording_last_applied_and_the_records_after_it(cfg, tmp_pa
     assert main(["angles", "show", str(f), "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
     assert d["source"] == {"record": "last_applied", "index": 1, "records": 2, "after": 1,
-                           "reset_after": True}
+                           "reset_after": True, "advice": None}
     np.testing.assert_allclose(d["angles_deg"], np.degrees(0.01))
     np.testing.assert_allclose(d["sigma_deg"], 1.0)
     f.write_text(json.dumps(lines[0]) + "\n" + json.dumps(lines[2]) + "\n")
