@@ -415,7 +415,7 @@ class SampleLayout:
             perm += [i for _, i in drive]
         self._perm = np.array(perm, dtype=np.intp)
         # the output channels picked from struct's tuple in Python, then one float array:
-        # a third of np.array(raw)[perm]'s cost (dtype discovery over the mixed tuple, P5b)
+        # a third of np.array(raw)[perm]'s cost (dtype discovery over the mixed tuple)
         self._gather: Callable[[tuple[Any, ...]], tuple[Any, ...]]
         if len(perm) > 1:
             self._gather = operator.itemgetter(*perm)
@@ -732,7 +732,7 @@ class SampleAssembler:
 
     # -- the sample, passed on (once per SYNC; decoded by SampleLayout) ---------------------
     def _pass_on(self, complete_trigger: bool) -> None:
-        if stagetiming.TIMER is not None:  # off unless a benchmark asked (docs/performance.md P5b)
+        if stagetiming.TIMER is not None:  # off unless a benchmark asked for the stage timing
             stagetiming.TIMER.frame_done(self._seq, self._sync_t)
         self._open = False
         self._wait = -1
