@@ -223,8 +223,12 @@ class BandEnvelope:
         self.open: dict[str, tuple[int, dict]] = {}
 
     def add(self, pid: str, d: dict) -> dict | None:
-        """Take one band point; returns the finished chunk's point when ``d`` starts another."""
-        c = math.floor(d["utc"] / self.chunk_ms)
+        """Take one band point; returns the finished chunk's point when ``d`` starts another
+        (a point with no finite time is in no chunk: returned as it is)."""
+        utc = d["utc"]
+        if not (isinstance(utc, int | float) and math.isfinite(utc)):
+            return d
+        c = math.floor(utc / self.chunk_ms)
         cur = self.open.get(pid)
         if cur is not None and cur[0] == c:
             if band_side(pid) * (d["value"] - cur[1]["value"]) > 0:
