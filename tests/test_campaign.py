@@ -429,6 +429,7 @@ def test_campaign_calibrate_pools_the_recordings_a_campaign_run_wrote(tmp_path, 
                  str(recs)]) == 0
     parts = sorted((ds / "information").glob("recording=*/part.parquet"))
     assert len(parts) == 2 and all(pq.read_table(p).num_rows >= 1 for p in parts)
+    assert not (ds / "survey").exists()  # the loads survey only when asked (--survey)
     # the task derives it from its one replay (the telemetry's samples): the same table, to
     # the bit, as the recording read on its own for its known loads
     from rsra.daq.analysis.information import recording_information

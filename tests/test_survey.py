@@ -416,7 +416,7 @@ def test_each_test_point_source_on_a_campaign_dataset(recording, tmp_path):
     (recs / "marked" / "marks.jsonl").write_text("".join(json.dumps(m) + "\n" for m in marks))
     ds = tmp_path / "ds"
     assert main(["campaign", "run", "--dataset", str(ds), "--pool", "--workers", "1",
-                 str(recs)]) == 0
+                 "--survey", str(recs)]) == 0
     table = pads.dataset(ds / "survey", partitioning="hive").to_table().to_pylist()
     points = {(r["recording"].split("-")[0], r["test_point"]) for r in table}
     assert points == {("marked", "hover 40 kt"), ("marked", "level 80 kt"),

@@ -82,6 +82,8 @@ class Product:
     #: the samples of the telemetry product's replay registers an observer here (a recording
     #: is read once)
     prepare: Callable[[ProductContext], None] | None = None
+    #: whether the campaign's options ask for it (None: always)
+    wanted: Callable[[dict[str, Any]], bool] | None = None
 
 
 def telemetry(ctx: ProductContext) -> None:
@@ -159,5 +161,7 @@ def survey(ctx: ProductContext) -> Any:
 PRODUCTS: list[Product] = [
     Product("telemetry", telemetry),
     Product("information", information, prepare=information_prepare),
-    Product("survey", survey, prepare=survey_prepare),
+    # the survey's Monte Carlo fatigue σ costs about as much as the replay: asked for
+    Product("survey", survey, prepare=survey_prepare,
+            wanted=lambda options: bool(options.get("survey"))),
 ]

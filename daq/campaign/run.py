@@ -25,13 +25,19 @@ def recording_options(p: argparse.ArgumentParser) -> None:
                    "angle schedule (as `rsra replay --recompute`)")
     p.add_argument("--no-identification", action="store_true",
                    help="no identification: the starting angles throughout")
+    p.add_argument("--survey", action="store_true",
+                   help="also the loads survey of each recording (`rsra survey` at its own test "
+                   "points) as the dataset's `survey` table")
     p.add_argument("--retry-failed", action="store_true",
                    help="run recordings that failed before again even when unchanged")
 
 
 def options_of(args: argparse.Namespace) -> dict[str, Any]:
-    return {"recompute": bool(args.recompute),
-            "no_identification": bool(args.no_identification)}
+    out = {"recompute": bool(args.recompute),
+           "no_identification": bool(args.no_identification)}
+    if args.survey:  # (absent when not asked: the output keys of datasets without it stand)
+        out["survey"] = True
+    return out
 
 
 def add_parser(sub, name: str) -> argparse.ArgumentParser:

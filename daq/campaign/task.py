@@ -32,10 +32,11 @@ def _run_recording(job: dict[str, Any]) -> dict[str, Any]:
         ctx = _context(job, staging)
         from rsra.daq.campaign.products import PRODUCTS, write_table
 
-        for product in PRODUCTS:
+        products = [p for p in PRODUCTS if p.wanted is None or p.wanted(ctx.options)]
+        for product in products:
             if product.prepare is not None:
                 product.prepare(ctx)
-        for product in PRODUCTS:
+        for product in products:
             result = product.build(ctx)
             if result is not None:
                 write_table(ctx, product.name, result)
