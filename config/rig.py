@@ -376,6 +376,23 @@ class StuckConfig:
 
 
 @dataclass(frozen=True)
+class LimitsConfig:
+    """The rig's hub-load limits per axis (N, N·m; 0: none), for `rsra survey`'s peaks."""
+
+    X: float
+    Y: float
+    Z: float
+    L: float
+    M: float
+    N: float
+
+    def per_axis(self) -> tuple[float, ...]:
+        """X … N in SI, NaN where the rig states none."""
+        return tuple(v if v > 0 else math.nan for v in
+                     (self.X, self.Y, self.Z, self.L, self.M, self.N))
+
+
+@dataclass(frozen=True)
 class RigConfig:
     source: str
     rig_name: str
@@ -401,6 +418,7 @@ class RigConfig:
     recording: RecordingConfig
     simulator: SimulatorConfig
     stuck: StuckConfig
+    limits: LimitsConfig
     raw: dict[str, Any] = field(repr=False, default_factory=dict)
     #: dotted key -> the file its value came from ("default": the packaged rig); empty when
     #: the rig was not loaded from layered files (config.rig.merge_layers)

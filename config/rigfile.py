@@ -487,6 +487,18 @@ class SimulatorTable(Table):
     substeps: PosWhole = 10
 
 
+class LimitsTable(Table):
+    """The rig's hub-load limits per axis of the hub loads' axes (N, N·m): what `rsra survey`
+    reports each test point's peak against; 0: no limit on that axis."""
+
+    X: NonNeg = 0.0
+    Y: NonNeg = 0.0
+    Z: NonNeg = 0.0
+    L: NonNeg = 0.0
+    M: NonNeg = 0.0
+    N: NonNeg = 0.0
+
+
 class StuckTable(Table):
     """Stuck-channel detection (daq/runtime/stuck.py): a run of exactly equal readings."""
 
@@ -553,6 +565,7 @@ class RigFile(Table):
     recording: RecordingTable = Field(default_factory=RecordingTable)
     simulator: SimulatorTable = Field(default_factory=SimulatorTable)
     stuck: StuckTable = Field(default_factory=StuckTable)
+    limits: LimitsTable = Field(default_factory=LimitsTable)
 
     @model_validator(mode="after")
     def _across(self, info: ValidationInfo) -> "RigFile":

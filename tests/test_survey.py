@@ -437,3 +437,20 @@ def test_each_test_point_source_on_a_campaign_dataset(recording, tmp_path):
     toml.write_text('time = "from_start"\n[[test_point]]\nname = "first"\nstart = 2.5\n'
                     'end = 4.5\n')
     assert survey_of(str(toml)) == {"first@marked", "first@plain"}
+
+
+def test_the_rig_files_limits_are_the_surveys_unless_an_axis_is_given(tmp_path):
+    """`[limits]` in the rig file (N, N·m; 0: none) are what `rsra survey` reports peaks
+    against; `--limit AXIS=VALUE` (in the --units) replaces that axis only."""
+    from rsra.config.rig import load_config
+    from rsra.daq.cli.commands.survey import _limits
+
+    rig = tmp_path / "rig.toml"
+    rig.write_text('extends = "default"\n[limits]\nZ = 90000.0\nM = 20000.0\n')
+    cfg = load_config(str(rig))
+    assert cfg.limits.per_axis()[2] == 90000.0 and cfg.limits.per_axis()[4] == 20000.0
+    assert math.isnan(cfg.limits.per_axis()[0])
+    got = _limits([("M", 5000.0)], "si", cfg.limits.per_axis())
+    assert got[2] == 90000.0 and got[4] == 5000.0 and math.isnan(got[0])
+    lbf = _limits([("Z", 1000.0)], "us", cfg.limits.per_axis())[2]  # 1000 lbf in N
+    assert lbf == pytest.approx(4448.22, rel=1e-5)

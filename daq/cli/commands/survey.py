@@ -3,6 +3,8 @@ user-guide.md "Loads survey"; daq/analysis/survey.py, estimator/survey.py)."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import math
 from pathlib import Path
 
 import numpy as np
@@ -49,8 +51,9 @@ def add_parser(sub, name: str) -> argparse.ArgumentParser:
                    help="reference cycle count of the DELs (default: one per second of the "
                    "test point, the 1 Hz equivalent load)")
     p.add_argument("--limit", metavar="AXIS=VALUE", action="append", default=[], type=_limit,
-                   help="the rig's limit of an axis (X Y Z L M N), in the --units, repeatable: "
-                   "adds peak_fraction_of_limit, the largest |load| over the limit, with its σ")
+                   help="the limit of an axis (X Y Z L M N), in the --units, repeatable, instead of "
+                   "the rig file's [limits]: peak_fraction_of_limit, the largest |load| over "
+                   "the limit, with its σ")
     p.add_argument("--draws", metavar="N", type=_draws, default=50,
                    help="Monte Carlo draws for the σ of the rainflow counts and DELs (default 50)")
     return p
@@ -75,15 +78,17 @@ def _limit(text: str) -> tuple[str, float]:
     return axis, positive_float(value)
 
 
-def _limits(given: list[tuple[str, float]], units: str) -> tuple[float, ...]:
-    """Per axis the limit in SI (NaN: none)."""
+def _limits(given: list[tuple[str, float]], units: str,
+            rig: tuple[float, ...] = (math.nan,) * 6) -> tuple[float, ...]:
+    """Per axis the limit in SI (NaN: none): the rig's ``[limits]``, an axis given with
+    ``--limit`` (in the ``--units``) instead."""
     from rsra.config.units import to_units
 
     raw = np.full(6, np.nan)
     for axis, value in given:
         raw["XYZLMN".index(axis)] = value
     si = raw / to_units(np.ones(6), units)
-    return tuple(float(v) for v in si)
+    return tuple(float(v) if math.isfinite(v) else float(r) for v, r in zip(si, rig))
 
 
 def _draws(text: str) -> int:
@@ -123,11 +128,15 @@ def _run(args: argparse.Namespace, sv) -> int:
     if len(inputs) == 1 and sv.is_dataset(inputs[0]):
         cfg = config_for([], args.config)
         rig = sr.survey_rig(cfg)
+        opts = dataclasses.replace(opts, limits=_limits(args.limit, args.units,
+                                                        cfg.limits.per_axis()))
         rows, points = _survey_dataset(args, sv, inputs[0], rig, opts)
     else:
         results = len(inputs) == 1 and inputs[0].is_file() and inputs[0].suffix == ".jsonl"
         cfg = config_for([] if results else args.logs, args.config)
         rig = sr.survey_rig(cfg)
+        opts = dataclasses.replace(opts, limits=_limits(args.limit, args.units,
+                                                        cfg.limits.per_axis()))
         data = (sv.load_results(inputs[0], rig.angle_names) if results
                 else sr.replay_data(cfg, args.logs, rig))
         folder = sr.folder_of(inputs[0])
