@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
+from typing import Any
 
 
 class Mode(enum.StrEnum):
@@ -54,6 +55,18 @@ ACCEPTED = None  # the reason of an accepted run
 MODES: tuple[Mode, ...] = tuple(Mode)
 REASONS: tuple[Reason, ...] = tuple(Reason)
 DETAILS: tuple[Detail, ...] = tuple(Detail)
+
+
+# a known-load window not identifiable on its own whose information is held for the next
+# runs (docs/identification.md, the min_information rule): not a refusal of its data
+HELD_DETAILS = frozenset({Detail.INFORMATION_RATIO, Detail.NONLINEAR})
+
+
+def held_window(rec: Any) -> bool:
+    """A known-load window (an `angles` record as a dict) whose information is held for the
+    next runs, not refused."""
+    return (rec.get("mode") == Mode.KNOWN_LOADS and rec.get("reason") == Reason.NOT_IDENTIFIABLE
+            and rec.get("detail") in HELD_DETAILS)
 
 
 @dataclass(frozen=True)

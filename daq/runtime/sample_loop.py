@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any, cast
 
 from rsra.daq.runtime.records import AnglesRecord
 from rsra.daq.runtime.supervision import Supervision
+from rsra.estimator.verdict import held_window
 
 if TYPE_CHECKING:
     from rsra.daq.runtime.pipeline import EstimatorPipeline
@@ -28,9 +29,6 @@ log = logging.getLogger("rsra.service")
 LATENCY_HISTORY = 2000
 ANGLES_HISTORY = 16  # recent angles records kept in memory (~15 kB each with P)
 STATUS_PERIOD_S = 60.0  # a calibrated run's one-line calibration status, this often (record t)
-# a known-load window not identifiable on its own whose information is held for the next
-# runs (docs/identification.md, the min_information rule): not a refusal of its data
-HELD_DETAILS = frozenset({"information_ratio", "nonlinear"})
 
 
 class _FirstStepDone:
@@ -142,12 +140,6 @@ class AnglesTally:
         text = advice_summary(adv, len(rec.get("names") or []) or None)
         if text:
             log.info("advice: %s", text)
-
-
-def held_window(rec: Any) -> bool:
-    """A known-load window whose information is held for the next runs, not refused."""
-    return (rec.get("mode") == "known_loads" and rec.get("reason") == "not_identifiable"
-            and rec.get("detail") in HELD_DETAILS)
 
 
 def calibration_status(rec: Any, accepted: int, held: int, since_change_s: float | None) -> str:

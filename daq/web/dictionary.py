@@ -30,6 +30,8 @@ from typing import Any
 
 from scipy.stats import chi2, norm
 
+from rsra.estimator.verdict import held_window
+
 AXES = ("X", "Y", "Z", "L", "M", "N")
 AXIS_UNITS = ("N", "N", "N", "N·m", "N·m", "N·m")
 AXIS_NAMES = ("X force", "Y force", "Z force", "L moment", "M moment", "N moment")
@@ -388,8 +390,10 @@ def points(dic: Dictionary, key: str, p: dict) -> list[tuple[str, dict]]:
                 utc, deg, sigma=sig_deg, lo=None if sig_deg is None else deg - sig_deg,
                 hi=None if sig_deg is None else deg + sig_deg)))
         acc, reason = p.get("accepted"), p.get("reason")
+        held = not acc and held_window(p)  # its information kept for the next runs
         out.append(("ident.verdict", _datum(
-            utc, "accepted" if acc else f"rejected: {reason}", verdict_limit(acc, reason),
+            utc, "accepted" if acc else "held: used with the next windows" if held
+            else f"rejected: {reason}", None if held else verdict_limit(acc, reason),
             detail=p.get("detail"), mode=p.get("mode"), content=p.get("content"))))
         det = p.get("determined")
         if isinstance(det, int) and not isinstance(det, bool):
