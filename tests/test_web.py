@@ -164,7 +164,7 @@ def test_points_of_every_key(dic, cfg):
     held = {**ang, "mode": "known_loads", "reason": "not_identifiable",
             "detail": "information_ratio"}  # a weak window, its information kept: not refused
     v = dict(D.points(dic, "angles", held))["ident.verdict"]
-    assert v["value"] == "held: used with the next windows" and "lim" not in v
+    assert v["value"] == "held" and "lim" not in v
     adv = {"determined": 2, "next": 0.74, "window": {"extra_s": 1.57, "gain": 1},
            "best": {"kind": "manoeuvre", "name": "Y", "gain": 1, "next": 1.41}}
     pts = dict(D.points(dic, "angles", {**ang, "advice": adv}))

@@ -392,7 +392,7 @@ def points(dic: Dictionary, key: str, p: dict) -> list[tuple[str, dict]]:
         acc, reason = p.get("accepted"), p.get("reason")
         held = not acc and held_window(p)  # its information kept for the next runs
         out.append(("ident.verdict", _datum(
-            utc, "accepted" if acc else "held: used with the next windows" if held
+            utc, "accepted" if acc else "held" if held
             else f"rejected: {reason}", None if held else verdict_limit(acc, reason),
             detail=p.get("detail"), mode=p.get("mode"), content=p.get("content"))))
         det = p.get("determined")
