@@ -714,6 +714,16 @@ _LABEL_OVERLAPS = """() => {
         : { left: Math.min(box.left, b.left), top: Math.min(box.top, b.top),
           right: Math.max(box.right, b.right), bottom: Math.max(box.bottom, b.bottom) };
     }
+    // what an ancestor clips (overflow other than visible, per direction) is not drawn
+    for (let a = e.parentElement; box !== null && a !== null; a = a.parentElement) {
+      const cs = getComputedStyle(a), c = a.getBoundingClientRect();
+      if (cs.overflowX !== 'visible') {
+        box.left = Math.max(box.left, c.left); box.right = Math.min(box.right, c.right);
+      }
+      if (cs.overflowY !== 'visible') {
+        box.top = Math.max(box.top, c.top); box.bottom = Math.min(box.bottom, c.bottom);
+      }
+    }
     return box;
   };
   const out = [];
