@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bench.common import arg_parser, ratio, writer_from_args
+from bench.common import arg_parser, ratio, simulated_sample, writer_from_args
 from bench.p2_filter_step import load_filter_cache
 from rsra.config.rig import load_config
 from rsra.estimator.balance import inertial_loads, static_estimate
@@ -142,7 +142,6 @@ def main(argv: list[str] | None = None) -> int:
 def pipeline_run(cfg, run) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(H, sigma_filter, sigma_angles, transient) of every sample of a simulated run through
     the service's per-sample path, identification off, the true (first) angles, P_α ≈ 0."""
-    from types import SimpleNamespace
 
     from rsra.daq.runtime.pipeline import EstimatorPipeline
 
@@ -153,12 +152,7 @@ def pipeline_run(cfg, run) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarr
     tr = np.zeros(n, bool)
     status = np.zeros(7, int)
     for i in range(n):
-        om = float(run.omega[i])
-        s = SimpleNamespace(seq=i, sync=i % 240 + 1, t=float(run.t[i]), T=run.T[i],
-                            accel=run.accel[i], flags=[], drive=None,
-                            omega=om if np.isfinite(om) else None,
-                            azimuth=float(run.azimuth[i]), known_H=run.H_balance[i],
-                            cell_status=status, lost_before=0)
+        s = simulated_sample(run, i, status)
         first, _rest = p.stages(s)
         hub = first.records[-1][1]
         if hub["H"] is not None:

@@ -42,7 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from bench.a3_known_load import seed_map
-from bench.common import arg_parser, writer_from_args
+from bench.common import arg_parser, simulated_sample, writer_from_args
 from bench.p2_filter_step import load_filter_cache
 from rsra.config.rig import load_config
 from rsra.daq.analysis import survey as sv
@@ -128,7 +128,6 @@ def service_estimates(cfg, run, alpha: np.ndarray, P: np.ndarray) -> dict[str, n
     inertial solve, the load filter turned by the measured azimuth, ``sigma_filter`` and
     ``sigma_angles`` exactly as published), identification off, ``alpha`` in force with the
     covariance ``P``."""
-    from types import SimpleNamespace
 
     from rsra.daq.runtime.pipeline import EstimatorPipeline
 
@@ -138,12 +137,7 @@ def service_estimates(cfg, run, alpha: np.ndarray, P: np.ndarray) -> dict[str, n
     out = {k: np.full((n, 6), np.nan) for k in ("H", "H_static", "sf", "sa")}
     status = np.zeros(7, int)
     for i in range(n):
-        om = float(run.omega[i])
-        s = SimpleNamespace(seq=i, sync=i % 240 + 1, t=float(run.t[i]), T=run.T[i],
-                            accel=run.accel[i], flags=[], drive=None,
-                            omega=om if np.isfinite(om) else None,
-                            azimuth=float(run.azimuth[i]), known_H=run.H_balance[i],
-                            cell_status=status, lost_before=0)
+        s = simulated_sample(run, i, status)
         hub = next(r for k, r in p.process(s).records if k == "hub_loads")
         for k, f in (("H", "H"), ("H_static", "H_static"), ("sf", "sigma_filter"),
                      ("sa", "sigma_angles")):

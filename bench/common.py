@@ -345,3 +345,16 @@ def render_results(results_dir: str | Path = RESULTS_DIR, out: str | Path = RESU
     text = "\n".join(head + rows) + "\n"
     Path(out).write_text(text, encoding="utf-8")
     return text
+
+
+def simulated_sample(run, i: int, cell_status):
+    """Sample ``i`` of a simulated run (``rsra.sim_bus.simulate``) as the service's pipeline
+    takes it: every channel present, the run's own rotor speed, azimuth and balance."""
+    from types import SimpleNamespace
+
+    om = float(run.omega[i])
+    return SimpleNamespace(seq=i, sync=i % 240 + 1, t=float(run.t[i]), T=run.T[i],
+                           accel=run.accel[i], flags=[], drive=None,
+                           omega=om if math.isfinite(om) else None,
+                           azimuth=float(run.azimuth[i]), known_H=run.H_balance[i],
+                           cell_status=cell_status, lost_before=0)

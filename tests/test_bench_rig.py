@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import http.client
 import json
-import os
 import signal
 import socket
 import subprocess
@@ -21,25 +20,11 @@ zenoh = pytest.importorskip("zenoh", reason="eclipse-zenoh is not installed")
 
 from rsra.daq.runtime.telemetry import viewer_config  # noqa: E402
 from tests.helpers_net import free_tcp_port  # noqa: E402
+from tests.helpers_proc import die_with_parent as _die_with_parent  # noqa: E402
+from tests.helpers_proc import spawn as _spawn  # noqa: E402
 
 RUN_S = 6.0  # samples of acquisition time the service runs for
 REBOOT_AT = 2.0  # simulated seconds: cell_C power-cycles, the live master must restart it
-
-
-def _die_with_parent() -> None:  # a child process dies with the test (Linux)
-    try:
-        import ctypes
-
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-    except OSError:
-        pass
-
-
-def _spawn(args, **kw) -> subprocess.Popen:
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    pre = _die_with_parent if sys.platform.startswith("linux") else None
-    return subprocess.Popen([sys.executable, "-m", "rsra", *args], env=env, preexec_fn=pre,
-                            text=True, **kw)
 
 
 def _port_open(port: int) -> bool:

@@ -9,6 +9,7 @@ asserts timing; ``RSRA_FUZZ_EXAMPLES=N`` runs N fuzz examples instead of 200."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import io
 import json
 import os
@@ -228,6 +229,29 @@ def test_a_telemetry_file_nested_too_deep_is_one_line_not_a_recursion(tmp_path):
     f.write_text(json.dumps({"key": "hub_loads", **HUB}) + "\n" + "[" * 200_000 + "\n")
     with pytest.raises(HistoryFileError, match=r"deep.jsonl:2: not a JSON line"):
         TelemetryFile(f, "rsra/bench")
+
+
+@contextlib.asynccontextmanager
+async def _history_burst(dic, waiting: int, records: int, requests: int, ready):
+    """A gateway holding ``records`` hub-load records, ``waiting`` places in its history
+    waiting room, served on loopback, and ``requests`` history requests sent at once;
+    yields (gateway, client, headers, the requests' tasks) once ``ready(gateway)``."""
+    from aiohttp.test_utils import TestClient, TestServer
+
+    gw = gateway(dic)
+    gw.max_waiting["history"] = waiting
+    for i in range(records):
+        gw.ingest("hub_loads", json.dumps({**HUB, "seq": i, "t": 1.0 + i / 200}).encode())
+    async with TestClient(TestServer(gw.app(), host="127.0.0.1")) as c:
+        gw.hosts = allowed_hosts("127.0.0.1", c.server.port)
+        h = {"Host": f"127.0.0.1:{c.server.port}"}
+        tasks = [asyncio.create_task(c.get("/api/history?id=hub.H.Z", headers=h))
+                 for _ in range(requests)]
+        for _ in range(2000):
+            if ready(gw):
+                break
+            await asyncio.sleep(0.01)
+        yield gw, c, h, tasks
 
 
 def test_web_answers_strict_json_when_a_valid_record_overflows(dic):
@@ -532,24 +556,13 @@ def test_web_sheds_history_requests_beyond_its_bound_and_stays_responsive(dic, m
     """40 history requests at once while each answer is held (a gate in the parse, lock-step):
     4 are answered, 36 get 503 with Retry-After at once; /status answers meanwhile; once the
     gate opens, the 4 get 200 and the next history request gets 200."""
-    from aiohttp.test_utils import TestClient, TestServer
 
     gate = _hold_history(monkeypatch)
 
     async def go():
-        gw = gateway(dic)
-        gw.max_waiting["history"] = 0  # (the waiting room: the next test)
-        for i in range(100):
-            gw.ingest("hub_loads", json.dumps({**HUB, "seq": i, "t": 1.0 + i / 200}).encode())
-        async with TestClient(TestServer(gw.app(), host="127.0.0.1")) as c:
-            gw.hosts = allowed_hosts("127.0.0.1", c.server.port)
-            h = {"Host": f"127.0.0.1:{c.server.port}"}
-            tasks = [asyncio.create_task(c.get("/api/history?id=hub.H.Z", headers=h))
-                     for _ in range(40)]
-            for _ in range(2000):
-                if gw.busy["history"] == 4 and gw.shed["history"] == 36:
-                    break
-                await asyncio.sleep(0.01)
+        # (the waiting room: the next test)
+        async with _history_burst(dic, 0, 100, 40, lambda gw: gw.busy["history"] == 4
+                                  and gw.shed["history"] == 36) as (gw, c, h, tasks):
             assert gw.busy["history"] == 4 and gw.shed["history"] == 36
             r = await c.get("/status", headers=h)
             assert r.status == 200 and (await r.json())["shed"]["history"] == 36
@@ -572,24 +585,12 @@ def test_history_requests_beyond_the_running_ones_wait_in_a_bounded_room(dic, mo
     """An Open MCT page asks for the history of every object it shows at once: beyond the
     requests being answered (4) up to MAX_HISTORY_WAITING wait for a place and are answered
     in turn; only past that room is a request shed (503, a JSON body, Retry-After)."""
-    from aiohttp.test_utils import TestClient, TestServer
 
     gate = _hold_history(monkeypatch)
 
     async def go():
-        gw = gateway(dic)
-        gw.max_waiting["history"] = 10
-        for i in range(20):
-            gw.ingest("hub_loads", json.dumps({**HUB, "seq": i, "t": 1.0 + i / 200}).encode())
-        async with TestClient(TestServer(gw.app(), host="127.0.0.1")) as c:
-            gw.hosts = allowed_hosts("127.0.0.1", c.server.port)
-            h = {"Host": f"127.0.0.1:{c.server.port}"}
-            tasks = [asyncio.create_task(c.get("/api/history?id=hub.H.Z", headers=h))
-                     for _ in range(20)]
-            for _ in range(2000):
-                if gw.busy["history"] == 4 and gw.waiting["history"] == 10:
-                    break
-                await asyncio.sleep(0.01)
+        async with _history_burst(dic, 10, 20, 20, lambda gw: gw.busy["history"] == 4
+                                  and gw.waiting["history"] == 10) as (gw, c, h, tasks):
             assert (gw.busy["history"], gw.waiting["history"]) == (4, 10)
             gate.set()
             rs = await asyncio.gather(*tasks)
