@@ -120,3 +120,18 @@ def test_each_verdict_carries_the_limit_its_test_used():
     assert ok.verdict.limit == pytest.approx(chi2.ppf(0.99, ok.gate_dof))
     d = ok.to_dict()
     assert type(d["mode"]) is str and type(d["detail"]) is str and d["reason"] is None
+
+
+def test_a_held_window_reads_held_in_the_demo_view_and_listen():
+    """A known-load window too weak on its own, its information kept for the next runs, is
+    'held' where the views name the last run, not 'rejected'; a refused one stays rejected."""
+    from rsra.daq.cli.commands.listen import _angles_table
+    from rsra.daq.cli.demo_view import _plain_last_run
+
+    held = {"accepted": False, "mode": "known_loads", "content": "static",
+            "reason": "not_identifiable", "detail": "information_ratio", "determined": 14,
+            "names": ["a"] * 14}
+    assert " held, 14/14 determined" in _plain_last_run(held)
+    assert "held, 14 of 14 determined" in str(_angles_table(held).title)
+    refused = {**held, "reason": "inconsistent", "detail": "gate"}
+    assert "rejected (inconsistent)" in _plain_last_run(refused)

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from rsra.config.units import axis_units, to_units
+from rsra.estimator.verdict import held_window
 
 if TYPE_CHECKING:
     from rich.console import RenderableType
@@ -373,7 +374,8 @@ def _plain_hub_rows(v: View, units: str) -> list[str]:
 
 def _plain_last_run(last: dict) -> str:
     accepted = last.get("accepted")
-    verdict = "accepted" if accepted else f"rejected ({last.get('reason')})"
+    verdict = ("accepted" if accepted else "held" if held_window(last)
+               else f"rejected ({last.get('reason')})")
     why = "" if accepted or not last.get("explanation") else f": {last['explanation']}"
     return (f"  last run: {last.get('mode')}/{last.get('content')} {verdict}, "
             f"{last.get('determined')}/{len(last.get('names') or [])} determined{why}")

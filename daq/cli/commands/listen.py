@@ -23,6 +23,7 @@ from rsra.config.units import axis_units, to_units
 from rsra.daq.jsonout import dumps
 from rsra.daq.cli.whose import Whose
 from rsra.daq.payload_guard import printable
+from rsra.estimator.verdict import held_window
 
 if TYPE_CHECKING:
     from rich.console import RenderableType
@@ -203,7 +204,8 @@ def _angles_table(a: dict):
     from rich.table import Table
 
     names = a.get("names") or []
-    verdict = "accepted" if a.get("accepted") else f"rejected ({_text(a.get('reason'))})"
+    verdict = ("accepted" if a.get("accepted") else "held" if held_window(a)
+               else f"rejected ({_text(a.get('reason'))})")
     at = Table(title=f"angles — {_text(a.get('mode'))} / {_text(a.get('content'))}: "
                f"{verdict}, {_text(a.get('determined'))} of {len(names)} determined")
     at.add_column("angle")
