@@ -447,3 +447,33 @@ def test_campaign_calibrate_pools_the_recordings_a_campaign_run_wrote(tmp_path, 
     assert post.is_file()
     assert main(["angles", "show", str(post)]) == 0
     assert "delta_A" in capsys.readouterr().out
+
+
+def test_a_run_killed_before_its_manifest_leaves_a_dataset_the_next_run_takes(tmp_path):
+    """A first `campaign run` killed outright (no manifest yet) leaves its lock file, task
+    staging folders and temporary partition files: the next run takes the folder as the
+    dataset rsra started and removes those by their names; a folder rsra never locked is
+    still refused, and a file not named as ours is never touched."""
+    from rsra.daq.campaign import dataset as ds
+    from rsra.daq.campaign.dataset import CampaignError
+
+    d = tmp_path / "ds"
+    d.mkdir()
+    with ds.DatasetLock(d):
+        pass  # the killed run's lock
+    part = d / "hub_loads" / "recording=r1-7b3691ef"
+    stale = part / ".part.parquet.rsra-tmp.12494.chfa09yl.tmp"
+    stale.parent.mkdir(parents=True)
+    stale.write_bytes(b"half")
+    staging = d / ".r1-7b3691ef.6ri8qmot"
+    staging.mkdir()
+    theirs = part / "notes.txt"
+    theirs.write_text("mine")
+    ds.check_dataset(d)  # not refused
+    with ds.DatasetLock(d):
+        assert not stale.exists() and not staging.exists() and theirs.read_text() == "mine"
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "_lock").write_text("")
+    with pytest.raises(CampaignError, match="no manifest.parquet"):
+        ds.check_dataset(other)

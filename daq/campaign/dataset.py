@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import fcntl
 import os
+import re
 import shutil
 from collections.abc import Iterable
 from pathlib import Path
@@ -58,11 +59,45 @@ def check_dataset(path: Path) -> None:
     if not any(path.iterdir()):
         return
     m = path / MANIFEST
-    if not m.is_file():
+    if not m.is_file() and not started_by_rsra(path):
         raise CampaignError(f"--dataset {path}: a folder with other files and no "
                             f"{MANIFEST}; fix: give a new or empty folder, or a dataset "
                             "`rsra campaign run` wrote")
-    read_manifest(path)
+    if m.is_file():
+        read_manifest(path)
+
+
+#: what the lock file of a dataset `campaign run` writes says (a first run stopped before
+#: its manifest leaves a dataset known by it)
+LOCK_TAG = b"rsra campaign dataset\n"
+_STALE_FILE = re.compile(r"^\.part\.parquet\.rsra-tmp\.\d+\.[A-Za-z0-9_]+\.tmp$")
+_STALE_STAGING = re.compile(r"^\.[A-Za-z0-9_.-]+\.[A-Za-z0-9_]{8}$")
+
+
+def started_by_rsra(path: Path) -> bool:
+    """A folder whose lock file a `campaign run` wrote (one stopped before its manifest)."""
+    try:
+        with open(path / LOCK, "rb") as f:
+            return f.read(len(LOCK_TAG)) == LOCK_TAG
+    except OSError:
+        return False
+
+
+def remove_stale(path: Path) -> int:
+    """Under the lock: the temporary files and staging folders of tasks that never finished
+    (a run killed outright), by the names only our writers give them; returns how many."""
+    n = 0
+    for p in path.iterdir():
+        if p.is_dir() and not p.is_symlink() and _STALE_STAGING.match(p.name):
+            shutil.rmtree(p, ignore_errors=True)
+            n += 1
+    for table in tables_of(path):
+        for part in (path / table).glob("recording=*"):
+            for p in part.iterdir():
+                if p.is_file() and not p.is_symlink() and _STALE_FILE.match(p.name):
+                    p.unlink(missing_ok=True)
+                    n += 1
+    return n
 
 
 def read_manifest(path: Path) -> dict[str, dict[str, Any]]:
@@ -142,6 +177,9 @@ class DatasetLock:
             self.fd = None
             raise CampaignError(f"--dataset {self.path.parent}: another `rsra campaign run` "
                                 "is writing it; fix: wait for it to finish") from None
+        os.ftruncate(self.fd, 0)
+        os.pwrite(self.fd, LOCK_TAG, 0)
+        remove_stale(self.path.parent)
         return self
 
     def __exit__(self, *exc: object) -> None:
